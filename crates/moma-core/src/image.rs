@@ -1,0 +1,190 @@
+//! Typed image buffers: sizes, masks, predictions (unitless) and metric depth (metres).
+//!
+//! All maps are `ndarray::Array2<f32>` with shape `(height, width)`, row-major; pixel
+//! `(u, v)` = (column, row) is element `[[v, u]]`.
+
+use ndarray::{Array2, ArrayView2};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{CoreError, Result};
+
+/// Width and height of an image in pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct ImageSize {
+    /// Number of columns (pixels).
+    pub width: usize,
+    /// Number of rows (pixels).
+    pub height: usize,
+}
+
+impl ImageSize {
+    /// Creates a size; `width` and `height` in pixels.
+    pub const fn new(width: usize, height: usize) -> Self {
+        Self { width, height }
+    }
+    /// Number of pixels, `width * height`.
+    pub const fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+    /// The size of an `(height, width)` array.
+    pub fn of<T>(a: &ArrayView2<'_, T>) -> Self {
+        Self::new(a.ncols(), a.nrows())
+    }
+    /// `ndarray` shape `(height, width)`.
+    pub const fn shape(&self) -> (usize, usize) {
+        (self.height, self.width)
+    }
+    /// Errors with [`CoreError::SizeMismatch`] unless `got == self`.
+    pub fn expect_eq(&self, what: &'static str, got: ImageSize) -> Result<()> {
+        if *self == got {
+            Ok(())
+        } else {
+            Err(CoreError::SizeMismatch {
+                what,
+                expected: *self,
+                got,
+            })
+        }
+    }
+}
+
+impl std::fmt::Display for ImageSize {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}x{} (WxH)", self.width, self.height)
+    }
+}
+
+/// `true` for a usable metric depth value: finite and strictly positive (metres).
+#[inline]
+pub fn is_valid_depth(z: f32) -> bool {
+    z.is_finite() && z > 0.0
+}
+
+/// A binary region of an image (`true` = inside), e.g. the objects to evaluate or a workspace.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mask {
+    data: Array2<bool>,
+}
+
+impl Mask {
+    /// Wraps a `(height, width)` boolean array.
+    pub fn new(data: Array2<bool>) -> Self {
+        Self { data }
+    }
+    /// A mask with every pixel inside.
+    pub fn full(size: ImageSize) -> Self {
+        Self::new(Array2::from_elem(size.shape(), true))
+    }
+    /// Builds a mask from a row-major buffer of `width * height` values.
+    ///
+    /// # Errors
+    /// [`CoreError::BufferLength`] when the buffer does not match `size`.
+    pub fn from_vec(size: ImageSize, data: Vec<bool>) -> Result<Self> {
+        let len = data.len();
+        Array2::from_shape_vec(size.shape(), data)
+            .map(Self::new)
+            .map_err(|_| CoreError::BufferLength {
+                len,
+                size,
+                expected: size.pixels(),
+            })
+    }
+    /// The image size.
+    pub fn size(&self) -> ImageSize {
+        ImageSize::of(&self.data.view())
+    }
+    /// The `(height, width)` array.
+    pub fn data(&self) -> &Array2<bool> {
+        &self.data
+    }
+    /// Number of pixels inside.
+    pub fn count(&self) -> usize {
+        self.data.iter().filter(|&&b| b).count()
+    }
+    /// Pixel-wise AND of two masks of equal size.
+    ///
+    /// # Errors
+    /// [`CoreError::SizeMismatch`] on different sizes.
+    pub fn and(&self, other: &Mask) -> Result<Mask> {
+        self.size().expect_eq("mask", other.size())?;
+        Ok(Mask::new(ndarray::Zip::from(&self.data).and(&other.data).map_collect(|&a, &b| a && b)))
+    }
+}
+
+/// What a depth model's output means. Kept explicit so that inverse depth is never aligned as depth by accident.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PredictionKind {
+    /// Larger = farther (metric models, or relative depth).
+    Depth,
+    /// Larger = nearer: disparity / inverse depth (Depth Anything relative models).
+    InverseDepth,
+}
+
+impl std::fmt::Display for PredictionKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Depth => "depth",
+            Self::InverseDepth => "inverse-depth",
+        })
+    }
+}
+
+impl std::str::FromStr for PredictionKind {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "depth" => Ok(Self::Depth),
+            "inverse-depth" | "inverse_depth" | "disparity" => Ok(Self::InverseDepth),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown prediction kind '{other}' (expected 'depth' or 'inverse-depth')"
+            ))),
+        }
+    }
+}
+
+/// A depth model's raw output: unitless (or metres for a metric head, but not yet trusted as such).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prediction {
+    /// `(height, width)` values as the model produced them.
+    pub values: Array2<f32>,
+    /// What the values mean.
+    pub kind: PredictionKind,
+}
+
+impl Prediction {
+    /// Wraps a map with its kind.
+    pub fn new(values: Array2<f32>, kind: PredictionKind) -> Self {
+        Self { values, kind }
+    }
+    /// The image size.
+    pub fn size(&self) -> ImageSize {
+        ImageSize::of(&self.values.view())
+    }
+}
+
+/// Metric depth in metres along the optical axis; invalid pixels are `NaN` (or `0` when read from a sensor).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MetricDepth {
+    /// `(height, width)` depth in metres.
+    pub depth_m: Array2<f32>,
+}
+
+impl MetricDepth {
+    /// Wraps a `(height, width)` map of metres.
+    pub fn new(depth_m: Array2<f32>) -> Self {
+        Self { depth_m }
+    }
+    /// The image size.
+    pub fn size(&self) -> ImageSize {
+        ImageSize::of(&self.depth_m.view())
+    }
+    /// Mask of pixels holding a valid depth ([`is_valid_depth`]).
+    pub fn valid_mask(&self) -> Mask {
+        Mask::new(self.depth_m.mapv(is_valid_depth))
+    }
+    /// Number of valid pixels.
+    pub fn valid_count(&self) -> usize {
+        self.depth_m.iter().filter(|&&z| is_valid_depth(z)).count()
+    }
+}

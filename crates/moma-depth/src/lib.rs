@@ -1,0 +1,93 @@
+//! # moma-depth — Depth Anything V2 as a MOMA prediction source
+//!
+//! One [`DepthModel`] interface, shared exact pre/post-processing ([`preprocess`]), and backends:
+//! candle (pure Rust, default feature `candle`; `cuda` / `metal` passed through) and ONNX Runtime
+//! (feature `onnx`, runtime library loaded dynamically).
+//!
+//! CONTRACT between the work items: keep [`DepthModel`], [`ModelSpec`] and the [`preprocess`]
+//! function names; backends live in their own modules.
+
+pub mod error;
+pub mod preprocess;
+
+pub use error::{DepthError, Result};
+
+use moma_core::{Prediction, PredictionKind};
+use ndarray::{Array2, Array3};
+use serde::{Deserialize, Serialize};
+
+/// Backbone size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backbone {
+    /// ViT-S (embed 384, depth 12, 6 heads).
+    Vits,
+    /// ViT-B (embed 768, depth 12, 12 heads).
+    Vitb,
+    /// ViT-L (embed 1024, depth 24, 16 heads).
+    Vitl,
+}
+
+/// Output head.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase", tag = "head")]
+pub enum Head {
+    /// Relative head: ReLU, inverse depth (arbitrary scale).
+    Relative,
+    /// Metric head: Sigmoid × `max_depth_m`, depth in metres.
+    Metric {
+        /// Largest representable depth, metres (20 indoor, 80 outdoor).
+        max_depth_m: f32,
+    },
+}
+
+impl Head {
+    /// The kind of map this head predicts.
+    pub fn prediction_kind(&self) -> PredictionKind {
+        match self {
+            Self::Relative => PredictionKind::InverseDepth,
+            Self::Metric { .. } => PredictionKind::Depth,
+        }
+    }
+}
+
+/// Which network a backend runs: backbone, head and pre-processing size.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ModelSpec {
+    /// Backbone.
+    pub backbone: Backbone,
+    /// Head.
+    pub head: Head,
+    /// Lower bound of the network input's short side, pixels (518 by default; multiple of 14).
+    pub input_size: usize,
+}
+
+/// A monocular depth model: RGB in, a [`Prediction`] (with its kind) out, at the image's resolution.
+pub trait DepthModel {
+    /// What the model is.
+    fn spec(&self) -> ModelSpec;
+
+    /// Runs the network on a pre-processed input `(3, H, W)` (ImageNet-normalised RGB, H and W
+    /// multiples of 14) and returns the raw output `(H, W)` at network resolution.
+    ///
+    /// # Errors
+    /// Shape errors and backend failures.
+    fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>>;
+
+    /// RGB image (8-bit) → prediction at the image's size: [`preprocess::preprocess`] →
+    /// [`DepthModel::forward_net`] → [`preprocess::resize_bilinear_align_corners`].
+    ///
+    /// # Errors
+    /// As [`DepthModel::forward_net`].
+    fn predict(&mut self, rgb: &image::RgbImage) -> Result<Prediction> {
+        let spec = self.spec();
+        let input = preprocess::preprocess(rgb, spec.input_size)?;
+        let net = self.forward_net(&input)?;
+        let full = preprocess::resize_bilinear_align_corners(
+            &net.view(),
+            rgb.height() as usize,
+            rgb.width() as usize,
+        );
+        Ok(Prediction::new(full, spec.head.prediction_kind()))
+    }
+}

@@ -1,0 +1,1 @@
+//! moma-eval (work in progress)

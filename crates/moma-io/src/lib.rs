@@ -1,0 +1,1 @@
+//! moma-io (work in progress)
