@@ -1,1 +1,64 @@
-fn main() {}
+//! `moma`: monocular one-shot metric-depth alignment from the command line.
+//!
+//! Calibrate once from one RGB-D frame, then turn every RGB-only frame of the same fixed camera
+//! into metric depth. Each subcommand lives in its own module under `cmd/`; this file only parses
+//! and dispatches.
+
+mod cmd;
+
+use clap::{Parser, Subcommand};
+
+/// Metric depth from one RGB camera: calibrate once from one RGB-D frame, align every later frame.
+#[derive(Debug, Parser)]
+#[command(
+    name = "moma",
+    version,
+    about,
+    after_help = "Start with `moma demo` (no data needed), then see `moma <command> --help`.\n\
+Depth maps: uint16 PNG in millimetres (0 = no depth), float32 .npy in metres, or PFM."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Fit an alignment from one frame's prediction and ground-truth depth; write calib.json.
+    Calibrate(cmd::calibrate::CalibrateArgs),
+    /// Apply a calibration to predictions (or RGB images): metric depth, colour maps, point clouds.
+    Align(cmd::align::AlignArgs),
+    /// Depth metrics (δ1.05, δ1.10, δ1.25, REL, RMSE, MAE) of a metric depth map against ground truth.
+    Metrics(cmd::metrics::MetricsArgs),
+    /// Run Depth Anything V2 on RGB images and write the raw predictions.
+    Predict(cmd::predict::PredictArgs),
+    /// Write simulated depth-model predictions for a moma set (labelled "simulated").
+    Simulate(cmd::simulate::SimulateArgs),
+    /// Evaluate alignment methods on moma sets (calibrate on one frame, score all others).
+    Eval(cmd::eval::EvalArgs),
+    /// Ablations: number of samples, normalisation, prediction source, transparent objects.
+    Ablate(cmd::ablate::AblateArgs),
+    /// The whole idea in one command on a bundled procedural scene (or on a real set).
+    Demo(cmd::demo::DemoArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let result = match &cli.command {
+        Command::Calibrate(args) => cmd::calibrate::run(args),
+        Command::Align(args) => cmd::align::run(args),
+        Command::Metrics(args) => cmd::metrics::run(args),
+        Command::Predict(args) => cmd::predict::run(args),
+        Command::Simulate(args) => cmd::simulate::run(args),
+        Command::Eval(args) => cmd::eval::run(args),
+        Command::Ablate(args) => cmd::ablate::run(args),
+        Command::Demo(args) => cmd::demo::run(args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

@@ -61,7 +61,9 @@ impl Intrinsics {
             ("cy", self.cy, false),
         ] {
             if !v.is_finite() || (positive && v <= 0.0) {
-                return Err(CoreError::InvalidParameter(format!("camera {name} = {v} is not valid")));
+                return Err(CoreError::InvalidParameter(format!(
+                    "camera {name} = {v} is not valid"
+                )));
             }
         }
         Ok(())
@@ -71,7 +73,11 @@ impl Intrinsics {
     /// `[x, y, z]` in metres (x right, y down, z forward).
     #[inline]
     pub fn backproject(&self, u: f64, v: f64, z_m: f64) -> [f64; 3] {
-        [(u - self.cx) * z_m / self.fx, (v - self.cy) * z_m / self.fy, z_m]
+        [
+            (u - self.cx) * z_m / self.fx,
+            (v - self.cy) * z_m / self.fy,
+            z_m,
+        ]
     }
 }
 

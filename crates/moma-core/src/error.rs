@@ -23,7 +23,9 @@ pub enum CoreError {
         expected: usize,
     },
     /// A prediction map holds NaN or infinite values.
-    #[error("prediction holds {count} non-finite value(s) (NaN/inf), first at pixel (u={u}, v={v})")]
+    #[error(
+        "prediction holds {count} non-finite value(s) (NaN/inf), first at pixel (u={u}, v={v})"
+    )]
     NonFinitePrediction { count: usize, u: usize, v: usize },
     /// No valid pixel where one is needed (all-invalid ground truth, empty mask, ...).
     #[error("no valid pixel: {0}")]
@@ -41,6 +43,15 @@ pub enum CoreError {
     /// A parameter is outside its meaningful range.
     #[error("invalid parameter: {0}")]
     InvalidParameter(String),
+    /// A calibration sample holds a non-finite prediction or an invalid ground-truth depth.
+    #[error("invalid calibration sample #{index}: {reason}")]
+    InvalidSample { index: usize, reason: String },
+    /// A prediction of one kind was given to a calibration fitted on another kind.
+    #[error("prediction kind mismatch: calibration was fitted on '{expected}', got '{got}'")]
+    KindMismatch {
+        expected: crate::image::PredictionKind,
+        got: crate::image::PredictionKind,
+    },
 }
 
 /// Result alias of `moma-core`.

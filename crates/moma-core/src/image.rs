@@ -107,7 +107,11 @@ impl Mask {
     /// [`CoreError::SizeMismatch`] on different sizes.
     pub fn and(&self, other: &Mask) -> Result<Mask> {
         self.size().expect_eq("mask", other.size())?;
-        Ok(Mask::new(ndarray::Zip::from(&self.data).and(&other.data).map_collect(|&a, &b| a && b)))
+        Ok(Mask::new(
+            ndarray::Zip::from(&self.data)
+                .and(&other.data)
+                .map_collect(|&a, &b| a && b),
+        ))
     }
 }
 

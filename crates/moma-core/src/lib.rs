@@ -14,6 +14,7 @@ pub mod align;
 pub mod camera;
 pub mod error;
 pub mod image;
+mod kernels;
 pub mod metrics;
 pub mod normalise;
 pub mod pipeline;

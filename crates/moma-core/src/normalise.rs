@@ -1,12 +1,11 @@
 //! Normalisation of a depth model's output (METHOD.md §1).
 //!
-//! CONTRACT (implemented by the core work item): keep these names and signatures.
 
 use ndarray::Array2;
 use serde::{Deserialize, Serialize};
 
-use crate::error::Result;
-use crate::image::{Mask, Prediction};
+use crate::error::{CoreError, Result};
+use crate::image::{Mask, Prediction, PredictionKind};
 
 /// How a prediction map is normalised before alignment.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
@@ -58,14 +57,161 @@ pub struct NormalisedMap {
 
 /// Normalises `pred` per METHOD.md §1 over its valid pixels, or over `region` when given.
 ///
+/// Steps, in this order:
+/// 1. Every value of `pred` must be finite (else [`CoreError::NonFinitePrediction`] with the count
+///    and the first offending pixel in row-major order).
+/// 2. For [`PredictionKind::InverseDepth`] (unless `config.inverse_space`): `z = 1/d` for `d > 0`,
+///    `NaN` for `d ≤ 0` (no depth can be inferred there). Otherwise `z = d`.
+/// 3. Statistics over the *valid* pixels (finite `z`) of the whole map, or of `region` only:
+///    `z_min`, `z_max`, `n`, and for `median` also `m` = median (mean of the two middle values for
+///    even `n`, found in O(n) with `select_nth_unstable`) and `μ = mean |z − m|`.
+/// 4. Every pixel of the map (inside the region or not) is mapped with the formula:
+///    - `minmax` (paper): `ẑ = (z − z_min)/(z_max − z_min) + z_min`,
+///    - `minmax-unit` (authors' code): `ẑ = (z − z_min)/(z_max − z_min)`,
+///    - `median`: `ẑ = (z − m)/μ`,
+///    - `none`: `ẑ = z`.
+///
+/// `NaN` pixels (from step 2) stay `NaN`. Values are unitless (the input's units cancel for the
+/// min-max and median forms; `minmax`'s `+ z_min` keeps the input's unit offset, as the paper does).
+///
 /// # Errors
-/// NaN/inf in the prediction, size mismatch with `region`, no valid pixel in the region,
-/// degenerate statistics (z_max = z_min, μ = 0).
+/// - [`CoreError::NonFinitePrediction`]: NaN/inf in the prediction;
+/// - [`CoreError::SizeMismatch`]: `region` and `pred` differ in size;
+/// - [`CoreError::NoValidPixels`]: no valid pixel in the map / region;
+/// - [`CoreError::Degenerate`]: `z_max = z_min` (min-max forms) or `μ = 0` (median).
+///
+/// # Example
+/// ```
+/// use moma_core::normalise::{normalise, Normalisation, NormalisationConfig};
+/// use moma_core::{Prediction, PredictionKind};
+/// let pred = Prediction::new(ndarray::array![[1.0f32, 2.0], [3.0, 5.0]], PredictionKind::Depth);
+/// let cfg = NormalisationConfig { method: Normalisation::MinmaxUnit, inverse_space: false };
+/// let n = normalise(&pred, &cfg, None).unwrap();
+/// assert_eq!(n.values, ndarray::array![[0.0f32, 0.25], [0.5, 1.0]]);
+/// ```
 pub fn normalise(
     pred: &Prediction,
     config: &NormalisationConfig,
     region: Option<&Mask>,
 ) -> Result<NormalisedMap> {
-    let _ = (pred, config, region);
-    todo!("core work item")
+    let size = pred.size();
+    if let Some(r) = region {
+        size.expect_eq("normalisation region", r.size())?;
+    }
+    // 1. non-finite check over the whole map.
+    let mut bad = 0usize;
+    let mut first = None;
+    for ((v, u), &d) in pred.values.indexed_iter() {
+        if !d.is_finite() {
+            bad += 1;
+            if first.is_none() {
+                first = Some((u, v));
+            }
+        }
+    }
+    if let Some((u, v)) = first {
+        return Err(CoreError::NonFinitePrediction { count: bad, u, v });
+    }
+    // 2. kind conversion.
+    let invert = pred.kind == PredictionKind::InverseDepth && !config.inverse_space;
+    let z: Array2<f32> = if invert {
+        pred.values
+            .mapv(|d| if d > 0.0 { 1.0 / d } else { f32::NAN })
+    } else {
+        pred.values.clone()
+    };
+    // 3. statistics over the valid pixels of the map or region.
+    let mut vals: Vec<f32> = Vec::new();
+    let need_values = config.method == Normalisation::Median;
+    let (mut min, mut max, mut n) = (f32::INFINITY, f32::NEG_INFINITY, 0usize);
+    let mut visit = |x: f32| {
+        if x.is_finite() {
+            min = min.min(x);
+            max = max.max(x);
+            n += 1;
+            if need_values {
+                vals.push(x);
+            }
+        }
+    };
+    match region {
+        Some(r) => {
+            for (&x, &inside) in z.iter().zip(r.data().iter()) {
+                if inside {
+                    visit(x);
+                }
+            }
+        }
+        None => z.iter().for_each(|&x| visit(x)),
+    }
+    if n == 0 {
+        return Err(CoreError::NoValidPixels(match region {
+            Some(_) => "the normalisation region holds no valid prediction pixel".into(),
+            None => "the prediction holds no valid pixel".into(),
+        }));
+    }
+    let (min, max) = (f64::from(min), f64::from(max));
+    let (median, mad) = if need_values {
+        median_mad(&mut vals)
+    } else {
+        (f64::NAN, f64::NAN)
+    };
+    let stats = NormStats {
+        min,
+        max,
+        median,
+        mad,
+        n,
+    };
+    // 4. the affine map ẑ = a·z + b.
+    let (a, b) = match config.method {
+        Normalisation::Minmax | Normalisation::MinmaxUnit => {
+            let range = max - min;
+            if range.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) || !range.is_finite() {
+                return Err(CoreError::Degenerate(format!(
+                    "constant prediction: z_max = z_min = {min} over {n} pixel(s); min-max normalisation is undefined"
+                )));
+            }
+            let offset = if config.method == Normalisation::Minmax {
+                min
+            } else {
+                0.0
+            };
+            (1.0 / range, offset - min / range)
+        }
+        Normalisation::Median => {
+            if mad.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) || !mad.is_finite() {
+                return Err(CoreError::Degenerate(format!(
+                    "mean absolute deviation from the median ({median}) is 0 over {n} pixel(s); median normalisation is undefined"
+                )));
+            }
+            (1.0 / mad, -median / mad)
+        }
+        Normalisation::None => (1.0, 0.0),
+    };
+    let values = if config.method == Normalisation::None {
+        z
+    } else {
+        let mut z = z;
+        z.mapv_inplace(|x| (a * f64::from(x) + b) as f32);
+        z
+    };
+    Ok(NormalisedMap { values, stats })
+}
+
+/// Median (mean of the two middle values for even length) and mean absolute deviation from it,
+/// in O(n) expected time. `vals` is reordered. Requires `vals` non-empty and NaN-free.
+fn median_mad(vals: &mut [f32]) -> (f64, f64) {
+    let n = vals.len();
+    let mid = n / 2;
+    let (lower, &mut upper_mid, _) = vals.select_nth_unstable_by(mid, f32::total_cmp);
+    let median = if n % 2 == 1 {
+        f64::from(upper_mid)
+    } else {
+        // the largest value of the lower half is the other middle value
+        let lower_mid = lower.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        0.5 * (f64::from(lower_mid) + f64::from(upper_mid))
+    };
+    let sum: f64 = vals.iter().map(|&x| (f64::from(x) - median).abs()).sum();
+    (median, sum / n as f64)
 }

@@ -1,14 +1,13 @@
 //! The common path in one place: calibrate from one frame, align later frames.
 //!
-//! CONTRACT (implemented by the core work item): keep these names and signatures.
 
 use serde::{Deserialize, Serialize};
 
 use crate::align::{AlignmentModel, FitReport, Method, SampleSet};
-use crate::error::Result;
+use crate::error::{CoreError, Result};
 use crate::image::{Mask, MetricDepth, Prediction, PredictionKind};
-use crate::normalise::NormalisationConfig;
-use crate::sampling::SamplingConfig;
+use crate::normalise::{NormalisationConfig, normalise};
+use crate::sampling::{SamplingConfig, sample_pixels};
 
 /// Everything a calibration decides.
 #[derive(Debug, Clone, PartialEq)]
@@ -48,8 +47,19 @@ pub fn calibrate(
     workspace: Option<&Mask>,
     sample_region: Option<&Mask>,
 ) -> Result<Calibration> {
-    let _ = (pred, gt, config, workspace, sample_region);
-    todo!("core work item")
+    let size = pred.size();
+    size.expect_eq("ground truth", gt.size())?;
+    let normalised = normalise(pred, &config.normalisation, workspace)?;
+    let pixels = sample_pixels(gt, &config.sampling, sample_region)?;
+    let samples = SampleSet::gather(&normalised, gt, &pixels)?;
+    let (model, report) = config.method.fit(&samples)?;
+    Ok(Calibration {
+        normalisation: config.normalisation,
+        prediction_kind: pred.kind,
+        model,
+        report,
+        samples,
+    })
 }
 
 impl Calibration {
@@ -58,7 +68,16 @@ impl Calibration {
     /// # Errors
     /// Kind or size mismatch with the calibration, normalisation errors.
     pub fn align(&self, pred: &Prediction, workspace: Option<&Mask>) -> Result<MetricDepth> {
-        let _ = (pred, workspace);
-        todo!("core work item")
+        if pred.kind != self.prediction_kind {
+            return Err(CoreError::KindMismatch {
+                expected: self.prediction_kind,
+                got: pred.kind,
+            });
+        }
+        self.samples
+            .image_size
+            .expect_eq("prediction", pred.size())?;
+        let normalised = normalise(pred, &self.normalisation, workspace)?;
+        self.model.apply(normalised.values.view())
     }
 }

@@ -1,11 +1,13 @@
 //! Seeded choice of the n calibration pixels (METHOD.md §2).
 //!
-//! CONTRACT (implemented by the core work item): keep these names and signatures.
 
+use ndarray::Array2;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::error::Result;
-use crate::image::{Mask, MetricDepth};
+use crate::error::{CoreError, Result};
+use crate::image::{Mask, MetricDepth, is_valid_depth};
 
 /// How calibration pixels are chosen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
@@ -51,13 +53,157 @@ pub struct Pixel {
 /// Chooses up to `config.n` distinct pixels with valid ground truth (inside `restrict` when given).
 /// Returns fewer only when fewer valid pixels exist (the fit then decides whether that is enough).
 ///
+/// A pixel is *eligible* when its ground truth is valid ([`crate::is_valid_depth`]) and it lies
+/// inside `restrict` (when given).
+///
+/// - [`SamplingStrategy::Random`]: `min(n, eligible)` pixels uniformly without replacement, drawn
+///   with `ChaCha8Rng::seed_from_u64(seed)` via `rand::seq::index::sample` over the eligible pixels
+///   in row-major order. Deterministic for a seed; the output is in draw order.
+/// - [`SamplingStrategy::Grid`] (BoostingDepth): `k = ⌊√n⌋` (at least 1) nodes per axis, placed at
+///   the centres of a `k × k` partition of the image: node `(i, j)` sits at
+///   `u_i = (i + ½)·W/k − ½`, `v_j = (j + ½)·H/k − ½` (pixels; evenly spread, symmetric about
+///   the image centre). Each node is snapped to the nearest eligible pixel (Euclidean distance;
+///   ties go to the smaller row, then smaller column). Nodes that snap to the same pixel are
+///   kept once, so the result can hold fewer than `k²` pixels; order is row-major over nodes.
+///   The seed is not used.
+///
 /// # Errors
 /// No valid pixel; size mismatch between `gt` and `restrict`; `n == 0`.
+///
+/// # Example
+/// ```
+/// use moma_core::sampling::{sample_pixels, SamplingConfig};
+/// use moma_core::MetricDepth;
+/// let gt = MetricDepth::new(ndarray::Array2::from_elem((4, 5), 1.0f32));
+/// let px = sample_pixels(&gt, &SamplingConfig { n: 3, ..Default::default() }, None).unwrap();
+/// assert_eq!(px.len(), 3);
+/// ```
 pub fn sample_pixels(
     gt: &MetricDepth,
     config: &SamplingConfig,
     restrict: Option<&Mask>,
 ) -> Result<Vec<Pixel>> {
-    let _ = (gt, config, restrict);
-    todo!("core work item")
+    if config.n == 0 {
+        return Err(CoreError::InvalidParameter(
+            "number of calibration samples n must be at least 1".into(),
+        ));
+    }
+    let size = gt.size();
+    if let Some(r) = restrict {
+        size.expect_eq("sampling mask", r.size())?;
+    }
+    let eligible = eligible_mask(gt, restrict);
+    match config.strategy {
+        SamplingStrategy::Random => sample_random(&eligible, config.n, config.seed),
+        SamplingStrategy::Grid => sample_grid(&eligible, config.n),
+    }
+}
+
+fn eligible_mask(gt: &MetricDepth, restrict: Option<&Mask>) -> Array2<bool> {
+    match restrict {
+        Some(r) => ndarray::Zip::from(&gt.depth_m)
+            .and(r.data())
+            .map_collect(|&z, &m| m && is_valid_depth(z)),
+        None => gt.depth_m.mapv(is_valid_depth),
+    }
+}
+
+fn no_valid() -> CoreError {
+    CoreError::NoValidPixels(
+        "ground truth holds no valid depth (inside the sampling mask, if any)".into(),
+    )
+}
+
+fn sample_random(eligible: &Array2<bool>, n: usize, seed: u64) -> Result<Vec<Pixel>> {
+    let valid: Vec<Pixel> = eligible
+        .indexed_iter()
+        .filter(|(_, ok)| **ok)
+        .map(|((v, u), _)| Pixel {
+            u: u as u32,
+            v: v as u32,
+        })
+        .collect();
+    if valid.is_empty() {
+        return Err(no_valid());
+    }
+    if n >= valid.len() {
+        return Ok(valid);
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    Ok(rand::seq::index::sample(&mut rng, valid.len(), n)
+        .into_iter()
+        .map(|i| valid[i])
+        .collect())
+}
+
+fn sample_grid(eligible: &Array2<bool>, n: usize) -> Result<Vec<Pixel>> {
+    let (h, w) = eligible.dim();
+    if !eligible.iter().any(|&b| b) {
+        return Err(no_valid());
+    }
+    let k = ((n as f64).sqrt().floor() as usize).max(1);
+    let mut out: Vec<Pixel> = Vec::with_capacity(k * k);
+    for j in 0..k {
+        let vn = (j as f64 + 0.5) * h as f64 / k as f64 - 0.5;
+        for i in 0..k {
+            let un = (i as f64 + 0.5) * w as f64 / k as f64 - 0.5;
+            if let Some(p) = nearest_eligible(eligible, un, vn)
+                && !out.contains(&p)
+            {
+                out.push(p);
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Nearest eligible pixel to the real position `(un, vn)`, searching square rings of growing
+/// Chebyshev radius around the closest pixel until no closer pixel can exist.
+fn nearest_eligible(eligible: &Array2<bool>, un: f64, vn: f64) -> Option<Pixel> {
+    let (h, w) = eligible.dim();
+    let cu = (un.round().max(0.0) as usize).min(w - 1) as i64;
+    let cv = (vn.round().max(0.0) as usize).min(h - 1) as i64;
+    let mut best: Option<(f64, i64, i64)> = None;
+    let max_r = w.max(h) as i64;
+    for r in 0..=max_r {
+        // any pixel on ring r is at least (r - 0.5) away from (un, vn) (|un - cu| <= 0.5)
+        if let Some((d2, _, _)) = best {
+            let lower = (r as f64 - 0.5).max(0.0);
+            if lower * lower > d2 {
+                break;
+            }
+        }
+        let (v0, v1) = (cv - r, cv + r);
+        let (u0, u1) = (cu - r, cu + r);
+        for v in v0.max(0)..=v1.min(h as i64 - 1) {
+            let on_edge_row = v == v0 || v == v1;
+            let mut visit = |u: i64| {
+                if u < 0 || u >= w as i64 || !eligible[[v as usize, u as usize]] {
+                    return;
+                }
+                let d2 = (u as f64 - un).powi(2) + (v as f64 - vn).powi(2);
+                let better = match best {
+                    None => true,
+                    Some((bd, bv, bu)) => d2 < bd || (d2 == bd && (v, u) < (bv, bu)),
+                };
+                if better {
+                    best = Some((d2, v, u));
+                }
+            };
+            if on_edge_row {
+                for u in u0.max(0)..=u1.min(w as i64 - 1) {
+                    visit(u);
+                }
+            } else {
+                visit(u0);
+                if u1 != u0 {
+                    visit(u1);
+                }
+            }
+        }
+    }
+    best.map(|(_, v, u)| Pixel {
+        u: u as u32,
+        v: v as u32,
+    })
 }

@@ -7,10 +7,16 @@
 //! CONTRACT between the work items: keep [`DepthModel`], [`ModelSpec`] and the [`preprocess`]
 //! function names; backends live in their own modules.
 
+#[cfg(feature = "candle")]
+pub mod candle;
 pub mod error;
+mod loader;
+#[cfg(feature = "onnx")]
+pub mod onnx;
 pub mod preprocess;
 
 pub use error::{DepthError, Result};
+pub use loader::{Backend, load_model};
 
 use moma_core::{Prediction, PredictionKind};
 use ndarray::{Array2, Array3};

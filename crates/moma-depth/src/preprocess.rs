@@ -1,23 +1,300 @@
 //! Exact Depth Anything V2 pre- and post-processing (METHOD.md §5), pure functions.
 //!
-//! CONTRACT (implemented by the candle work item): keep these names and signatures.
+//! The official pipeline (`depth_anything_v2/dpt.py::image2tensor`, commit a561b84) is
+//!
+//! ```text
+//! image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB) / 255.0          # float64
+//! Resize(518, 518, keep_aspect_ratio=True, ensure_multiple_of=14,
+//!        resize_method="lower_bound", image_interpolation_method=cv2.INTER_CUBIC)
+//! NormalizeImage(mean=[0.485, 0.456, 0.406], std=[0.229, 0.224, 0.225])
+//! PrepareForNet()                                                 # HWC -> CHW, float32
+//! ...
+//! depth = F.interpolate(depth[:, None], (h, w), mode="bilinear", align_corners=True)
+//! ```
+//!
+//! [`preprocess`] reproduces the first four lines (OpenCV's `INTER_CUBIC` on a float image:
+//! Keys kernel a = −0.75 with weights computed in `f32`, pixel centres at +0.5, replicated
+//! borders, no antialiasing; arithmetic in `f64` as on NumPy's float64 image), and
+//! [`resize_bilinear_align_corners`] the last one.
+//!
+//! CONTRACT: keep these names and signatures (other backends call them).
 
+use moma_core::ImageSize;
 use ndarray::{Array2, Array3, ArrayView2};
 
-use crate::error::Result;
+use crate::error::{DepthError, Result};
+
+/// Patch size of the DINOv2 backbone: network input sides are multiples of it
+/// (`Resize(ensure_multiple_of=14)` in `depth_anything_v2/dpt.py`).
+pub const PATCH_SIZE: usize = 14;
+
+/// Default lower bound of both network-input sides, pixels (`input_size=518` in `dpt.py::infer_image`).
+pub const DEFAULT_INPUT_SIZE: usize = 518;
+
+/// ImageNet channel means (R, G, B) of `NormalizeImage` in `dpt.py::image2tensor`.
+pub const IMAGENET_MEAN: [f64; 3] = [0.485, 0.456, 0.406];
+
+/// ImageNet channel standard deviations (R, G, B) of `NormalizeImage` in `dpt.py::image2tensor`.
+pub const IMAGENET_STD: [f64; 3] = [0.229, 0.224, 0.225];
+
+/// Keys' cubic-convolution parameter used by OpenCV's `INTER_CUBIC` (`interpolateCubic`, `A = -0.75f`)
+/// and by PyTorch's bicubic `interpolate`.
+pub const CUBIC_A: f32 = -0.75;
+
+/// Network input size of the official `Resize(lower_bound, ensure_multiple_of=14)` for an image of
+/// `image` pixels and lower bound `input_size` (pixels).
+///
+/// Scale = max(input_size / h, input_size / w) (both sides ≥ the bound); each scaled side is rounded
+/// to the nearest multiple of [`PATCH_SIZE`] (ties to even, as `np.round`), or rounded up when that
+/// falls below `input_size`. 480×640 (h×w) at 518 → 518×686; at 392 → 392×518.
+///
+/// # Errors
+/// [`DepthError::Shape`] for an empty image or `input_size == 0`.
+///
+/// ```
+/// use moma_core::ImageSize;
+/// use moma_depth::preprocess::network_input_size;
+/// let s = network_input_size(ImageSize::new(640, 480), 518).unwrap();
+/// assert_eq!((s.height, s.width), (518, 686));
+/// ```
+pub fn network_input_size(image: ImageSize, input_size: usize) -> Result<ImageSize> {
+    if image.width == 0 || image.height == 0 || input_size == 0 {
+        return Err(DepthError::Shape(format!(
+            "cannot resize a {}x{} image to lower bound {input_size}",
+            image.width, image.height
+        )));
+    }
+    let target = input_size as f64;
+    let mut scale_h = target / image.height as f64;
+    let mut scale_w = target / image.width as f64;
+    // `get_size`: "scale such that output size is lower bound".
+    if scale_w > scale_h {
+        scale_h = scale_w;
+    } else {
+        scale_w = scale_h;
+    }
+    let constrain = |x: f64| -> usize {
+        let m = PATCH_SIZE as f64;
+        let y = (x / m).round_ties_even() * m;
+        let y = if y < target { (x / m).ceil() * m } else { y };
+        y as usize
+    };
+    Ok(ImageSize::new(
+        constrain(scale_w * image.width as f64),
+        constrain(scale_h * image.height as f64),
+    ))
+}
 
 /// RGB 8-bit → `(3, H, W)` network input: /255, lower-bound aspect-keeping resize to multiples of 14
 /// with OpenCV INTER_CUBIC semantics, ImageNet normalisation.
 ///
+/// `input_size` is the lower bound of both sides in pixels (518 for the released models); the output
+/// size is [`network_input_size`]. Channel order R, G, B; values `(x/255 − mean) / std`.
+///
 /// # Errors
 /// Empty image.
+///
+/// ```
+/// let rgb = image::RgbImage::from_pixel(64, 48, image::Rgb([128, 64, 32]));
+/// let x = moma_depth::preprocess::preprocess(&rgb, 518).unwrap();
+/// assert_eq!(x.shape(), &[3, 518, 686]);
+/// ```
 pub fn preprocess(rgb: &image::RgbImage, input_size: usize) -> Result<Array3<f32>> {
-    let _ = (rgb, input_size);
-    todo!("candle work item")
+    let src_size = ImageSize::new(rgb.width() as usize, rgb.height() as usize);
+    let dst_size = network_input_size(src_size, input_size)?;
+    let hwc: Vec<f64> = rgb.as_raw().iter().map(|&v| f64::from(v) / 255.0).collect();
+    let resized = resize_cubic_opencv_hwc3(&hwc, src_size, dst_size);
+    let (h, w) = dst_size.shape();
+    let mut out = Array3::<f32>::zeros((3, h, w));
+    for (c, mut plane) in out.outer_iter_mut().enumerate() {
+        let (mean, std) = (IMAGENET_MEAN[c], IMAGENET_STD[c]);
+        for ((y, x), v) in plane.indexed_iter_mut() {
+            *v = ((resized[(y * w + x) * 3 + c] - mean) / std) as f32;
+        }
+    }
+    Ok(out)
+}
+
+/// OpenCV `interpolateCubic` (imgproc/src/resize.cpp): the four Keys weights, computed in `f32`,
+/// for taps at offsets −1, 0, 1, 2 from `floor(src)`, `x = src − floor(src)` in `[0, 1)`.
+fn opencv_cubic_weights(x: f32) -> [f32; 4] {
+    let a = CUBIC_A;
+    let c0 = ((a * (x + 1.0) - 5.0 * a) * (x + 1.0) + 8.0 * a) * (x + 1.0) - 4.0 * a;
+    let c1 = ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0;
+    let c2 = ((a + 2.0) * (1.0 - x) - (a + 3.0)) * (1.0 - x) * (1.0 - x) + 1.0;
+    let c3 = 1.0 - c0 - c1 - c2;
+    [c0, c1, c2, c3]
+}
+
+/// Source taps (clamped indices, replicated border) and weights of OpenCV `INTER_CUBIC` along one
+/// axis: `fx = (float)((dx + 0.5) * scale − 0.5)`, `scale = src / dst` in `f64`.
+fn opencv_cubic_taps(src_len: usize, dst_len: usize) -> Vec<([usize; 4], [f32; 4])> {
+    // cv::resize: inv_scale = (double)dsize/ssize; scale = 1/inv_scale.
+    let scale = 1.0 / (dst_len as f64 / src_len as f64);
+    let last = src_len as i64 - 1;
+    (0..dst_len)
+        .map(|d| {
+            let f = ((d as f64 + 0.5) * scale - 0.5) as f32;
+            let s = f.floor();
+            let frac = f - s;
+            let s = s as i64;
+            let idx = [s - 1, s, s + 1, s + 2].map(|i| i.clamp(0, last) as usize);
+            (idx, opencv_cubic_weights(frac))
+        })
+        .collect()
+}
+
+/// OpenCV `cv2.resize(img, (dst.width, dst.height), interpolation=cv2.INTER_CUBIC)` of a 3-channel
+/// `f64` image stored row-major HWC: horizontal pass then vertical pass, `f32` weights, `f64` sums.
+fn resize_cubic_opencv_hwc3(src: &[f64], src_size: ImageSize, dst_size: ImageSize) -> Vec<f64> {
+    let (sh, sw) = src_size.shape();
+    let (dh, dw) = dst_size.shape();
+    let xt = opencv_cubic_taps(sw, dw);
+    let yt = opencv_cubic_taps(sh, dh);
+    // Horizontal pass over every source row: (sh, dw, 3).
+    let mut tmp = vec![0.0f64; sh * dw * 3];
+    for y in 0..sh {
+        let row = &src[y * sw * 3..(y + 1) * sw * 3];
+        let out = &mut tmp[y * dw * 3..(y + 1) * dw * 3];
+        for (x, (idx, wt)) in xt.iter().enumerate() {
+            for c in 0..3 {
+                let mut v = 0.0f64;
+                for k in 0..4 {
+                    v += row[idx[k] * 3 + c] * f64::from(wt[k]);
+                }
+                out[x * 3 + c] = v;
+            }
+        }
+    }
+    // Vertical pass.
+    let mut dst = vec![0.0f64; dh * dw * 3];
+    for (y, (idx, wt)) in yt.iter().enumerate() {
+        let rows = idx.map(|i| &tmp[i * dw * 3..(i + 1) * dw * 3]);
+        let b = wt.map(f64::from);
+        let out = &mut dst[y * dw * 3..(y + 1) * dw * 3];
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = rows[0][i] * b[0] + rows[1][i] * b[1] + rows[2][i] * b[2] + rows[3][i] * b[3];
+        }
+    }
+    dst
+}
+
+/// Source index pair and weights of PyTorch's `align_corners = true` linear interpolation along one
+/// axis: `src = dst · (in − 1)/(out − 1)` (0 when `out = 1`), computed in `f32` as PyTorch does.
+pub(crate) fn align_corners_taps(in_len: usize, out_len: usize) -> Vec<(usize, usize, f32, f32)> {
+    let scale = if out_len > 1 {
+        (in_len as f32 - 1.0) / (out_len as f32 - 1.0)
+    } else {
+        0.0
+    };
+    (0..out_len)
+        .map(|d| {
+            let src = scale * d as f32;
+            let i0 = (src as usize).min(in_len - 1);
+            let i1 = (i0 + 1).min(in_len - 1);
+            let l1 = src - i0 as f32;
+            (i0, i1, 1.0 - l1, l1)
+        })
+        .collect()
 }
 
 /// Bilinear resize with `align_corners = true` (PyTorch semantics) to `(out_h, out_w)`.
+///
+/// `F.interpolate(x[None, None], (out_h, out_w), mode="bilinear", align_corners=True)`: corner pixels
+/// map onto corner pixels, `src = dst · (in − 1)/(out − 1)` per axis. An empty source or target gives
+/// an empty `(out_h, out_w)` map (zeros when only the source is empty).
+///
+/// ```
+/// use ndarray::array;
+/// let a = array![[0.0f32, 1.0], [2.0, 3.0]];
+/// let b = moma_depth::preprocess::resize_bilinear_align_corners(&a.view(), 3, 3);
+/// assert_eq!(b, array![[0.0, 0.5, 1.0], [1.0, 1.5, 2.0], [2.0, 2.5, 3.0]]);
+/// ```
 pub fn resize_bilinear_align_corners(src: &ArrayView2<'_, f32>, out_h: usize, out_w: usize) -> Array2<f32> {
-    let _ = (src, out_h, out_w);
-    todo!("candle work item")
+    let (ih, iw) = src.dim();
+    if ih == 0 || iw == 0 {
+        return Array2::zeros((out_h, out_w));
+    }
+    let yt = align_corners_taps(ih, out_h);
+    let xt = align_corners_taps(iw, out_w);
+    Array2::from_shape_fn((out_h, out_w), |(y, x)| {
+        let (y0, y1, hy0, hy1) = yt[y];
+        let (x0, x1, wx0, wx1) = xt[x];
+        hy0 * (wx0 * src[(y0, x0)] + wx1 * src[(y0, x1)]) + hy1 * (wx0 * src[(y1, x0)] + wx1 * src[(y1, x1)])
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn size_hw(h: usize, w: usize, bound: usize) -> (usize, usize) {
+        network_input_size(ImageSize::new(w, h), bound).unwrap().shape()
+    }
+
+    #[test]
+    fn size_rule_matches_official_resize() {
+        // Depth Anything V2 `Resize.get_size` (lower_bound, multiple of 14).
+        assert_eq!(size_hw(480, 640, 518), (518, 686));
+        assert_eq!(size_hw(640, 480, 518), (686, 518));
+        assert_eq!(size_hw(480, 640, 392), (392, 518));
+        assert_eq!(size_hw(518, 518, 518), (518, 518));
+        assert_eq!(size_hw(100, 100, 518), (518, 518));
+        assert_eq!(size_hw(720, 1280, 518), (518, 924)); // 920.9 -> 65.78*14 -> 66*14
+        // 1000×1010 at 518: scale 0.518, w = 523.18 -> 37.37 -> 37*14 = 518 (>= 518, kept).
+        assert_eq!(size_hw(1000, 1010, 518), (518, 518));
+        // Ties to even: h = 392 (bound), w = 511 -> 511/14 = 36.5 -> np.round -> 36 -> 504.
+        assert_eq!(size_hw(392, 511, 392), (392, 504));
+        // x/14 = 37.5 -> 38 (even) -> 532.
+        assert_eq!(size_hw(392, 525, 392), (392, 532));
+        // A side whose nearest multiple falls below the bound is rounded up: 505/14 = 36.07 -> 36*14
+        // = 504 < 505 -> ceil -> 37*14 = 518.
+        assert_eq!(size_hw(505, 505, 505), (518, 518));
+        assert!(network_input_size(ImageSize::new(0, 10), 518).is_err());
+    }
+
+    #[test]
+    fn cubic_weights_hand_computed() {
+        // Keys a = -0.75 at x = 0: (0, 1, 0, 0); at x = 0.5: (-0.09375, 0.59375, 0.59375, -0.09375).
+        assert_eq!(opencv_cubic_weights(0.0), [0.0, 1.0, 0.0, 0.0]);
+        let w = opencv_cubic_weights(0.5);
+        for (a, b) in w.iter().zip([-0.09375f32, 0.59375, 0.59375, -0.09375]) {
+            assert!((a - b).abs() < 1e-7, "{w:?}");
+        }
+    }
+
+    #[test]
+    fn cubic_resize_tiny_case() {
+        // 1x2 -> 1x4 (cv2.resize(np.array([[0., 1.]]), (4, 1), interpolation=cv2.INTER_CUBIC)):
+        // scale 0.5, fx = -0.25, 0.25, 0.75, 1.25; w(0.75) = (-0.03515625, 0.26171875, 0.87890625,
+        // -0.10546875), w(0.25) its reverse; replicated borders: taps (0,0,0,1), (0,0,1,1), (0,0,1,1),
+        // (0,1,1,1).
+        let src: Vec<f64> = [0.0, 1.0].iter().flat_map(|&v| [v, v, v]).collect();
+        let out = resize_cubic_opencv_hwc3(&src, ImageSize::new(2, 1), ImageSize::new(4, 1));
+        let got: Vec<f64> = out.chunks(3).map(|p| p[0]).collect();
+        let expect = [-0.10546875, 0.2265625, 0.7734375, 1.10546875];
+        for (g, e) in got.iter().zip(expect) {
+            assert!((g - e).abs() < 1e-7, "{got:?}");
+        }
+        // Constant images stay constant (weights sum to one).
+        let src = vec![0.25f64; 5 * 7 * 3];
+        let out = resize_cubic_opencv_hwc3(&src, ImageSize::new(7, 5), ImageSize::new(11, 9));
+        assert!(out.iter().all(|v| (v - 0.25).abs() < 1e-7));
+    }
+
+    #[test]
+    fn bilinear_align_corners_hand_computed() {
+        use ndarray::array;
+        // F.interpolate(torch.tensor([[[[0., 1.], [2., 3.]]]]), (3, 3), mode="bilinear", align_corners=True)
+        let a = array![[0.0f32, 1.0], [2.0, 3.0]];
+        let b = resize_bilinear_align_corners(&a.view(), 3, 3);
+        assert_eq!(b, array![[0.0, 0.5, 1.0], [1.0, 1.5, 2.0], [2.0, 2.5, 3.0]]);
+        // Downsizing 1x5 -> 1x3 picks columns 0, 2, 4.
+        let a = array![[0.0f32, 1.0, 2.0, 3.0, 4.0]];
+        let b = resize_bilinear_align_corners(&a.view(), 1, 3);
+        assert_eq!(b, array![[0.0, 2.0, 4.0]]);
+        // Identity.
+        let b = resize_bilinear_align_corners(&a.view(), 1, 5);
+        assert_eq!(b, a);
+    }
 }

@@ -1,5 +1,17 @@
-//! placeholder: core work item
+//! GSSA — global scale and shift (METHOD.md §2): `min_{s,t} Σ (z_k − (s ẑ_k + t))²`, closed form.
+
 use serde::{Deserialize, Serialize};
+
+use super::Sample;
+use crate::error::{CoreError, Result};
+
+/// Fewest samples GSSA needs.
+pub const MIN_SAMPLES: usize = 2;
+
+/// Relative threshold on the centred variance of ẑ below which the fit is degenerate:
+/// `Σ(ẑ − ẑ̄)² ≤ DEGENERATE_REL · Σ ẑ²` (ẑ constant to ~1e-5 relative, or all zero).
+pub(crate) const DEGENERATE_REL: f64 = 1e-10;
+
 /// Fitted global scale-shift: z = scale·ẑ + shift (metres).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct GssaModel {
@@ -7,4 +19,58 @@ pub struct GssaModel {
     pub scale: f64,
     /// Shift, metres.
     pub shift_m: f64,
+}
+
+impl GssaModel {
+    /// The identity map (scale 1, shift 0).
+    pub const IDENTITY: Self = Self {
+        scale: 1.0,
+        shift_m: 0.0,
+    };
+
+    /// Metric depth (metres) for a normalised value ẑ: `scale·ẑ + shift_m`.
+    #[inline]
+    pub fn predict(&self, pred: f64) -> f64 {
+        self.scale * pred + self.shift_m
+    }
+}
+
+/// Closed-form least squares with centred sums (f64):
+/// `s = Σ(ẑ−ẑ̄)(z−z̄) / Σ(ẑ−ẑ̄)²`, `t = z̄ − s ẑ̄`.
+///
+/// Samples are assumed validated (finite); callers go through [`super::Method::fit`].
+///
+/// # Errors
+/// [`CoreError::TooFewSamples`] below 2 samples; [`CoreError::Degenerate`] when ẑ is constant.
+pub fn fit(samples: &[Sample]) -> Result<GssaModel> {
+    let n = samples.len();
+    if n < MIN_SAMPLES {
+        return Err(CoreError::TooFewSamples {
+            method: "gssa",
+            got: n,
+            need: MIN_SAMPLES,
+        });
+    }
+    let nf = n as f64;
+    let (sx, sy) = samples
+        .iter()
+        .fold((0.0, 0.0), |(a, b), s| (a + s.pred, b + s.depth_m));
+    let (mx, my) = (sx / nf, sy / nf);
+    let (mut sxx, mut sxy, mut sxx_raw) = (0.0, 0.0, 0.0);
+    for s in samples {
+        let dx = s.pred - mx;
+        sxx += dx * dx;
+        sxy += dx * (s.depth_m - my);
+        sxx_raw += s.pred * s.pred;
+    }
+    if sxx.is_nan() || sxx <= DEGENERATE_REL * sxx_raw {
+        return Err(CoreError::Degenerate(format!(
+            "normalised prediction is constant (ẑ = {mx}) over the {n} samples; scale is undetermined"
+        )));
+    }
+    let scale = sxy / sxx;
+    Ok(GssaModel {
+        scale,
+        shift_m: my - scale * mx,
+    })
 }

@@ -1,18 +1,19 @@
 //! Alignment methods: fit on sparse samples, apply to whole normalised maps (METHOD.md §2).
 //!
-//! CONTRACT (implemented by the core work item): keep these public names and signatures; add
-//! whatever else is needed. A new method is one new module + one variant in [`Method`] and
+//! A new method is one new module + one variant in [`Method`] and
 //! [`AlignmentModel`].
 
 pub mod gssa;
 pub mod lwlr;
 pub mod ssra;
 
-use ndarray::ArrayView2;
+use std::time::Instant;
+
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 
-use crate::error::Result;
-use crate::image::{ImageSize, MetricDepth};
+use crate::error::{CoreError, Result};
+use crate::image::{ImageSize, MetricDepth, is_valid_depth};
 use crate::normalise::NormalisedMap;
 use crate::sampling::Pixel;
 
@@ -44,9 +45,95 @@ impl SampleSet {
     /// # Errors
     /// Size mismatch between `normalised` and `gt`; a pixel outside the image.
     pub fn gather(normalised: &NormalisedMap, gt: &MetricDepth, pixels: &[Pixel]) -> Result<Self> {
-        let _ = (normalised, gt, pixels);
-        todo!("core work item")
+        let size = ImageSize::of(&normalised.values.view());
+        size.expect_eq("ground truth", gt.size())?;
+        let mut samples = Vec::with_capacity(pixels.len());
+        for p in pixels {
+            let (u, v) = (p.u as usize, p.v as usize);
+            if u >= size.width || v >= size.height {
+                return Err(CoreError::InvalidParameter(format!(
+                    "sample pixel (u={u}, v={v}) lies outside the {size} image"
+                )));
+            }
+            let pred = normalised.values[[v, u]];
+            let depth = gt.depth_m[[v, u]];
+            if pred.is_finite() && is_valid_depth(depth) {
+                samples.push(Sample {
+                    u: u as f64,
+                    v: v as f64,
+                    pred: f64::from(pred),
+                    depth_m: f64::from(depth),
+                });
+            }
+        }
+        Ok(Self {
+            image_size: size,
+            samples,
+        })
     }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// `true` when there is no sample.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// Checks every sample: finite pixel position inside the image, finite ẑ, valid depth (> 0 m).
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidSample`] naming the first bad sample.
+    pub fn validate(&self) -> Result<()> {
+        for (index, s) in self.samples.iter().enumerate() {
+            let reason = if !s.pred.is_finite() {
+                Some(format!("normalised prediction {} is not finite", s.pred))
+            } else if !(s.depth_m.is_finite() && s.depth_m > 0.0) {
+                Some(format!(
+                    "ground-truth depth {} m is not a valid depth",
+                    s.depth_m
+                ))
+            } else if !(s.u.is_finite() && s.v.is_finite()) {
+                Some(format!("pixel position ({}, {}) is not finite", s.u, s.v))
+            } else {
+                None
+            };
+            if let Some(reason) = reason {
+                return Err(CoreError::InvalidSample { index, reason });
+            }
+        }
+        Ok(())
+    }
+
+    /// Errors with [`CoreError::TooFewSamples`] unless there are at least `need` samples.
+    fn require(&self, method: &'static str, need: usize) -> Result<()> {
+        if self.samples.len() < need {
+            Err(CoreError::TooFewSamples {
+                method,
+                got: self.samples.len(),
+                need,
+            })
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// Root-mean-square of `predict(sample) − depth` over the samples, metres (0 for no sample).
+fn rms_residual(samples: &[Sample], predict: impl Fn(&Sample) -> f64) -> f64 {
+    if samples.is_empty() {
+        return 0.0;
+    }
+    let ss: f64 = samples
+        .iter()
+        .map(|s| {
+            let r = predict(s) - s.depth_m;
+            r * r
+        })
+        .sum();
+    (ss / samples.len() as f64).sqrt()
 }
 
 /// What a fit reports besides its parameters.
@@ -101,23 +188,122 @@ impl Method {
         }
     }
 
-    /// Fits on `samples`.
+    /// Minimum number of samples the method needs (RAW: 0, GSSA: 2, SSRA: 4, LWLR: 2).
+    pub fn min_samples(&self) -> usize {
+        match self {
+            Self::Raw => 0,
+            Self::Gssa => gssa::MIN_SAMPLES,
+            Self::Ssra(_) => ssra::MIN_SAMPLES,
+            Self::Lwlr(_) => lwlr::MIN_SAMPLES,
+        }
+    }
+
+    /// Fits on `samples`. The report's `rms_residual_m` is the RMS of (fitted − ground truth) on
+    /// the calibration samples, in metres (RAW with no sample reports 0).
     ///
     /// # Errors
-    /// Too few samples, degenerate geometry (e.g. collinear pixels for SSRA), non-finite samples.
+    /// - [`CoreError::InvalidSample`]: a sample with non-finite ẑ or invalid depth;
+    /// - [`CoreError::TooFewSamples`]: GSSA < 2, SSRA < 4, LWLR < 2 samples;
+    /// - [`CoreError::Degenerate`]: constant ẑ (GSSA, LWLR), collinear sample pixels or otherwise
+    ///   rank-deficient features (SSRA);
+    /// - [`CoreError::SizeMismatch`]: SSRA intrinsics for another image size.
+    ///
+    /// # Example
+    /// ```
+    /// use moma_core::align::{Method, Sample, SampleSet};
+    /// use moma_core::ImageSize;
+    /// let samples = (0..10)
+    ///     .map(|k| Sample { u: k as f64, v: 0.0, pred: k as f64, depth_m: 0.5 + 0.1 * k as f64 })
+    ///     .collect();
+    /// let set = SampleSet { image_size: ImageSize::new(10, 1), samples };
+    /// let (model, report) = Method::Gssa.fit(&set).unwrap();
+    /// assert!(report.rms_residual_m < 1e-12);
+    /// ```
     pub fn fit(&self, samples: &SampleSet) -> Result<(AlignmentModel, FitReport)> {
-        let _ = samples;
-        todo!("core work item")
+        let start = Instant::now();
+        samples.validate()?;
+        samples.require(self.name(), self.min_samples())?;
+        let model = match self {
+            Self::Raw => AlignmentModel::Raw,
+            Self::Gssa => AlignmentModel::Gssa(gssa::fit(&samples.samples)?),
+            Self::Ssra(cfg) => AlignmentModel::Ssra(ssra::fit(samples, cfg)?),
+            Self::Lwlr(cfg) => AlignmentModel::Lwlr(lwlr::fit(samples, cfg)?),
+        };
+        let rms_residual_m = match &model {
+            AlignmentModel::Raw => rms_residual(&samples.samples, |s| s.pred),
+            AlignmentModel::Gssa(m) => rms_residual(&samples.samples, |s| m.predict(s.pred)),
+            AlignmentModel::Ssra(m) => {
+                rms_residual(&samples.samples, |s| m.predict(s.u, s.v, s.pred))
+            }
+            AlignmentModel::Lwlr(m) => m.rms_residual_m(),
+        };
+        let report = FitReport {
+            method: self.name().to_string(),
+            n_used: samples.len(),
+            rms_residual_m,
+            fit_time_s: start.elapsed().as_secs_f64(),
+        };
+        Ok((model, report))
     }
 }
 
 impl AlignmentModel {
+    /// Method name (`raw`, `gssa`, `ssra`, `lwlr`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Raw => "raw",
+            Self::Gssa(_) => "gssa",
+            Self::Ssra(_) => "ssra",
+            Self::Lwlr(_) => "lwlr",
+        }
+    }
+
+    /// The calibration image size when the model depends on pixel position (SSRA, LWLR).
+    pub fn image_size(&self) -> Option<ImageSize> {
+        match self {
+            Self::Raw | Self::Gssa(_) => None,
+            Self::Ssra(m) => Some(m.image_size),
+            Self::Lwlr(m) => Some(m.image_size),
+        }
+    }
+
     /// Applies the alignment to a whole normalised map; pixels with non-finite ẑ stay `NaN`.
+    /// Output in metres. One fused pass; see [`AlignmentModel::apply_into`] to reuse a buffer.
     ///
     /// # Errors
     /// Size mismatch with the calibration image.
     pub fn apply(&self, normalised: ArrayView2<'_, f32>) -> Result<MetricDepth> {
-        let _ = normalised;
-        todo!("core work item")
+        let mut out = Array2::<f32>::zeros(normalised.raw_dim());
+        self.apply_into(normalised, &mut out.view_mut())?;
+        Ok(MetricDepth::new(out))
+    }
+
+    /// Like [`AlignmentModel::apply`], writing metres into `out` (same shape as `normalised`)
+    /// without allocating (LWLR computes and caches its maps on first use).
+    ///
+    /// # Errors
+    /// Size mismatch between `normalised` and `out`, or with the calibration image.
+    pub fn apply_into(
+        &self,
+        normalised: ArrayView2<'_, f32>,
+        out: &mut ArrayViewMut2<'_, f32>,
+    ) -> Result<()> {
+        let size = ImageSize::of(&normalised);
+        size.expect_eq("output buffer", ImageSize::new(out.ncols(), out.nrows()))?;
+        if let Some(calib) = self.image_size() {
+            calib.expect_eq("normalised map", size)?;
+        }
+        match self {
+            Self::Raw => out.assign(&normalised),
+            Self::Gssa(m) => {
+                let (s, t) = (m.scale as f32, m.shift_m as f32);
+                crate::kernels::map_rows(normalised, out, |_, zin, zout| {
+                    crate::kernels::affine(zin, zout, s, t)
+                });
+            }
+            Self::Ssra(m) => m.apply_into(normalised, out),
+            Self::Lwlr(m) => m.apply_into(normalised, out),
+        }
+        Ok(())
     }
 }

@@ -1,0 +1,206 @@
+//! `moma align`: apply a calibration to many frames.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use moma_core::MetricDepth;
+use moma_io::{Colormap, DepthRange, PlyFormat};
+use serde::Serialize;
+
+use super::common::{SourceArgs, create_dir, print_json, progress};
+
+/// `--colormap` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ColormapArg {
+    /// Google's Turbo.
+    Turbo,
+    /// Matplotlib's viridis.
+    Viridis,
+}
+
+impl From<ColormapArg> for Colormap {
+    fn from(c: ColormapArg) -> Self {
+        match c {
+            ColormapArg::Turbo => Colormap::Turbo,
+            ColormapArg::Viridis => Colormap::Viridis,
+        }
+    }
+}
+
+/// Apply a calibration to predictions (or RGB images through a depth model): metric depth out.
+///
+/// Writes per input NAME (the file stem, or the frame id for moma-set paths):
+///   NAME.depth.png  uint16 millimetres, 0 = no depth
+///   NAME.depth.npy  float32 metres, NaN = no depth
+///   NAME.color.png  with --colormap: colour-mapped depth (range in metres recorded in the PNG)
+///   NAME.ply        with --ply: point cloud in metres, camera frame, coloured when RGB is known
+///
+/// Examples:
+///   moma align --calib calib.json --pred pred/*.npy --pred-kind inverse-depth -o aligned/ --colormap turbo
+///   moma align --calib calib.json --rgb frames/*/rgb.png --weights vits.safetensors -o aligned/ --ply
+#[derive(Debug, Clone, Args)]
+#[command(verbatim_doc_comment)]
+pub struct AlignArgs {
+    /// Calibration file from `moma calibrate`.
+    #[arg(long, value_name = "FILE")]
+    pub calib: PathBuf,
+    #[command(flatten)]
+    pub source: SourceArgs,
+    /// Output directory (created if missing).
+    #[arg(short, long, value_name = "DIR")]
+    pub output: PathBuf,
+    /// Also write a point cloud (PLY) per frame; needs intrinsics (calibrated with --camera, or --camera here).
+    #[arg(long)]
+    pub ply: bool,
+    /// Write the PLY as ASCII instead of binary little-endian.
+    #[arg(long, requires = "ply")]
+    pub ply_ascii: bool,
+    /// RGB images to colour the point clouds with (one per input, same order) when the inputs are prediction files.
+    #[arg(long, num_args = 1.., value_name = "IMG", requires = "ply")]
+    pub ply_rgb: Vec<PathBuf>,
+    /// camera.json to use for point clouds instead of the calibration's intrinsics.
+    #[arg(long, value_name = "FILE")]
+    pub camera: Option<PathBuf>,
+    /// Also write a colour-mapped PNG per frame.
+    #[arg(long, value_enum, num_args = 0..=1, default_missing_value = "turbo")]
+    pub colormap: Option<ColormapArg>,
+    /// Colour-map range in metres, e.g. `0.4,1.2` (default: 2nd–98th percentile per frame).
+    #[arg(long, value_name = "MIN,MAX", value_delimiter = ',', num_args = 2)]
+    pub range_m: Vec<f32>,
+    /// Workspace mask for normalisation (overrides the one recorded in the calibration file).
+    #[arg(long, value_name = "PNG")]
+    pub workspace: Option<PathBuf>,
+    /// Print a JSON summary on stdout (and no progress bar).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What was written for one frame.
+#[derive(Debug, Serialize)]
+struct FrameSummary {
+    name: String,
+    input: PathBuf,
+    outputs: Vec<PathBuf>,
+    valid_pixels: usize,
+    /// Normalisation + alignment time, milliseconds (excludes file I/O and the depth model).
+    align_ms: f64,
+}
+
+pub fn run(args: &AlignArgs) -> Result<()> {
+    let calib = moma_io::read_calibration(&args.calib)?;
+    let mut source = args.source.open()?;
+    if source.kind() != calib.prediction_kind {
+        bail!(
+            "{} was calibrated on {} predictions but the inputs are {} (set --pred-kind, or use the same model head)",
+            args.calib.display(),
+            calib.prediction_kind,
+            source.kind()
+        );
+    }
+    if !args.ply_rgb.is_empty() && args.ply_rgb.len() != source.len() {
+        bail!("--ply-rgb needs one image per input ({} given for {} inputs)", args.ply_rgb.len(), source.len());
+    }
+    let size = calib.image_size;
+    let intrinsics = match &args.camera {
+        Some(p) => Some(moma_io::read_camera(p)?),
+        None => calib.intrinsics,
+    };
+    if args.ply && intrinsics.is_none() {
+        bail!("--ply needs camera intrinsics: calibrate with --camera, or pass --camera camera.json here");
+    }
+    let workspace_path = args.workspace.clone().or_else(|| calib.workspace_mask.as_ref().map(PathBuf::from));
+    let workspace = workspace_path
+        .as_ref()
+        .map(|p| moma_io::read_mask_sized(p, size).with_context(|| format!("workspace mask of {}", args.calib.display())))
+        .transpose()?;
+    let range = match args.range_m.as_slice() {
+        [] => DepthRange::default(),
+        [min_m, max_m] => DepthRange::Fixed { min_m: *min_m, max_m: *max_m },
+        _ => bail!("--range-m takes two values: MIN,MAX in metres"),
+    };
+    create_dir(&args.output)?;
+
+    let bar = progress(source.len(), "aligning", args.json);
+    let mut summaries = Vec::with_capacity(source.len());
+    for i in 0..source.len() {
+        let input = source.get(i)?;
+        size.expect_eq("prediction", input.prediction.size())
+            .with_context(|| format!("{} vs calibration {}", input.path.display(), args.calib.display()))?;
+        let t = Instant::now();
+        let depth = calib
+            .calibration
+            .align(&input.prediction, workspace.as_ref())
+            .with_context(|| format!("aligning {}", input.path.display()))?;
+        let align_ms = t.elapsed().as_secs_f64() * 1e3;
+
+        let mut outputs = Vec::new();
+        let base = args.output.join(&input.name);
+        let png = with_suffix(&base, "depth.png");
+        moma_io::write_depth(&png, &depth)?;
+        outputs.push(png);
+        let npy = with_suffix(&base, "depth.npy");
+        moma_io::write_depth(&npy, &depth)?;
+        outputs.push(npy);
+        if let Some(cmap) = args.colormap {
+            let path = with_suffix(&base, "color.png");
+            moma_io::write_depth_colormap(&path, &depth, cmap.into(), range)?;
+            outputs.push(path);
+        }
+        if let Some(k) = intrinsics.filter(|_| args.ply) {
+            let rgb = match args.ply_rgb.get(i) {
+                Some(p) => Some(moma_io::read_rgb_sized(p, size)?),
+                None => input.rgb.clone(),
+            };
+            let path = with_suffix(&base, "ply");
+            write_cloud(&path, &depth, &k, rgb.as_ref(), args.ply_ascii)?;
+            outputs.push(path);
+        }
+        summaries.push(FrameSummary {
+            name: input.name,
+            input: input.path,
+            outputs,
+            valid_pixels: depth.valid_count(),
+            align_ms,
+        });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+
+    if args.json {
+        print_json(&summaries)?;
+    } else {
+        let mut times: Vec<f64> = summaries.iter().map(|s| s.align_ms).collect();
+        times.sort_by(f64::total_cmp);
+        println!(
+            "aligned {} frame(s) with {} into {} (median alignment {:.2} ms per frame)",
+            summaries.len(),
+            calib.method,
+            args.output.display(),
+            times[times.len() / 2]
+        );
+    }
+    Ok(())
+}
+
+/// `base` + `.suffix`, keeping dots in the frame name.
+fn with_suffix(base: &Path, suffix: &str) -> PathBuf {
+    let mut s = base.as_os_str().to_owned();
+    s.push(".");
+    s.push(suffix);
+    PathBuf::from(s)
+}
+
+/// Writes the valid pixels of `depth` as a PLY point cloud (metres, camera frame).
+fn write_cloud(
+    path: &Path,
+    depth: &MetricDepth,
+    intrinsics: &moma_core::Intrinsics,
+    rgb: Option<&image::RgbImage>,
+    ascii: bool,
+) -> Result<()> {
+    let format = if ascii { PlyFormat::Ascii } else { PlyFormat::BinaryLittleEndian };
+    moma_io::write_depth_ply(path, depth, intrinsics, rgb, format)?;
+    Ok(())
+}

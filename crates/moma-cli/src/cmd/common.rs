@@ -1,0 +1,284 @@
+//! Plumbing shared by the subcommands: prediction sources (files or a depth model), progress
+//! bars and JSON output.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use moma_core::{Prediction, PredictionKind};
+use moma_depth::{Backbone, DepthModel, Head, ModelSpec};
+
+/// `--pred-kind` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum KindArg {
+    /// Larger = farther (metric models, simulated `depth`).
+    Depth,
+    /// Larger = nearer (Depth Anything relative models: disparity).
+    InverseDepth,
+}
+
+impl From<KindArg> for PredictionKind {
+    fn from(k: KindArg) -> Self {
+        match k {
+            KindArg::Depth => PredictionKind::Depth,
+            KindArg::InverseDepth => PredictionKind::InverseDepth,
+        }
+    }
+}
+
+/// `--model` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BackboneArg {
+    /// ViT-S (24.8 M parameters).
+    Vits,
+    /// ViT-B (97.5 M parameters).
+    Vitb,
+    /// ViT-L (335.3 M parameters).
+    Vitl,
+}
+
+/// `--head` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum HeadArg {
+    /// Relative depth head (outputs inverse depth).
+    Relative,
+    /// Metric depth head (outputs depth in metres, up to --max-depth).
+    Metric,
+}
+
+/// `--backend` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BackendArg {
+    /// Pick from the weights' extension: .onnx → onnx, else candle.
+    Auto,
+    /// Pure-Rust candle backend (.safetensors weights).
+    Candle,
+    /// ONNX Runtime backend (.onnx models; needs the runtime library, see README).
+    Onnx,
+}
+
+/// Which Depth Anything V2 network to run, and from which weights.
+#[derive(Debug, Clone, Args)]
+pub struct ModelArgs {
+    /// Weights: official Depth Anything V2 checkpoint as .safetensors (candle) or an .onnx export.
+    #[arg(long, value_name = "FILE")]
+    pub weights: Option<PathBuf>,
+    /// Backbone size.
+    #[arg(long, value_enum, default_value_t = BackboneArg::Vits)]
+    pub model: BackboneArg,
+    /// Output head: relative (inverse depth) or metric (depth in metres).
+    #[arg(long, value_enum, default_value_t = HeadArg::Relative)]
+    pub head: HeadArg,
+    /// Largest depth of the metric head, metres (20 indoor, 80 outdoor).
+    #[arg(long, default_value_t = 20.0, value_name = "METRES")]
+    pub max_depth: f32,
+    /// Network input lower bound, pixels (multiple of 14).
+    #[arg(long, default_value_t = 518, value_name = "PX")]
+    pub input_size: usize,
+    /// Inference backend.
+    #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+    pub backend: BackendArg,
+}
+
+impl ModelArgs {
+    /// The network these arguments describe.
+    pub fn spec(&self) -> ModelSpec {
+        ModelSpec {
+            backbone: match self.model {
+                BackboneArg::Vits => Backbone::Vits,
+                BackboneArg::Vitb => Backbone::Vitb,
+                BackboneArg::Vitl => Backbone::Vitl,
+            },
+            head: match self.head {
+                HeadArg::Relative => Head::Relative,
+                HeadArg::Metric => Head::Metric {
+                    max_depth_m: self.max_depth,
+                },
+            },
+            input_size: self.input_size,
+        }
+    }
+
+    /// Loads the model (`--weights` required).
+    ///
+    /// # Errors
+    /// Missing `--weights`, unreadable weights, a backend this build lacks.
+    pub fn load(&self) -> Result<Box<dyn DepthModel>> {
+        let Some(weights) = &self.weights else {
+            bail!("a depth model needs --weights FILE (.safetensors or .onnx)");
+        };
+        if self.input_size == 0 || self.input_size % 14 != 0 {
+            bail!("--input-size {} must be a positive multiple of 14", self.input_size);
+        }
+        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
+            bail!("--max-depth {} must be a positive number of metres", self.max_depth);
+        }
+        let backend = match self.backend {
+            BackendArg::Auto if has_extension(weights, "onnx") => moma_depth::Backend::Onnx,
+            BackendArg::Auto | BackendArg::Candle => moma_depth::Backend::Candle,
+            BackendArg::Onnx => moma_depth::Backend::Onnx,
+        };
+        moma_depth::load_model(weights, self.spec(), backend)
+            .with_context(|| format!("loading depth model {}", weights.display()))
+    }
+}
+
+/// Case-insensitive extension check.
+pub fn has_extension(path: &Path, ext: &str) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case(ext))
+}
+
+/// Where predictions come from: files, or RGB images through a depth model.
+#[derive(Debug, Clone, Args)]
+pub struct SourceArgs {
+    /// Prediction files (.npy float32, .pfm, or 16-bit .png holding raw values).
+    #[arg(long, num_args = 1.., value_name = "FILE", required_unless_present = "rgb", conflicts_with = "rgb")]
+    pub pred: Vec<PathBuf>,
+    /// What the prediction files hold (a depth model's head decides it for --rgb).
+    #[arg(long, value_enum, default_value_t = KindArg::Depth)]
+    pub pred_kind: KindArg,
+    /// RGB images to run through the depth model (--weights ...) instead of --pred files.
+    #[arg(long, num_args = 1.., value_name = "IMG")]
+    pub rgb: Vec<PathBuf>,
+    #[command(flatten)]
+    pub model: ModelArgs,
+}
+
+/// One prediction with where it came from.
+pub struct SourcedPrediction {
+    /// Output name for this frame: the input's file stem.
+    pub name: String,
+    /// The input file (prediction or RGB image).
+    pub path: PathBuf,
+    /// The prediction.
+    pub prediction: Prediction,
+    /// The RGB image, when the source was an RGB image.
+    pub rgb: Option<image::RgbImage>,
+}
+
+/// An opened prediction source; [`Source::get`] produces the i-th prediction.
+pub struct Source {
+    inputs: Vec<PathBuf>,
+    kind: PredictionKind,
+    model: Option<Box<dyn DepthModel>>,
+}
+
+impl SourceArgs {
+    /// Opens the source (loads the model once when `--rgb` is used).
+    ///
+    /// # Errors
+    /// Model loading errors.
+    pub fn open(&self) -> Result<Source> {
+        if self.rgb.is_empty() {
+            Ok(Source {
+                inputs: self.pred.clone(),
+                kind: self.pred_kind.into(),
+                model: None,
+            })
+        } else {
+            let model = self.model.load()?;
+            Ok(Source {
+                inputs: self.rgb.clone(),
+                kind: model.spec().head.prediction_kind(),
+                model: Some(model),
+            })
+        }
+    }
+}
+
+impl Source {
+    /// Number of inputs.
+    pub fn len(&self) -> usize {
+        self.inputs.len()
+    }
+
+    /// The inputs' paths.
+    pub fn inputs(&self) -> &[PathBuf] {
+        &self.inputs
+    }
+
+    /// Kind of the predictions this source produces.
+    pub fn kind(&self) -> PredictionKind {
+        self.kind
+    }
+
+    /// Reads (or predicts) input `i`.
+    ///
+    /// # Errors
+    /// Unreadable file, model failure; the message names the file.
+    pub fn get(&mut self, i: usize) -> Result<SourcedPrediction> {
+        let path = self.inputs[i].clone();
+        let name = frame_name(&path);
+        match &mut self.model {
+            None => {
+                let prediction = moma_io::read_prediction(&path, self.kind)?;
+                Ok(SourcedPrediction {
+                    name,
+                    path,
+                    prediction,
+                    rgb: None,
+                })
+            }
+            Some(model) => {
+                let rgb = moma_io::read_rgb(&path)?;
+                let prediction = model
+                    .predict(&rgb)
+                    .with_context(|| format!("depth model failed on {}", path.display()))?;
+                Ok(SourcedPrediction {
+                    name,
+                    path,
+                    prediction,
+                    rgb: Some(rgb),
+                })
+            }
+        }
+    }
+}
+
+/// The output name of an input file: its stem, or for a moma-set frame (`frames/ID/rgb.png`) the frame id.
+pub fn frame_name(path: &Path) -> String {
+    let stem = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("frame")
+        .to_string();
+    if matches!(stem.as_str(), "rgb" | "depth" | "pred" | "prediction")
+        && let Some(parent) = path.parent().and_then(|p| p.file_name()).and_then(|s| s.to_str())
+    {
+        return parent.to_string();
+    }
+    stem
+}
+
+/// A progress bar on stderr; hidden when `hidden` (e.g. `--json`) or for a single item.
+pub fn progress(len: usize, message: &'static str, hidden: bool) -> ProgressBar {
+    if hidden || len <= 1 {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(len as u64);
+    if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_message(message);
+    bar
+}
+
+/// Prints `value` as pretty JSON on stdout.
+///
+/// # Errors
+/// Serialisation failure.
+pub fn print_json(value: &impl serde::Serialize) -> Result<()> {
+    println!("{}", serde_json::to_string_pretty(value)?);
+    Ok(())
+}
+
+/// Creates `dir` (and parents) with a clear error.
+///
+/// # Errors
+/// The directory cannot be created.
+pub fn create_dir(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create output directory {}", dir.display()))
+}

@@ -1,0 +1,54 @@
+//! `moma metrics`: score a metric depth map against ground truth.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use moma_core::metrics::DepthMetrics;
+
+use super::common::print_json;
+
+/// Depth metrics of a metric depth map against ground truth (METHOD.md §3).
+///
+/// Over pixels inside the mask where the ground truth is valid (> 0, finite) and the prediction
+/// is finite: δ_t = fraction with max(p/g, g/p) < t (t = 1.05, 1.10, 1.25), REL = mean |p−g|/g,
+/// RMSE = sqrt(mean (p−g)²) and MAE = mean |p−g| in metres.
+///
+/// Examples:
+///   moma metrics --pred aligned/0001.depth.png --gt set/frames/0001/depth.png --mask set/frames/0001/mask.png
+///   moma metrics --pred aligned/0001.depth.npy --gt set/frames/0001/depth.png --json
+#[derive(Debug, Clone, Args)]
+#[command(verbatim_doc_comment)]
+pub struct MetricsArgs {
+    /// Metric depth to score: uint16 PNG (mm), .npy (m) or .pfm (m).
+    #[arg(long, value_name = "FILE")]
+    pub pred: PathBuf,
+    /// Ground-truth depth, same formats.
+    #[arg(long, value_name = "FILE")]
+    pub gt: PathBuf,
+    /// Evaluation mask (8-bit PNG, nonzero = inside); whole image when absent.
+    #[arg(long, value_name = "PNG")]
+    pub mask: Option<PathBuf>,
+    /// Print one JSON object: d105, d110, d125, rel, rmse (m), mae (m), n (pixels).
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: &MetricsArgs) -> Result<()> {
+    let pred = moma_io::read_depth(&args.pred)?;
+    let gt = moma_io::read_depth_sized(&args.gt, pred.size())
+        .with_context(|| format!("ground truth must match the prediction {}", args.pred.display()))?;
+    let mask = args.mask.as_ref().map(|p| moma_io::read_mask_sized(p, pred.size())).transpose()?;
+    let m = DepthMetrics::compute(&pred, &gt, mask.as_ref())
+        .with_context(|| format!("scoring {} against {}", args.pred.display(), args.gt.display()))?;
+    if args.json {
+        print_json(&m)?;
+    } else {
+        println!("pixels  d1.05   d1.10   d1.25   REL     RMSE(m)  MAE(m)");
+        println!(
+            "{:<7} {:.4}  {:.4}  {:.4}  {:.4}  {:.4}   {:.4}",
+            m.n, m.d105, m.d110, m.d125, m.rel, m.rmse, m.mae
+        );
+    }
+    Ok(())
+}

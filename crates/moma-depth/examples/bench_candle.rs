@@ -1,0 +1,78 @@
+//! Latency and peak memory of the candle backend on one frame.
+//!
+//! ```text
+//! cargo run --release -p moma-depth --example bench_candle -- \
+//!     [--weights W.safetensors] [--model vits|vitb|vitl] [--height 518] [--width 686] [--runs 5]
+//! ```
+//! Without `--weights` it loads `$MOMA_SHARED_DIR/reference/dav2/vits-rel.safetensors` (random
+//! ViT-S weights; latency does not depend on the values). Prints every run, the median of the
+//! runs after one warm-up, and the process's peak RSS (`VmHWM` of `/proc/self/status`).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, DeviceChoice};
+use moma_depth::{DepthModel, Head};
+use ndarray::Array3;
+
+fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut weights: Option<PathBuf> = None;
+    let mut model = "vits".to_string();
+    let (mut height, mut width, mut runs) = (518usize, 686usize, 5usize);
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let mut val = || args.next().ok_or(format!("{a} needs a value"));
+        match a.as_str() {
+            "--weights" => weights = Some(PathBuf::from(val()?)),
+            "--model" => model = val()?,
+            "--height" => height = val()?.parse()?,
+            "--width" => width = val()?.parse()?,
+            "--runs" => runs = val()?.parse()?,
+            other => return Err(format!("unknown argument {other}").into()),
+        }
+    }
+    let weights = weights.unwrap_or_else(|| {
+        let shared = std::env::var_os("MOMA_SHARED_DIR")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+        shared.join("reference/dav2/vits-rel.safetensors")
+    });
+    let config = match model.as_str() {
+        "vits" => DepthAnythingConfig::vit_small(Head::Relative),
+        "vitb" => DepthAnythingConfig::vit_base(Head::Relative),
+        "vitl" => DepthAnythingConfig::vit_large(Head::Relative),
+        other => return Err(format!("unknown model {other}").into()),
+    };
+    let device = DeviceChoice::best_available().device()?;
+    let t = Instant::now();
+    let mut net = CandleDepthModel::load(&weights, config, &device)?;
+    println!("loaded {} on {device:?} in {:.2} s", weights.display(), t.elapsed().as_secs_f64());
+    let input = Array3::<f32>::from_shape_fn((3, height, width), |(c, y, x)| {
+        ((c * 7 + y * 3 + x) % 17) as f32 / 17.0 - 0.5
+    });
+    let mut times = vec![];
+    for i in 0..=runs {
+        let t = Instant::now();
+        let out = net.forward_net(&input)?;
+        let s = t.elapsed().as_secs_f64();
+        println!("run {i}{}: {s:.3} s (out {:?})", if i == 0 { " (warm-up)" } else { "" }, out.dim());
+        if i > 0 {
+            times.push(s);
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    println!(
+        "{model} {height}x{width}: median {median:.3} s over {runs} runs, peak RSS {:.0} MiB, {} rayon threads",
+        peak_rss_mib().unwrap_or(f64::NAN),
+        rayon::current_num_threads()
+    );
+    Ok(())
+}

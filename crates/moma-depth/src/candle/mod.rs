@@ -1,0 +1,423 @@
+//! The candle backend: Depth Anything V2 (DINOv2 ViT-S/B/L + DPT head) in pure Rust, faithful to
+//! the official PyTorch code (`DepthAnything/Depth-Anything-V2`, commit a561b84; METHOD.md §5).
+//!
+//! ```no_run
+//! use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, DeviceChoice};
+//! use moma_depth::{DepthModel, Head};
+//!
+//! let device = DeviceChoice::Cpu.device()?;
+//! let config = DepthAnythingConfig::vit_small(Head::Relative);
+//! let mut model = CandleDepthModel::load("depth_anything_v2_vits.safetensors", config, &device)?;
+//! let rgb = image::open("frame.png").unwrap().to_rgb8();
+//! let prediction = model.predict(&rgb)?; // inverse depth at the image's size
+//! # Ok::<(), moma_depth::DepthError>(())
+//! ```
+//!
+//! Not used: candle-transformers' `depth_anything_v2` (square inputs only, nearest-neighbour
+//! upsampling and position-embedding interpolation, LayerNorm eps 1e-5, no metric head).
+
+pub mod dinov2;
+pub mod dpt;
+mod ops;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use ndarray::{Array2, Array3};
+use serde::{Deserialize, Serialize};
+
+use crate::preprocess::{DEFAULT_INPUT_SIZE, PATCH_SIZE};
+use crate::{Backbone, DepthError, DepthModel, Head, ModelSpec, Result};
+
+pub use dinov2::DinoV2;
+pub use dpt::DptHead;
+
+/// Side of the stored square position-embedding grid: 518 / 14 = 37 (`img_size=518` in
+/// `dinov2.py::DINOv2`).
+pub const POS_GRID: usize = 37;
+
+/// LayerNorm epsilon of every DINOv2 norm (`partial(nn.LayerNorm, eps=1e-6)` in `vision_transformer.py`).
+pub const LAYER_NORM_EPS: f64 = 1e-6;
+
+/// Architecture of one Depth Anything V2 network. Presets: [`DepthAnythingConfig::vit_small`],
+/// [`DepthAnythingConfig::vit_base`], [`DepthAnythingConfig::vit_large`]; any other size (e.g. the
+/// tiny parity models) by filling the fields.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DepthAnythingConfig {
+    /// The named backbone size this configuration is (custom sizes report the nearest one).
+    pub backbone: Backbone,
+    /// Token width of the ViT.
+    pub embed_dim: usize,
+    /// Number of transformer blocks.
+    pub depth: usize,
+    /// Attention heads per block (`embed_dim` must be a multiple).
+    pub num_heads: usize,
+    /// Hidden width of each block's MLP (4 × `embed_dim` in DINOv2).
+    pub mlp_hidden_dim: usize,
+    /// 0-based blocks whose normalised outputs feed the DPT head (`intermediate_layer_idx`).
+    pub intermediate_layers: [usize; 4],
+    /// Channels of the DPT fusion path (`features`).
+    pub features: usize,
+    /// Channels of the four DPT projections (`out_channels`).
+    pub out_channels: [usize; 4],
+    /// Relative (ReLU, inverse depth) or metric (Sigmoid × max depth, metres) head.
+    pub head: Head,
+    /// Lower bound of the network input's sides, pixels (518 for the released models).
+    pub input_size: usize,
+    /// Side of the stored square position-embedding grid (37).
+    pub pos_grid: usize,
+    /// LayerNorm epsilon (1e-6).
+    pub layer_norm_eps: f64,
+}
+
+impl DepthAnythingConfig {
+    fn preset(
+        backbone: Backbone,
+        (embed_dim, depth, num_heads): (usize, usize, usize),
+        intermediate_layers: [usize; 4],
+        features: usize,
+        out_channels: [usize; 4],
+        head: Head,
+    ) -> Self {
+        Self {
+            backbone,
+            embed_dim,
+            depth,
+            num_heads,
+            mlp_hidden_dim: 4 * embed_dim,
+            intermediate_layers,
+            features,
+            out_channels,
+            head,
+            input_size: DEFAULT_INPUT_SIZE,
+            pos_grid: POS_GRID,
+            layer_norm_eps: LAYER_NORM_EPS,
+        }
+    }
+
+    /// ViT-S: embed 384, 12 blocks, 6 heads, layers [2, 5, 8, 11], features 64, out [48, 96, 192, 384].
+    pub fn vit_small(head: Head) -> Self {
+        Self::preset(Backbone::Vits, (384, 12, 6), [2, 5, 8, 11], 64, [48, 96, 192, 384], head)
+    }
+
+    /// ViT-B: embed 768, 12 blocks, 12 heads, layers [2, 5, 8, 11], features 128, out [96, 192, 384, 768].
+    pub fn vit_base(head: Head) -> Self {
+        Self::preset(Backbone::Vitb, (768, 12, 12), [2, 5, 8, 11], 128, [96, 192, 384, 768], head)
+    }
+
+    /// ViT-L: embed 1024, 24 blocks, 16 heads, layers [4, 11, 17, 23], features 256,
+    /// out [256, 512, 1024, 1024].
+    pub fn vit_large(head: Head) -> Self {
+        Self::preset(Backbone::Vitl, (1024, 24, 16), [4, 11, 17, 23], 256, [256, 512, 1024, 1024], head)
+    }
+
+    /// The preset of a [`ModelSpec`] (with its head and input size).
+    pub fn from_spec(spec: &ModelSpec) -> Self {
+        let mut c = match spec.backbone {
+            Backbone::Vits => Self::vit_small(spec.head),
+            Backbone::Vitb => Self::vit_base(spec.head),
+            Backbone::Vitl => Self::vit_large(spec.head),
+        };
+        c.input_size = spec.input_size;
+        c
+    }
+
+    /// The [`ModelSpec`] of this configuration.
+    pub fn spec(&self) -> ModelSpec {
+        ModelSpec {
+            backbone: self.backbone,
+            head: self.head,
+            input_size: self.input_size,
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(DepthError::Shape(format!("invalid DepthAnythingConfig: {m}")));
+        if self.num_heads == 0 || self.embed_dim % self.num_heads != 0 {
+            return bad(format!("embed_dim {} not a multiple of num_heads {}", self.embed_dim, self.num_heads));
+        }
+        if let Some(l) = self.intermediate_layers.iter().find(|&&l| l >= self.depth) {
+            return bad(format!("intermediate layer {l} >= depth {}", self.depth));
+        }
+        if self.features < 2 || self.pos_grid == 0 {
+            return bad("features < 2 or empty position grid".into());
+        }
+        Ok(())
+    }
+
+    /// Every tensor an official checkpoint of this architecture holds, with its shape:
+    /// `(name, shape, required)`; `pretrained.mask_token` (training only) is optional.
+    pub fn expected_tensors(&self) -> Vec<(String, Vec<usize>, bool)> {
+        let d = self.embed_dim;
+        let p = PATCH_SIZE;
+        let g = self.pos_grid;
+        let mut t: Vec<(String, Vec<usize>, bool)> = vec![];
+        let mut add = |name: String, shape: Vec<usize>| t.push((name, shape, true));
+        add("pretrained.cls_token".into(), vec![1, 1, d]);
+        add("pretrained.pos_embed".into(), vec![1, 1 + g * g, d]);
+        add("pretrained.patch_embed.proj.weight".into(), vec![d, 3, p, p]);
+        add("pretrained.patch_embed.proj.bias".into(), vec![d]);
+        for i in 0..self.depth {
+            let b = format!("pretrained.blocks.{i}");
+            for n in ["norm1", "norm2"] {
+                add(format!("{b}.{n}.weight"), vec![d]);
+                add(format!("{b}.{n}.bias"), vec![d]);
+            }
+            add(format!("{b}.attn.qkv.weight"), vec![3 * d, d]);
+            add(format!("{b}.attn.qkv.bias"), vec![3 * d]);
+            add(format!("{b}.attn.proj.weight"), vec![d, d]);
+            add(format!("{b}.attn.proj.bias"), vec![d]);
+            add(format!("{b}.ls1.gamma"), vec![d]);
+            add(format!("{b}.ls2.gamma"), vec![d]);
+            add(format!("{b}.mlp.fc1.weight"), vec![self.mlp_hidden_dim, d]);
+            add(format!("{b}.mlp.fc1.bias"), vec![self.mlp_hidden_dim]);
+            add(format!("{b}.mlp.fc2.weight"), vec![d, self.mlp_hidden_dim]);
+            add(format!("{b}.mlp.fc2.bias"), vec![d]);
+        }
+        add("pretrained.norm.weight".into(), vec![d]);
+        add("pretrained.norm.bias".into(), vec![d]);
+        let oc = self.out_channels;
+        let f = self.features;
+        let h = "depth_head";
+        for (i, &c) in oc.iter().enumerate() {
+            add(format!("{h}.projects.{i}.weight"), vec![c, d, 1, 1]);
+            add(format!("{h}.projects.{i}.bias"), vec![c]);
+            add(format!("{h}.scratch.layer{}_rn.weight", i + 1), vec![f, c, 3, 3]);
+        }
+        add(format!("{h}.resize_layers.0.weight"), vec![oc[0], oc[0], 4, 4]);
+        add(format!("{h}.resize_layers.0.bias"), vec![oc[0]]);
+        add(format!("{h}.resize_layers.1.weight"), vec![oc[1], oc[1], 2, 2]);
+        add(format!("{h}.resize_layers.1.bias"), vec![oc[1]]);
+        add(format!("{h}.resize_layers.3.weight"), vec![oc[3], oc[3], 3, 3]);
+        add(format!("{h}.resize_layers.3.bias"), vec![oc[3]]);
+        for r in 1..=4 {
+            let b = format!("{h}.scratch.refinenet{r}");
+            for u in ["resConfUnit1", "resConfUnit2"] {
+                for cv in ["conv1", "conv2"] {
+                    add(format!("{b}.{u}.{cv}.weight"), vec![f, f, 3, 3]);
+                    add(format!("{b}.{u}.{cv}.bias"), vec![f]);
+                }
+            }
+            add(format!("{b}.out_conv.weight"), vec![f, f, 1, 1]);
+            add(format!("{b}.out_conv.bias"), vec![f]);
+        }
+        add(format!("{h}.scratch.output_conv1.weight"), vec![f / 2, f, 3, 3]);
+        add(format!("{h}.scratch.output_conv1.bias"), vec![f / 2]);
+        add(format!("{h}.scratch.output_conv2.0.weight"), vec![32, f / 2, 3, 3]);
+        add(format!("{h}.scratch.output_conv2.0.bias"), vec![32]);
+        add(format!("{h}.scratch.output_conv2.2.weight"), vec![1, 32, 1, 1]);
+        add(format!("{h}.scratch.output_conv2.2.bias"), vec![1]);
+        t.push(("pretrained.mask_token".into(), vec![1, d], false));
+        t
+    }
+
+    /// Compares a checkpoint's tensors `(name → shape)` with [`Self::expected_tensors`]; `Err` holds a
+    /// readable list of missing keys, unexpected keys and shape mismatches.
+    pub fn check_tensors(&self, found: &BTreeMap<String, Vec<usize>>) -> std::result::Result<(), String> {
+        let expected = self.expected_tensors();
+        let mut missing = vec![];
+        let mut mismatched = vec![];
+        for (name, shape, required) in &expected {
+            match found.get(name) {
+                None if *required => missing.push(name.clone()),
+                None => {}
+                Some(s) if s != shape => mismatched.push(format!("{name}: expected {shape:?}, found {s:?}")),
+                Some(_) => {}
+            }
+        }
+        let known: BTreeSet<&str> = expected.iter().map(|(n, _, _)| n.as_str()).collect();
+        let unexpected: Vec<&String> = found.keys().filter(|k| !known.contains(k.as_str())).collect();
+        if missing.is_empty() && unexpected.is_empty() && mismatched.is_empty() {
+            return Ok(());
+        }
+        fn list<T: std::fmt::Display>(what: &str, items: &[T]) -> String {
+            const SHOWN: usize = 20;
+            if items.is_empty() {
+                return String::new();
+            }
+            let mut s = format!("{} {what}: ", items.len());
+            s += &items.iter().take(SHOWN).map(|i| i.to_string()).collect::<Vec<_>>().join(", ");
+            if items.len() > SHOWN {
+                s += &format!(", ... ({} more)", items.len() - SHOWN);
+            }
+            s + "; "
+        }
+        let mut reason = format!(
+            "checkpoint does not match Depth Anything V2 {:?} (embed {}, depth {}): ",
+            self.backbone, self.embed_dim, self.depth
+        );
+        reason += &list("missing keys", &missing);
+        reason += &list("unexpected keys", &unexpected);
+        reason += &list("shape mismatches", &mismatched);
+        Err(reason.trim_end_matches("; ").to_string())
+    }
+}
+
+/// Where the network runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DeviceChoice {
+    /// The CPU (all cores through rayon).
+    #[default]
+    Cpu,
+    /// CUDA GPU with this ordinal (feature `cuda`).
+    Cuda(usize),
+    /// Metal GPU with this ordinal (feature `metal`).
+    Metal(usize),
+}
+
+impl DeviceChoice {
+    /// The first GPU this build supports and the machine has, else the CPU.
+    pub fn best_available() -> Self {
+        if cfg!(feature = "cuda") && candle_core::utils::cuda_is_available() {
+            Self::Cuda(0)
+        } else if cfg!(feature = "metal") && candle_core::utils::metal_is_available() {
+            Self::Metal(0)
+        } else {
+            Self::Cpu
+        }
+    }
+
+    /// Opens the device.
+    ///
+    /// # Errors
+    /// [`DepthError::Unavailable`] when this build lacks the feature or the device cannot be opened.
+    pub fn device(self) -> Result<Device> {
+        match self {
+            Self::Cpu => Ok(Device::Cpu),
+            Self::Cuda(i) if cfg!(feature = "cuda") => {
+                Device::new_cuda(i).map_err(|e| DepthError::Unavailable(format!("CUDA device {i}: {e}")))
+            }
+            Self::Metal(i) if cfg!(feature = "metal") => {
+                Device::new_metal(i).map_err(|e| DepthError::Unavailable(format!("Metal device {i}: {e}")))
+            }
+            Self::Cuda(_) => Err(DepthError::Unavailable("built without the `cuda` feature".into())),
+            Self::Metal(_) => Err(DepthError::Unavailable("built without the `metal` feature".into())),
+        }
+    }
+}
+
+fn backend(e: candle_core::Error) -> DepthError {
+    DepthError::Backend(e.to_string())
+}
+
+/// Depth Anything V2 on candle; implements [`DepthModel`]. Computes in `f32` whatever the storage
+/// dtype of the checkpoint (f32, f16 or bf16).
+#[derive(Debug)]
+pub struct CandleDepthModel {
+    config: DepthAnythingConfig,
+    encoder: DinoV2,
+    head: DptHead,
+    device: Device,
+}
+
+impl CandleDepthModel {
+    /// Loads a checkpoint with the official key names (`pretrained.*`, `depth_head.*`) from a
+    /// `.safetensors` file (memory-mapped; f32/f16/bf16 storage, computed in f32).
+    ///
+    /// # Errors
+    /// [`DepthError::Weights`] when the file cannot be read or its tensors do not match `config`
+    /// (the message lists missing and unexpected keys and shape mismatches); [`DepthError::Shape`]
+    /// for an inconsistent `config`.
+    pub fn load(path: impl AsRef<Path>, config: DepthAnythingConfig, device: &Device) -> Result<Self> {
+        let path = path.as_ref();
+        let werr = |reason: String| DepthError::Weights {
+            path: path.display().to_string(),
+            reason,
+        };
+        config.validate()?;
+        // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
+        // while mapped. The mapping lives only during loading (weights are copied to f32 tensors).
+        let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }.map_err(|e| werr(e.to_string()))?;
+        let mut found = BTreeMap::new();
+        let mut bad_dtype = vec![];
+        for (name, view) in st.tensors() {
+            use safetensors::Dtype as S;
+            if !matches!(view.dtype(), S::F32 | S::F16 | S::BF16 | S::F64) {
+                bad_dtype.push(format!("{name}: {:?}", view.dtype()));
+            }
+            found.insert(name, view.shape().to_vec());
+        }
+        config.check_tensors(&found).map_err(werr)?;
+        if !bad_dtype.is_empty() {
+            return Err(werr(format!("non-float tensors: {}", bad_dtype.join(", "))));
+        }
+        let vb = VarBuilder::from_backend(Box::new(st), DType::F32, device.clone());
+        Self::from_var_builder(config, vb).map_err(|e| match e {
+            DepthError::Backend(reason) => werr(reason),
+            other => other,
+        })
+    }
+
+    /// Loads the preset of `spec` (see [`DepthAnythingConfig::from_spec`]).
+    ///
+    /// # Errors
+    /// As [`CandleDepthModel::load`].
+    pub fn load_spec(path: impl AsRef<Path>, spec: &ModelSpec, device: &Device) -> Result<Self> {
+        Self::load(path, DepthAnythingConfig::from_spec(spec), device)
+    }
+
+    /// Builds the network from any [`VarBuilder`] whose root holds `pretrained.*` and
+    /// `depth_head.*` (e.g. `VarBuilder::zeros` for shape tests, a `VarMap` for fine-tuning).
+    ///
+    /// # Errors
+    /// Missing or mis-shaped variables ([`DepthError::Backend`]).
+    pub fn from_var_builder(config: DepthAnythingConfig, vb: VarBuilder) -> Result<Self> {
+        config.validate()?;
+        let device = vb.device().clone();
+        let encoder = DinoV2::new(&config, vb.pp("pretrained")).map_err(backend)?;
+        let head = DptHead::new(&config, vb.pp("depth_head")).map_err(backend)?;
+        Ok(Self {
+            config,
+            encoder,
+            head,
+            device,
+        })
+    }
+
+    /// The architecture.
+    pub fn config(&self) -> &DepthAnythingConfig {
+        &self.config
+    }
+
+    /// The device the weights live on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// The network on a tensor `(1, 3, H, W)` (H, W multiples of 14, ImageNet-normalised RGB) on
+    /// [`Self::device`]; returns `(1, H, W)`: inverse depth (relative head) or metres (metric head).
+    ///
+    /// # Errors
+    /// Shape errors.
+    pub fn forward(&mut self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let (_, _, h, w) = x.dims4()?;
+        let (rows, cols) = (h / PATCH_SIZE, w / PATCH_SIZE);
+        let layers = self.config.intermediate_layers;
+        let features = self.encoder.intermediate_layers(x, &layers)?;
+        let out = self.head.forward(&features, rows, cols)?;
+        out.squeeze(1)
+    }
+}
+
+impl DepthModel for CandleDepthModel {
+    fn spec(&self) -> ModelSpec {
+        self.config.spec()
+    }
+
+    fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>> {
+        let (c, h, w) = input.dim();
+        if c != 3 || h == 0 || w == 0 || h % PATCH_SIZE != 0 || w % PATCH_SIZE != 0 {
+            return Err(DepthError::Shape(format!(
+                "network input must be (3, H, W) with H, W positive multiples of {PATCH_SIZE}, got ({c}, {h}, {w})"
+            )));
+        }
+        let data: Vec<f32> = input.iter().copied().collect();
+        let x = Tensor::from_vec(data, (1, 3, h, w), &self.device).map_err(backend)?;
+        let y = self.forward(&x).map_err(backend)?;
+        let values: Vec<f32> = y.flatten_all().and_then(|t| t.to_vec1()).map_err(backend)?;
+        Array2::from_shape_vec((h, w), values).map_err(|e| DepthError::Shape(e.to_string()))
+    }
+}

@@ -1,0 +1,58 @@
+//! Shared helpers of the candle-side tests: locating `../shared/reference/dav2` and reading it.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+use ndarray::{Array2, Array3};
+use ndarray_npy::read_npy;
+
+/// The five parity reference models of `shared/reference/dav2/README.md`.
+pub const MODELS: [&str; 5] = ["tiny-rel", "tiny-rel-392", "tiny-metric", "tiny-metric-392", "vits-rel"];
+
+/// `$MOMA_SHARED_DIR/reference/dav2`, else `CARGO_MANIFEST_DIR/../../../shared/reference/dav2`;
+/// `None` (with a message on stderr) when absent, so tests skip instead of failing.
+pub fn reference_dir() -> Option<PathBuf> {
+    let shared = std::env::var_os("MOMA_SHARED_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+    let dir = shared.join("reference/dav2");
+    if dir.join("input.png").is_file() {
+        Some(dir)
+    } else {
+        eprintln!(
+            "SKIPPED: Depth Anything V2 reference data not found at {} (set MOMA_SHARED_DIR)",
+            dir.display()
+        );
+        None
+    }
+}
+
+/// `NAME.input.npy`: the official pre-processed network input `(3, H, W)`.
+pub fn reference_input(dir: &std::path::Path, name: &str) -> Array3<f32> {
+    read_npy(dir.join(format!("{name}.input.npy"))).expect("read input.npy")
+}
+
+/// `NAME.output_net.npy` (`which = "net"`) or `NAME.output_full.npy` (`which = "full"`).
+pub fn reference_output(dir: &std::path::Path, name: &str, which: &str) -> Array2<f32> {
+    read_npy(dir.join(format!("{name}.output_{which}.npy"))).expect("read output npy")
+}
+
+/// `input.png` as 8-bit RGB.
+pub fn reference_image(dir: &std::path::Path) -> image::RgbImage {
+    image::open(dir.join("input.png")).expect("read input.png").to_rgb8()
+}
+
+/// `NAME.json` parsed.
+pub fn reference_json(dir: &std::path::Path, name: &str) -> serde_json::Value {
+    let text = std::fs::read_to_string(dir.join(format!("{name}.json"))).expect("read json");
+    serde_json::from_str(&text).expect("parse json")
+}
+
+/// Maximum absolute difference and the output range (max − min) of the reference.
+pub fn max_abs_err(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32) {
+    assert_eq!(got.dim(), want.dim(), "shape");
+    let err = got.iter().zip(want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let lo = want.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = want.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    (err, hi - lo)
+}

@@ -1,0 +1,128 @@
+//! Parity of the candle backend with the official PyTorch Depth Anything V2
+//! (`shared/reference/dav2`, random weights): network output fed the reference input, and the full
+//! image → own pre-processing → network → post-processing path.
+//!
+//! The ViT-S test runs the full-size network twice (~2 s each in release); in a debug build of
+//! this crate it is much slower: run with `cargo test --release -p moma-depth --test candle_parity`.
+#![cfg(feature = "candle")]
+
+mod candle_common;
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_common::{max_abs_err, reference_dir, reference_image, reference_input, reference_json, reference_output};
+use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig};
+use moma_depth::{Backbone, DepthError, DepthModel, Head};
+
+/// The tiny reference architecture (`shared/reference/dav2/README.md`): ViT embed 64, depth 4,
+/// 2 heads, layers [0, 1, 2, 3]; DPT features 16, out_channels [8, 16, 32, 64]; head and input size
+/// from `NAME.json`.
+fn tiny_config(dir: &Path, name: &str) -> DepthAnythingConfig {
+    let json = reference_json(dir, name);
+    let head = match json["head"].as_str().unwrap() {
+        "relative" => Head::Relative,
+        "metric" => Head::Metric {
+            max_depth_m: json["max_depth"].as_f64().unwrap() as f32,
+        },
+        other => panic!("unknown head {other}"),
+    };
+    DepthAnythingConfig {
+        backbone: Backbone::Vits,
+        embed_dim: 64,
+        depth: 4,
+        num_heads: 2,
+        mlp_hidden_dim: 256,
+        intermediate_layers: [0, 1, 2, 3],
+        features: 16,
+        out_channels: [8, 16, 32, 64],
+        head,
+        input_size: json["input_size"].as_u64().unwrap() as usize,
+        ..DepthAnythingConfig::vit_small(head)
+    }
+}
+
+fn config_for(dir: &Path, name: &str) -> DepthAnythingConfig {
+    if name == "vits-rel" {
+        DepthAnythingConfig::vit_small(Head::Relative)
+    } else {
+        tiny_config(dir, name)
+    }
+}
+
+/// Net and full-image parity of one reference model; returns the relative errors.
+fn check_model(dir: &Path, name: &str) -> (f32, f32) {
+    let config = config_for(dir, name);
+    let path = dir.join(format!("{name}.safetensors"));
+    let mut model = CandleDepthModel::load(&path, config, &candle_core::Device::Cpu).unwrap();
+
+    let input = reference_input(dir, name);
+    let t = std::time::Instant::now();
+    let net = model.forward_net(&input).unwrap();
+    let secs = t.elapsed().as_secs_f64();
+    let want = reference_output(dir, name, "net");
+    let (err, range) = max_abs_err(&net, &want);
+    let rel_net = err / range;
+    eprintln!("{name}: net  max abs err {err:.3e}, range {range:.4}, rel {rel_net:.3e} ({secs:.2} s)");
+
+    let rgb = reference_image(dir);
+    let pred = model.predict(&rgb).unwrap();
+    let want = reference_output(dir, name, "full");
+    let (err, range) = max_abs_err(&pred.values, &want);
+    let rel_full = err / range;
+    eprintln!("{name}: full max abs err {err:.3e}, range {range:.4}, rel {rel_full:.3e}");
+    assert_eq!(pred.kind, model.spec().head.prediction_kind());
+    (rel_net, rel_full)
+}
+
+#[test]
+fn tiny_models_match_reference() {
+    let Some(dir) = reference_dir() else { return };
+    for name in ["tiny-rel", "tiny-rel-392", "tiny-metric", "tiny-metric-392"] {
+        let (rel_net, rel_full) = check_model(&dir, name);
+        assert!(rel_net < 1e-3, "{name}: net rel err {rel_net}");
+        // Own OpenCV-exact pre-processing: the full path stays within the same tolerance.
+        assert!(rel_full < 1e-3, "{name}: full rel err {rel_full}");
+    }
+}
+
+#[test]
+fn vits_matches_reference() {
+    let Some(dir) = reference_dir() else { return };
+    let (rel_net, rel_full) = check_model(&dir, "vits-rel");
+    assert!(rel_net < 1e-3, "vits-rel: net rel err {rel_net}");
+    assert!(rel_full < 1e-3, "vits-rel: full rel err {rel_full}");
+}
+
+#[test]
+fn mismatched_checkpoint_is_a_weights_error() {
+    let Some(dir) = reference_dir() else { return };
+    let device = candle_core::Device::Cpu;
+    let mut tensors: HashMap<String, candle_core::Tensor> =
+        candle_core::safetensors::load(dir.join("tiny-rel.safetensors"), &device).unwrap();
+    // Rename one key, drop one, change one shape.
+    let t = tensors.remove("pretrained.norm.weight").unwrap();
+    tensors.insert("pretrained.final_norm.weight".into(), t);
+    tensors.remove("depth_head.scratch.output_conv1.bias");
+    tensors.insert("pretrained.cls_token".into(), candle_core::Tensor::zeros((1, 1, 65), candle_core::DType::F32, &device).unwrap());
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("broken.safetensors");
+    candle_core::safetensors::save(&tensors, &path).unwrap();
+
+    let err = CandleDepthModel::load(&path, tiny_config(&dir, "tiny-rel"), &device).unwrap_err();
+    let DepthError::Weights { reason, .. } = &err else { panic!("expected Weights error, got {err:?}") };
+    eprintln!("{err}");
+    assert!(reason.contains("missing keys"), "{reason}");
+    assert!(reason.contains("pretrained.norm.weight"), "{reason}");
+    assert!(reason.contains("depth_head.scratch.output_conv1.bias"), "{reason}");
+    assert!(reason.contains("unexpected keys: pretrained.final_norm.weight"), "{reason}");
+    assert!(reason.contains("pretrained.cls_token: expected [1, 1, 64], found [1, 1, 65]"), "{reason}");
+
+    // The right file with the wrong architecture is refused too (ViT-S preset on a tiny checkpoint).
+    let err = CandleDepthModel::load(dir.join("tiny-rel.safetensors"), DepthAnythingConfig::vit_small(Head::Relative), &device)
+        .unwrap_err();
+    assert!(matches!(err, DepthError::Weights { .. }), "{err:?}");
+    // A missing file is a Weights error as well.
+    let err = CandleDepthModel::load(tmp.path().join("none.safetensors"), tiny_config(&dir, "tiny-rel"), &device).unwrap_err();
+    assert!(matches!(err, DepthError::Weights { .. }), "{err:?}");
+}

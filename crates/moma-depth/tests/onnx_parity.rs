@@ -1,0 +1,168 @@
+//! Parity of the ONNX Runtime backend against `shared/reference/dav2` (see its README): for each
+//! of the five reference exports `NAME.onnx`,
+//! - network only: `NAME.input.npy` → net vs `NAME.output_net.npy`, max abs error ≤ 1e-3 of the
+//!   output range;
+//! - full image: `input.png` → [`moma_depth::preprocess::preprocess`] → net →
+//!   [`moma_depth::preprocess::resize_bilinear_align_corners`] vs `NAME.output_full.npy`.
+//!
+//! Skips (with a message) when the reference folder (`$MOMA_SHARED_DIR/reference/dav2`, else
+//! `CARGO_MANIFEST_DIR/../../../shared/reference/dav2`) or the ONNX Runtime library
+//! (`$ORT_DYLIB_PATH`, see `moma_depth::onnx`) is absent. Run in release mode for speed:
+//! `cargo test -p moma-depth --release --no-default-features --features onnx --test onnx_parity -- --nocapture`
+#![cfg(feature = "onnx")]
+
+use std::path::{Path, PathBuf};
+
+use moma_depth::onnx::{OnnxDepthModel, OnnxOptions};
+use moma_depth::{Backbone, DepthError, DepthModel, Head, ModelSpec};
+use ndarray::{Array2, Array3};
+use ndarray_npy::read_npy;
+
+/// The five parity reference models of `shared/reference/dav2/README.md`.
+const MODELS: [&str; 5] = ["tiny-rel", "tiny-rel-392", "tiny-metric", "tiny-metric-392", "vits-rel"];
+
+/// Tolerance of the README / issue: max abs error ≤ 1e-3 × output range (float32).
+const REL_TOL: f32 = 1e-3;
+
+fn reference_dir() -> Option<PathBuf> {
+    let shared = std::env::var_os("MOMA_SHARED_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+    let dir = shared.join("reference/dav2");
+    if dir.join("input.png").is_file() && dir.join("tiny-rel.onnx").is_file() {
+        Some(dir)
+    } else {
+        eprintln!(
+            "SKIPPED: Depth Anything V2 reference data not found at {} (set MOMA_SHARED_DIR)",
+            dir.display()
+        );
+        None
+    }
+}
+
+/// Loads the ONNX Runtime library; prints a skip message and returns false when it is absent.
+fn runtime() -> bool {
+    match moma_depth::onnx::init_runtime() {
+        Ok(lib) => {
+            eprintln!("ONNX Runtime library: {}", lib.display());
+            true
+        }
+        Err(e) => {
+            eprintln!("SKIPPED: ONNX Runtime not available ({e})");
+            false
+        }
+    }
+}
+
+fn setup() -> Option<PathBuf> {
+    let dir = reference_dir()?;
+    runtime().then_some(dir)
+}
+
+fn spec_of(dir: &Path, name: &str) -> ModelSpec {
+    let text = std::fs::read_to_string(dir.join(format!("{name}.json"))).expect("read json");
+    let json: serde_json::Value = serde_json::from_str(&text).expect("parse json");
+    let head = match json["head"].as_str() {
+        Some("metric") => Head::Metric {
+            max_depth_m: json["max_depth"].as_f64().expect("max_depth") as f32,
+        },
+        _ => Head::Relative,
+    };
+    ModelSpec {
+        backbone: Backbone::Vits,
+        head,
+        input_size: json["input_size"].as_u64().expect("input_size") as usize,
+    }
+}
+
+fn load(dir: &Path, name: &str) -> OnnxDepthModel {
+    let opts = OnnxOptions {
+        intra_threads: Some(2),
+        ..OnnxOptions::default()
+    };
+    OnnxDepthModel::load_with(dir.join(format!("{name}.onnx")), spec_of(dir, name), &opts).expect("load onnx")
+}
+
+/// (max abs error, output range of the reference, max abs error / range).
+fn compare(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32, f32) {
+    assert_eq!(got.dim(), want.dim(), "output shape");
+    let err = got.iter().zip(want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let lo = want.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = want.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let range = hi - lo;
+    (err, range, err / range.max(f32::MIN_POSITIVE))
+}
+
+#[test]
+fn onnx_net_parity_all_reference_models() {
+    let Some(dir) = setup() else { return };
+    let mut failures = Vec::new();
+    eprintln!("{:<16} {:>12} {:>12} {:>12}", "model", "max_abs", "range", "rel");
+    for name in MODELS {
+        let mut model = load(&dir, name);
+        let input: Array3<f32> = read_npy(dir.join(format!("{name}.input.npy"))).expect("input.npy");
+        let want: Array2<f32> = read_npy(dir.join(format!("{name}.output_net.npy"))).expect("output_net.npy");
+        assert_eq!(
+            model.fixed_input_hw(),
+            Some((input.dim().1, input.dim().2)),
+            "{name}: fixed input shape"
+        );
+        let got = model.forward_net(&input).expect("forward_net");
+        let (err, range, rel) = compare(&got, &want);
+        eprintln!("{name:<16} {err:>12.3e} {range:>12.4} {rel:>12.3e}   [net]");
+        if !(rel <= REL_TOL) {
+            failures.push(format!("{name}: rel {rel:.3e} > {REL_TOL:.0e}"));
+        }
+    }
+    assert!(failures.is_empty(), "net parity failures: {failures:?}");
+}
+
+#[test]
+fn onnx_full_image_parity_all_reference_models() {
+    let Some(dir) = setup() else { return };
+    let rgb = image::open(dir.join("input.png")).expect("input.png").to_rgb8();
+    let mut failures = Vec::new();
+    eprintln!("{:<16} {:>12} {:>12} {:>12}", "model", "max_abs", "range", "rel");
+    for name in MODELS {
+        let mut model = load(&dir, name);
+        let want: Array2<f32> = read_npy(dir.join(format!("{name}.output_full.npy"))).expect("output_full.npy");
+        let pred = model.predict(&rgb).expect("predict");
+        assert_eq!(pred.kind, model.spec().head.prediction_kind(), "{name}: prediction kind");
+        let (err, range, rel) = compare(&pred.values, &want);
+        eprintln!("{name:<16} {err:>12.3e} {range:>12.4} {rel:>12.3e}   [full]");
+        if !(rel <= REL_TOL) {
+            failures.push(format!("{name}: rel {rel:.3e} > {REL_TOL:.0e}"));
+        }
+    }
+    assert!(failures.is_empty(), "full-image parity failures: {failures:?}");
+}
+
+#[test]
+fn onnx_fixed_shape_mismatch_is_a_clear_error() {
+    let Some(dir) = setup() else { return };
+    let mut model = load(&dir, "tiny-rel-392");
+    let wrong = Array3::<f32>::zeros((3, 518, 686));
+    match model.forward_net(&wrong) {
+        Err(DepthError::Shape(msg)) => {
+            assert!(msg.contains("392x518"), "message names the fixed size: {msg}");
+            assert!(msg.contains("input_size = 392"), "message suggests the input size: {msg}");
+        }
+        other => panic!("expected a shape error, got {other:?}"),
+    }
+    let not_rgb = Array3::<f32>::zeros((1, 392, 518));
+    assert!(matches!(model.forward_net(&not_rgb), Err(DepthError::Shape(_))));
+}
+
+#[test]
+fn onnx_bad_model_files_are_errors() {
+    let Some(dir) = setup() else { return };
+    let spec = spec_of(&dir, "tiny-rel");
+    let missing = OnnxDepthModel::load(dir.join("does-not-exist.onnx"), spec);
+    assert!(matches!(missing, Err(DepthError::Weights { .. })), "{missing:?}");
+    // Not an ONNX file at all.
+    let not_onnx = OnnxDepthModel::load(dir.join("tiny-rel.json"), spec);
+    match not_onnx {
+        Err(DepthError::Weights { reason, .. }) => eprintln!("not-ONNX file: {reason}"),
+        other => panic!("expected a weights error, got {other:?}"),
+    }
+}

@@ -1,0 +1,400 @@
+//! Ablations (METHOD.md §4 a–d): number of samples with calibration time, normalisation,
+//! prediction source, transparent objects. Each returns rows and writes a table and a PNG plot.
+
+use std::path::{Path, PathBuf};
+
+use moma_core::metrics::DepthMetrics;
+use moma_core::normalise::Normalisation;
+use moma_core::{MetricDepth, is_valid_depth};
+use serde::{Deserialize, Serialize};
+
+use crate::data::MomaSet;
+use crate::error::{EvalError, Result};
+use crate::protocol::{
+    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, effective_norm,
+    evaluate, evaluate_one, mean_over_images, pooled,
+};
+use crate::render::{LinePanel, Series, bar_plot, line_plot};
+use crate::report::{Table, metric_cells, metric_headers, write_table};
+
+/// The sample counts of the paper's ablation (a).
+pub const SAMPLE_COUNTS: &[usize] = &[20, 50, 100, 200, 400, 1000, 3000];
+
+/// Files written by an ablation.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct AblationOutput {
+    /// Table files (md, csv, json).
+    pub tables: Vec<PathBuf>,
+    /// Plot files (PNG).
+    pub plots: Vec<PathBuf>,
+}
+
+fn aligned_methods(config: &EvalConfig) -> Vec<String> {
+    config.methods.iter().filter(|m| *m != "raw").cloned().collect()
+}
+
+/// (a) Accuracy and median calibration (fit) time against the number of samples n.
+/// RAW is skipped (it has nothing to fit).
+///
+/// # Errors
+/// As [`evaluate`].
+pub fn samples(
+    set: &MomaSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+    counts: &[usize],
+) -> Result<Vec<EvalResult>> {
+    let prep = Prepared::new(set, preds, config)?;
+    let mut out = Vec::new();
+    for &n in counts {
+        for m in aligned_methods(config) {
+            let norm = effective_norm(&m, config.norms[0], config.inverse_space);
+            out.push(evaluate_one(&prep, &m, &norm, n)?);
+        }
+    }
+    Ok(out)
+}
+
+/// Table and plot (MAE and fit time against n, one line per method) of [`samples`].
+///
+/// # Errors
+/// I/O or drawing failure.
+pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
+    let mut headers: Vec<String> = ["set", "method", "n"].iter().map(|s| s.to_string()).collect();
+    headers.extend(metric_headers());
+    headers.push("median fit ms".into());
+    let table = Table {
+        title: title("ablation (a): number of calibration samples n", rows),
+        headers,
+        rows: rows
+            .iter()
+            .map(|r| {
+                let mut row = vec![r.set.clone(), r.method.to_uppercase(), r.samples.to_string()];
+                row.extend(metric_cells(&r.per_image));
+                row.push(format!("{:.3}", r.fit_time_median_s * 1e3));
+                row
+            })
+            .collect(),
+    };
+    let mut out = AblationOutput {
+        tables: write_table(dir, "ablation_samples", &table, rows)?,
+        plots: Vec::new(),
+    };
+    for set in unique(rows.iter().map(|r| r.set.clone())) {
+        let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
+        let methods = unique(rs.iter().map(|r| r.method.clone()));
+        let series = |f: &dyn Fn(&EvalResult) -> (f64, f64)| -> Vec<Series> {
+            methods
+                .iter()
+                .map(|m| Series {
+                    name: m.to_uppercase(),
+                    points: rs
+                        .iter()
+                        .filter(|r| &r.method == m)
+                        .map(|r| {
+                            let (y, s) = f(r);
+                            (r.samples as f64, y, s)
+                        })
+                        .collect(),
+                })
+                .collect()
+        };
+        let path = dir.join(format!("ablation_samples_{set}.png"));
+        line_plot(
+            &path,
+            &[
+                LinePanel {
+                    title: format!("{set}: MAE vs n"),
+                    x_label: "calibration samples n".into(),
+                    y_label: "MAE [mm] (mean ± std over seeds)".into(),
+                    log_x: true,
+                    log_y: false,
+                    series: series(&|r| (r.per_image.mae.mean * 1e3, r.per_image.mae.std * 1e3)),
+                },
+                LinePanel {
+                    title: format!("{set}: calibration time vs n"),
+                    x_label: "calibration samples n".into(),
+                    y_label: "median fit time [ms]".into(),
+                    log_x: true,
+                    log_y: true,
+                    series: series(&|r| (r.fit_time_median_s.max(1e-7) * 1e3, 0.0)),
+                },
+            ],
+            620,
+            460,
+        )?;
+        out.plots.push(path);
+    }
+    Ok(out)
+}
+
+/// (b) Every normalisation × method.
+///
+/// # Errors
+/// As [`evaluate`].
+pub fn norms(
+    set: &MomaSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+    norms: &[Normalisation],
+) -> Result<Vec<EvalResult>> {
+    let cfg = EvalConfig {
+        norms: norms.to_vec(),
+        ..config.clone()
+    };
+    evaluate(set, preds, &cfg)
+}
+
+/// Grouped-bar plot of MAE per `group_of(row)` with one bar per method.
+fn bar_by(
+    path: &Path,
+    title: &str,
+    rows: &[&EvalResult],
+    group_of: &dyn Fn(&EvalResult) -> String,
+) -> Result<()> {
+    let groups = unique(rows.iter().map(|r| group_of(r)));
+    let methods = unique(rows.iter().map(|r| r.method.clone()));
+    let series: Vec<(String, Vec<(f64, f64)>)> = methods
+        .iter()
+        .map(|m| {
+            (
+                m.to_uppercase(),
+                groups
+                    .iter()
+                    .map(|g| {
+                        rows.iter()
+                            .find(|r| &r.method == m && &group_of(r) == g)
+                            .map(|r| (r.per_image.mae.mean * 1e3, r.per_image.mae.std * 1e3))
+                            .unwrap_or((f64::NAN, 0.0))
+                    })
+                    .collect(),
+            )
+        })
+        .collect();
+    bar_plot(path, title, "MAE [mm] (mean ± std over seeds)", &groups, &series)
+}
+
+/// Table and plot of [`norms`].
+///
+/// # Errors
+/// I/O or drawing failure.
+pub fn write_norms(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
+    let table = simple_table(
+        title("ablation (b): normalisation × method", rows),
+        "norm",
+        rows,
+        |r| r.norm.clone(),
+    );
+    let mut out = AblationOutput {
+        tables: write_table(dir, "ablation_norm", &table, rows)?,
+        plots: Vec::new(),
+    };
+    for set in unique(rows.iter().map(|r| r.set.clone())) {
+        let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
+        let path = dir.join(format!("ablation_norm_{set}.png"));
+        bar_by(&path, &format!("{set}: normalisation"), &rs, &|r| r.norm.clone())?;
+        out.plots.push(path);
+    }
+    Ok(out)
+}
+
+/// (c) Several prediction sources (e.g. simulated depth vs simulated inverse depth, or models).
+///
+/// # Errors
+/// As [`evaluate`].
+pub fn sources(set: &MomaSet, sources: &[PredictionSet], config: &EvalConfig) -> Result<Vec<EvalResult>> {
+    let mut out = Vec::new();
+    for s in sources {
+        out.extend(evaluate(set, s, config)?);
+    }
+    Ok(out)
+}
+
+/// Table and plot of [`sources`].
+///
+/// # Errors
+/// I/O or drawing failure.
+pub fn write_sources(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
+    let table = simple_table(
+        title("ablation (c): prediction source", rows),
+        "source",
+        rows,
+        |r| r.source.clone(),
+    );
+    let mut out = AblationOutput {
+        tables: write_table(dir, "ablation_source", &table, rows)?,
+        plots: Vec::new(),
+    };
+    for set in unique(rows.iter().map(|r| r.set.clone())) {
+        let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
+        let path = dir.join(format!("ablation_source_{set}.png"));
+        bar_by(&path, &format!("{set}: prediction source"), &rs, &|r| r.source.clone())?;
+        out.plots.push(path);
+    }
+    Ok(out)
+}
+
+/// What the depth sensor itself achieved on a transparent set (its `raw_depth.png`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorRow {
+    /// Set name.
+    pub set: String,
+    /// Frames scored (the same frames as the methods).
+    pub frames: Vec<String>,
+    /// Per-image metrics of the sensor (pixels where the sensor measured something).
+    pub per_frame: Vec<DepthMetrics>,
+    /// Per-image mean.
+    pub mean: DepthMetrics,
+    /// Pixel-pooled.
+    pub pooled: DepthMetrics,
+    /// Fraction of the evaluated mask pixels where the sensor returned a depth.
+    pub coverage: f64,
+}
+
+/// The transparent-objects ablation (d): the methods on the set, plus the raw sensor depth
+/// scored against the ground truth inside the masks.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TransparentResult {
+    /// The methods.
+    pub methods: Vec<EvalResult>,
+    /// The sensor.
+    pub sensor: SensorRow,
+}
+
+/// (d) Transparent objects. Needs `raw_depth.png` in the evaluated frames.
+///
+/// # Errors
+/// As [`evaluate`]; a frame without `raw_depth.png` (named).
+pub fn transparent(set: &MomaSet, preds: &PredictionSet, config: &EvalConfig) -> Result<TransparentResult> {
+    let methods = evaluate(set, preds, config)?;
+    let prep = Prepared::new(set, preds, config)?;
+    let mut per_frame = Vec::new();
+    let mut frames = Vec::new();
+    let (mut covered, mut total) = (0usize, 0usize);
+    for i in prep.eval_indices() {
+        let f = &set.frames[i];
+        let raw = f.raw_depth.as_ref().ok_or_else(|| {
+            EvalError::frame(&set.name, &f.id, "no raw_depth.png (the transparent ablation needs what the sensor saw)")
+        })?;
+        // 0 = no measurement: not a prediction of 0 m
+        let raw_nan = MetricDepth::new(raw.depth_m.mapv(|z| if is_valid_depth(z) { z } else { f32::NAN }));
+        let region = &prep.eval_masks[i];
+        total += region.count();
+        covered += ndarray::Zip::from(region.data())
+            .and(&raw_nan.depth_m)
+            .fold(0, |acc, &m, &z| acc + usize::from(m && z.is_finite()));
+        let m = DepthMetrics::compute(&raw_nan, &f.gt, Some(region)).map_err(|e| {
+            EvalError::core(format!("set '{}', frame '{}': scoring raw sensor depth", set.name, f.id), e)
+        })?;
+        per_frame.push(m);
+        frames.push(f.id.clone());
+    }
+    let sensor = SensorRow {
+        set: set.name.clone(),
+        frames,
+        mean: mean_over_images(&per_frame),
+        pooled: pooled(&per_frame),
+        per_frame,
+        coverage: covered as f64 / total.max(1) as f64,
+    };
+    Ok(TransparentResult { methods, sensor })
+}
+
+/// Table and plot of [`transparent`] (possibly several sets).
+///
+/// # Errors
+/// I/O or drawing failure.
+pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<AblationOutput> {
+    let mut headers: Vec<String> = ["set", "method", "coverage"].iter().map(|s| s.to_string()).collect();
+    headers.extend(metric_headers());
+    let mut rows = Vec::new();
+    let all: Vec<EvalResult> = results.iter().flat_map(|r| r.methods.clone()).collect();
+    for r in results {
+        for m in &r.methods {
+            let mut row = vec![m.set.clone(), format!("{} ({})", m.method.to_uppercase(), m.norm), "1.000".into()];
+            row.extend(metric_cells(&m.per_image));
+            rows.push(row);
+        }
+        let s = &r.sensor;
+        let single = |x: f64| Stat { mean: x, std: 0.0 };
+        let ms = MetricSummary {
+            d105: single(s.mean.d105),
+            d110: single(s.mean.d110),
+            d125: single(s.mean.d125),
+            rel: single(s.mean.rel),
+            rmse: single(s.mean.rmse),
+            mae: single(s.mean.mae),
+        };
+        let mut row = vec![s.set.clone(), "SENSOR raw depth".into(), format!("{:.3}", s.coverage)];
+        row.extend(metric_cells(&ms));
+        rows.push(row);
+    }
+    let table = Table {
+        title: format!(
+            "{}; SENSOR = raw_depth.png (what the depth camera saw through glass), scored where it measured (coverage = fraction of mask pixels with a measurement)",
+            title("ablation (d): transparent objects, inside the transparent-object masks", &all)
+        ),
+        headers,
+        rows,
+    };
+    let mut out = AblationOutput {
+        tables: write_table(dir, "ablation_transparent", &table, results)?,
+        plots: Vec::new(),
+    };
+    for r in results {
+        let path = dir.join(format!("ablation_transparent_{}.png", r.sensor.set));
+        let mut groups: Vec<String> = r.methods.iter().map(|m| m.method.to_uppercase()).collect();
+        groups.push("SENSOR".into());
+        let mut vals: Vec<(f64, f64)> =
+            r.methods.iter().map(|m| (m.per_image.mae.mean * 1e3, m.per_image.mae.std * 1e3)).collect();
+        vals.push((r.sensor.mean.mae * 1e3, 0.0));
+        bar_plot(
+            &path,
+            &format!("{}: transparent objects (MAE inside the mask)", r.sensor.set),
+            "MAE [mm]",
+            &groups,
+            &[("MAE".into(), vals)],
+        )?;
+        out.plots.push(path);
+    }
+    Ok(out)
+}
+
+fn simple_table(title: String, key: &str, rows: &[EvalResult], f: impl Fn(&EvalResult) -> String) -> Table {
+    let mut headers: Vec<String> = vec!["set".into(), key.into(), "method".into()];
+    headers.extend(metric_headers());
+    Table {
+        title,
+        headers,
+        rows: rows
+            .iter()
+            .map(|r| {
+                let mut row = vec![r.set.clone(), f(r), format!("{} ({})", r.method.to_uppercase(), r.norm)];
+                row.extend(metric_cells(&r.per_image));
+                row
+            })
+            .collect(),
+    }
+}
+
+fn title(what: &str, rows: &[EvalResult]) -> String {
+    let sim = rows.iter().any(|r| r.simulated);
+    match rows.first() {
+        Some(r) => format!(
+            "{}{what} — {} seeds, per-image mean (mean ± std over seeds), RMSE/MAE in mm",
+            if sim { "SIMULATED predictions — " } else { "" },
+            r.seeds
+        ),
+        None => what.to_string(),
+    }
+}
+
+fn unique(it: impl Iterator<Item = String>) -> Vec<String> {
+    let mut v: Vec<String> = Vec::new();
+    for s in it {
+        if !v.contains(&s) {
+            v.push(s);
+        }
+    }
+    v
+}

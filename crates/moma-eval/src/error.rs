@@ -1,0 +1,97 @@
+//! The one error type of `moma-eval`.
+
+use std::path::PathBuf;
+
+/// Errors of the evaluation layer. Every variant names the set / frame / file it is about.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// An image file could not be decoded / encoded.
+    #[error("{path}: {message}")]
+    Image {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// A file's content is malformed (bad JSON, wrong bit depth, wrong array shape...).
+    #[error("{path}: {message}")]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The set cannot be evaluated as asked (one frame, unknown calibration frame, ...).
+    #[error("set '{set}': {message}")]
+    Set {
+        /// Set name.
+        set: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A problem with one frame of a set (missing prediction, size mismatch, no valid pixel...).
+    #[error("set '{set}', frame '{frame}': {message}")]
+    Frame {
+        /// Set name.
+        set: String,
+        /// Frame id.
+        frame: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// An error of the maths layer, with context.
+    #[error("{context}: {source}")]
+    Core {
+        /// Where it happened (set, frame, method).
+        context: String,
+        /// The cause.
+        source: moma_core::CoreError,
+    },
+    /// A parameter is outside its meaningful range.
+    #[error("invalid parameter: {0}")]
+    InvalidParameter(String),
+    /// Plotting failed.
+    #[error("plot {path}: {message}")]
+    Plot {
+        /// Output file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+}
+
+/// Result alias of `moma-eval`.
+pub type Result<T, E = EvalError> = std::result::Result<T, E>;
+
+impl EvalError {
+    /// Wraps an I/O error with its path.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.into(),
+            source,
+        }
+    }
+    /// A frame-level error.
+    pub fn frame(set: &str, frame: &str, message: impl Into<String>) -> Self {
+        Self::Frame {
+            set: set.to_string(),
+            frame: frame.to_string(),
+            message: message.into(),
+        }
+    }
+    /// A core error with context.
+    pub fn core(context: impl Into<String>, source: moma_core::CoreError) -> Self {
+        Self::Core {
+            context: context.into(),
+            source,
+        }
+    }
+}

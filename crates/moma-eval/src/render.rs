@@ -1,0 +1,547 @@
+//! Pictures: colour maps, the embedded font, line and bar plots (plotters, bitmap backend) and
+//! the Fig.-6-style comparison figure. No system font is needed: DejaVu Sans is embedded.
+
+use std::path::Path;
+use std::sync::Once;
+
+use image::RgbImage;
+use moma_core::{Mask, MetricDepth, is_valid_depth};
+use plotters::prelude::*;
+use plotters::style::FontStyle;
+
+use crate::data::save_image;
+use crate::error::{EvalError, Result};
+
+/// Font family name under which the embedded DejaVu Sans is registered.
+pub const FONT: &str = "sans-serif";
+
+/// Registers the embedded DejaVu Sans with plotters (idempotent).
+pub fn register_fonts() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // Registration only fails for an invalid font file; the embedded one is valid.
+        let _ = plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular());
+        let _ = plotters::style::register_font(FONT, FontStyle::Bold, dejavu::sans::bold());
+    });
+}
+
+/// Turbo colour map (Google's polynomial approximation), `t` in [0, 1] (clamped).
+pub fn turbo(t: f64) -> [u8; 3] {
+    let t = t.clamp(0.0, 1.0);
+    let r = 0.13572138
+        + t * (4.61539260 + t * (-42.66032258 + t * (132.13108234 + t * (-152.94239396 + t * 59.28637943))));
+    let g = 0.09140261
+        + t * (2.19418839 + t * (4.84296658 + t * (-14.18503333 + t * (4.27729857 + t * 2.82956604))));
+    let b = 0.10667330
+        + t * (12.64194608 + t * (-60.58204836 + t * (110.36276771 + t * (-89.90310912 + t * 27.34824973))));
+    [
+        (r.clamp(0.0, 1.0) * 255.0).round() as u8,
+        (g.clamp(0.0, 1.0) * 255.0).round() as u8,
+        (b.clamp(0.0, 1.0) * 255.0).round() as u8,
+    ]
+}
+
+/// Colour of invalid pixels in depth pictures.
+pub const INVALID_RGB: [u8; 3] = [40, 40, 40];
+
+/// Colourises a map with turbo over `[lo, hi]`; non-finite / invalid pixels dark grey.
+pub fn colourise(values: &ndarray::Array2<f32>, lo: f64, hi: f64, valid: impl Fn(f32) -> bool) -> RgbImage {
+    let (h, w) = values.dim();
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    RgbImage::from_fn(w as u32, h as u32, |u, v| {
+        let z = values[[v as usize, u as usize]];
+        image::Rgb(if valid(z) {
+            turbo((z as f64 - lo) / span)
+        } else {
+            INVALID_RGB
+        })
+    })
+}
+
+/// The `p`-quantile (0..1) of the finite values (NaN when none).
+pub fn quantile(values: impl Iterator<Item = f32>, p: f64) -> f64 {
+    let mut v: Vec<f32> = values.filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let k = ((v.len() - 1) as f64 * p).round() as usize;
+    let (_, x, _) = v.select_nth_unstable_by(k, f32::total_cmp);
+    *x as f64
+}
+
+/// Writes a depth colour map PNG (turbo over `[lo, hi]` metres; invalid dark grey).
+///
+/// # Errors
+/// I/O failure.
+pub fn write_depth_colormap(path: &Path, depth: &MetricDepth, lo_m: f64, hi_m: f64) -> Result<()> {
+    save_image(path, &colourise(&depth.depth_m, lo_m, hi_m, is_valid_depth))
+}
+
+fn plot_err(path: &Path, e: impl std::fmt::Debug) -> EvalError {
+    EvalError::Plot {
+        path: path.to_path_buf(),
+        message: format!("{e:?}"),
+    }
+}
+
+fn series_colour(i: usize) -> RGBColor {
+    const C: [RGBColor; 8] = [
+        RGBColor(214, 39, 40),
+        RGBColor(31, 119, 180),
+        RGBColor(44, 160, 44),
+        RGBColor(127, 127, 127),
+        RGBColor(255, 127, 14),
+        RGBColor(148, 103, 189),
+        RGBColor(140, 86, 75),
+        RGBColor(23, 190, 207),
+    ];
+    C[i % C.len()]
+}
+
+/// One named series of `(x, mean, std)` points.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Series {
+    /// Legend label.
+    pub name: String,
+    /// Points `(x, y mean, y std)`.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// One panel of a line plot.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinePanel {
+    /// Caption.
+    pub title: String,
+    /// x-axis label.
+    pub x_label: String,
+    /// y-axis label.
+    pub y_label: String,
+    /// Logarithmic x axis.
+    pub log_x: bool,
+    /// Logarithmic y axis.
+    pub log_y: bool,
+    /// The series.
+    pub series: Vec<Series>,
+}
+
+fn range_of(series: &[Series], f: impl Fn(&(f64, f64, f64)) -> [f64; 2], log: bool) -> (f64, f64) {
+    let mut lo = f64::INFINITY;
+    let mut hi = f64::NEG_INFINITY;
+    for s in series {
+        for p in &s.points {
+            for v in f(p) {
+                if v.is_finite() && (!log || v > 0.0) {
+                    lo = lo.min(v);
+                    hi = hi.max(v);
+                }
+            }
+        }
+    }
+    if !lo.is_finite() {
+        return (0.0, 1.0);
+    }
+    if log {
+        (lo / 1.5, hi * 1.5)
+    } else {
+        let pad = ((hi - lo) * 0.08).max(1e-9);
+        ((lo - pad).min(if lo >= 0.0 { 0.0 } else { lo - pad }), hi + pad)
+    }
+}
+
+/// Draws panels side by side into a PNG of `panel_w × panel_h` pixels per panel.
+///
+/// # Errors
+/// Drawing or I/O failure.
+pub fn line_plot(path: &Path, panels: &[LinePanel], panel_w: u32, panel_h: u32) -> Result<()> {
+    register_fonts();
+    let (w, h) = (panel_w * panels.len().max(1) as u32, panel_h);
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| plot_err(path, e))?;
+        let areas = root.split_evenly((1, panels.len().max(1)));
+        for (panel, area) in panels.iter().zip(areas.iter()) {
+            let (x0, x1) = range_of(&panel.series, |p| [p.0, p.0], panel.log_x);
+            let (y0, y1) = range_of(&panel.series, |p| [p.1 - p.2, p.1 + p.2], panel.log_y);
+            let mut cb = ChartBuilder::on(area);
+            cb.caption(&panel.title, (FONT, 20))
+                .margin(12)
+                .x_label_area_size(45)
+                .y_label_area_size(70);
+            macro_rules! draw {
+                ($chart:expr) => {{
+                    let mut chart = $chart;
+                    chart
+                        .configure_mesh()
+                        .x_desc(panel.x_label.as_str())
+                        .y_desc(panel.y_label.as_str())
+                        .label_style((FONT, 14))
+                        .axis_desc_style((FONT, 15))
+                        .draw()
+                        .map_err(|e| plot_err(path, e))?;
+                    for (i, s) in panel.series.iter().enumerate() {
+                        let c = series_colour(i);
+                        chart
+                            .draw_series(LineSeries::new(
+                                s.points.iter().map(|p| (p.0, p.1)),
+                                c.stroke_width(2),
+                            ))
+                            .map_err(|e| plot_err(path, e))?
+                            .label(s.name.as_str())
+                            .legend(move |(x, y)| {
+                                PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                            });
+                        chart
+                            .draw_series(s.points.iter().map(|p| Circle::new((p.0, p.1), 3, c.filled())))
+                            .map_err(|e| plot_err(path, e))?;
+                        chart
+                            .draw_series(s.points.iter().filter(|p| p.2 > 0.0).map(|p| {
+                                let lo = if panel.log_y { (p.1 - p.2).max(p.1 * 0.5) } else { p.1 - p.2 };
+                                PathElement::new(vec![(p.0, lo), (p.0, p.1 + p.2)], c.stroke_width(1))
+                            }))
+                            .map_err(|e| plot_err(path, e))?;
+                    }
+                    chart
+                        .configure_series_labels()
+                        .label_font((FONT, 14))
+                        .background_style(WHITE.mix(0.85))
+                        .border_style(BLACK)
+                        .draw()
+                        .map_err(|e| plot_err(path, e))?;
+                }};
+            }
+            match (panel.log_x, panel.log_y) {
+                (true, true) => draw!(cb
+                    .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+                    .map_err(|e| plot_err(path, e))?),
+                (true, false) => draw!(cb
+                    .build_cartesian_2d((x0..x1).log_scale(), y0..y1)
+                    .map_err(|e| plot_err(path, e))?),
+                (false, true) => draw!(cb
+                    .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
+                    .map_err(|e| plot_err(path, e))?),
+                (false, false) => draw!(cb
+                    .build_cartesian_2d(x0..x1, y0..y1)
+                    .map_err(|e| plot_err(path, e))?),
+            }
+        }
+        root.present().map_err(|e| plot_err(path, e))?;
+    }
+    save_rgb_buffer(path, buf, w, h)
+}
+
+/// Grouped bar chart: one group per `groups` entry, one bar per series, whiskers = std.
+///
+/// # Errors
+/// Drawing or I/O failure.
+pub fn bar_plot(
+    path: &Path,
+    title: &str,
+    y_label: &str,
+    groups: &[String],
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<()> {
+    register_fonts();
+    let (w, h) = ((220 * groups.len().max(1) as u32).max(640), 480u32);
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| plot_err(path, e))?;
+        let ymax = series
+            .iter()
+            .flat_map(|(_, v)| v.iter().map(|(m, s)| m + s))
+            .filter(|x| x.is_finite())
+            .fold(0.0f64, f64::max)
+            * 1.15;
+        let ymax = if ymax > 0.0 { ymax } else { 1.0 };
+        let ng = groups.len().max(1);
+        let groups_owned: Vec<String> = groups.to_vec();
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, (FONT, 20))
+            .margin(12)
+            .x_label_area_size(45)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..ng as f64, 0.0..ymax)
+            .map_err(|e| plot_err(path, e))?;
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_labels(ng * 2 + 1)
+            .x_label_formatter(&move |x: &f64| {
+                let k = x.floor() as usize;
+                if (x - k as f64 - 0.5).abs() < 0.01 && k < groups_owned.len() {
+                    groups_owned[k].clone()
+                } else {
+                    String::new()
+                }
+            })
+            .y_desc(y_label)
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 15))
+            .draw()
+            .map_err(|e| plot_err(path, e))?;
+        let ns = series.len().max(1) as f64;
+        let bw = 0.8 / ns;
+        for (si, (name, vals)) in series.iter().enumerate() {
+            let c = series_colour(si);
+            let x_of = |g: usize| g as f64 + 0.1 + bw * si as f64;
+            chart
+                .draw_series(vals.iter().enumerate().filter(|(_, v)| v.0.is_finite()).map(|(g, &(m, _))| {
+                    Rectangle::new([(x_of(g), 0.0), (x_of(g) + bw * 0.92, m)], c.filled())
+                }))
+                .map_err(|e| plot_err(path, e))?
+                .label(name.as_str())
+                .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], c.filled()));
+            chart
+                .draw_series(vals.iter().enumerate().filter(|(_, v)| v.1 > 0.0 && v.0.is_finite()).map(
+                    |(g, &(m, s))| {
+                        PathElement::new(
+                            vec![(x_of(g) + bw * 0.46, (m - s).max(0.0)), (x_of(g) + bw * 0.46, m + s)],
+                            BLACK.stroke_width(2),
+                        )
+                    },
+                ))
+                .map_err(|e| plot_err(path, e))?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font((FONT, 14))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| plot_err(path, e))?;
+        root.present().map_err(|e| plot_err(path, e))?;
+    }
+    save_rgb_buffer(path, buf, w, h)
+}
+
+fn save_rgb_buffer(path: &Path, buf: Vec<u8>, w: u32, h: u32) -> Result<()> {
+    let img = RgbImage::from_raw(w, h, buf).ok_or_else(|| plot_err(path, "buffer size"))?;
+    save_image(path, &img)
+}
+
+/// One panel of the comparison figure.
+#[derive(Debug, Clone)]
+pub enum Panel {
+    /// An RGB picture.
+    Rgb(RgbImage),
+    /// A metric map in metres on the row's shared scale.
+    Metres(ndarray::Array2<f32>),
+    /// A unitless map on its own scale (the raw prediction).
+    Unitless(ndarray::Array2<f32>),
+    /// A mask picture.
+    Mask(Mask),
+    /// Nothing.
+    Empty,
+}
+
+/// One row of the comparison figure: titled panels sharing one colour scale.
+#[derive(Debug, Clone)]
+pub struct FigureRow {
+    /// Panel titles and contents.
+    pub panels: Vec<(String, Panel)>,
+    /// Colour-bar label (e.g. "depth [m]").
+    pub bar_label: String,
+    /// Colour scale `[lo, hi]` of the `Metres` panels.
+    pub range: (f64, f64),
+    /// Multiply tick values by this for display (1000 for mm).
+    pub tick_scale: f64,
+}
+
+fn resize_nearest(src: &RgbImage, w: u32, h: u32) -> RgbImage {
+    RgbImage::from_fn(w, h, |x, y| {
+        let sx = ((x as f64 + 0.5) * src.width() as f64 / w as f64) as u32;
+        let sy = ((y as f64 + 0.5) * src.height() as f64 / h as f64) as u32;
+        *src.get_pixel(sx.min(src.width() - 1), sy.min(src.height() - 1))
+    })
+}
+
+/// Draws rows of panels with one colour bar per row (labelled ticks) and a title; PNG.
+///
+/// # Errors
+/// Drawing or I/O failure.
+pub fn comparison_figure(path: &Path, title: &str, rows: &[FigureRow], panel_w: u32) -> Result<()> {
+    register_fonts();
+    let ncols = rows.iter().map(|r| r.panels.len()).max().unwrap_or(1) as u32;
+    let (img_w, img_h) = rows
+        .iter()
+        .flat_map(|r| r.panels.iter())
+        .find_map(|(_, p)| match p {
+            Panel::Rgb(i) => Some((i.width(), i.height())),
+            Panel::Metres(a) | Panel::Unitless(a) => Some((a.ncols() as u32, a.nrows() as u32)),
+            Panel::Mask(m) => Some((m.size().width as u32, m.size().height as u32)),
+            Panel::Empty => None,
+        })
+        .unwrap_or((4, 3));
+    let panel_h = (panel_w as f64 * img_h as f64 / img_w as f64).round() as u32;
+    let (gap, title_h, head_h, bar_w) = (8u32, 36u32, 24u32, 120u32);
+    let w = gap + ncols * (panel_w + gap) + bar_w;
+    let row_h = head_h + panel_h + gap;
+    let h = title_h + rows.len() as u32 * row_h + gap;
+    let mut canvas = RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
+    // raster content first
+    for (ri, row) in rows.iter().enumerate() {
+        let y0 = title_h + ri as u32 * row_h + head_h;
+        let (lo, hi) = row.range;
+        for (ci, (_, p)) in row.panels.iter().enumerate() {
+            let x0 = gap + ci as u32 * (panel_w + gap);
+            let pic = match p {
+                Panel::Rgb(i) => Some(i.clone()),
+                Panel::Metres(a) => Some(colourise(a, lo, hi, is_valid_depth)),
+                Panel::Unitless(a) => {
+                    let plo = quantile(a.iter().copied(), 0.01);
+                    let phi = quantile(a.iter().copied(), 0.99);
+                    Some(colourise(a, plo, phi, |x| x.is_finite()))
+                }
+                Panel::Mask(m) => {
+                    let (mh, mw) = m.data().dim();
+                    Some(RgbImage::from_fn(mw as u32, mh as u32, |u, v| {
+                        if m.data()[[v as usize, u as usize]] {
+                            image::Rgb([255, 255, 255])
+                        } else {
+                            image::Rgb([0, 0, 0])
+                        }
+                    }))
+                }
+                Panel::Empty => None,
+            };
+            if let Some(pic) = pic {
+                let small = resize_nearest(&pic, panel_w, panel_h);
+                image::imageops::replace(&mut canvas, &small, x0 as i64, y0 as i64);
+            }
+        }
+        // colour bar
+        let bx = gap + ncols * (panel_w + gap) + 4;
+        for y in 0..panel_h {
+            let t = 1.0 - y as f64 / (panel_h.max(2) - 1) as f64;
+            let c = turbo(t);
+            for x in 0..18 {
+                canvas.put_pixel(bx + x, y0 + y, image::Rgb(c));
+            }
+        }
+    }
+    let mut buf = canvas.into_raw();
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        let font = (FONT, 16).into_font().color(&BLACK);
+        let tfont = (FONT, 20).into_font().color(&BLACK);
+        root.draw(&Text::new(title.to_string(), (gap as i32, 8), tfont))
+            .map_err(|e| plot_err(path, e))?;
+        for (ri, row) in rows.iter().enumerate() {
+            let y0 = title_h + ri as u32 * row_h;
+            for (ci, (name, _)) in row.panels.iter().enumerate() {
+                let x0 = gap + ci as u32 * (panel_w + gap);
+                root.draw(&Text::new(name.clone(), (x0 as i32, y0 as i32 + 3), font.clone()))
+                    .map_err(|e| plot_err(path, e))?;
+            }
+            let bx = (gap + ncols * (panel_w + gap) + 4) as i32;
+            let py = (y0 + head_h) as i32;
+            root.draw(&Text::new(row.bar_label.clone(), (bx - 4, y0 as i32 + 3), font.clone()))
+                .map_err(|e| plot_err(path, e))?;
+            let (lo, hi) = row.range;
+            let ticks = nice_ticks(lo * row.tick_scale, hi * row.tick_scale, 5);
+            for t in ticks {
+                let frac = (t / row.tick_scale - lo) / (hi - lo).max(1e-12);
+                if !(0.0..=1.0).contains(&frac) {
+                    continue;
+                }
+                let y = py + ((1.0 - frac) * (panel_h as f64 - 1.0)).round() as i32;
+                root.draw(&PathElement::new(vec![(bx + 18, y), (bx + 24, y)], BLACK))
+                    .map_err(|e| plot_err(path, e))?;
+                let prec = if (hi - lo) * row.tick_scale < 0.1 { 3 } else if (hi - lo) * row.tick_scale < 1.0 { 2 } else { 0 }.max(tick_prec(lo * row.tick_scale, hi * row.tick_scale));
+                root.draw(&Text::new(
+                    format!("{t:.prec$}"),
+                    (bx + 27, y - 8),
+                    (FONT, 14).into_font().color(&BLACK),
+                ))
+                .map_err(|e| plot_err(path, e))?;
+            }
+        }
+        root.present().map_err(|e| plot_err(path, e))?;
+    }
+    save_rgb_buffer(path, buf, w, h)
+}
+
+fn tick_prec(lo: f64, hi: f64) -> usize {
+    let step = nice_step((hi - lo) / 5.0);
+    if step >= 1.0 { 0 } else { (-step.log10().floor()) as usize }
+}
+
+fn nice_step(raw: f64) -> f64 {
+    if !(raw > 0.0) || !raw.is_finite() {
+        return 1.0;
+    }
+    let p = 10f64.powf(raw.log10().floor());
+    let m = raw / p;
+    let k = if m < 1.5 { 1.0 } else if m < 3.5 { 2.0 } else if m < 7.5 { 5.0 } else { 10.0 };
+    k * p
+}
+
+/// "Nice" tick values covering `[lo, hi]`, about `n` of them.
+pub fn nice_ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
+    if !(hi > lo) {
+        return vec![lo];
+    }
+    let step = nice_step((hi - lo) / n.max(1) as f64);
+    let start = (lo / step).ceil() * step;
+    let mut v = Vec::new();
+    let mut t = start;
+    while t <= hi + 1e-9 * step {
+        v.push(if t.abs() < 1e-12 * step { 0.0 } else { t });
+        t += step;
+    }
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_are_nice() {
+        assert_eq!(nice_ticks(0.0, 10.0, 5), vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]);
+        let t = nice_ticks(0.53, 0.81, 5);
+        assert!(t.len() >= 3 && t[0] >= 0.53 && *t.last().unwrap() <= 0.81);
+    }
+
+    #[test]
+    fn turbo_ends() {
+        assert_ne!(turbo(0.0), turbo(1.0));
+        assert_eq!(turbo(-1.0), turbo(0.0));
+    }
+
+    #[test]
+    fn plots_render_with_embedded_font() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("l.png");
+        line_plot(
+            &p,
+            &[LinePanel {
+                title: "t".into(),
+                x_label: "n".into(),
+                y_label: "mm".into(),
+                log_x: true,
+                log_y: false,
+                series: vec![Series {
+                    name: "a".into(),
+                    points: vec![(20.0, 3.0, 0.5), (100.0, 2.0, 0.2), (1000.0, 1.5, 0.1)],
+                }],
+            }],
+            500,
+            400,
+        )
+        .unwrap();
+        assert!(p.exists());
+        let b = dir.path().join("b.png");
+        bar_plot(
+            &b,
+            "bars",
+            "MAE mm",
+            &["x".into(), "y".into()],
+            &[("s1".into(), vec![(1.0, 0.1), (2.0, 0.2)]), ("s2".into(), vec![(1.5, 0.0), (0.5, 0.1)])],
+        )
+        .unwrap();
+        assert!(b.exists());
+    }
+}

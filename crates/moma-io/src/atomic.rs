@@ -1,0 +1,85 @@
+//! Atomic file output: every writer of this crate goes through [`atomic_write`].
+
+use std::io::{BufWriter, Write};
+use std::path::Path;
+
+use crate::error::{IoError, Result};
+
+/// Writes `path` atomically: `write` fills a temporary file created in the destination
+/// directory (named `.NAME.XXXXXX.tmp`), which is renamed over `path` only after `write` and
+/// the final flush succeed. Readers therefore see either the old file or the complete new one;
+/// on any error the temporary file is removed and `path` is left untouched.
+///
+/// The returned value of `write` is passed through. The file gets mode `0666` minus the
+/// process umask on Unix (like an ordinary `File::create`), not the `0600` of a temporary
+/// file. No `fsync` is issued (the rename protects against crashes of this process, not
+/// against power loss).
+///
+/// # Errors
+/// [`IoError::Invalid`] when `path` has no file name or its directory does not exist;
+/// [`IoError::Io`] when the temporary file cannot be created (e.g. directory not writable),
+/// written or renamed; any error returned by `write`.
+///
+/// # Example
+/// ```
+/// use std::io::Write;
+/// let dir = tempfile::tempdir().unwrap();
+/// let path = dir.path().join("hello.txt");
+/// moma_io::atomic_write(&path, |w| {
+///     w.write_all(b"hello").map_err(|e| moma_io::IoError::Io {
+///         path: "hello.txt".into(),
+///         action: "write",
+///         source: e,
+///     })
+/// })
+/// .unwrap();
+/// assert_eq!(std::fs::read(&path).unwrap(), b"hello");
+/// ```
+pub fn atomic_write<T>(
+    path: impl AsRef<Path>,
+    write: impl FnOnce(&mut dyn Write) -> Result<T>,
+) -> Result<T> {
+    let path = path.as_ref();
+    let Some(name) = path.file_name() else {
+        return Err(IoError::invalid(path, "output path has no file name"));
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    if !dir.is_dir() {
+        return Err(IoError::invalid(
+            path,
+            format!("cannot write: directory '{}' does not exist", dir.display()),
+        ));
+    }
+    let mut builder = tempfile::Builder::new();
+    let prefix = format!(".{}.", name.to_string_lossy());
+    builder.prefix(&prefix).suffix(".tmp");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder.tempfile_in(dir).map_err(|e| {
+        IoError::io(
+            path,
+            "create a temporary file in the destination directory",
+            e,
+        )
+    })?;
+    let value = {
+        let mut w = BufWriter::new(tmp.as_file_mut());
+        let value = write(&mut w)?;
+        w.flush().map_err(|e| IoError::io(path, "write", e))?;
+        value
+    };
+    tmp.persist(path)
+        .map_err(|e| IoError::io(path, "move the finished temporary file into place", e.error))?;
+    Ok(value)
+}
+
+/// Maps an I/O error of a writer closure to [`IoError::Io`] with action "write".
+pub(crate) fn write_err(path: &Path) -> impl Fn(std::io::Error) -> IoError + '_ {
+    move |e| IoError::io(path, "write", e)
+}

@@ -1,0 +1,234 @@
+//! The calibration file: a versioned JSON document holding a fitted [`Calibration`] and how it was made.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use moma_core::normalise::NormalisationConfig;
+use moma_core::pipeline::Calibration;
+use moma_core::{ImageSize, Intrinsics, PredictionKind};
+use serde::{Deserialize, Serialize};
+
+use crate::atomic::{atomic_write, write_err};
+use crate::error::{IoError, Result};
+
+/// Value of the `format` field of every calibration file.
+pub const CALIBRATION_FORMAT: &str = "moma-calibration";
+/// The calibration-file version this build writes and reads.
+pub const CALIBRATION_VERSION: u32 = 1;
+
+/// How and when a calibration file was made.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CreationInfo {
+    /// Version of moma that wrote the file.
+    pub moma_version: String,
+    /// Creation time, seconds since the Unix epoch (UTC).
+    pub created_unix_s: u64,
+    /// The command line that produced it (program name first); empty when not from a command.
+    #[serde(default)]
+    pub command_line: Vec<String>,
+    /// Input files by role, e.g. `"prediction"`, `"ground_truth"`, `"camera"`, `"mask"`.
+    #[serde(default)]
+    pub sources: BTreeMap<String, String>,
+}
+
+impl CreationInfo {
+    /// This moma's version, the current time and this process's command line; no sources.
+    pub fn now() -> Self {
+        Self {
+            moma_version: env!("CARGO_PKG_VERSION").to_string(),
+            created_unix_s: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_secs())
+                .unwrap_or(0),
+            command_line: std::env::args().collect(),
+            sources: BTreeMap::new(),
+        }
+    }
+
+    /// Adds an input file under `role`.
+    pub fn with_source(mut self, role: impl Into<String>, path: impl AsRef<Path>) -> Self {
+        self.sources
+            .insert(role.into(), path.as_ref().display().to_string());
+        self
+    }
+}
+
+/// The content of a calibration file (JSON, see `docs/formats.md`).
+///
+/// `method`, `normalisation`, `prediction_kind` and `image_size` repeat what `calibration`
+/// holds, at the top level for people and scripts; [`read_calibration`] rejects a file where
+/// they disagree.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationFile {
+    /// Always [`CALIBRATION_FORMAT`].
+    pub format: String,
+    /// Always [`CALIBRATION_VERSION`].
+    pub version: u32,
+    /// Alignment method name (`ssra`, `gssa`, `lwlr`, `raw`), from the fit report.
+    pub method: String,
+    /// Normalisation applied before alignment (at calibration and at run time).
+    pub normalisation: NormalisationConfig,
+    /// Kind of prediction the calibration expects.
+    pub prediction_kind: PredictionKind,
+    /// The fitted calibration: model parameters, fit report and the samples used.
+    pub calibration: Calibration,
+    /// Camera intrinsics (pixels), when known.
+    pub intrinsics: Option<Intrinsics>,
+    /// Size of the calibration image, pixels; run-time predictions must match.
+    pub image_size: ImageSize,
+    /// Path of the workspace mask used for normalisation, when one was used (the same mask must
+    /// be given at run time).
+    pub workspace_mask: Option<String>,
+    /// Provenance.
+    pub created: CreationInfo,
+}
+
+impl CalibrationFile {
+    /// Wraps a fitted calibration, filling the summary fields from it.
+    pub fn new(
+        calibration: Calibration,
+        intrinsics: Option<Intrinsics>,
+        workspace_mask: Option<String>,
+        created: CreationInfo,
+    ) -> Self {
+        Self {
+            format: CALIBRATION_FORMAT.to_string(),
+            version: CALIBRATION_VERSION,
+            method: calibration.report.method.clone(),
+            normalisation: calibration.normalisation,
+            prediction_kind: calibration.prediction_kind,
+            image_size: calibration.samples.image_size,
+            calibration,
+            intrinsics,
+            workspace_mask,
+            created,
+        }
+    }
+
+    /// Checks the header and that the summary fields agree with `calibration`.
+    fn check(&self, path: &Path) -> Result<()> {
+        if self.format != CALIBRATION_FORMAT || self.version != CALIBRATION_VERSION {
+            return Err(IoError::CalibrationVersion {
+                path: path.to_path_buf(),
+                format: self.format.clone(),
+                version: self.version.to_string(),
+                supported: CALIBRATION_VERSION,
+            });
+        }
+        let c = &self.calibration;
+        let disagree = |field: &str, top: String, inner: String| {
+            Err(IoError::invalid(
+                path,
+                format!(
+                    "calibration file is inconsistent: '{field}' is {top} but the calibration holds {inner}"
+                ),
+            ))
+        };
+        if self.method != c.report.method {
+            return disagree("method", self.method.clone(), c.report.method.clone());
+        }
+        if self.normalisation != c.normalisation {
+            return disagree(
+                "normalisation",
+                format!("{:?}", self.normalisation),
+                format!("{:?}", c.normalisation),
+            );
+        }
+        if self.prediction_kind != c.prediction_kind {
+            return disagree(
+                "prediction_kind",
+                self.prediction_kind.to_string(),
+                c.prediction_kind.to_string(),
+            );
+        }
+        if self.image_size != c.samples.image_size {
+            return disagree(
+                "image_size",
+                self.image_size.to_string(),
+                c.samples.image_size.to_string(),
+            );
+        }
+        if let Some(k) = &self.intrinsics {
+            k.validate().map_err(|e| IoError::core(path, e))?;
+            if k.size() != self.image_size {
+                return disagree(
+                    "intrinsics size",
+                    k.size().to_string(),
+                    self.image_size.to_string(),
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Just the header, parsed first so that another version's schema gives a version error.
+#[derive(Deserialize)]
+struct Header {
+    format: Option<serde_json::Value>,
+    version: Option<serde_json::Value>,
+}
+
+fn describe(v: &Option<serde_json::Value>) -> String {
+    match v {
+        None => "<missing>".to_string(),
+        Some(serde_json::Value::String(s)) => s.clone(),
+        Some(other) => other.to_string(),
+    }
+}
+
+/// Reads and checks a calibration file.
+///
+/// # Errors
+/// [`IoError::Json`] with line and column for invalid or truncated JSON or a schema error;
+/// [`IoError::CalibrationVersion`] naming the format and version found when the file is not
+/// `moma-calibration` version 1; [`IoError::Invalid`] when the summary fields disagree with
+/// the calibration; [`IoError::Io`] when unreadable.
+pub fn read_calibration(path: impl AsRef<Path>) -> Result<CalibrationFile> {
+    let path = path.as_ref();
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
+    let header: Header = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
+    let format_ok =
+        matches!(&header.format, Some(serde_json::Value::String(s)) if s == CALIBRATION_FORMAT);
+    let version_ok = header.version.as_ref().and_then(serde_json::Value::as_u64)
+        == Some(u64::from(CALIBRATION_VERSION));
+    if !format_ok || !version_ok {
+        return Err(IoError::CalibrationVersion {
+            path: path.to_path_buf(),
+            format: describe(&header.format),
+            version: describe(&header.version),
+            supported: CALIBRATION_VERSION,
+        });
+    }
+    let file: CalibrationFile = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
+    file.check(path)?;
+    Ok(file)
+}
+
+/// Writes a calibration file atomically (pretty-printed JSON).
+///
+/// The JSON is parsed back before writing, so a file that [`read_calibration`] could not read
+/// (e.g. a NaN or infinite parameter, which JSON cannot represent) is never written.
+///
+/// # Errors
+/// [`IoError::CalibrationVersion`] / [`IoError::Invalid`] for a header or summary fields that
+/// [`read_calibration`] would reject; [`IoError::Invalid`] for non-finite numbers; destination
+/// not writable.
+pub fn write_calibration(path: impl AsRef<Path>, file: &CalibrationFile) -> Result<()> {
+    let path = path.as_ref();
+    file.check(path)?;
+    let mut text = serde_json::to_string_pretty(file)
+        .map_err(|e| IoError::invalid(path, format!("cannot encode calibration as JSON: {e}")))?;
+    text.push('\n');
+    if let Err(e) = serde_json::from_str::<CalibrationFile>(&text) {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "calibration cannot be stored as JSON (a NaN or infinite number?): it would not read back: {e}"
+            ),
+        ));
+    }
+    atomic_write(path, |w| {
+        w.write_all(text.as_bytes()).map_err(write_err(path))
+    })
+}

@@ -1,0 +1,148 @@
+//! Masks (binary regions) and RGB images.
+
+use std::path::Path;
+
+use image::{DynamicImage, ImageFormat, RgbImage};
+use moma_core::{ImageSize, Mask};
+use ndarray::Array2;
+
+use crate::atomic::atomic_write;
+use crate::error::{IoError, Result};
+use crate::png_util::{PngPixels, decode_image, encode_png};
+
+/// Reads a mask PNG: a pixel is inside when its value is nonzero.
+///
+/// The canonical mask is 8-bit grayscale 0/255 (what [`write_mask`] writes). Other PNG pixel
+/// types are accepted and converted: 1/2/4-bit and 16-bit grayscale (nonzero = inside),
+/// grayscale+alpha, RGB, RGBA and palette images (inside when any colour channel is nonzero;
+/// alpha is ignored, palette entries are looked up first).
+///
+/// # Errors
+/// Unreadable ([`IoError::Io`]) or corrupt/truncated ([`IoError::Corrupt`]) PNG.
+pub fn read_mask(path: impl AsRef<Path>) -> Result<Mask> {
+    let path = path.as_ref();
+    let img = decode_image(path, Some(ImageFormat::Png))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let inside: Vec<bool> = match img {
+        DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(|v| v != 0).collect(),
+        DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(|v| v != 0).collect(),
+        other => other
+            .to_rgb16()
+            .pixels()
+            .map(|p| p.0.iter().any(|&c| c != 0))
+            .collect(),
+    };
+    Array2::from_shape_vec((h, w), inside)
+        .map(Mask::new)
+        .map_err(|e| IoError::corrupt(path, "PNG", e.to_string()))
+}
+
+/// Reads a mask ([`read_mask`]) and checks it is `expected` pixels in size.
+///
+/// # Errors
+/// As [`read_mask`], plus [`IoError::SizeMismatch`].
+pub fn read_mask_sized(path: impl AsRef<Path>, expected: ImageSize) -> Result<Mask> {
+    let path = path.as_ref();
+    let mask = read_mask(path)?;
+    IoError::expect_size(path, expected, mask.size())?;
+    Ok(mask)
+}
+
+/// Writes a mask atomically as an 8-bit grayscale PNG, 255 inside and 0 outside.
+///
+/// # Errors
+/// Destination not writable; an empty mask.
+pub fn write_mask(path: impl AsRef<Path>, mask: &Mask) -> Result<()> {
+    let path = path.as_ref();
+    let size = mask.size();
+    let data: Vec<u8> = mask
+        .data()
+        .iter()
+        .map(|&b| if b { 255 } else { 0 })
+        .collect();
+    atomic_write(path, |w| {
+        encode_png(
+            w,
+            path,
+            size.width,
+            size.height,
+            PngPixels::Gray8(&data),
+            &[],
+        )
+    })
+}
+
+/// Reads an 8-bit RGB image from PNG or JPEG (detected from the content, not the extension).
+///
+/// Other pixel types are converted: grayscale is replicated to three channels, alpha is dropped
+/// (not composited), 16-bit channels are scaled to 8 bits (`v · 255 / 65535`, rounded).
+///
+/// # Errors
+/// Unreadable ([`IoError::Io`]), not PNG/JPEG, corrupt or truncated ([`IoError::Corrupt`]).
+pub fn read_rgb(path: impl AsRef<Path>) -> Result<RgbImage> {
+    let path = path.as_ref();
+    Ok(decode_image(path, None)?.to_rgb8())
+}
+
+/// Reads an RGB image ([`read_rgb`]) and checks it is `expected` pixels in size.
+///
+/// # Errors
+/// As [`read_rgb`], plus [`IoError::SizeMismatch`].
+pub fn read_rgb_sized(path: impl AsRef<Path>, expected: ImageSize) -> Result<RgbImage> {
+    let path = path.as_ref();
+    let img = read_rgb(path)?;
+    IoError::expect_size(path, expected, rgb_size(&img))?;
+    Ok(img)
+}
+
+/// The size of an RGB image in pixels.
+pub fn rgb_size(img: &RgbImage) -> ImageSize {
+    ImageSize::new(img.width() as usize, img.height() as usize)
+}
+
+/// JPEG quality used by [`write_rgb`] for `.jpg`/`.jpeg` outputs.
+pub const JPEG_QUALITY: u8 = 95;
+
+/// Writes an 8-bit RGB image atomically: PNG for `.png`, JPEG (quality [`JPEG_QUALITY`]) for
+/// `.jpg`/`.jpeg` (case-insensitive).
+///
+/// # Errors
+/// [`IoError::Unsupported`] for other extensions; destination not writable; an empty image.
+pub fn write_rgb(path: impl AsRef<Path>, img: &RgbImage) -> Result<()> {
+    let path = path.as_ref();
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    match ext.as_str() {
+        "png" => atomic_write(path, |out| {
+            encode_png(out, path, w, h, PngPixels::Rgb8(img.as_raw()), &[])
+        }),
+        "jpg" | "jpeg" => {
+            if w == 0 || h == 0 {
+                return Err(IoError::invalid(
+                    path,
+                    format!("cannot write an empty {w}x{h} image"),
+                ));
+            }
+            atomic_write(path, |out| {
+                let enc = image::codecs::jpeg::JpegEncoder::new_with_quality(out, JPEG_QUALITY);
+                img.write_with_encoder(enc).map_err(|e| match e {
+                    image::ImageError::IoError(io) => IoError::io(path, "write", io),
+                    other => IoError::invalid(path, format!("JPEG encoding failed: {other}")),
+                })
+            })
+        }
+        _ => Err(IoError::unsupported(
+            path,
+            "image file extension",
+            if ext.is_empty() {
+                "<none>".to_string()
+            } else {
+                ext
+            },
+            "'.png', '.jpg' or '.jpeg'",
+        )),
+    }
+}
