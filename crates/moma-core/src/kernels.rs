@@ -1,6 +1,9 @@
 //! Hot inner loops, written so that LLVM auto-vectorises them, compiled twice: for the baseline
 //! target and (on x86-64) for AVX2+FMA, chosen at run time. Internal to the crate.
 
+// Indexed loops over explicit lanes are what makes LLVM vectorise these kernels.
+#![allow(clippy::needless_range_loop)]
+
 use ndarray::{ArrayView2, ArrayViewMut2};
 
 /// Defines `fn name(args) -> ret { body }` with an AVX2+FMA clone selected at run time on x86-64.
@@ -22,7 +25,6 @@ macro_rules! multiversion {
         }
     };
 }
-pub(crate) use multiversion;
 
 /// Calls `f(row, input_row, output_row)` for every row with contiguous slices, copying through a
 /// scratch row only when a view is not row-contiguous. Shapes must be equal (checked by callers).
@@ -89,30 +91,171 @@ multiversion! {
 /// Column block of the LWLR sums kernel (f64 lanes); the weight table rows are padded to it.
 pub(crate) const LWLR_BLOCK: usize = 8;
 
+/// The five LWLR weighted sums of one image row, for every (padded) column `j`:
+/// `sums[m][j] = Σ_k coef[k][m] · wu[k·stride + j]`, where `coef[k] = wv_k·(1, x_k, x_k², y_k, x_k·y_k)`
+/// and `wu[k·stride + j] = exp(−(j − u_k)²/(2b²))`. `stride` is a multiple of [`LWLR_BLOCK`];
+/// each `sums[m]` has length `stride`. A small GEMM: FMA intrinsics on AVX2+FMA CPUs, else a
+/// lane loop the compiler vectorises.
+pub(crate) fn lwlr_row_sums(
+    wu: &[f64],
+    stride: usize,
+    coef: &[[f64; 5]],
+    sums: &mut [Vec<f64>; 5],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU features were just detected.
+        unsafe { lwlr_row_sums_fma(wu, stride, coef, sums) };
+        return;
+    }
+    lwlr_row_sums_portable(wu, stride, coef, sums);
+}
+
+pub(crate) fn lwlr_row_sums_portable(
+    wu: &[f64],
+    stride: usize,
+    coef: &[[f64; 5]],
+    sums: &mut [Vec<f64>; 5],
+) {
+    const B: usize = LWLR_BLOCK;
+    let mut j0 = 0;
+    while j0 + B <= stride {
+        let mut acc = [[0.0f64; B]; 5];
+        for (k, c) in coef.iter().enumerate() {
+            let w: &[f64; B] = wu[k * stride + j0..k * stride + j0 + B]
+                .try_into()
+                .unwrap_or(&[0.0; B]);
+            for l in 0..B {
+                acc[0][l] += c[0] * w[l];
+                acc[1][l] += c[1] * w[l];
+                acc[2][l] += c[2] * w[l];
+                acc[3][l] += c[3] * w[l];
+                acc[4][l] += c[4] * w[l];
+            }
+        }
+        for m in 0..5 {
+            sums[m][j0..j0 + B].copy_from_slice(&acc[m]);
+        }
+        j0 += B;
+    }
+}
+
+/// AVX2+FMA micro-kernel: 8 columns (two 4-lane registers) × 5 sums = 10 accumulators.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn lwlr_row_sums_fma(wu: &[f64], stride: usize, coef: &[[f64; 5]], sums: &mut [Vec<f64>; 5]) {
+    use std::arch::x86_64::*;
+    const B: usize = LWLR_BLOCK;
+    const _: () = assert!(B == 8);
+    let n = coef.len().min(wu.len() / stride.max(1));
+    if sums.iter().any(|s| s.len() < stride) {
+        return lwlr_row_sums_portable(wu, stride, coef, sums);
+    }
+    let mut j0 = 0;
+    while j0 + B <= stride {
+        let mut a = [_mm256_setzero_pd(); 10];
+        for (k, c) in coef.iter().enumerate().take(n) {
+            // SAFETY: k < n ≤ wu.len()/stride and j0 + 8 ≤ stride, so both loads are in bounds.
+            let (w0, w1) = unsafe {
+                let ptr = wu.as_ptr().add(k * stride + j0);
+                (_mm256_loadu_pd(ptr), _mm256_loadu_pd(ptr.add(4)))
+            };
+            for m in 0..5 {
+                let cm = _mm256_set1_pd(c[m]);
+                a[2 * m] = _mm256_fmadd_pd(cm, w0, a[2 * m]);
+                a[2 * m + 1] = _mm256_fmadd_pd(cm, w1, a[2 * m + 1]);
+            }
+        }
+        for m in 0..5 {
+            // SAFETY: j0 + 8 ≤ stride ≤ sums[m].len().
+            unsafe {
+                let ptr = sums[m].as_mut_ptr().add(j0);
+                _mm256_storeu_pd(ptr, a[2 * m]);
+                _mm256_storeu_pd(ptr.add(4), a[2 * m + 1]);
+            }
+        }
+        j0 += B;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lwlr_kernels_agree() {
+        let (n, stride) = (13, 24);
+        let wu: Vec<f64> = (0..n * stride)
+            .map(|i| ((i * 37) % 101) as f64 / 101.0)
+            .collect();
+        let coef: Vec<[f64; 5]> = (0..n)
+            .map(|k| std::array::from_fn(|m| (k * 5 + m) as f64 * 0.1 - 1.0))
+            .collect();
+        let mut a: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0; stride]);
+        let mut b = a.clone();
+        lwlr_row_sums(&wu, stride, &coef, &mut a);
+        lwlr_row_sums_portable(&wu, stride, &coef, &mut b);
+        for m in 0..5 {
+            for j in 0..stride {
+                let want: f64 = (0..n).map(|k| coef[k][m] * wu[k * stride + j]).sum();
+                assert!((a[m][j] - want).abs() < 1e-12 && (b[m][j] - want).abs() < 1e-12);
+            }
+        }
+    }
+}
+
 multiversion! {
-    /// The five LWLR weighted sums of one image row, for every (padded) column `j`:
-    /// `sums[m][j] = Σ_k coef[k][m] · wu[k·stride + j]`, where `coef[k] = wv_k·(1, x_k, x_k², y_k, x_k·y_k)`
-    /// and `wu[k·stride + j] = exp(−(j − u_k)²/(2b²))`. `stride` is a multiple of [`LWLR_BLOCK`];
-    /// each `sums[m]` has length `stride`.
-    pub(crate) fn lwlr_row_sums(wu: &[f64], stride: usize, coef: &[[f64; 5]], sums: &mut [Vec<f64>; 5]) {
-        const B: usize = LWLR_BLOCK;
-        let mut j0 = 0;
-        while j0 + B <= stride {
-            let mut acc = [[0.0f64; B]; 5];
-            for (k, c) in coef.iter().enumerate() {
-                let w: &[f64; B] = wu[k * stride + j0..k * stride + j0 + B].try_into().unwrap_or(&[0.0; B]);
-                for l in 0..B {
-                    acc[0][l] += c[0] * w[l];
-                    acc[1][l] += c[1] * w[l];
-                    acc[2][l] += c[2] * w[l];
-                    acc[3][l] += c[3] * w[l];
-                    acc[4][l] += c[4] * w[l];
+    /// `z = (a·z + b)` computed in f64, in place.
+    pub(crate) fn affine_f64(z: &mut [f32], a: f64, b: f64) {
+        for x in z.iter_mut() {
+            *x = (a * f64::from(*x) + b) as f32;
+        }
+    }
+}
+
+multiversion! {
+    /// Minimum, maximum (as f64) and count of the finite values of `z` (inside `mask` when given).
+    /// Lane-parallel so that it vectorises; `(inf, −inf, 0)` when there is none.
+    pub(crate) fn finite_min_max(z: &[f32], mask: Option<&[bool]>) -> (f64, f64, usize) {
+        const L: usize = 8;
+        let mut lo = [f32::INFINITY; L];
+        let mut hi = [f32::NEG_INFINITY; L];
+        let mut cnt = [0u32; L];
+        let mut visit = |l: usize, x: f32, inside: bool| {
+            let ok = inside & (x.abs() < f32::INFINITY);
+            lo[l] = if ok & (x < lo[l]) { x } else { lo[l] };
+            hi[l] = if ok & (x > hi[l]) { x } else { hi[l] };
+            cnt[l] += u32::from(ok);
+        };
+        let n = match mask {
+            Some(m) => z.len().min(m.len()),
+            None => z.len(),
+        };
+        let full = n / L * L;
+        match mask {
+            Some(m) => {
+                for j0 in (0..full).step_by(L) {
+                    for l in 0..L {
+                        visit(l, z[j0 + l], m[j0 + l]);
+                    }
+                }
+                for j in full..n {
+                    visit(0, z[j], m[j]);
                 }
             }
-            for m in 0..5 {
-                sums[m][j0..j0 + B].copy_from_slice(&acc[m]);
+            None => {
+                for j0 in (0..full).step_by(L) {
+                    for l in 0..L {
+                        visit(l, z[j0 + l], true);
+                    }
+                }
+                for j in full..n {
+                    visit(0, z[j], true);
+                }
             }
-            j0 += B;
         }
+        let min = lo.iter().copied().fold(f32::INFINITY, f32::min);
+        let max = hi.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        (f64::from(min), f64::from(max), cnt.iter().map(|&c| c as usize).sum())
     }
 }

@@ -98,60 +98,48 @@ pub fn normalise(
     if let Some(r) = region {
         size.expect_eq("normalisation region", r.size())?;
     }
-    // 1. non-finite check over the whole map.
-    let mut bad = 0usize;
-    let mut first = None;
-    for ((v, u), &d) in pred.values.indexed_iter() {
-        if !d.is_finite() {
-            bad += 1;
-            if first.is_none() {
-                first = Some((u, v));
-            }
-        }
-    }
-    if let Some((u, v)) = first {
-        return Err(CoreError::NonFinitePrediction { count: bad, u, v });
+    // 1. non-finite check over the whole map (vectorised count; position only on error).
+    let d_std = pred.values.as_standard_layout();
+    let d: &[f32] = d_std.as_slice().unwrap_or(&[]);
+    let bad = d.iter().filter(|x| !x.is_finite()).count();
+    if bad > 0 {
+        let first = d.iter().position(|x| !x.is_finite()).unwrap_or(0);
+        let w = size.width.max(1);
+        return Err(CoreError::NonFinitePrediction {
+            count: bad,
+            u: first % w,
+            v: first / w,
+        });
     }
     // 2. kind conversion.
     let invert = pred.kind == PredictionKind::InverseDepth && !config.inverse_space;
-    let z: Array2<f32> = if invert {
-        pred.values
-            .mapv(|d| if d > 0.0 { 1.0 / d } else { f32::NAN })
+    let mut z: Vec<f32> = if invert {
+        d.iter()
+            .map(|&x| if x > 0.0 { 1.0 / x } else { f32::NAN })
+            .collect()
     } else {
-        pred.values.clone()
+        d.to_vec()
     };
     // 3. statistics over the valid pixels of the map or region.
-    let mut vals: Vec<f32> = Vec::new();
-    let need_values = config.method == Normalisation::Median;
-    let (mut min, mut max, mut n) = (f32::INFINITY, f32::NEG_INFINITY, 0usize);
-    let mut visit = |x: f32| {
-        if x.is_finite() {
-            min = min.min(x);
-            max = max.max(x);
-            n += 1;
-            if need_values {
-                vals.push(x);
-            }
-        }
-    };
-    match region {
-        Some(r) => {
-            for (&x, &inside) in z.iter().zip(r.data().iter()) {
-                if inside {
-                    visit(x);
-                }
-            }
-        }
-        None => z.iter().for_each(|&x| visit(x)),
-    }
+    let r_std = region.map(|r| r.data().as_standard_layout());
+    let inside: Option<&[bool]> = r_std.as_ref().and_then(|r| r.as_slice());
+    let (min, max, n) = crate::kernels::finite_min_max(&z, inside);
     if n == 0 {
         return Err(CoreError::NoValidPixels(match region {
             Some(_) => "the normalisation region holds no valid prediction pixel".into(),
             None => "the prediction holds no valid pixel".into(),
         }));
     }
-    let (min, max) = (f64::from(min), f64::from(max));
-    let (median, mad) = if need_values {
+    let (median, mad) = if config.method == Normalisation::Median {
+        let mut vals: Vec<f32> = match inside {
+            Some(m) => z
+                .iter()
+                .zip(m)
+                .filter(|(x, i)| **i && x.is_finite())
+                .map(|(x, _)| *x)
+                .collect(),
+            None => z.iter().copied().filter(|x| x.is_finite()).collect(),
+        };
         median_mad(&mut vals)
     } else {
         (f64::NAN, f64::NAN)
@@ -189,13 +177,14 @@ pub fn normalise(
         }
         Normalisation::None => (1.0, 0.0),
     };
-    let values = if config.method == Normalisation::None {
-        z
-    } else {
-        let mut z = z;
-        z.mapv_inplace(|x| (a * f64::from(x) + b) as f32);
-        z
-    };
+    if config.method != Normalisation::None {
+        crate::kernels::affine_f64(&mut z, a, b);
+    }
+    let values = Array2::from_shape_vec(size.shape(), z).map_err(|_| CoreError::BufferLength {
+        len: d.len(),
+        size,
+        expected: size.pixels(),
+    })?;
     Ok(NormalisedMap { values, stats })
 }
 

@@ -22,6 +22,20 @@ fn peak_rss_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// User + system CPU seconds of this process so far (`/proc/self/stat`, 100 ticks per second).
+fn cpu_seconds() -> f64 {
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            let rest = s.rsplit_once(')')?.1;
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            let u: f64 = f.get(11)?.parse().ok()?;
+            let k: f64 = f.get(12)?.parse().ok()?;
+            Some((u + k) / 100.0)
+        })
+        .unwrap_or(f64::NAN)
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut weights: Option<PathBuf> = None;
     let mut model = "vits".to_string();
@@ -53,24 +67,36 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let device = DeviceChoice::best_available().device()?;
     let t = Instant::now();
     let mut net = CandleDepthModel::load(&weights, config, &device)?;
-    println!("loaded {} on {device:?} in {:.2} s", weights.display(), t.elapsed().as_secs_f64());
+    println!(
+        "loaded {} on {device:?} in {:.2} s",
+        weights.display(),
+        t.elapsed().as_secs_f64()
+    );
     let input = Array3::<f32>::from_shape_fn((3, height, width), |(c, y, x)| {
         ((c * 7 + y * 3 + x) % 17) as f32 / 17.0 - 0.5
     });
     let mut times = vec![];
+    let mut cpu = vec![];
     for i in 0..=runs {
-        let t = Instant::now();
+        let (t, c) = (Instant::now(), cpu_seconds());
         let out = net.forward_net(&input)?;
-        let s = t.elapsed().as_secs_f64();
-        println!("run {i}{}: {s:.3} s (out {:?})", if i == 0 { " (warm-up)" } else { "" }, out.dim());
+        let (s, cs) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
+        println!(
+            "run {i}{}: {s:.3} s, {cs:.2} CPU-s (out {:?})",
+            if i == 0 { " (warm-up)" } else { "" },
+            out.dim()
+        );
         if i > 0 {
             times.push(s);
+            cpu.push(cs);
         }
     }
     times.sort_by(f64::total_cmp);
+    cpu.sort_by(f64::total_cmp);
     let median = times[times.len() / 2];
+    let median_cpu = cpu[cpu.len() / 2];
     println!(
-        "{model} {height}x{width}: median {median:.3} s over {runs} runs, peak RSS {:.0} MiB, {} rayon threads",
+        "{model} {height}x{width}: median {median:.3} s, {median_cpu:.2} CPU-s over {runs} runs, peak RSS {:.0} MiB, {} rayon threads",
         peak_rss_mib().unwrap_or(f64::NAN),
         rayon::current_num_threads()
     );

@@ -4,7 +4,7 @@
 //! export ORT_DYLIB_PATH="$(.ci/install-onnxruntime.sh)"
 //! cargo run -p moma-depth --release --no-default-features --features onnx --example bench_onnx -- \
 //!     [MODEL.onnx] [--runs 10] [--threads 2] [--opt all|extended|basic|disable] [--no-spin] \
-//!     [--no-mem-pattern] [--save-optimized PATH]
+//!     [--ftz] [--no-mem-pattern] [--save-optimized PATH]
 //! ```
 //! `MODEL.onnx` defaults to `../shared/reference/dav2/vits-rel.onnx` (ViT-S, fixed 518×686 input).
 //! The input is `NAME.input.npy` next to the model when present, else zeros of the model's fixed
@@ -28,10 +28,27 @@ fn status_kib(key: &str) -> Option<u64> {
         .ok()
 }
 
+/// CPU time of the whole process (all threads), seconds (`utime + stime` of /proc/self/stat,
+/// assuming the usual 100 clock ticks per second).
+fn cpu_seconds() -> f64 {
+    let Ok(s) = std::fs::read_to_string("/proc/self/stat") else {
+        return f64::NAN;
+    };
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = s.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let tick = |i: usize| {
+        f.get(i)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(f64::NAN)
+    };
+    (tick(11) + tick(12)) / 100.0
+}
+
 fn usage() -> ! {
     eprintln!(
         "usage: bench_onnx [MODEL.onnx] [--runs N] [--threads N] [--opt all|extended|basic|disable] \
-         [--no-spin] [--no-mem-pattern] [--save-optimized PATH]"
+         [--no-spin] [--ftz] [--no-mem-pattern] [--save-optimized PATH]"
     );
     std::process::exit(2)
 }
@@ -46,9 +63,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
-            "--runs" => runs = args.next().and_then(|v| v.parse().ok()).unwrap_or_else(|| usage()),
+            "--runs" => {
+                runs = args
+                    .next()
+                    .and_then(|v| v.parse().ok())
+                    .unwrap_or_else(|| usage())
+            }
             "--threads" => {
-                opts.intra_threads = Some(args.next().and_then(|v| v.parse().ok()).unwrap_or_else(|| usage()));
+                opts.intra_threads = Some(
+                    args.next()
+                        .and_then(|v| v.parse().ok())
+                        .unwrap_or_else(|| usage()),
+                );
             }
             "--opt" => {
                 opts.optimization_level = match args.next().as_deref() {
@@ -60,8 +86,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 };
             }
             "--no-spin" => opts.intra_op_spinning = false,
+            "--ftz" => opts.flush_to_zero = true,
             "--no-mem-pattern" => opts.memory_pattern = false,
-            "--save-optimized" => opts.optimized_model_path = Some(args.next().unwrap_or_else(|| usage()).into()),
+            "--save-optimized" => {
+                opts.optimized_model_path = Some(args.next().unwrap_or_else(|| usage()).into())
+            }
             "-h" | "--help" => usage(),
             s if s.starts_with('-') => usage(),
             s => model_path = Some(s.into()),
@@ -103,15 +132,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     let t = Instant::now();
     let out = model.forward_net(&input)?;
-    println!("warm-up   {:.3} s  (output {}x{})", t.elapsed().as_secs_f64(), out.nrows(), out.ncols());
+    println!(
+        "warm-up   {:.3} s  (output {}x{})",
+        t.elapsed().as_secs_f64(),
+        out.nrows(),
+        out.ncols()
+    );
 
     let mut times = Vec::with_capacity(runs);
+    let cpu0 = cpu_seconds();
     for _ in 0..runs {
         let t = Instant::now();
         let out = model.forward_net(&input)?;
         times.push(t.elapsed().as_secs_f64());
         std::hint::black_box(out);
     }
+    let cpu_per_run = (cpu_seconds() - cpu0) / runs.max(1) as f64;
     times.sort_by(f64::total_cmp);
     let median = if times.is_empty() {
         f64::NAN
@@ -125,6 +161,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         times.first().copied().unwrap_or(f64::NAN),
         times.last().copied().unwrap_or(f64::NAN)
     );
+    println!("cpu       {cpu_per_run:.3} CPU-s per run (all threads; spinning counts)");
     let hwm = status_kib("VmHWM:").unwrap_or(0);
     println!(
         "peak RSS  {:.1} MiB (VmHWM; {:.1} MiB before loading the model)",

@@ -22,7 +22,11 @@ pub enum Backend {
 /// # Errors
 /// [`DepthError::Unavailable`] when this build lacks the backend (or the ONNX Runtime library is
 /// missing); [`DepthError::Weights`] for unreadable or mismatching weights.
-pub fn load_model(weights: impl AsRef<Path>, spec: ModelSpec, backend: Backend) -> Result<Box<dyn DepthModel>> {
+pub fn load_model(
+    weights: impl AsRef<Path>,
+    spec: ModelSpec,
+    backend: Backend,
+) -> Result<Box<dyn DepthModel>> {
     let weights = weights.as_ref();
     if !weights.is_file() {
         return Err(DepthError::Weights {

@@ -41,7 +41,11 @@ pub const ORT_DYLIB_ENV: &str = "ORT_DYLIB_PATH";
 
 /// File name of the ONNX Runtime shared library on this platform (`libonnxruntime.so` on Linux).
 pub fn library_file_name() -> String {
-    format!("{}onnxruntime{}", std::env::consts::DLL_PREFIX, std::env::consts::DLL_SUFFIX)
+    format!(
+        "{}onnxruntime{}",
+        std::env::consts::DLL_PREFIX,
+        std::env::consts::DLL_SUFFIX
+    )
 }
 
 const INSTALL_HINT: &str = "install ONNX Runtime >= 1.17 (e.g. `pip install onnxruntime`, whose wheel \
@@ -71,7 +75,10 @@ pub fn library_candidates() -> Result<Vec<PathBuf>> {
     if cwd_lib.is_file() {
         out.push(cwd_lib);
     }
-    if let Some(dir) = std::env::current_exe().ok().and_then(|e| e.parent().map(Path::to_path_buf)) {
+    if let Some(dir) = std::env::current_exe()
+        .ok()
+        .and_then(|e| e.parent().map(Path::to_path_buf))
+    {
         let plain = dir.join(&name);
         if plain.is_file() {
             out.push(plain);
@@ -113,7 +120,11 @@ fn try_load(path: &Path) -> std::result::Result<Environment, String> {
     let path = path.to_path_buf();
     let res = std::panic::catch_unwind(move || -> std::result::Result<Environment, String> {
         let builder = ort::init_from(&path).map_err(|e| e.to_string())?;
-        builder.with_name("moma-depth").with_telemetry(false).build().map_err(|e| e.to_string())
+        builder
+            .with_name("moma-depth")
+            .with_telemetry(false)
+            .build()
+            .map_err(|e| e.to_string())
     });
     match res {
         Ok(r) => r,
@@ -233,6 +244,8 @@ pub struct OnnxOptions {
     pub memory_pattern: bool,
     /// Let idle intra-op threads spin (default on: lowest latency; off saves CPU between frames).
     pub intra_op_spinning: bool,
+    /// Flush denormal floats to zero (default off).
+    pub flush_to_zero: bool,
     /// Write the optimised graph here (`.onnx` or `.ort`), e.g. to inspect it or to load it faster
     /// later with [`OptimizationLevel::Disable`].
     pub optimized_model_path: Option<PathBuf>,
@@ -246,6 +259,7 @@ impl Default for OnnxOptions {
             optimization_level: OptimizationLevel::All,
             memory_pattern: true,
             intra_op_spinning: true,
+            flush_to_zero: false,
             optimized_model_path: None,
         }
     }
@@ -315,7 +329,11 @@ impl OnnxDepthModel {
     ///
     /// # Errors
     /// As [`OnnxDepthModel::load`].
-    pub fn load_with(path: impl AsRef<Path>, spec: ModelSpec, options: &OnnxOptions) -> Result<Self> {
+    pub fn load_with(
+        path: impl AsRef<Path>,
+        spec: ModelSpec,
+        options: &OnnxOptions,
+    ) -> Result<Self> {
         let path = path.as_ref();
         let weights_err = |reason: String| DepthError::Weights {
             path: path.display().to_string(),
@@ -343,6 +361,11 @@ impl OnnxDepthModel {
             .map_err(backend("memory pattern"))?
             .with_intra_op_spinning(options.intra_op_spinning)
             .map_err(backend("intra-op spinning"))?;
+        if options.flush_to_zero {
+            builder = builder
+                .with_flush_to_zero()
+                .map_err(backend("flush to zero"))?;
+        }
         if let Some(p) = &options.optimized_model_path {
             builder = builder
                 .with_optimized_model_path(p)
@@ -453,9 +476,14 @@ impl DepthModel for OnnxDepthModel {
     fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>> {
         let (c, h, w) = input.dim();
         if c != 3 || h == 0 || w == 0 {
-            return Err(DepthError::Shape(format!("expected a (3, H, W) input, got ({c}, {h}, {w})")));
+            return Err(DepthError::Shape(format!(
+                "expected a (3, H, W) input, got ({c}, {h}, {w})"
+            )));
         }
-        for (axis, (got, want)) in [(2usize, (h, self.input_shape[2])), (3, (w, self.input_shape[3]))] {
+        for (axis, (got, want)) in [
+            (2usize, (h, self.input_shape[2])),
+            (3, (w, self.input_shape[3])),
+        ] {
             if want > 0 && got as i64 != want {
                 let (fh, fw) = (self.input_shape[2], self.input_shape[3]);
                 return Err(DepthError::Shape(format!(
@@ -471,7 +499,8 @@ impl DepthModel for OnnxDepthModel {
         let data = contiguous
             .as_slice()
             .ok_or_else(|| DepthError::Backend("input is not contiguous".into()))?;
-        let tensor = TensorRef::from_array_view(([1usize, 3, h, w], data)).map_err(backend("input tensor"))?;
+        let tensor = TensorRef::from_array_view(([1usize, 3, h, w], data))
+            .map_err(backend("input tensor"))?;
         let outputs = self
             .session
             .run(ort::inputs![self.input_name.as_str() => tensor])
@@ -479,7 +508,9 @@ impl DepthModel for OnnxDepthModel {
         let value = outputs
             .get(&self.output_name)
             .ok_or_else(|| DepthError::Backend(format!("no output `{}`", self.output_name)))?;
-        let (shape, data) = value.try_extract_tensor::<f32>().map_err(backend("output tensor"))?;
+        let (shape, data) = value
+            .try_extract_tensor::<f32>()
+            .map_err(backend("output tensor"))?;
         let dims: Vec<i64> = shape.iter().copied().collect();
         let (oh, ow) = match dims.as_slice() {
             [1, oh, ow] | [1, 1, oh, ow] | [oh, ow] => (*oh as usize, *ow as usize),
@@ -490,6 +521,7 @@ impl DepthModel for OnnxDepthModel {
                 )));
             }
         };
-        Array2::from_shape_vec((oh, ow), data.to_vec()).map_err(|e| DepthError::Shape(e.to_string()))
+        Array2::from_shape_vec((oh, ow), data.to_vec())
+            .map_err(|e| DepthError::Shape(e.to_string()))
     }
 }

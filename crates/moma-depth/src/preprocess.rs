@@ -210,7 +210,11 @@ pub(crate) fn align_corners_taps(in_len: usize, out_len: usize) -> Vec<(usize, u
 /// let b = moma_depth::preprocess::resize_bilinear_align_corners(&a.view(), 3, 3);
 /// assert_eq!(b, array![[0.0, 0.5, 1.0], [1.0, 1.5, 2.0], [2.0, 2.5, 3.0]]);
 /// ```
-pub fn resize_bilinear_align_corners(src: &ArrayView2<'_, f32>, out_h: usize, out_w: usize) -> Array2<f32> {
+pub fn resize_bilinear_align_corners(
+    src: &ArrayView2<'_, f32>,
+    out_h: usize,
+    out_w: usize,
+) -> Array2<f32> {
     let (ih, iw) = src.dim();
     if ih == 0 || iw == 0 {
         return Array2::zeros((out_h, out_w));
@@ -220,7 +224,8 @@ pub fn resize_bilinear_align_corners(src: &ArrayView2<'_, f32>, out_h: usize, ou
     Array2::from_shape_fn((out_h, out_w), |(y, x)| {
         let (y0, y1, hy0, hy1) = yt[y];
         let (x0, x1, wx0, wx1) = xt[x];
-        hy0 * (wx0 * src[(y0, x0)] + wx1 * src[(y0, x1)]) + hy1 * (wx0 * src[(y1, x0)] + wx1 * src[(y1, x1)])
+        hy0 * (wx0 * src[(y0, x0)] + wx1 * src[(y0, x1)])
+            + hy1 * (wx0 * src[(y1, x0)] + wx1 * src[(y1, x1)])
     })
 }
 
@@ -229,7 +234,9 @@ mod tests {
     use super::*;
 
     fn size_hw(h: usize, w: usize, bound: usize) -> (usize, usize) {
-        network_input_size(ImageSize::new(w, h), bound).unwrap().shape()
+        network_input_size(ImageSize::new(w, h), bound)
+            .unwrap()
+            .shape()
     }
 
     #[test]

@@ -19,7 +19,13 @@ use ndarray::{Array2, Array3};
 use ndarray_npy::read_npy;
 
 /// The five parity reference models of `shared/reference/dav2/README.md`.
-const MODELS: [&str; 5] = ["tiny-rel", "tiny-rel-392", "tiny-metric", "tiny-metric-392", "vits-rel"];
+const MODELS: [&str; 5] = [
+    "tiny-rel",
+    "tiny-rel-392",
+    "tiny-metric",
+    "tiny-metric-392",
+    "vits-rel",
+];
 
 /// Tolerance of the README / issue: max abs error ≤ 1e-3 × output range (float32).
 const REL_TOL: f32 = 1e-3;
@@ -80,13 +86,18 @@ fn load(dir: &Path, name: &str) -> OnnxDepthModel {
         intra_threads: Some(2),
         ..OnnxOptions::default()
     };
-    OnnxDepthModel::load_with(dir.join(format!("{name}.onnx")), spec_of(dir, name), &opts).expect("load onnx")
+    OnnxDepthModel::load_with(dir.join(format!("{name}.onnx")), spec_of(dir, name), &opts)
+        .expect("load onnx")
 }
 
 /// (max abs error, output range of the reference, max abs error / range).
 fn compare(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32, f32) {
     assert_eq!(got.dim(), want.dim(), "output shape");
-    let err = got.iter().zip(want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let err = got
+        .iter()
+        .zip(want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
     let lo = want.iter().copied().fold(f32::INFINITY, f32::min);
     let hi = want.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     let range = hi - lo;
@@ -97,11 +108,16 @@ fn compare(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32, f32) {
 fn onnx_net_parity_all_reference_models() {
     let Some(dir) = setup() else { return };
     let mut failures = Vec::new();
-    eprintln!("{:<16} {:>12} {:>12} {:>12}", "model", "max_abs", "range", "rel");
+    eprintln!(
+        "{:<16} {:>12} {:>12} {:>12}",
+        "model", "max_abs", "range", "rel"
+    );
     for name in MODELS {
         let mut model = load(&dir, name);
-        let input: Array3<f32> = read_npy(dir.join(format!("{name}.input.npy"))).expect("input.npy");
-        let want: Array2<f32> = read_npy(dir.join(format!("{name}.output_net.npy"))).expect("output_net.npy");
+        let input: Array3<f32> =
+            read_npy(dir.join(format!("{name}.input.npy"))).expect("input.npy");
+        let want: Array2<f32> =
+            read_npy(dir.join(format!("{name}.output_net.npy"))).expect("output_net.npy");
         assert_eq!(
             model.fixed_input_hw(),
             Some((input.dim().1, input.dim().2)),
@@ -110,7 +126,7 @@ fn onnx_net_parity_all_reference_models() {
         let got = model.forward_net(&input).expect("forward_net");
         let (err, range, rel) = compare(&got, &want);
         eprintln!("{name:<16} {err:>12.3e} {range:>12.4} {rel:>12.3e}   [net]");
-        if !(rel <= REL_TOL) {
+        if rel.is_nan() || rel > REL_TOL {
             failures.push(format!("{name}: rel {rel:.3e} > {REL_TOL:.0e}"));
         }
     }
@@ -120,21 +136,34 @@ fn onnx_net_parity_all_reference_models() {
 #[test]
 fn onnx_full_image_parity_all_reference_models() {
     let Some(dir) = setup() else { return };
-    let rgb = image::open(dir.join("input.png")).expect("input.png").to_rgb8();
+    let rgb = image::open(dir.join("input.png"))
+        .expect("input.png")
+        .to_rgb8();
     let mut failures = Vec::new();
-    eprintln!("{:<16} {:>12} {:>12} {:>12}", "model", "max_abs", "range", "rel");
+    eprintln!(
+        "{:<16} {:>12} {:>12} {:>12}",
+        "model", "max_abs", "range", "rel"
+    );
     for name in MODELS {
         let mut model = load(&dir, name);
-        let want: Array2<f32> = read_npy(dir.join(format!("{name}.output_full.npy"))).expect("output_full.npy");
+        let want: Array2<f32> =
+            read_npy(dir.join(format!("{name}.output_full.npy"))).expect("output_full.npy");
         let pred = model.predict(&rgb).expect("predict");
-        assert_eq!(pred.kind, model.spec().head.prediction_kind(), "{name}: prediction kind");
+        assert_eq!(
+            pred.kind,
+            model.spec().head.prediction_kind(),
+            "{name}: prediction kind"
+        );
         let (err, range, rel) = compare(&pred.values, &want);
         eprintln!("{name:<16} {err:>12.3e} {range:>12.4} {rel:>12.3e}   [full]");
-        if !(rel <= REL_TOL) {
+        if rel.is_nan() || rel > REL_TOL {
             failures.push(format!("{name}: rel {rel:.3e} > {REL_TOL:.0e}"));
         }
     }
-    assert!(failures.is_empty(), "full-image parity failures: {failures:?}");
+    assert!(
+        failures.is_empty(),
+        "full-image parity failures: {failures:?}"
+    );
 }
 
 #[test]
@@ -144,13 +173,22 @@ fn onnx_fixed_shape_mismatch_is_a_clear_error() {
     let wrong = Array3::<f32>::zeros((3, 518, 686));
     match model.forward_net(&wrong) {
         Err(DepthError::Shape(msg)) => {
-            assert!(msg.contains("392x518"), "message names the fixed size: {msg}");
-            assert!(msg.contains("input_size = 392"), "message suggests the input size: {msg}");
+            assert!(
+                msg.contains("392x518"),
+                "message names the fixed size: {msg}"
+            );
+            assert!(
+                msg.contains("input_size = 392"),
+                "message suggests the input size: {msg}"
+            );
         }
         other => panic!("expected a shape error, got {other:?}"),
     }
     let not_rgb = Array3::<f32>::zeros((1, 392, 518));
-    assert!(matches!(model.forward_net(&not_rgb), Err(DepthError::Shape(_))));
+    assert!(matches!(
+        model.forward_net(&not_rgb),
+        Err(DepthError::Shape(_))
+    ));
 }
 
 #[test]
@@ -158,7 +196,10 @@ fn onnx_bad_model_files_are_errors() {
     let Some(dir) = setup() else { return };
     let spec = spec_of(&dir, "tiny-rel");
     let missing = OnnxDepthModel::load(dir.join("does-not-exist.onnx"), spec);
-    assert!(matches!(missing, Err(DepthError::Weights { .. })), "{missing:?}");
+    assert!(
+        matches!(missing, Err(DepthError::Weights { .. })),
+        "{missing:?}"
+    );
     // Not an ONNX file at all.
     let not_onnx = OnnxDepthModel::load(dir.join("tiny-rel.json"), spec);
     match not_onnx {

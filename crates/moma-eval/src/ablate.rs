@@ -11,8 +11,8 @@ use serde::{Deserialize, Serialize};
 use crate::data::MomaSet;
 use crate::error::{EvalError, Result};
 use crate::protocol::{
-    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, effective_norm,
-    evaluate, evaluate_one, mean_over_images, pooled,
+    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, effective_norm, evaluate,
+    evaluate_one, mean_over_images, pooled,
 };
 use crate::render::{LinePanel, Series, bar_plot, line_plot};
 use crate::report::{Table, metric_cells, metric_headers, write_table};
@@ -30,7 +30,12 @@ pub struct AblationOutput {
 }
 
 fn aligned_methods(config: &EvalConfig) -> Vec<String> {
-    config.methods.iter().filter(|m| *m != "raw").cloned().collect()
+    config
+        .methods
+        .iter()
+        .filter(|m| *m != "raw")
+        .cloned()
+        .collect()
 }
 
 /// (a) Accuracy and median calibration (fit) time against the number of samples n.
@@ -60,7 +65,10 @@ pub fn samples(
 /// # Errors
 /// I/O or drawing failure.
 pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
-    let mut headers: Vec<String> = ["set", "method", "n"].iter().map(|s| s.to_string()).collect();
+    let mut headers: Vec<String> = ["set", "method", "n"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     headers.extend(metric_headers());
     headers.push("median fit ms".into());
     let table = Table {
@@ -69,7 +77,11 @@ pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> 
         rows: rows
             .iter()
             .map(|r| {
-                let mut row = vec![r.set.clone(), r.method.to_uppercase(), r.samples.to_string()];
+                let mut row = vec![
+                    r.set.clone(),
+                    r.method.to_uppercase(),
+                    r.samples.to_string(),
+                ];
                 row.extend(metric_cells(&r.per_image));
                 row.push(format!("{:.3}", r.fit_time_median_s * 1e3));
                 row
@@ -171,7 +183,13 @@ fn bar_by(
             )
         })
         .collect();
-    bar_plot(path, title, "MAE [mm] (mean ± std over seeds)", &groups, &series)
+    bar_plot(
+        path,
+        title,
+        "MAE [mm] (mean ± std over seeds)",
+        &groups,
+        &series,
+    )
 }
 
 /// Table and plot of [`norms`].
@@ -192,7 +210,9 @@ pub fn write_norms(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
     for set in unique(rows.iter().map(|r| r.set.clone())) {
         let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
         let path = dir.join(format!("ablation_norm_{set}.png"));
-        bar_by(&path, &format!("{set}: normalisation"), &rs, &|r| r.norm.clone())?;
+        bar_by(&path, &format!("{set}: normalisation"), &rs, &|r| {
+            r.norm.clone()
+        })?;
         out.plots.push(path);
     }
     Ok(out)
@@ -202,7 +222,11 @@ pub fn write_norms(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
 ///
 /// # Errors
 /// As [`evaluate`].
-pub fn sources(set: &MomaSet, sources: &[PredictionSet], config: &EvalConfig) -> Result<Vec<EvalResult>> {
+pub fn sources(
+    set: &MomaSet,
+    sources: &[PredictionSet],
+    config: &EvalConfig,
+) -> Result<Vec<EvalResult>> {
     let mut out = Vec::new();
     for s in sources {
         out.extend(evaluate(set, s, config)?);
@@ -228,7 +252,9 @@ pub fn write_sources(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> 
     for set in unique(rows.iter().map(|r| r.set.clone())) {
         let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
         let path = dir.join(format!("ablation_source_{set}.png"));
-        bar_by(&path, &format!("{set}: prediction source"), &rs, &|r| r.source.clone())?;
+        bar_by(&path, &format!("{set}: prediction source"), &rs, &|r| {
+            r.source.clone()
+        })?;
         out.plots.push(path);
     }
     Ok(out)
@@ -265,7 +291,11 @@ pub struct TransparentResult {
 ///
 /// # Errors
 /// As [`evaluate`]; a frame without `raw_depth.png` (named).
-pub fn transparent(set: &MomaSet, preds: &PredictionSet, config: &EvalConfig) -> Result<TransparentResult> {
+pub fn transparent(
+    set: &MomaSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+) -> Result<TransparentResult> {
     let methods = evaluate(set, preds, config)?;
     let prep = Prepared::new(set, preds, config)?;
     let mut per_frame = Vec::new();
@@ -274,17 +304,30 @@ pub fn transparent(set: &MomaSet, preds: &PredictionSet, config: &EvalConfig) ->
     for i in prep.eval_indices() {
         let f = &set.frames[i];
         let raw = f.raw_depth.as_ref().ok_or_else(|| {
-            EvalError::frame(&set.name, &f.id, "no raw_depth.png (the transparent ablation needs what the sensor saw)")
+            EvalError::frame(
+                &set.name,
+                &f.id,
+                "no raw_depth.png (the transparent ablation needs what the sensor saw)",
+            )
         })?;
         // 0 = no measurement: not a prediction of 0 m
-        let raw_nan = MetricDepth::new(raw.depth_m.mapv(|z| if is_valid_depth(z) { z } else { f32::NAN }));
+        let raw_nan = MetricDepth::new(
+            raw.depth_m
+                .mapv(|z| if is_valid_depth(z) { z } else { f32::NAN }),
+        );
         let region = &prep.eval_masks[i];
         total += region.count();
         covered += ndarray::Zip::from(region.data())
             .and(&raw_nan.depth_m)
             .fold(0, |acc, &m, &z| acc + usize::from(m && z.is_finite()));
         let m = DepthMetrics::compute(&raw_nan, &f.gt, Some(region)).map_err(|e| {
-            EvalError::core(format!("set '{}', frame '{}': scoring raw sensor depth", set.name, f.id), e)
+            EvalError::core(
+                format!(
+                    "set '{}', frame '{}': scoring raw sensor depth",
+                    set.name, f.id
+                ),
+                e,
+            )
         })?;
         per_frame.push(m);
         frames.push(f.id.clone());
@@ -305,13 +348,20 @@ pub fn transparent(set: &MomaSet, preds: &PredictionSet, config: &EvalConfig) ->
 /// # Errors
 /// I/O or drawing failure.
 pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<AblationOutput> {
-    let mut headers: Vec<String> = ["set", "method", "coverage"].iter().map(|s| s.to_string()).collect();
+    let mut headers: Vec<String> = ["set", "method", "coverage"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     headers.extend(metric_headers());
     let mut rows = Vec::new();
     let all: Vec<EvalResult> = results.iter().flat_map(|r| r.methods.clone()).collect();
     for r in results {
         for m in &r.methods {
-            let mut row = vec![m.set.clone(), format!("{} ({})", m.method.to_uppercase(), m.norm), "1.000".into()];
+            let mut row = vec![
+                m.set.clone(),
+                format!("{} ({})", m.method.to_uppercase(), m.norm),
+                "1.000".into(),
+            ];
             row.extend(metric_cells(&m.per_image));
             rows.push(row);
         }
@@ -325,14 +375,21 @@ pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<Ab
             rmse: single(s.mean.rmse),
             mae: single(s.mean.mae),
         };
-        let mut row = vec![s.set.clone(), "SENSOR raw depth".into(), format!("{:.3}", s.coverage)];
+        let mut row = vec![
+            s.set.clone(),
+            "SENSOR raw depth".into(),
+            format!("{:.3}", s.coverage),
+        ];
         row.extend(metric_cells(&ms));
         rows.push(row);
     }
     let table = Table {
         title: format!(
             "{}; SENSOR = raw_depth.png (what the depth camera saw through glass), scored where it measured (coverage = fraction of mask pixels with a measurement)",
-            title("ablation (d): transparent objects, inside the transparent-object masks", &all)
+            title(
+                "ablation (d): transparent objects, inside the transparent-object masks",
+                &all
+            )
         ),
         headers,
         rows,
@@ -345,12 +402,18 @@ pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<Ab
         let path = dir.join(format!("ablation_transparent_{}.png", r.sensor.set));
         let mut groups: Vec<String> = r.methods.iter().map(|m| m.method.to_uppercase()).collect();
         groups.push("SENSOR".into());
-        let mut vals: Vec<(f64, f64)> =
-            r.methods.iter().map(|m| (m.per_image.mae.mean * 1e3, m.per_image.mae.std * 1e3)).collect();
+        let mut vals: Vec<(f64, f64)> = r
+            .methods
+            .iter()
+            .map(|m| (m.per_image.mae.mean * 1e3, m.per_image.mae.std * 1e3))
+            .collect();
         vals.push((r.sensor.mean.mae * 1e3, 0.0));
         bar_plot(
             &path,
-            &format!("{}: transparent objects (MAE inside the mask)", r.sensor.set),
+            &format!(
+                "{}: transparent objects (MAE inside the mask)",
+                r.sensor.set
+            ),
             "MAE [mm]",
             &groups,
             &[("MAE".into(), vals)],
@@ -360,7 +423,12 @@ pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<Ab
     Ok(out)
 }
 
-fn simple_table(title: String, key: &str, rows: &[EvalResult], f: impl Fn(&EvalResult) -> String) -> Table {
+fn simple_table(
+    title: String,
+    key: &str,
+    rows: &[EvalResult],
+    f: impl Fn(&EvalResult) -> String,
+) -> Table {
     let mut headers: Vec<String> = vec!["set".into(), key.into(), "method".into()];
     headers.extend(metric_headers());
     Table {
@@ -369,7 +437,11 @@ fn simple_table(title: String, key: &str, rows: &[EvalResult], f: impl Fn(&EvalR
         rows: rows
             .iter()
             .map(|r| {
-                let mut row = vec![r.set.clone(), f(r), format!("{} ({})", r.method.to_uppercase(), r.norm)];
+                let mut row = vec![
+                    r.set.clone(),
+                    f(r),
+                    format!("{} ({})", r.method.to_uppercase(), r.norm),
+                ];
                 row.extend(metric_cells(&r.per_image));
                 row
             })
@@ -382,7 +454,11 @@ fn title(what: &str, rows: &[EvalResult]) -> String {
     match rows.first() {
         Some(r) => format!(
             "{}{what} — {} seeds, per-image mean (mean ± std over seeds), RMSE/MAE in mm",
-            if sim { "SIMULATED predictions — " } else { "" },
+            if sim {
+                "SIMULATED predictions — "
+            } else {
+                ""
+            },
             r.seeds
         ),
         None => what.to_string(),

@@ -1,36 +1,26 @@
-//! Reading and writing the "moma set" layout and prediction folders.
+//! In-memory moma sets for the evaluation, loaded and written through `moma-io`.
 //!
-//! Layout (see the data README):
-//! ```text
-//! SET/camera.json               {"width","height","fx","fy","cx","cy"} (pixels)
-//! SET/frames/ID/rgb.png         8-bit RGB
-//! SET/frames/ID/depth.png       uint16 millimetres, 0 = no measurement (ground truth)
-//! SET/frames/ID/mask.png        uint8 0/255 evaluation region (absent = whole image)
-//! SET/frames/ID/raw_depth.png   optional: what the sensor saw (transparent sets)
-//! ```
+//! The file formats and the directory layout (`SET/camera.json`, `SET/frames/ID/{rgb,depth,
+//! mask,raw_depth}.png`) are those of [`moma_io::MomaSet`] / [`moma_io::MomaSetWriter`]; this
+//! module only holds a whole set in memory (the protocol visits every frame once per seed and
+//! method) and keeps the evaluation's convention that invalid depth is `0`.
+//!
 //! A prediction folder holds `<frame-id>.npy`, float32 (float64 accepted), shape `(H, W)`.
-//!
-//! This module is a small private reader/writer so the evaluation does not depend on the
-//! progress of `moma-io`; the formats are the same.
 
-use std::fs;
 use std::path::{Path, PathBuf};
 
-use image::{GrayImage, ImageBuffer, Luma, RgbImage};
+use image::RgbImage;
 use moma_core::{ImageSize, Intrinsics, Mask, MetricDepth};
 use ndarray::Array2;
 
 use crate::error::{EvalError, Result};
-
-/// One metre in the unit of a uint16 depth PNG (millimetres).
-pub const DEPTH_PNG_UNITS_PER_M: f32 = 1000.0;
 
 /// One frame of a set, fully loaded.
 #[derive(Debug, Clone)]
 pub struct Frame {
     /// Frame id (the folder name).
     pub id: String,
-    /// 8-bit RGB, when `rgb.png` exists.
+    /// 8-bit RGB, when known (always present in a set loaded from disk).
     pub rgb: Option<RgbImage>,
     /// Ground-truth depth in metres (invalid = 0).
     pub gt: MetricDepth,
@@ -64,7 +54,7 @@ impl MomaSet {
     }
 }
 
-/// The set's name: the last component of its path.
+/// The set's name: the last component of its (canonical) path.
 pub fn set_name(dir: &Path) -> String {
     dir.canonicalize()
         .ok()
@@ -73,164 +63,43 @@ pub fn set_name(dir: &Path) -> String {
         .unwrap_or_else(|| dir.display().to_string())
 }
 
-/// Sorted frame ids of a set (folder names under `frames/`).
-///
-/// # Errors
-/// The `frames/` folder cannot be read.
-pub fn frame_ids(dir: &Path) -> Result<Vec<String>> {
-    let frames = dir.join("frames");
-    let rd = fs::read_dir(&frames).map_err(|e| EvalError::io(&frames, e))?;
-    let mut ids = Vec::new();
-    for entry in rd {
-        let entry = entry.map_err(|e| EvalError::io(&frames, e))?;
-        if entry.path().is_dir() {
-            ids.push(entry.file_name().to_string_lossy().into_owned());
-        }
-    }
-    ids.sort();
-    Ok(ids)
+/// `moma-io` reads "no measurement" as NaN; the evaluation keeps invalid depth as 0.
+fn nan_to_zero(mut d: MetricDepth) -> MetricDepth {
+    d.depth_m.mapv_inplace(|z| if z.is_nan() { 0.0 } else { z });
+    d
 }
 
-/// Reads `camera.json`.
+/// Loads a whole set with [`moma_io::MomaSet::open`] and the frame loaders (every map is checked
+/// against the camera's size).
 ///
 /// # Errors
-/// Missing file, bad JSON, invalid intrinsics.
-pub fn read_camera(path: &Path) -> Result<Intrinsics> {
-    let text = fs::read_to_string(path).map_err(|e| EvalError::io(path, e))?;
-    let k: Intrinsics = serde_json::from_str(&text).map_err(|e| EvalError::Format {
-        path: path.to_path_buf(),
-        message: format!("bad camera.json: {e}"),
-    })?;
-    k.validate().map_err(|e| EvalError::Format {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    Ok(k)
-}
-
-fn open_image(path: &Path) -> Result<image::DynamicImage> {
-    image::open(path).map_err(|e| EvalError::Image {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
-}
-
-/// Reads a uint16 millimetre depth PNG as metres (0 stays 0 = invalid).
-///
-/// # Errors
-/// Missing/undecodable file, not 16-bit grayscale.
-pub fn read_depth_png(path: &Path) -> Result<MetricDepth> {
-    let img = open_image(path)?;
-    let img = match img {
-        image::DynamicImage::ImageLuma16(i) => i,
-        other => {
-            return Err(EvalError::Format {
-                path: path.to_path_buf(),
-                message: format!(
-                    "depth PNG must be 16-bit grayscale millimetres, found {:?}",
-                    other.color()
-                ),
-            });
-        }
-    };
-    let (w, h) = img.dimensions();
-    let data: Vec<f32> = img
-        .into_raw()
-        .into_iter()
-        .map(|mm| mm as f32 / DEPTH_PNG_UNITS_PER_M)
-        .collect();
-    let arr = Array2::from_shape_vec((h as usize, w as usize), data).map_err(|e| {
-        EvalError::Format {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        }
-    })?;
-    Ok(MetricDepth::new(arr))
-}
-
-/// Reads a mask PNG (nonzero = inside).
-///
-/// # Errors
-/// Missing/undecodable file.
-pub fn read_mask_png(path: &Path) -> Result<Mask> {
-    let img = open_image(path)?.into_luma8();
-    let (w, h) = img.dimensions();
-    let data: Vec<bool> = img.into_raw().into_iter().map(|b| b > 0).collect();
-    Mask::from_vec(ImageSize::new(w as usize, h as usize), data).map_err(|e| EvalError::Format {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
-}
-
-/// Reads an RGB PNG/JPEG.
-///
-/// # Errors
-/// Missing/undecodable file.
-pub fn read_rgb(path: &Path) -> Result<RgbImage> {
-    Ok(open_image(path)?.into_rgb8())
-}
-
-/// Loads a whole set, checking that every map has the camera's size.
-///
-/// # Errors
-/// Missing `camera.json` / `frames/` / `depth.png`, unreadable files, size mismatches (naming the frame).
+/// Missing `camera.json` / `frames/` / `depth.png` / `rgb.png`, unreadable files, size
+/// mismatches; per-frame errors name the set and the frame.
 pub fn load_set(dir: &Path) -> Result<MomaSet> {
     let name = set_name(dir);
-    let intrinsics = read_camera(&dir.join("camera.json"))?;
-    let size = intrinsics.size();
-    let ids = frame_ids(dir)?;
-    let mut frames = Vec::with_capacity(ids.len());
-    for id in ids {
-        let fdir = dir.join("frames").join(&id);
-        let gt = read_depth_png(&fdir.join("depth.png"))?;
-        let check = |what: &str, got: ImageSize| -> Result<()> {
-            if got != size {
-                Err(EvalError::frame(
-                    &name,
-                    &id,
-                    format!("{what} is {got}, camera.json says {size}"),
-                ))
-            } else {
-                Ok(())
-            }
-        };
-        check("depth.png", gt.size())?;
-        let mask = if fdir.join("mask.png").exists() {
-            let m = read_mask_png(&fdir.join("mask.png"))?;
-            check("mask.png", m.size())?;
-            Some(m)
-        } else {
-            None
-        };
-        let rgb = if fdir.join("rgb.png").exists() {
-            let r = read_rgb(&fdir.join("rgb.png"))?;
-            check(
-                "rgb.png",
-                ImageSize::new(r.width() as usize, r.height() as usize),
-            )?;
-            Some(r)
-        } else {
-            None
-        };
-        let raw_depth = if fdir.join("raw_depth.png").exists() {
-            let r = read_depth_png(&fdir.join("raw_depth.png"))?;
-            check("raw_depth.png", r.size())?;
-            Some(r)
-        } else {
-            None
-        };
+    let opened = moma_io::MomaSet::open(dir)?;
+    let frame_err = |id: &str| {
+        let (set, frame) = (name.clone(), id.to_string());
+        move |source| EvalError::frame_io(&set, &frame, source)
+    };
+    let mut frames = Vec::with_capacity(opened.frames.len());
+    for f in &opened.frames {
+        let gt = f.load_depth().map_err(frame_err(&f.id))?;
+        let rgb = f.load_rgb().map_err(frame_err(&f.id))?;
+        let mask = f.load_mask().map_err(frame_err(&f.id))?;
+        let raw_depth = f.load_raw_depth().map_err(frame_err(&f.id))?;
         frames.push(Frame {
-            id,
-            rgb,
-            gt,
+            id: f.id.clone(),
+            rgb: Some(rgb),
+            gt: nan_to_zero(gt),
             mask,
-            raw_depth,
+            raw_depth: raw_depth.map(nan_to_zero),
         });
     }
     Ok(MomaSet {
         name,
         dir: dir.to_path_buf(),
-        intrinsics,
+        intrinsics: opened.camera,
         frames,
     })
 }
@@ -238,7 +107,7 @@ pub fn load_set(dir: &Path) -> Result<MomaSet> {
 /// Reads one prediction `<dir>/<frame-id>.npy` (float32 or float64, shape `(H, W)`).
 ///
 /// # Errors
-/// Missing file (naming the frame), unreadable array.
+/// Missing file (naming the frame), unreadable array (naming the frame and the file).
 pub fn read_prediction(dir: &Path, set: &str, frame: &str) -> Result<Array2<f32>> {
     let path = dir.join(format!("{frame}.npy"));
     if !path.exists() {
@@ -248,172 +117,68 @@ pub fn read_prediction(dir: &Path, set: &str, frame: &str) -> Result<Array2<f32>
             format!("missing prediction file {}", path.display()),
         ));
     }
-    read_npy_f32(&path)
+    moma_io::read_npy_f32(&path).map_err(|source| EvalError::frame_io(set, frame, source))
 }
 
-/// Reads a 2-D `.npy` array of float32 (or float64, converted).
-///
-/// # Errors
-/// Unreadable file or not a 2-D float array.
-pub fn read_npy_f32(path: &Path) -> Result<Array2<f32>> {
-    let open = || fs::File::open(path).map_err(|e| EvalError::io(path, e));
-    use ndarray_npy::ReadNpyExt;
-    match Array2::<f32>::read_npy(open()?) {
-        Ok(a) => Ok(a),
-        Err(e32) => match Array2::<f64>::read_npy(open()?) {
-            Ok(a) => Ok(a.mapv(|x| x as f32)),
-            Err(_) => Err(EvalError::Format {
-                path: path.to_path_buf(),
-                message: format!("expected a 2-D float32 .npy array: {e32}"),
-            }),
-        },
+fn io_err(path: &Path, action: &'static str, source: std::io::Error) -> moma_io::IoError {
+    moma_io::IoError::Io {
+        path: path.to_path_buf(),
+        action,
+        source,
     }
 }
 
-/// Writes a 2-D float32 `.npy` array.
+/// Creates the parent folder of `path` (output helpers of `moma-io` write into existing folders).
 ///
 /// # Errors
-/// I/O failure.
-pub fn write_npy_f32(path: &Path, a: &Array2<f32>) -> Result<()> {
-    use ndarray_npy::WriteNpyExt;
-    let f = fs::File::create(path).map_err(|e| EvalError::io(path, e))?;
-    a.write_npy(std::io::BufWriter::new(f))
-        .map_err(|e| EvalError::Format {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })
-}
-
-/// Writes metric depth (metres) as a uint16 millimetre PNG (invalid / out of range → 0).
-///
-/// # Errors
-/// I/O failure.
-pub fn write_depth_png(path: &Path, depth: &MetricDepth) -> Result<()> {
-    let (h, w) = depth.depth_m.dim();
-    let data: Vec<u16> = depth
-        .depth_m
-        .iter()
-        .map(|&z| {
-            if moma_core::is_valid_depth(z) {
-                (z * DEPTH_PNG_UNITS_PER_M).round().clamp(0.0, 65535.0) as u16
-            } else {
-                0
-            }
-        })
-        .collect();
-    let img: ImageBuffer<Luma<u16>, Vec<u16>> = ImageBuffer::from_raw(w as u32, h as u32, data)
-        .ok_or_else(|| EvalError::InvalidParameter("depth buffer size".into()))?;
-    save_image(path, &img)
-}
-
-/// Writes a mask as 0/255 PNG.
-///
-/// # Errors
-/// I/O failure.
-pub fn write_mask_png(path: &Path, mask: &Mask) -> Result<()> {
-    let (h, w) = mask.data().dim();
-    let data: Vec<u8> = mask.data().iter().map(|&b| if b { 255 } else { 0 }).collect();
-    let img = GrayImage::from_raw(w as u32, h as u32, data)
-        .ok_or_else(|| EvalError::InvalidParameter("mask buffer size".into()))?;
-    save_image(path, &img)
-}
-
-/// Saves any `image` buffer, creating parent folders.
-///
-/// # Errors
-/// I/O or encoding failure.
-pub fn save_image<P, C>(path: &Path, img: &ImageBuffer<P, C>) -> Result<()>
-where
-    P: image::PixelWithColorType,
-    [P::Subpixel]: image::EncodableLayout,
-    C: std::ops::Deref<Target = [P::Subpixel]>,
-{
-    if let Some(parent) = path.parent() {
-        fs::create_dir_all(parent).map_err(|e| EvalError::io(parent, e))?;
+/// The folder cannot be created.
+pub fn create_parent(path: &Path) -> Result<()> {
+    match path.parent() {
+        Some(parent) if !parent.as_os_str().is_empty() => std::fs::create_dir_all(parent)
+            .map_err(|e| io_err(parent, "create directory", e).into()),
+        _ => Ok(()),
     }
-    img.save(path).map_err(|e| EvalError::Image {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
 }
 
-/// Writes a set's `camera.json`.
-///
-/// # Errors
-/// I/O failure.
-pub fn write_camera(path: &Path, k: &Intrinsics) -> Result<()> {
-    let text = serde_json::to_string_pretty(k).map_err(|e| EvalError::Format {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    write_text(path, &text)
-}
-
-/// Writes a text file, creating parent folders.
+/// Writes a text file atomically ([`moma_io::atomic_write`]), creating parent folders.
 ///
 /// # Errors
 /// I/O failure.
 pub fn write_text(path: &Path, text: &str) -> Result<()> {
-    if let Some(parent) = path.parent() {
-        fs::create_dir_all(parent).map_err(|e| EvalError::io(parent, e))?;
-    }
-    fs::write(path, text).map_err(|e| EvalError::io(path, e))
-}
-
-/// Writes a whole set in the moma layout (depth as uint16 mm).
-///
-/// # Errors
-/// I/O failure.
-pub fn write_set(dir: &Path, set: &MomaSet) -> Result<()> {
-    write_camera(&dir.join("camera.json"), &set.intrinsics)?;
-    for f in &set.frames {
-        let fdir = dir.join("frames").join(&f.id);
-        write_depth_png(&fdir.join("depth.png"), &f.gt)?;
-        if let Some(rgb) = &f.rgb {
-            save_image(&fdir.join("rgb.png"), rgb)?;
-        }
-        if let Some(m) = &f.mask {
-            write_mask_png(&fdir.join("mask.png"), m)?;
-        }
-        if let Some(r) = &f.raw_depth {
-            write_depth_png(&fdir.join("raw_depth.png"), r)?;
-        }
-    }
+    create_parent(path)?;
+    moma_io::atomic_write(path, |w| {
+        w.write_all(text.as_bytes())
+            .map_err(|e| io_err(path, "write", e))
+    })?;
     Ok(())
 }
 
-/// Writes a coloured point cloud as binary little-endian PLY (`x y z` float32 metres, camera
-/// frame: x right, y down, z forward; `red green blue` uchar). Invalid depths are skipped.
+/// Colour of the placeholder `rgb.png` written for frames without RGB (the layout requires one).
+pub const PLACEHOLDER_RGB: [u8; 3] = [128, 128, 128];
+
+/// Writes a whole set in the moma layout with [`moma_io::MomaSetWriter`] (depth as uint16 mm).
+/// Frames without RGB get a uniform grey `rgb.png` ([`PLACEHOLDER_RGB`]).
 ///
 /// # Errors
-/// Size mismatch between depth, colours and intrinsics; I/O failure.
-pub fn write_ply(
-    path: &Path,
-    depth: &MetricDepth,
-    intrinsics: &Intrinsics,
-    rgb: Option<&RgbImage>,
-) -> Result<usize> {
-    let points = moma_core::depth_to_points(depth, intrinsics)
-        .map_err(|e| EvalError::core(path.display().to_string(), e))?;
-    let mut buf = Vec::with_capacity(points.len() * 15 + 256);
-    let header = format!(
-        "ply\nformat binary_little_endian 1.0\ncomment moma point cloud, metres, camera frame (x right, y down, z forward)\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
-        points.len()
+/// I/O failure or size mismatch (naming the frame).
+pub fn write_set(dir: &Path, set: &MomaSet) -> Result<()> {
+    let writer = moma_io::MomaSetWriter::create(dir, &set.intrinsics)?;
+    let size = set.size();
+    let placeholder = RgbImage::from_pixel(
+        size.width as u32,
+        size.height as u32,
+        image::Rgb(PLACEHOLDER_RGB),
     );
-    buf.extend_from_slice(header.as_bytes());
-    for p in &points {
-        for c in p.xyz_m {
-            buf.extend_from_slice(&c.to_le_bytes());
-        }
-        let col = rgb
-            .and_then(|im| im.get_pixel_checked(p.u, p.v))
-            .map(|px| px.0)
-            .unwrap_or([200, 200, 200]);
-        buf.extend_from_slice(&col);
+    for f in &set.frames {
+        let data = moma_io::FrameData {
+            rgb: f.rgb.as_ref().unwrap_or(&placeholder),
+            depth: &f.gt,
+            mask: f.mask.as_ref(),
+            raw_depth: f.raw_depth.as_ref(),
+        };
+        writer
+            .write_frame(&f.id, data)
+            .map_err(|source| EvalError::frame_io(&set.name, &f.id, source))?;
     }
-    if let Some(parent) = path.parent() {
-        fs::create_dir_all(parent).map_err(|e| EvalError::io(parent, e))?;
-    }
-    fs::write(path, buf).map_err(|e| EvalError::io(path, e))?;
-    Ok(points.len())
+    Ok(())
 }

@@ -1,0 +1,202 @@
+//! `moma demo`: the whole idea in one call. Builds the procedural scene ([`crate::scene`]),
+//! simulates predictions ([`crate::simulate`]), calibrates on the first frame, aligns the others,
+//! and writes tables, figures, aligned depth (PNG16 mm + npy), colour maps and point clouds.
+
+use std::path::{Path, PathBuf};
+
+use moma_core::PredictionKind;
+use moma_core::normalise::NormalisationConfig;
+
+use moma_io::{Colormap, DepthRange, PlyFormat};
+
+use crate::data::{MomaSet, create_parent};
+use crate::error::Result;
+use crate::figure::frame_figure;
+use crate::protocol::{EvalConfig, PredictionSet, Prepared, aligned_maps, effective_norm};
+use crate::render::quantile;
+use crate::scene::{SceneConfig, build_scene};
+use crate::simulate::{
+    Simulator, SimulatorConfig, TransparencySource, simulate_frames, simulate_set,
+};
+
+/// What [`write_visuals`] wrote.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct VisualFiles {
+    /// Figures, one per frame.
+    pub figures: Vec<PathBuf>,
+    /// Aligned depth PNG16 (mm) and npy (m) files.
+    pub depth: Vec<PathBuf>,
+    /// Colour maps.
+    pub colour_maps: Vec<PathBuf>,
+    /// Point clouds.
+    pub point_clouds: Vec<PathBuf>,
+}
+
+/// Aligns every frame with every method of `config` for the first seed and writes, per frame,
+/// the comparison figure (`figures/<frame>.png`), aligned depth (`aligned/<method>/<frame>.png`
+/// uint16 mm and `.npy` float32 m), colour maps (`aligned/<method>/<frame>_colour.png`) and with
+/// `point_clouds` a PLY per frame of the SSRA (or first) method (`pointclouds/<frame>_<method>.ply`).
+///
+/// # Errors
+/// Any alignment or I/O failure, naming the frame.
+pub fn write_visuals(
+    set: &MomaSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+    out: &Path,
+    exports: bool,
+) -> Result<VisualFiles> {
+    let prep = Prepared::new(set, preds, config)?;
+    let mut files = VisualFiles::default();
+    let norm0 = config.norms.first().copied().unwrap_or_default();
+    let mut per_method: Vec<(String, Vec<moma_core::MetricDepth>)> = Vec::new();
+    for m in &config.methods {
+        let norm: NormalisationConfig = effective_norm(m, norm0, config.inverse_space);
+        let (_, _, maps) = aligned_maps(&prep, m, &norm, config.samples, config.seed_base)?;
+        per_method.push((m.clone(), maps));
+    }
+    let pc_method = per_method
+        .iter()
+        .position(|(m, _)| m == "ssra")
+        .unwrap_or(0);
+    for (i, f) in set.frames.iter().enumerate() {
+        let valid =
+            f.gt.depth_m
+                .iter()
+                .copied()
+                .filter(|&z| moma_core::is_valid_depth(z));
+        let lo = quantile(valid.clone(), 0.02);
+        let hi = quantile(valid, 0.98);
+        // the ground truth's 2–98 % range for every map of the frame (automatic if degenerate)
+        let (min_m, max_m) = (lo as f32, hi as f32);
+        let range = if min_m.is_finite() && max_m.is_finite() && min_m < max_m {
+            DepthRange::Fixed { min_m, max_m }
+        } else {
+            DepthRange::default()
+        };
+        let role = if i == prep.calib {
+            "calibration frame"
+        } else {
+            "evaluated frame"
+        };
+        let figure_methods: Vec<(String, moma_core::MetricDepth)> = per_method
+            .iter()
+            .filter(|(m, _)| m != "raw")
+            .map(|(m, maps)| (m.clone(), maps[i].clone()))
+            .collect();
+        let title = format!(
+            "{} / {} ({role}; calibrated on {}, n = {}, seed {}){}",
+            set.name,
+            f.id,
+            prep.calib_id(),
+            config.samples,
+            config.seed_base,
+            if preds.simulated {
+                " — SIMULATED prediction"
+            } else {
+                ""
+            }
+        );
+        let fig = out.join("figures").join(format!("{}.png", f.id));
+        frame_figure(
+            &fig,
+            &title,
+            f,
+            &preds.maps[i],
+            preds.simulated,
+            &figure_methods,
+        )?;
+        files.figures.push(fig);
+        if !exports {
+            continue;
+        }
+        for (m, maps) in &per_method {
+            let dir = out.join("aligned").join(m);
+            let png = dir.join(format!("{}.png", f.id));
+            create_parent(&png)?;
+            moma_io::write_depth(&png, &maps[i])?;
+            let npy = dir.join(format!("{}.npy", f.id));
+            moma_io::write_npy_f32(&npy, maps[i].depth_m.view())?;
+            let col = dir.join(format!("{}_colour.png", f.id));
+            moma_io::write_depth_colormap(&col, &maps[i], Colormap::Turbo, range)?;
+            files.depth.push(png);
+            files.depth.push(npy);
+            files.colour_maps.push(col);
+        }
+        if let Some((m, maps)) = per_method.get(pc_method) {
+            let ply = out.join("pointclouds").join(format!("{}_{m}.ply", f.id));
+            create_parent(&ply)?;
+            moma_io::write_depth_ply(
+                &ply,
+                &maps[i],
+                &set.intrinsics,
+                f.rgb.as_ref(),
+                PlyFormat::BinaryLittleEndian,
+            )?;
+            files.point_clouds.push(ply);
+        }
+    }
+    Ok(files)
+}
+
+/// Settings of the bundled demo scene and its simulated predictions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DemoScene {
+    /// Scene geometry.
+    pub scene: SceneConfig,
+    /// Simulator strengths.
+    pub simulator: SimulatorConfig,
+    /// Simulator seed.
+    pub simulator_seed: u64,
+    /// Kind of the simulated predictions (inverse depth, like Depth Anything V2's relative models).
+    pub kind: PredictionKind,
+}
+
+impl Default for DemoScene {
+    fn default() -> Self {
+        Self {
+            scene: SceneConfig::default(),
+            simulator: SimulatorConfig::default(),
+            simulator_seed: 0,
+            kind: PredictionKind::InverseDepth,
+        }
+    }
+}
+
+/// Builds the demo scene and its simulated predictions; with `out`, writes the scene in the moma
+/// layout to `out/scene/` and the predictions (with `simulated.json`) to `out/predictions/`.
+///
+/// # Errors
+/// Simulation or I/O failure.
+pub fn build_demo(demo: &DemoScene, out: Option<&Path>) -> Result<(MomaSet, PredictionSet)> {
+    let mut set = build_scene(&demo.scene);
+    let sim = Simulator::new(
+        demo.simulator,
+        demo.simulator_seed,
+        demo.kind,
+        set.intrinsics,
+    )?;
+    let maps = match out {
+        Some(dir) => {
+            let scene_dir = dir.join("scene");
+            crate::data::write_set(&scene_dir, &set)?;
+            set.dir = scene_dir;
+            simulate_set(
+                &set,
+                &sim,
+                TransparencySource::None,
+                &dir.join("predictions"),
+            )?
+            .1
+        }
+        None => simulate_frames(&set, &sim, TransparencySource::None)?,
+    };
+    Ok((
+        set,
+        PredictionSet {
+            label: format!("simulated {}", demo.kind),
+            simulated: true,
+            maps,
+        },
+    ))
+}

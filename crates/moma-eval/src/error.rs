@@ -13,15 +13,23 @@ pub enum EvalError {
         /// The cause.
         source: std::io::Error,
     },
-    /// An image file could not be decoded / encoded.
-    #[error("{path}: {message}")]
-    Image {
-        /// The file.
-        path: PathBuf,
-        /// What went wrong.
-        message: String,
+    /// A MOMA file could not be read or written (`moma-io`; the message names the file).
+    #[error(transparent)]
+    MomaIo(Box<moma_io::IoError>),
+    /// A file of one frame could not be read or written (the message names set, frame and file).
+    ///
+    /// The cause is part of the message and deliberately not an error `source()`, so that
+    /// error-chain printers (`anyhow`'s `{:#}`) do not print it twice.
+    #[error("set '{set}', frame '{frame}': {error}")]
+    FrameIo {
+        /// Set name.
+        set: String,
+        /// Frame id.
+        frame: String,
+        /// The cause (names the file).
+        error: Box<moma_io::IoError>,
     },
-    /// A file's content is malformed (bad JSON, wrong bit depth, wrong array shape...).
+    /// A file's content is malformed (bad JSON...).
     #[error("{path}: {message}")]
     Format {
         /// The file.
@@ -87,11 +95,25 @@ impl EvalError {
             message: message.into(),
         }
     }
+    /// A `moma-io` error on a file of one frame.
+    pub fn frame_io(set: &str, frame: &str, source: moma_io::IoError) -> Self {
+        Self::FrameIo {
+            set: set.to_string(),
+            frame: frame.to_string(),
+            error: Box::new(source),
+        }
+    }
     /// A core error with context.
     pub fn core(context: impl Into<String>, source: moma_core::CoreError) -> Self {
         Self::Core {
             context: context.into(),
             source,
         }
+    }
+}
+
+impl From<moma_io::IoError> for EvalError {
+    fn from(e: moma_io::IoError) -> Self {
+        Self::MomaIo(Box::new(e))
     }
 }

@@ -31,7 +31,7 @@ pub fn frame_figure(
     let valid_gt = || gt.iter().copied().filter(|&z| is_valid_depth(z));
     let mut lo = quantile(valid_gt(), 0.02);
     let mut hi = quantile(valid_gt(), 0.98);
-    if !(hi > lo) {
+    if hi.is_nan() || lo.is_nan() || hi <= lo {
         lo = 0.0;
         hi = 1.0;
     }
@@ -48,9 +48,9 @@ pub fn frame_figure(
     top.push(("ground truth".into(), Panel::Metres(gt.clone())));
     bottom.push((String::new(), Panel::Empty));
     let raw_title = if simulated {
-        format!("simulated prediction ({}, own scale)", raw.kind)
+        format!("SIMULATED {} (own scale)", raw.kind)
     } else {
-        format!("raw prediction ({}, own scale)", raw.kind)
+        format!("raw {} (own scale)", raw.kind)
     };
     top.push((raw_title, Panel::Unitless(raw.values.clone())));
     bottom.push((String::new(), Panel::Empty));
@@ -58,13 +58,15 @@ pub fn frame_figure(
     let mut err_maps: Vec<Array2<f32>> = Vec::new();
     for (name, d) in aligned {
         top.push((name.to_uppercase(), Panel::Metres(d.depth_m.clone())));
-        let e = ndarray::Zip::from(&d.depth_m).and(gt).map_collect(|&p, &g| {
-            if is_valid_depth(g) && p.is_finite() {
-                (p - g).abs()
-            } else {
-                f32::NAN
-            }
-        });
+        let e = ndarray::Zip::from(&d.depth_m)
+            .and(gt)
+            .map_collect(|&p, &g| {
+                if is_valid_depth(g) && p.is_finite() {
+                    (p - g).abs()
+                } else {
+                    f32::NAN
+                }
+            });
         match &frame.mask {
             Some(m) => errs.extend(
                 e.iter()
@@ -77,7 +79,7 @@ pub fn frame_figure(
         err_maps.push(e);
     }
     let mut emax = quantile(errs.into_iter(), 0.98);
-    if !(emax > 0.0) {
+    if emax.is_nan() || emax <= 0.0 {
         emax = 0.01;
     }
     for ((name, _), e) in aligned.iter().zip(err_maps) {

@@ -194,10 +194,7 @@ mod tests {
             for u in 0..w {
                 let best = pts
                     .iter()
-                    .map(|&(pv, pu)| {
-                        let d = (pv as i64 - v as i64).pow(2) + (pu as i64 - u as i64).pow(2);
-                        d
-                    })
+                    .map(|&(pv, pu)| (pv as i64 - v as i64).pow(2) + (pu as i64 - u as i64).pow(2))
                     .min()
                     .unwrap();
                 let got = out[[v, u]] as usize - 1;
@@ -231,7 +228,11 @@ mod tests {
                 .map(|(i, &x)| x as f64 * (i as f64 - 50.0).powi(2))
                 .sum::<f64>()
                 / tot;
-            assert!((var.sqrt() - s).abs() / s < 0.05, "σ {s} got {}", var.sqrt());
+            assert!(
+                (var.sqrt() - s).abs() / s < 0.05,
+                "σ {s} got {}",
+                var.sqrt()
+            );
         }
     }
 }

@@ -10,6 +10,27 @@
 //! - [`scene`] and [`demo`]: a procedural fixed-camera scene and the `moma demo` pipeline;
 //! - [`data`]: the moma set layout and prediction folders; [`render`]: colour maps and plots.
 
+//!
+//! ```
+//! use moma_eval::demo::{DemoScene, build_demo};
+//! use moma_eval::protocol::{EvalConfig, evaluate};
+//! use moma_eval::scene::SceneConfig;
+//! use moma_core::ImageSize;
+//!
+//! // a small version of the `moma demo` scene, simulated predictions, 2 seeds
+//! let demo = DemoScene {
+//!     scene: SceneConfig { size: ImageSize::new(160, 120), focal_px: 150.0, frames: 3, ..Default::default() },
+//!     ..Default::default()
+//! };
+//! let (set, preds) = build_demo(&demo, None)?;
+//! let config = EvalConfig { methods: vec!["ssra".into(), "gssa".into()], seeds: 2, ..Default::default() };
+//! let results = evaluate(&set, &preds, &config)?;
+//! assert_eq!(results.len(), 2);
+//! assert!(results[0].per_image.mae.mean < 0.05); // metres
+//! println!("{}", moma_eval::report::eval_table(&results, false).to_text());
+//! # Ok::<(), moma_eval::EvalError>(())
+//! ```
+
 pub mod ablate;
 pub mod data;
 pub mod demo;

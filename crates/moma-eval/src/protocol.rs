@@ -14,10 +14,10 @@ use moma_core::align::lwlr::LwlrConfig;
 use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{AlignmentModel, FitReport, Method, SampleSet};
 use moma_core::metrics::DepthMetrics;
+use moma_core::normalise::Normalisation;
 use moma_core::normalise::{NormalisationConfig, NormalisedMap, normalise};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy, sample_pixels};
 use moma_core::{Intrinsics, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
-use moma_core::normalise::Normalisation;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -26,6 +26,10 @@ use crate::error::{EvalError, Result};
 
 /// Method names understood by [`method_from_name`].
 pub const METHOD_NAMES: &[&str] = &["ssra", "gssa", "lwlr", "raw"];
+
+/// Further method names: `lwlr-exact` (per-pixel LWLR solve with BoostingDepth's other
+/// choices) and `lwlr-bare` (the bare published formula, exact solve).
+pub const EXTRA_METHOD_NAMES: &[&str] = &["lwlr-exact", "lwlr-bare"];
 
 /// Builds a core [`Method`] from its command-line name; SSRA reports its canonical parameters
 /// with the set's intrinsics.
@@ -36,14 +40,16 @@ pub fn method_from_name(name: &str, intrinsics: &Intrinsics) -> Result<Method> {
     match name {
         "ssra" => Ok(Method::Ssra(SsraConfig {
             intrinsics: Some(*intrinsics),
-            ..Default::default()
         })),
         "gssa" => Ok(Method::Gssa),
         "lwlr" => Ok(Method::Lwlr(LwlrConfig::default())),
+        "lwlr-exact" => Ok(Method::Lwlr(LwlrConfig::exact())),
+        "lwlr-bare" => Ok(Method::Lwlr(LwlrConfig::bare_exact())),
         "raw" => Ok(Method::Raw),
         other => Err(EvalError::InvalidParameter(format!(
-            "unknown method '{other}' (expected one of {})",
-            METHOD_NAMES.join(", ")
+            "unknown method '{other}' (expected one of {}, {})",
+            METHOD_NAMES.join(", "),
+            EXTRA_METHOD_NAMES.join(", ")
         ))),
     }
 }
@@ -95,6 +101,12 @@ pub struct EvalConfig {
     pub sampling: SamplingStrategy,
     /// Only ground truth within `[min, max]` metres is sampled and scored.
     pub depth_range_m: Option<(f64, f64)>,
+    /// Fixed workspace mask (set size): when given, the normalisation statistics of every
+    /// frame's prediction (calibration and evaluated frames alike) are computed over this
+    /// region only, as [`moma_core::pipeline::calibrate`] / `Calibration::align` do with their
+    /// `workspace`. Sampling and scoring are unchanged. Not serialised.
+    #[serde(skip)]
+    pub workspace: Option<Mask>,
 }
 
 impl Default for EvalConfig {
@@ -109,6 +121,7 @@ impl Default for EvalConfig {
             calib_frame: None,
             sampling: SamplingStrategy::Random,
             depth_range_m: None,
+            workspace: None,
         }
     }
 }
@@ -310,8 +323,8 @@ impl PredictionSet {
             maps.push(Prediction::new(values, kind));
         }
         let label = match &meta {
-            Some(_) => format!("simulated {kind} ({})", dir.display()),
-            None => format!("{kind} ({})", dir.display()),
+            Some(m) => format!("simulated {kind} (seed {})", m.seed),
+            None => format!("{kind} predictions"),
         };
         Ok(Self {
             label,
@@ -387,6 +400,18 @@ impl<'a> Prepared<'a> {
             None => 0,
         };
         let size = set.size();
+        if let Some(w) = &config.workspace {
+            if w.size() != size {
+                return Err(set_err(format!(
+                    "workspace mask is {} but the set's images are {}",
+                    w.size(),
+                    size
+                )));
+            }
+            if w.count() == 0 {
+                return Err(set_err("the workspace mask is empty".into()));
+            }
+        }
         let mut eval_masks = Vec::with_capacity(set.frames.len());
         for (f, p) in set.frames.iter().zip(&preds.maps) {
             if p.size() != size {
@@ -408,7 +433,11 @@ impl<'a> Prepared<'a> {
             }
             let region = Mask::new(region);
             if region.count() == 0 {
-                let what = if f.mask.is_some() { "its mask" } else { "the image" };
+                let what = if f.mask.is_some() {
+                    "its mask"
+                } else {
+                    "the image"
+                };
                 let range = match config.depth_range_m {
                     Some((lo, hi)) => format!(" within {lo}–{hi} m"),
                     None => String::new(),
@@ -441,15 +470,18 @@ impl<'a> Prepared<'a> {
 
     /// Indices of the evaluated frames (all but the calibration frame).
     pub fn eval_indices(&self) -> Vec<usize> {
-        (0..self.set.frames.len()).filter(|&i| i != self.calib).collect()
+        (0..self.set.frames.len())
+            .filter(|&i| i != self.calib)
+            .collect()
     }
 
-    /// Normalises the prediction of frame `i`.
+    /// Normalises the prediction of frame `i` (statistics over [`EvalConfig::workspace`] when
+    /// given, else over the whole map).
     ///
     /// # Errors
     /// Normalisation errors, naming the frame.
     pub fn normalised(&self, i: usize, norm: &NormalisationConfig) -> Result<NormalisedMap> {
-        normalise(&self.preds.maps[i], norm, None).map_err(|e| {
+        normalise(&self.preds.maps[i], norm, self.config.workspace.as_ref()).map_err(|e| {
             EvalError::core(
                 format!(
                     "set '{}', frame '{}': normalising the prediction",
@@ -490,8 +522,10 @@ impl<'a> Prepared<'a> {
         let samples =
             SampleSet::gather(calib_map, &f.gt, &pixels).map_err(|e| EvalError::core(ctx(), e))?;
         let t = Instant::now();
-        let (model, mut report) = method.fit(&samples).map_err(|e| EvalError::core(ctx(), e))?;
-        if !(report.fit_time_s > 0.0) {
+        let (model, mut report) = method
+            .fit(&samples)
+            .map_err(|e| EvalError::core(ctx(), e))?;
+        if report.fit_time_s.is_nan() || report.fit_time_s <= 0.0 {
             report.fit_time_s = t.elapsed().as_secs_f64();
         }
         Ok((model, report))
@@ -519,7 +553,11 @@ impl<'a> Prepared<'a> {
 }
 
 /// The normalisation actually used by a method (RAW: none).
-pub fn effective_norm(method: &str, norm: Normalisation, inverse_space: bool) -> NormalisationConfig {
+pub fn effective_norm(
+    method: &str,
+    norm: Normalisation,
+    inverse_space: bool,
+) -> NormalisationConfig {
     if method == "raw" {
         NormalisationConfig {
             method: Normalisation::None,
@@ -537,7 +575,11 @@ pub fn effective_norm(method: &str, norm: Normalisation, inverse_space: bool) ->
 ///
 /// # Errors
 /// Bad input (see [`Prepared::new`]) or any failure of a step, naming the frame.
-pub fn evaluate(set: &MomaSet, preds: &PredictionSet, config: &EvalConfig) -> Result<Vec<EvalResult>> {
+pub fn evaluate(
+    set: &MomaSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+) -> Result<Vec<EvalResult>> {
     let prep = Prepared::new(set, preds, config)?;
     let mut jobs: Vec<(String, NormalisationConfig)> = Vec::new();
     for m in &config.methods {
@@ -572,7 +614,9 @@ pub fn evaluate_one(
         .map(|i| prep.normalised(i, norm))
         .collect::<Result<_>>()?;
     let eval_idx = prep.eval_indices();
-    let seeds: Vec<u64> = (0..config.seeds as u64).map(|s| config.seed_base + s).collect();
+    let seeds: Vec<u64> = (0..config.seeds as u64)
+        .map(|s| config.seed_base + s)
+        .collect();
     let per_seed: Vec<(FitReport, Vec<DepthMetrics>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
@@ -584,7 +628,10 @@ pub fn evaluate_one(
             Ok((report, ms))
         })
         .collect::<Result<_>>()?;
-    let image_means: Vec<DepthMetrics> = per_seed.iter().map(|(_, ms)| mean_over_images(ms)).collect();
+    let image_means: Vec<DepthMetrics> = per_seed
+        .iter()
+        .map(|(_, ms)| mean_over_images(ms))
+        .collect();
     let pooled_: Vec<DepthMetrics> = per_seed.iter().map(|(_, ms)| pooled(ms)).collect();
     let mut times: Vec<f64> = per_seed.iter().map(|(r, _)| r.fit_time_s).collect();
     times.sort_by(f64::total_cmp);

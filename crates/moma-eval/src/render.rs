@@ -5,11 +5,12 @@ use std::path::Path;
 use std::sync::Once;
 
 use image::RgbImage;
-use moma_core::{Mask, MetricDepth, is_valid_depth};
+use moma_core::{Mask, is_valid_depth};
+use moma_io::Colormap;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
-use crate::data::save_image;
+use crate::data::create_parent;
 use crate::error::{EvalError, Result};
 
 /// Font family name under which the embedded DejaVu Sans is registered.
@@ -25,33 +26,23 @@ pub fn register_fonts() {
     });
 }
 
-/// Turbo colour map (Google's polynomial approximation), `t` in [0, 1] (clamped).
-pub fn turbo(t: f64) -> [u8; 3] {
-    let t = t.clamp(0.0, 1.0);
-    let r = 0.13572138
-        + t * (4.61539260 + t * (-42.66032258 + t * (132.13108234 + t * (-152.94239396 + t * 59.28637943))));
-    let g = 0.09140261
-        + t * (2.19418839 + t * (4.84296658 + t * (-14.18503333 + t * (4.27729857 + t * 2.82956604))));
-    let b = 0.10667330
-        + t * (12.64194608 + t * (-60.58204836 + t * (110.36276771 + t * (-89.90310912 + t * 27.34824973))));
-    [
-        (r.clamp(0.0, 1.0) * 255.0).round() as u8,
-        (g.clamp(0.0, 1.0) * 255.0).round() as u8,
-        (b.clamp(0.0, 1.0) * 255.0).round() as u8,
-    ]
-}
-
 /// Colour of invalid pixels in depth pictures.
 pub const INVALID_RGB: [u8; 3] = [40, 40, 40];
 
-/// Colourises a map with turbo over `[lo, hi]`; non-finite / invalid pixels dark grey.
-pub fn colourise(values: &ndarray::Array2<f32>, lo: f64, hi: f64, valid: impl Fn(f32) -> bool) -> RgbImage {
+/// Colourises a map with [`Colormap::Turbo`] over `[lo, hi]`; non-finite / invalid pixels
+/// dark grey ([`INVALID_RGB`]).
+pub fn colourise(
+    values: &ndarray::Array2<f32>,
+    lo: f64,
+    hi: f64,
+    valid: impl Fn(f32) -> bool,
+) -> RgbImage {
     let (h, w) = values.dim();
     let span = if hi > lo { hi - lo } else { 1.0 };
     RgbImage::from_fn(w as u32, h as u32, |u, v| {
         let z = values[[v as usize, u as usize]];
         image::Rgb(if valid(z) {
-            turbo((z as f64 - lo) / span)
+            Colormap::Turbo.rgb(((z as f64 - lo) / span) as f32)
         } else {
             INVALID_RGB
         })
@@ -67,14 +58,6 @@ pub fn quantile(values: impl Iterator<Item = f32>, p: f64) -> f64 {
     let k = ((v.len() - 1) as f64 * p).round() as usize;
     let (_, x, _) = v.select_nth_unstable_by(k, f32::total_cmp);
     *x as f64
-}
-
-/// Writes a depth colour map PNG (turbo over `[lo, hi]` metres; invalid dark grey).
-///
-/// # Errors
-/// I/O failure.
-pub fn write_depth_colormap(path: &Path, depth: &MetricDepth, lo_m: f64, hi_m: f64) -> Result<()> {
-    save_image(path, &colourise(&depth.depth_m, lo_m, hi_m, is_valid_depth))
 }
 
 fn plot_err(path: &Path, e: impl std::fmt::Debug) -> EvalError {
@@ -144,7 +127,10 @@ fn range_of(series: &[Series], f: impl Fn(&(f64, f64, f64)) -> [f64; 2], log: bo
         (lo / 1.5, hi * 1.5)
     } else {
         let pad = ((hi - lo) * 0.08).max(1e-9);
-        ((lo - pad).min(if lo >= 0.0 { 0.0 } else { lo - pad }), hi + pad)
+        (
+            (lo - pad).min(if lo >= 0.0 { 0.0 } else { lo - pad }),
+            hi + pad,
+        )
     }
 }
 
@@ -192,12 +178,23 @@ pub fn line_plot(path: &Path, panels: &[LinePanel], panel_w: u32, panel_h: u32) 
                                 PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
                             });
                         chart
-                            .draw_series(s.points.iter().map(|p| Circle::new((p.0, p.1), 3, c.filled())))
+                            .draw_series(
+                                s.points
+                                    .iter()
+                                    .map(|p| Circle::new((p.0, p.1), 3, c.filled())),
+                            )
                             .map_err(|e| plot_err(path, e))?;
                         chart
                             .draw_series(s.points.iter().filter(|p| p.2 > 0.0).map(|p| {
-                                let lo = if panel.log_y { (p.1 - p.2).max(p.1 * 0.5) } else { p.1 - p.2 };
-                                PathElement::new(vec![(p.0, lo), (p.0, p.1 + p.2)], c.stroke_width(1))
+                                let lo = if panel.log_y {
+                                    (p.1 - p.2).max(p.1 * 0.5)
+                                } else {
+                                    p.1 - p.2
+                                };
+                                PathElement::new(
+                                    vec![(p.0, lo), (p.0, p.1 + p.2)],
+                                    c.stroke_width(1),
+                                )
                             }))
                             .map_err(|e| plot_err(path, e))?;
                     }
@@ -211,18 +208,22 @@ pub fn line_plot(path: &Path, panels: &[LinePanel], panel_w: u32, panel_h: u32) 
                 }};
             }
             match (panel.log_x, panel.log_y) {
-                (true, true) => draw!(cb
-                    .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
-                    .map_err(|e| plot_err(path, e))?),
-                (true, false) => draw!(cb
-                    .build_cartesian_2d((x0..x1).log_scale(), y0..y1)
-                    .map_err(|e| plot_err(path, e))?),
-                (false, true) => draw!(cb
-                    .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
-                    .map_err(|e| plot_err(path, e))?),
-                (false, false) => draw!(cb
-                    .build_cartesian_2d(x0..x1, y0..y1)
-                    .map_err(|e| plot_err(path, e))?),
+                (true, true) => draw!(
+                    cb.build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+                        .map_err(|e| plot_err(path, e))?
+                ),
+                (true, false) => draw!(
+                    cb.build_cartesian_2d((x0..x1).log_scale(), y0..y1)
+                        .map_err(|e| plot_err(path, e))?
+                ),
+                (false, true) => draw!(
+                    cb.build_cartesian_2d(x0..x1, (y0..y1).log_scale())
+                        .map_err(|e| plot_err(path, e))?
+                ),
+                (false, false) => draw!(
+                    cb.build_cartesian_2d(x0..x1, y0..y1)
+                        .map_err(|e| plot_err(path, e))?
+                ),
             }
         }
         root.present().map_err(|e| plot_err(path, e))?;
@@ -286,21 +287,32 @@ pub fn bar_plot(
             let c = series_colour(si);
             let x_of = |g: usize| g as f64 + 0.1 + bw * si as f64;
             chart
-                .draw_series(vals.iter().enumerate().filter(|(_, v)| v.0.is_finite()).map(|(g, &(m, _))| {
-                    Rectangle::new([(x_of(g), 0.0), (x_of(g) + bw * 0.92, m)], c.filled())
-                }))
+                .draw_series(
+                    vals.iter()
+                        .enumerate()
+                        .filter(|(_, v)| v.0.is_finite())
+                        .map(|(g, &(m, _))| {
+                            Rectangle::new([(x_of(g), 0.0), (x_of(g) + bw * 0.92, m)], c.filled())
+                        }),
+                )
                 .map_err(|e| plot_err(path, e))?
                 .label(name.as_str())
                 .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 14, y + 5)], c.filled()));
             chart
-                .draw_series(vals.iter().enumerate().filter(|(_, v)| v.1 > 0.0 && v.0.is_finite()).map(
-                    |(g, &(m, s))| {
-                        PathElement::new(
-                            vec![(x_of(g) + bw * 0.46, (m - s).max(0.0)), (x_of(g) + bw * 0.46, m + s)],
-                            BLACK.stroke_width(2),
-                        )
-                    },
-                ))
+                .draw_series(
+                    vals.iter()
+                        .enumerate()
+                        .filter(|(_, v)| v.1 > 0.0 && v.0.is_finite())
+                        .map(|(g, &(m, s))| {
+                            PathElement::new(
+                                vec![
+                                    (x_of(g) + bw * 0.46, (m - s).max(0.0)),
+                                    (x_of(g) + bw * 0.46, m + s),
+                                ],
+                                BLACK.stroke_width(2),
+                            )
+                        }),
+                )
                 .map_err(|e| plot_err(path, e))?;
         }
         chart
@@ -318,7 +330,9 @@ pub fn bar_plot(
 
 fn save_rgb_buffer(path: &Path, buf: Vec<u8>, w: u32, h: u32) -> Result<()> {
     let img = RgbImage::from_raw(w, h, buf).ok_or_else(|| plot_err(path, "buffer size"))?;
-    save_image(path, &img)
+    create_parent(path)?;
+    moma_io::write_rgb(path, &img)?;
+    Ok(())
 }
 
 /// One panel of the comparison figure.
@@ -415,7 +429,7 @@ pub fn comparison_figure(path: &Path, title: &str, rows: &[FigureRow], panel_w: 
         let bx = gap + ncols * (panel_w + gap) + 4;
         for y in 0..panel_h {
             let t = 1.0 - y as f64 / (panel_h.max(2) - 1) as f64;
-            let c = turbo(t);
+            let c = Colormap::Turbo.rgb(t as f32);
             for x in 0..18 {
                 canvas.put_pixel(bx + x, y0 + y, image::Rgb(c));
             }
@@ -432,13 +446,21 @@ pub fn comparison_figure(path: &Path, title: &str, rows: &[FigureRow], panel_w: 
             let y0 = title_h + ri as u32 * row_h;
             for (ci, (name, _)) in row.panels.iter().enumerate() {
                 let x0 = gap + ci as u32 * (panel_w + gap);
-                root.draw(&Text::new(name.clone(), (x0 as i32, y0 as i32 + 3), font.clone()))
-                    .map_err(|e| plot_err(path, e))?;
+                root.draw(&Text::new(
+                    name.clone(),
+                    (x0 as i32, y0 as i32 + 3),
+                    font.clone(),
+                ))
+                .map_err(|e| plot_err(path, e))?;
             }
             let bx = (gap + ncols * (panel_w + gap) + 4) as i32;
             let py = (y0 + head_h) as i32;
-            root.draw(&Text::new(row.bar_label.clone(), (bx - 4, y0 as i32 + 3), font.clone()))
-                .map_err(|e| plot_err(path, e))?;
+            root.draw(&Text::new(
+                row.bar_label.clone(),
+                (bx - 4, y0 as i32 + 3),
+                font.clone(),
+            ))
+            .map_err(|e| plot_err(path, e))?;
             let (lo, hi) = row.range;
             let ticks = nice_ticks(lo * row.tick_scale, hi * row.tick_scale, 5);
             for t in ticks {
@@ -449,7 +471,14 @@ pub fn comparison_figure(path: &Path, title: &str, rows: &[FigureRow], panel_w: 
                 let y = py + ((1.0 - frac) * (panel_h as f64 - 1.0)).round() as i32;
                 root.draw(&PathElement::new(vec![(bx + 18, y), (bx + 24, y)], BLACK))
                     .map_err(|e| plot_err(path, e))?;
-                let prec = if (hi - lo) * row.tick_scale < 0.1 { 3 } else if (hi - lo) * row.tick_scale < 1.0 { 2 } else { 0 }.max(tick_prec(lo * row.tick_scale, hi * row.tick_scale));
+                let prec = if (hi - lo) * row.tick_scale < 0.1 {
+                    3
+                } else if (hi - lo) * row.tick_scale < 1.0 {
+                    2
+                } else {
+                    0
+                }
+                .max(tick_prec(lo * row.tick_scale, hi * row.tick_scale));
                 root.draw(&Text::new(
                     format!("{t:.prec$}"),
                     (bx + 27, y - 8),
@@ -465,22 +494,34 @@ pub fn comparison_figure(path: &Path, title: &str, rows: &[FigureRow], panel_w: 
 
 fn tick_prec(lo: f64, hi: f64) -> usize {
     let step = nice_step((hi - lo) / 5.0);
-    if step >= 1.0 { 0 } else { (-step.log10().floor()) as usize }
+    if step >= 1.0 {
+        0
+    } else {
+        (-step.log10().floor()) as usize
+    }
 }
 
 fn nice_step(raw: f64) -> f64 {
-    if !(raw > 0.0) || !raw.is_finite() {
+    if raw.is_nan() || raw <= 0.0 || !raw.is_finite() {
         return 1.0;
     }
     let p = 10f64.powf(raw.log10().floor());
     let m = raw / p;
-    let k = if m < 1.5 { 1.0 } else if m < 3.5 { 2.0 } else if m < 7.5 { 5.0 } else { 10.0 };
+    let k = if m < 1.5 {
+        1.0
+    } else if m < 3.5 {
+        2.0
+    } else if m < 7.5 {
+        5.0
+    } else {
+        10.0
+    };
     k * p
 }
 
 /// "Nice" tick values covering `[lo, hi]`, about `n` of them.
 pub fn nice_ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
-    if !(hi > lo) {
+    if hi.is_nan() || lo.is_nan() || hi <= lo {
         return vec![lo];
     }
     let step = nice_step((hi - lo) / n.max(1) as f64);
@@ -500,13 +541,17 @@ mod tests {
 
     #[test]
     fn ticks_are_nice() {
-        assert_eq!(nice_ticks(0.0, 10.0, 5), vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]);
+        assert_eq!(
+            nice_ticks(0.0, 10.0, 5),
+            vec![0.0, 2.0, 4.0, 6.0, 8.0, 10.0]
+        );
         let t = nice_ticks(0.53, 0.81, 5);
         assert!(t.len() >= 3 && t[0] >= 0.53 && *t.last().unwrap() <= 0.81);
     }
 
     #[test]
     fn turbo_ends() {
+        let turbo = |t: f32| Colormap::Turbo.rgb(t);
         assert_ne!(turbo(0.0), turbo(1.0));
         assert_eq!(turbo(-1.0), turbo(0.0));
     }
@@ -539,7 +584,10 @@ mod tests {
             "bars",
             "MAE mm",
             &["x".into(), "y".into()],
-            &[("s1".into(), vec![(1.0, 0.1), (2.0, 0.2)]), ("s2".into(), vec![(1.5, 0.0), (0.5, 0.1)])],
+            &[
+                ("s1".into(), vec![(1.0, 0.1), (2.0, 0.2)]),
+                ("s2".into(), vec![(1.5, 0.0), (0.5, 0.1)]),
+            ],
         )
         .unwrap();
         assert!(b.exists());

@@ -91,7 +91,12 @@ impl Table {
                 c.to_string()
             }
         };
-        let mut s = self.headers.iter().map(|h| q(h)).collect::<Vec<_>>().join(",");
+        let mut s = self
+            .headers
+            .iter()
+            .map(|h| q(h))
+            .collect::<Vec<_>>()
+            .join(",");
         s.push('\n');
         for r in &self.rows {
             s.push_str(&r.iter().map(|c| q(c)).collect::<Vec<_>>().join(","));
@@ -120,15 +125,25 @@ pub fn metric_cells(m: &MetricSummary) -> Vec<String> {
 
 /// Headers of the six metric cells.
 pub fn metric_headers() -> Vec<String> {
-    ["δ1.05 ↑", "δ1.10 ↑", "δ1.25 ↑", "REL ↓", "RMSE mm ↓", "MAE mm ↓"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect()
+    [
+        "δ1.05 ↑",
+        "δ1.10 ↑",
+        "δ1.25 ↑",
+        "REL ↓",
+        "RMSE mm ↓",
+        "MAE mm ↓",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect()
 }
 
 /// The paper-style table of an evaluation (per-image mean, mean ± std over seeds).
 pub fn eval_table(results: &[EvalResult], pooled: bool) -> Table {
-    let mut headers: Vec<String> = ["set", "method", "norm"].iter().map(|s| s.to_string()).collect();
+    let mut headers: Vec<String> = ["set", "method", "norm"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
     headers.extend(metric_headers());
     headers.push("fit ms".into());
     let rows = results
@@ -145,12 +160,20 @@ pub fn eval_table(results: &[EvalResult], pooled: bool) -> Table {
     let title = match first {
         Some(r) => format!(
             "{}{} — n = {} samples, {} seeds, calibration frame(s): {}; {} (mean ± std over seeds{})",
-            if sim { "SIMULATED predictions — " } else { "" },
+            if sim {
+                "SIMULATED predictions — "
+            } else {
+                ""
+            },
             r.source,
             r.samples,
             r.seeds,
             calib_list(results),
-            if pooled { "pixel-pooled" } else { "per-image mean" },
+            if pooled {
+                "pixel-pooled"
+            } else {
+                "per-image mean"
+            },
             ", RMSE/MAE in mm"
         ),
         None => String::new(),

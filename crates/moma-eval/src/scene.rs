@@ -260,7 +260,8 @@ pub fn render(config: &SceneConfig, objects: &[Object]) -> (MetricDepth, RgbImag
                 let t = -o_local[2] / dl[2];
                 if t > 0.0 {
                     let p = [o_local[0] + t * dl[0], o_local[1] + t * dl[1]];
-                    let checker = (((p[0] / 0.05).floor() + (p[1] / 0.05).floor()) as i64).rem_euclid(2);
+                    let checker =
+                        (((p[0] / 0.05).floor() + (p[1] / 0.05).floor()) as i64).rem_euclid(2);
                     let grain = 0.04 * ((p[0] * 90.0).sin() * (p[1] * 7.0).cos());
                     let base = if checker == 0 { 0.78 } else { 0.70 } + grain;
                     best = Some((t, [0.0, 0.0, 1.0], [base, base * 0.82, base * 0.6], false));
@@ -319,7 +320,8 @@ const PALETTE: [V3; 8] = [
 
 /// Random objects for frame `index` (3–5 objects, sizes 3–10 cm, non-overlapping footprints).
 pub fn objects_for_frame(config: &SceneConfig, index: usize) -> Vec<Object> {
-    let mut rng = ChaCha8Rng::seed_from_u64(config.seed.wrapping_mul(1000).wrapping_add(index as u64));
+    let mut rng =
+        ChaCha8Rng::seed_from_u64(config.seed.wrapping_mul(1000).wrapping_add(index as u64));
     let count = 3 + rng.random_range(0..3);
     let mut objs: Vec<(f64, f64, f64, Object)> = Vec::new();
     let extent = 0.22;
@@ -331,7 +333,7 @@ pub fn objects_for_frame(config: &SceneConfig, index: usize) -> Vec<Object> {
         let colour = PALETTE[rng.random_range(0..PALETTE.len())];
         let (shape, r) = match rng.random_range(0..3) {
             0 => {
-                let half = [
+                let half: V3 = [
                     rng.random_range(0.02..0.05),
                     rng.random_range(0.02..0.05),
                     rng.random_range(0.02..0.06),
@@ -445,6 +447,6 @@ mod tests {
         let z = d.depth_m[[240, 320]] as f64;
         assert!((z - (0.7 - 0.1)).abs() < 1e-4, "{z}");
         assert!(m.data()[[240, 320]]);
-        assert!((d.depth_m[[5, 5]] as f64 - 0.7).abs() < 1e-9);
+        assert!((d.depth_m[[5, 5]] as f64 - 0.7).abs() < 1e-6);
     }
 }

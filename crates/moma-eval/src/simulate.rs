@@ -39,7 +39,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::data::{MomaSet, write_npy_f32, write_text};
+use crate::data::{MomaSet, write_text};
 use crate::error::{EvalError, Result};
 use crate::imgproc::{fill_nearest, gaussian_blur};
 
@@ -515,16 +515,18 @@ pub fn simulate_set(
     sim: &Simulator,
     transparency: TransparencySource,
     out: &Path,
-) -> Result<SimulatedMeta> {
+) -> Result<(SimulatedMeta, Vec<Prediction>)> {
     std::fs::create_dir_all(out).map_err(|e| EvalError::io(out, e))?;
     let preds = simulate_frames(set, sim, transparency)?;
     for (f, p) in set.frames.iter().zip(&preds) {
-        write_npy_f32(&out.join(format!("{}.npy", f.id)), &p.values)?;
+        moma_io::write_npy_f32(out.join(format!("{}.npy", f.id)), p.values.view())
+            .map_err(|source| EvalError::frame_io(&set.name, &f.id, source))?;
     }
     let meta = SimulatedMeta {
         simulated: true,
-        label: "SIMULATED MDEM prediction (moma-eval simulator, METHOD.md §6) — not a trained model"
-            .into(),
+        label:
+            "SIMULATED MDEM prediction (moma-eval simulator, METHOD.md §6) — not a trained model"
+                .into(),
         set: set.name.clone(),
         kind: sim.kind,
         seed: sim.seed,
@@ -538,7 +540,7 @@ pub fn simulate_set(
         message: e.to_string(),
     })?;
     write_text(&out.join("simulated.json"), &text)?;
-    Ok(meta)
+    Ok((meta, preds))
 }
 
 /// Reads `simulated.json` from a prediction folder, if present (then the predictions are simulated).

@@ -283,7 +283,7 @@ pub fn read_npy_f32(path: impl AsRef<Path>) -> Result<Array2<f32>> {
                 return Err(IoError::unsupported(
                     path,
                     "npy dtype",
-                    desc.to_string(),
+                    desc.to_string().trim_matches('\'').to_string(),
                     "float32 ('<f4') or float64 ('<f8')",
                 ));
             }

@@ -117,17 +117,17 @@ pub fn write_depth_ply(
 ) -> Result<usize> {
     let path = path.as_ref();
     let points = depth_to_points(depth, intrinsics).map_err(|e| IoError::core(path, e))?;
-    if let Some(img) = rgb {
-        if rgb_size(img) != intrinsics.size() {
-            return Err(IoError::invalid(
-                path,
-                format!(
-                    "colour image is {} but the depth map and camera are {}",
-                    rgb_size(img),
-                    intrinsics.size()
-                ),
-            ));
-        }
+    if let Some(img) = rgb
+        && rgb_size(img) != intrinsics.size()
+    {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "colour image is {} but the depth map and camera are {}",
+                rgb_size(img),
+                intrinsics.size()
+            ),
+        ));
     }
     write_ply(path, &points, rgb, format)
 }

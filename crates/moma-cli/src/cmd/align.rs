@@ -100,7 +100,11 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         );
     }
     if !args.ply_rgb.is_empty() && args.ply_rgb.len() != source.len() {
-        bail!("--ply-rgb needs one image per input ({} given for {} inputs)", args.ply_rgb.len(), source.len());
+        bail!(
+            "--ply-rgb needs one image per input ({} given for {} inputs)",
+            args.ply_rgb.len(),
+            source.len()
+        );
     }
     let size = calib.image_size;
     let intrinsics = match &args.camera {
@@ -108,16 +112,27 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         None => calib.intrinsics,
     };
     if args.ply && intrinsics.is_none() {
-        bail!("--ply needs camera intrinsics: calibrate with --camera, or pass --camera camera.json here");
+        bail!(
+            "--ply needs camera intrinsics: calibrate with --camera, or pass --camera camera.json here"
+        );
     }
-    let workspace_path = args.workspace.clone().or_else(|| calib.workspace_mask.as_ref().map(PathBuf::from));
+    let workspace_path = args
+        .workspace
+        .clone()
+        .or_else(|| calib.workspace_mask.as_ref().map(PathBuf::from));
     let workspace = workspace_path
         .as_ref()
-        .map(|p| moma_io::read_mask_sized(p, size).with_context(|| format!("workspace mask of {}", args.calib.display())))
+        .map(|p| {
+            moma_io::read_mask_sized(p, size)
+                .with_context(|| format!("workspace mask of {}", args.calib.display()))
+        })
         .transpose()?;
     let range = match args.range_m.as_slice() {
         [] => DepthRange::default(),
-        [min_m, max_m] => DepthRange::Fixed { min_m: *min_m, max_m: *max_m },
+        [min_m, max_m] => DepthRange::Fixed {
+            min_m: *min_m,
+            max_m: *max_m,
+        },
         _ => bail!("--range-m takes two values: MIN,MAX in metres"),
     };
     create_dir(&args.output)?;
@@ -127,7 +142,13 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     for i in 0..source.len() {
         let input = source.get(i)?;
         size.expect_eq("prediction", input.prediction.size())
-            .with_context(|| format!("{} vs calibration {}", input.path.display(), args.calib.display()))?;
+            .with_context(|| {
+                format!(
+                    "{} vs calibration {}",
+                    input.path.display(),
+                    args.calib.display()
+                )
+            })?;
         let t = Instant::now();
         let depth = calib
             .calibration
@@ -200,7 +221,11 @@ fn write_cloud(
     rgb: Option<&image::RgbImage>,
     ascii: bool,
 ) -> Result<()> {
-    let format = if ascii { PlyFormat::Ascii } else { PlyFormat::BinaryLittleEndian };
+    let format = if ascii {
+        PlyFormat::Ascii
+    } else {
+        PlyFormat::BinaryLittleEndian
+    };
     moma_io::write_depth_ply(path, depth, intrinsics, rgb, format)?;
     Ok(())
 }

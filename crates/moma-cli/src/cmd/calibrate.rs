@@ -149,15 +149,37 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let pred = input.prediction;
     let size = pred.size();
 
-    let gt = moma_io::read_depth_sized(&args.gt, size)
-        .with_context(|| format!("ground truth {} must match the prediction {}", args.gt.display(), input.path.display()))?;
+    let gt = moma_io::read_depth_sized(&args.gt, size).with_context(|| {
+        format!(
+            "reading ground truth {} (for prediction {})",
+            args.gt.display(),
+            input.path.display()
+        )
+    })?;
     if let Some(k) = &intrinsics {
-        k.size().expect_eq("prediction (vs camera.json)", size).with_context(|| {
-            format!("{} does not match {}", input.path.display(), args.camera.as_ref().map(|p| p.display().to_string()).unwrap_or_default())
-        })?;
+        k.size()
+            .expect_eq("prediction (vs camera.json)", size)
+            .with_context(|| {
+                format!(
+                    "{} does not match {}",
+                    input.path.display(),
+                    args.camera
+                        .as_ref()
+                        .map(|p| p.display().to_string())
+                        .unwrap_or_default()
+                )
+            })?;
     }
-    let sample_mask = args.mask.as_ref().map(|p| moma_io::read_mask_sized(p, size)).transpose()?;
-    let workspace = args.workspace.as_ref().map(|p| moma_io::read_mask_sized(p, size)).transpose()?;
+    let sample_mask = args
+        .mask
+        .as_ref()
+        .map(|p| moma_io::read_mask_sized(p, size))
+        .transpose()?;
+    let workspace = args
+        .workspace
+        .as_ref()
+        .map(|p| moma_io::read_mask_sized(p, size))
+        .transpose()?;
 
     let config = CalibrationConfig {
         method: method_from(args.method, args.bandwidth_px, intrinsics)?,
@@ -174,12 +196,30 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             seed: args.seed,
         },
     };
-    let calibration = calibrate(&pred, &gt, &config, workspace.as_ref(), sample_mask.as_ref()).with_context(|| {
-        format!("calibration failed (prediction {}, ground truth {})", input.path.display(), args.gt.display())
+    let calibration = calibrate(
+        &pred,
+        &gt,
+        &config,
+        workspace.as_ref(),
+        sample_mask.as_ref(),
+    )
+    .with_context(|| {
+        format!(
+            "calibration failed (prediction {}, ground truth {})",
+            input.path.display(),
+            args.gt.display()
+        )
     })?;
 
     let mut created = CreationInfo::now()
-        .with_source(if input.rgb.is_some() { "rgb" } else { "prediction" }, &input.path)
+        .with_source(
+            if input.rgb.is_some() {
+                "rgb"
+            } else {
+                "prediction"
+            },
+            &input.path,
+        )
         .with_source("ground_truth", &args.gt);
     if let Some(p) = &args.camera {
         created = created.with_source("camera", p);
@@ -192,10 +232,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     {
         created = created.with_source("weights", w);
     }
-    let workspace_path = args
-        .workspace
-        .as_ref()
-        .map(|p| std::path::absolute(p).unwrap_or_else(|_| p.clone()).display().to_string());
+    let workspace_path = args.workspace.as_ref().map(|p| {
+        std::path::absolute(p)
+            .unwrap_or_else(|_| p.clone())
+            .display()
+            .to_string()
+    });
     let file = CalibrationFile::new(calibration, intrinsics, workspace_path, created);
     moma_io::write_calibration(&args.output, &file)?;
 
@@ -217,7 +259,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             report.rms_residual_m * 1e3,
             report.fit_time_s * 1e6
         );
-        println!("parameters: {}", serde_json::to_string(&file.calibration.model)?);
+        println!(
+            "parameters: {}",
+            serde_json::to_string(&file.calibration.model)?
+        );
         println!("wrote {}", args.output.display());
     }
     Ok(())

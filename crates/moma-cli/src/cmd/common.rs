@@ -108,11 +108,17 @@ impl ModelArgs {
         let Some(weights) = &self.weights else {
             bail!("a depth model needs --weights FILE (.safetensors or .onnx)");
         };
-        if self.input_size == 0 || self.input_size % 14 != 0 {
-            bail!("--input-size {} must be a positive multiple of 14", self.input_size);
+        if self.input_size == 0 || !self.input_size.is_multiple_of(14) {
+            bail!(
+                "--input-size {} must be a positive multiple of 14",
+                self.input_size
+            );
         }
         if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
-            bail!("--max-depth {} must be a positive number of metres", self.max_depth);
+            bail!(
+                "--max-depth {} must be a positive number of metres",
+                self.max_depth
+            );
         }
         let backend = match self.backend {
             BackendArg::Auto if has_extension(weights, "onnx") => moma_depth::Backend::Onnx,
@@ -195,11 +201,6 @@ impl Source {
         self.inputs.len()
     }
 
-    /// The inputs' paths.
-    pub fn inputs(&self) -> &[PathBuf] {
-        &self.inputs
-    }
-
     /// Kind of the predictions this source produces.
     pub fn kind(&self) -> PredictionKind {
         self.kind
@@ -246,7 +247,10 @@ pub fn frame_name(path: &Path) -> String {
         .unwrap_or("frame")
         .to_string();
     if matches!(stem.as_str(), "rgb" | "depth" | "pred" | "prediction")
-        && let Some(parent) = path.parent().and_then(|p| p.file_name()).and_then(|s| s.to_str())
+        && let Some(parent) = path
+            .parent()
+            .and_then(|p| p.file_name())
+            .and_then(|s| s.to_str())
     {
         return parent.to_string();
     }
@@ -259,7 +263,9 @@ pub fn progress(len: usize, message: &'static str, hidden: bool) -> ProgressBar 
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::new(len as u64);
-    if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}") {
+    if let Ok(style) =
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+    {
         bar.set_style(style.progress_chars("=> "));
     }
     bar.set_message(message);
@@ -280,5 +286,6 @@ pub fn print_json(value: &impl serde::Serialize) -> Result<()> {
 /// # Errors
 /// The directory cannot be created.
 pub fn create_dir(dir: &Path) -> Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create output directory {}", dir.display()))
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("cannot create output directory {}", dir.display()))
 }

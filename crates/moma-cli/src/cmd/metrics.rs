@@ -36,11 +36,25 @@ pub struct MetricsArgs {
 
 pub fn run(args: &MetricsArgs) -> Result<()> {
     let pred = moma_io::read_depth(&args.pred)?;
-    let gt = moma_io::read_depth_sized(&args.gt, pred.size())
-        .with_context(|| format!("ground truth must match the prediction {}", args.pred.display()))?;
-    let mask = args.mask.as_ref().map(|p| moma_io::read_mask_sized(p, pred.size())).transpose()?;
-    let m = DepthMetrics::compute(&pred, &gt, mask.as_ref())
-        .with_context(|| format!("scoring {} against {}", args.pred.display(), args.gt.display()))?;
+    let gt = moma_io::read_depth_sized(&args.gt, pred.size()).with_context(|| {
+        format!(
+            "reading ground truth {} (for {})",
+            args.gt.display(),
+            args.pred.display()
+        )
+    })?;
+    let mask = args
+        .mask
+        .as_ref()
+        .map(|p| moma_io::read_mask_sized(p, pred.size()))
+        .transpose()?;
+    let m = DepthMetrics::compute(&pred, &gt, mask.as_ref()).with_context(|| {
+        format!(
+            "scoring {} against {}",
+            args.pred.display(),
+            args.gt.display()
+        )
+    })?;
     if args.json {
         print_json(&m)?;
     } else {

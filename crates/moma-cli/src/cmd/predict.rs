@@ -3,8 +3,6 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use std::io::Write as _;
-
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_io::Colormap;
@@ -66,7 +64,11 @@ pub fn run(args: &PredictArgs) -> Result<()> {
     let mut names = std::collections::HashSet::new();
     for p in &args.images {
         if !names.insert(frame_name(p)) {
-            bail!("two inputs map to the same output name '{}' (e.g. {}): rename them", frame_name(p), p.display());
+            bail!(
+                "two inputs map to the same output name '{}' (e.g. {}): rename them",
+                frame_name(p),
+                p.display()
+            );
         }
     }
     let mut model = args.model.load()?;
@@ -122,15 +124,30 @@ pub fn run(args: &PredictArgs) -> Result<()> {
 }
 
 /// Colour-maps a raw prediction (unitless) over its 2nd–98th percentile for people.
-fn write_prediction_colormap(path: &std::path::Path, pred: &moma_core::Prediction, colormap: Colormap) -> Result<()> {
-    let mut finite: Vec<f32> = pred.values.iter().copied().filter(|v| v.is_finite()).collect();
+fn write_prediction_colormap(
+    path: &std::path::Path,
+    pred: &moma_core::Prediction,
+    colormap: Colormap,
+) -> Result<()> {
+    let mut finite: Vec<f32> = pred
+        .values
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
     if finite.is_empty() {
         bail!("prediction for {} holds no finite value", path.display());
     }
     finite.sort_unstable_by(f32::total_cmp);
     let at = |q: f32| finite[((finite.len() - 1) as f32 * q).round() as usize];
     let (lo, hi) = (at(0.02), at(0.98));
-    let img = moma_io::colourise(pred.values.view(), colormap, lo, hi.max(lo + f32::EPSILON), f32::is_finite);
+    let img = moma_io::colourise(
+        pred.values.view(),
+        colormap,
+        lo,
+        hi.max(lo + f32::EPSILON),
+        f32::is_finite,
+    );
     moma_io::write_rgb(path, &img)?;
     Ok(())
 }
@@ -139,7 +156,7 @@ fn write_prediction_colormap(path: &std::path::Path, pred: &moma_core::Predictio
 fn write_json(path: &std::path::Path, value: &impl Serialize) -> Result<()> {
     let text = serde_json::to_string_pretty(value)?;
     moma_io::atomic_write(path, |w| {
-        w.write_all(text.as_bytes()).map_err(|source| moma_io::IoError::Io {
+        std::io::Write::write_all(w, text.as_bytes()).map_err(|source| moma_io::IoError::Io {
             path: path.to_path_buf(),
             action: "write",
             source,

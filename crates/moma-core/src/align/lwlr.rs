@@ -30,9 +30,10 @@
 //! Grid vs exact, measured (test `grid_vs_exact_difference`, printed by
 //! `cargo test -p moma-core --release -- --nocapture grid_vs_exact`): on a synthetic 640×480
 //! tabletop (plane at ~0.8–1.2 m, objects, a planar scale field and smooth bumps in the
-//! prediction) with 100 random samples and the default settings, the two maps give aligned depths
-//! that differ by a mean of ~0.3 mm and at most ~4 mm (ridge and pre-fit identical in both; the
-//! difference is the 32-px grid plus bilinear resize only).
+//! prediction) with 100 random samples and the default settings (b = 50 px, λ = 1, pre-fit), the
+//! aligned depths of the two solves differ by 0.15 mm on average and 1.7 mm at most (ridge and
+//! pre-fit identical in both; the difference is the 32-px grid plus bilinear resize only); their
+//! MAE against the ground truth is 2.80 mm (grid) vs 2.78 mm (exact).
 
 use std::sync::{Arc, OnceLock};
 
@@ -171,7 +172,7 @@ pub struct LwlrMaps {
 
 /// Fitted LWLR. Serialises compactly (config, samples, pre-fit); the full-size maps are
 /// computed on first use ([`LwlrModel::maps`]) and cached.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Clone, Serialize, Deserialize)]
 pub struct LwlrModel {
     /// Settings.
     pub config: LwlrConfig,
@@ -187,6 +188,20 @@ pub struct LwlrModel {
     maps: OnceLock<Arc<LwlrMaps>>,
 }
 
+impl std::fmt::Debug for LwlrModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LwlrModel")
+            .field("config", &self.config)
+            .field("image_size", &self.image_size)
+            .field("bandwidth_px", &self.bandwidth_px)
+            .field("global", &self.global)
+            .field("n_samples", &self.samples.len())
+            .field("maps_cached", &self.maps.get().is_some())
+            .finish()
+    }
+}
+
+/// Equality of the fitted quantities (the cached maps follow from them).
 impl PartialEq for LwlrModel {
     fn eq(&self, other: &Self) -> bool {
         self.config == other.config

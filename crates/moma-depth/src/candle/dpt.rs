@@ -2,7 +2,7 @@
 //! `depth_anything_v2/util/blocks.py`, commit a561b84; `depth_head.*` keys).
 
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
+use candle_nn::VarBuilder;
 
 use super::DepthAnythingConfig;
 use crate::Head;
@@ -11,17 +11,42 @@ use crate::preprocess::PATCH_SIZE;
 /// Channels of the last hidden convolution of the output head (`head_features_2 = 32`).
 const HEAD_FEATURES_2: usize = 32;
 
-fn conv3x3(c_in: usize, c_out: usize, stride: usize, bias: bool, vb: VarBuilder) -> Result<Conv2d> {
-    let cfg = Conv2dConfig {
-        padding: 1,
-        stride,
-        ..Default::default()
-    };
-    if bias {
-        candle_nn::conv2d(c_in, c_out, 3, cfg, vb)
-    } else {
-        candle_nn::conv2d_no_bias(c_in, c_out, 3, cfg, vb)
+/// `nn.Conv2d(c_in, c_out, kernel_size=3, stride, padding=1, bias)`.
+#[derive(Debug, Clone)]
+struct Conv3x3 {
+    weight: Tensor,
+    bias: Option<Tensor>,
+    stride: usize,
+}
+
+impl Conv3x3 {
+    fn forward_fused(&self, xs: &Tensor, fused: super::ops::ConvFusion<'_>) -> Result<Tensor> {
+        super::ops::conv3x3(xs, &self.weight, self.bias.as_ref(), self.stride, fused)
     }
+}
+
+impl Module for Conv3x3 {
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        self.forward_fused(xs, super::ops::ConvFusion::default())
+    }
+}
+
+fn conv3x3(
+    c_in: usize,
+    c_out: usize,
+    stride: usize,
+    bias: bool,
+    vb: VarBuilder,
+) -> Result<Conv3x3> {
+    Ok(Conv3x3 {
+        weight: vb.get((c_out, c_in, 3, 3), "weight")?,
+        bias: if bias {
+            Some(vb.get(c_out, "bias")?)
+        } else {
+            None
+        },
+        stride,
+    })
 }
 
 /// A 1×1 convolution stored as a `(c_out, c_in)` matrix: applied as one matmul.
@@ -34,7 +59,9 @@ struct Conv1x1 {
 impl Conv1x1 {
     fn new(c_in: usize, c_out: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            weight: vb.get((c_out, c_in, 1, 1), "weight")?.reshape((c_out, c_in))?,
+            weight: vb
+                .get((c_out, c_in, 1, 1), "weight")?
+                .reshape((c_out, c_in))?,
             bias: vb.get(c_out, "bias")?.reshape((c_out, 1))?,
         })
     }
@@ -42,13 +69,18 @@ impl Conv1x1 {
     /// `(1, c_in, h, w)` → `(1, c_out, h, w)`.
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
         let (b, c, h, w) = xs.dims4()?;
-        let y = self.weight.matmul(&xs.reshape((b * c, h * w))?)?.broadcast_add(&self.bias)?;
+        let y = super::ops::matmul_row_bias(
+            &self.weight,
+            &xs.reshape((b * c, h * w))?,
+            &self.bias,
+            false,
+        )?;
         y.reshape((b, self.weight.dim(0)?, h, w))
     }
 
     /// Tokens `(h·w, c_in)` → `(1, c_out, h, w)` (the `permute + reshape + conv` of `DPTHead`).
     fn forward_tokens(&self, tokens: &Tensor, h: usize, w: usize) -> Result<Tensor> {
-        let y = self.weight.matmul(&tokens.t()?)?.broadcast_add(&self.bias)?;
+        let y = super::ops::matmul_row_bias(&self.weight, tokens, &self.bias, true)?;
         y.reshape((1, self.weight.dim(0)?, h, w))
     }
 }
@@ -93,7 +125,7 @@ impl PatchExpand {
 enum Resize {
     Up(PatchExpand),
     Identity,
-    Down(Conv2d),
+    Down(Conv3x3),
 }
 
 impl Module for Resize {
@@ -109,8 +141,8 @@ impl Module for Resize {
 /// `ResidualConvUnit` (no batch norm): `x + conv2(relu(conv1(relu(x))))`.
 #[derive(Debug, Clone)]
 struct ResidualConvUnit {
-    conv1: Conv2d,
-    conv2: Conv2d,
+    conv1: Conv3x3,
+    conv2: Conv3x3,
 }
 
 impl ResidualConvUnit {
@@ -124,9 +156,22 @@ impl ResidualConvUnit {
 
 impl Module for ResidualConvUnit {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let out = self.conv1.forward(&xs.relu()?)?;
-        let out = self.conv2.forward(&out.relu()?)?;
-        out + xs
+        use super::ops::ConvFusion;
+        let out = self.conv1.forward_fused(
+            xs,
+            ConvFusion {
+                relu_in: true,
+                ..ConvFusion::default()
+            },
+        )?;
+        self.conv2.forward_fused(
+            &out,
+            ConvFusion {
+                relu_in: true,
+                residual: Some(xs),
+                relu_out: false,
+            },
+        )
     }
 }
 
@@ -149,7 +194,12 @@ impl FeatureFusionBlock {
 
     /// `forward(x0, [x1], size)`: `size = None` doubles the resolution (`scale_factor=2`; with
     /// `align_corners=True` PyTorch then samples at `dst·(in−1)/(out−1)` like a size request).
-    fn forward(&self, x0: &Tensor, x1: Option<&Tensor>, size: Option<(usize, usize)>) -> Result<Tensor> {
+    fn forward(
+        &self,
+        x0: &Tensor,
+        x1: Option<&Tensor>,
+        size: Option<(usize, usize)>,
+    ) -> Result<Tensor> {
         let mut out = x0.clone();
         if let Some(x1) = x1 {
             out = (out + self.res_conf_unit1.forward(x1)?)?;
@@ -157,7 +207,7 @@ impl FeatureFusionBlock {
         out = self.res_conf_unit2.forward(&out)?;
         let (_, _, h, w) = out.dims4()?;
         let (th, tw) = size.unwrap_or((2 * h, 2 * w));
-        let out = out.upsample_bilinear2d(th, tw, true)?;
+        let out = super::ops::upsample_bilinear_align_corners(&out, th, tw)?;
         self.out_conv.forward(&out)
     }
 }
@@ -167,10 +217,10 @@ impl FeatureFusionBlock {
 pub struct DptHead {
     projects: Vec<Conv1x1>,
     resize_layers: Vec<Resize>,
-    layer_rn: Vec<Conv2d>,
+    layer_rn: Vec<Conv3x3>,
     refinenets: Vec<FeatureFusionBlock>,
-    output_conv1: Conv2d,
-    output_conv2_0: Conv2d,
+    output_conv1: Conv3x3,
+    output_conv2_0: Conv3x3,
     output_conv2_2: Conv1x1,
     head: Head,
 }
@@ -206,7 +256,13 @@ impl DptHead {
             layer_rn,
             refinenets,
             output_conv1: conv3x3(f, f / 2, 1, true, scratch.pp("output_conv1"))?,
-            output_conv2_0: conv3x3(f / 2, HEAD_FEATURES_2, 1, true, scratch.pp("output_conv2.0"))?,
+            output_conv2_0: conv3x3(
+                f / 2,
+                HEAD_FEATURES_2,
+                1,
+                true,
+                scratch.pp("output_conv2.0"),
+            )?,
             output_conv2_2: Conv1x1::new(HEAD_FEATURES_2, 1, scratch.pp("output_conv2.2"))?,
             head: cfg.head,
         })
@@ -229,12 +285,24 @@ impl DptHead {
             Ok((h, w))
         };
         let path4 = self.refinenets[3].forward(&layers[3], None, Some(size(&layers[2])?))?;
-        let path3 = self.refinenets[2].forward(&path4, Some(&layers[2]), Some(size(&layers[1])?))?;
-        let path2 = self.refinenets[1].forward(&path3, Some(&layers[1]), Some(size(&layers[0])?))?;
+        let path3 =
+            self.refinenets[2].forward(&path4, Some(&layers[2]), Some(size(&layers[1])?))?;
+        let path2 =
+            self.refinenets[1].forward(&path3, Some(&layers[1]), Some(size(&layers[0])?))?;
         let path1 = self.refinenets[0].forward(&path2, Some(&layers[0]), None)?;
         let out = self.output_conv1.forward(&path1)?;
-        let out = out.upsample_bilinear2d(rows * PATCH_SIZE, cols * PATCH_SIZE, true)?;
-        let out = self.output_conv2_0.forward(&out)?.relu()?;
+        let out = super::ops::upsample_bilinear_align_corners(
+            &out,
+            rows * PATCH_SIZE,
+            cols * PATCH_SIZE,
+        )?;
+        let out = self.output_conv2_0.forward_fused(
+            &out,
+            super::ops::ConvFusion {
+                relu_out: true,
+                ..super::ops::ConvFusion::default()
+            },
+        )?;
         let out = self.output_conv2_2.forward(&out)?;
         match self.head {
             // output_conv2 ends in ReLU; DepthAnythingV2.forward applies F.relu once more.

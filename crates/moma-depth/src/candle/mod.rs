@@ -99,18 +99,39 @@ impl DepthAnythingConfig {
 
     /// ViT-S: embed 384, 12 blocks, 6 heads, layers [2, 5, 8, 11], features 64, out [48, 96, 192, 384].
     pub fn vit_small(head: Head) -> Self {
-        Self::preset(Backbone::Vits, (384, 12, 6), [2, 5, 8, 11], 64, [48, 96, 192, 384], head)
+        Self::preset(
+            Backbone::Vits,
+            (384, 12, 6),
+            [2, 5, 8, 11],
+            64,
+            [48, 96, 192, 384],
+            head,
+        )
     }
 
     /// ViT-B: embed 768, 12 blocks, 12 heads, layers [2, 5, 8, 11], features 128, out [96, 192, 384, 768].
     pub fn vit_base(head: Head) -> Self {
-        Self::preset(Backbone::Vitb, (768, 12, 12), [2, 5, 8, 11], 128, [96, 192, 384, 768], head)
+        Self::preset(
+            Backbone::Vitb,
+            (768, 12, 12),
+            [2, 5, 8, 11],
+            128,
+            [96, 192, 384, 768],
+            head,
+        )
     }
 
     /// ViT-L: embed 1024, 24 blocks, 16 heads, layers [4, 11, 17, 23], features 256,
     /// out [256, 512, 1024, 1024].
     pub fn vit_large(head: Head) -> Self {
-        Self::preset(Backbone::Vitl, (1024, 24, 16), [4, 11, 17, 23], 256, [256, 512, 1024, 1024], head)
+        Self::preset(
+            Backbone::Vitl,
+            (1024, 24, 16),
+            [4, 11, 17, 23],
+            256,
+            [256, 512, 1024, 1024],
+            head,
+        )
     }
 
     /// The preset of a [`ModelSpec`] (with its head and input size).
@@ -134,9 +155,16 @@ impl DepthAnythingConfig {
     }
 
     fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(DepthError::Shape(format!("invalid DepthAnythingConfig: {m}")));
-        if self.num_heads == 0 || self.embed_dim % self.num_heads != 0 {
-            return bad(format!("embed_dim {} not a multiple of num_heads {}", self.embed_dim, self.num_heads));
+        let bad = |m: String| {
+            Err(DepthError::Shape(format!(
+                "invalid DepthAnythingConfig: {m}"
+            )))
+        };
+        if self.num_heads == 0 || !self.embed_dim.is_multiple_of(self.num_heads) {
+            return bad(format!(
+                "embed_dim {} not a multiple of num_heads {}",
+                self.embed_dim, self.num_heads
+            ));
         }
         if let Some(l) = self.intermediate_layers.iter().find(|&&l| l >= self.depth) {
             return bad(format!("intermediate layer {l} >= depth {}", self.depth));
@@ -157,7 +185,10 @@ impl DepthAnythingConfig {
         let mut add = |name: String, shape: Vec<usize>| t.push((name, shape, true));
         add("pretrained.cls_token".into(), vec![1, 1, d]);
         add("pretrained.pos_embed".into(), vec![1, 1 + g * g, d]);
-        add("pretrained.patch_embed.proj.weight".into(), vec![d, 3, p, p]);
+        add(
+            "pretrained.patch_embed.proj.weight".into(),
+            vec![d, 3, p, p],
+        );
         add("pretrained.patch_embed.proj.bias".into(), vec![d]);
         for i in 0..self.depth {
             let b = format!("pretrained.blocks.{i}");
@@ -184,13 +215,25 @@ impl DepthAnythingConfig {
         for (i, &c) in oc.iter().enumerate() {
             add(format!("{h}.projects.{i}.weight"), vec![c, d, 1, 1]);
             add(format!("{h}.projects.{i}.bias"), vec![c]);
-            add(format!("{h}.scratch.layer{}_rn.weight", i + 1), vec![f, c, 3, 3]);
+            add(
+                format!("{h}.scratch.layer{}_rn.weight", i + 1),
+                vec![f, c, 3, 3],
+            );
         }
-        add(format!("{h}.resize_layers.0.weight"), vec![oc[0], oc[0], 4, 4]);
+        add(
+            format!("{h}.resize_layers.0.weight"),
+            vec![oc[0], oc[0], 4, 4],
+        );
         add(format!("{h}.resize_layers.0.bias"), vec![oc[0]]);
-        add(format!("{h}.resize_layers.1.weight"), vec![oc[1], oc[1], 2, 2]);
+        add(
+            format!("{h}.resize_layers.1.weight"),
+            vec![oc[1], oc[1], 2, 2],
+        );
         add(format!("{h}.resize_layers.1.bias"), vec![oc[1]]);
-        add(format!("{h}.resize_layers.3.weight"), vec![oc[3], oc[3], 3, 3]);
+        add(
+            format!("{h}.resize_layers.3.weight"),
+            vec![oc[3], oc[3], 3, 3],
+        );
         add(format!("{h}.resize_layers.3.bias"), vec![oc[3]]);
         for r in 1..=4 {
             let b = format!("{h}.scratch.refinenet{r}");
@@ -203,11 +246,20 @@ impl DepthAnythingConfig {
             add(format!("{b}.out_conv.weight"), vec![f, f, 1, 1]);
             add(format!("{b}.out_conv.bias"), vec![f]);
         }
-        add(format!("{h}.scratch.output_conv1.weight"), vec![f / 2, f, 3, 3]);
+        add(
+            format!("{h}.scratch.output_conv1.weight"),
+            vec![f / 2, f, 3, 3],
+        );
         add(format!("{h}.scratch.output_conv1.bias"), vec![f / 2]);
-        add(format!("{h}.scratch.output_conv2.0.weight"), vec![32, f / 2, 3, 3]);
+        add(
+            format!("{h}.scratch.output_conv2.0.weight"),
+            vec![32, f / 2, 3, 3],
+        );
         add(format!("{h}.scratch.output_conv2.0.bias"), vec![32]);
-        add(format!("{h}.scratch.output_conv2.2.weight"), vec![1, 32, 1, 1]);
+        add(
+            format!("{h}.scratch.output_conv2.2.weight"),
+            vec![1, 32, 1, 1],
+        );
         add(format!("{h}.scratch.output_conv2.2.bias"), vec![1]);
         t.push(("pretrained.mask_token".into(), vec![1, d], false));
         t
@@ -215,7 +267,10 @@ impl DepthAnythingConfig {
 
     /// Compares a checkpoint's tensors `(name → shape)` with [`Self::expected_tensors`]; `Err` holds a
     /// readable list of missing keys, unexpected keys and shape mismatches.
-    pub fn check_tensors(&self, found: &BTreeMap<String, Vec<usize>>) -> std::result::Result<(), String> {
+    pub fn check_tensors(
+        &self,
+        found: &BTreeMap<String, Vec<usize>>,
+    ) -> std::result::Result<(), String> {
         let expected = self.expected_tensors();
         let mut missing = vec![];
         let mut mismatched = vec![];
@@ -223,12 +278,17 @@ impl DepthAnythingConfig {
             match found.get(name) {
                 None if *required => missing.push(name.clone()),
                 None => {}
-                Some(s) if s != shape => mismatched.push(format!("{name}: expected {shape:?}, found {s:?}")),
+                Some(s) if s != shape => {
+                    mismatched.push(format!("{name}: expected {shape:?}, found {s:?}"))
+                }
                 Some(_) => {}
             }
         }
         let known: BTreeSet<&str> = expected.iter().map(|(n, _, _)| n.as_str()).collect();
-        let unexpected: Vec<&String> = found.keys().filter(|k| !known.contains(k.as_str())).collect();
+        let unexpected: Vec<&String> = found
+            .keys()
+            .filter(|k| !known.contains(k.as_str()))
+            .collect();
         if missing.is_empty() && unexpected.is_empty() && mismatched.is_empty() {
             return Ok(());
         }
@@ -238,7 +298,12 @@ impl DepthAnythingConfig {
                 return String::new();
             }
             let mut s = format!("{} {what}: ", items.len());
-            s += &items.iter().take(SHOWN).map(|i| i.to_string()).collect::<Vec<_>>().join(", ");
+            s += &items
+                .iter()
+                .take(SHOWN)
+                .map(|i| i.to_string())
+                .collect::<Vec<_>>()
+                .join(", ");
             if items.len() > SHOWN {
                 s += &format!(", ... ({} more)", items.len() - SHOWN);
             }
@@ -287,14 +352,16 @@ impl DeviceChoice {
     pub fn device(self) -> Result<Device> {
         match self {
             Self::Cpu => Ok(Device::Cpu),
-            Self::Cuda(i) if cfg!(feature = "cuda") => {
-                Device::new_cuda(i).map_err(|e| DepthError::Unavailable(format!("CUDA device {i}: {e}")))
-            }
-            Self::Metal(i) if cfg!(feature = "metal") => {
-                Device::new_metal(i).map_err(|e| DepthError::Unavailable(format!("Metal device {i}: {e}")))
-            }
-            Self::Cuda(_) => Err(DepthError::Unavailable("built without the `cuda` feature".into())),
-            Self::Metal(_) => Err(DepthError::Unavailable("built without the `metal` feature".into())),
+            Self::Cuda(i) if cfg!(feature = "cuda") => Device::new_cuda(i)
+                .map_err(|e| DepthError::Unavailable(format!("CUDA device {i}: {e}"))),
+            Self::Metal(i) if cfg!(feature = "metal") => Device::new_metal(i)
+                .map_err(|e| DepthError::Unavailable(format!("Metal device {i}: {e}"))),
+            Self::Cuda(_) => Err(DepthError::Unavailable(
+                "built without the `cuda` feature".into(),
+            )),
+            Self::Metal(_) => Err(DepthError::Unavailable(
+                "built without the `metal` feature".into(),
+            )),
         }
     }
 }
@@ -321,7 +388,11 @@ impl CandleDepthModel {
     /// [`DepthError::Weights`] when the file cannot be read or its tensors do not match `config`
     /// (the message lists missing and unexpected keys and shape mismatches); [`DepthError::Shape`]
     /// for an inconsistent `config`.
-    pub fn load(path: impl AsRef<Path>, config: DepthAnythingConfig, device: &Device) -> Result<Self> {
+    pub fn load(
+        path: impl AsRef<Path>,
+        config: DepthAnythingConfig,
+        device: &Device,
+    ) -> Result<Self> {
         let path = path.as_ref();
         let werr = |reason: String| DepthError::Weights {
             path: path.display().to_string(),
@@ -330,12 +401,16 @@ impl CandleDepthModel {
         config.validate()?;
         // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
         // while mapped. The mapping lives only during loading (weights are copied to f32 tensors).
-        let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }.map_err(|e| werr(e.to_string()))?;
+        let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }
+            .map_err(|e| werr(e.to_string()))?;
         let mut found = BTreeMap::new();
         let mut bad_dtype = vec![];
         for (name, view) in st.tensors() {
-            use safetensors::Dtype as S;
-            if !matches!(view.dtype(), S::F32 | S::F16 | S::BF16 | S::F64) {
+            let dtype = DType::try_from(view.dtype()).ok();
+            if !matches!(
+                dtype,
+                Some(DType::F32 | DType::F16 | DType::BF16 | DType::F64)
+            ) {
                 bad_dtype.push(format!("{name}: {:?}", view.dtype()));
             }
             found.insert(name, view.shape().to_vec());
@@ -419,5 +494,61 @@ impl DepthModel for CandleDepthModel {
         let y = self.forward(&x).map_err(backend)?;
         let values: Vec<f32> = y.flatten_all().and_then(|t| t.to_vec1()).map_err(backend)?;
         Array2::from_shape_vec((h, w), values).map_err(|e| DepthError::Shape(e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny(head: Head) -> DepthAnythingConfig {
+        DepthAnythingConfig {
+            embed_dim: 32,
+            depth: 2,
+            num_heads: 2,
+            mlp_hidden_dim: 64,
+            intermediate_layers: [0, 1, 1, 1],
+            features: 8,
+            out_channels: [4, 8, 8, 16],
+            ..DepthAnythingConfig::vit_small(head)
+        }
+    }
+
+    #[test]
+    fn zero_weights_give_the_right_shapes() {
+        // Any (H, W) multiple of 14, non-square: 28×42 -> patch grid 2×3.
+        for head in [Head::Relative, Head::Metric { max_depth_m: 20.0 }] {
+            let vb = VarBuilder::zeros(DType::F32, &Device::Cpu);
+            let mut m = CandleDepthModel::from_var_builder(tiny(head), vb).unwrap();
+            let out = m.forward_net(&Array3::zeros((3, 28, 42))).unwrap();
+            assert_eq!(out.dim(), (28, 42));
+            // Zero weights: relative head ReLU(0) = 0, metric head sigmoid(0)·20 = 10.
+            let want = if head == Head::Relative { 0.0 } else { 10.0 };
+            assert!(out.iter().all(|&v| v == want));
+        }
+        let vb = VarBuilder::zeros(DType::F32, &Device::Cpu);
+        let mut m = CandleDepthModel::from_var_builder(tiny(Head::Relative), vb).unwrap();
+        assert!(matches!(
+            m.forward_net(&Array3::zeros((3, 28, 40))),
+            Err(DepthError::Shape(_))
+        ));
+    }
+
+    #[test]
+    fn presets_list_the_official_key_set() {
+        let c = DepthAnythingConfig::vit_small(Head::Relative);
+        let t = c.expected_tensors();
+        // 4 + 12·14 + 2 (encoder) + 12 + 6 + 4·10 + 6 (head) + mask_token = the 239 tensors of an
+        // official ViT-S checkpoint (and of `vits-rel.safetensors`).
+        assert_eq!(t.len(), 239);
+        let found: BTreeMap<String, Vec<usize>> = t
+            .iter()
+            .filter(|(_, _, req)| *req)
+            .map(|(n, s, _)| (n.clone(), s.clone()))
+            .collect();
+        assert!(c.check_tensors(&found).is_ok());
+        assert_eq!(DepthAnythingConfig::from_spec(&c.spec()), c);
+        let bad = DepthAnythingConfig { num_heads: 5, ..c };
+        assert!(bad.validate().is_err());
     }
 }

@@ -7,7 +7,13 @@ use ndarray::{Array2, Array3};
 use ndarray_npy::read_npy;
 
 /// The five parity reference models of `shared/reference/dav2/README.md`.
-pub const MODELS: [&str; 5] = ["tiny-rel", "tiny-rel-392", "tiny-metric", "tiny-metric-392", "vits-rel"];
+pub const MODELS: [&str; 5] = [
+    "tiny-rel",
+    "tiny-rel-392",
+    "tiny-metric",
+    "tiny-metric-392",
+    "vits-rel",
+];
 
 /// `$MOMA_SHARED_DIR/reference/dav2`, else `CARGO_MANIFEST_DIR/../../../shared/reference/dav2`;
 /// `None` (with a message on stderr) when absent, so tests skip instead of failing.
@@ -39,7 +45,9 @@ pub fn reference_output(dir: &std::path::Path, name: &str, which: &str) -> Array
 
 /// `input.png` as 8-bit RGB.
 pub fn reference_image(dir: &std::path::Path) -> image::RgbImage {
-    image::open(dir.join("input.png")).expect("read input.png").to_rgb8()
+    image::open(dir.join("input.png"))
+        .expect("read input.png")
+        .to_rgb8()
 }
 
 /// `NAME.json` parsed.
@@ -51,7 +59,11 @@ pub fn reference_json(dir: &std::path::Path, name: &str) -> serde_json::Value {
 /// Maximum absolute difference and the output range (max − min) of the reference.
 pub fn max_abs_err(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32) {
     assert_eq!(got.dim(), want.dim(), "shape");
-    let err = got.iter().zip(want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let err = got
+        .iter()
+        .zip(want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
     let lo = want.iter().copied().fold(f32::INFINITY, f32::min);
     let hi = want.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     (err, hi - lo)

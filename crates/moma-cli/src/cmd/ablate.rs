@@ -1,0 +1,201 @@
+//! `moma ablate`: the paper's ablations, each a table (md/csv/json) and a PNG plot.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use moma_core::PredictionKind;
+use moma_eval::ablate::{self, AblationOutput, SAMPLE_COUNTS};
+use moma_eval::protocol::{PredictionSet, parse_norm};
+use moma_eval::simulate::{Simulator, simulate_frames};
+
+use super::common::create_dir;
+use super::eval::{EvalOptions, PredArgs, load_set};
+
+/// Ablations: number of samples (with calibration time), normalisation, prediction source,
+/// transparent objects. Each writes OUT/ablation_<name>.{md,csv,json} and a PNG plot per set
+/// (OUT/ablation_<name>_<set>.png), and prints the table.
+///
+/// Examples:
+///   moma ablate samples --set data/gqcnn-primesense --simulate -o out/ablations
+///   moma ablate norm --set data/gqcnn-primesense --simulate --norms minmax,median,none
+///   moma ablate source --set data/gqcnn-primesense --source "sim depth:depth:preds/d" --source "sim inv:inverse-depth:preds/i"
+///   moma ablate source --set data/gqcnn-primesense      # simulated depth vs simulated inverse depth
+///   moma ablate transparent --set data/cleargrasp-transparent --simulate
+#[derive(Debug, Clone, Args)]
+#[command(verbatim_doc_comment)]
+pub struct AblateArgs {
+    /// Which ablation.
+    #[command(subcommand)]
+    pub which: AblateCommand,
+}
+
+/// The ablations.
+#[derive(Debug, Clone, Subcommand)]
+pub enum AblateCommand {
+    /// (a) n ∈ {20, 50, 100, 200, 400, 1000, 3000}: accuracy and median fit time per method.
+    Samples {
+        #[command(flatten)]
+        common: AblateCommon,
+        /// Sample counts, comma-separated.
+        #[arg(long, value_delimiter = ',', default_values_t = SAMPLE_COUNTS.to_vec())]
+        counts: Vec<usize>,
+    },
+    /// (b) normalisation × method.
+    Norm {
+        #[command(flatten)]
+        common: AblateCommon,
+        /// Normalisations, comma-separated.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "minmax,minmax-unit,median,none"
+        )]
+        norms: Vec<String>,
+    },
+    /// (c) prediction source: several prediction folders with labels (default: simulated depth
+    /// vs simulated inverse depth, in memory).
+    Source {
+        #[command(flatten)]
+        common: AblateCommon,
+        /// LABEL:KIND:DIR (KIND = depth | inverse-depth), repeatable.
+        #[arg(long, value_name = "LABEL:KIND:DIR")]
+        source: Vec<String>,
+    },
+    /// (d) transparent objects: the methods plus the raw sensor depth (raw_depth.png) against
+    /// the ground truth from opaque replicas, inside the transparent-object masks.
+    Transparent {
+        #[command(flatten)]
+        common: AblateCommon,
+    },
+}
+
+/// Options shared by every ablation.
+#[derive(Debug, Clone, Args)]
+pub struct AblateCommon {
+    /// Moma set folder(s).
+    #[arg(long, value_name = "DIR", required = true)]
+    pub set: Vec<PathBuf>,
+    #[command(flatten)]
+    pub pred: PredArgs,
+    #[command(flatten)]
+    pub eval: EvalOptions,
+    /// Output folder.
+    #[arg(short, long, value_name = "DIR", default_value = "moma-ablate-out")]
+    pub out: PathBuf,
+}
+
+fn report(out: &AblationOutput, table_md: &std::path::Path, t0: Instant) -> Result<()> {
+    let text = std::fs::read_to_string(table_md)
+        .with_context(|| format!("reading {}", table_md.display()))?;
+    println!("{text}");
+    eprintln!(
+        "wrote {} and plots {} ({:.1} s)",
+        out.tables
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        out.plots
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn parse_source(s: &str, set: &moma_eval::data::MomaSet) -> Result<PredictionSet> {
+    let mut parts = s.splitn(3, ':');
+    let (Some(label), Some(kind), Some(dir)) = (parts.next(), parts.next(), parts.next()) else {
+        bail!("--source '{s}': expected LABEL:KIND:DIR");
+    };
+    let kind: PredictionKind = kind.parse().with_context(|| format!("--source '{s}'"))?;
+    let mut p = PredictionSet::read(set, std::path::Path::new(dir), kind)?;
+    p.label = label.to_string();
+    Ok(p)
+}
+
+pub fn run(args: &AblateArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let common = match &args.which {
+        AblateCommand::Samples { common, .. }
+        | AblateCommand::Norm { common, .. }
+        | AblateCommand::Source { common, .. }
+        | AblateCommand::Transparent { common } => common,
+    };
+    create_dir(&common.out)?;
+    let config = common.eval.config()?;
+    let n = common.set.len();
+    match &args.which {
+        AblateCommand::Samples { counts, .. } => {
+            let mut rows = Vec::new();
+            for (i, dir) in common.set.iter().enumerate() {
+                let set = load_set(dir)?;
+                let preds = common.pred.predictions(&set, i, n)?;
+                rows.extend(ablate::samples(&set, &preds, &config, counts)?);
+            }
+            let out = ablate::write_samples(&common.out, &rows)?;
+            report(&out, &out.tables[0], t0)
+        }
+        AblateCommand::Norm { norms, .. } => {
+            let norms = norms
+                .iter()
+                .map(|s| parse_norm(s))
+                .collect::<Result<Vec<_>, _>>()?;
+            let mut rows = Vec::new();
+            for (i, dir) in common.set.iter().enumerate() {
+                let set = load_set(dir)?;
+                let preds = common.pred.predictions(&set, i, n)?;
+                rows.extend(ablate::norms(&set, &preds, &config, &norms)?);
+            }
+            let out = ablate::write_norms(&common.out, &rows)?;
+            report(&out, &out.tables[0], t0)
+        }
+        AblateCommand::Source { source, .. } => {
+            let mut rows = Vec::new();
+            for dir in &common.set {
+                let set = load_set(dir)?;
+                let sources: Vec<PredictionSet> = if source.is_empty() {
+                    let cfg = common.pred.sim.config()?;
+                    [PredictionKind::Depth, PredictionKind::InverseDepth]
+                        .into_iter()
+                        .map(|kind| -> Result<PredictionSet> {
+                            let sim =
+                                Simulator::new(cfg, common.pred.sim_seed, kind, set.intrinsics)?;
+                            Ok(PredictionSet {
+                                label: format!("simulated {kind}"),
+                                simulated: true,
+                                maps: simulate_frames(
+                                    &set,
+                                    &sim,
+                                    common.pred.sim_transparency.into(),
+                                )?,
+                            })
+                        })
+                        .collect::<Result<_>>()?
+                } else {
+                    source
+                        .iter()
+                        .map(|s| parse_source(s, &set))
+                        .collect::<Result<_>>()?
+                };
+                rows.extend(ablate::sources(&set, &sources, &config)?);
+            }
+            let out = ablate::write_sources(&common.out, &rows)?;
+            report(&out, &out.tables[0], t0)
+        }
+        AblateCommand::Transparent { .. } => {
+            let mut results = Vec::new();
+            for (i, dir) in common.set.iter().enumerate() {
+                let set = load_set(dir)?;
+                let preds = common.pred.predictions(&set, i, n)?;
+                results.push(ablate::transparent(&set, &preds, &config)?);
+            }
+            let out = ablate::write_transparent(&common.out, &results)?;
+            report(&out, &out.tables[0], t0)
+        }
+    }
+}

@@ -1,0 +1,314 @@
+//! `moma eval`: the paper's evaluation protocol (METHOD.md §4) on moma sets.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use moma_core::PredictionKind;
+use moma_core::sampling::SamplingStrategy;
+use moma_eval::data::MomaSet;
+use moma_eval::protocol::{EvalConfig, PredictionSet, evaluate, parse_norm};
+use moma_eval::report::{contract_json, eval_table, write_eval_outputs};
+use moma_eval::simulate::{Simulator, simulate_frames};
+
+use super::common::{KindArg, ModelArgs, create_dir};
+use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
+
+/// Evaluate alignment methods on moma sets: calibrate on one frame, score every other frame.
+///
+/// Protocol (METHOD.md §4): the calibration frame (default: first frame id in sorted order)
+/// gives n random valid ground-truth samples; every method is fitted on them and applied to
+/// every other frame, which is scored inside its mask (whole image when there is no mask):
+/// δ1.05, δ1.10, δ1.25, REL, RMSE, MAE. Per-image metrics are averaged over frames; the table
+/// shows mean ± std (population) over sampling seeds; the pixel-pooled variant is written too.
+/// Writes OUT/results.{md,csv,json}; --json prints one JSON array (one object per set, method and
+/// normalisation: set, method, norm, samples, seeds, calib_frame and d105, d110, d125, rel,
+/// rmse, mae as {"mean", "std"}, RMSE/MAE in metres) to stdout and the table to stderr.
+///
+/// Predictions: --pred DIR (<frame-id>.npy, float32 H×W, of kind --pred-kind; with several sets
+/// either one --pred per set or one root holding a folder per set name), --simulate (simulated
+/// in memory, labelled SIMULATED), or --weights (run Depth Anything V2 on rgb.png).
+///
+/// Examples:
+///   moma eval --set data/gqcnn-primesense --pred preds/gqcnn
+///   moma eval --set data/gqcnn-primesense --simulate --seeds 10 --json > results.json
+///   moma eval --set data/a --set data/b --pred preds/ --methods ssra,gssa --norm minmax,median
+///   moma eval --set data/m2t2-table --simulate --max-gt-depth 2.0 --figures -o out/m2t2  # out/m2t2/m2t2-table/figures/
+///   moma eval --set data/gqcnn-primesense --weights da2_vits.safetensors --model vits
+#[derive(Debug, Clone, Args)]
+#[command(verbatim_doc_comment)]
+pub struct EvalArgs {
+    /// Moma set folder(s); one block of rows per set.
+    #[arg(long, value_name = "DIR", required = true)]
+    pub set: Vec<PathBuf>,
+    #[command(flatten)]
+    pub pred: PredArgs,
+    #[command(flatten)]
+    pub eval: EvalOptions,
+    /// Output folder for results.{md,csv,json} (and figures/).
+    #[arg(short, long, value_name = "DIR", default_value = "moma-eval-out")]
+    pub out: PathBuf,
+    /// Also write a Fig.-6-style figure per frame (first seed) to OUT/figures/<set>/.
+    #[arg(long)]
+    pub figures: bool,
+    /// Print the JSON contract array to stdout (tables go to stderr).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Where predictions come from (shared by eval, ablate and demo).
+#[derive(Debug, Clone, Args)]
+pub struct PredArgs {
+    /// Prediction folder(s): <frame-id>.npy, float32 H×W. One per --set, or one root with a
+    /// sub-folder per set name.
+    #[arg(long, value_name = "DIR")]
+    pub pred: Vec<PathBuf>,
+    /// Kind of the predictions in --pred (default: from simulated.json when present, else depth).
+    #[arg(long, value_enum)]
+    pub pred_kind: Option<KindArg>,
+    /// Simulate predictions in memory (METHOD.md §6) instead of reading --pred.
+    #[arg(long, conflicts_with = "pred")]
+    pub simulate: bool,
+    /// Kind of simulated predictions.
+    #[arg(long, value_enum, default_value_t = KindArg::InverseDepth)]
+    pub sim_kind: KindArg,
+    /// Simulator seed.
+    #[arg(long, default_value_t = 0)]
+    pub sim_seed: u64,
+    /// Transparency source of the simulator.
+    #[arg(long, value_enum, default_value_t = TransparencyArg::Auto)]
+    pub sim_transparency: TransparencyArg,
+    #[command(flatten)]
+    pub sim: SimOptions,
+    #[command(flatten)]
+    pub model: ModelArgs,
+}
+
+/// `--sampling` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SamplingArg {
+    /// Uniform over valid ground-truth pixels (MOMA's protocol).
+    Random,
+    /// √n × √n grid snapped to valid pixels (BoostingDepth).
+    Grid,
+}
+
+/// Protocol options (shared by eval and ablate).
+#[derive(Debug, Clone, Args)]
+pub struct EvalOptions {
+    /// Methods, comma-separated: ssra, gssa, lwlr (BoostingDepth's grid variant), raw; also
+    /// lwlr-exact and lwlr-bare.
+    #[arg(long, value_delimiter = ',', default_value = "ssra,gssa,lwlr,raw")]
+    pub methods: Vec<String>,
+    /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none.
+    #[arg(long, value_delimiter = ',', default_value = "minmax")]
+    pub norm: Vec<String>,
+    /// For inverse-depth predictions: align in inverse space (no 1/d conversion).
+    #[arg(long)]
+    pub inverse_space: bool,
+    /// Number of calibration samples n.
+    #[arg(long, default_value_t = 100)]
+    pub samples: usize,
+    /// Number of sampling seeds (seed i = seed-base + i).
+    #[arg(long, default_value_t = 10)]
+    pub seeds: usize,
+    /// First sampling seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed_base: u64,
+    /// Calibration frame id (default: the first id in sorted order).
+    #[arg(long, value_name = "ID")]
+    pub calib_frame: Option<String>,
+    /// Calibration-pixel sampling.
+    #[arg(long, value_enum, default_value_t = SamplingArg::Random)]
+    pub sampling: SamplingArg,
+    /// Only sample and score ground truth at or beyond this depth, metres.
+    #[arg(long, value_name = "METRES")]
+    pub min_gt_depth: Option<f64>,
+    /// Only sample and score ground truth up to this depth, metres (e.g. 1.0 as the authors' code).
+    #[arg(long, value_name = "METRES")]
+    pub max_gt_depth: Option<f64>,
+    /// Fixed workspace mask PNG (nonzero = inside, the set's image size): normalisation
+    /// statistics of every frame's prediction are computed over this region only (as
+    /// `moma calibrate --workspace`); sampling and scoring are unchanged.
+    #[arg(long, value_name = "MASK.png")]
+    pub workspace: Option<PathBuf>,
+}
+
+impl EvalOptions {
+    /// The library configuration.
+    pub fn config(&self) -> Result<EvalConfig> {
+        let norms = self
+            .norm
+            .iter()
+            .map(|s| parse_norm(s))
+            .collect::<Result<Vec<_>, _>>()?;
+        if norms.is_empty() || self.methods.is_empty() {
+            bail!("--methods and --norm need at least one value");
+        }
+        let depth_range_m = match (self.min_gt_depth, self.max_gt_depth) {
+            (None, None) => None,
+            (lo, hi) => {
+                let (lo, hi) = (lo.unwrap_or(0.0), hi.unwrap_or(f64::INFINITY));
+                if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
+                    bail!("--max-gt-depth must be larger than --min-gt-depth");
+                }
+                Some((lo, hi))
+            }
+        };
+        let workspace = self
+            .workspace
+            .as_ref()
+            .map(|p| moma_io::read_mask(p).context("reading the --workspace mask"))
+            .transpose()?;
+        Ok(EvalConfig {
+            methods: self.methods.clone(),
+            norms,
+            inverse_space: self.inverse_space,
+            samples: self.samples,
+            seeds: self.seeds,
+            seed_base: self.seed_base,
+            calib_frame: self.calib_frame.clone(),
+            sampling: match self.sampling {
+                SamplingArg::Random => SamplingStrategy::Random,
+                SamplingArg::Grid => SamplingStrategy::Grid,
+            },
+            depth_range_m,
+            workspace,
+        })
+    }
+}
+
+/// Loads a set with context.
+pub fn load_set(dir: &std::path::Path) -> Result<MomaSet> {
+    moma_eval::data::load_set(dir).with_context(|| format!("loading moma set {}", dir.display()))
+}
+
+impl PredArgs {
+    /// Predictions for set `index` of `n_sets`.
+    pub fn predictions(&self, set: &MomaSet, index: usize, n_sets: usize) -> Result<PredictionSet> {
+        if self.model.weights.is_some() {
+            return model_predictions(set, &self.model);
+        }
+        if self.simulate || self.pred.is_empty() {
+            if !self.simulate {
+                bail!(
+                    "give predictions with --pred DIR, --simulate (simulated predictions) or --weights FILE (a real model)"
+                );
+            }
+            let sim = Simulator::new(
+                self.sim.config()?,
+                self.sim_seed,
+                self.sim_kind.into(),
+                set.intrinsics,
+            )?;
+            let maps = simulate_frames(set, &sim, self.sim_transparency.into())?;
+            return Ok(PredictionSet {
+                label: format!(
+                    "simulated {} (seed {})",
+                    PredictionKind::from(self.sim_kind),
+                    self.sim_seed
+                ),
+                simulated: true,
+                maps,
+            });
+        }
+        let dir = if self.pred.len() == n_sets {
+            self.pred[index].clone()
+        } else if self.pred.len() == 1 {
+            per_set_dir(&self.pred[0], &set.name, n_sets)
+        } else {
+            bail!(
+                "{} --pred folders for {} sets: give one per set or one root folder",
+                self.pred.len(),
+                n_sets
+            );
+        };
+        let kind = match self.pred_kind {
+            Some(k) => k.into(),
+            None => moma_eval::simulate::read_simulated_meta(&dir)
+                .map(|m| m.kind)
+                .unwrap_or(PredictionKind::Depth),
+        };
+        Ok(PredictionSet::read(set, &dir, kind)?)
+    }
+}
+
+/// Runs a real depth model on every frame's rgb.png.
+pub fn model_predictions(set: &MomaSet, model: &ModelArgs) -> Result<PredictionSet> {
+    let mut net = model.load()?;
+    let mut maps = Vec::with_capacity(set.frames.len());
+    for f in &set.frames {
+        let rgb = f.rgb.as_ref().with_context(|| {
+            format!(
+                "set '{}', frame '{}': no rgb.png to run the model on",
+                set.name, f.id
+            )
+        })?;
+        let t = Instant::now();
+        let p = net.predict(rgb).with_context(|| {
+            format!(
+                "set '{}', frame '{}': running the depth model",
+                set.name, f.id
+            )
+        })?;
+        eprintln!(
+            "{}/{}: model {:.2} s",
+            set.name,
+            f.id,
+            t.elapsed().as_secs_f64()
+        );
+        maps.push(p);
+    }
+    let weights = model
+        .weights
+        .as_ref()
+        .map(|w| w.display().to_string())
+        .unwrap_or_default();
+    Ok(PredictionSet {
+        label: format!("Depth Anything V2 {:?} ({weights})", model.model),
+        simulated: false,
+        maps,
+    })
+}
+
+pub fn run(args: &EvalArgs) -> Result<()> {
+    let config = args.eval.config()?;
+    let t0 = Instant::now();
+    let mut all = Vec::new();
+    for (i, dir) in args.set.iter().enumerate() {
+        let set = load_set(dir)?;
+        let preds = args.pred.predictions(&set, i, args.set.len())?;
+        let results = evaluate(&set, &preds, &config)?;
+        if args.figures {
+            let out = args.out.join(&set.name);
+            let files = moma_eval::demo::write_visuals(&set, &preds, &config, &out, false)?;
+            eprintln!(
+                "{}: {} figures -> {}",
+                set.name,
+                files.figures.len(),
+                out.join("figures").display()
+            );
+        }
+        all.extend(results);
+    }
+    create_dir(&args.out)?;
+    let files = write_eval_outputs(&args.out, "results", &all)?;
+    let table = eval_table(&all, false).to_text();
+    if args.json {
+        eprintln!("{table}");
+        println!("{}", contract_json(&all)?);
+    } else {
+        println!("{table}");
+    }
+    eprintln!(
+        "wrote {} ({:.1} s)",
+        files
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

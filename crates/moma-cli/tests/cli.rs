@@ -1,0 +1,305 @@
+//! End-to-end tests of the `moma` binary on the bundled procedural scene (`moma demo` writes it),
+//! so they need neither ../shared nor a network. Metrics are checked against an independent
+//! implementation of METHOD.md §3 written here.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn moma(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args(args)
+        .output()
+        .expect("the moma binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = moma(args);
+    assert!(
+        out.status.success(),
+        "moma {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).expect("utf-8 stdout")
+}
+
+fn fails(args: &[&str]) -> String {
+    let out = moma(args);
+    assert!(!out.status.success(), "moma {args:?} should fail");
+    String::from_utf8(out.stderr).expect("utf-8 stderr")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// Builds the demo scene (3 frames, simulated inverse-depth predictions) once per test.
+fn demo(dir: &Path) -> (PathBuf, PathBuf) {
+    let out = dir.join("demo");
+    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
+    let scene = out.join("scene");
+    let pred = out.join("predictions");
+    assert!(
+        scene.join("camera.json").is_file(),
+        "demo writes a moma set"
+    );
+    assert!(
+        pred.join("frame_00.npy").is_file(),
+        "demo writes predictions"
+    );
+    (scene, pred)
+}
+
+/// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
+fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
+    let p = moma_io::read_depth(pred).unwrap().depth_m;
+    let g = moma_io::read_depth(gt).unwrap().depth_m;
+    let m = moma_io::read_mask(mask).unwrap();
+    let (mut n, mut d) = (0usize, [0usize; 3]);
+    let (mut rel, mut se, mut ae) = (0f64, 0f64, 0f64);
+    for ((idx, &gv), &inside) in g.indexed_iter().zip(m.data().iter()) {
+        let pv = p[idx];
+        if !inside || !gv.is_finite() || gv <= 0.0 || !pv.is_finite() {
+            continue;
+        }
+        let (pv, gv) = (f64::from(pv), f64::from(gv));
+        n += 1;
+        let ratio = if pv > 0.0 {
+            (pv / gv).max(gv / pv)
+        } else {
+            f64::INFINITY
+        };
+        for (k, t) in [1.05, 1.10, 1.25].iter().enumerate() {
+            if ratio < *t {
+                d[k] += 1;
+            }
+        }
+        rel += (pv - gv).abs() / gv;
+        se += (pv - gv).powi(2);
+        ae += (pv - gv).abs();
+    }
+    let nf = n as f64;
+    [
+        d[0] as f64 / nf,
+        d[1] as f64 / nf,
+        d[2] as f64 / nf,
+        rel / nf,
+        (se / nf).sqrt(),
+        ae / nf,
+        nf,
+    ]
+}
+
+#[test]
+fn calibrate_align_metrics_end_to_end() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let frames = scene.join("frames");
+    let calib = tmp.path().join("calib.json");
+
+    let summary: serde_json::Value = serde_json::from_str(&ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--pred-kind",
+        "inverse-depth",
+        "--gt",
+        s(&frames.join("frame_00/depth.png")),
+        "--camera",
+        s(&scene.join("camera.json")),
+        "--samples",
+        "100",
+        "--seed",
+        "3",
+        "-o",
+        s(&calib),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(summary["method"], "ssra");
+    assert_eq!(summary["n_used"], 100);
+    let rms = summary["rms_residual_m"].as_f64().unwrap();
+    assert!(
+        rms > 0.0 && rms < 0.05,
+        "RMS residual {rms} m on a table at ~0.7 m"
+    );
+
+    let out = tmp.path().join("aligned");
+    let listing: serde_json::Value = serde_json::from_str(&ok(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        s(&pred.join("frame_02.npy")),
+        "--pred-kind",
+        "inverse-depth",
+        "-o",
+        s(&out),
+        "--ply",
+        "--colormap",
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(listing.as_array().unwrap().len(), 2);
+    for name in ["frame_01", "frame_02"] {
+        for suffix in ["depth.png", "depth.npy", "color.png", "ply"] {
+            assert!(
+                out.join(format!("{name}.{suffix}")).is_file(),
+                "{name}.{suffix} written"
+            );
+        }
+    }
+    let ply = std::fs::read(out.join("frame_01.ply")).unwrap();
+    assert!(ply.starts_with(b"ply\nformat binary_little_endian 1.0\n"));
+
+    // The millimetre PNG and the metre npy hold the same depth to rounding.
+    let png = moma_io::read_depth(out.join("frame_01.depth.png"))
+        .unwrap()
+        .depth_m;
+    let npy = moma_io::read_depth(out.join("frame_01.depth.npy"))
+        .unwrap()
+        .depth_m;
+    let worst = png
+        .iter()
+        .zip(npy.iter())
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(worst <= 0.0005 + 1e-6, "PNG vs npy differ by {worst} m");
+
+    // `moma metrics --json` agrees with the independent implementation.
+    let gt = frames.join("frame_01/depth.png");
+    let mask = frames.join("frame_01/mask.png");
+    let aligned = out.join("frame_01.depth.npy");
+    let m: serde_json::Value = serde_json::from_str(&ok(&[
+        "metrics",
+        "--pred",
+        s(&aligned),
+        "--gt",
+        s(&gt),
+        "--mask",
+        s(&mask),
+        "--json",
+    ]))
+    .unwrap();
+    let want = reference_metrics(&aligned, &gt, &mask);
+    for (key, w) in ["d105", "d110", "d125", "rel", "rmse", "mae", "n"]
+        .iter()
+        .zip(want)
+    {
+        let got = m[key].as_f64().unwrap();
+        assert!(
+            (got - w).abs() <= 1e-9 + 1e-9 * w.abs(),
+            "{key}: moma {got}, reference {w}"
+        );
+    }
+    // SSRA on the simulated scene is accurate to a few centimetres inside the objects.
+    assert!(want[5] < 0.05, "MAE {} m", want[5]);
+}
+
+#[test]
+fn bad_input_is_a_clear_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let frames = scene.join("frames");
+    let calib = tmp.path().join("calib.json");
+
+    // An RGB image given as ground truth: named, and no calibration file written.
+    let rgb = frames.join("frame_00/rgb.png");
+    let err = fails(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&rgb),
+        "-o",
+        s(&calib),
+    ]);
+    assert!(err.contains(s(&rgb)) && err.contains("16-bit"), "{err}");
+    assert!(!calib.exists());
+
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--pred-kind",
+        "inverse-depth",
+        "--gt",
+        s(&frames.join("frame_00/depth.png")),
+        "-o",
+        s(&calib),
+    ]);
+
+    // Kind mismatch between calibration and run time.
+    let err = fails(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "-o",
+        s(&tmp.path().join("a")),
+    ]);
+    assert!(err.contains("inverse-depth"), "{err}");
+
+    // --ply without intrinsics.
+    let err = fails(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "--pred-kind",
+        "inverse-depth",
+        "--ply",
+        "-o",
+        s(&tmp.path().join("a")),
+    ]);
+    assert!(err.contains("intrinsics"), "{err}");
+
+    // A truncated calibration file names the file.
+    let text = std::fs::read_to_string(&calib).unwrap();
+    let broken = tmp.path().join("broken.json");
+    std::fs::write(&broken, &text[..text.len() / 2]).unwrap();
+    let err = fails(&[
+        "align",
+        "--calib",
+        s(&broken),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "--pred-kind",
+        "inverse-depth",
+        "-o",
+        s(&tmp.path().join("a")),
+    ]);
+    assert!(err.contains("broken.json") && err.contains("JSON"), "{err}");
+
+    // A prediction with NaN: refused, naming the problem.
+    let nan = tmp.path().join("nan.npy");
+    let mut p = moma_io::read_prediction(
+        pred.join("frame_01.npy"),
+        moma_core::PredictionKind::InverseDepth,
+    )
+    .unwrap();
+    p.values[[5, 7]] = f32::NAN;
+    moma_io::write_prediction(&nan, &p).unwrap();
+    let err = fails(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&nan),
+        "--pred-kind",
+        "inverse-depth",
+        "-o",
+        s(&tmp.path().join("a")),
+    ]);
+    assert!(
+        err.contains("nan.npy") && err.contains("non-finite"),
+        "{err}"
+    );
+
+    // A model source without weights.
+    let err = fails(&["predict", s(&rgb), "-o", s(&tmp.path().join("p"))]);
+    assert!(err.contains("--weights"), "{err}");
+}

@@ -1,0 +1,192 @@
+//! Criterion benches of the hot paths (issue 2 "How it will be checked").
+//!
+//! Everything runs on ONE thread (a 1-thread rayon pool) except `lwlr_exact_maps`, which runs on
+//! two. Run: `cargo bench -p moma-core --bench core -- --warm-up-time 1 --measurement-time 3`.
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use moma_core::align::lwlr::{LwlrConfig, LwlrModel};
+use moma_core::align::ssra::SsraConfig;
+use moma_core::align::{AlignmentModel, Method, Sample, SampleSet};
+use moma_core::metrics::DepthMetrics;
+use moma_core::normalise::{Normalisation, NormalisationConfig, normalise};
+use moma_core::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
+use ndarray::Array2;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::hint::black_box;
+
+fn samples(size: ImageSize, n: usize, seed: u64) -> SampleSet {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let samples = (0..n)
+        .map(|_| {
+            let u = rng.random_range(0..size.width) as f64;
+            let v = rng.random_range(0..size.height) as f64;
+            let pred = rng.random_range(0.3..1.5);
+            let depth_m =
+                pred * (0.9 + 2e-4 * u - 1e-4 * v) + 0.1 + rng.random_range(-0.003..0.003);
+            Sample {
+                u,
+                v,
+                pred,
+                depth_m,
+            }
+        })
+        .collect();
+    SampleSet {
+        image_size: size,
+        samples,
+    }
+}
+
+fn zhat(size: ImageSize) -> Array2<f32> {
+    Array2::from_shape_fn(size.shape(), |(v, u)| {
+        0.4 + ((u * 7 + v * 13) % 1000) as f32 * 1e-3
+    })
+}
+
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool")
+}
+
+fn bench_fits(c: &mut Criterion) {
+    let p1 = pool(1);
+    let size = ImageSize::new(640, 480);
+    let mut g = c.benchmark_group("fit");
+    for n in [100usize, 3000] {
+        let set = samples(size, n, n as u64);
+        g.throughput(Throughput::Elements(n as u64));
+        let ssra = Method::Ssra(SsraConfig::default());
+        g.bench_with_input(BenchmarkId::new("ssra", n), &set, |b, s| {
+            p1.install(|| b.iter(|| ssra.fit(black_box(s)).unwrap()))
+        });
+        g.bench_with_input(BenchmarkId::new("gssa", n), &set, |b, s| {
+            p1.install(|| b.iter(|| Method::Gssa.fit(black_box(s)).unwrap()))
+        });
+    }
+    g.finish();
+}
+
+fn bench_apply(c: &mut Criterion) {
+    let p1 = pool(1);
+    let mut g = c.benchmark_group("apply");
+    for (w, h) in [(640usize, 480usize), (1280, 720)] {
+        let size = ImageSize::new(w, h);
+        let set = samples(size, 100, 1);
+        let z = zhat(size);
+        let mut out = Array2::<f32>::zeros(size.shape());
+        g.throughput(Throughput::Elements((w * h) as u64));
+        let id = format!("{w}x{h}");
+        let (ssra, _) = Method::Ssra(SsraConfig::default()).fit(&set).unwrap();
+        g.bench_function(BenchmarkId::new("ssra", &id), |b| {
+            p1.install(|| {
+                b.iter(|| {
+                    ssra.apply_into(black_box(z.view()), &mut out.view_mut())
+                        .unwrap()
+                })
+            })
+        });
+        let (gssa, _) = Method::Gssa.fit(&set).unwrap();
+        g.bench_function(BenchmarkId::new("gssa", &id), |b| {
+            p1.install(|| {
+                b.iter(|| {
+                    gssa.apply_into(black_box(z.view()), &mut out.view_mut())
+                        .unwrap()
+                })
+            })
+        });
+        let (lwlr, _) = Method::Lwlr(LwlrConfig::default()).fit(&set).unwrap();
+        g.bench_function(BenchmarkId::new("lwlr_maps_cached", &id), |b| {
+            p1.install(|| {
+                b.iter(|| {
+                    lwlr.apply_into(black_box(z.view()), &mut out.view_mut())
+                        .unwrap()
+                })
+            })
+        });
+    }
+    g.finish();
+}
+
+fn lwlr_model(cfg: LwlrConfig, size: ImageSize, n: usize) -> LwlrModel {
+    match Method::Lwlr(cfg).fit(&samples(size, n, 7)).unwrap().0 {
+        AlignmentModel::Lwlr(m) => m,
+        _ => unreachable!(),
+    }
+}
+
+fn bench_lwlr(c: &mut Criterion) {
+    let size = ImageSize::new(640, 480);
+    let mut g = c.benchmark_group("lwlr_maps");
+    g.throughput(Throughput::Elements(size.pixels() as u64));
+    g.sample_size(10);
+    let exact = lwlr_model(LwlrConfig::exact(), size, 100);
+    let p2 = pool(2);
+    g.bench_function("exact_640x480_n100_2threads", |b| {
+        p2.install(|| b.iter(|| black_box(exact.compute_maps())))
+    });
+    let p1 = pool(1);
+    g.bench_function("exact_640x480_n100_1thread", |b| {
+        p1.install(|| b.iter(|| black_box(exact.compute_maps())))
+    });
+    let grid = lwlr_model(LwlrConfig::faithful(), size, 100);
+    g.bench_function("grid_640x480_n100_1thread", |b| {
+        p1.install(|| b.iter(|| black_box(grid.compute_maps())))
+    });
+    g.finish();
+}
+
+fn bench_metrics(c: &mut Criterion) {
+    let p1 = pool(1);
+    let size = ImageSize::new(640, 480);
+    let gt = MetricDepth::new(Array2::from_shape_fn(size.shape(), |(v, u)| {
+        if (u + v) % 17 == 0 {
+            0.0
+        } else {
+            0.5 + ((u * 3 + v) % 500) as f32 * 1e-3
+        }
+    }));
+    let pred = MetricDepth::new(gt.depth_m.mapv(|z| z * 1.02 + 0.001));
+    let mask = Mask::new(Array2::from_shape_fn(size.shape(), |(v, u)| {
+        (u / 40 + v / 40) % 2 == 0
+    }));
+    let mut g = c.benchmark_group("metrics");
+    g.throughput(Throughput::Elements(size.pixels() as u64));
+    g.bench_function("640x480", |b| {
+        p1.install(|| b.iter(|| DepthMetrics::compute(black_box(&pred), &gt, None).unwrap()))
+    });
+    g.bench_function("640x480_masked", |b| {
+        p1.install(|| b.iter(|| DepthMetrics::compute(black_box(&pred), &gt, Some(&mask)).unwrap()))
+    });
+    g.finish();
+}
+
+fn bench_normalise(c: &mut Criterion) {
+    let p1 = pool(1);
+    let size = ImageSize::new(640, 480);
+    let pred = Prediction::new(zhat(size), PredictionKind::InverseDepth);
+    let mut g = c.benchmark_group("normalise");
+    g.throughput(Throughput::Elements(size.pixels() as u64));
+    for m in [Normalisation::Minmax, Normalisation::Median] {
+        let cfg = NormalisationConfig {
+            method: m,
+            inverse_space: false,
+        };
+        g.bench_function(format!("{m:?}_640x480"), |b| {
+            p1.install(|| b.iter(|| normalise(black_box(&pred), &cfg, None).unwrap()))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(
+    benches,
+    bench_fits,
+    bench_apply,
+    bench_lwlr,
+    bench_metrics,
+    bench_normalise
+);
+criterion_main!(benches);

@@ -1,0 +1,407 @@
+//! Normalisation formulas and sampling on tiny maps, with the bad-input paths.
+
+use moma_core::normalise::{Normalisation, NormalisationConfig, normalise};
+use moma_core::sampling::{Pixel, SamplingConfig, SamplingStrategy, sample_pixels};
+use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
+use ndarray::{Array2, array};
+use proptest::prelude::*;
+
+fn cfg(method: Normalisation) -> NormalisationConfig {
+    NormalisationConfig {
+        method,
+        inverse_space: false,
+    }
+}
+
+fn depth(a: Array2<f32>) -> Prediction {
+    Prediction::new(a, PredictionKind::Depth)
+}
+
+fn close(a: &Array2<f32>, b: &Array2<f32>) -> bool {
+    a.iter()
+        .zip(b)
+        .all(|(x, y)| (x.is_nan() && y.is_nan()) || (x - y).abs() < 1e-6)
+}
+
+#[test]
+fn minmax_paper_formula() {
+    // (z − 1)/(5 − 1) + 1
+    let n = normalise(
+        &depth(array![[1.0, 2.0], [3.0, 5.0]]),
+        &cfg(Normalisation::Minmax),
+        None,
+    )
+    .unwrap();
+    assert!(
+        close(&n.values, &array![[1.0, 1.25], [1.5, 2.0]]),
+        "{:?}",
+        n.values
+    );
+    assert_eq!((n.stats.min, n.stats.max, n.stats.n), (1.0, 5.0, 4));
+    assert!(n.stats.median.is_nan());
+}
+
+#[test]
+fn minmax_unit_formula() {
+    let n = normalise(
+        &depth(array![[1.0, 2.0], [3.0, 5.0]]),
+        &cfg(Normalisation::MinmaxUnit),
+        None,
+    )
+    .unwrap();
+    assert!(close(&n.values, &array![[0.0, 0.25], [0.5, 1.0]]));
+}
+
+#[test]
+fn median_formula_even_and_odd() {
+    // values 1 2 3 5: m = 2.5, μ = (1.5 + .5 + .5 + 2.5)/4 = 1.25
+    let n = normalise(
+        &depth(array![[1.0, 2.0], [3.0, 5.0]]),
+        &cfg(Normalisation::Median),
+        None,
+    )
+    .unwrap();
+    assert_eq!((n.stats.median, n.stats.mad), (2.5, 1.25));
+    assert!(close(&n.values, &array![[-1.2, -0.4], [0.4, 2.0]]));
+    // values 4 1 2: m = 2, μ = (2 + 1 + 0)/3 = 1
+    let n = normalise(
+        &depth(array![[4.0, 1.0, 2.0]]),
+        &cfg(Normalisation::Median),
+        None,
+    )
+    .unwrap();
+    assert_eq!((n.stats.median, n.stats.mad), (2.0, 1.0));
+    assert!(close(&n.values, &array![[2.0, -1.0, 0.0]]));
+}
+
+#[test]
+fn none_is_identity() {
+    let a = array![[1.0f32, -2.0], [3.5, 0.0]];
+    let n = normalise(&depth(a.clone()), &cfg(Normalisation::None), None).unwrap();
+    assert_eq!(n.values, a);
+}
+
+#[test]
+fn inverse_depth_is_inverted_and_nonpositive_is_nan() {
+    // d = 1, 2, 4, 0 → z = 1, .5, .25, NaN; minmax-unit over valid: (z − .25)/.75
+    let p = Prediction::new(array![[1.0, 2.0], [4.0, 0.0]], PredictionKind::InverseDepth);
+    let n = normalise(&p, &cfg(Normalisation::MinmaxUnit), None).unwrap();
+    assert!(
+        close(&n.values, &array![[1.0, 1.0 / 3.0], [0.0, f32::NAN]]),
+        "{:?}",
+        n.values
+    );
+    assert_eq!(n.stats.n, 3);
+    // in inverse space the values are used as they are (0 included)
+    let inv = NormalisationConfig {
+        method: Normalisation::MinmaxUnit,
+        inverse_space: true,
+    };
+    let n = normalise(&p, &inv, None).unwrap();
+    assert!(close(&n.values, &array![[0.25, 0.5], [1.0, 0.0]]));
+}
+
+#[test]
+fn statistics_over_region_applied_everywhere() {
+    // region holds 2 and 3 only: minmax-unit (z − 2)/1
+    let region = Mask::new(array![[false, true], [true, false]]);
+    let n = normalise(
+        &depth(array![[1.0, 2.0], [3.0, 5.0]]),
+        &cfg(Normalisation::MinmaxUnit),
+        Some(&region),
+    )
+    .unwrap();
+    assert!(close(&n.values, &array![[-1.0, 0.0], [1.0, 3.0]]));
+    assert_eq!(n.stats.n, 2);
+}
+
+#[test]
+fn normalisation_errors() {
+    let mut a = array![[1.0f32, 2.0, 3.0], [4.0, 5.0, 6.0]];
+    a[[0, 2]] = f32::NAN;
+    a[[1, 1]] = f32::INFINITY;
+    let r = normalise(&depth(a), &cfg(Normalisation::Minmax), None);
+    assert_eq!(
+        r,
+        Err(CoreError::NonFinitePrediction {
+            count: 2,
+            u: 2,
+            v: 0
+        })
+    );
+
+    let constant = depth(Array2::from_elem((3, 4), 0.7));
+    for m in [
+        Normalisation::Minmax,
+        Normalisation::MinmaxUnit,
+        Normalisation::Median,
+    ] {
+        assert!(
+            matches!(
+                normalise(&constant, &cfg(m), None),
+                Err(CoreError::Degenerate(_))
+            ),
+            "{m:?}"
+        );
+    }
+    assert!(normalise(&constant, &cfg(Normalisation::None), None).is_ok());
+
+    let p = depth(array![[1.0, 2.0], [3.0, 5.0]]);
+    let empty = Mask::new(Array2::from_elem((2, 2), false));
+    assert!(matches!(
+        normalise(&p, &cfg(Normalisation::Minmax), Some(&empty)),
+        Err(CoreError::NoValidPixels(_))
+    ));
+    let wrong = Mask::full(ImageSize::new(3, 2));
+    assert!(matches!(
+        normalise(&p, &cfg(Normalisation::Minmax), Some(&wrong)),
+        Err(CoreError::SizeMismatch { .. })
+    ));
+    // inverse depth with no positive value
+    let p = Prediction::new(array![[0.0, -1.0]], PredictionKind::InverseDepth);
+    assert!(matches!(
+        normalise(&p, &cfg(Normalisation::Minmax), None),
+        Err(CoreError::NoValidPixels(_))
+    ));
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    #[test]
+    fn minmax_output_range_and_median_matches_sorting(vals in proptest::collection::vec(-50.0f32..50.0, 2..200)) {
+        let n = vals.len();
+        let a = Array2::from_shape_vec((1, n), vals.clone()).unwrap();
+        let lo = vals.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = vals.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        prop_assume!(hi > lo);
+        let u = normalise(&depth(a.clone()), &cfg(Normalisation::MinmaxUnit), None).unwrap();
+        prop_assert!(u.values.iter().all(|&x| (-1e-6..=1.0 + 1e-6).contains(&x)));
+        prop_assert!(u.values.iter().any(|&x| x.abs() < 1e-6) && u.values.iter().any(|&x| (x - 1.0).abs() < 1e-6));
+        let m = normalise(&depth(a.clone()), &cfg(Normalisation::Minmax), None).unwrap();
+        let lo64 = f64::from(lo);
+        prop_assert!(m.values.iter().all(|&x| f64::from(x) >= lo64 - 1e-5 && f64::from(x) <= lo64 + 1.0 + 1e-5));
+        // median by sorting
+        let mut s: Vec<f64> = vals.iter().map(|&x| f64::from(x)).collect();
+        s.sort_by(f64::total_cmp);
+        let med = if n % 2 == 1 { s[n / 2] } else { 0.5 * (s[n / 2 - 1] + s[n / 2]) };
+        let mad = s.iter().map(|x| (x - med).abs()).sum::<f64>() / n as f64;
+        prop_assume!(mad > 0.0);
+        let md = normalise(&depth(a), &cfg(Normalisation::Median), None).unwrap();
+        prop_assert_eq!(md.stats.median, med);
+        prop_assert!((md.stats.mad - mad).abs() <= 1e-9 * mad.max(1.0));
+    }
+}
+
+// ---- sampling ----------------------------------------------------------------------------
+
+fn gt_with_holes(w: usize, h: usize) -> MetricDepth {
+    MetricDepth::new(Array2::from_shape_fn((h, w), |(v, u)| {
+        if (u * 7 + v * 3) % 5 == 0 {
+            0.0
+        } else if (u + v) % 11 == 0 {
+            f32::NAN
+        } else {
+            1.0 + u as f32 * 0.01
+        }
+    }))
+}
+
+#[test]
+fn random_sampling_is_deterministic_valid_distinct() {
+    let gt = gt_with_holes(64, 48);
+    let c = SamplingConfig {
+        strategy: SamplingStrategy::Random,
+        n: 100,
+        seed: 7,
+    };
+    let a = sample_pixels(&gt, &c, None).unwrap();
+    let b = sample_pixels(&gt, &c, None).unwrap();
+    assert_eq!(a, b);
+    assert_eq!(a.len(), 100);
+    let other = sample_pixels(&gt, &SamplingConfig { seed: 8, ..c }, None).unwrap();
+    assert_ne!(a, other);
+    let mut set: Vec<Pixel> = a.clone();
+    set.sort_by_key(|p| (p.v, p.u));
+    set.dedup();
+    assert_eq!(set.len(), 100, "duplicates");
+    assert!(
+        a.iter()
+            .all(|p| moma_core::is_valid_depth(gt.depth_m[[p.v as usize, p.u as usize]]))
+    );
+}
+
+#[test]
+fn random_sampling_is_roughly_uniform() {
+    // left half vs right half of a fully valid image: ~50 % each over many seeds
+    let gt = MetricDepth::new(Array2::from_elem((40, 40), 1.0f32));
+    let mut left = 0;
+    for seed in 0..50 {
+        let px = sample_pixels(
+            &gt,
+            &SamplingConfig {
+                n: 100,
+                seed,
+                ..Default::default()
+            },
+            None,
+        )
+        .unwrap();
+        left += px.iter().filter(|p| p.u < 20).count();
+    }
+    let frac = left as f64 / 5000.0;
+    assert!((frac - 0.5).abs() < 0.03, "{frac}");
+}
+
+#[test]
+fn random_sampling_restriction_and_count() {
+    let gt = gt_with_holes(64, 48);
+    let restrict = Mask::new(Array2::from_shape_fn((48, 64), |(v, u)| u < 10 && v < 8));
+    let eligible = (0..8)
+        .flat_map(|v| (0..10).map(move |u| (u, v)))
+        .filter(|&(u, v)| moma_core::is_valid_depth(gt.depth_m[[v, u]]))
+        .count();
+    let px = sample_pixels(
+        &gt,
+        &SamplingConfig {
+            n: 1000,
+            ..Default::default()
+        },
+        Some(&restrict),
+    )
+    .unwrap();
+    assert_eq!(
+        px.len(),
+        eligible,
+        "returns all eligible pixels when n exceeds them"
+    );
+    assert!(px.iter().all(|p| p.u < 10 && p.v < 8));
+    let px = sample_pixels(
+        &gt,
+        &SamplingConfig {
+            n: 5,
+            ..Default::default()
+        },
+        Some(&restrict),
+    )
+    .unwrap();
+    assert_eq!(px.len(), 5);
+    assert!(px.iter().all(|p| p.u < 10
+        && p.v < 8
+        && moma_core::is_valid_depth(gt.depth_m[[p.v as usize, p.u as usize]])));
+}
+
+#[test]
+fn grid_sampling_places_nodes_evenly() {
+    let gt = MetricDepth::new(Array2::from_elem((100, 100), 1.0f32));
+    let px = sample_pixels(
+        &gt,
+        &SamplingConfig {
+            strategy: SamplingStrategy::Grid,
+            n: 100,
+            seed: 0,
+        },
+        None,
+    )
+    .unwrap();
+    // nodes at (i + ½)·10 − ½ = 4.5 + 10 i; ties snap to the smaller coordinate → 4 + 10 i
+    let want: Vec<Pixel> = (0..10)
+        .flat_map(|j| {
+            (0..10).map(move |i| Pixel {
+                u: 4 + 10 * i,
+                v: 4 + 10 * j,
+            })
+        })
+        .collect();
+    assert_eq!(px, want);
+    // non-square n: ⌊√n⌋² nodes
+    let px = sample_pixels(
+        &gt,
+        &SamplingConfig {
+            strategy: SamplingStrategy::Grid,
+            n: 50,
+            seed: 0,
+        },
+        None,
+    )
+    .unwrap();
+    assert_eq!(px.len(), 49);
+}
+
+#[test]
+fn grid_sampling_snaps_to_nearest_valid() {
+    // valid only for u ≥ 6; 2×2 nodes at u, v ∈ {2, 7}
+    let gt = MetricDepth::new(Array2::from_shape_fn((10, 10), |(_, u)| {
+        if u >= 6 { 1.0 } else { 0.0 }
+    }));
+    let px = sample_pixels(
+        &gt,
+        &SamplingConfig {
+            strategy: SamplingStrategy::Grid,
+            n: 4,
+            seed: 0,
+        },
+        None,
+    )
+    .unwrap();
+    assert_eq!(
+        px,
+        vec![
+            Pixel { u: 6, v: 2 },
+            Pixel { u: 7, v: 2 },
+            Pixel { u: 6, v: 7 },
+            Pixel { u: 7, v: 7 }
+        ]
+    );
+    // a single valid pixel: every node snaps to it, kept once
+    let mut one = Array2::from_elem((10, 10), 0.0f32);
+    one[[9, 0]] = 2.0;
+    let px = sample_pixels(
+        &MetricDepth::new(one),
+        &SamplingConfig {
+            strategy: SamplingStrategy::Grid,
+            n: 16,
+            seed: 0,
+        },
+        None,
+    )
+    .unwrap();
+    assert_eq!(px, vec![Pixel { u: 0, v: 9 }]);
+}
+
+#[test]
+fn sampling_errors() {
+    let gt = gt_with_holes(8, 6);
+    assert!(matches!(
+        sample_pixels(
+            &gt,
+            &SamplingConfig {
+                n: 0,
+                ..Default::default()
+            },
+            None
+        ),
+        Err(CoreError::InvalidParameter(_))
+    ));
+    let invalid = MetricDepth::new(Array2::from_elem((6, 8), f32::NAN));
+    for strategy in [SamplingStrategy::Random, SamplingStrategy::Grid] {
+        let c = SamplingConfig {
+            strategy,
+            ..Default::default()
+        };
+        assert!(matches!(
+            sample_pixels(&invalid, &c, None),
+            Err(CoreError::NoValidPixels(_))
+        ));
+        let empty = Mask::new(Array2::from_elem((6, 8), false));
+        assert!(matches!(
+            sample_pixels(&gt, &c, Some(&empty)),
+            Err(CoreError::NoValidPixels(_))
+        ));
+    }
+    let wrong = Mask::full(ImageSize::new(6, 8));
+    assert!(matches!(
+        sample_pixels(&gt, &SamplingConfig::default(), Some(&wrong)),
+        Err(CoreError::SizeMismatch { .. })
+    ));
+}

@@ -1,0 +1,82 @@
+//! Sanity checks on the real RGB-D sets of the shared data directory (skipped when absent).
+//!
+//! The directory is `$MOMA_SHARED_DIR/data`, else `<workspace root>/../shared/data`.
+
+use std::path::PathBuf;
+
+use moma_io::{MomaSet, read_camera, rgb_size};
+
+fn shared_data() -> Option<PathBuf> {
+    let base = std::env::var_os("MOMA_SHARED_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+    let data = base.join("data");
+    if data.is_dir() {
+        Some(data)
+    } else {
+        eprintln!(
+            "SKIP: shared data not found at {} (set MOMA_SHARED_DIR to the directory holding data/)",
+            data.display()
+        );
+        None
+    }
+}
+
+const SETS: [(&str, usize); 4] = [
+    ("gqcnn-primesense", 15),
+    ("graspnet6dof-table", 7),
+    ("m2t2-table", 3),
+    ("cleargrasp-transparent", 2),
+];
+
+#[test]
+fn every_shared_set_opens_and_loads() {
+    let Some(data) = shared_data() else { return };
+    for (name, n_frames) in SETS {
+        let root = data.join(name);
+        if !root.is_dir() {
+            eprintln!("SKIP set {name}: not present under {}", data.display());
+            continue;
+        }
+        let set = MomaSet::open(&root).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(set.camera, read_camera(root.join("camera.json")).unwrap());
+        assert_eq!(set.frames.len(), n_frames, "{name}");
+        let ids: Vec<&String> = set.frames.iter().map(|f| &f.id).collect();
+        let mut sorted = ids.clone();
+        sorted.sort();
+        assert_eq!(ids, sorted);
+        for frame in &set.frames {
+            let ctx = format!("{name}/{}", frame.id);
+            let depth = frame.load_depth().unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(depth.size(), set.size(), "{ctx}");
+            let valid = depth.valid_count();
+            assert!(
+                valid > depth.size().pixels() / 4,
+                "{ctx}: only {valid} valid depth pixels"
+            );
+            // Ground truth in plausible metres (tabletop sets: 0.1 m to 10 m).
+            let (lo, hi) = depth
+                .depth_m
+                .iter()
+                .filter(|z| z.is_finite())
+                .fold((f32::MAX, f32::MIN), |(a, b), &z| (a.min(z), b.max(z)));
+            assert!(lo >= 0.1 && hi <= 10.0, "{ctx}: depth range {lo}..{hi} m");
+            let rgb = frame.load_rgb().unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(rgb_size(&rgb), set.size(), "{ctx}");
+            if let Some(mask) = frame.load_mask().unwrap_or_else(|e| panic!("{e}")) {
+                assert_eq!(mask.size(), set.size(), "{ctx}");
+                assert!(mask.count() > 0, "{ctx}: empty mask");
+            }
+            if let Some(raw) = frame.load_raw_depth().unwrap_or_else(|e| panic!("{e}")) {
+                assert_eq!(raw.size(), set.size(), "{ctx}");
+            }
+        }
+        if name == "cleargrasp-transparent" {
+            assert!(
+                set.frames
+                    .iter()
+                    .all(|f| f.raw_depth.is_some() && f.mask.is_some())
+            );
+        }
+    }
+}
