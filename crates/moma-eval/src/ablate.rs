@@ -12,7 +12,7 @@ use crate::data::MomaSet;
 use crate::error::{EvalError, Result};
 use crate::protocol::{
     EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, effective_norm, evaluate,
-    evaluate_one, mean_over_images, pooled,
+    evaluate_one,
 };
 use crate::render::{LinePanel, Series, bar_plot, line_plot};
 use crate::report::{Table, metric_cells, metric_headers, write_table};
@@ -335,8 +335,10 @@ pub fn transparent(
     let sensor = SensorRow {
         set: set.name.clone(),
         frames,
-        mean: mean_over_images(&per_frame),
-        pooled: pooled(&per_frame),
+        mean: DepthMetrics::mean(&per_frame)
+            .map_err(|e| EvalError::core(format!("set '{}', sensor depth", set.name), e))?,
+        pooled: DepthMetrics::pooled(&per_frame)
+            .map_err(|e| EvalError::core(format!("set '{}', sensor depth", set.name), e))?,
         per_frame,
         coverage: covered as f64 / total.max(1) as f64,
     };

@@ -180,37 +180,6 @@ impl MetricSummary {
     }
 }
 
-/// Mean of per-image metrics over images (each image weighs the same; `n` = total pixels).
-pub fn mean_over_images(ms: &[DepthMetrics]) -> DepthMetrics {
-    let k = ms.len() as f64;
-    let avg = |g: fn(&DepthMetrics) -> f64| ms.iter().map(g).sum::<f64>() / k;
-    DepthMetrics {
-        d105: avg(|m| m.d105),
-        d110: avg(|m| m.d110),
-        d125: avg(|m| m.d125),
-        rel: avg(|m| m.rel),
-        rmse: avg(|m| m.rmse),
-        mae: avg(|m| m.mae),
-        n: ms.iter().map(|m| m.n).sum(),
-    }
-}
-
-/// Pixel-pooled metrics from per-image metrics (exact: fractions and means weighted by pixel
-/// count, RMSE from the pooled mean square).
-pub fn pooled(ms: &[DepthMetrics]) -> DepthMetrics {
-    let n: f64 = ms.iter().map(|m| m.n as f64).sum();
-    let w = |g: fn(&DepthMetrics) -> f64| ms.iter().map(|m| g(m) * m.n as f64).sum::<f64>() / n;
-    DepthMetrics {
-        d105: w(|m| m.d105),
-        d110: w(|m| m.d110),
-        d125: w(|m| m.d125),
-        rel: w(|m| m.rel),
-        rmse: w(|m| m.rmse * m.rmse).sqrt(),
-        mae: w(|m| m.mae),
-        n: n as usize,
-    }
-}
-
 /// Metrics of one evaluated frame, one entry per seed.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameResult {
@@ -628,11 +597,18 @@ pub fn evaluate_one(
             Ok((report, ms))
         })
         .collect::<Result<_>>()?;
-    let image_means: Vec<DepthMetrics> = per_seed
-        .iter()
-        .map(|(_, ms)| mean_over_images(ms))
-        .collect();
-    let pooled_: Vec<DepthMetrics> = per_seed.iter().map(|(_, ms)| pooled(ms)).collect();
+    let aggregate = |f: fn(&[DepthMetrics]) -> moma_core::Result<DepthMetrics>| {
+        per_seed
+            .iter()
+            .map(|(_, ms)| {
+                f(ms).map_err(|e| {
+                    EvalError::core(format!("set '{}', aggregating metrics", prep.set.name), e)
+                })
+            })
+            .collect::<Result<Vec<DepthMetrics>>>()
+    };
+    let image_means = aggregate(DepthMetrics::mean)?;
+    let pooled_ = aggregate(DepthMetrics::pooled)?;
     let mut times: Vec<f64> = per_seed.iter().map(|(r, _)| r.fit_time_s).collect();
     times.sort_by(f64::total_cmp);
     let median = if times.len() % 2 == 1 {
