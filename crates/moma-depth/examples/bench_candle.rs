@@ -5,8 +5,9 @@
 //!     [--weights W.safetensors] [--model vits|vitb|vitl] [--height 518] [--width 686] [--runs 5]
 //! ```
 //! Without `--weights` it loads `$MOMA_SHARED_DIR/reference/dav2/vits-rel.safetensors` (random
-//! ViT-S weights; latency does not depend on the values). Prints every run, the median of the
-//! runs after one warm-up, and the process's peak RSS (`VmHWM` of `/proc/self/status`).
+//! ViT-S weights; latency does not depend on the values). Prints every run (wall and CPU seconds),
+//! the medians of the runs after one warm-up, and the process's peak RSS (`VmHWM` of
+//! `/proc/self/status`).
 
 use std::path::PathBuf;
 use std::time::Instant;
