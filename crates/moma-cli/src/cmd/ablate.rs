@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use super::common::join_paths;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use moma_core::PredictionKind;
@@ -92,16 +93,8 @@ fn report(out: &AblationOutput, table_md: &std::path::Path, t0: Instant) -> Resu
     println!("{text}");
     eprintln!(
         "wrote {} and plots {} ({:.1} s)",
-        out.tables
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", "),
-        out.plots
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", "),
+        join_paths(&out.tables),
+        join_paths(&out.plots),
         t0.elapsed().as_secs_f64()
     );
     Ok(())

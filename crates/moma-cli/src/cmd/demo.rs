@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use super::common::join_paths;
 use anyhow::{Context, Result};
 use clap::Args;
 use moma_eval::demo::{DemoScene, build_demo, write_visuals};
@@ -101,14 +102,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         files.colour_maps.len(),
         files.point_clouds.len()
     );
-    eprintln!(
-        "tables: {}",
-        tables
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
+    eprintln!("tables: {}", join_paths(&tables));
     println!(
         "timing: scene + predictions {:.2} s, evaluation ({} seeds) {:.2} s, total {:.2} s -> {}",
         t_build,

@@ -12,7 +12,7 @@ use moma_eval::protocol::{EvalConfig, PredictionSet, evaluate, parse_norm};
 use moma_eval::report::{contract_json, eval_table, write_eval_outputs};
 use moma_eval::simulate::{Simulator, simulate_frames};
 
-use super::common::{KindArg, ModelArgs, create_dir};
+use super::common::{KindArg, ModelArgs, create_dir, join_paths};
 use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 
 /// Evaluate alignment methods on moma sets: calibrate on one frame, score every other frame.
@@ -303,11 +303,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     }
     eprintln!(
         "wrote {} ({:.1} s)",
-        files
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", "),
+        join_paths(&files),
         t0.elapsed().as_secs_f64()
     );
     Ok(())
