@@ -191,6 +191,20 @@ struct Sums {
 }
 
 impl Sums {
+    /// From per-pixel totals in the kernels' order: n, δ1.05, δ1.10, δ1.25, rel, squared, absolute.
+    fn from_totals(tot: [f64; 7]) -> Self {
+        let [n, c105, c110, c125, rel, sq, abs] = tot;
+        Self {
+            n,
+            c105,
+            c110,
+            c125,
+            rel,
+            sq,
+            abs,
+        }
+    }
+
     fn add(&mut self, o: &Sums) {
         self.n += o.n;
         self.c105 += o.c105;
@@ -267,15 +281,7 @@ fn lane_sums(n: usize, mut px: impl FnMut(usize) -> [f32; 7]) -> Sums {
     for m in 0..7 {
         tot[m] += acc[m].iter().map(|&x| f64::from(x)).sum::<f64>();
     }
-    Sums {
-        n: tot[0],
-        c105: tot[1],
-        c110: tot[2],
-        c125: tot[3],
-        rel: tot[4],
-        sq: tot[5],
-        abs: tot[6],
-    }
+    Sums::from_totals(tot)
 }
 
 /// Sums of one row (`mask` = `None`: every pixel inside). AVX2 intrinsics when available (float
@@ -375,15 +381,7 @@ mod avx2 {
                 tot[m] += f64::from(c[m]);
             }
         }
-        Sums {
-            n: tot[0],
-            c105: tot[1],
-            c110: tot[2],
-            c125: tot[3],
-            rel: tot[4],
-            sq: tot[5],
-            abs: tot[6],
-        }
+        Sums::from_totals(tot)
     }
 }
 

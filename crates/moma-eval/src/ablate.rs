@@ -197,22 +197,39 @@ fn bar_by(
 /// # Errors
 /// I/O or drawing failure.
 pub fn write_norms(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
-    let table = simple_table(
-        title("ablation (b): normalisation × method", rows),
-        "norm",
+    write_grouped(
+        dir,
         rows,
-        |r| r.norm.clone(),
-    );
+        Grouping {
+            title: "ablation (b): normalisation × method",
+            column: "norm",
+            file_stem: "ablation_norm",
+            plot_label: "normalisation",
+            key: |r| r.norm.clone(),
+        },
+    )
+}
+
+/// How a one-factor ablation groups its rows in the table and the per-set bar plots.
+struct Grouping {
+    title: &'static str,
+    column: &'static str,
+    file_stem: &'static str,
+    plot_label: &'static str,
+    key: fn(&EvalResult) -> String,
+}
+
+/// Writes the table of `rows` and one bar plot per set, grouped by `g.key`.
+fn write_grouped(dir: &Path, rows: &[EvalResult], g: Grouping) -> Result<AblationOutput> {
+    let table = simple_table(title(g.title, rows), g.column, rows, g.key);
     let mut out = AblationOutput {
-        tables: write_table(dir, "ablation_norm", &table, rows)?,
+        tables: write_table(dir, g.file_stem, &table, rows)?,
         plots: Vec::new(),
     };
     for set in unique(rows.iter().map(|r| r.set.clone())) {
         let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
-        let path = dir.join(format!("ablation_norm_{set}.png"));
-        bar_by(&path, &format!("{set}: normalisation"), &rs, &|r| {
-            r.norm.clone()
-        })?;
+        let path = dir.join(format!("{}_{set}.png", g.file_stem));
+        bar_by(&path, &format!("{set}: {}", g.plot_label), &rs, &g.key)?;
         out.plots.push(path);
     }
     Ok(out)
@@ -239,25 +256,17 @@ pub fn sources(
 /// # Errors
 /// I/O or drawing failure.
 pub fn write_sources(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
-    let table = simple_table(
-        title("ablation (c): prediction source", rows),
-        "source",
+    write_grouped(
+        dir,
         rows,
-        |r| r.source.clone(),
-    );
-    let mut out = AblationOutput {
-        tables: write_table(dir, "ablation_source", &table, rows)?,
-        plots: Vec::new(),
-    };
-    for set in unique(rows.iter().map(|r| r.set.clone())) {
-        let rs: Vec<&EvalResult> = rows.iter().filter(|r| r.set == set).collect();
-        let path = dir.join(format!("ablation_source_{set}.png"));
-        bar_by(&path, &format!("{set}: prediction source"), &rs, &|r| {
-            r.source.clone()
-        })?;
-        out.plots.push(path);
-    }
-    Ok(out)
+        Grouping {
+            title: "ablation (c): prediction source",
+            column: "source",
+            file_stem: "ablation_source",
+            plot_label: "prediction source",
+            key: |r| r.source.clone(),
+        },
+    )
 }
 
 /// What the depth sensor itself achieved on a transparent set (its `raw_depth.png`).
