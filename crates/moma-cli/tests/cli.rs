@@ -303,3 +303,72 @@ fn bad_input_is_a_clear_error() {
     let err = fails(&["predict", s(&rgb), "-o", s(&tmp.path().join("p"))]);
     assert!(err.contains("--weights"), "{err}");
 }
+
+#[test]
+fn depth_model_options_fail_clearly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, _) = demo(tmp.path());
+    let rgb = scene.join("frames/frame_00/rgb.png");
+    let out = tmp.path().join("pred");
+    let predict = |extra: &[&str]| {
+        let mut args = vec!["predict", s(&rgb), "-o", s(&out)];
+        args.extend_from_slice(extra);
+        args.iter().map(|a| a.to_string()).collect::<Vec<_>>()
+    };
+    let fails_with = |args: Vec<String>, envs: &[(&str, &Path)]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_moma"))
+            .args(&args)
+            .envs(envs.iter().copied())
+            .env("HF_HUB_OFFLINE", "1")
+            .output()
+            .expect("the moma binary runs");
+        assert!(!out.status.success(), "moma {args:?} should fail");
+        String::from_utf8(out.stderr).expect("utf-8 stderr")
+    };
+
+    // Unknown checkpoint name: the known ones are listed.
+    let err = fails_with(predict(&["--hub", "vit-huge"]), &[]);
+    assert!(err.contains("metric-hypersim-vits"), "{err}");
+    // Known name, empty cache, offline: the download address is given.
+    let cache = tmp.path().join("hf-cache");
+    let err = fails_with(predict(&["--hub", "vits"]), &[("HF_HUB_CACHE", &cache)]);
+    assert!(
+        err.contains("https://huggingface.co/depth-anything/Depth-Anything-V2-Small/resolve/main/depth_anything_v2_vits.pth"),
+        "{err}"
+    );
+    // --hub decides the network: --weights/--model with it is a usage error.
+    let err = fails_with(predict(&["--hub", "vits", "--model", "vitl"]), &[]);
+    assert!(err.contains("--model"), "{err}");
+
+    // Device and precision the build or the CPU cannot give: refused before anything is written.
+    let weights = tmp.path().join("weights.safetensors");
+    std::fs::write(&weights, b"not read before the device is opened").unwrap();
+    // Without the `cuda` feature it is "built without", with it but no GPU "CUDA device 0: ...".
+    if !candle_core_cuda_available() {
+        let err = fails_with(
+            predict(&["--weights", s(&weights), "--device", "cuda:0"]),
+            &[],
+        );
+        assert!(err.to_lowercase().contains("cuda"), "{err}");
+    }
+    let err = fails_with(
+        predict(&[
+            "--weights",
+            s(&weights),
+            "--device",
+            "cpu",
+            "--dtype",
+            "bf16",
+        ]),
+        &[],
+    );
+    assert!(err.contains("bf16"), "{err}");
+    let err = fails_with(predict(&["--weights", s(&weights), "--device", "tpu"]), &[]);
+    assert!(err.contains("tpu"), "{err}");
+    assert!(!out.exists());
+}
+
+/// Whether a CUDA GPU is visible (then `--device cuda:0` may legitimately succeed).
+fn candle_core_cuda_available() -> bool {
+    Path::new("/dev/nvidia0").exists()
+}

@@ -10,13 +10,14 @@
 #[cfg(feature = "candle")]
 pub mod candle;
 pub mod error;
+pub mod hub;
 mod loader;
 #[cfg(feature = "onnx")]
 pub mod onnx;
 pub mod preprocess;
 
 pub use error::{DepthError, Result};
-pub use loader::{Backend, load_model};
+pub use loader::{Backend, DeviceRequest, LoadOptions, Precision, load_model, load_model_with};
 
 use moma_core::{Prediction, PredictionKind};
 use ndarray::{Array2, Array3};

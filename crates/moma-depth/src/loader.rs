@@ -1,6 +1,8 @@
 //! Choosing and loading a backend: the one entry point applications call.
 
+use std::fmt;
 use std::path::Path;
+use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
@@ -10,22 +12,128 @@ use crate::{DepthError, DepthModel, ModelSpec, Result};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Backend {
-    /// Pure-Rust candle (`.safetensors` weights; feature `candle`, GPU with `cuda` / `metal`).
+    /// Pure-Rust candle (`.safetensors` or PyTorch `.pth` weights; feature `candle`, GPU with
+    /// `cuda` / `metal`).
     Candle,
     /// ONNX Runtime (`.onnx` models; feature `onnx`, runtime library loaded at run time).
     Onnx,
 }
 
-/// Loads `weights` for `spec` with `backend`. The candle backend runs on the best device this
-/// build supports (CUDA, then Metal, else the CPU).
+/// Where the network should run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DeviceRequest {
+    /// The first GPU this build supports and the machine has (CUDA, then Metal), else the CPU.
+    #[default]
+    Auto,
+    /// The CPU (all cores).
+    Cpu,
+    /// CUDA GPU with this ordinal (candle built with feature `cuda`).
+    Cuda(usize),
+    /// Metal GPU with this ordinal (candle built with feature `metal`).
+    Metal(usize),
+}
+
+impl FromStr for DeviceRequest {
+    type Err = String;
+
+    /// `auto`, `cpu`, `cuda`, `cuda:N`, `metal`, `metal:N`.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let s = s.trim().to_ascii_lowercase();
+        let (name, ordinal) = match s.split_once(':') {
+            Some((name, n)) => {
+                let n = n
+                    .parse::<usize>()
+                    .map_err(|_| format!("bad device ordinal in {s:?} (expected e.g. cuda:0)"))?;
+                (name, Some(n))
+            }
+            None => (s.as_str(), None),
+        };
+        match (name, ordinal) {
+            ("auto", None) => Ok(Self::Auto),
+            ("cpu", None) => Ok(Self::Cpu),
+            ("cuda", n) => Ok(Self::Cuda(n.unwrap_or(0))),
+            ("metal", n) => Ok(Self::Metal(n.unwrap_or(0))),
+            _ => Err(format!(
+                "unknown device {s:?} (expected auto, cpu, cuda[:N] or metal[:N])"
+            )),
+        }
+    }
+}
+
+impl fmt::Display for DeviceRequest {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Auto => f.write_str("auto"),
+            Self::Cpu => f.write_str("cpu"),
+            Self::Cuda(i) => write!(f, "cuda:{i}"),
+            Self::Metal(i) => write!(f, "metal:{i}"),
+        }
+    }
+}
+
+/// Arithmetic precision of the network. Outputs are always returned as `f32`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// 32-bit floats: the reference precision (parity ≤ 1e-5 of the output range).
+    #[default]
+    F32,
+    /// IEEE half precision (GPU; on the CPU it works but is slower than f32).
+    F16,
+    /// bfloat16 (GPU only: candle's CPU matmul has no bf16).
+    Bf16,
+}
+
+/// How to load a model: backend, device and precision.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct LoadOptions {
+    /// Inference backend.
+    pub backend: Backend,
+    /// Device (candle; the ONNX backend runs on the CPU execution provider).
+    pub device: DeviceRequest,
+    /// Arithmetic precision (candle; the ONNX backend runs the model's own precision).
+    pub precision: Precision,
+}
+
+impl LoadOptions {
+    /// `backend` on the best available device, in `f32`.
+    pub fn new(backend: Backend) -> Self {
+        Self {
+            backend,
+            device: DeviceRequest::Auto,
+            precision: Precision::F32,
+        }
+    }
+}
+
+/// Loads `weights` for `spec` with `backend`, in `f32` on the best device this build supports
+/// (CUDA, then Metal, else the CPU). See [`load_model_with`].
 ///
 /// # Errors
-/// [`DepthError::Unavailable`] when this build lacks the backend (or the ONNX Runtime library is
-/// missing); [`DepthError::Weights`] for unreadable or mismatching weights.
+/// As [`load_model_with`].
 pub fn load_model(
     weights: impl AsRef<Path>,
     spec: ModelSpec,
     backend: Backend,
+) -> Result<Box<dyn DepthModel>> {
+    load_model_with(weights, spec, &LoadOptions::new(backend))
+}
+
+/// Loads `weights` for `spec` as `options` say.
+///
+/// # Errors
+/// [`DepthError::Unavailable`] when this build lacks the backend or device (or the ONNX Runtime
+/// library is missing), or the precision is not supported there; [`DepthError::Weights`] for
+/// unreadable or mismatching weights.
+#[cfg_attr(
+    not(any(feature = "candle", feature = "onnx")),
+    allow(unused_variables)
+)]
+pub fn load_model_with(
+    weights: impl AsRef<Path>,
+    spec: ModelSpec,
+    options: &LoadOptions,
 ) -> Result<Box<dyn DepthModel>> {
     let weights = weights.as_ref();
     if !weights.is_file() {
@@ -34,21 +142,65 @@ pub fn load_model(
             reason: "no such file".into(),
         });
     }
-    match backend {
+    match options.backend {
         #[cfg(feature = "candle")]
         Backend::Candle => {
-            let device = crate::candle::DeviceChoice::best_available().device()?;
-            Ok(Box::new(crate::candle::CandleDepthModel::load_spec(weights, &spec, &device)?))
+            let device = crate::candle::DeviceChoice::resolve(options.device).device()?;
+            Ok(Box::new(crate::candle::CandleDepthModel::load_with(
+                weights,
+                crate::candle::DepthAnythingConfig::from_spec(&spec),
+                &device,
+                options.precision,
+            )?))
         }
         #[cfg(not(feature = "candle"))]
         Backend::Candle => Err(DepthError::Unavailable(
             "this build has no candle backend (rebuild with `--features candle`)".into(),
         )),
         #[cfg(feature = "onnx")]
-        Backend::Onnx => Ok(Box::new(crate::onnx::OnnxDepthModel::load(weights, spec)?)),
+        Backend::Onnx => {
+            if !matches!(options.device, DeviceRequest::Auto | DeviceRequest::Cpu) {
+                return Err(DepthError::Unavailable(format!(
+                    "the ONNX Runtime backend runs on the CPU execution provider only (asked for {}); use --backend candle on a GPU",
+                    options.device
+                )));
+            }
+            if options.precision != Precision::F32 {
+                return Err(DepthError::Unavailable(
+                    "the ONNX Runtime backend runs the model's own precision; --dtype applies to the candle backend".into(),
+                ));
+            }
+            Ok(Box::new(crate::onnx::OnnxDepthModel::load(weights, spec)?))
+        }
         #[cfg(not(feature = "onnx"))]
         Backend::Onnx => Err(DepthError::Unavailable(
             "this build has no ONNX Runtime backend (rebuild with `--features onnx`, see docs/depth-model.md)".into(),
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_requests_parse_and_print() {
+        for (s, want) in [
+            ("auto", DeviceRequest::Auto),
+            ("CPU", DeviceRequest::Cpu),
+            ("cuda", DeviceRequest::Cuda(0)),
+            ("cuda:1", DeviceRequest::Cuda(1)),
+            ("metal:0", DeviceRequest::Metal(0)),
+        ] {
+            assert_eq!(s.parse::<DeviceRequest>(), Ok(want), "{s}");
+        }
+        assert_eq!(DeviceRequest::Cuda(2).to_string(), "cuda:2");
+        assert_eq!(
+            "cuda:2".parse::<DeviceRequest>(),
+            Ok(DeviceRequest::Cuda(2))
+        );
+        for bad in ["gpu", "cuda:x", "cpu:1", ""] {
+            assert!(bad.parse::<DeviceRequest>().is_err(), "{bad}");
+        }
     }
 }

@@ -106,6 +106,48 @@ fn vits_matches_reference() {
     assert!(rel_full < 1e-3, "vits-rel: full rel err {rel_full}");
 }
 
+/// Other dtypes run candle's own ops instead of this crate's CPU `f32` kernels: the code path of
+/// CUDA and Metal. In `f64` it must match the reference as tightly as `f32`; in `f16` (the GPU
+/// fast path) within 1e-2 of the output range.
+#[test]
+fn generic_ops_path_matches_reference_in_f64_and_f16() {
+    let Some(dir) = reference_dir() else { return };
+    let device = candle_core::Device::Cpu;
+    for name in ["tiny-rel", "tiny-metric-392"] {
+        let path = dir.join(format!("{name}.safetensors"));
+        let input = reference_input(&dir, name);
+        let want = reference_output(&dir, name, "net");
+        for (dtype, tol) in [
+            (candle_core::DType::F64, 1e-4f32),
+            (candle_core::DType::F16, 1e-2),
+        ] {
+            let mut model =
+                CandleDepthModel::load_as(&path, config_for(&dir, name), &device, dtype).unwrap();
+            assert_eq!(model.dtype(), dtype);
+            let net = model.forward_net(&input).unwrap();
+            let (err, range) = max_abs_err(&net, &want);
+            eprintln!(
+                "{name} {dtype:?}: net max abs err {err:.3e}, rel {:.3e}",
+                err / range
+            );
+            assert!(
+                err / range < tol,
+                "{name} {dtype:?}: rel err {}",
+                err / range
+            );
+        }
+    }
+    // bf16 has no CPU matmul in candle: refused up front, naming the reason.
+    let err = CandleDepthModel::load_with(
+        dir.join("tiny-rel.safetensors"),
+        config_for(&dir, "tiny-rel"),
+        &device,
+        moma_depth::Precision::Bf16,
+    )
+    .unwrap_err();
+    assert!(matches!(err, DepthError::Unavailable(_)), "{err:?}");
+}
+
 #[test]
 fn mismatched_checkpoint_is_a_weights_error() {
     let Some(dir) = reference_dir() else { return };

@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use moma_core::{Prediction, PredictionKind};
-use moma_depth::{Backbone, DepthModel, Head, ModelSpec};
+use moma_depth::{Backbone, DepthModel, DeviceRequest, Head, ModelSpec, Precision};
 
 /// `--pred-kind` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -58,12 +58,30 @@ pub enum BackendArg {
     Onnx,
 }
 
+/// `--dtype` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum DtypeArg {
+    /// 32-bit floats (reference precision).
+    F32,
+    /// Half precision (GPU).
+    F16,
+    /// bfloat16 (GPU only).
+    Bf16,
+}
+
 /// Which Depth Anything V2 network to run, and from which weights.
 #[derive(Debug, Clone, Args)]
 pub struct ModelArgs {
-    /// Weights: official Depth Anything V2 checkpoint as .safetensors (candle) or an .onnx export.
+    /// Weights: an official Depth Anything V2 checkpoint (.pth or .safetensors; candle) or an
+    /// .onnx export (ONNX Runtime).
     #[arg(long, value_name = "FILE")]
     pub weights: Option<PathBuf>,
+    /// A public checkpoint by name instead of --weights (sets --model/--head/--max-depth): vits,
+    /// vitb, vitl, metric-hypersim-{vits,vitb,vitl}, metric-vkitti-{vits,vitb,vitl}. Found in the
+    /// Hugging Face cache, else downloaded (builds with `--features hub`). ViT-B/L weights are
+    /// CC-BY-NC-4.0.
+    #[arg(long, value_name = "NAME", conflicts_with_all = ["weights", "model", "head", "max_depth"])]
+    pub hub: Option<String>,
     /// Backbone size.
     #[arg(long, value_enum, default_value_t = BackboneArg::Vits)]
     pub model: BackboneArg,
@@ -79,6 +97,21 @@ pub struct ModelArgs {
     /// Inference backend.
     #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
     pub backend: BackendArg,
+    /// Device for the candle backend: auto (first GPU of this build, else CPU), cpu, cuda[:N],
+    /// metal[:N].
+    #[arg(long, default_value = "auto", value_name = "DEVICE")]
+    pub device: DeviceRequest,
+    /// Arithmetic precision of the candle backend (f16/bf16 are for GPUs).
+    #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
+    pub dtype: DtypeArg,
+}
+
+/// A loaded depth model and the weights file it came from.
+pub struct LoadedModel {
+    /// The model.
+    pub model: Box<dyn DepthModel>,
+    /// The weights file (after resolving `--hub`).
+    pub weights: PathBuf,
 }
 
 impl ModelArgs {
@@ -100,14 +133,11 @@ impl ModelArgs {
         }
     }
 
-    /// Loads the model (`--weights` required).
+    /// Loads the model (`--weights` or `--hub` required).
     ///
     /// # Errors
-    /// Missing `--weights`, unreadable weights, a backend this build lacks.
-    pub fn load(&self) -> Result<Box<dyn DepthModel>> {
-        let Some(weights) = &self.weights else {
-            bail!("a depth model needs --weights FILE (.safetensors or .onnx)");
-        };
+    /// Missing `--weights`, unreadable weights, a backend or device this build lacks.
+    pub fn load(&self) -> Result<LoadedModel> {
         if self.input_size == 0 || !self.input_size.is_multiple_of(14) {
             bail!(
                 "--input-size {} must be a positive multiple of 14",
@@ -120,13 +150,38 @@ impl ModelArgs {
                 self.max_depth
             );
         }
-        let backend = match self.backend {
-            BackendArg::Auto if has_extension(weights, "onnx") => moma_depth::Backend::Onnx,
-            BackendArg::Auto | BackendArg::Candle => moma_depth::Backend::Candle,
-            BackendArg::Onnx => moma_depth::Backend::Onnx,
+        let (weights, spec) = match (&self.weights, &self.hub) {
+            (Some(w), _) => (w.clone(), self.spec()),
+            (None, Some(name)) => {
+                let checkpoint = moma_depth::hub::find(name)?;
+                let path = moma_depth::hub::fetch(checkpoint)
+                    .with_context(|| format!("getting checkpoint {}", checkpoint.name))?;
+                let spec = ModelSpec {
+                    input_size: self.input_size,
+                    ..checkpoint.spec()
+                };
+                (path, spec)
+            }
+            (None, None) => bail!(
+                "a depth model needs --weights FILE (.pth, .safetensors or .onnx) or --hub NAME"
+            ),
         };
-        moma_depth::load_model(weights, self.spec(), backend)
-            .with_context(|| format!("loading depth model {}", weights.display()))
+        let options = moma_depth::LoadOptions {
+            backend: match self.backend {
+                BackendArg::Auto if has_extension(&weights, "onnx") => moma_depth::Backend::Onnx,
+                BackendArg::Auto | BackendArg::Candle => moma_depth::Backend::Candle,
+                BackendArg::Onnx => moma_depth::Backend::Onnx,
+            },
+            device: self.device,
+            precision: match self.dtype {
+                DtypeArg::F32 => Precision::F32,
+                DtypeArg::F16 => Precision::F16,
+                DtypeArg::Bf16 => Precision::Bf16,
+            },
+        };
+        let model = moma_depth::load_model_with(&weights, spec, &options)
+            .with_context(|| format!("loading depth model {}", weights.display()))?;
+        Ok(LoadedModel { model, weights })
     }
 }
 
@@ -146,7 +201,7 @@ pub struct SourceArgs {
     /// What the prediction files hold (a depth model's head decides it for --rgb).
     #[arg(long, value_enum, default_value_t = KindArg::Depth)]
     pub pred_kind: KindArg,
-    /// RGB images to run through the depth model (--weights ...) instead of --pred files.
+    /// RGB images to run through the depth model (--weights or --hub) instead of --pred files.
     #[arg(long, num_args = 1.., value_name = "IMG")]
     pub rgb: Vec<PathBuf>,
     #[command(flatten)]
@@ -185,7 +240,7 @@ impl SourceArgs {
                 model: None,
             })
         } else {
-            let model = self.model.load()?;
+            let model = self.model.load()?.model;
             Ok(Source {
                 inputs: self.rgb.clone(),
                 kind: model.spec().head.prediction_kind(),

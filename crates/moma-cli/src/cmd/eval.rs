@@ -236,7 +236,7 @@ impl PredArgs {
 
 /// Runs a real depth model on every frame's rgb.png.
 pub fn model_predictions(set: &MomaSet, model: &ModelArgs) -> Result<PredictionSet> {
-    let mut net = model.load()?;
+    let mut net = model.load()?.model;
     let mut maps = Vec::with_capacity(set.frames.len());
     for f in &set.frames {
         let rgb = f.rgb.as_ref().with_context(|| {

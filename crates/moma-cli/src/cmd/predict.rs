@@ -18,9 +18,10 @@ use super::common::{ModelArgs, create_dir, frame_name, print_json, progress};
 /// and OUTDIR/predictions.json recording the model, head, prediction kind and inputs.
 ///
 /// Examples:
-///   moma predict --weights depth_anything_v2_vits.safetensors --model vits set/frames/*/rgb.png -o pred/
+///   moma predict --weights depth_anything_v2_vits.pth --model vits set/frames/*/rgb.png -o pred/
 ///   moma predict --weights depth_anything_v2_vits.onnx --backend onnx img.png -o pred/
-///   moma predict --weights metric_hypersim_vits.safetensors --head metric --max-depth 20 img.png -o pred/
+///   moma predict --weights depth_anything_v2_metric_hypersim_vits.pth --head metric --max-depth 20 img.png -o pred/
+///   moma predict --hub metric-hypersim-vits --device cuda --dtype f16 img.png -o pred/
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct PredictArgs {
@@ -58,9 +59,6 @@ struct FrameRecord {
 }
 
 pub fn run(args: &PredictArgs) -> Result<()> {
-    let Some(weights) = &args.model.weights else {
-        bail!("moma predict needs --weights FILE (.safetensors or .onnx)");
-    };
     let mut names = std::collections::HashSet::new();
     for p in &args.images {
         if !names.insert(frame_name(p)) {
@@ -71,7 +69,7 @@ pub fn run(args: &PredictArgs) -> Result<()> {
             );
         }
     }
-    let mut model = args.model.load()?;
+    let super::common::LoadedModel { mut model, weights } = args.model.load()?;
     let kind = model.spec().head.prediction_kind();
     create_dir(&args.output)?;
     let bar = progress(args.images.len(), "predicting", args.json);
@@ -101,7 +99,7 @@ pub fn run(args: &PredictArgs) -> Result<()> {
         format: "moma-predictions",
         prediction_kind: kind,
         model: model.spec(),
-        weights,
+        weights: &weights,
         frames,
     };
     let index_path = args.output.join("predictions.json");

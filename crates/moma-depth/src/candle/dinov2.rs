@@ -250,7 +250,9 @@ impl DinoV2 {
             );
         }
         let patches = Tensor::from_vec(out.values, (rows * cols, dim), &candle_core::Device::Cpu)?;
-        let t = Tensor::cat(&[&cls, &patches], 0)?.to_device(self.pos_embed.device())?;
+        let t = Tensor::cat(&[&cls, &patches], 0)?
+            .to_dtype(self.pos_embed.dtype())?
+            .to_device(self.pos_embed.device())?;
         self.pos_cache.insert((rows, cols), t.clone());
         Ok(t)
     }

@@ -29,7 +29,7 @@ use ndarray::{Array2, Array3};
 use serde::{Deserialize, Serialize};
 
 use crate::preprocess::{DEFAULT_INPUT_SIZE, PATCH_SIZE};
-use crate::{Backbone, DepthError, DepthModel, Head, ModelSpec, Result};
+use crate::{Backbone, DepthError, DepthModel, DeviceRequest, Head, ModelSpec, Precision, Result};
 
 pub use dinov2::DinoV2;
 pub use dpt::DptHead;
@@ -334,6 +334,16 @@ pub enum DeviceChoice {
 }
 
 impl DeviceChoice {
+    /// The device a [`DeviceRequest`] names (`Auto`: [`DeviceChoice::best_available`]).
+    pub fn resolve(request: DeviceRequest) -> Self {
+        match request {
+            DeviceRequest::Auto => Self::best_available(),
+            DeviceRequest::Cpu => Self::Cpu,
+            DeviceRequest::Cuda(i) => Self::Cuda(i),
+            DeviceRequest::Metal(i) => Self::Metal(i),
+        }
+    }
+
     /// The first GPU this build supports and the machine has, else the CPU.
     pub fn best_available() -> Self {
         if cfg!(feature = "cuda") && candle_core::utils::cuda_is_available() {
@@ -370,28 +380,173 @@ fn backend(e: candle_core::Error) -> DepthError {
     DepthError::Backend(e.to_string())
 }
 
-/// Depth Anything V2 on candle; implements [`DepthModel`]. Computes in `f32` whatever the storage
-/// dtype of the checkpoint (f32, f16 or bf16).
+/// Depth Anything V2 on candle; implements [`DepthModel`]. Computes in the dtype it was loaded with
+/// (`f32` by default; the CPU kernels of this crate are `f32`, other dtypes and devices use candle's
+/// own ops) whatever the storage dtype of the checkpoint (f32, f16 or bf16).
 #[derive(Debug)]
 pub struct CandleDepthModel {
     config: DepthAnythingConfig,
     encoder: DinoV2,
     head: DptHead,
     device: Device,
+    dtype: DType,
+}
+
+/// The two checkpoint containers the official weights come in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum WeightsFormat {
+    /// `.safetensors` (memory-mapped).
+    Safetensors,
+    /// PyTorch `torch.save` zip archive (`.pth`, `.pt`), as the official releases are.
+    PyTorchZip,
+}
+
+impl WeightsFormat {
+    /// From the first bytes of the file (a zip archive starts with `PK\x03\x04`), so a renamed file
+    /// still loads; a legacy (pre-1.6, non-zip) PyTorch pickle is named as such.
+    fn sniff(path: &Path) -> std::result::Result<Self, String> {
+        use std::io::Read;
+        let mut magic = [0u8; 8];
+        let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
+        let n = f.read(&mut magic).map_err(|e| e.to_string())?;
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        if n >= 4 && magic[..4] == *b"PK\x03\x04" {
+            Ok(Self::PyTorchZip)
+        } else if n >= 2 && magic[0] == 0x80 && matches!(ext.as_deref(), Some("pth" | "pt" | "bin"))
+        {
+            Err("legacy (pre-1.6, non-zip) PyTorch pickle; re-save it with a current torch.save or convert it to .safetensors".into())
+        } else {
+            Ok(Self::Safetensors)
+        }
+    }
+}
+
+/// The checkpoint's tensors `name → shape`, and names of non-float tensors.
+type TensorListing = (BTreeMap<String, Vec<usize>>, Vec<String>);
+
+fn is_float(dtype: DType) -> bool {
+    matches!(dtype, DType::F32 | DType::F16 | DType::BF16 | DType::F64)
+}
+
+/// Opens a `.safetensors` checkpoint: its listing and a variable backend.
+fn open_safetensors(
+    path: &Path,
+) -> std::result::Result<
+    (
+        TensorListing,
+        Box<dyn candle_nn::var_builder::SimpleBackend>,
+    ),
+    String,
+> {
+    // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
+    // while mapped. The mapping lives only during loading (weights are copied into tensors).
+    let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }
+        .map_err(|e| e.to_string())?;
+    let mut found = BTreeMap::new();
+    let mut bad_dtype = vec![];
+    for (name, view) in st.tensors() {
+        if !DType::try_from(view.dtype()).is_ok_and(is_float) {
+            bad_dtype.push(format!("{name}: {:?}", view.dtype()));
+        }
+        found.insert(name, view.shape().to_vec());
+    }
+    Ok(((found, bad_dtype), Box::new(st)))
+}
+
+/// Opens a PyTorch zip checkpoint: a plain state dict (the official releases), or one nested under
+/// `state_dict` or `model`.
+fn open_pytorch(
+    path: &Path,
+) -> std::result::Result<
+    (
+        TensorListing,
+        Box<dyn candle_nn::var_builder::SimpleBackend>,
+    ),
+    String,
+> {
+    use candle_core::pickle::PthTensors;
+    let mut pth = PthTensors::new(path, None).map_err(|e| e.to_string())?;
+    for key in ["state_dict", "model"] {
+        if !pth.tensor_infos().is_empty() {
+            break;
+        }
+        if let Ok(nested) = PthTensors::new(path, Some(key)) {
+            pth = nested;
+        }
+    }
+    if pth.tensor_infos().is_empty() {
+        return Err("no tensors found in the PyTorch archive (expected a state dict)".into());
+    }
+    let mut found = BTreeMap::new();
+    let mut bad_dtype = vec![];
+    for (name, info) in pth.tensor_infos() {
+        if !is_float(info.dtype) {
+            bad_dtype.push(format!("{name}: {:?}", info.dtype));
+        }
+        found.insert(name.clone(), info.layout.dims().to_vec());
+    }
+    Ok(((found, bad_dtype), Box::new(pth)))
+}
+
+/// The candle dtype of `precision` on `device`.
+///
+/// # Errors
+/// [`DepthError::Unavailable`] for bf16 on the CPU (candle's CPU matmul has no bf16).
+pub fn precision_dtype(precision: Precision, device: &Device) -> Result<DType> {
+    match precision {
+        Precision::F32 => Ok(DType::F32),
+        Precision::F16 => Ok(DType::F16),
+        Precision::Bf16 if device.is_cpu() => Err(DepthError::Unavailable(
+            "bf16 needs a GPU: candle's CPU matmul has no bf16 (use f32 on the CPU)".into(),
+        )),
+        Precision::Bf16 => Ok(DType::BF16),
+    }
 }
 
 impl CandleDepthModel {
+    /// Loads a checkpoint with the official key names (`pretrained.*`, `depth_head.*`) in `f32`;
+    /// see [`CandleDepthModel::load_as`].
+    ///
+    /// # Errors
+    /// As [`CandleDepthModel::load_as`].
+    pub fn load(
+        path: impl AsRef<Path>,
+        config: DepthAnythingConfig,
+        device: &Device,
+    ) -> Result<Self> {
+        Self::load_as(path, config, device, DType::F32)
+    }
+
+    /// As [`CandleDepthModel::load_as`] with the dtype of `precision` ([`precision_dtype`]).
+    ///
+    /// # Errors
+    /// As [`CandleDepthModel::load_as`]; bf16 on the CPU is [`DepthError::Unavailable`].
+    pub fn load_with(
+        path: impl AsRef<Path>,
+        config: DepthAnythingConfig,
+        device: &Device,
+        precision: Precision,
+    ) -> Result<Self> {
+        let dtype = precision_dtype(precision, device)?;
+        Self::load_as(path, config, device, dtype)
+    }
+
     /// Loads a checkpoint with the official key names (`pretrained.*`, `depth_head.*`) from a
-    /// `.safetensors` file (memory-mapped; f32/f16/bf16 storage, computed in f32).
+    /// `.safetensors` file (memory-mapped) or a PyTorch `.pth` zip archive (the official release
+    /// format), any float storage dtype, computing in `dtype`.
     ///
     /// # Errors
     /// [`DepthError::Weights`] when the file cannot be read or its tensors do not match `config`
     /// (the message lists missing and unexpected keys and shape mismatches); [`DepthError::Shape`]
     /// for an inconsistent `config`.
-    pub fn load(
+    pub fn load_as(
         path: impl AsRef<Path>,
         config: DepthAnythingConfig,
         device: &Device,
+        dtype: DType,
     ) -> Result<Self> {
         let path = path.as_ref();
         let werr = |reason: String| DepthError::Weights {
@@ -399,27 +554,16 @@ impl CandleDepthModel {
             reason,
         };
         config.validate()?;
-        // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
-        // while mapped. The mapping lives only during loading (weights are copied to f32 tensors).
-        let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }
-            .map_err(|e| werr(e.to_string()))?;
-        let mut found = BTreeMap::new();
-        let mut bad_dtype = vec![];
-        for (name, view) in st.tensors() {
-            let dtype = DType::try_from(view.dtype()).ok();
-            if !matches!(
-                dtype,
-                Some(DType::F32 | DType::F16 | DType::BF16 | DType::F64)
-            ) {
-                bad_dtype.push(format!("{name}: {:?}", view.dtype()));
-            }
-            found.insert(name, view.shape().to_vec());
+        let ((found, bad_dtype), backend) = match WeightsFormat::sniff(path).map_err(werr)? {
+            WeightsFormat::Safetensors => open_safetensors(path),
+            WeightsFormat::PyTorchZip => open_pytorch(path),
         }
+        .map_err(werr)?;
         config.check_tensors(&found).map_err(werr)?;
         if !bad_dtype.is_empty() {
             return Err(werr(format!("non-float tensors: {}", bad_dtype.join(", "))));
         }
-        let vb = VarBuilder::from_backend(Box::new(st), DType::F32, device.clone());
+        let vb = VarBuilder::from_backend(backend, dtype, device.clone());
         Self::from_var_builder(config, vb).map_err(|e| match e {
             DepthError::Backend(reason) => werr(reason),
             other => other,
@@ -442,6 +586,7 @@ impl CandleDepthModel {
     pub fn from_var_builder(config: DepthAnythingConfig, vb: VarBuilder) -> Result<Self> {
         config.validate()?;
         let device = vb.device().clone();
+        let dtype = vb.dtype();
         let encoder = DinoV2::new(&config, vb.pp("pretrained")).map_err(backend)?;
         let head = DptHead::new(&config, vb.pp("depth_head")).map_err(backend)?;
         Ok(Self {
@@ -449,6 +594,7 @@ impl CandleDepthModel {
             encoder,
             head,
             device,
+            dtype,
         })
     }
 
@@ -462,12 +608,19 @@ impl CandleDepthModel {
         &self.device
     }
 
+    /// The dtype the network computes in.
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
     /// The network on a tensor `(1, 3, H, W)` (H, W multiples of 14, ImageNet-normalised RGB) on
-    /// [`Self::device`]; returns `(1, H, W)`: inverse depth (relative head) or metres (metric head).
+    /// [`Self::device`], any float dtype; returns `(1, H, W)` in [`Self::dtype`]: inverse depth
+    /// (relative head) or metres (metric head).
     ///
     /// # Errors
     /// Shape errors.
     pub fn forward(&mut self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let x = &x.to_dtype(self.dtype)?;
         let (_, _, h, w) = x.dims4()?;
         let (rows, cols) = (h / PATCH_SIZE, w / PATCH_SIZE);
         let layers = self.config.intermediate_layers;
@@ -492,7 +645,11 @@ impl DepthModel for CandleDepthModel {
         let data: Vec<f32> = input.iter().copied().collect();
         let x = Tensor::from_vec(data, (1, 3, h, w), &self.device).map_err(backend)?;
         let y = self.forward(&x).map_err(backend)?;
-        let values: Vec<f32> = y.flatten_all().and_then(|t| t.to_vec1()).map_err(backend)?;
+        let values: Vec<f32> = y
+            .flatten_all()
+            .and_then(|t| t.to_dtype(DType::F32))
+            .and_then(|t| t.to_vec1())
+            .map_err(backend)?;
         Array2::from_shape_vec((h, w), values).map_err(|e| DepthError::Shape(e.to_string()))
     }
 }
