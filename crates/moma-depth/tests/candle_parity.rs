@@ -14,37 +14,10 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use candle_common::{
-    max_abs_err, reference_dir, reference_image, reference_input, reference_json, reference_output,
+    max_abs_err, reference_dir, reference_image, reference_input, reference_output, tiny_config,
 };
 use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig};
-use moma_depth::{Backbone, DepthError, DepthModel, Head};
-
-/// The tiny reference architecture (`shared/reference/dav2/README.md`): ViT embed 64, depth 4,
-/// 2 heads, layers [0, 1, 2, 3]; DPT features 16, out_channels [8, 16, 32, 64]; head and input size
-/// from `NAME.json`.
-fn tiny_config(dir: &Path, name: &str) -> DepthAnythingConfig {
-    let json = reference_json(dir, name);
-    let head = match json["head"].as_str().unwrap() {
-        "relative" => Head::Relative,
-        "metric" => Head::Metric {
-            max_depth_m: json["max_depth"].as_f64().unwrap() as f32,
-        },
-        other => panic!("unknown head {other}"),
-    };
-    DepthAnythingConfig {
-        backbone: Backbone::Vits,
-        embed_dim: 64,
-        depth: 4,
-        num_heads: 2,
-        mlp_hidden_dim: 256,
-        intermediate_layers: [0, 1, 2, 3],
-        features: 16,
-        out_channels: [8, 16, 32, 64],
-        head,
-        input_size: json["input_size"].as_u64().unwrap() as usize,
-        ..DepthAnythingConfig::vit_small(head)
-    }
-}
+use moma_depth::{DepthError, DepthModel, Head};
 
 fn config_for(dir: &Path, name: &str) -> DepthAnythingConfig {
     if name == "vits-rel" {

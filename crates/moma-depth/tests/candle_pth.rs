@@ -8,9 +8,9 @@ mod candle_common;
 use std::io::Write;
 use std::path::Path;
 
-use candle_common::{reference_dir, reference_input, reference_json};
+use candle_common::{reference_dir, reference_input, tiny_config};
 use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig};
-use moma_depth::{Backbone, DepthError, DepthModel, Head};
+use moma_depth::{DepthError, DepthModel, Head};
 
 /// Writes `tensors` (f32) as `torch.save(state_dict)` does since PyTorch 1.6: a zip archive with
 /// `archive/data.pkl` (protocol-2 pickle of an `OrderedDict` of `_rebuild_tensor_v2` calls whose
@@ -79,22 +79,6 @@ fn write_torch_zip(path: &Path, tensors: &[(String, Vec<usize>, Vec<f32>)]) {
     zip.finish().unwrap();
 }
 
-fn tiny_rel_config(dir: &Path) -> DepthAnythingConfig {
-    let json = reference_json(dir, "tiny-rel");
-    DepthAnythingConfig {
-        backbone: Backbone::Vits,
-        embed_dim: 64,
-        depth: 4,
-        num_heads: 2,
-        mlp_hidden_dim: 256,
-        intermediate_layers: [0, 1, 2, 3],
-        features: 16,
-        out_channels: [8, 16, 32, 64],
-        input_size: json["input_size"].as_u64().unwrap() as usize,
-        ..DepthAnythingConfig::vit_small(Head::Relative)
-    }
-}
-
 #[test]
 fn pth_checkpoint_matches_its_safetensors_twin() {
     let Some(dir) = reference_dir() else { return };
@@ -121,7 +105,7 @@ fn pth_checkpoint_matches_its_safetensors_twin() {
     write_torch_zip(&pth, &listing);
 
     let input = reference_input(&dir, "tiny-rel");
-    let config = tiny_rel_config(&dir);
+    let config = tiny_config(&dir, "tiny-rel");
     let mut from_st = CandleDepthModel::load(&st, config.clone(), &device).unwrap();
     let mut from_pth = CandleDepthModel::load(&pth, config.clone(), &device).unwrap();
     let a = from_st.forward_net(&input).unwrap();

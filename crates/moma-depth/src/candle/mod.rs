@@ -424,71 +424,78 @@ impl WeightsFormat {
     }
 }
 
-/// The checkpoint's tensors `name → shape`, and names of non-float tensors.
-type TensorListing = (BTreeMap<String, Vec<usize>>, Vec<String>);
-
-fn is_float(dtype: DType) -> bool {
-    matches!(dtype, DType::F32 | DType::F16 | DType::BF16 | DType::F64)
+/// An opened checkpoint: its tensors `name → shape`, the names of non-float tensors, and the
+/// variable backend that reads them.
+struct OpenedCheckpoint {
+    shapes: BTreeMap<String, Vec<usize>>,
+    non_float: Vec<String>,
+    backend: Box<dyn candle_nn::var_builder::SimpleBackend>,
 }
 
-/// Opens a `.safetensors` checkpoint: its listing and a variable backend.
-fn open_safetensors(
-    path: &Path,
-) -> std::result::Result<
-    (
-        TensorListing,
-        Box<dyn candle_nn::var_builder::SimpleBackend>,
-    ),
-    String,
-> {
-    // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
-    // while mapped. The mapping lives only during loading (weights are copied into tensors).
-    let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }
-        .map_err(|e| e.to_string())?;
-    let mut found = BTreeMap::new();
-    let mut bad_dtype = vec![];
-    for (name, view) in st.tensors() {
-        if !DType::try_from(view.dtype()).is_ok_and(is_float) {
-            bad_dtype.push(format!("{name}: {:?}", view.dtype()));
+impl OpenedCheckpoint {
+    /// Lists `(name, shape, dtype)` of every tensor (`dtype` `None` when candle has no such dtype).
+    fn new(
+        tensors: impl Iterator<Item = (String, Vec<usize>, std::result::Result<DType, String>)>,
+        backend: Box<dyn candle_nn::var_builder::SimpleBackend>,
+    ) -> Self {
+        let mut shapes = BTreeMap::new();
+        let mut non_float = vec![];
+        for (name, shape, dtype) in tensors {
+            match dtype {
+                Ok(DType::F32 | DType::F16 | DType::BF16 | DType::F64) => {}
+                Ok(other) => non_float.push(format!("{name}: {other:?}")),
+                Err(other) => non_float.push(format!("{name}: {other}")),
+            }
+            shapes.insert(name, shape);
         }
-        found.insert(name, view.shape().to_vec());
+        Self {
+            shapes,
+            non_float,
+            backend,
+        }
     }
-    Ok(((found, bad_dtype), Box::new(st)))
-}
 
-/// Opens a PyTorch zip checkpoint: a plain state dict (the official releases), or one nested under
-/// `state_dict` or `model`.
-fn open_pytorch(
-    path: &Path,
-) -> std::result::Result<
-    (
-        TensorListing,
-        Box<dyn candle_nn::var_builder::SimpleBackend>,
-    ),
-    String,
-> {
-    use candle_core::pickle::PthTensors;
-    let mut pth = PthTensors::new(path, None).map_err(|e| e.to_string())?;
-    for key in ["state_dict", "model"] {
-        if !pth.tensor_infos().is_empty() {
-            break;
-        }
-        if let Ok(nested) = PthTensors::new(path, Some(key)) {
-            pth = nested;
-        }
+    /// A `.safetensors` checkpoint (memory-mapped).
+    fn safetensors(path: &Path) -> std::result::Result<Self, String> {
+        // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
+        // while mapped. The mapping lives only during loading (weights are copied into tensors).
+        let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }
+            .map_err(|e| e.to_string())?;
+        let listing: Vec<_> = st
+            .tensors()
+            .into_iter()
+            .map(|(name, view)| {
+                let dtype =
+                    DType::try_from(view.dtype()).map_err(|_| format!("{:?}", view.dtype()));
+                (name, view.shape().to_vec(), dtype)
+            })
+            .collect();
+        Ok(Self::new(listing.into_iter(), Box::new(st)))
     }
-    if pth.tensor_infos().is_empty() {
-        return Err("no tensors found in the PyTorch archive (expected a state dict)".into());
-    }
-    let mut found = BTreeMap::new();
-    let mut bad_dtype = vec![];
-    for (name, info) in pth.tensor_infos() {
-        if !is_float(info.dtype) {
-            bad_dtype.push(format!("{name}: {:?}", info.dtype));
+
+    /// A PyTorch zip checkpoint: a plain state dict (the official releases), or one nested under
+    /// `state_dict` or `model`.
+    fn pytorch(path: &Path) -> std::result::Result<Self, String> {
+        use candle_core::pickle::PthTensors;
+        let mut pth = PthTensors::new(path, None).map_err(|e| e.to_string())?;
+        for key in ["state_dict", "model"] {
+            if !pth.tensor_infos().is_empty() {
+                break;
+            }
+            if let Ok(nested) = PthTensors::new(path, Some(key)) {
+                pth = nested;
+            }
         }
-        found.insert(name.clone(), info.layout.dims().to_vec());
+        if pth.tensor_infos().is_empty() {
+            return Err("no tensors found in the PyTorch archive (expected a state dict)".into());
+        }
+        let listing: Vec<_> = pth
+            .tensor_infos()
+            .iter()
+            .map(|(name, info)| (name.clone(), info.layout.dims().to_vec(), Ok(info.dtype)))
+            .collect();
+        Ok(Self::new(listing.into_iter(), Box::new(pth)))
     }
-    Ok(((found, bad_dtype), Box::new(pth)))
 }
 
 /// The candle dtype of `precision` on `device`.
@@ -554,16 +561,19 @@ impl CandleDepthModel {
             reason,
         };
         config.validate()?;
-        let ((found, bad_dtype), backend) = match WeightsFormat::sniff(path).map_err(werr)? {
-            WeightsFormat::Safetensors => open_safetensors(path),
-            WeightsFormat::PyTorchZip => open_pytorch(path),
+        let opened = match WeightsFormat::sniff(path).map_err(werr)? {
+            WeightsFormat::Safetensors => OpenedCheckpoint::safetensors(path),
+            WeightsFormat::PyTorchZip => OpenedCheckpoint::pytorch(path),
         }
         .map_err(werr)?;
-        config.check_tensors(&found).map_err(werr)?;
-        if !bad_dtype.is_empty() {
-            return Err(werr(format!("non-float tensors: {}", bad_dtype.join(", "))));
+        config.check_tensors(&opened.shapes).map_err(werr)?;
+        if !opened.non_float.is_empty() {
+            return Err(werr(format!(
+                "non-float tensors: {}",
+                opened.non_float.join(", ")
+            )));
         }
-        let vb = VarBuilder::from_backend(backend, dtype, device.clone());
+        let vb = VarBuilder::from_backend(opened.backend, dtype, device.clone());
         Self::from_var_builder(config, vb).map_err(|e| match e {
             DepthError::Backend(reason) => werr(reason),
             other => other,

@@ -3,6 +3,10 @@
 
 use std::path::PathBuf;
 
+#[cfg(feature = "candle")]
+use moma_depth::candle::DepthAnythingConfig;
+#[cfg(feature = "candle")]
+use moma_depth::{Backbone, Head};
 use ndarray::{Array2, Array3};
 use ndarray_npy::read_npy;
 
@@ -67,4 +71,32 @@ pub fn max_abs_err(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32) {
     let lo = want.iter().copied().fold(f32::INFINITY, f32::min);
     let hi = want.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     (err, hi - lo)
+}
+
+/// The tiny reference architecture (`shared/reference/dav2/README.md`): ViT embed 64, depth 4,
+/// 2 heads, layers [0, 1, 2, 3]; DPT features 16, out_channels [8, 16, 32, 64]; head and input size
+/// from `NAME.json`.
+#[cfg(feature = "candle")]
+pub fn tiny_config(dir: &std::path::Path, name: &str) -> DepthAnythingConfig {
+    let json = reference_json(dir, name);
+    let head = match json["head"].as_str().unwrap() {
+        "relative" => Head::Relative,
+        "metric" => Head::Metric {
+            max_depth_m: json["max_depth"].as_f64().unwrap() as f32,
+        },
+        other => panic!("unknown head {other}"),
+    };
+    DepthAnythingConfig {
+        backbone: Backbone::Vits,
+        embed_dim: 64,
+        depth: 4,
+        num_heads: 2,
+        mlp_hidden_dim: 256,
+        intermediate_layers: [0, 1, 2, 3],
+        features: 16,
+        out_channels: [8, 16, 32, 64],
+        head,
+        input_size: json["input_size"].as_u64().unwrap() as usize,
+        ..DepthAnythingConfig::vit_small(head)
+    }
 }
