@@ -372,3 +372,80 @@ fn depth_model_options_fail_clearly() {
 fn candle_core_cuda_available() -> bool {
     Path::new("/dev/nvidia0").exists()
 }
+
+/// `$MOMA_SHARED_DIR/reference/dav2`, else `../shared/reference/dav2` beside the repository; `None`
+/// (with a message) when absent.
+fn dav2_reference() -> Option<PathBuf> {
+    let shared = std::env::var_os("MOMA_SHARED_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
+    let dir = shared.join("reference/dav2");
+    if dir.join("vits-rel.safetensors").is_file() {
+        Some(dir)
+    } else {
+        eprintln!("SKIPPED: {} not found (set MOMA_SHARED_DIR)", dir.display());
+        None
+    }
+}
+
+/// `moma predict` as a user runs it, on the reference image and the ViT-S reference weights
+/// (random weights): the written prediction is the official full-image output.
+#[test]
+fn predict_reproduces_the_official_full_image_output() {
+    if cfg!(debug_assertions) && std::env::var_os("MOMA_HEAVY_TESTS").is_none() {
+        eprintln!(
+            "SKIPPED: ViT-S is slow in debug builds; run with --release or MOMA_HEAVY_TESTS=1"
+        );
+        return;
+    }
+    let Some(dir) = dav2_reference() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("pred");
+    let stdout = ok(&[
+        "predict",
+        "--weights",
+        s(&dir.join("vits-rel.safetensors")),
+        "--model",
+        "vits",
+        "--device",
+        "cpu",
+        s(&dir.join("input.png")),
+        "-o",
+        s(&out),
+        "--json",
+    ]);
+    let index: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(index["prediction_kind"], "inverse-depth");
+    assert_eq!(index["model"]["backbone"], "vits");
+    assert!(
+        index["runtime"].as_str().unwrap().starts_with("candle"),
+        "{index}"
+    );
+    assert!(out.join("input.color.png").is_file());
+    let on_disk: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("predictions.json")).unwrap())
+            .unwrap();
+    assert_eq!(on_disk, index);
+
+    let got = moma_io::read_prediction(
+        out.join("input.npy"),
+        moma_core::PredictionKind::InverseDepth,
+    )
+    .unwrap()
+    .values;
+    let want: ndarray::Array2<f32> =
+        ndarray_npy::read_npy(dir.join("vits-rel.output_full.npy")).unwrap();
+    assert_eq!(got.dim(), want.dim());
+    let range = want.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b))
+        - want.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+    let err = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    eprintln!(
+        "moma predict vs official output_full: max abs err {err:.3e} ({:.3e} of range)",
+        err / range
+    );
+    assert!(err / range < 1e-3, "{err} of range {range}");
+}

@@ -74,6 +74,11 @@ pub trait DepthModel {
     /// What the model is.
     fn spec(&self) -> ModelSpec;
 
+    /// Where and how it runs (backend, device, precision), for provenance records.
+    fn runtime(&self) -> String {
+        "unspecified".into()
+    }
+
     /// Runs the network on a pre-processed input `(3, H, W)` (ImageNet-normalised RGB, H and W
     /// multiples of 14) and returns the raw output `(H, W)` at network resolution.
     ///

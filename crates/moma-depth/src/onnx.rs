@@ -473,6 +473,13 @@ impl DepthModel for OnnxDepthModel {
         self.spec
     }
 
+    fn runtime(&self) -> String {
+        format!(
+            "onnxruntime, CPU execution provider, {}",
+            self.library.display()
+        )
+    }
+
     fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>> {
         let (c, h, w) = input.dim();
         if c != 3 || h == 0 || w == 0 {

@@ -46,6 +46,8 @@ struct PredictionsIndex<'a> {
     prediction_kind: moma_core::PredictionKind,
     model: moma_depth::ModelSpec,
     weights: &'a std::path::Path,
+    /// Backend, device and precision (`DepthModel::runtime`).
+    runtime: String,
     frames: Vec<FrameRecord>,
 }
 
@@ -100,6 +102,7 @@ pub fn run(args: &PredictArgs) -> Result<()> {
         prediction_kind: kind,
         model: model.spec(),
         weights: &weights,
+        runtime: model.runtime(),
         frames,
     };
     let index_path = args.output.join("predictions.json");

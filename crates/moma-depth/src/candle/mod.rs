@@ -645,6 +645,10 @@ impl DepthModel for CandleDepthModel {
         self.config.spec()
     }
 
+    fn runtime(&self) -> String {
+        format!("candle, {:?}, {:?}", self.device.location(), self.dtype)
+    }
+
     fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>> {
         let (c, h, w) = input.dim();
         if c != 3 || h == 0 || w == 0 || h % PATCH_SIZE != 0 || w % PATCH_SIZE != 0 {
