@@ -1048,6 +1048,74 @@ mod tests {
         }
     }
 
+    /// The CPU path of [`conv3x3`] against candle's `conv2d` in f64, with every fusion, on odd
+    /// sizes and both strides.
+    #[test]
+    fn conv3x3_matches_candle_conv2d() {
+        use candle_core::DType;
+        let dev = candle_core::Device::Cpu;
+        let wave = |n: usize, f: f64| -> Vec<f32> {
+            (0..n)
+                .map(|i| ((i as f64 * f).sin() * 1.7) as f32)
+                .collect()
+        };
+        for (c_in, c_out, h, w) in [(3, 5, 7, 9), (8, 4, 6, 5), (16, 16, 11, 14)] {
+            let x = Tensor::from_vec(wave(c_in * h * w, 0.37), (1, c_in, h, w), &dev).unwrap();
+            let wt =
+                Tensor::from_vec(wave(c_out * c_in * 9, 0.71), (c_out, c_in, 3, 3), &dev).unwrap();
+            let bias = Tensor::from_vec(wave(c_out, 1.3), c_out, &dev).unwrap();
+            for stride in [1, 2] {
+                let (oh, ow) = ((h - 1) / stride + 1, (w - 1) / stride + 1);
+                let res = Tensor::from_vec(wave(c_out * oh * ow, 0.53), (1, c_out, oh, ow), &dev)
+                    .unwrap();
+                for (relu_in, relu_out, with_res) in [
+                    (false, false, false),
+                    (true, false, true),
+                    (true, true, false),
+                ] {
+                    let f64_ = |t: &Tensor| t.to_dtype(DType::F64).unwrap();
+                    let xin = if relu_in {
+                        f64_(&x).relu().unwrap()
+                    } else {
+                        f64_(&x)
+                    };
+                    let mut want = xin
+                        .conv2d(&f64_(&wt), 1, stride, 1, 1)
+                        .unwrap()
+                        .broadcast_add(&f64_(&bias).reshape((1, (), 1, 1)).unwrap())
+                        .unwrap();
+                    if with_res {
+                        want = (want + f64_(&res)).unwrap();
+                    }
+                    if relu_out {
+                        want = want.relu().unwrap();
+                    }
+                    let want: Vec<f64> = want.flatten_all().unwrap().to_vec1().unwrap();
+                    let fused = ConvFusion {
+                        relu_in,
+                        residual: with_res.then_some(&res),
+                        relu_out,
+                    };
+                    let got = conv3x3(&x, &wt, Some(&bias), stride, fused).unwrap();
+                    assert_eq!(got.dims(), &[1, c_out, oh, ow]);
+                    let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+                    let err = got
+                        .iter()
+                        .zip(&want)
+                        .map(|(&g, &w)| (f64::from(g) - w).abs())
+                        .fold(0.0, f64::max);
+                    // f32 round-off of a 9·c_in-term sum of products of magnitude ≤ 2.9.
+                    let tol = 1e-6 * (9 * c_in) as f64;
+                    assert!(
+                        err < tol,
+                        "c{c_in}->{c_out} {h}x{w} s{stride} relu_in {relu_in} relu_out \
+                         {relu_out} residual {with_res}: max err {err} (tol {tol})"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn softmax_and_gelu_match_candle() {
         let dev = candle_core::Device::Cpu;
