@@ -433,7 +433,8 @@ struct OpenedCheckpoint {
 }
 
 impl OpenedCheckpoint {
-    /// Lists `(name, shape, dtype)` of every tensor (`dtype` `None` when candle has no such dtype).
+    /// Lists `(name, shape, dtype)` of every tensor (`dtype` is `Err(name of the stored type)` when
+    /// candle has no such dtype).
     fn new(
         tensors: impl Iterator<Item = (String, Vec<usize>, std::result::Result<DType, String>)>,
         backend: Box<dyn candle_nn::var_builder::SimpleBackend>,
