@@ -12,7 +12,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, DeviceChoice};
+use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, open_device};
 use moma_depth::{DepthModel, Head};
 use ndarray::Array3;
 
@@ -65,7 +65,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "vitl" => DepthAnythingConfig::vit_large(Head::Relative),
         other => return Err(format!("unknown model {other}").into()),
     };
-    let device = DeviceChoice::best_available().device()?;
+    let device = open_device(moma_depth::DeviceRequest::Auto)?;
     let t = Instant::now();
     let mut net = CandleDepthModel::load(&weights, config, &device)?;
     println!(

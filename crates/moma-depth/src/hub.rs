@@ -198,20 +198,23 @@ pub fn fetch_in(cache: &Path, checkpoint: &Checkpoint) -> Result<PathBuf> {
     if let Some(path) = cached_path(cache, checkpoint) {
         return Ok(path);
     }
-    let offline = std::env::var("HF_HUB_OFFLINE").is_ok_and(|v| !matches!(v.as_str(), "" | "0"));
-    let why = if !cfg!(feature = "hub") {
-        "this build cannot download (rebuild with `--features hub`)"
-    } else if offline {
-        "HF_HUB_OFFLINE is set"
-    } else {
-        return download(cache, checkpoint);
+    let not_cached = |why: &str| {
+        DepthError::Unavailable(format!(
+            "{} is not in the Hugging Face cache {} and {why}; download {} and pass it as --weights",
+            checkpoint.file,
+            cache.display(),
+            checkpoint.url()
+        ))
     };
-    Err(DepthError::Unavailable(format!(
-        "{} is not in the Hugging Face cache {} and {why}; download {} and pass it as --weights",
-        checkpoint.file,
-        cache.display(),
-        checkpoint.url()
-    )))
+    if std::env::var("HF_HUB_OFFLINE").is_ok_and(|v| !matches!(v.as_str(), "" | "0")) {
+        return Err(not_cached("HF_HUB_OFFLINE is set"));
+    }
+    #[cfg(feature = "hub")]
+    return download(cache, checkpoint);
+    #[cfg(not(feature = "hub"))]
+    Err(not_cached(
+        "this build cannot download (rebuild with `--features hub`)",
+    ))
 }
 
 /// `cache/models--OWNER--NAME/snapshots/<refs/main>/FILE`, if it exists.
@@ -245,11 +248,6 @@ fn download(cache: &Path, checkpoint: &Checkpoint) -> Result<PathBuf> {
         .model(checkpoint.repo.to_string())
         .download(checkpoint.file)
         .map_err(fail)
-}
-
-#[cfg(not(feature = "hub"))]
-fn download(_cache: &Path, _checkpoint: &Checkpoint) -> Result<PathBuf> {
-    unreachable!("fetch_in downloads only with the `hub` feature")
 }
 
 #[cfg(test)]

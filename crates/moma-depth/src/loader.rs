@@ -145,7 +145,7 @@ pub fn load_model_with(
     match options.backend {
         #[cfg(feature = "candle")]
         Backend::Candle => {
-            let device = crate::candle::DeviceChoice::resolve(options.device).device()?;
+            let device = crate::candle::open_device(options.device)?;
             Ok(Box::new(crate::candle::CandleDepthModel::load_with(
                 weights,
                 crate::candle::DepthAnythingConfig::from_spec(&spec),

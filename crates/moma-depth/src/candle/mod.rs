@@ -2,10 +2,10 @@
 //! the official PyTorch code (`DepthAnything/Depth-Anything-V2`, commit a561b84; METHOD.md §5).
 //!
 //! ```no_run
-//! use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, DeviceChoice};
-//! use moma_depth::{DepthModel, Head};
+//! use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, open_device};
+//! use moma_depth::{DepthModel, DeviceRequest, Head};
 //!
-//! let device = DeviceChoice::Cpu.device()?;
+//! let device = open_device(DeviceRequest::Auto)?;
 //! let config = DepthAnythingConfig::vit_small(Head::Relative);
 //! let mut model = CandleDepthModel::load("depth_anything_v2_vits.safetensors", config, &device)?;
 //! let rgb = image::open("frame.png").unwrap().to_rgb8();
@@ -320,59 +320,38 @@ impl DepthAnythingConfig {
     }
 }
 
-/// Where the network runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum DeviceChoice {
-    /// The CPU (all cores through rayon).
-    #[default]
-    Cpu,
-    /// CUDA GPU with this ordinal (feature `cuda`).
-    Cuda(usize),
-    /// Metal GPU with this ordinal (feature `metal`).
-    Metal(usize),
-}
-
-impl DeviceChoice {
-    /// The device a [`DeviceRequest`] names (`Auto`: [`DeviceChoice::best_available`]).
-    pub fn resolve(request: DeviceRequest) -> Self {
-        match request {
-            DeviceRequest::Auto => Self::best_available(),
-            DeviceRequest::Cpu => Self::Cpu,
-            DeviceRequest::Cuda(i) => Self::Cuda(i),
-            DeviceRequest::Metal(i) => Self::Metal(i),
+/// Opens the device `request` names. [`DeviceRequest::Auto`] is the first GPU this build supports
+/// and the machine has (CUDA, then Metal), else the CPU.
+///
+/// # Errors
+/// [`DepthError::Unavailable`] when this build lacks the feature or the device cannot be opened.
+pub fn open_device(request: DeviceRequest) -> Result<Device> {
+    let request = match request {
+        DeviceRequest::Auto
+            if cfg!(feature = "cuda") && candle_core::utils::cuda_is_available() =>
+        {
+            DeviceRequest::Cuda(0)
         }
-    }
-
-    /// The first GPU this build supports and the machine has, else the CPU.
-    pub fn best_available() -> Self {
-        if cfg!(feature = "cuda") && candle_core::utils::cuda_is_available() {
-            Self::Cuda(0)
-        } else if cfg!(feature = "metal") && candle_core::utils::metal_is_available() {
-            Self::Metal(0)
-        } else {
-            Self::Cpu
+        DeviceRequest::Auto
+            if cfg!(feature = "metal") && candle_core::utils::metal_is_available() =>
+        {
+            DeviceRequest::Metal(0)
         }
-    }
-
-    /// Opens the device.
-    ///
-    /// # Errors
-    /// [`DepthError::Unavailable`] when this build lacks the feature or the device cannot be opened.
-    pub fn device(self) -> Result<Device> {
-        match self {
-            Self::Cpu => Ok(Device::Cpu),
-            Self::Cuda(i) if cfg!(feature = "cuda") => Device::new_cuda(i)
-                .map_err(|e| DepthError::Unavailable(format!("CUDA device {i}: {e}"))),
-            Self::Metal(i) if cfg!(feature = "metal") => Device::new_metal(i)
-                .map_err(|e| DepthError::Unavailable(format!("Metal device {i}: {e}"))),
-            Self::Cuda(_) => Err(DepthError::Unavailable(
-                "built without the `cuda` feature".into(),
-            )),
-            Self::Metal(_) => Err(DepthError::Unavailable(
-                "built without the `metal` feature".into(),
-            )),
-        }
+        DeviceRequest::Auto => DeviceRequest::Cpu,
+        other => other,
+    };
+    match request {
+        DeviceRequest::Auto | DeviceRequest::Cpu => Ok(Device::Cpu),
+        DeviceRequest::Cuda(i) if cfg!(feature = "cuda") => Device::new_cuda(i)
+            .map_err(|e| DepthError::Unavailable(format!("CUDA device {i}: {e}"))),
+        DeviceRequest::Metal(i) if cfg!(feature = "metal") => Device::new_metal(i)
+            .map_err(|e| DepthError::Unavailable(format!("Metal device {i}: {e}"))),
+        DeviceRequest::Cuda(_) => Err(DepthError::Unavailable(
+            "built without the `cuda` feature".into(),
+        )),
+        DeviceRequest::Metal(_) => Err(DepthError::Unavailable(
+            "built without the `metal` feature".into(),
+        )),
     }
 }
 
