@@ -8,12 +8,12 @@
 //! `cargo test --release -p moma-depth --test candle_parity`.
 #![cfg(feature = "candle")]
 
-mod candle_common;
+mod common;
 
 use std::collections::HashMap;
 use std::path::Path;
 
-use candle_common::{
+use common::{
     max_abs_err, reference_dir, reference_image, reference_input, reference_output, tiny_config,
 };
 use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig};

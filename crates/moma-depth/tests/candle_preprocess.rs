@@ -2,9 +2,9 @@
 //! (`shared/reference/dav2`): own `preprocess(input.png)` vs `NAME.input.npy`, and
 //! `resize_bilinear_align_corners(output_net)` vs `output_full`.
 
-mod candle_common;
+mod common;
 
-use candle_common::{
+use common::{
     MODELS, reference_dir, reference_image, reference_input, reference_json, reference_output,
 };
 use moma_depth::preprocess::{preprocess, resize_bilinear_align_corners};
@@ -43,7 +43,7 @@ fn postprocess_matches_reference_full_outputs() {
         let want = reference_output(&dir, name, "full");
         let (h, w) = want.dim();
         let got = resize_bilinear_align_corners(&net.view(), h, w);
-        let (err, range) = candle_common::max_abs_err(&got, &want);
+        let (err, range) = common::max_abs_err(&got, &want);
         eprintln!(
             "{name}: bilinear(output_net) vs output_full: max abs err {err:.3e} (range {range:.3})"
         );

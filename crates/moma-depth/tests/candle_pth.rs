@@ -3,12 +3,12 @@
 //! corrupt or legacy archive is a clear weights error.
 #![cfg(feature = "candle")]
 
-mod candle_common;
+mod common;
 
 use std::io::Write;
 use std::path::Path;
 
-use candle_common::{reference_dir, reference_input, tiny_config};
+use common::{reference_dir, reference_input, tiny_config};
 use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig};
 use moma_depth::{DepthError, DepthModel, Head};
 

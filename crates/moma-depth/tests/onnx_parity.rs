@@ -11,40 +11,20 @@
 //! `cargo test -p moma-depth --release --no-default-features --features onnx --test onnx_parity -- --nocapture`
 #![cfg(feature = "onnx")]
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
+use common::{
+    MODELS, max_abs_err, reference_dir, reference_image, reference_input, reference_json,
+    reference_output,
+};
 use moma_depth::onnx::{OnnxDepthModel, OnnxOptions};
 use moma_depth::{Backbone, DepthError, DepthModel, Head, ModelSpec};
-use ndarray::{Array2, Array3};
-use ndarray_npy::read_npy;
-
-/// The five parity reference models of `shared/reference/dav2/README.md`.
-const MODELS: [&str; 5] = [
-    "tiny-rel",
-    "tiny-rel-392",
-    "tiny-metric",
-    "tiny-metric-392",
-    "vits-rel",
-];
+use ndarray::Array3;
 
 /// Tolerance of the README / issue: max abs error ≤ 1e-3 × output range (float32).
 const REL_TOL: f32 = 1e-3;
-
-fn reference_dir() -> Option<PathBuf> {
-    let shared = std::env::var_os("MOMA_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
-    let dir = shared.join("reference/dav2");
-    if dir.join("input.png").is_file() && dir.join("tiny-rel.onnx").is_file() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "SKIPPED: Depth Anything V2 reference data not found at {} (set MOMA_SHARED_DIR)",
-            dir.display()
-        );
-        None
-    }
-}
 
 /// Loads the ONNX Runtime library; prints a skip message and returns false when it is absent.
 fn runtime() -> bool {
@@ -66,8 +46,7 @@ fn setup() -> Option<PathBuf> {
 }
 
 fn spec_of(dir: &Path, name: &str) -> ModelSpec {
-    let text = std::fs::read_to_string(dir.join(format!("{name}.json"))).expect("read json");
-    let json: serde_json::Value = serde_json::from_str(&text).expect("parse json");
+    let json = reference_json(dir, name);
     let head = match json["head"].as_str() {
         Some("metric") => Head::Metric {
             max_depth_m: json["max_depth"].as_f64().expect("max_depth") as f32,
@@ -91,16 +70,8 @@ fn load(dir: &Path, name: &str) -> OnnxDepthModel {
 }
 
 /// (max abs error, output range of the reference, max abs error / range).
-fn compare(got: &Array2<f32>, want: &Array2<f32>) -> (f32, f32, f32) {
-    assert_eq!(got.dim(), want.dim(), "output shape");
-    let err = got
-        .iter()
-        .zip(want)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
-    let lo = want.iter().copied().fold(f32::INFINITY, f32::min);
-    let hi = want.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    let range = hi - lo;
+fn compare(got: &ndarray::Array2<f32>, want: &ndarray::Array2<f32>) -> (f32, f32, f32) {
+    let (err, range) = max_abs_err(got, want);
     (err, range, err / range.max(f32::MIN_POSITIVE))
 }
 
@@ -114,10 +85,8 @@ fn onnx_net_parity_all_reference_models() {
     );
     for name in MODELS {
         let mut model = load(&dir, name);
-        let input: Array3<f32> =
-            read_npy(dir.join(format!("{name}.input.npy"))).expect("input.npy");
-        let want: Array2<f32> =
-            read_npy(dir.join(format!("{name}.output_net.npy"))).expect("output_net.npy");
+        let input = reference_input(&dir, name);
+        let want = reference_output(&dir, name, "net");
         assert_eq!(
             model.fixed_input_hw(),
             Some((input.dim().1, input.dim().2)),
@@ -136,9 +105,7 @@ fn onnx_net_parity_all_reference_models() {
 #[test]
 fn onnx_full_image_parity_all_reference_models() {
     let Some(dir) = setup() else { return };
-    let rgb = image::open(dir.join("input.png"))
-        .expect("input.png")
-        .to_rgb8();
+    let rgb = reference_image(&dir);
     let mut failures = Vec::new();
     eprintln!(
         "{:<16} {:>12} {:>12} {:>12}",
@@ -146,8 +113,7 @@ fn onnx_full_image_parity_all_reference_models() {
     );
     for name in MODELS {
         let mut model = load(&dir, name);
-        let want: Array2<f32> =
-            read_npy(dir.join(format!("{name}.output_full.npy"))).expect("output_full.npy");
+        let want = reference_output(&dir, name, "full");
         let pred = model.predict(&rgb).expect("predict");
         assert_eq!(
             pred.kind,

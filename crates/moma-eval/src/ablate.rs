@@ -15,7 +15,7 @@ use crate::protocol::{
     evaluate_one,
 };
 use crate::render::{LinePanel, Series, bar_plot, line_plot};
-use crate::report::{Table, metric_cells, metric_headers, write_table};
+use crate::report::{Table, headers_with_metrics, metric_cells, write_table};
 
 /// The sample counts of the paper's ablation (a).
 pub const SAMPLE_COUNTS: &[usize] = &[20, 50, 100, 200, 400, 1000, 3000];
@@ -65,11 +65,7 @@ pub fn samples(
 /// # Errors
 /// I/O or drawing failure.
 pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
-    let mut headers: Vec<String> = ["set", "method", "n"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    headers.extend(metric_headers());
+    let mut headers = headers_with_metrics(&["set", "method", "n"]);
     headers.push("median fit ms".into());
     let table = Table {
         title: title("ablation (a): number of calibration samples n", rows),
@@ -359,11 +355,7 @@ pub fn transparent(
 /// # Errors
 /// I/O or drawing failure.
 pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<AblationOutput> {
-    let mut headers: Vec<String> = ["set", "method", "coverage"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    headers.extend(metric_headers());
+    let headers = headers_with_metrics(&["set", "method", "coverage"]);
     let mut rows = Vec::new();
     let all: Vec<EvalResult> = results.iter().flat_map(|r| r.methods.clone()).collect();
     for r in results {
@@ -440,8 +432,7 @@ fn simple_table(
     rows: &[EvalResult],
     f: impl Fn(&EvalResult) -> String,
 ) -> Table {
-    let mut headers: Vec<String> = vec!["set".into(), key.into(), "method".into()];
-    headers.extend(metric_headers());
+    let headers = headers_with_metrics(&["set", key, "method"]);
     Table {
         title,
         headers,

@@ -123,28 +123,22 @@ pub fn metric_cells(m: &MetricSummary) -> Vec<String> {
     ]
 }
 
-/// Headers of the six metric cells.
-pub fn metric_headers() -> Vec<String> {
-    [
+/// Table headers: the `keys` columns, then the six metric cells.
+pub fn headers_with_metrics(keys: &[&str]) -> Vec<String> {
+    let metrics = [
         "δ1.05 ↑",
         "δ1.10 ↑",
         "δ1.25 ↑",
         "REL ↓",
         "RMSE mm ↓",
         "MAE mm ↓",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect()
+    ];
+    keys.iter().chain(&metrics).map(|s| s.to_string()).collect()
 }
 
 /// The paper-style table of an evaluation (per-image mean, mean ± std over seeds).
 pub fn eval_table(results: &[EvalResult], pooled: bool) -> Table {
-    let mut headers: Vec<String> = ["set", "method", "norm"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    headers.extend(metric_headers());
+    let mut headers = headers_with_metrics(&["set", "method", "norm"]);
     headers.push("fit ms".into());
     let rows = results
         .iter()

@@ -78,6 +78,47 @@ impl CustomOp3 for TwoPassLayerNorm {
     }
 }
 
+/// Implements candle's `CustomOp2` (no residual) and `CustomOp3` (third operand = residual) for an
+/// op with `fn run(&self, x, x_layout, w, w_layout, residual: Option<&[f32]>)` on contiguous `f32`.
+macro_rules! residual_op {
+    ($ty:ident, $name:literal, $name_residual:literal) => {
+        impl candle_core::CustomOp2 for $ty<'_> {
+            fn name(&self) -> &'static str {
+                $name
+            }
+
+            fn cpu_fwd(
+                &self,
+                s1: &CpuStorage,
+                l1: &Layout,
+                s2: &CpuStorage,
+                l2: &Layout,
+            ) -> Result<(CpuStorage, Shape)> {
+                self.run(contiguous(s1, l1)?, l1, contiguous(s2, l2)?, l2, None)
+            }
+        }
+
+        impl CustomOp3 for $ty<'_> {
+            fn name(&self) -> &'static str {
+                $name_residual
+            }
+
+            fn cpu_fwd(
+                &self,
+                s1: &CpuStorage,
+                l1: &Layout,
+                s2: &CpuStorage,
+                l2: &Layout,
+                s3: &CpuStorage,
+                l3: &Layout,
+            ) -> Result<(CpuStorage, Shape)> {
+                let r = contiguous(s3, l3)?;
+                self.run(contiguous(s1, l1)?, l1, contiguous(s2, l2)?, l2, Some(r))
+            }
+        }
+    };
+}
+
 /// A strided `f32` matrix operand of [`sgemm`]: element `(i, j)` at `ptr + i·rs + j·cs`.
 #[derive(Clone, Copy)]
 struct MatRef {
@@ -295,40 +336,7 @@ impl LinearOp<'_> {
     }
 }
 
-impl candle_core::CustomOp2 for LinearOp<'_> {
-    fn name(&self) -> &'static str {
-        "fused-linear"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous(s1, l1)?, l1, contiguous(s2, l2)?, l2, None)
-    }
-}
-
-impl CustomOp3 for LinearOp<'_> {
-    fn name(&self) -> &'static str {
-        "fused-linear-residual"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        let r = contiguous(s3, l3)?;
-        self.run(contiguous(s1, l1)?, l1, contiguous(s2, l2)?, l2, Some(r))
-    }
-}
+residual_op!(LinearOp, "fused-linear", "fused-linear-residual");
 
 /// `w · x + bias` with the bias per output row: `w (m, k)`, `x (k, n)` (or, with `x_t`, `x` given
 /// as `(n, k)` and read transposed), `bias (m)`. The 1×1 convolutions of the DPT head. CPU f32:
@@ -624,40 +632,7 @@ struct Conv3x3<'a> {
 /// faster per ViT-S frame than 16 or 1 MiB on this 2-core machine: the chunk stays in cache).
 const IM2COL_CHUNK_BYTES: usize = 4 << 20;
 
-impl candle_core::CustomOp2 for Conv3x3<'_> {
-    fn name(&self) -> &'static str {
-        "conv3x3-im2col"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        self.run(contiguous(s1, l1)?, l1, contiguous(s2, l2)?, l2, None)
-    }
-}
-
-impl CustomOp3 for Conv3x3<'_> {
-    fn name(&self) -> &'static str {
-        "conv3x3-im2col-residual"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        let r = contiguous(s3, l3)?;
-        self.run(contiguous(s1, l1)?, l1, contiguous(s2, l2)?, l2, Some(r))
-    }
-}
+residual_op!(Conv3x3, "conv3x3-im2col", "conv3x3-im2col-residual");
 
 impl Conv3x3<'_> {
     fn run(

@@ -1,4 +1,4 @@
-//! Shared helpers of the candle-side tests: locating `../shared/reference/dav2` and reading it.
+//! Shared helpers of the depth-model tests (both backends): locating `../shared/reference/dav2` and reading it.
 #![allow(dead_code)]
 
 use std::path::PathBuf;
