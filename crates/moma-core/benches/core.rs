@@ -172,7 +172,7 @@ fn bench_normalise(c: &mut Criterion) {
     for m in [Normalisation::Minmax, Normalisation::Median] {
         let cfg = NormalisationConfig {
             method: m,
-            inverse_space: false,
+            space: moma_core::AlignSpace::Depth,
         };
         g.bench_function(format!("{m:?}_640x480"), |b| {
             p1.install(|| b.iter(|| normalise(black_box(&pred), &cfg, None).unwrap()))

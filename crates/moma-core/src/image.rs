@@ -10,6 +10,7 @@ use crate::error::{CoreError, Result};
 
 /// Width and height of an image in pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ImageSize {
     /// Number of columns (pixels).
     pub width: usize,
@@ -53,6 +54,10 @@ impl std::fmt::Display for ImageSize {
         write!(f, "{}x{} (WxH)", self.width, self.height)
     }
 }
+
+/// Largest image accepted anywhere in moma, pixels (2^28 ≈ 268 M, e.g. 16384 × 16384): decoders
+/// and file readers refuse larger sizes before allocating.
+pub const MAX_IMAGE_PIXELS: usize = 1 << 28;
 
 /// `true` for a usable metric depth value: finite and strictly positive (metres).
 #[inline]

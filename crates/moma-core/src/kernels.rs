@@ -259,3 +259,15 @@ multiversion! {
         (f64::from(min), f64::from(max), cnt.iter().map(|&c| c as usize).sum())
     }
 }
+
+/// In place: `x ← 1/x` where `x > 0` and finite, else `NaN` (the reciprocal of a fitted
+/// disparity is a depth only where the disparity is positive).
+pub(crate) fn reciprocal_positive(out: &mut ndarray::ArrayViewMut2<'_, f32>) {
+    out.mapv_inplace(|x| {
+        if x > 0.0 && x.is_finite() {
+            1.0 / x
+        } else {
+            f32::NAN
+        }
+    });
+}

@@ -22,13 +22,152 @@ pub enum Normalisation {
     None,
 }
 
+impl Normalisation {
+    /// Every normalisation, in documentation order.
+    pub const ALL: [Normalisation; 4] = [
+        Normalisation::Minmax,
+        Normalisation::MinmaxUnit,
+        Normalisation::Median,
+        Normalisation::None,
+    ];
+
+    /// The command-line and file name (`minmax`, `minmax-unit`, `median`, `none`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Minmax => "minmax",
+            Self::MinmaxUnit => "minmax-unit",
+            Self::Median => "median",
+            Self::None => "none",
+        }
+    }
+}
+
+impl std::fmt::Display for Normalisation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Normalisation {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|n| n.name() == s)
+            .ok_or_else(|| {
+                CoreError::InvalidParameter(format!(
+                    "unknown normalisation '{s}' (expected one of: {})",
+                    crate::names::join(Self::ALL.iter().map(|n| n.name()))
+                ))
+            })
+    }
+}
+
+/// The space in which a prediction is normalised and aligned (METHOD.md §1, "Alignment space").
+///
+/// - [`AlignSpace::Depth`]: the predictor is depth (an inverse-depth prediction d becomes 1/d,
+///   invalid where d ≤ 0), the fit's target is the ground-truth depth z (metres) and its output is
+///   metric depth directly.
+/// - [`AlignSpace::Inverse`]: the predictor is disparity (a depth prediction z becomes 1/z), the
+///   fit's target is 1/z (1/m) and the output is the reciprocal of the fitted value (invalid, NaN,
+///   where the fitted disparity is ≤ 0). This is the only space in which the unknown *shift* of a
+///   relative model's disparity (d ≈ a/z + b) can be undone.
+///
+/// Default: the prediction's own space ([`AlignSpace::native`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AlignSpace {
+    /// Fit depth on depth.
+    Depth,
+    /// Fit inverse depth on disparity.
+    Inverse,
+}
+
+impl AlignSpace {
+    /// Both spaces.
+    pub const ALL: [AlignSpace; 2] = [AlignSpace::Depth, AlignSpace::Inverse];
+
+    /// The prediction's own space: inverse-depth predictions align in inverse space, depth
+    /// predictions (metric heads) in depth space.
+    pub const fn native(kind: PredictionKind) -> Self {
+        match kind {
+            PredictionKind::Depth => Self::Depth,
+            PredictionKind::InverseDepth => Self::Inverse,
+        }
+    }
+
+    /// The command-line and file name (`depth`, `inverse`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Depth => "depth",
+            Self::Inverse => "inverse",
+        }
+    }
+
+    /// The fit's target for a ground-truth depth `z_m` (metres): z, or 1/z in inverse space.
+    #[inline]
+    pub fn target_from_depth(self, z_m: f64) -> f64 {
+        match self {
+            Self::Depth => z_m,
+            Self::Inverse => 1.0 / z_m,
+        }
+    }
+
+    /// Metric depth (metres) from a fitted value: itself, or its reciprocal in inverse space
+    /// (NaN where the fitted disparity is ≤ 0 or not finite).
+    #[inline]
+    pub fn depth_from_target(self, t: f64) -> f64 {
+        match self {
+            Self::Depth => t,
+            Self::Inverse => {
+                if t > 0.0 && t.is_finite() {
+                    1.0 / t
+                } else {
+                    f64::NAN
+                }
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for AlignSpace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for AlignSpace {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|n| n.name() == s)
+            .ok_or_else(|| {
+                CoreError::InvalidParameter(format!(
+                    "unknown alignment space '{s}' (expected 'depth' or 'inverse')"
+                ))
+            })
+    }
+}
+
 /// Normalisation settings; identical at calibration and at run time.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct NormalisationConfig {
     /// The formula.
     pub method: Normalisation,
-    /// For `inverse-depth` predictions: align in inverse space instead of converting to 1/d first.
-    pub inverse_space: bool,
+    /// The space the prediction is converted to before normalising (and aligned in).
+    pub space: AlignSpace,
+}
+
+impl NormalisationConfig {
+    /// `method` in the native space of predictions of `kind`.
+    pub const fn native(method: Normalisation, kind: PredictionKind) -> Self {
+        Self {
+            method,
+            space: AlignSpace::native(kind),
+        }
+    }
 }
 
 /// Statistics the normalisation used (over the valid pixels of the map or the region).
@@ -60,8 +199,9 @@ pub struct NormalisedMap {
 /// Steps, in this order:
 /// 1. Every value of `pred` must be finite (else [`CoreError::NonFinitePrediction`] with the count
 ///    and the first offending pixel in row-major order).
-/// 2. For [`PredictionKind::InverseDepth`] (unless `config.inverse_space`): `z = 1/d` for `d > 0`,
-///    `NaN` for `d ≤ 0` (no depth can be inferred there). Otherwise `z = d`.
+/// 2. Conversion to `config.space`: an inverse-depth prediction in depth space, or a depth
+///    prediction in inverse space, becomes `z = 1/d` for `d > 0` and `NaN` for `d ≤ 0` (nothing
+///    can be inferred there). Otherwise `z = d`.
 /// 3. Statistics over the *valid* pixels (finite `z`) of the whole map, or of `region` only:
 ///    `z_min`, `z_max`, `n`, and for `median` also `m` = median (mean of the two middle values for
 ///    even `n`, found in O(n) with `select_nth_unstable`) and `μ = mean |z − m|`.
@@ -85,7 +225,7 @@ pub struct NormalisedMap {
 /// use moma_core::normalise::{normalise, Normalisation, NormalisationConfig};
 /// use moma_core::{Prediction, PredictionKind};
 /// let pred = Prediction::new(ndarray::array![[1.0f32, 2.0], [3.0, 5.0]], PredictionKind::Depth);
-/// let cfg = NormalisationConfig { method: Normalisation::MinmaxUnit, inverse_space: false };
+/// let cfg = NormalisationConfig::native(Normalisation::MinmaxUnit, PredictionKind::Depth);
 /// let n = normalise(&pred, &cfg, None).unwrap();
 /// assert_eq!(n.values, ndarray::array![[0.0f32, 0.25], [0.5, 1.0]]);
 /// ```
@@ -112,7 +252,7 @@ pub fn normalise(
         });
     }
     // 2. kind conversion.
-    let invert = pred.kind == PredictionKind::InverseDepth && !config.inverse_space;
+    let invert = AlignSpace::native(pred.kind) != config.space;
     let mut z: Vec<f32> = if invert {
         d.iter()
             .map(|&x| if x > 0.0 { 1.0 / x } else { f32::NAN })

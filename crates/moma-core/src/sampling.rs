@@ -20,6 +20,43 @@ pub enum SamplingStrategy {
     Grid,
 }
 
+impl SamplingStrategy {
+    /// Both strategies.
+    pub const ALL: [SamplingStrategy; 2] = [SamplingStrategy::Random, SamplingStrategy::Grid];
+
+    /// The command-line and file name (`random`, `grid`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Random => "random",
+            Self::Grid => "grid",
+        }
+    }
+}
+
+impl std::fmt::Display for SamplingStrategy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for SamplingStrategy {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|n| n.name() == s)
+            .ok_or_else(|| {
+                CoreError::InvalidParameter(format!(
+                    "unknown sampling strategy '{s}' (expected 'random' or 'grid')"
+                ))
+            })
+    }
+}
+
+/// Largest number of calibration samples accepted (n, and ⌊√n⌋² for grid sampling): far more
+/// than any fit needs, small enough that no buffer size can overflow.
+pub const MAX_SAMPLES: usize = 10_000_000;
+
 /// Sampling settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SamplingConfig {
@@ -88,6 +125,12 @@ pub fn sample_pixels(
             "number of calibration samples n must be at least 1".into(),
         ));
     }
+    if config.n > MAX_SAMPLES {
+        return Err(CoreError::InvalidParameter(format!(
+            "number of calibration samples n = {} exceeds the limit of {MAX_SAMPLES}",
+            config.n
+        )));
+    }
     let size = gt.size();
     if let Some(r) = restrict {
         size.expect_eq("sampling mask", r.size())?;
@@ -142,13 +185,15 @@ fn sample_grid(eligible: &Array2<bool>, n: usize) -> Result<Vec<Pixel>> {
         return Err(no_valid());
     }
     let k = ((n as f64).sqrt().floor() as usize).max(1);
-    let mut out: Vec<Pixel> = Vec::with_capacity(k * k);
+    // k ≤ √MAX_SAMPLES (checked by the caller), so k·k cannot overflow.
+    let mut out: Vec<Pixel> = Vec::with_capacity((k * k).min(eligible.len()));
+    let mut seen = std::collections::HashSet::with_capacity(out.capacity());
     for j in 0..k {
         let vn = (j as f64 + 0.5) * h as f64 / k as f64 - 0.5;
         for i in 0..k {
             let un = (i as f64 + 0.5) * w as f64 / k as f64 - 0.5;
             if let Some(p) = nearest_eligible(eligible, un, vn)
-                && !out.contains(&p)
+                && seen.insert(p)
             {
                 out.push(p);
             }

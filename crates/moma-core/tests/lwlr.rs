@@ -283,7 +283,7 @@ fn apply_keeps_nan_and_checks_size() {
     })
     .fit(&set)
     .unwrap();
-    assert_eq!((report.method.as_str(), report.n_used), ("lwlr", 20));
+    assert_eq!((report.method.as_str(), report.n_used), ("lwlr-exact", 20));
     assert!(report.rms_residual_m.is_finite());
     let mut z = Array2::from_elem((24, 32), 0.9f32);
     z[[3, 4]] = f32::NAN;

@@ -1,6 +1,6 @@
 //! Normalisation formulas and sampling on tiny maps, with the bad-input paths.
 
-use moma_core::normalise::{Normalisation, NormalisationConfig, normalise};
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig, normalise};
 use moma_core::sampling::{Pixel, SamplingConfig, SamplingStrategy, sample_pixels};
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::{Array2, array};
@@ -9,7 +9,7 @@ use proptest::prelude::*;
 fn cfg(method: Normalisation) -> NormalisationConfig {
     NormalisationConfig {
         method,
-        inverse_space: false,
+        space: AlignSpace::Depth,
     }
 }
 
@@ -95,7 +95,7 @@ fn inverse_depth_is_inverted_and_nonpositive_is_nan() {
     // in inverse space the values are used as they are (0 included)
     let inv = NormalisationConfig {
         method: Normalisation::MinmaxUnit,
-        inverse_space: true,
+        space: AlignSpace::Inverse,
     };
     let n = normalise(&p, &inv, None).unwrap();
     assert!(close(&n.values, &array![[0.25, 0.5], [1.0, 0.0]]));

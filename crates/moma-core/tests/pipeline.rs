@@ -6,7 +6,7 @@ use moma_core::align::lwlr::LwlrConfig;
 use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{AlignmentModel, Method};
 use moma_core::metrics::DepthMetrics;
-use moma_core::normalise::{Normalisation, NormalisationConfig};
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{Calibration, CalibrationConfig, calibrate};
 use moma_core::sampling::SamplingConfig;
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
@@ -33,7 +33,7 @@ fn config(method: Method) -> CalibrationConfig {
         method,
         normalisation: NormalisationConfig {
             method: Normalisation::None,
-            inverse_space: false,
+            space: AlignSpace::Depth,
         },
         sampling: SamplingConfig {
             n: 100,
@@ -56,24 +56,31 @@ fn ssra_end_to_end_is_exact_on_its_own_family() {
     .unwrap();
     assert_eq!(cal.report.n_used, 100);
     assert!(cal.report.rms_residual_m < 1e-5, "{:?}", cal.report);
-    let out = cal.align(&pred, None).unwrap();
+    let out = cal.align(&pred).unwrap();
     let m = DepthMetrics::compute(&out, &gt, None).unwrap();
     assert!(m.mae < 1e-5 && m.d105 == 1.0, "{m:?}");
     // GSSA cannot represent the scale field and is clearly worse
     let g = calibrate(&pred, &gt, &config(Method::Gssa), None, None).unwrap();
-    let mg = DepthMetrics::compute(&g.align(&pred, None).unwrap(), &gt, None).unwrap();
+    let mg = DepthMetrics::compute(&g.align(&pred).unwrap(), &gt, None).unwrap();
     assert!(mg.mae > 100.0 * m.mae.max(1e-6), "{mg:?}");
 }
 
 #[test]
 fn every_method_runs_and_calibration_round_trips_through_json() {
     let (gt, pred) = scene();
+    // RAW takes a metric depth prediction (here the pseudo-depth 1/d)
+    let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::Depth);
     for method in [
         Method::Raw,
         Method::Gssa,
         Method::Ssra(SsraConfig::default()),
         Method::Lwlr(LwlrConfig::default()),
     ] {
+        let pred = if method == Method::Raw {
+            depth_pred.clone()
+        } else {
+            pred.clone()
+        };
         let cal = calibrate(&pred, &gt, &config(method.clone()), None, None).unwrap();
         assert_eq!(cal.report.method, method.name());
         let json = serde_json::to_string(&cal).unwrap();
@@ -84,8 +91,8 @@ fn every_method_runs_and_calibration_round_trips_through_json() {
             (cal.prediction_kind, cal.normalisation, cal.samples.len())
         );
         let (x, y) = (
-            back.align(&pred, None).unwrap().depth_m,
-            cal.align(&pred, None).unwrap().depth_m,
+            back.align(&pred).unwrap().depth_m,
+            cal.align(&pred).unwrap().depth_m,
         );
         assert!(
             x.iter().zip(&y).all(|(p, q)| (p - q).abs() < 1e-6),
@@ -111,7 +118,7 @@ fn workspace_and_sample_region_are_used() {
             .all(|s| s.u < 80.0 && s.v >= 30.0)
     );
     // the same workspace at run time reproduces the calibration frame
-    let out = cal.align(&pred, Some(&region)).unwrap();
+    let out = cal.align(&pred).unwrap();
     let m = DepthMetrics::compute(&out, &gt, Some(&region)).unwrap();
     assert!(m.mae < 0.02, "{m:?}");
 }
@@ -122,7 +129,7 @@ fn pipeline_errors() {
     let cal = calibrate(&pred, &gt, &config(Method::Gssa), None, None).unwrap();
     let as_depth = Prediction::new(pred.values.clone(), PredictionKind::Depth);
     assert_eq!(
-        cal.align(&as_depth, None),
+        cal.align(&as_depth),
         Err(CoreError::KindMismatch {
             expected: PredictionKind::InverseDepth,
             got: PredictionKind::Depth
@@ -133,7 +140,7 @@ fn pipeline_errors() {
         PredictionKind::InverseDepth,
     );
     assert!(matches!(
-        cal.align(&small, None),
+        cal.align(&small),
         Err(CoreError::SizeMismatch { .. })
     ));
     assert!(matches!(
@@ -175,4 +182,200 @@ fn pipeline_errors() {
         })
     ));
     assert!(matches!(cal.model, AlignmentModel::Gssa(_)));
+}
+
+/// A relative model's disparity d = a/z + b with a shift b = −0.5 × mean(a/z): recovered exactly
+/// in inverse space (GSSA and SSRA), not in depth space (METHOD.md §1, "Alignment space").
+#[test]
+fn inverse_space_recovers_a_shifted_disparity_exactly() {
+    let gt = MetricDepth::new(common::tabletop_gt(SIZE));
+    let a = 0.7f64;
+    let mean_inv =
+        gt.depth_m.iter().map(|&z| a / f64::from(z)).sum::<f64>() / SIZE.pixels() as f64;
+    let b = -0.5 * mean_inv;
+    let disparity = gt.depth_m.mapv(|z| (a / f64::from(z) + b) as f32);
+    let pred = Prediction::new(disparity, PredictionKind::InverseDepth);
+    for method in [Method::Gssa, Method::Ssra(SsraConfig::default())] {
+        let mut cfg = config(method.clone());
+        cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
+        assert_eq!(cfg.normalisation.space, AlignSpace::Inverse);
+        let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+        assert!(cal.report.rms_residual_m < 1e-5, "{method}: {:?}", cal.report);
+        let m = DepthMetrics::compute(&cal.align(&pred).unwrap(), &gt, None).unwrap();
+        assert!(m.mae < 2e-5 && m.d105 == 1.0, "{method} inverse space: {m:?}");
+        // depth space (1/d as pseudo-depth) cannot undo the shift
+        cfg.normalisation.space = AlignSpace::Depth;
+        let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+        let md = DepthMetrics::compute(&cal.align(&pred).unwrap(), &gt, None).unwrap();
+        assert!(md.mae > 100.0 * m.mae.max(1e-6), "{method} depth space: {md:?}");
+    }
+}
+
+#[test]
+fn inverse_space_output_is_nan_where_the_fitted_disparity_is_not_positive() {
+    let gt = MetricDepth::new(Array2::from_shape_fn((20, 30), |(_, u)| 0.5 + 0.01 * u as f32));
+    let pred = Prediction::new(gt.depth_m.mapv(|z| 1.0 / z), PredictionKind::InverseDepth);
+    let mut cfg = config(Method::Gssa);
+    cfg.normalisation.space = AlignSpace::Inverse;
+    let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+    // a disparity far below anything seen maps to a negative fitted 1/z: no depth, not a
+    // negative or huge one
+    let mut later = pred.clone();
+    later.values[[3, 4]] = -10.0;
+    let out = cal.align(&later).unwrap();
+    assert!(out.depth_m[[3, 4]].is_nan());
+    assert!((out.depth_m[[0, 0]] - 0.5).abs() < 1e-5);
+}
+
+#[test]
+fn raw_needs_metric_depth_and_no_normalisation() {
+    let (gt, pred) = scene();
+    let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::Depth);
+    let mut cfg = config(Method::Raw);
+    // inverse-depth prediction
+    let e = calibrate(&pred, &gt, &cfg, None, None).unwrap_err();
+    assert!(
+        matches!(&e, CoreError::InvalidParameter(m) if m.contains("raw") && m.contains("inverse-depth")),
+        "{e}"
+    );
+    // a normalisation would write normalised values as metres
+    cfg.normalisation.method = Normalisation::Minmax;
+    let e = calibrate(&depth_pred, &gt, &cfg, None, None).unwrap_err();
+    assert!(
+        matches!(&e, CoreError::InvalidParameter(m) if m.contains("normalisation 'none'")),
+        "{e}"
+    );
+    cfg.normalisation.method = Normalisation::None;
+    assert!(calibrate(&depth_pred, &gt, &cfg, None, None).is_ok());
+}
+
+#[test]
+fn the_calibration_owns_its_workspace_and_align_into_matches_align() {
+    let (gt, pred) = scene();
+    let region = Mask::new(Array2::from_shape_fn(SIZE.shape(), |(v, u)| {
+        u < 100 && v >= 20
+    }));
+    let mut cfg = config(Method::Ssra(SsraConfig::default()));
+    cfg.normalisation.method = Normalisation::Minmax;
+    let cal = calibrate(&pred, &gt, &cfg, Some(&region), None).unwrap();
+    assert_eq!(cal.workspace.as_ref().unwrap().mask(), &region);
+    // normalised over the workspace: differs from a calibration without one, on the same samples
+    let whole = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+    assert_ne!(cal.model, whole.model);
+    // through JSON (run lengths + hash) and back: the same workspace and output
+    let back: Calibration = serde_json::from_str(&serde_json::to_string(&cal).unwrap()).unwrap();
+    assert_eq!(back.workspace, cal.workspace);
+    back.validate().unwrap();
+    let expected = cal.align(&pred).unwrap().depth_m;
+    assert!(
+        back.align(&pred)
+            .unwrap()
+            .depth_m
+            .iter()
+            .zip(&expected)
+            .all(|(p, q)| (p - q).abs() < 1e-6)
+    );
+    let mut out = Array2::<f32>::from_elem(SIZE.shape(), -1.0);
+    cal.align_into(&pred, &mut out.view_mut()).unwrap();
+    assert_eq!(out, expected);
+    let mut wrong = Array2::<f32>::zeros((3, 3));
+    assert!(matches!(
+        cal.align_into(&pred, &mut wrong.view_mut()),
+        Err(CoreError::SizeMismatch { .. })
+    ));
+    // a tampered workspace is refused on reading
+    let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
+    v["workspace"]["runs"][1] = serde_json::json!(v["workspace"]["runs"][1].as_u64().unwrap() - 1);
+    v["workspace"]["runs"][2] = serde_json::json!(v["workspace"]["runs"][2].as_u64().unwrap() + 1);
+    let e = serde_json::from_value::<Calibration>(v).unwrap_err().to_string();
+    assert!(e.contains("hash mismatch") || e.contains("inside_px"), "{e}");
+}
+
+#[test]
+fn validation_refuses_broken_models() {
+    let (gt, pred) = scene();
+    let lwlr = calibrate(
+        &pred,
+        &gt,
+        &config(Method::Lwlr(LwlrConfig::default())),
+        None,
+        None,
+    )
+    .unwrap();
+    lwlr.validate().unwrap();
+    let mut v = serde_json::to_value(&lwlr).unwrap();
+    v["model"]["bandwidth_px"] = serde_json::json!(-3.0);
+    let bad: Calibration = serde_json::from_value(v.clone()).unwrap();
+    assert!(bad.validate().unwrap_err().to_string().contains("bandwidth"));
+    v["model"]["bandwidth_px"] = serde_json::json!(0.0);
+    let bad: Calibration = serde_json::from_value(v.clone()).unwrap();
+    assert!(bad.validate().unwrap_err().to_string().contains("bandwidth"));
+    // unknown fields are refused
+    v["model"]["bandwidth_px"] = serde_json::json!(lwlr_bandwidth(&lwlr));
+    v["surprise"] = serde_json::json!(1);
+    assert!(
+        serde_json::from_value::<Calibration>(v)
+            .unwrap_err()
+            .to_string()
+            .contains("unknown field")
+    );
+    // SSRA whose canonical parameters disagree with the linear ones
+    let ssra = calibrate(
+        &pred,
+        &gt,
+        &config(Method::Ssra(SsraConfig::default())),
+        None,
+        None,
+    )
+    .unwrap();
+    ssra.validate().unwrap();
+    let mut v = serde_json::to_value(&ssra).unwrap();
+    let s = v["model"]["canonical"]["s_m"].as_f64().unwrap();
+    v["model"]["canonical"]["s_m"] = serde_json::json!(s * 1.01);
+    let bad: Calibration = serde_json::from_value(v).unwrap();
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("different models")
+    );
+}
+
+fn lwlr_bandwidth(c: &Calibration) -> f64 {
+    match &c.model {
+        AlignmentModel::Lwlr(m) => m.bandwidth_px,
+        _ => unreachable!(),
+    }
+}
+
+#[test]
+fn names_parse_and_print_back() {
+    for name in Method::NAMES {
+        let m: Method = name.parse().unwrap();
+        assert_eq!(m.to_string(), name);
+    }
+    for n in Normalisation::ALL {
+        assert_eq!(n.to_string().parse::<Normalisation>().unwrap(), n);
+    }
+    for s in AlignSpace::ALL {
+        assert_eq!(s.to_string().parse::<AlignSpace>().unwrap(), s);
+    }
+    let e = "ssr".parse::<Method>().unwrap_err().to_string();
+    assert!(e.contains("unknown method 'ssr'") && e.contains("lwlr-exact"), "{e}");
+    assert!("minmax_unit".parse::<Normalisation>().is_err());
+}
+
+#[test]
+fn huge_sample_counts_are_refused() {
+    let (gt, pred) = scene();
+    for strategy in [
+        moma_core::sampling::SamplingStrategy::Random,
+        moma_core::sampling::SamplingStrategy::Grid,
+    ] {
+        let mut cfg = config(Method::Gssa);
+        cfg.sampling.strategy = strategy;
+        cfg.sampling.n = usize::MAX;
+        let e = calibrate(&pred, &gt, &cfg, None, None).unwrap_err();
+        assert!(e.to_string().contains("exceeds the limit"), "{e}");
+    }
 }

@@ -8,10 +8,11 @@ use moma_core::normalise::Normalisation;
 use moma_core::{MetricDepth, is_valid_depth};
 use serde::{Deserialize, Serialize};
 
-use crate::data::MomaSet;
+use crate::data::LoadedSet;
+use moma_core::align::Method;
 use crate::error::{EvalError, Result};
 use crate::protocol::{
-    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, effective_norm, evaluate,
+    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, evaluate,
     evaluate_one,
 };
 use crate::render::{LinePanel, Series, bar_plot, line_plot};
@@ -29,11 +30,11 @@ pub struct AblationOutput {
     pub plots: Vec<PathBuf>,
 }
 
-fn aligned_methods(config: &EvalConfig) -> Vec<String> {
+fn aligned_methods(config: &EvalConfig) -> Vec<Method> {
     config
         .methods
         .iter()
-        .filter(|m| *m != "raw")
+        .filter(|m| **m != Method::Raw)
         .cloned()
         .collect()
 }
@@ -44,7 +45,7 @@ fn aligned_methods(config: &EvalConfig) -> Vec<String> {
 /// # Errors
 /// As [`evaluate`].
 pub fn samples(
-    set: &MomaSet,
+    set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
     counts: &[usize],
@@ -53,7 +54,7 @@ pub fn samples(
     let mut out = Vec::new();
     for &n in counts {
         for m in aligned_methods(config) {
-            let norm = effective_norm(&m, config.norms[0], config.inverse_space);
+            let norm = prep.normalisation_for(&m, config.norms[0]);
             out.push(evaluate_one(&prep, &m, &norm, n)?);
         }
     }
@@ -141,7 +142,7 @@ pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> 
 /// # Errors
 /// As [`evaluate`].
 pub fn norms(
-    set: &MomaSet,
+    set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
     norms: &[Normalisation],
@@ -236,13 +237,18 @@ fn write_grouped(dir: &Path, rows: &[EvalResult], g: Grouping) -> Result<Ablatio
 /// # Errors
 /// As [`evaluate`].
 pub fn sources(
-    set: &MomaSet,
+    set: &LoadedSet,
     sources: &[PredictionSet],
     config: &EvalConfig,
 ) -> Result<Vec<EvalResult>> {
     let mut out = Vec::new();
     for s in sources {
-        out.extend(evaluate(set, s, config)?);
+        // RAW uses a prediction as metres: only for metric (depth) sources.
+        let mut cfg = config.clone();
+        if s.kind()? != moma_core::PredictionKind::Depth {
+            cfg.methods.retain(|m| *m != Method::Raw);
+        }
+        out.extend(evaluate(set, s, &cfg)?);
     }
     Ok(out)
 }
@@ -297,7 +303,7 @@ pub struct TransparentResult {
 /// # Errors
 /// As [`evaluate`]; a frame without `raw_depth.png` (named).
 pub fn transparent(
-    set: &MomaSet,
+    set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
 ) -> Result<TransparentResult> {

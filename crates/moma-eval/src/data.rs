@@ -1,107 +1,23 @@
-//! In-memory moma sets for the evaluation, loaded and written through `moma-io`.
+//! Sets and prediction folders for the evaluation.
 //!
-//! The file formats and the directory layout (`SET/camera.json`, `SET/frames/ID/{rgb,depth,
-//! mask,raw_depth}.png`) are those of [`moma_io::MomaSet`] / [`moma_io::MomaSetWriter`]; this
-//! module only holds a whole set in memory (the protocol visits every frame once per seed and
-//! method) and keeps the evaluation's convention that invalid depth is `0`.
-//!
-//! A prediction folder holds `<frame-id>.npy`, float32 (float64 accepted), shape `(H, W)`.
+//! A set in memory is moma-io's [`LoadedSet`] (one type for the whole project; invalid depth is
+//! `NaN` as [`moma_io::read_depth`] returns it). A prediction folder holds `<frame-id>.npy`,
+//! float32 (float64 accepted), shape `(H, W)`, and its index `predictions.json`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use image::RgbImage;
-use moma_core::{ImageSize, Intrinsics, Mask, MetricDepth};
 use ndarray::Array2;
 
 use crate::error::{EvalError, Result};
 
-/// One frame of a set, fully loaded.
-#[derive(Debug, Clone)]
-pub struct Frame {
-    /// Frame id (the folder name).
-    pub id: String,
-    /// 8-bit RGB, when known (always present in a set loaded from disk).
-    pub rgb: Option<RgbImage>,
-    /// Ground-truth depth in metres (invalid = 0).
-    pub gt: MetricDepth,
-    /// Evaluation region; `None` = whole image.
-    pub mask: Option<Mask>,
-    /// What the depth sensor saw (transparent sets), metres, invalid = 0.
-    pub raw_depth: Option<MetricDepth>,
-}
+pub use moma_io::{LoadedFrame, LoadedSet};
 
-/// A fixed-camera set in the moma layout.
-#[derive(Debug, Clone)]
-pub struct MomaSet {
-    /// Set name (the folder's name).
-    pub name: String,
-    /// The set folder.
-    pub dir: PathBuf,
-    /// Camera intrinsics (pixels).
-    pub intrinsics: Intrinsics,
-    /// Frames sorted by id.
-    pub frames: Vec<Frame>,
-}
-
-impl MomaSet {
-    /// Image size of the set.
-    pub fn size(&self) -> ImageSize {
-        self.intrinsics.size()
-    }
-    /// Index of a frame by id.
-    pub fn frame_index(&self, id: &str) -> Option<usize> {
-        self.frames.iter().position(|f| f.id == id)
-    }
-}
-
-/// The set's name: the last component of its (canonical) path.
-pub fn set_name(dir: &Path) -> String {
-    dir.canonicalize()
-        .ok()
-        .and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned()))
-        .or_else(|| dir.file_name().map(|s| s.to_string_lossy().into_owned()))
-        .unwrap_or_else(|| dir.display().to_string())
-}
-
-/// `moma-io` reads "no measurement" as NaN; the evaluation keeps invalid depth as 0.
-fn nan_to_zero(mut d: MetricDepth) -> MetricDepth {
-    d.depth_m.mapv_inplace(|z| if z.is_nan() { 0.0 } else { z });
-    d
-}
-
-/// Loads a whole set with [`moma_io::MomaSet::open`] and the frame loaders (every map is checked
-/// against the camera's size).
+/// Opens and loads the moma set at `dir` ([`LoadedSet::open`]).
 ///
 /// # Errors
-/// Missing `camera.json` / `frames/` / `depth.png` / `rgb.png`, unreadable files, size
-/// mismatches; per-frame errors name the set and the frame.
-pub fn load_set(dir: &Path) -> Result<MomaSet> {
-    let name = set_name(dir);
-    let opened = moma_io::MomaSet::open(dir)?;
-    let frame_err = |id: &str| {
-        let (set, frame) = (name.clone(), id.to_string());
-        move |source| EvalError::frame_io(&set, &frame, source)
-    };
-    let mut frames = Vec::with_capacity(opened.frames.len());
-    for f in &opened.frames {
-        let gt = f.load_depth().map_err(frame_err(&f.id))?;
-        let rgb = f.load_rgb().map_err(frame_err(&f.id))?;
-        let mask = f.load_mask().map_err(frame_err(&f.id))?;
-        let raw_depth = f.load_raw_depth().map_err(frame_err(&f.id))?;
-        frames.push(Frame {
-            id: f.id.clone(),
-            rgb: Some(rgb),
-            gt: nan_to_zero(gt),
-            mask,
-            raw_depth: raw_depth.map(nan_to_zero),
-        });
-    }
-    Ok(MomaSet {
-        name,
-        dir: dir.to_path_buf(),
-        intrinsics: opened.camera,
-        frames,
-    })
+/// Any read error, naming the file.
+pub fn load_set(dir: &Path) -> Result<LoadedSet> {
+    Ok(LoadedSet::open(dir)?)
 }
 
 /// Reads one prediction `<dir>/<frame-id>.npy` (float32 or float64, shape `(H, W)`).
@@ -156,29 +72,10 @@ pub fn write_text(path: &Path, text: &str) -> Result<()> {
 /// Colour of the placeholder `rgb.png` written for frames without RGB (the layout requires one).
 pub const PLACEHOLDER_RGB: [u8; 3] = [128, 128, 128];
 
-/// Writes a whole set in the moma layout with [`moma_io::MomaSetWriter`] (depth as uint16 mm).
-/// Frames without RGB get a uniform grey `rgb.png` ([`PLACEHOLDER_RGB`]).
+/// Writes a whole set in the moma layout ([`LoadedSet::write`]; depth as uint16 mm).
 ///
 /// # Errors
-/// I/O failure or size mismatch (naming the frame).
-pub fn write_set(dir: &Path, set: &MomaSet) -> Result<()> {
-    let writer = moma_io::MomaSetWriter::create(dir, &set.intrinsics)?;
-    let size = set.size();
-    let placeholder = RgbImage::from_pixel(
-        size.width as u32,
-        size.height as u32,
-        image::Rgb(PLACEHOLDER_RGB),
-    );
-    for f in &set.frames {
-        let data = moma_io::FrameData {
-            rgb: f.rgb.as_ref().unwrap_or(&placeholder),
-            depth: &f.gt,
-            mask: f.mask.as_ref(),
-            raw_depth: f.raw_depth.as_ref(),
-        };
-        writer
-            .write_frame(&f.id, data)
-            .map_err(|source| EvalError::frame_io(&set.name, &f.id, source))?;
-    }
-    Ok(())
+/// Any write error, naming the file.
+pub fn write_set(dir: &Path, set: &LoadedSet) -> Result<()> {
+    Ok(set.write(dir)?)
 }

@@ -9,10 +9,10 @@ use moma_core::normalise::NormalisationConfig;
 
 use moma_io::{Colormap, DepthRange, PlyFormat};
 
-use crate::data::{MomaSet, create_parent};
+use crate::data::{LoadedSet, create_parent};
 use crate::error::Result;
 use crate::figure::frame_figure;
-use crate::protocol::{EvalConfig, PredictionSet, Prepared, aligned_maps, effective_norm};
+use crate::protocol::{EvalConfig, PredictionSet, Prepared, aligned_maps};
 use crate::render::quantile;
 use crate::scene::{SceneConfig, build_scene};
 use crate::simulate::{
@@ -40,7 +40,7 @@ pub struct VisualFiles {
 /// # Errors
 /// Any alignment or I/O failure, naming the frame.
 pub fn write_visuals(
-    set: &MomaSet,
+    set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
     out: &Path,
@@ -51,9 +51,9 @@ pub fn write_visuals(
     let norm0 = config.norms.first().copied().unwrap_or_default();
     let mut per_method: Vec<(String, Vec<moma_core::MetricDepth>)> = Vec::new();
     for m in &config.methods {
-        let norm: NormalisationConfig = effective_norm(m, norm0, config.inverse_space);
-        let (_, _, maps) = aligned_maps(&prep, m, &norm, config.samples, config.seed_base)?;
-        per_method.push((m.clone(), maps));
+        let norm: NormalisationConfig = prep.normalisation_for(m, norm0);
+        let (_, maps) = aligned_maps(&prep, m, &norm, config.samples, config.seed_base)?;
+        per_method.push((m.to_string(), maps));
     }
     let pc_method = per_method
         .iter()
@@ -164,11 +164,11 @@ impl Default for DemoScene {
 }
 
 /// Builds the demo scene and its simulated predictions; with `out`, writes the scene in the moma
-/// layout to `out/scene/` and the predictions (with `simulated.json`) to `out/predictions/`.
+/// layout to `out/scene/` and the predictions (with `predictions.json`) to `out/predictions/`.
 ///
 /// # Errors
 /// Simulation or I/O failure.
-pub fn build_demo(demo: &DemoScene, out: Option<&Path>) -> Result<(MomaSet, PredictionSet)> {
+pub fn build_demo(demo: &DemoScene, out: Option<&Path>) -> Result<(LoadedSet, PredictionSet)> {
     let mut set = build_scene(&demo.scene);
     let sim = Simulator::new(
         demo.simulator,
@@ -194,7 +194,7 @@ pub fn build_demo(demo: &DemoScene, out: Option<&Path>) -> Result<(MomaSet, Pred
     Ok((
         set,
         PredictionSet {
-            label: format!("simulated {}", demo.kind),
+            label: format!("SIMULATED {}", demo.kind),
             simulated: true,
             maps,
         },

@@ -8,7 +8,7 @@ use std::path::Path;
 use moma_core::{MetricDepth, Prediction, is_valid_depth};
 use ndarray::Array2;
 
-use crate::data::Frame;
+use crate::data::LoadedFrame;
 use crate::error::Result;
 use crate::render::{FigureRow, Panel, comparison_figure, quantile};
 
@@ -22,7 +22,7 @@ pub const FIGURE_PANEL_W: u32 = 300;
 pub fn frame_figure(
     path: &Path,
     title: &str,
-    frame: &Frame,
+    frame: &LoadedFrame,
     raw: &Prediction,
     simulated: bool,
     aligned: &[(String, MetricDepth)],

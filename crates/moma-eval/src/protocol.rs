@@ -8,87 +8,43 @@
 //! over all evaluated pixels; both as mean ± standard deviation over seeds (population standard
 //! deviation, ddof = 0).
 
-use std::time::Instant;
+use std::sync::Arc;
 
-use moma_core::align::lwlr::LwlrConfig;
-use moma_core::align::ssra::SsraConfig;
-use moma_core::align::{AlignmentModel, FitReport, Method, SampleSet};
+use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
-use moma_core::normalise::Normalisation;
-use moma_core::normalise::{NormalisationConfig, NormalisedMap, normalise};
-use moma_core::sampling::{SamplingConfig, SamplingStrategy, sample_pixels};
-use moma_core::{Intrinsics, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise};
+use moma_core::pipeline::{Calibration, CalibrationConfig, Workspace, calibrate_normalised};
+use moma_core::sampling::{SamplingConfig, SamplingStrategy};
+use moma_core::{Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::data::MomaSet;
+use crate::data::LoadedSet;
 use crate::error::{EvalError, Result};
 
-/// Method names understood by [`method_from_name`].
-pub const METHOD_NAMES: &[&str] = &["ssra", "gssa", "lwlr", "raw"];
-
-/// Further method names: `lwlr-exact` (per-pixel LWLR solve with BoostingDepth's other
-/// choices) and `lwlr-bare` (the bare published formula, exact solve).
-pub const EXTRA_METHOD_NAMES: &[&str] = &["lwlr-exact", "lwlr-bare"];
-
-/// Builds a core [`Method`] from its command-line name; SSRA reports its canonical parameters
-/// with the set's intrinsics.
-///
-/// # Errors
-/// Unknown name.
-pub fn method_from_name(name: &str, intrinsics: &Intrinsics) -> Result<Method> {
-    match name {
-        "ssra" => Ok(Method::Ssra(SsraConfig {
-            intrinsics: Some(*intrinsics),
-        })),
-        "gssa" => Ok(Method::Gssa),
-        "lwlr" => Ok(Method::Lwlr(LwlrConfig::default())),
-        "lwlr-exact" => Ok(Method::Lwlr(LwlrConfig::exact())),
-        "lwlr-bare" => Ok(Method::Lwlr(LwlrConfig::bare_exact())),
-        "raw" => Ok(Method::Raw),
-        other => Err(EvalError::InvalidParameter(format!(
-            "unknown method '{other}' (expected one of {}, {})",
-            METHOD_NAMES.join(", "),
-            EXTRA_METHOD_NAMES.join(", ")
-        ))),
+/// The methods evaluated by default for predictions of `kind`: SSRA, GSSA, LWLR, and RAW for
+/// metric (`depth`) predictions only (RAW uses the prediction as metres).
+pub fn default_methods(kind: PredictionKind) -> Vec<Method> {
+    let mut m = vec![
+        Method::Ssra(Default::default()),
+        Method::Gssa,
+        Method::Lwlr(Default::default()),
+    ];
+    if kind == PredictionKind::Depth {
+        m.push(Method::Raw);
     }
-}
-
-/// Command-line name of a normalisation.
-pub fn norm_name(n: Normalisation) -> &'static str {
-    match n {
-        Normalisation::Minmax => "minmax",
-        Normalisation::MinmaxUnit => "minmax-unit",
-        Normalisation::Median => "median",
-        Normalisation::None => "none",
-    }
-}
-
-/// Parses a normalisation name (`minmax`, `minmax-unit`, `median`, `none`).
-///
-/// # Errors
-/// Unknown name.
-pub fn parse_norm(s: &str) -> Result<Normalisation> {
-    match s {
-        "minmax" => Ok(Normalisation::Minmax),
-        "minmax-unit" => Ok(Normalisation::MinmaxUnit),
-        "median" => Ok(Normalisation::Median),
-        "none" => Ok(Normalisation::None),
-        other => Err(EvalError::InvalidParameter(format!(
-            "unknown normalisation '{other}' (expected minmax, minmax-unit, median or none)"
-        ))),
-    }
+    m
 }
 
 /// Settings of one evaluation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvalConfig {
-    /// Method names (see [`METHOD_NAMES`]), in table order.
-    pub methods: Vec<String>,
+    /// Methods, in table order (SSRA's intrinsics are set from the set's camera).
+    pub methods: Vec<Method>,
     /// Normalisations to evaluate (RAW is always evaluated once, without normalisation).
     pub norms: Vec<Normalisation>,
-    /// For inverse-depth predictions: align in inverse space.
-    pub inverse_space: bool,
+    /// Alignment space; `None`: the predictions' own ([`AlignSpace::native`]).
+    pub space: Option<AlignSpace>,
     /// Number of calibration samples n.
     pub samples: usize,
     /// Number of sampling seeds.
@@ -112,9 +68,9 @@ pub struct EvalConfig {
 impl Default for EvalConfig {
     fn default() -> Self {
         Self {
-            methods: METHOD_NAMES.iter().map(|s| s.to_string()).collect(),
+            methods: default_methods(PredictionKind::Depth),
             norms: vec![Normalisation::Minmax],
-            inverse_space: false,
+            space: None,
             samples: 100,
             seeds: 10,
             seed_base: 0,
@@ -204,6 +160,8 @@ pub struct EvalResult {
     pub method: String,
     /// Normalisation name (`none` for RAW).
     pub norm: String,
+    /// Alignment space.
+    pub space: AlignSpace,
     /// Calibration samples n asked for.
     pub samples: usize,
     /// Number of seeds.
@@ -270,43 +228,57 @@ pub struct PredictionSet {
 }
 
 impl PredictionSet {
-    /// Reads `<dir>/<frame-id>.npy` for every frame; `simulated` from `simulated.json`.
+    /// Reads `<dir>/<frame-id>.npy` for every frame. The kind and the label come from the
+    /// folder's `predictions.json` (written by `moma predict` / `moma simulate`) and `kind`
+    /// (`--pred-kind`): at least one must state it, and they must agree.
     ///
     /// # Errors
-    /// A missing file or a size mismatch, naming the frame.
-    pub fn read(set: &MomaSet, dir: &std::path::Path, kind: PredictionKind) -> Result<Self> {
-        let meta = crate::simulate::read_simulated_meta(dir);
-        if let Some(m) = &meta
-            && m.kind != kind
-        {
-            return Err(EvalError::InvalidParameter(format!(
-                "{}: simulated.json says the predictions are '{}' but --pred-kind is '{}'",
-                dir.display(),
-                m.kind,
-                kind
-            )));
-        }
+    /// Unknown or contradicting kind; a missing file or a size mismatch, naming the frame.
+    pub fn read(set: &LoadedSet, dir: &std::path::Path, kind: Option<PredictionKind>) -> Result<Self> {
+        let index = moma_io::read_prediction_index(dir)?;
+        let index_what = index
+            .as_ref()
+            .map(|i| i.path.display().to_string())
+            .unwrap_or_default();
+        let kind = moma_io::resolve_prediction_kind(&[
+            ("--pred-kind", kind),
+            (index_what.as_str(), index.as_ref().map(|i| i.kind)),
+        ])
+        .map_err(|m| EvalError::InvalidParameter(format!("predictions in {}: {m}", dir.display())))?;
         let mut maps = Vec::with_capacity(set.frames.len());
         for f in &set.frames {
             let values = crate::data::read_prediction(dir, &set.name, &f.id)?;
             maps.push(Prediction::new(values, kind));
         }
-        let label = match &meta {
-            Some(m) => format!("simulated {kind} (seed {})", m.seed),
-            None => format!("{kind} predictions"),
+        let simulated = index.as_ref().is_some_and(|i| i.simulated);
+        let label = match &index {
+            Some(i) if i.simulated => format!("SIMULATED {kind} ({})", i.source),
+            Some(i) => format!("{kind}: {}", i.source),
+            None => format!("{kind} predictions from {}", dir.display()),
         };
         Ok(Self {
             label,
-            simulated: meta.is_some(),
+            simulated,
             maps,
         })
+    }
+
+    /// Kind of the maps (of the first; all share it).
+    ///
+    /// # Errors
+    /// An empty set of predictions.
+    pub fn kind(&self) -> Result<PredictionKind> {
+        self.maps
+            .first()
+            .map(|p| p.kind)
+            .ok_or_else(|| EvalError::InvalidParameter("no prediction".into()))
     }
 }
 
 /// A set with its predictions, checked and ready to evaluate.
 pub struct Prepared<'a> {
     /// The set.
-    pub set: &'a MomaSet,
+    pub set: &'a LoadedSet,
     /// Predictions.
     pub preds: &'a PredictionSet,
     /// Index of the calibration frame.
@@ -315,6 +287,8 @@ pub struct Prepared<'a> {
     pub eval_masks: Vec<Mask>,
     /// Sampling region on the calibration frame (depth range), if restricted.
     pub sample_region: Option<Mask>,
+    /// The workspace every normalisation uses, as a calibration owns it.
+    pub workspace: Option<Arc<Workspace>>,
     config: EvalConfig,
 }
 
@@ -332,7 +306,7 @@ impl<'a> Prepared<'a> {
     ///
     /// # Errors
     /// Each problem names the set and frame.
-    pub fn new(set: &'a MomaSet, preds: &'a PredictionSet, config: &EvalConfig) -> Result<Self> {
+    pub fn new(set: &'a LoadedSet, preds: &'a PredictionSet, config: &EvalConfig) -> Result<Self> {
         let set_err = |message: String| EvalError::Set {
             set: set.name.clone(),
             message,
@@ -422,12 +396,19 @@ impl<'a> Prepared<'a> {
         let sample_region = config
             .depth_range_m
             .map(|r| Mask::new(set.frames[calib].gt.depth_m.mapv(|z| in_range(z, Some(r)))));
+        let workspace = config
+            .workspace
+            .clone()
+            .map(|w| Workspace::new(w).map(Arc::new))
+            .transpose()
+            .map_err(|e| EvalError::core(format!("set '{}': workspace mask", set.name), e))?;
         Ok(Self {
             set,
             preds,
             calib,
             eval_masks,
             sample_region,
+            workspace,
             config: config.clone(),
         })
     }
@@ -444,13 +425,18 @@ impl<'a> Prepared<'a> {
             .collect()
     }
 
-    /// Normalises the prediction of frame `i` (statistics over [`EvalConfig::workspace`] when
-    /// given, else over the whole map).
+    /// Normalises the prediction of frame `i` with `norm` over the workspace (when given), as
+    /// [`Calibration::normalise`] does; cached by the evaluation across seeds.
     ///
     /// # Errors
     /// Normalisation errors, naming the frame.
     pub fn normalised(&self, i: usize, norm: &NormalisationConfig) -> Result<NormalisedMap> {
-        normalise(&self.preds.maps[i], norm, self.config.workspace.as_ref()).map_err(|e| {
+        normalise(
+            &self.preds.maps[i],
+            norm,
+            self.workspace.as_deref().map(Workspace::mask),
+        )
+        .map_err(|e| {
             EvalError::core(
                 format!(
                     "set '{}', frame '{}': normalising the prediction",
@@ -461,82 +447,91 @@ impl<'a> Prepared<'a> {
         })
     }
 
-    /// Calibrates `method` on the calibration frame with sampling seed `seed`.
+    /// Calibrates `method` on the calibration frame (normalised as `calib_map`) with sampling
+    /// seed `seed`: [`calibrate_normalised`], the library path of `moma calibrate`.
     ///
     /// # Errors
     /// Sampling or fitting errors, naming the frame.
     pub fn calibrate(
         &self,
         method: &Method,
+        norm: &NormalisationConfig,
         calib_map: &NormalisedMap,
         n: usize,
         seed: u64,
-    ) -> Result<(AlignmentModel, FitReport)> {
+    ) -> Result<Calibration> {
         let f = &self.set.frames[self.calib];
-        let ctx = || {
-            format!(
-                "set '{}', calibration frame '{}', method {}",
-                self.set.name,
-                f.id,
-                method.name()
+        let config = CalibrationConfig {
+            method: method.clone(),
+            normalisation: *norm,
+            sampling: SamplingConfig {
+                strategy: self.config.sampling,
+                n,
+                seed,
+            },
+        };
+        calibrate_normalised(
+            calib_map,
+            self.preds.maps[self.calib].kind,
+            &f.gt,
+            &config,
+            self.workspace.clone(),
+            self.sample_region.as_ref(),
+        )
+        .map_err(|e| {
+            EvalError::core(
+                format!(
+                    "set '{}', calibration frame '{}', method {method}",
+                    self.set.name, f.id
+                ),
+                e,
             )
-        };
-        let sampling = SamplingConfig {
-            strategy: self.config.sampling,
-            n,
-            seed,
-        };
-        let pixels = sample_pixels(&f.gt, &sampling, self.sample_region.as_ref())
-            .map_err(|e| EvalError::core(ctx(), e))?;
-        let samples =
-            SampleSet::gather(calib_map, &f.gt, &pixels).map_err(|e| EvalError::core(ctx(), e))?;
-        let t = Instant::now();
-        let (model, mut report) = method
-            .fit(&samples)
-            .map_err(|e| EvalError::core(ctx(), e))?;
-        if report.fit_time_s.is_nan() || report.fit_time_s <= 0.0 {
-            report.fit_time_s = t.elapsed().as_secs_f64();
-        }
-        Ok((model, report))
+        })
     }
 
-    /// Applies a fitted model to frame `i` and scores it inside its evaluation region.
+    /// Aligns frame `i` (normalised as `map`) with [`Calibration::align_normalised`] and scores
+    /// it inside its evaluation region.
     ///
     /// # Errors
     /// Apply or metric errors, naming the frame.
     pub fn score(
         &self,
-        model: &AlignmentModel,
+        calibration: &Calibration,
         map: &NormalisedMap,
         i: usize,
     ) -> Result<(MetricDepth, DepthMetrics)> {
         let f = &self.set.frames[i];
         let ctx = || format!("set '{}', frame '{}'", self.set.name, f.id);
-        let aligned = model
-            .apply(map.values.view())
+        let aligned = calibration
+            .align_normalised(map)
             .map_err(|e| EvalError::core(ctx(), e))?;
         let m = DepthMetrics::compute(&aligned, &f.gt, Some(&self.eval_masks[i]))
             .map_err(|e| EvalError::core(ctx(), e))?;
         Ok((aligned, m))
     }
-}
 
-/// The normalisation actually used by a method (RAW: none).
-pub fn effective_norm(
-    method: &str,
-    norm: Normalisation,
-    inverse_space: bool,
-) -> NormalisationConfig {
-    if method == "raw" {
-        NormalisationConfig {
-            method: Normalisation::None,
-            inverse_space: false,
+    /// The normalisation a method is evaluated with: RAW always `none` in depth space, the
+    /// others `norm` in the configured space (default: the predictions' own).
+    pub fn normalisation_for(&self, method: &Method, norm: Normalisation) -> NormalisationConfig {
+        if *method == Method::Raw {
+            NormalisationConfig {
+                method: Normalisation::None,
+                space: AlignSpace::Depth,
+            }
+        } else {
+            NormalisationConfig {
+                method: norm,
+                space: self
+                    .config
+                    .space
+                    .unwrap_or(AlignSpace::native(self.preds.maps[self.calib].kind)),
+            }
         }
-    } else {
-        NormalisationConfig {
-            method: norm,
-            inverse_space,
-        }
+    }
+
+    /// `method` with the set's intrinsics (SSRA reports canonical parameters with them).
+    pub fn method(&self, method: &Method) -> Method {
+        method.clone().with_intrinsics(Some(self.set.intrinsics))
     }
 }
 
@@ -545,17 +540,17 @@ pub fn effective_norm(
 /// # Errors
 /// Bad input (see [`Prepared::new`]) or any failure of a step, naming the frame.
 pub fn evaluate(
-    set: &MomaSet,
+    set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
 ) -> Result<Vec<EvalResult>> {
     let prep = Prepared::new(set, preds, config)?;
-    let mut jobs: Vec<(String, NormalisationConfig)> = Vec::new();
+    let mut jobs: Vec<(Method, NormalisationConfig)> = Vec::new();
     for m in &config.methods {
-        method_from_name(m, &set.intrinsics)?;
+        let m = prep.method(m);
         for &n in &config.norms {
-            let eff = effective_norm(m, n, config.inverse_space);
-            if !jobs.iter().any(|(jm, jn)| jm == m && *jn == eff) {
+            let eff = prep.normalisation_for(&m, n);
+            if !jobs.iter().any(|(jm, jn)| *jm == m && *jn == eff) {
                 jobs.push((m.clone(), eff));
             }
         }
@@ -571,13 +566,20 @@ pub fn evaluate(
 /// As [`evaluate`].
 pub fn evaluate_one(
     prep: &Prepared<'_>,
-    method_name: &str,
+    method: &Method,
     norm: &NormalisationConfig,
     n: usize,
 ) -> Result<EvalResult> {
     let set = prep.set;
     let config = &prep.config;
-    let method = method_from_name(method_name, &set.intrinsics)?;
+    let method = prep.method(method);
+    CalibrationConfig {
+        method: method.clone(),
+        normalisation: *norm,
+        sampling: SamplingConfig::default(),
+    }
+    .check(prep.preds.maps[prep.calib].kind)
+    .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;
     let maps: Vec<NormalisedMap> = (0..set.frames.len())
         .into_par_iter()
         .map(|i| prep.normalised(i, norm))
@@ -586,15 +588,15 @@ pub fn evaluate_one(
     let seeds: Vec<u64> = (0..config.seeds as u64)
         .map(|s| config.seed_base + s)
         .collect();
-    let per_seed: Vec<(FitReport, Vec<DepthMetrics>)> = seeds
+    let per_seed: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
-            let (model, report) = prep.calibrate(&method, &maps[prep.calib], n, seed)?;
+            let cal = prep.calibrate(&method, norm, &maps[prep.calib], n, seed)?;
             let ms = eval_idx
                 .iter()
-                .map(|&i| prep.score(&model, &maps[i], i).map(|(_, m)| m))
+                .map(|&i| prep.score(&cal, &maps[i], i).map(|(_, m)| m))
                 .collect::<Result<Vec<_>>>()?;
-            Ok((report, ms))
+            Ok((cal.report, ms))
         })
         .collect::<Result<_>>()?;
     let aggregate = |f: fn(&[DepthMetrics]) -> moma_core::Result<DepthMetrics>| {
@@ -630,8 +632,9 @@ pub fn evaluate_one(
         source: prep.preds.label.clone(),
         simulated: prep.preds.simulated,
         pred_kind: prep.preds.maps[0].kind,
-        method: method_name.to_string(),
-        norm: norm_name(norm.method).to_string(),
+        method: method.to_string(),
+        norm: norm.method.to_string(),
+        space: norm.space,
         samples: n,
         seeds: seeds.len(),
         calib_frame: prep.calib_id().to_string(),
@@ -651,21 +654,21 @@ pub fn evaluate_one(
 /// As [`evaluate`].
 pub fn aligned_maps(
     prep: &Prepared<'_>,
-    method_name: &str,
+    method: &Method,
     norm: &NormalisationConfig,
     n: usize,
     seed: u64,
-) -> Result<(AlignmentModel, FitReport, Vec<MetricDepth>)> {
-    let method = method_from_name(method_name, &prep.set.intrinsics)?;
+) -> Result<(Calibration, Vec<MetricDepth>)> {
+    let method = prep.method(method);
     let maps: Vec<NormalisedMap> = (0..prep.set.frames.len())
         .map(|i| prep.normalised(i, norm))
         .collect::<Result<_>>()?;
-    let (model, report) = prep.calibrate(&method, &maps[prep.calib], n, seed)?;
+    let cal = prep.calibrate(&method, norm, &maps[prep.calib], n, seed)?;
     let aligned = maps
         .iter()
         .enumerate()
         .map(|(i, m)| {
-            model.apply(m.values.view()).map_err(|e| {
+            cal.align_normalised(m).map_err(|e| {
                 EvalError::core(
                     format!("set '{}', frame '{}'", prep.set.name, prep.set.frames[i].id),
                     e,
@@ -673,5 +676,5 @@ pub fn aligned_maps(
             })
         })
         .collect::<Result<_>>()?;
-    Ok((model, report, aligned))
+    Ok((cal, aligned))
 }

@@ -9,7 +9,7 @@ use ndarray::Array2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::data::{Frame, MomaSet};
+use crate::data::{LoadedFrame, LoadedSet};
 
 type V3 = [f64; 3];
 
@@ -377,13 +377,13 @@ pub fn objects_for_frame(config: &SceneConfig, index: usize) -> Vec<Object> {
 }
 
 /// Builds the whole demo set in memory (frames `frame_00`, `frame_01`, ...).
-pub fn build_scene(config: &SceneConfig) -> MomaSet {
+pub fn build_scene(config: &SceneConfig) -> LoadedSet {
     let intrinsics = intrinsics(config);
     let frames = (0..config.frames)
         .map(|i| {
             let objects = objects_for_frame(config, i);
             let (gt, rgb, mask) = render(config, &objects);
-            Frame {
+            LoadedFrame {
                 id: format!("frame_{i:02}"),
                 rgb: Some(rgb),
                 gt,
@@ -392,7 +392,7 @@ pub fn build_scene(config: &SceneConfig) -> MomaSet {
             }
         })
         .collect();
-    MomaSet {
+    LoadedSet {
         name: "demo-scene".into(),
         dir: std::path::PathBuf::from("demo-scene"),
         intrinsics,

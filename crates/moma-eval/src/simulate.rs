@@ -28,7 +28,7 @@
 //! Every component is disabled by setting its strength to 0; with all strengths 0 the output is
 //! the hole-filled ground truth (times g, or K/·). Randomness: per-set parts come from `seed`,
 //! per-frame parts from a stable FNV-1a hash of (`seed`, frame id). Everything written by
-//! [`simulate_set`] is labelled simulated (`simulated.json` beside the predictions).
+//! [`simulate_set`] is labelled simulated (`predictions.json` beside the predictions).
 
 use std::path::Path;
 
@@ -39,7 +39,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::data::{MomaSet, write_text};
+use crate::data::{LoadedSet, write_text};
 use crate::error::{EvalError, Result};
 use crate::imgproc::{fill_nearest, gaussian_blur};
 
@@ -173,7 +173,7 @@ pub struct Bump {
     pub weight: f64,
 }
 
-/// The per-set random draws of the simulator (recorded in `simulated.json`).
+/// The per-set random draws of the simulator (recorded in `predictions.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SetDraws {
     /// 1. Rotation about x, radians.
@@ -454,17 +454,15 @@ pub enum TransparencySource {
     None,
 }
 
-/// What `simulated.json` records beside the predictions.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+/// What `predictions.json` records beside simulated predictions: moma-io's common index head
+/// (`format`, `prediction_kind`, `simulated: true`, `source`) and the simulator's settings.
+#[derive(Debug, Clone, Serialize)]
 pub struct SimulatedMeta {
-    /// Always `true`: these are not the output of a real depth model.
-    pub simulated: bool,
-    /// Human-readable label.
-    pub label: String,
+    /// The index head every prediction folder has; `simulated` is always `true`.
+    #[serde(flatten)]
+    pub head: moma_io::PredictionIndexHead,
     /// Source set.
     pub set: String,
-    /// Kind of the `.npy` maps.
-    pub kind: PredictionKind,
     /// Set seed.
     pub seed: u64,
     /// Whether component 6 used the frames' masks.
@@ -482,7 +480,7 @@ pub struct SimulatedMeta {
 /// # Errors
 /// As [`Simulator::predict`], naming the frame.
 pub fn simulate_frames(
-    set: &MomaSet,
+    set: &LoadedSet,
     sim: &Simulator,
     transparency: TransparencySource,
 ) -> Result<Vec<Prediction>> {
@@ -497,7 +495,7 @@ pub fn simulate_frames(
         .collect()
 }
 
-fn uses_mask(set: &MomaSet, transparency: TransparencySource) -> bool {
+fn uses_mask(set: &LoadedSet, transparency: TransparencySource) -> bool {
     match transparency {
         TransparencySource::Auto => set.frames.iter().any(|f| f.raw_depth.is_some()),
         TransparencySource::Mask => true,
@@ -506,12 +504,12 @@ fn uses_mask(set: &MomaSet, transparency: TransparencySource) -> bool {
 }
 
 /// Simulates every frame of `set` and writes `<out>/<frame-id>.npy` (float32 H×W) plus
-/// `<out>/simulated.json` (config, seed, kind, draws: the "simulated" label).
+/// `<out>/predictions.json` (kind, the "simulated" label, config, seed, draws).
 ///
 /// # Errors
 /// Simulation or I/O errors, naming the frame.
 pub fn simulate_set(
-    set: &MomaSet,
+    set: &LoadedSet,
     sim: &Simulator,
     transparency: TransparencySource,
     out: &Path,
@@ -523,28 +521,23 @@ pub fn simulate_set(
             .map_err(|source| EvalError::frame_io(&set.name, &f.id, source))?;
     }
     let meta = SimulatedMeta {
-        simulated: true,
-        label:
-            "SIMULATED MDEM prediction (moma-eval simulator, METHOD.md §6) — not a trained model"
-                .into(),
+        head: moma_io::PredictionIndexHead::new(
+            sim.kind,
+            true,
+            "SIMULATED MDEM prediction (moma-eval simulator, METHOD.md §6) — not a trained model",
+        ),
         set: set.name.clone(),
-        kind: sim.kind,
         seed: sim.seed,
         transparency_from_mask: uses_mask(set, transparency),
         config: sim.config,
         draws: sim.draws.clone(),
         frames: set.frames.iter().map(|f| f.id.clone()).collect(),
     };
+    let index = out.join(moma_io::PREDICTIONS_INDEX_FILE);
     let text = serde_json::to_string_pretty(&meta).map_err(|e| EvalError::Format {
-        path: out.join("simulated.json"),
+        path: index.clone(),
         message: e.to_string(),
     })?;
-    write_text(&out.join("simulated.json"), &text)?;
+    write_text(&index, &text)?;
     Ok((meta, preds))
-}
-
-/// Reads `simulated.json` from a prediction folder, if present (then the predictions are simulated).
-pub fn read_simulated_meta(pred_dir: &Path) -> Option<SimulatedMeta> {
-    let text = std::fs::read_to_string(pred_dir.join("simulated.json")).ok()?;
-    serde_json::from_str(&text).ok()
 }

@@ -59,7 +59,7 @@ fn raw_metrics_match_reference_per_image_mean() {
 
 /// Independent GSSA with the paper's min-max normalisation on the same sampled pixels.
 fn reference_gssa(
-    set: &moma_eval::data::MomaSet,
+    set: &moma_eval::data::LoadedSet,
     preds: &PredictionSet,
     seed: u64,
     n: usize,

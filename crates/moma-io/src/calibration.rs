@@ -13,11 +13,22 @@ use crate::error::{IoError, Result};
 
 /// Value of the `format` field of every calibration file.
 pub const CALIBRATION_FORMAT: &str = "moma-calibration";
-/// The calibration-file version this build writes and reads.
-pub const CALIBRATION_VERSION: u32 = 1;
+/// The calibration-file version this build writes.
+///
+/// Versioning rule (docs/formats.md): the version changes whenever a field is added, removed or
+/// changes meaning; this build writes only the newest version and reads every older one by
+/// migrating it in memory (never silently: a version it cannot represent is an error that says
+/// why). Version history: 1 — normalisation `{method, inverse_space}`, workspace as a file path;
+/// 2 — normalisation `{method, space}`, the workspace mask embedded (run lengths + SHA-256),
+/// unknown fields refused.
+pub const CALIBRATION_VERSION: u32 = 2;
+
+/// The oldest calibration-file version this build reads (migrated on reading).
+pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
 
 /// How and when a calibration file was made.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct CreationInfo {
     /// Version of moma that wrote the file.
     pub moma_version: String,
@@ -57,8 +68,10 @@ impl CreationInfo {
 ///
 /// `method`, `normalisation`, `prediction_kind` and `image_size` repeat what `calibration`
 /// holds, at the top level for people and scripts; [`read_calibration`] rejects a file where
-/// they disagree.
+/// they disagree. The workspace mask (if any) is embedded in `calibration.workspace`, so the file
+/// is self-contained and can be copied anywhere.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct CalibrationFile {
     /// Always [`CALIBRATION_FORMAT`].
     pub format: String,
@@ -76,9 +89,6 @@ pub struct CalibrationFile {
     pub intrinsics: Option<Intrinsics>,
     /// Size of the calibration image, pixels; run-time predictions must match.
     pub image_size: ImageSize,
-    /// Path of the workspace mask used for normalisation, when one was used (the same mask must
-    /// be given at run time).
-    pub workspace_mask: Option<String>,
     /// Provenance.
     pub created: CreationInfo,
 }
@@ -88,7 +98,6 @@ impl CalibrationFile {
     pub fn new(
         calibration: Calibration,
         intrinsics: Option<Intrinsics>,
-        workspace_mask: Option<String>,
         created: CreationInfo,
     ) -> Self {
         Self {
@@ -100,7 +109,6 @@ impl CalibrationFile {
             image_size: calibration.samples.image_size,
             calibration,
             intrinsics,
-            workspace_mask,
             created,
         }
     }
@@ -116,6 +124,7 @@ impl CalibrationFile {
             });
         }
         let c = &self.calibration;
+        c.validate().map_err(|e| IoError::core(path, e))?;
         let disagree = |field: &str, top: String, inner: String| {
             Err(IoError::invalid(
                 path,
@@ -177,31 +186,111 @@ fn describe(v: &Option<serde_json::Value>) -> String {
     }
 }
 
-/// Reads and checks a calibration file.
+/// Reads and checks a calibration file (any version from [`OLDEST_CALIBRATION_VERSION`] to
+/// [`CALIBRATION_VERSION`]; older versions are migrated in memory).
 ///
 /// # Errors
-/// [`IoError::Json`] with line and column for invalid or truncated JSON or a schema error;
-/// [`IoError::CalibrationVersion`] naming the format and version found when the file is not
-/// `moma-calibration` version 1; [`IoError::Invalid`] when the summary fields disagree with
-/// the calibration; [`IoError::Io`] when unreadable.
+/// [`IoError::Json`] with line and column for invalid or truncated JSON, a schema error or an
+/// unknown field; [`IoError::CalibrationVersion`] naming the format and version found when the
+/// file is not a `moma-calibration` this build reads; [`IoError::Invalid`] when the summary
+/// fields disagree with the calibration or a version-1 file cannot be migrated;
+/// [`IoError::Core`] when the model fails validation (non-finite parameters, bandwidth ≤ 0,
+/// inconsistent SSRA parameters, a corrupt workspace); [`IoError::Io`] when unreadable.
 pub fn read_calibration(path: impl AsRef<Path>) -> Result<CalibrationFile> {
     let path = path.as_ref();
     let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
-    let header: Header = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
+    parse_calibration(path, &text)
+}
+
+/// [`read_calibration`] on text already in memory; `path` only names the source in errors.
+///
+/// # Errors
+/// As [`read_calibration`].
+pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
+    let header: Header = serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
     let format_ok =
         matches!(&header.format, Some(serde_json::Value::String(s)) if s == CALIBRATION_FORMAT);
-    let version_ok = header.version.as_ref().and_then(serde_json::Value::as_u64)
-        == Some(u64::from(CALIBRATION_VERSION));
-    if !format_ok || !version_ok {
-        return Err(IoError::CalibrationVersion {
-            path: path.to_path_buf(),
-            format: describe(&header.format),
-            version: describe(&header.version),
-            supported: CALIBRATION_VERSION,
-        });
+    let version = header
+        .version
+        .as_ref()
+        .and_then(serde_json::Value::as_u64)
+        .filter(|v| (u64::from(OLDEST_CALIBRATION_VERSION)..=u64::from(CALIBRATION_VERSION)).contains(v));
+    let version_error = || IoError::CalibrationVersion {
+        path: path.to_path_buf(),
+        format: describe(&header.format),
+        version: describe(&header.version),
+        supported: CALIBRATION_VERSION,
+    };
+    if !format_ok {
+        return Err(version_error());
     }
-    let file: CalibrationFile = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
+    let file: CalibrationFile = match version {
+        Some(2) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        Some(1) => migrate_v1(path, text)?,
+        _ => return Err(version_error()),
+    };
     file.check(path)?;
+    Ok(file)
+}
+
+/// Version 1 → 2: the normalisation gains its space (version 1 aligned in depth space unless
+/// `inverse_space`, a mode version 2 dropped), and a workspace given as a file path is read and
+/// embedded (a relative path is taken relative to the calibration file's folder).
+fn migrate_v1(path: &Path, text: &str) -> Result<CalibrationFile> {
+    let mut v: serde_json::Value = serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
+    let invalid = |msg: String| IoError::invalid(path, format!("version-1 calibration: {msg}"));
+    let obj = v
+        .as_object_mut()
+        .ok_or_else(|| invalid("not a JSON object".into()))?;
+    let migrate_norm = |n: &mut serde_json::Value| -> Result<()> {
+        let n = n
+            .as_object_mut()
+            .ok_or_else(|| invalid("'normalisation' is not an object".into()))?;
+        let inverse = n.remove("inverse_space");
+        if inverse.as_ref().and_then(serde_json::Value::as_bool) == Some(true) {
+            return Err(invalid(
+                "it was fitted with --inverse-space (disparity as predictor, depth as target), \
+                 a mode this version replaced by --space inverse (disparity predictor and \
+                 inverse-depth target); run `moma calibrate` again"
+                    .into(),
+            ));
+        }
+        n.insert("space".into(), serde_json::Value::String("depth".into()));
+        Ok(())
+    };
+    if let Some(n) = obj.get_mut("normalisation") {
+        migrate_norm(n)?;
+    }
+    if let Some(n) = obj
+        .get_mut("calibration")
+        .and_then(|c| c.get_mut("normalisation"))
+    {
+        migrate_norm(n)?;
+    }
+    let workspace = obj.remove("workspace_mask");
+    obj.insert("version".into(), serde_json::Value::from(CALIBRATION_VERSION));
+    let mut file: CalibrationFile =
+        serde_json::from_value(v).map_err(|e| invalid(format!("cannot migrate: {e}")))?;
+    if let Some(serde_json::Value::String(mask_path)) = workspace {
+        let mut mask_file = std::path::PathBuf::from(&mask_path);
+        if mask_file.is_relative()
+            && let Some(dir) = path.parent()
+        {
+            mask_file = dir.join(mask_file);
+        }
+        let mask = crate::raster::read_mask_sized(&mask_file, file.image_size).map_err(|e| {
+            invalid(format!(
+                "it names the workspace mask {mask_path}, which version 2 embeds, but it cannot \
+                 be read: {e}"
+            ))
+        })?;
+        let ws = moma_core::Workspace::new(mask).map_err(|e| IoError::core(path, e))?;
+        file.calibration.workspace = Some(std::sync::Arc::new(ws));
+    }
+    // Version 1 named every LWLR variant "lwlr"; names now follow the preset.
+    let name = file.calibration.model.name().to_string();
+    file.calibration.report.method = name.clone();
+    file.method = name;
     Ok(file)
 }
 

@@ -49,16 +49,21 @@ mod colormap;
 mod depth;
 mod error;
 mod ply;
+mod predictions;
 mod png_util;
 mod raster;
 mod set;
 
 pub use atomic::atomic_write;
 pub use calibration::{
-    CALIBRATION_FORMAT, CALIBRATION_VERSION, CalibrationFile, CreationInfo, read_calibration,
-    write_calibration,
+    CALIBRATION_FORMAT, CALIBRATION_VERSION, CalibrationFile, CreationInfo,
+    OLDEST_CALIBRATION_VERSION, parse_calibration, read_calibration, write_calibration,
 };
 pub use camera::{read_camera, write_camera};
+pub use predictions::{
+    PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PredictionIndex, PredictionIndexHead,
+    read_prediction_index, read_prediction_index_for, resolve_prediction_kind,
+};
 pub use colormap::{
     Colormap, ColourScale, DepthRange, TEXT_COLORMAP, TEXT_MAX_M, TEXT_MIN_M, colour_bar,
     colourise, colourise_depth, read_colour_scale, resolve_range, write_depth_colormap,
@@ -75,6 +80,7 @@ pub use raster::{
     write_rgb,
 };
 pub use set::{
-    CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, MASK_FILE, MomaSet, MomaSetWriter,
+    CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, LoadedFrame, LoadedSet, MASK_FILE, MomaSet,
+    MomaSetWriter,
     RAW_DEPTH_FILE, RGB_FILE,
 };

@@ -217,6 +217,113 @@ impl MomaSet {
     }
 }
 
+/// One frame of a [`LoadedSet`], in memory. Invalid depth is `NaN`, as [`crate::read_depth`]
+/// returns it (the one convention of moma; [`moma_core::is_valid_depth`] also accepts 0 as
+/// invalid for maps made elsewhere).
+#[derive(Debug, Clone)]
+pub struct LoadedFrame {
+    /// Frame id (its directory name).
+    pub id: String,
+    /// 8-bit RGB, when loaded or generated.
+    pub rgb: Option<RgbImage>,
+    /// Ground-truth depth, metres.
+    pub gt: MetricDepth,
+    /// Evaluation mask (objects), when the frame has one.
+    pub mask: Option<Mask>,
+    /// Raw sensor depth, metres, when the frame has one.
+    pub raw_depth: Option<MetricDepth>,
+}
+
+/// A whole moma set in memory: what the evaluation visits once per seed and method.
+#[derive(Debug, Clone)]
+pub struct LoadedSet {
+    /// Set name (its directory name).
+    pub name: String,
+    /// Directory it was loaded from (or will be written to).
+    pub dir: PathBuf,
+    /// Camera intrinsics, pixels.
+    pub intrinsics: Intrinsics,
+    /// Frames in id order.
+    pub frames: Vec<LoadedFrame>,
+}
+
+impl MomaSet {
+    /// Loads every frame's images into memory.
+    ///
+    /// # Errors
+    /// Any read error, naming the file.
+    pub fn load(&self) -> Result<LoadedSet> {
+        let frames = self
+            .frames
+            .iter()
+            .map(|f| {
+                Ok(LoadedFrame {
+                    id: f.id.clone(),
+                    rgb: Some(f.load_rgb()?),
+                    gt: f.load_depth()?,
+                    mask: f.load_mask()?,
+                    raw_depth: f.load_raw_depth()?,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let name = self
+            .root
+            .canonicalize()
+            .ok()
+            .and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned()))
+            .unwrap_or_else(|| self.name());
+        Ok(LoadedSet {
+            name,
+            dir: self.root.clone(),
+            intrinsics: self.camera,
+            frames,
+        })
+    }
+}
+
+impl LoadedSet {
+    /// Opens and loads the set at `dir` ([`MomaSet::open`] + [`MomaSet::load`]).
+    ///
+    /// # Errors
+    /// As those.
+    pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
+        MomaSet::open(dir)?.load()
+    }
+
+    /// The image size, pixels.
+    pub fn size(&self) -> ImageSize {
+        self.intrinsics.size()
+    }
+
+    /// Index of the frame with id `id`.
+    pub fn frame_index(&self, id: &str) -> Option<usize> {
+        self.frames.iter().position(|f| f.id == id)
+    }
+
+    /// Writes the set in the moma set layout at `dir` (a mid-grey RGB where a frame has none).
+    ///
+    /// # Errors
+    /// Any write error, naming the file.
+    pub fn write(&self, dir: impl AsRef<Path>) -> Result<()> {
+        let writer = MomaSetWriter::create(dir, &self.intrinsics)?;
+        let size = self.size();
+        let placeholder =
+            RgbImage::from_pixel(size.width as u32, size.height as u32, image::Rgb([128; 3]));
+        for f in &self.frames {
+            writer.write_frame(
+                &f.id,
+                FrameData {
+                    rgb: f.rgb.as_ref().unwrap_or(&placeholder),
+                    depth: &f.gt,
+                    mask: f.mask.as_ref(),
+                    raw_depth: f.raw_depth.as_ref(),
+                },
+            )?;
+        }
+        Ok(())
+    }
+}
+
 /// One frame's content for [`MomaSetWriter::write_frame`]; all images must have the camera size.
 #[derive(Debug, Clone, Copy)]
 pub struct FrameData<'a> {

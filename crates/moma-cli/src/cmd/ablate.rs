@@ -8,7 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use moma_core::PredictionKind;
 use moma_eval::ablate::{self, AblationOutput, SAMPLE_COUNTS};
-use moma_eval::protocol::{PredictionSet, parse_norm};
+use moma_eval::protocol::PredictionSet;
 use moma_eval::simulate::{Simulator, simulate_frames};
 
 use super::common::create_dir;
@@ -100,13 +100,13 @@ fn report(out: &AblationOutput, table_md: &std::path::Path, t0: Instant) -> Resu
     Ok(())
 }
 
-fn parse_source(s: &str, set: &moma_eval::data::MomaSet) -> Result<PredictionSet> {
+fn parse_source(s: &str, set: &moma_eval::data::LoadedSet) -> Result<PredictionSet> {
     let mut parts = s.splitn(3, ':');
     let (Some(label), Some(kind), Some(dir)) = (parts.next(), parts.next(), parts.next()) else {
         bail!("--source '{s}': expected LABEL:KIND:DIR");
     };
     let kind: PredictionKind = kind.parse().with_context(|| format!("--source '{s}'"))?;
-    let mut p = PredictionSet::read(set, std::path::Path::new(dir), kind)?;
+    let mut p = PredictionSet::read(set, std::path::Path::new(dir), Some(kind))?;
     p.label = label.to_string();
     Ok(p)
 }
@@ -120,7 +120,6 @@ pub fn run(args: &AblateArgs) -> Result<()> {
         | AblateCommand::Transparent { common } => common,
     };
     create_dir(&common.out)?;
-    let config = common.eval.config()?;
     let n = common.set.len();
     match &args.which {
         AblateCommand::Samples { counts, .. } => {
@@ -128,20 +127,18 @@ pub fn run(args: &AblateArgs) -> Result<()> {
             for (i, dir) in common.set.iter().enumerate() {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
+                let config = common.eval.config(preds.kind()?)?;
                 rows.extend(ablate::samples(&set, &preds, &config, counts)?);
             }
             let out = ablate::write_samples(&common.out, &rows)?;
             report(&out, &out.tables[0], t0)
         }
         AblateCommand::Norm { norms, .. } => {
-            let norms = norms
-                .iter()
-                .map(|s| parse_norm(s))
-                .collect::<Result<Vec<_>, _>>()?;
             let mut rows = Vec::new();
             for (i, dir) in common.set.iter().enumerate() {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
+                let config = common.eval.config(preds.kind()?)?;
                 rows.extend(ablate::norms(&set, &preds, &config, &norms)?);
             }
             let out = ablate::write_norms(&common.out, &rows)?;
@@ -159,7 +156,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                             let sim =
                                 Simulator::new(cfg, common.pred.sim_seed, kind, set.intrinsics)?;
                             Ok(PredictionSet {
-                                label: format!("simulated {kind}"),
+                                label: format!("SIMULATED {kind}"),
                                 simulated: true,
                                 maps: simulate_frames(
                                     &set,
@@ -175,6 +172,9 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                         .map(|s| parse_source(s, &set))
                         .collect::<Result<_>>()?
                 };
+                // RAW only for the metric (depth) sources: the default method list of a depth
+                // prediction, filtered per source by the library.
+                let config = common.eval.config(PredictionKind::Depth)?;
                 rows.extend(ablate::sources(&set, &sources, &config)?);
             }
             let out = ablate::write_sources(&common.out, &rows)?;
@@ -185,6 +185,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
             for (i, dir) in common.set.iter().enumerate() {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
+                let config = common.eval.config(preds.kind()?)?;
                 results.push(ablate::transparent(&set, &preds, &config)?);
             }
             let out = ablate::write_transparent(&common.out, &results)?;

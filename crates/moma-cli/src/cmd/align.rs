@@ -90,15 +90,10 @@ struct FrameSummary {
 
 pub fn run(args: &AlignArgs) -> Result<()> {
     let calib = moma_io::read_calibration(&args.calib)?;
-    let mut source = args.source.open()?;
-    if source.kind() != calib.prediction_kind {
-        bail!(
-            "{} was calibrated on {} predictions but the inputs are {} (set --pred-kind, or use the same model head)",
-            args.calib.display(),
-            calib.prediction_kind,
-            source.kind()
-        );
-    }
+    let mut source = args
+        .source
+        .open(Some(calib.prediction_kind))
+        .with_context(|| format!("predictions for {}", args.calib.display()))?;
     if !args.ply_rgb.is_empty() && args.ply_rgb.len() != source.len() {
         bail!(
             "--ply-rgb needs one image per input ({} given for {} inputs)",
@@ -116,17 +111,25 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             "--ply needs camera intrinsics: calibrate with --camera, or pass --camera camera.json here"
         );
     }
-    let workspace_path = args
-        .workspace
-        .clone()
-        .or_else(|| calib.workspace_mask.as_ref().map(PathBuf::from));
-    let workspace = workspace_path
-        .as_ref()
-        .map(|p| {
-            moma_io::read_mask_sized(p, size)
-                .with_context(|| format!("workspace mask of {}", args.calib.display()))
-        })
-        .transpose()?;
+    if let Some(p) = &args.workspace {
+        let given = moma_core::Workspace::new(moma_io::read_mask_sized(p, size)?)
+            .with_context(|| format!("workspace mask {}", p.display()))?;
+        match calib.calibration.workspace.as_deref() {
+            Some(own) if own.sha256() == given.sha256() => {}
+            Some(_) => bail!(
+                "workspace mismatch: {} differs from the workspace embedded in {} (the \
+                 calibration aligns with its own workspace; drop --workspace)",
+                p.display(),
+                args.calib.display()
+            ),
+            None => bail!(
+                "workspace mismatch: {} was calibrated without a workspace, but --workspace {} \
+                 was given",
+                args.calib.display(),
+                p.display()
+            ),
+        }
+    }
     let range = match args.range_m.as_slice() {
         [] => DepthRange::default(),
         [min_m, max_m] => DepthRange::Fixed {
@@ -152,7 +155,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let t = Instant::now();
         let depth = calib
             .calibration
-            .align(&input.prediction, workspace.as_ref())
+            .align(&input.prediction)
             .with_context(|| format!("aligning {}", input.path.display()))?;
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
 

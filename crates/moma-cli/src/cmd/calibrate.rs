@@ -3,62 +3,14 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, ValueEnum};
-use moma_core::align::{Method, lwlr, ssra};
-use moma_core::normalise::{Normalisation, NormalisationConfig};
+use clap::Args;
+use moma_core::align::{Method, lwlr};
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{CalibrationConfig, calibrate};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_io::{CalibrationFile, CreationInfo};
 
 use super::common::{SourceArgs, print_json};
-
-/// `--method` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum MethodArg {
-    /// Scale-shift-rotation (the paper's method; closed-form linear fit).
-    Ssra,
-    /// Global scale and shift.
-    Gssa,
-    /// Locally weighted linear regression, BoostingDepth's implementation (32-px grid + bilinear).
-    Lwlr,
-    /// Locally weighted linear regression, exact per-pixel solve.
-    LwlrExact,
-    /// No alignment: the prediction is used as metres (metric models only).
-    Raw,
-}
-
-/// `--norm` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum NormArg {
-    /// Paper's formula (z − min)/(max − min) + min.
-    Minmax,
-    /// Authors' code: (z − min)/(max − min).
-    MinmaxUnit,
-    /// (z − median)/mean|z − median|.
-    Median,
-    /// No normalisation.
-    None,
-}
-
-impl From<NormArg> for Normalisation {
-    fn from(n: NormArg) -> Self {
-        match n {
-            NormArg::Minmax => Normalisation::Minmax,
-            NormArg::MinmaxUnit => Normalisation::MinmaxUnit,
-            NormArg::Median => Normalisation::Median,
-            NormArg::None => Normalisation::None,
-        }
-    }
-}
-
-/// `--sampling` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum SamplingArg {
-    /// Uniform over valid ground-truth pixels (MOMA's protocol), seeded.
-    Random,
-    /// √n × √n grid nodes snapped to the nearest valid pixel (BoostingDepth's).
-    Grid,
-}
 
 /// Fit an alignment from one frame's prediction and ground truth.
 ///
@@ -84,21 +36,24 @@ pub struct CalibrateArgs {
     /// Normalise over this workspace mask instead of the whole map (same mask at run time).
     #[arg(long, value_name = "PNG")]
     pub workspace: Option<PathBuf>,
-    /// Alignment method.
-    #[arg(long, value_enum, default_value_t = MethodArg::Ssra)]
-    pub method: MethodArg,
-    /// Normalisation of the prediction.
-    #[arg(long, value_enum, default_value_t = NormArg::Minmax)]
-    pub norm: NormArg,
-    /// For inverse-depth predictions: align in inverse space instead of converting to 1/d.
-    #[arg(long)]
-    pub inverse_space: bool,
+    /// Alignment method: ssra (the paper's), gssa, lwlr (BoostingDepth's grid solve),
+    /// lwlr-exact, lwlr-bare, raw (metric predictions used as metres; needs --norm none).
+    #[arg(long, default_value = "ssra", value_name = "METHOD")]
+    pub method: Method,
+    /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,
+    /// none. Default: minmax, and none for --method raw.
+    #[arg(long, value_name = "NORM")]
+    pub norm: Option<Normalisation>,
+    /// Alignment space: inverse (predictor disparity, target 1/z) or depth. Default: the
+    /// prediction's own (inverse-depth predictions align in inverse space, depth in depth space).
+    #[arg(long, value_name = "SPACE")]
+    pub space: Option<AlignSpace>,
     /// Number of calibration samples n.
     #[arg(long, default_value_t = 100)]
     pub samples: usize,
-    /// How samples are chosen.
-    #[arg(long, value_enum, default_value_t = SamplingArg::Random)]
-    pub sampling: SamplingArg,
+    /// How samples are chosen: random (MOMA's protocol, seeded) or grid (BoostingDepth's).
+    #[arg(long, default_value = "random", value_name = "SAMPLING")]
+    pub sampling: SamplingStrategy,
     /// Seed of the random sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -113,9 +68,12 @@ pub struct CalibrateArgs {
     pub json: bool,
 }
 
-/// Builds the alignment method from the command-line choices.
+/// The method with the command line's LWLR bandwidth and SSRA intrinsics.
+///
+/// # Errors
+/// A bandwidth that is not a positive number of pixels, or given for a method without one.
 pub fn method_from(
-    method: MethodArg,
+    method: &Method,
     bandwidth_px: Option<f64>,
     intrinsics: Option<moma_core::Intrinsics>,
 ) -> Result<Method> {
@@ -124,19 +82,40 @@ pub fn method_from(
     {
         bail!("--bandwidth-px {b} must be a positive number of pixels");
     }
-    Ok(match method {
-        MethodArg::Ssra => Method::Ssra(ssra::SsraConfig { intrinsics }),
-        MethodArg::Gssa => Method::Gssa,
-        MethodArg::Raw => Method::Raw,
-        MethodArg::Lwlr => Method::Lwlr(lwlr::LwlrConfig {
-            bandwidth_px,
-            ..lwlr::LwlrConfig::faithful()
+    Ok(match method.clone().with_intrinsics(intrinsics) {
+        Method::Lwlr(cfg) => Method::Lwlr(lwlr::LwlrConfig {
+            bandwidth_px: bandwidth_px.or(cfg.bandwidth_px),
+            ..cfg
         }),
-        MethodArg::LwlrExact => Method::Lwlr(lwlr::LwlrConfig {
-            bandwidth_px,
-            ..lwlr::LwlrConfig::exact()
-        }),
+        other if bandwidth_px.is_some() => {
+            bail!("--bandwidth-px applies to the LWLR methods only, not {other}")
+        }
+        other => other,
     })
+}
+
+/// The normalisation from `--norm` and `--space` for predictions of `kind`: RAW defaults to
+/// `none`, every other method to `minmax`; the space defaults to the prediction's own.
+pub fn normalisation_from(
+    method: &Method,
+    norm: Option<Normalisation>,
+    space: Option<AlignSpace>,
+    kind: moma_core::PredictionKind,
+) -> NormalisationConfig {
+    let default_norm = if *method == Method::Raw {
+        Normalisation::None
+    } else {
+        Normalisation::Minmax
+    };
+    let default_space = if *method == Method::Raw {
+        AlignSpace::Depth
+    } else {
+        AlignSpace::native(kind)
+    };
+    NormalisationConfig {
+        method: norm.unwrap_or(default_norm),
+        space: space.unwrap_or(default_space),
+    }
 }
 
 pub fn run(args: &CalibrateArgs) -> Result<()> {
@@ -144,7 +123,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         bail!("calibrate takes exactly one --pred FILE or one --rgb IMG (the calibration frame)");
     }
     let intrinsics = args.camera.as_ref().map(moma_io::read_camera).transpose()?;
-    let mut source = args.source.open()?;
+    let mut source = args.source.open(None)?;
     let input = source.get(0)?;
     let pred = input.prediction;
     let size = pred.size();
@@ -181,17 +160,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .map(|p| moma_io::read_mask_sized(p, size))
         .transpose()?;
 
+    let method = method_from(&args.method, args.bandwidth_px, intrinsics)?;
     let config = CalibrationConfig {
-        method: method_from(args.method, args.bandwidth_px, intrinsics)?,
-        normalisation: NormalisationConfig {
-            method: args.norm.into(),
-            inverse_space: args.inverse_space,
-        },
+        normalisation: normalisation_from(&method, args.norm, args.space, pred.kind),
+        method,
         sampling: SamplingConfig {
-            strategy: match args.sampling {
-                SamplingArg::Random => SamplingStrategy::Random,
-                SamplingArg::Grid => SamplingStrategy::Grid,
-            },
+            strategy: args.sampling,
             n: args.samples,
             seed: args.seed,
         },
@@ -232,13 +206,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     {
         created = created.with_source("weights", w);
     }
-    let workspace_path = args.workspace.as_ref().map(|p| {
-        std::path::absolute(p)
-            .unwrap_or_else(|_| p.clone())
-            .display()
-            .to_string()
-    });
-    let file = CalibrationFile::new(calibration, intrinsics, workspace_path, created);
+    if let Some(p) = &args.workspace {
+        created = created.with_source("workspace (embedded)", p);
+    }
+    let file = CalibrationFile::new(calibration, intrinsics, created);
     moma_io::write_calibration(&args.output, &file)?;
 
     let report = &file.calibration.report;

@@ -9,24 +9,6 @@ use indicatif::{ProgressBar, ProgressStyle};
 use moma_core::{Prediction, PredictionKind};
 use moma_depth::{Backbone, DepthModel, DeviceRequest, Head, ModelSpec, Precision};
 
-/// `--pred-kind` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum KindArg {
-    /// Larger = farther (metric models, simulated `depth`).
-    Depth,
-    /// Larger = nearer (Depth Anything relative models: disparity).
-    InverseDepth,
-}
-
-impl From<KindArg> for PredictionKind {
-    fn from(k: KindArg) -> Self {
-        match k {
-            KindArg::Depth => PredictionKind::Depth,
-            KindArg::InverseDepth => PredictionKind::InverseDepth,
-        }
-    }
-}
-
 /// `--model` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum BackboneArg {
@@ -198,9 +180,12 @@ pub struct SourceArgs {
     /// Prediction files (.npy float32, .pfm, or 16-bit .png holding raw values).
     #[arg(long, num_args = 1.., value_name = "FILE", required_unless_present = "rgb", conflicts_with = "rgb")]
     pub pred: Vec<PathBuf>,
-    /// What the prediction files hold (a depth model's head decides it for --rgb).
-    #[arg(long, value_enum, default_value_t = KindArg::Depth)]
-    pub pred_kind: KindArg,
+    /// What the prediction files hold: depth | inverse-depth (relative Depth Anything heads
+    /// output inverse-depth, metric heads depth). Never guessed: taken from predictions.json
+    /// beside the files (written by `moma predict` / `moma simulate`), the model's head with
+    /// --rgb, or the calibration file; when several state it they must agree.
+    #[arg(long, value_name = "KIND")]
+    pub pred_kind: Option<PredictionKind>,
     /// RGB images to run through the depth model (--weights or --hub) instead of --pred files.
     #[arg(long, num_args = 1.., value_name = "IMG")]
     pub rgb: Vec<PathBuf>,
@@ -228,22 +213,51 @@ pub struct Source {
 }
 
 impl SourceArgs {
-    /// Opens the source (loads the model once when `--rgb` is used).
+    /// Opens the source (loads the model once when `--rgb` is used). The prediction kind comes
+    /// from `--pred-kind`, the `predictions.json` beside each prediction file, the model's head
+    /// (`--rgb`) and `calibration_kind` (the calibration file's, in `align`); at least one must
+    /// state it and all that do must agree.
     ///
     /// # Errors
-    /// Model loading errors.
-    pub fn open(&self) -> Result<Source> {
+    /// Unknown or contradicting kind, an unreadable index, model loading errors.
+    pub fn open(&self, calibration_kind: Option<PredictionKind>) -> Result<Source> {
         if self.rgb.is_empty() {
+            let mut indexes = Vec::new();
+            for file in &self.pred {
+                if let Some(index) = moma_io::read_prediction_index_for(file)?
+                    && !indexes.iter().any(|i: &moma_io::PredictionIndex| i.path == index.path)
+                {
+                    indexes.push(index);
+                }
+            }
+            let names: Vec<String> = indexes.iter().map(|i| i.path.display().to_string()).collect();
+            let mut sources: Vec<(&str, Option<PredictionKind>)> =
+                vec![("--pred-kind", self.pred_kind)];
+            sources.extend(names.iter().zip(&indexes).map(|(n, i)| (n.as_str(), Some(i.kind))));
+            sources.push(("the calibration file", calibration_kind));
+            let kind = moma_io::resolve_prediction_kind(&sources).map_err(anyhow::Error::msg)?;
+            if let Some(sim) = indexes.iter().find(|i| i.simulated) {
+                eprintln!(
+                    "note: SIMULATED predictions ({}): not a depth model's output",
+                    sim.path.display()
+                );
+            }
             Ok(Source {
                 inputs: self.pred.clone(),
-                kind: self.pred_kind.into(),
+                kind,
                 model: None,
             })
         } else {
             let model = self.model.load()?.model;
+            let kind = moma_io::resolve_prediction_kind(&[
+                ("the depth model's head", Some(model.spec().head.prediction_kind())),
+                ("--pred-kind", self.pred_kind),
+                ("the calibration file", calibration_kind),
+            ])
+            .map_err(anyhow::Error::msg)?;
             Ok(Source {
                 inputs: self.rgb.clone(),
-                kind: model.spec().head.prediction_kind(),
+                kind,
                 model: Some(model),
             })
         }

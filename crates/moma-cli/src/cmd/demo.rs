@@ -17,7 +17,7 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// cylinders and spheres, ray-cast exact depth, 640×480, f = 600 px), simulate depth-model
 /// predictions (SIMULATED, inverse depth), calibrate SSRA / GSSA / LWLR on the first frame with
 /// n = 100 random ground-truth points, align the other frames, print the comparison table and
-/// write to OUT: scene/ (the moma set), predictions/ (simulated .npy + simulated.json),
+/// write to OUT: scene/ (the moma set), predictions/ (simulated .npy + predictions.json),
 /// results.{md,csv,json}, figures/<frame>.png (Fig.-6 style), aligned/<method>/<frame>.png
 /// (uint16 mm) + .npy (float32 m) + _colour.png, pointclouds/<frame>_ssra.ply.
 ///
@@ -53,7 +53,6 @@ pub struct DemoArgs {
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
     create_dir(&args.out)?;
-    let config = args.eval.config()?;
     let (set, preds) = match &args.set {
         Some(dir) => {
             let set = load_set(dir)?;
@@ -77,11 +76,12 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                 },
                 simulator: args.pred.sim.config()?,
                 simulator_seed: args.pred.sim_seed,
-                kind: args.pred.sim_kind.into(),
+                kind: args.pred.sim_kind,
             };
             build_demo(&demo, Some(&args.out)).context("building the demo scene")?
         }
     };
+    let config = args.eval.config(preds.kind()?)?;
     let t_build = t0.elapsed().as_secs_f64();
     let results = moma_eval::protocol::evaluate(&set, &preds, &config)?;
     let t_eval = t0.elapsed().as_secs_f64() - t_build;

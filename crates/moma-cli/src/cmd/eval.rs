@@ -4,15 +4,17 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, ValueEnum};
+use clap::Args;
 use moma_core::PredictionKind;
+use moma_core::align::Method;
+use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::sampling::SamplingStrategy;
-use moma_eval::data::MomaSet;
-use moma_eval::protocol::{EvalConfig, PredictionSet, evaluate, parse_norm};
+use moma_eval::data::LoadedSet;
+use moma_eval::protocol::{EvalConfig, PredictionSet, evaluate};
 use moma_eval::report::{contract_json, eval_table, write_eval_outputs};
 use moma_eval::simulate::{Simulator, simulate_frames};
 
-use super::common::{KindArg, ModelArgs, create_dir, join_paths};
+use super::common::{ModelArgs, create_dir, join_paths};
 use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 
 /// Evaluate alignment methods on moma sets: calibrate on one frame, score every other frame.
@@ -64,15 +66,16 @@ pub struct PredArgs {
     /// sub-folder per set name.
     #[arg(long, value_name = "DIR")]
     pub pred: Vec<PathBuf>,
-    /// Kind of the predictions in --pred (default: from simulated.json when present, else depth).
-    #[arg(long, value_enum)]
-    pub pred_kind: Option<KindArg>,
+    /// Kind of the predictions in --pred: depth | inverse-depth. Never guessed: taken from the
+    /// folder's predictions.json when present (they must agree), else required.
+    #[arg(long, value_name = "KIND")]
+    pub pred_kind: Option<PredictionKind>,
     /// Simulate predictions in memory (METHOD.md §6) instead of reading --pred.
     #[arg(long, conflicts_with = "pred")]
     pub simulate: bool,
-    /// Kind of simulated predictions.
-    #[arg(long, value_enum, default_value_t = KindArg::InverseDepth)]
-    pub sim_kind: KindArg,
+    /// Kind of simulated predictions: inverse-depth (like relative Depth Anything) or depth.
+    #[arg(long, default_value = "inverse-depth", value_name = "KIND")]
+    pub sim_kind: PredictionKind,
     /// Simulator seed.
     #[arg(long, default_value_t = 0)]
     pub sim_seed: u64,
@@ -85,28 +88,19 @@ pub struct PredArgs {
     pub model: ModelArgs,
 }
 
-/// `--sampling` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum SamplingArg {
-    /// Uniform over valid ground-truth pixels (MOMA's protocol).
-    Random,
-    /// √n × √n grid snapped to valid pixels (BoostingDepth).
-    Grid,
-}
-
 /// Protocol options (shared by eval and ablate).
 #[derive(Debug, Clone, Args)]
 pub struct EvalOptions {
-    /// Methods, comma-separated: ssra, gssa, lwlr (BoostingDepth's grid variant), raw; also
-    /// lwlr-exact and lwlr-bare.
-    #[arg(long, value_delimiter = ',', default_value = "ssra,gssa,lwlr,raw")]
-    pub methods: Vec<String>,
+    /// Methods, comma-separated: ssra, gssa, lwlr (BoostingDepth's grid variant), lwlr-exact,
+    /// lwlr-bare, raw. Default: ssra,gssa,lwlr, and raw for metric (depth) predictions.
+    #[arg(long, value_delimiter = ',', value_name = "METHODS")]
+    pub methods: Vec<Method>,
     /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none.
-    #[arg(long, value_delimiter = ',', default_value = "minmax")]
-    pub norm: Vec<String>,
-    /// For inverse-depth predictions: align in inverse space (no 1/d conversion).
-    #[arg(long)]
-    pub inverse_space: bool,
+    #[arg(long, value_delimiter = ',', default_value = "minmax", value_name = "NORMS")]
+    pub norm: Vec<Normalisation>,
+    /// Alignment space: inverse or depth (default: the predictions' own).
+    #[arg(long, value_name = "SPACE")]
+    pub space: Option<AlignSpace>,
     /// Number of calibration samples n.
     #[arg(long, default_value_t = 100)]
     pub samples: usize,
@@ -119,9 +113,9 @@ pub struct EvalOptions {
     /// Calibration frame id (default: the first id in sorted order).
     #[arg(long, value_name = "ID")]
     pub calib_frame: Option<String>,
-    /// Calibration-pixel sampling.
-    #[arg(long, value_enum, default_value_t = SamplingArg::Random)]
-    pub sampling: SamplingArg,
+    /// Calibration-pixel sampling: random or grid.
+    #[arg(long, default_value = "random", value_name = "SAMPLING")]
+    pub sampling: SamplingStrategy,
     /// Only sample and score ground truth at or beyond this depth, metres.
     #[arg(long, value_name = "METRES")]
     pub min_gt_depth: Option<f64>,
@@ -136,16 +130,17 @@ pub struct EvalOptions {
 }
 
 impl EvalOptions {
-    /// The library configuration.
-    pub fn config(&self) -> Result<EvalConfig> {
-        let norms = self
-            .norm
-            .iter()
-            .map(|s| parse_norm(s))
-            .collect::<Result<Vec<_>, _>>()?;
-        if norms.is_empty() || self.methods.is_empty() {
-            bail!("--methods and --norm need at least one value");
+    /// The library configuration for predictions of `kind` (it decides the default methods).
+    pub fn config(&self, kind: PredictionKind) -> Result<EvalConfig> {
+        let norms = self.norm.clone();
+        if norms.is_empty() {
+            bail!("--norm needs at least one value");
         }
+        let methods = if self.methods.is_empty() {
+            moma_eval::protocol::default_methods(kind)
+        } else {
+            self.methods.clone()
+        };
         let depth_range_m = match (self.min_gt_depth, self.max_gt_depth) {
             (None, None) => None,
             (lo, hi) => {
@@ -162,17 +157,14 @@ impl EvalOptions {
             .map(|p| moma_io::read_mask(p).context("reading the --workspace mask"))
             .transpose()?;
         Ok(EvalConfig {
-            methods: self.methods.clone(),
+            methods,
             norms,
-            inverse_space: self.inverse_space,
+            space: self.space,
             samples: self.samples,
             seeds: self.seeds,
             seed_base: self.seed_base,
             calib_frame: self.calib_frame.clone(),
-            sampling: match self.sampling {
-                SamplingArg::Random => SamplingStrategy::Random,
-                SamplingArg::Grid => SamplingStrategy::Grid,
-            },
+            sampling: self.sampling,
             depth_range_m,
             workspace,
         })
@@ -180,13 +172,13 @@ impl EvalOptions {
 }
 
 /// Loads a set with context.
-pub fn load_set(dir: &std::path::Path) -> Result<MomaSet> {
+pub fn load_set(dir: &std::path::Path) -> Result<LoadedSet> {
     moma_eval::data::load_set(dir).with_context(|| format!("loading moma set {}", dir.display()))
 }
 
 impl PredArgs {
     /// Predictions for set `index` of `n_sets`.
-    pub fn predictions(&self, set: &MomaSet, index: usize, n_sets: usize) -> Result<PredictionSet> {
+    pub fn predictions(&self, set: &LoadedSet, index: usize, n_sets: usize) -> Result<PredictionSet> {
         if self.model.weights.is_some() {
             return model_predictions(set, &self.model);
         }
@@ -199,16 +191,12 @@ impl PredArgs {
             let sim = Simulator::new(
                 self.sim.config()?,
                 self.sim_seed,
-                self.sim_kind.into(),
+                self.sim_kind,
                 set.intrinsics,
             )?;
             let maps = simulate_frames(set, &sim, self.sim_transparency.into())?;
             return Ok(PredictionSet {
-                label: format!(
-                    "simulated {} (seed {})",
-                    PredictionKind::from(self.sim_kind),
-                    self.sim_seed
-                ),
+                label: format!("SIMULATED {} (seed {})", self.sim_kind, self.sim_seed),
                 simulated: true,
                 maps,
             });
@@ -224,18 +212,12 @@ impl PredArgs {
                 n_sets
             );
         };
-        let kind = match self.pred_kind {
-            Some(k) => k.into(),
-            None => moma_eval::simulate::read_simulated_meta(&dir)
-                .map(|m| m.kind)
-                .unwrap_or(PredictionKind::Depth),
-        };
-        Ok(PredictionSet::read(set, &dir, kind)?)
+        Ok(PredictionSet::read(set, &dir, self.pred_kind)?)
     }
 }
 
 /// Runs a real depth model on every frame's rgb.png.
-pub fn model_predictions(set: &MomaSet, model: &ModelArgs) -> Result<PredictionSet> {
+pub fn model_predictions(set: &LoadedSet, model: &ModelArgs) -> Result<PredictionSet> {
     let mut net = model.load()?.model;
     let mut maps = Vec::with_capacity(set.frames.len());
     for f in &set.frames {
@@ -273,12 +255,12 @@ pub fn model_predictions(set: &MomaSet, model: &ModelArgs) -> Result<PredictionS
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
-    let config = args.eval.config()?;
     let t0 = Instant::now();
     let mut all = Vec::new();
     for (i, dir) in args.set.iter().enumerate() {
         let set = load_set(dir)?;
         let preds = args.pred.predictions(&set, i, args.set.len())?;
+        let config = args.eval.config(preds.kind()?)?;
         let results = evaluate(&set, &preds, &config)?;
         if args.figures {
             let out = args.out.join(&set.name);

@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_set};
 
-use super::common::{KindArg, create_dir};
+use super::common::create_dir;
 
 /// Write SIMULATED depth-model predictions for moma sets (no trained model involved).
 ///
@@ -14,7 +14,7 @@ use super::common::{KindArg, create_dir};
 /// seeded simulator of METHOD.md §6, in this order: viewpoint/intrinsics mismatch (a planar scale
 /// field), smooth non-planar bumps, relief compression, per-frame fluctuation in inverse depth,
 /// edge smoothing + correlated noise, transparent objects pulled towards the surface behind.
-/// Writes OUT/<frame-id>.npy (float32, H×W, of the given kind) and OUT/simulated.json (the
+/// Writes OUT/<frame-id>.npy (float32, H×W, of the given kind) and OUT/predictions.json (the
 /// "simulated" label: config, seed, kind, random draws). With several sets: OUT/<set-name>/.
 ///
 /// Examples:
@@ -33,8 +33,8 @@ pub struct SimulateArgs {
     pub out: PathBuf,
     /// Kind of prediction to simulate: inverse-depth (relative, arbitrary scale, like Depth
     /// Anything V2's relative models) or depth (metric-like, global scale error ±25 %).
-    #[arg(long, value_enum, default_value_t = KindArg::InverseDepth)]
-    pub kind: KindArg,
+    #[arg(long, default_value = "inverse-depth", value_name = "KIND")]
+    pub kind: moma_core::PredictionKind,
     /// Seed of the per-set draws (per-frame parts are seeded by seed + frame id).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -152,13 +152,13 @@ pub fn run(args: &SimulateArgs) -> Result<()> {
             .with_context(|| format!("loading set {}", dir.display()))?;
         let out = per_set_dir(&args.out, &set.name, args.set.len());
         create_dir(&out)?;
-        let sim = Simulator::new(config, args.seed, args.kind.into(), set.intrinsics)?;
+        let sim = Simulator::new(config, args.seed, args.kind, set.intrinsics)?;
         let (meta, _) = simulate_set(&set, &sim, args.transparency.into(), &out)?;
         eprintln!(
             "{}: {} SIMULATED {} predictions -> {} (transparency from mask: {})",
             set.name,
             meta.frames.len(),
-            meta.kind,
+            meta.head.prediction_kind,
             out.display(),
             meta.transparency_from_mask
         );

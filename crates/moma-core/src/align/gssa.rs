@@ -14,6 +14,7 @@ pub(crate) const DEGENERATE_REL: f64 = 1e-10;
 
 /// Fitted global scale-shift: z = scale·ẑ + shift (metres).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct GssaModel {
     /// Scale, metres per unit ẑ.
     pub scale: f64,

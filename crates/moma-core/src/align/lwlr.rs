@@ -71,7 +71,7 @@ pub enum LwlrSolve {
 
 /// LWLR settings. `Default` is BoostingDepth's implementation ([`LwlrConfig::faithful`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct LwlrConfig {
     /// Grid (faithful) or exact per-pixel solve.
     pub solve: LwlrSolve,
@@ -173,6 +173,7 @@ pub struct LwlrMaps {
 /// Fitted LWLR. Serialises compactly (config, samples, pre-fit); the full-size maps are
 /// computed on first use ([`LwlrModel::maps`]) and cached.
 #[derive(Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct LwlrModel {
     /// Settings.
     pub config: LwlrConfig,
@@ -353,19 +354,52 @@ impl LwlrModel {
         if self.samples.is_empty() {
             return 0.0;
         }
-        let m = self.maps();
-        let (w, h) = (self.image_size.width, self.image_size.height);
         let ss: f64 = self
             .samples
             .iter()
-            .map(|s| {
-                let u = (s.u.round().max(0.0) as usize).min(w - 1);
-                let v = (s.v.round().max(0.0) as usize).min(h - 1);
-                let z = f64::from(m.scale[[v, u]]) * s.pred + f64::from(m.shift_m[[v, u]]);
-                (z - s.depth_m).powi(2)
-            })
+            .map(|s| (self.predict_at_pixel(s.u, s.v, s.pred) - s.depth_m).powi(2))
             .sum();
         (ss / self.samples.len() as f64).sqrt()
+    }
+
+    /// The fitted value at the pixel nearest to `(u, v)` (clamped to the image) from the cached
+    /// full-size maps: `S[v, u]·ẑ + T[v, u]`, exactly what [`LwlrModel::apply_into`] computes
+    /// there (in f64).
+    pub fn predict_at_pixel(&self, u: f64, v: f64, pred: f64) -> f64 {
+        let m = self.maps();
+        let (w, h) = (self.image_size.width, self.image_size.height);
+        let u = (u.round().max(0.0) as usize).min(w.saturating_sub(1));
+        let v = (v.round().max(0.0) as usize).min(h.saturating_sub(1));
+        f64::from(m.scale[[v, u]]) * pred + f64::from(m.shift_m[[v, u]])
+    }
+
+    /// Checks a model read from a file: settings valid for its image size, the stored bandwidth
+    /// equal to the one the settings give, a finite global fit, at least 2 valid samples.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] naming the bad field.
+    pub fn validate(&self) -> Result<()> {
+        self.config.validate(self.image_size)?;
+        let b = self.config.bandwidth_for(self.image_size);
+        if !(self.bandwidth_px.is_finite() && self.bandwidth_px > 0.0) || self.bandwidth_px != b {
+            return Err(CoreError::InvalidParameter(format!(
+                "LWLR bandwidth_px is {} but must be a positive number of pixels equal to the \
+                 configured {b}",
+                self.bandwidth_px
+            )));
+        }
+        if !(self.global.scale.is_finite() && self.global.shift_m.is_finite()) {
+            return Err(CoreError::InvalidParameter(format!(
+                "LWLR global fit is not finite: scale {}, shift {}",
+                self.global.scale, self.global.shift_m
+            )));
+        }
+        let set = SampleSet {
+            image_size: self.image_size,
+            samples: self.samples.clone(),
+        };
+        set.validate()?;
+        set.require("lwlr", MIN_SAMPLES)
     }
 
     /// `out = S ⊙ ẑ + T`; shapes checked by the caller.

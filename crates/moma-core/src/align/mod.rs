@@ -19,6 +19,7 @@ use crate::sampling::Pixel;
 
 /// One calibration sample.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Sample {
     /// Column, pixels.
     pub u: f64,
@@ -32,6 +33,7 @@ pub struct Sample {
 
 /// The calibration samples of one frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SampleSet {
     /// Size of the image the samples come from.
     pub image_size: ImageSize,
@@ -138,6 +140,7 @@ fn rms_residual(samples: &[Sample], predict: impl Fn(&Sample) -> f64) -> f64 {
 
 /// What a fit reports besides its parameters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct FitReport {
     /// Method name (`ssra`, `gssa`, `lwlr`, `raw`).
     pub method: String,
@@ -178,13 +181,27 @@ pub enum AlignmentModel {
 }
 
 impl Method {
-    /// Method name as used on the command line.
+    /// Every method name [`Method::from_str`](std::str::FromStr) accepts, in documentation order.
+    pub const NAMES: [&'static str; 6] = ["ssra", "gssa", "lwlr", "lwlr-exact", "lwlr-bare", "raw"];
+
+    /// Method name as used on the command line and in files: `ssra`, `gssa`, `raw`, and for
+    /// LWLR the preset its settings follow (`lwlr` grid solve, `lwlr-exact` exact solve with
+    /// BoostingDepth's pre-fit and ridge, `lwlr-bare` the bare formula).
     pub fn name(&self) -> &'static str {
         match self {
             Self::Raw => "raw",
             Self::Gssa => "gssa",
             Self::Ssra(_) => "ssra",
-            Self::Lwlr(_) => "lwlr",
+            Self::Lwlr(cfg) => lwlr_name(cfg),
+        }
+    }
+
+    /// The method with `intrinsics` used for reporting (SSRA's canonical parameters); other
+    /// methods are returned unchanged.
+    pub fn with_intrinsics(self, intrinsics: Option<crate::camera::Intrinsics>) -> Self {
+        match self {
+            Self::Ssra(_) => Self::Ssra(ssra::SsraConfig { intrinsics }),
+            other => other,
         }
     }
 
@@ -247,14 +264,138 @@ impl Method {
     }
 }
 
+/// The name of an LWLR configuration: the preset its solve, pre-fit and ridge follow.
+fn lwlr_name(cfg: &lwlr::LwlrConfig) -> &'static str {
+    match cfg.solve {
+        lwlr::LwlrSolve::Grid => "lwlr",
+        lwlr::LwlrSolve::Exact if !cfg.global_prefit && cfg.ridge_shift == 0.0 => "lwlr-bare",
+        lwlr::LwlrSolve::Exact => "lwlr-exact",
+    }
+}
+
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = CoreError;
+    /// Parses a name of [`Method::NAMES`] into the method with its default settings (SSRA
+    /// without intrinsics: see [`Method::with_intrinsics`]).
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "ssra" => Ok(Self::Ssra(ssra::SsraConfig::default())),
+            "gssa" => Ok(Self::Gssa),
+            "lwlr" => Ok(Self::Lwlr(lwlr::LwlrConfig::faithful())),
+            "lwlr-exact" => Ok(Self::Lwlr(lwlr::LwlrConfig::exact())),
+            "lwlr-bare" => Ok(Self::Lwlr(lwlr::LwlrConfig::bare_exact())),
+            "raw" => Ok(Self::Raw),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown method '{other}' (expected one of: {})",
+                crate::names::join(Self::NAMES)
+            ))),
+        }
+    }
+}
+
 impl AlignmentModel {
-    /// Method name (`raw`, `gssa`, `ssra`, `lwlr`).
+    /// Method name (`raw`, `gssa`, `ssra`, `lwlr`, `lwlr-exact`, `lwlr-bare`).
     pub fn name(&self) -> &'static str {
         match self {
             Self::Raw => "raw",
             Self::Gssa(_) => "gssa",
             Self::Ssra(_) => "ssra",
-            Self::Lwlr(_) => "lwlr",
+            Self::Lwlr(m) => lwlr_name(&m.config),
+        }
+    }
+
+    /// The fitted value at pixel `(u, v)` for normalised value ẑ = `pred`, in the fit's target
+    /// space (metres in depth space), exactly as [`AlignmentModel::apply`] computes it there
+    /// (LWLR: from its full-size maps at the nearest pixel), in f64.
+    pub fn predict_at(&self, u: f64, v: f64, pred: f64) -> f64 {
+        match self {
+            Self::Raw => pred,
+            Self::Gssa(m) => m.predict(pred),
+            Self::Ssra(m) => m.predict(u, v, pred),
+            Self::Lwlr(m) => m.predict_at_pixel(u, v, pred),
+        }
+    }
+
+    /// Checks a model read from a file: finite parameters, SSRA's linear and canonical
+    /// parameters describing the same model (relative difference ≤ 1e-6), LWLR's settings and
+    /// bandwidth (> 0) valid, image sizes non-empty.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] naming the bad value.
+    pub fn validate(&self) -> Result<()> {
+        let finite = |what: &str, x: f64| {
+            if x.is_finite() {
+                Ok(())
+            } else {
+                Err(CoreError::InvalidParameter(format!(
+                    "{} parameter {what} is {x}, not a finite number",
+                    self.name()
+                )))
+            }
+        };
+        if let Some(size) = self.image_size()
+            && size.pixels() == 0
+        {
+            return Err(CoreError::InvalidParameter(format!(
+                "{} calibration image size {size} is empty",
+                self.name()
+            )));
+        }
+        match self {
+            Self::Raw => Ok(()),
+            Self::Gssa(m) => {
+                finite("scale", m.scale)?;
+                finite("shift_m", m.shift_m)
+            }
+            Self::Ssra(m) => {
+                finite("alpha_m_per_px", m.alpha_m_per_px)?;
+                finite("beta_m_per_px", m.beta_m_per_px)?;
+                finite("gamma_m", m.gamma_m)?;
+                finite("t3_m", m.t3_m)?;
+                for (name, x) in ["s_m", "theta_rad", "phi_rad", "t3_m", "cx_px", "cy_px", "f_px"]
+                    .iter()
+                    .zip(m.canonical.as_array())
+                {
+                    finite(name, x)?;
+                }
+                if !(m.canonical.f_px > 0.0) {
+                    return Err(CoreError::InvalidParameter(format!(
+                        "ssra canonical f_px is {}, must be > 0",
+                        m.canonical.f_px
+                    )));
+                }
+                // Compare the two parameterisations as models: predictions at the image corners
+                // for ẑ = 1 and the shift.
+                let (a, b, g, t) = m.canonical.to_linear();
+                let (w, h) = (m.image_size.width as f64, m.image_size.height as f64);
+                let corners = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)];
+                let scale = corners
+                    .iter()
+                    .map(|&(u, v)| (m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m).abs())
+                    .fold(m.t3_m.abs(), f64::max)
+                    .max(1e-12);
+                let worst = corners
+                    .iter()
+                    .map(|&(u, v)| {
+                        ((a * u + b * v + g) - (m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m))
+                            .abs()
+                    })
+                    .fold((t - m.t3_m).abs(), f64::max);
+                if worst > 1e-6 * scale {
+                    return Err(CoreError::InvalidParameter(format!(
+                        "ssra linear parameters (alpha, beta, gamma, t3) and canonical parameters \
+                         describe different models (difference {worst:.3e} m per unit ẑ)"
+                    )));
+                }
+                Ok(())
+            }
+            Self::Lwlr(m) => m.validate(),
         }
     }
 

@@ -32,6 +32,7 @@ const MIN_PIVOT: f64 = 1e-10;
 
 /// SSRA settings.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
 pub struct SsraConfig {
     /// Intrinsics used to report the canonical 7 parameters (else image centre and f = width).
     pub intrinsics: Option<crate::camera::Intrinsics>,
@@ -40,6 +41,7 @@ pub struct SsraConfig {
 /// The paper's 7 parameters in canonical form (METHOD.md §2): `(c_x, c_y, f)` fixed to the
 /// intrinsics (or image centre and `f` = image width), `s` signed so that `R33 > 0`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SsraCanonical {
     /// Scale s, metres per unit ẑ.
     pub s_m: f64,
@@ -138,6 +140,7 @@ impl SsraCanonical {
 
 /// Fitted SSRA: z = ẑ(αu + βv + γ) + T3, plus the canonical (s, θ, φ, T3, cx, cy, f).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SsraModel {
     /// α, metres per unit ẑ per pixel column.
     pub alpha_m_per_px: f64,

@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 use moma_core::{Intrinsics, Mask, MetricDepth, Prediction, PredictionKind};
-use moma_eval::data::{Frame, MomaSet};
+use moma_eval::data::{LoadedFrame, LoadedSet};
 use moma_eval::protocol::PredictionSet;
 use ndarray::Array2;
 
@@ -56,13 +56,13 @@ pub fn pred(k: usize) -> Prediction {
     Prediction::new(v, PredictionKind::Depth)
 }
 
-pub fn set(frames: usize) -> MomaSet {
-    MomaSet {
+pub fn set(frames: usize) -> LoadedSet {
+    LoadedSet {
         name: "synthetic".into(),
         dir: "synthetic".into(),
         intrinsics: intrinsics(),
         frames: (0..frames)
-            .map(|k| Frame {
+            .map(|k| LoadedFrame {
                 id: format!("f{k}"),
                 rgb: None,
                 gt: gt(k),
