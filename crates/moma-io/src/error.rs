@@ -60,7 +60,7 @@ pub enum IoError {
     /// A calibration file of another format or version.
     #[error(
         "{}: unsupported calibration file: format '{format}', version {version} \
-         (this moma reads format 'moma-calibration' version {supported})",
+         (this moma reads format 'moma-calibration' versions 1 to {supported})",
         path.display()
     )]
     CalibrationVersion {

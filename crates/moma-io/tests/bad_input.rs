@@ -280,7 +280,10 @@ mod calibration {
 
     fn file() -> CalibrationFile {
         let calibration = Calibration {
-            normalisation: Default::default(),
+            normalisation: moma_core::NormalisationConfig {
+                method: moma_core::Normalisation::None,
+                space: moma_core::AlignSpace::Depth,
+            },
             prediction_kind: PredictionKind::Depth,
             model: AlignmentModel::Raw,
             report: FitReport {
@@ -293,8 +296,93 @@ mod calibration {
                 image_size: ImageSize::new(8, 6),
                 samples: vec![],
             },
+            workspace: None,
         };
-        CalibrationFile::new(calibration, None, None, CreationInfo::now())
+        CalibrationFile::new(calibration, None, CreationInfo::now())
+    }
+
+    /// A version-1 file as moma 0.1 wrote it (GSSA, minmax, workspace given as a path).
+    fn v1_text(workspace: &str, inverse_space: bool) -> String {
+        format!(
+            r#"{{"format":"moma-calibration","version":1,"method":"gssa",
+            "normalisation":{{"method":"minmax","inverse_space":{inverse_space}}},
+            "prediction_kind":"inverse-depth",
+            "calibration":{{"normalisation":{{"method":"minmax","inverse_space":{inverse_space}}},
+              "prediction_kind":"inverse-depth",
+              "model":{{"method":"gssa","scale":0.5,"shift_m":0.25}},
+              "report":{{"method":"gssa","n_used":2,"rms_residual_m":0.001,"fit_time_s":1e-6}},
+              "samples":{{"image_size":{{"width":8,"height":6}},"samples":[
+                {{"u":1.0,"v":2.0,"pred":0.3,"depth_m":0.8}},{{"u":5.0,"v":4.0,"pred":0.6,"depth_m":0.9}}]}}}},
+            "intrinsics":null,"image_size":{{"width":8,"height":6}},"workspace_mask":{workspace},
+            "created":{{"moma_version":"0.1.0","created_unix_s":1700000000,"command_line":[],"sources":{{}}}}}}"#
+        )
+    }
+
+    #[test]
+    fn version_1_files_are_migrated() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        std::fs::write(&p, v1_text("null", false)).unwrap();
+        let f = read_calibration(&p).unwrap();
+        assert_eq!(f.version, moma_io::CALIBRATION_VERSION);
+        assert_eq!(f.normalisation.space, moma_core::AlignSpace::Depth);
+        assert!(f.calibration.workspace.is_none());
+        // a workspace path (relative to the file) is read and embedded
+        let mask = moma_core::Mask::new(ndarray::Array2::from_shape_fn((6, 8), |(v, _)| v > 1));
+        moma_io::write_mask(dir.path().join("ws.png"), &mask).unwrap();
+        std::fs::write(&p, v1_text("\"ws.png\"", false)).unwrap();
+        let f = read_calibration(&p).unwrap();
+        assert_eq!(f.calibration.workspace.unwrap().mask(), &mask);
+        // a missing workspace file, and the dropped --inverse-space mode, are clear errors
+        std::fs::write(&p, v1_text("\"/nonexistent/ws.png\"", false)).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(m.contains("version-1") && m.contains("/nonexistent/ws.png"), "{m}");
+        std::fs::write(&p, v1_text("null", true)).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(m.contains("--inverse-space") && m.contains("moma calibrate"), "{m}");
+    }
+
+    fn gssa_file_value() -> serde_json::Value {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        std::fs::write(&p, v1_text("null", false)).unwrap();
+        let f = read_calibration(&p).unwrap();
+        serde_json::to_value(&f).unwrap()
+    }
+
+    fn read_value(v: &serde_json::Value) -> String {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        std::fs::write(&p, serde_json::to_string(v).unwrap()).unwrap();
+        msg(&read_calibration(&p).unwrap_err())
+    }
+
+    #[test]
+    fn unknown_fields_nan_and_bad_parameters_are_refused() {
+        let mut v = gssa_file_value();
+        v["extra"] = serde_json::json!(true);
+        let m = read_value(&v);
+        assert!(m.contains("unknown field `extra`") && m.contains("calib.json"), "{m}");
+        let mut v = gssa_file_value();
+        v["calibration"]["model"]["surprise"] = serde_json::json!(1);
+        assert!(read_value(&v).contains("unknown field `surprise`"));
+        // JSON has no NaN: a parameter written as null or a string is a schema error
+        let mut v = gssa_file_value();
+        v["calibration"]["model"]["scale"] = serde_json::Value::Null;
+        assert!(read_value(&v).contains("calib.json"));
+        // an absurd (overflowing) value becomes infinite and is refused by validation
+        let text = serde_json::to_string(&gssa_file_value())
+            .unwrap()
+            .replace("\"scale\":0.5", "\"scale\":1e999");
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        std::fs::write(&p, text).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(m.contains("not a finite number") || m.contains("calib.json"), "{m}");
+        // an inconsistent summary field
+        let mut v = gssa_file_value();
+        v["method"] = serde_json::json!("ssra");
+        assert!(read_value(&v).contains("inconsistent"));
     }
 
     #[test]
@@ -341,15 +429,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 2.into();
-        // A v2 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 3.into();
+        // A v3 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 2") && m.contains("version 1"),
+            m.contains("calib.json") && m.contains("version 3") && m.contains("versions 1 to 2"),
             "{m}"
         );
 

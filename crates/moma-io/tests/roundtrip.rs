@@ -286,12 +286,15 @@ pub fn sample_calibration() -> Calibration {
     Calibration {
         normalisation: NormalisationConfig {
             method: Normalisation::Median,
-            inverse_space: false,
+            space: moma_core::AlignSpace::Inverse,
         },
         prediction_kind: PredictionKind::InverseDepth,
-        model: AlignmentModel::Raw,
+        model: AlignmentModel::Gssa(moma_core::align::gssa::GssaModel {
+            scale: 0.25,
+            shift_m: 0.5,
+        }),
         report: FitReport {
-            method: "raw".into(),
+            method: "gssa".into(),
             n_used: 2,
             rms_residual_m: 0.012_345_678_9,
             fit_time_s: 1.5e-6,
@@ -313,6 +316,7 @@ pub fn sample_calibration() -> Calibration {
                 },
             ],
         },
+        workspace: None,
     }
 }
 
@@ -328,20 +332,26 @@ fn calibration_file_roundtrip() {
     }
     .with_source("prediction", "frames/a/pred.npy");
     let k = Intrinsics::nominal(ImageSize::new(64, 48));
-    let file = CalibrationFile::new(
-        sample_calibration(),
-        Some(k),
-        Some("ws.png".into()),
-        created,
-    );
+    let mut cal = sample_calibration();
+    let ws = moma_core::Mask::new(ndarray::Array2::from_shape_fn((48, 64), |(v, u)| u > 3 && v < 40));
+    cal.workspace = Some(std::sync::Arc::new(moma_core::Workspace::new(ws).unwrap()));
+    let file = CalibrationFile::new(cal, Some(k), created);
     write_calibration(&p, &file).unwrap();
     let back = read_calibration(&p).unwrap();
     assert_eq!(back, file);
     // The documented top-level fields are there for scripts.
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
     assert_eq!(v["format"], "moma-calibration");
-    assert_eq!(v["version"], 1);
-    assert_eq!(v["method"], "raw");
+    assert_eq!(v["version"], 2);
+    assert_eq!(v["method"], "gssa");
+    assert_eq!(v["normalisation"]["space"], "inverse");
+    assert_eq!(v["calibration"]["workspace"]["inside_px"], 60 * 40);
+    // copied to another folder, the file still holds its workspace
+    let elsewhere = tempfile::tempdir().unwrap();
+    let q = elsewhere.path().join("moved.json");
+    std::fs::copy(&p, &q).unwrap();
+    drop(dir);
+    assert_eq!(read_calibration(&q).unwrap(), file);
     assert_eq!(v["prediction_kind"], "inverse-depth");
     assert_eq!(v["normalisation"]["method"], "median");
     assert_eq!(v["image_size"]["width"], 64);
