@@ -11,7 +11,7 @@ use ndarray::Array2;
 
 fn config(methods: &[&str], norm: Normalisation, seeds: usize) -> EvalConfig {
     EvalConfig {
-        methods: methods.iter().map(|s| s.to_string()).collect(),
+        methods: methods.iter().map(|s| s.parse().unwrap()).collect(),
         norms: vec![norm],
         samples: 30,
         seeds,
@@ -221,7 +221,7 @@ fn missing_prediction_file_names_the_frame() {
     let dir = tempfile::tempdir().unwrap();
     let s = set(3);
     moma_io::write_npy_f32(dir.path().join("f0.npy"), preds(1).maps[0].values.view()).unwrap();
-    let e = PredictionSet::read(&s, dir.path(), moma_core::PredictionKind::Depth).unwrap_err();
+    let e = PredictionSet::read(&s, dir.path(), Some(moma_core::PredictionKind::Depth)).unwrap_err();
     let msg = e.to_string();
     assert!(
         msg.contains("'f1'") && msg.contains("missing prediction file"),
@@ -289,7 +289,7 @@ fn workspace_normalises_over_the_fixed_region_in_every_frame() {
     let prep = Prepared::new(&s, &p, &c).unwrap();
     let norm = NormalisationConfig {
         method: Normalisation::Minmax,
-        inverse_space: false,
+        space: moma_core::AlignSpace::Depth,
     };
     let ws = workspace();
     for i in 0..3 {

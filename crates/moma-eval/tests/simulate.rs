@@ -312,14 +312,29 @@ fn simulate_set_writes_npy_and_the_simulated_label() {
         let a = moma_io::read_npy_f32(dir.path().join(format!("{}.npy", f.id))).unwrap();
         assert_eq!(a.dim(), (H, W));
     }
-    let meta = moma_eval::simulate::read_simulated_meta(dir.path()).unwrap();
-    assert!(meta.simulated);
-    assert_eq!(meta.kind, PredictionKind::Depth);
-    let p =
-        moma_eval::protocol::PredictionSet::read(&s, dir.path(), PredictionKind::Depth).unwrap();
-    assert!(p.simulated);
+    let index = moma_io::read_prediction_index(dir.path()).unwrap().unwrap();
+    assert!(index.simulated && index.source.contains("SIMULATED"));
+    assert_eq!(index.kind, PredictionKind::Depth);
+    // the kind comes from predictions.json; --pred-kind may repeat it but not contradict it
+    let p = moma_eval::protocol::PredictionSet::read(&s, dir.path(), None).unwrap();
+    assert!(p.simulated && p.label.contains("SIMULATED"));
+    assert_eq!(p.kind().unwrap(), PredictionKind::Depth);
     assert!(
-        moma_eval::protocol::PredictionSet::read(&s, dir.path(), PredictionKind::InverseDepth)
-            .is_err()
+        moma_eval::protocol::PredictionSet::read(&s, dir.path(), Some(PredictionKind::Depth))
+            .is_ok()
     );
+    let e = moma_eval::protocol::PredictionSet::read(
+        &s,
+        dir.path(),
+        Some(PredictionKind::InverseDepth),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("mismatch") && e.contains("predictions.json"), "{e}");
+    // without an index the kind must be given
+    std::fs::remove_file(dir.path().join("predictions.json")).unwrap();
+    let e = moma_eval::protocol::PredictionSet::read(&s, dir.path(), None)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("prediction kind is unknown"), "{e}");
 }

@@ -53,7 +53,7 @@ pub enum AblateCommand {
             value_delimiter = ',',
             default_value = "minmax,minmax-unit,median,none"
         )]
-        norms: Vec<String>,
+        norms: Vec<moma_core::Normalisation>,
     },
     /// (c) prediction source: several prediction folders with labels (default: simulated depth
     /// vs simulated inverse depth, in memory).
@@ -139,7 +139,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
                 let config = common.eval.config(preds.kind()?)?;
-                rows.extend(ablate::norms(&set, &preds, &config, &norms)?);
+                rows.extend(ablate::norms(&set, &preds, &config, norms)?);
             }
             let out = ablate::write_norms(&common.out, &rows)?;
             report(&out, &out.tables[0], t0)

@@ -270,11 +270,6 @@ impl Source {
         self.inputs.len()
     }
 
-    /// Kind of the predictions this source produces.
-    pub fn kind(&self) -> PredictionKind {
-        self.kind
-    }
-
     /// Reads (or predicts) input `i`.
     ///
     /// # Errors
