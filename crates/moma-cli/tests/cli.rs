@@ -230,17 +230,22 @@ fn bad_input_is_a_clear_error() {
         s(&calib),
     ]);
 
-    // Kind mismatch between calibration and run time.
+    // Kind mismatch between calibration (and predictions.json) and run time.
     let err = fails(&[
         "align",
         "--calib",
         s(&calib),
         "--pred",
         s(&pred.join("frame_01.npy")),
+        "--pred-kind",
+        "depth",
         "-o",
         s(&tmp.path().join("a")),
     ]);
-    assert!(err.contains("inverse-depth"), "{err}");
+    assert!(
+        err.contains("inverse-depth") && err.contains("prediction kind mismatch"),
+        "{err}"
+    );
 
     // --ply without intrinsics.
     let err = fails(&[

@@ -272,14 +272,7 @@ pub fn calibrate(
         &config.normalisation,
         workspace.as_ref().map(|w| w.mask()),
     )?;
-    calibrate_normalised(
-        &normalised,
-        pred.kind,
-        gt,
-        config,
-        workspace,
-        sample_region,
-    )
+    calibrate_normalised(&normalised, pred.kind, gt, config, workspace, sample_region)
 }
 
 /// [`calibrate`] from a prediction already normalised with `config.normalisation` over
@@ -343,7 +336,11 @@ fn rms_residual_m(model: &AlignmentModel, space: AlignSpace, samples: &[Sample])
         .iter()
         .map(|s| {
             let z = space.depth_from_target(model.predict_at(s.u, s.v, s.pred));
-            let r = if z.is_finite() { z - s.depth_m } else { s.depth_m };
+            let r = if z.is_finite() {
+                z - s.depth_m
+            } else {
+                s.depth_m
+            };
             r * r
         })
         .sum();

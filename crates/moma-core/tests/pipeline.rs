@@ -190,8 +190,7 @@ fn pipeline_errors() {
 fn inverse_space_recovers_a_shifted_disparity_exactly() {
     let gt = MetricDepth::new(common::tabletop_gt(SIZE));
     let a = 0.7f64;
-    let mean_inv =
-        gt.depth_m.iter().map(|&z| a / f64::from(z)).sum::<f64>() / SIZE.pixels() as f64;
+    let mean_inv = gt.depth_m.iter().map(|&z| a / f64::from(z)).sum::<f64>() / SIZE.pixels() as f64;
     let b = -0.5 * mean_inv;
     let disparity = gt.depth_m.mapv(|z| (a / f64::from(z) + b) as f32);
     let pred = Prediction::new(disparity, PredictionKind::InverseDepth);
@@ -200,20 +199,32 @@ fn inverse_space_recovers_a_shifted_disparity_exactly() {
         cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
         assert_eq!(cfg.normalisation.space, AlignSpace::Inverse);
         let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
-        assert!(cal.report.rms_residual_m < 1e-5, "{method}: {:?}", cal.report);
+        assert!(
+            cal.report.rms_residual_m < 1e-5,
+            "{method}: {:?}",
+            cal.report
+        );
         let m = DepthMetrics::compute(&cal.align(&pred).unwrap(), &gt, None).unwrap();
-        assert!(m.mae < 2e-5 && m.d105 == 1.0, "{method} inverse space: {m:?}");
+        assert!(
+            m.mae < 2e-5 && m.d105 == 1.0,
+            "{method} inverse space: {m:?}"
+        );
         // depth space (1/d as pseudo-depth) cannot undo the shift
         cfg.normalisation.space = AlignSpace::Depth;
         let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
         let md = DepthMetrics::compute(&cal.align(&pred).unwrap(), &gt, None).unwrap();
-        assert!(md.mae > 100.0 * m.mae.max(1e-6), "{method} depth space: {md:?}");
+        assert!(
+            md.mae > 100.0 * m.mae.max(1e-6),
+            "{method} depth space: {md:?}"
+        );
     }
 }
 
 #[test]
 fn inverse_space_output_is_nan_where_the_fitted_disparity_is_not_positive() {
-    let gt = MetricDepth::new(Array2::from_shape_fn((20, 30), |(_, u)| 0.5 + 0.01 * u as f32));
+    let gt = MetricDepth::new(Array2::from_shape_fn((20, 30), |(_, u)| {
+        0.5 + 0.01 * u as f32
+    }));
     let pred = Prediction::new(gt.depth_m.mapv(|z| 1.0 / z), PredictionKind::InverseDepth);
     let mut cfg = config(Method::Gssa);
     cfg.normalisation.space = AlignSpace::Inverse;
@@ -287,8 +298,13 @@ fn the_calibration_owns_its_workspace_and_align_into_matches_align() {
     let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
     v["workspace"]["runs"][1] = serde_json::json!(v["workspace"]["runs"][1].as_u64().unwrap() - 1);
     v["workspace"]["runs"][2] = serde_json::json!(v["workspace"]["runs"][2].as_u64().unwrap() + 1);
-    let e = serde_json::from_value::<Calibration>(v).unwrap_err().to_string();
-    assert!(e.contains("hash mismatch") || e.contains("inside_px"), "{e}");
+    let e = serde_json::from_value::<Calibration>(v)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("hash mismatch") || e.contains("inside_px"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -306,10 +322,20 @@ fn validation_refuses_broken_models() {
     let mut v = serde_json::to_value(&lwlr).unwrap();
     v["model"]["bandwidth_px"] = serde_json::json!(-3.0);
     let bad: Calibration = serde_json::from_value(v.clone()).unwrap();
-    assert!(bad.validate().unwrap_err().to_string().contains("bandwidth"));
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("bandwidth")
+    );
     v["model"]["bandwidth_px"] = serde_json::json!(0.0);
     let bad: Calibration = serde_json::from_value(v.clone()).unwrap();
-    assert!(bad.validate().unwrap_err().to_string().contains("bandwidth"));
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("bandwidth")
+    );
     // unknown fields are refused
     v["model"]["bandwidth_px"] = serde_json::json!(lwlr_bandwidth(&lwlr));
     v["surprise"] = serde_json::json!(1);
@@ -361,7 +387,10 @@ fn names_parse_and_print_back() {
         assert_eq!(s.to_string().parse::<AlignSpace>().unwrap(), s);
     }
     let e = "ssr".parse::<Method>().unwrap_err().to_string();
-    assert!(e.contains("unknown method 'ssr'") && e.contains("lwlr-exact"), "{e}");
+    assert!(
+        e.contains("unknown method 'ssr'") && e.contains("lwlr-exact"),
+        "{e}"
+    );
     assert!("minmax_unit".parse::<Normalisation>().is_err());
 }
 

@@ -9,14 +9,13 @@ use moma_core::{MetricDepth, is_valid_depth};
 use serde::{Deserialize, Serialize};
 
 use crate::data::LoadedSet;
-use moma_core::align::Method;
 use crate::error::{EvalError, Result};
 use crate::protocol::{
-    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, evaluate,
-    evaluate_one,
+    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, evaluate, evaluate_one,
 };
 use crate::render::{LinePanel, Series, bar_plot, line_plot};
 use crate::report::{Table, headers_with_metrics, metric_cells, write_table};
+use moma_core::align::Method;
 
 /// The sample counts of the paper's ablation (a).
 pub const SAMPLE_COUNTS: &[usize] = &[20, 50, 100, 200, 400, 1000, 3000];

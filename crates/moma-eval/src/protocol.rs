@@ -12,7 +12,9 @@ use std::sync::Arc;
 
 use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise};
+use moma_core::normalise::{
+    AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise,
+};
 use moma_core::pipeline::{Calibration, CalibrationConfig, Workspace, calibrate_normalised};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_core::{Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
@@ -234,7 +236,11 @@ impl PredictionSet {
     ///
     /// # Errors
     /// Unknown or contradicting kind; a missing file or a size mismatch, naming the frame.
-    pub fn read(set: &LoadedSet, dir: &std::path::Path, kind: Option<PredictionKind>) -> Result<Self> {
+    pub fn read(
+        set: &LoadedSet,
+        dir: &std::path::Path,
+        kind: Option<PredictionKind>,
+    ) -> Result<Self> {
         let index = moma_io::read_prediction_index(dir)?;
         let index_what = index
             .as_ref()
@@ -244,7 +250,9 @@ impl PredictionSet {
             ("--pred-kind", kind),
             (index_what.as_str(), index.as_ref().map(|i| i.kind)),
         ])
-        .map_err(|m| EvalError::InvalidParameter(format!("predictions in {}: {m}", dir.display())))?;
+        .map_err(|m| {
+            EvalError::InvalidParameter(format!("predictions in {}: {m}", dir.display()))
+        })?;
         let mut maps = Vec::with_capacity(set.frames.len());
         for f in &set.frames {
             let values = crate::data::read_prediction(dir, &set.name, &f.id)?;

@@ -23,7 +23,9 @@
 //!    p = `transparency_pull` (the model "sees through" glass).
 //!
 //! Output kinds: `depth` = g·z with a per-set global scale error g = 1 + U(±`depth_scale_error`);
-//! `inverse-depth` = K/z with a per-set arbitrary scale K = exp(U(±`inverse_log_scale`)).
+//! `inverse-depth` = max(0, K/z + b) with a per-set arbitrary scale K = exp(U(±`inverse_log_scale`))
+//! and shift b = β·mean(K/z), β = U(`disparity_shift_min`, `disparity_shift_max`) per set
+//! (a relative model's disparity is affine-invariant: scale *and* shift unknown).
 //!
 //! Every component is disabled by setting its strength to 0; with all strengths 0 the output is
 //! the hole-filled ground truth (times g, or K/·). Randomness: per-set parts come from `seed`,
@@ -76,6 +78,13 @@ pub struct SimulatorConfig {
     pub depth_scale_error: f64,
     /// Output `inverse-depth`: K = exp(U(±this)) (default 1.0, K in [0.37, 2.7]).
     pub inverse_log_scale: f64,
+    /// Output `inverse-depth`: the disparity shift b = β·mean(K/z) of a relative model,
+    /// β drawn per set uniformly from [`Self::disparity_shift_min`, `Self::disparity_shift_max`]
+    /// (defaults −0.55 and +0.3; −0.55 measured on a real relative output, METHOD.md §6);
+    /// disparities ≤ 0 become 0, as the model's final ReLU does.
+    pub disparity_shift_min: f64,
+    /// Upper end of β (default 0.3).
+    pub disparity_shift_max: f64,
 }
 
 impl Default for SimulatorConfig {
@@ -95,6 +104,8 @@ impl Default for SimulatorConfig {
             transparency_pull: 0.5,
             depth_scale_error: 0.25,
             inverse_log_scale: 1.0,
+            disparity_shift_min: -0.55,
+            disparity_shift_max: 0.3,
         }
     }
 }
@@ -117,6 +128,8 @@ impl SimulatorConfig {
             transparency_pull: 0.0,
             depth_scale_error: 0.0,
             inverse_log_scale: 0.0,
+            disparity_shift_min: 0.0,
+            disparity_shift_max: 0.0,
         }
     }
 
@@ -150,6 +163,16 @@ impl SimulatorConfig {
             return Err(EvalError::InvalidParameter(
                 "simulator relief_compression and transparency_pull must be <= 1".into(),
             ));
+        }
+        if !(self.disparity_shift_min.is_finite()
+            && self.disparity_shift_max.is_finite()
+            && self.disparity_shift_min <= self.disparity_shift_max
+            && self.disparity_shift_min > -1.0)
+        {
+            return Err(EvalError::InvalidParameter(format!(
+                "simulator disparity shift range [{}, {}] must be finite, ordered and above -1",
+                self.disparity_shift_min, self.disparity_shift_max
+            )));
         }
         if self.frame_fluctuation >= 1.0 || self.depth_scale_error >= 1.0 {
             return Err(EvalError::InvalidParameter(
@@ -192,6 +215,8 @@ pub struct SetDraws {
     pub depth_scale: f64,
     /// Output `inverse-depth`: scale K.
     pub inverse_scale: f64,
+    /// Output `inverse-depth`: shift fraction β (b = β·mean(K/z) per frame).
+    pub disparity_shift: f64,
 }
 
 /// A seeded simulator for one fixed camera (one set).
@@ -288,6 +313,10 @@ impl Simulator {
         }
         let depth_scale = 1.0 + uniform_pm(&mut rng, config.depth_scale_error);
         let inverse_scale = uniform_pm(&mut rng, config.inverse_log_scale).exp();
+        // drawn last, so that the draws above are those of earlier versions
+        let u: f64 = rng.random();
+        let disparity_shift = config.disparity_shift_min
+            + u * (config.disparity_shift_max - config.disparity_shift_min);
         Ok(Self {
             config,
             seed,
@@ -302,6 +331,7 @@ impl Simulator {
                 bump_norm: if bump_norm > 0.0 { bump_norm } else { 1.0 },
                 depth_scale,
                 inverse_scale,
+                disparity_shift,
             },
         })
     }
@@ -424,7 +454,16 @@ impl Simulator {
             }
             PredictionKind::InverseDepth => {
                 let k = self.draws.inverse_scale;
-                z.mapv(|x| (k / x as f64) as f32)
+                let (sum, n) = z
+                    .iter()
+                    .filter(|x| x.is_finite() && **x > 0.0)
+                    .fold((0.0f64, 0usize), |(s, n), &x| (s + k / x as f64, n + 1));
+                let b = if n > 0 {
+                    self.draws.disparity_shift * sum / n as f64
+                } else {
+                    0.0
+                };
+                z.mapv(|x| ((k / x as f64) + b).max(0.0) as f32)
             }
         };
         Ok(Prediction::new(values, self.kind))

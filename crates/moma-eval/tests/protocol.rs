@@ -221,7 +221,8 @@ fn missing_prediction_file_names_the_frame() {
     let dir = tempfile::tempdir().unwrap();
     let s = set(3);
     moma_io::write_npy_f32(dir.path().join("f0.npy"), preds(1).maps[0].values.view()).unwrap();
-    let e = PredictionSet::read(&s, dir.path(), Some(moma_core::PredictionKind::Depth)).unwrap_err();
+    let e =
+        PredictionSet::read(&s, dir.path(), Some(moma_core::PredictionKind::Depth)).unwrap_err();
     let msg = e.to_string();
     assert!(
         msg.contains("'f1'") && msg.contains("missing prediction file"),

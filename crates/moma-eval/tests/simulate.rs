@@ -330,7 +330,10 @@ fn simulate_set_writes_npy_and_the_simulated_label() {
     )
     .unwrap_err()
     .to_string();
-    assert!(e.contains("mismatch") && e.contains("predictions.json"), "{e}");
+    assert!(
+        e.contains("mismatch") && e.contains("predictions.json"),
+        "{e}"
+    );
     // without an index the kind must be given
     std::fs::remove_file(dir.path().join("predictions.json")).unwrap();
     let e = moma_eval::protocol::PredictionSet::read(&s, dir.path(), None)

@@ -214,7 +214,9 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         .version
         .as_ref()
         .and_then(serde_json::Value::as_u64)
-        .filter(|v| (u64::from(OLDEST_CALIBRATION_VERSION)..=u64::from(CALIBRATION_VERSION)).contains(v));
+        .filter(|v| {
+            (u64::from(OLDEST_CALIBRATION_VERSION)..=u64::from(CALIBRATION_VERSION)).contains(v)
+        });
     let version_error = || IoError::CalibrationVersion {
         path: path.to_path_buf(),
         format: describe(&header.format),
@@ -237,7 +239,8 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
 /// `inverse_space`, a mode version 2 dropped), and a workspace given as a file path is read and
 /// embedded (a relative path is taken relative to the calibration file's folder).
 fn migrate_v1(path: &Path, text: &str) -> Result<CalibrationFile> {
-    let mut v: serde_json::Value = serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
+    let mut v: serde_json::Value =
+        serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
     let invalid = |msg: String| IoError::invalid(path, format!("version-1 calibration: {msg}"));
     let obj = v
         .as_object_mut()
@@ -268,7 +271,10 @@ fn migrate_v1(path: &Path, text: &str) -> Result<CalibrationFile> {
         migrate_norm(n)?;
     }
     let workspace = obj.remove("workspace_mask");
-    obj.insert("version".into(), serde_json::Value::from(CALIBRATION_VERSION));
+    obj.insert(
+        "version".into(),
+        serde_json::Value::from(CALIBRATION_VERSION),
+    );
     let mut file: CalibrationFile =
         serde_json::from_value(v).map_err(|e| invalid(format!("cannot migrate: {e}")))?;
     if let Some(serde_json::Value::String(mask_path)) = workspace {

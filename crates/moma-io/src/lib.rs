@@ -49,8 +49,8 @@ mod colormap;
 mod depth;
 mod error;
 mod ply;
-mod predictions;
 mod png_util;
+mod predictions;
 mod raster;
 mod set;
 
@@ -60,10 +60,6 @@ pub use calibration::{
     OLDEST_CALIBRATION_VERSION, parse_calibration, read_calibration, write_calibration,
 };
 pub use camera::{read_camera, write_camera};
-pub use predictions::{
-    PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PredictionIndex, PredictionIndexHead,
-    read_prediction_index, read_prediction_index_for, resolve_prediction_kind,
-};
 pub use colormap::{
     Colormap, ColourScale, DepthRange, TEXT_COLORMAP, TEXT_MAX_M, TEXT_MIN_M, colour_bar,
     colourise, colourise_depth, read_colour_scale, resolve_range, write_depth_colormap,
@@ -75,12 +71,15 @@ pub use depth::{
 };
 pub use error::{IoError, Result};
 pub use ply::{PlyFormat, ply_header, write_depth_ply, write_ply};
+pub use predictions::{
+    PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PredictionIndex, PredictionIndexHead,
+    read_prediction_index, read_prediction_index_for, resolve_prediction_kind,
+};
 pub use raster::{
     JPEG_QUALITY, read_mask, read_mask_sized, read_rgb, read_rgb_sized, rgb_size, write_mask,
     write_rgb,
 };
 pub use set::{
-    CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, LoadedFrame, LoadedSet, MASK_FILE, MomaSet,
-    MomaSetWriter,
-    RAW_DEPTH_FILE, RGB_FILE,
+    CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, LoadedFrame, LoadedSet, MASK_FILE,
+    MomaSet, MomaSetWriter, RAW_DEPTH_FILE, RGB_FILE,
 };

@@ -70,7 +70,11 @@ pub struct PredictionIndexHead {
 
 impl PredictionIndexHead {
     /// The head for maps of `kind` from `source`.
-    pub fn new(prediction_kind: PredictionKind, simulated: bool, source: impl Into<String>) -> Self {
+    pub fn new(
+        prediction_kind: PredictionKind,
+        simulated: bool,
+        source: impl Into<String>,
+    ) -> Self {
         Self {
             format: PREDICTIONS_FORMAT,
             prediction_kind,
@@ -113,8 +117,7 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
     }
     let legacy = dir.join(LEGACY_SIMULATED_FILE);
     if legacy.is_file() {
-        let text =
-            std::fs::read_to_string(&legacy).map_err(|e| IoError::io(&legacy, "read", e))?;
+        let text = std::fs::read_to_string(&legacy).map_err(|e| IoError::io(&legacy, "read", e))?;
         let meta: LegacySimulated =
             serde_json::from_str(&text).map_err(|e| IoError::json(&legacy, &e))?;
         return Ok(Some(PredictionIndex {

@@ -336,10 +336,16 @@ mod calibration {
         // a missing workspace file, and the dropped --inverse-space mode, are clear errors
         std::fs::write(&p, v1_text("\"/nonexistent/ws.png\"", false)).unwrap();
         let m = msg(&read_calibration(&p).unwrap_err());
-        assert!(m.contains("version-1") && m.contains("/nonexistent/ws.png"), "{m}");
+        assert!(
+            m.contains("version-1") && m.contains("/nonexistent/ws.png"),
+            "{m}"
+        );
         std::fs::write(&p, v1_text("null", true)).unwrap();
         let m = msg(&read_calibration(&p).unwrap_err());
-        assert!(m.contains("--inverse-space") && m.contains("moma calibrate"), "{m}");
+        assert!(
+            m.contains("--inverse-space") && m.contains("moma calibrate"),
+            "{m}"
+        );
     }
 
     fn gssa_file_value() -> serde_json::Value {
@@ -362,7 +368,10 @@ mod calibration {
         let mut v = gssa_file_value();
         v["extra"] = serde_json::json!(true);
         let m = read_value(&v);
-        assert!(m.contains("unknown field `extra`") && m.contains("calib.json"), "{m}");
+        assert!(
+            m.contains("unknown field `extra`") && m.contains("calib.json"),
+            "{m}"
+        );
         let mut v = gssa_file_value();
         v["calibration"]["model"]["surprise"] = serde_json::json!(1);
         assert!(read_value(&v).contains("unknown field `surprise`"));
@@ -378,7 +387,10 @@ mod calibration {
         let p = dir.path().join("calib.json");
         std::fs::write(&p, text).unwrap();
         let m = msg(&read_calibration(&p).unwrap_err());
-        assert!(m.contains("not a finite number") || m.contains("calib.json"), "{m}");
+        assert!(
+            m.contains("not a finite number") || m.contains("calib.json"),
+            "{m}"
+        );
         // an inconsistent summary field
         let mut v = gssa_file_value();
         v["method"] = serde_json::json!("ssra");

@@ -333,7 +333,9 @@ fn calibration_file_roundtrip() {
     .with_source("prediction", "frames/a/pred.npy");
     let k = Intrinsics::nominal(ImageSize::new(64, 48));
     let mut cal = sample_calibration();
-    let ws = moma_core::Mask::new(ndarray::Array2::from_shape_fn((48, 64), |(v, u)| u > 3 && v < 40));
+    let ws = moma_core::Mask::new(ndarray::Array2::from_shape_fn((48, 64), |(v, u)| {
+        u > 3 && v < 40
+    }));
     cal.workspace = Some(std::sync::Arc::new(moma_core::Workspace::new(ws).unwrap()));
     let file = CalibrationFile::new(cal, Some(k), created);
     write_calibration(&p, &file).unwrap();

@@ -41,7 +41,7 @@ pub struct CalibrateArgs {
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,
-    /// none. Default: minmax, and none for --method raw.
+    /// none. Default: minmax (--method raw needs --norm none).
     #[arg(long, value_name = "NORM")]
     pub norm: Option<Normalisation>,
     /// Alignment space: inverse (predictor disparity, target 1/z) or depth. Default: the
@@ -94,19 +94,16 @@ pub fn method_from(
     })
 }
 
-/// The normalisation from `--norm` and `--space` for predictions of `kind`: RAW defaults to
-/// `none`, every other method to `minmax`; the space defaults to the prediction's own.
+/// The normalisation from `--norm` (default `minmax`, also for RAW, which then refuses it: a
+/// user must say `--norm none` to use a prediction as metres) and `--space` (default: the
+/// prediction's own; depth space for RAW).
 pub fn normalisation_from(
     method: &Method,
     norm: Option<Normalisation>,
     space: Option<AlignSpace>,
     kind: moma_core::PredictionKind,
 ) -> NormalisationConfig {
-    let default_norm = if *method == Method::Raw {
-        Normalisation::None
-    } else {
-        Normalisation::Minmax
-    };
+    let default_norm = Normalisation::Minmax;
     let default_space = if *method == Method::Raw {
         AlignSpace::Depth
     } else {
@@ -170,6 +167,16 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             seed: args.seed,
         },
     };
+    config.check(pred.kind).with_context(|| {
+        format!(
+            "--method {} with --norm {} on {} predictions ({}): --method raw needs --norm none \
+             and a metric depth prediction",
+            config.method,
+            config.normalisation.method,
+            pred.kind,
+            input.path.display()
+        )
+    })?;
     let calibration = calibrate(
         &pred,
         &gt,

@@ -225,15 +225,25 @@ impl SourceArgs {
             let mut indexes = Vec::new();
             for file in &self.pred {
                 if let Some(index) = moma_io::read_prediction_index_for(file)?
-                    && !indexes.iter().any(|i: &moma_io::PredictionIndex| i.path == index.path)
+                    && !indexes
+                        .iter()
+                        .any(|i: &moma_io::PredictionIndex| i.path == index.path)
                 {
                     indexes.push(index);
                 }
             }
-            let names: Vec<String> = indexes.iter().map(|i| i.path.display().to_string()).collect();
+            let names: Vec<String> = indexes
+                .iter()
+                .map(|i| i.path.display().to_string())
+                .collect();
             let mut sources: Vec<(&str, Option<PredictionKind>)> =
                 vec![("--pred-kind", self.pred_kind)];
-            sources.extend(names.iter().zip(&indexes).map(|(n, i)| (n.as_str(), Some(i.kind))));
+            sources.extend(
+                names
+                    .iter()
+                    .zip(&indexes)
+                    .map(|(n, i)| (n.as_str(), Some(i.kind))),
+            );
             sources.push(("the calibration file", calibration_kind));
             let kind = moma_io::resolve_prediction_kind(&sources).map_err(anyhow::Error::msg)?;
             if let Some(sim) = indexes.iter().find(|i| i.simulated) {
@@ -250,7 +260,10 @@ impl SourceArgs {
         } else {
             let model = self.model.load()?.model;
             let kind = moma_io::resolve_prediction_kind(&[
-                ("the depth model's head", Some(model.spec().head.prediction_kind())),
+                (
+                    "the depth model's head",
+                    Some(model.spec().head.prediction_kind()),
+                ),
                 ("--pred-kind", self.pred_kind),
                 ("the calibration file", calibration_kind),
             ])

@@ -96,7 +96,12 @@ pub struct EvalOptions {
     #[arg(long, value_delimiter = ',', value_name = "METHODS")]
     pub methods: Vec<Method>,
     /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none.
-    #[arg(long, value_delimiter = ',', default_value = "minmax", value_name = "NORMS")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "minmax",
+        value_name = "NORMS"
+    )]
     pub norm: Vec<Normalisation>,
     /// Alignment space: inverse or depth (default: the predictions' own).
     #[arg(long, value_name = "SPACE")]
@@ -178,7 +183,12 @@ pub fn load_set(dir: &std::path::Path) -> Result<LoadedSet> {
 
 impl PredArgs {
     /// Predictions for set `index` of `n_sets`.
-    pub fn predictions(&self, set: &LoadedSet, index: usize, n_sets: usize) -> Result<PredictionSet> {
+    pub fn predictions(
+        &self,
+        set: &LoadedSet,
+        index: usize,
+        n_sets: usize,
+    ) -> Result<PredictionSet> {
         if self.model.weights.is_some() {
             return model_predictions(set, &self.model);
         }

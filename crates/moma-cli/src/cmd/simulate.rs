@@ -77,6 +77,8 @@ pub enum Component {
     Transparency,
     /// the output's global scale error (depth) / arbitrary scale (inverse depth).
     Scale,
+    /// the disparity shift of inverse-depth output.
+    Shift,
 }
 
 /// `--transparency` values.
@@ -128,6 +130,10 @@ impl SimOptions {
                 Component::Scale => {
                     c.depth_scale_error = 0.0;
                     c.inverse_log_scale = 0.0;
+                }
+                Component::Shift => {
+                    c.disparity_shift_min = 0.0;
+                    c.disparity_shift_max = 0.0;
                 }
             }
         }

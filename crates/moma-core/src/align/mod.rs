@@ -358,9 +358,17 @@ impl AlignmentModel {
                 finite("beta_m_per_px", m.beta_m_per_px)?;
                 finite("gamma_m", m.gamma_m)?;
                 finite("t3_m", m.t3_m)?;
-                for (name, x) in ["s_m", "theta_rad", "phi_rad", "t3_m", "cx_px", "cy_px", "f_px"]
-                    .iter()
-                    .zip(m.canonical.as_array())
+                for (name, x) in [
+                    "s_m",
+                    "theta_rad",
+                    "phi_rad",
+                    "t3_m",
+                    "cx_px",
+                    "cy_px",
+                    "f_px",
+                ]
+                .iter()
+                .zip(m.canonical.as_array())
                 {
                     finite(name, x)?;
                 }
@@ -383,7 +391,8 @@ impl AlignmentModel {
                 let worst = corners
                     .iter()
                     .map(|&(u, v)| {
-                        ((a * u + b * v + g) - (m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m))
+                        ((a * u + b * v + g)
+                            - (m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m))
                             .abs()
                     })
                     .fold((t - m.t3_m).abs(), f64::max);

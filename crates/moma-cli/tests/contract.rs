@@ -1,0 +1,352 @@
+//! The command-line contract of issue 8: prediction kinds are never guessed, RAW needs metric
+//! depth and `--norm none`, a calibration file is self-contained (its workspace embedded) and
+//! still aligns after being copied elsewhere, and bad calibration files are refused clearly.
+//! Runs on the bundled demo scene (no ../shared needed).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn moma(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args(args)
+        .output()
+        .expect("the moma binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = moma(args);
+    assert!(
+        out.status.success(),
+        "moma {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).expect("utf-8 stdout")
+}
+
+fn fails(args: &[&str]) -> String {
+    let out = moma(args);
+    assert!(!out.status.success(), "moma {args:?} should fail");
+    String::from_utf8(out.stderr).expect("utf-8 stderr")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// The demo scene (3 frames) and its SIMULATED inverse-depth predictions with predictions.json.
+fn demo(dir: &Path) -> (PathBuf, PathBuf) {
+    let out = dir.join("demo");
+    ok(&[
+        "demo",
+        "-o",
+        s(&out),
+        "--frames",
+        "3",
+        "--no-exports",
+        "--seeds",
+        "1",
+    ]);
+    (out.join("scene"), out.join("predictions"))
+}
+
+#[test]
+fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(pred.join("predictions.json")).unwrap())
+            .unwrap();
+    assert_eq!(index["format"], "moma-predictions");
+    assert_eq!(index["prediction_kind"], "inverse-depth");
+    assert_eq!(index["simulated"], true);
+    let gt = scene.join("frames/frame_00/depth.png");
+    let calib = tmp.path().join("calib.json");
+    // no --pred-kind: read from predictions.json
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&gt),
+        "-o",
+        s(&calib),
+    ]);
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+    assert_eq!(file["prediction_kind"], "inverse-depth");
+    assert_eq!(file["normalisation"]["space"], "inverse");
+    // a contradicting --pred-kind is an error naming both
+    let e = fails(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--pred-kind",
+        "depth",
+        "--gt",
+        s(&gt),
+        "-o",
+        s(&calib),
+    ]);
+    assert!(
+        e.contains("prediction kind mismatch") && e.contains("predictions.json"),
+        "{e}"
+    );
+    // without an index and without --pred-kind the kind is unknown
+    let lone = tmp.path().join("lone");
+    std::fs::create_dir(&lone).unwrap();
+    std::fs::copy(pred.join("frame_00.npy"), lone.join("p.npy")).unwrap();
+    let e = fails(&[
+        "calibrate",
+        "--pred",
+        s(&lone.join("p.npy")),
+        "--gt",
+        s(&gt),
+        "-o",
+        s(&calib),
+    ]);
+    assert!(
+        e.contains("prediction kind is unknown") && e.contains("--pred-kind"),
+        "{e}"
+    );
+    // align takes the kind from the calibration file; a contradicting --pred-kind fails
+    let out = tmp.path().join("aligned");
+    ok(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&lone.join("p.npy")),
+        "-o",
+        s(&out),
+    ]);
+    let e = fails(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&lone.join("p.npy")),
+        "--pred-kind",
+        "depth",
+        "-o",
+        s(&out),
+    ]);
+    assert!(
+        e.contains("prediction kind mismatch") && e.contains("calibration file"),
+        "{e}"
+    );
+}
+
+#[test]
+fn raw_needs_norm_none_and_metric_depth() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let gt = scene.join("frames/frame_00/depth.png");
+    let calib = tmp.path().join("calib.json");
+    // inverse-depth predictions: refused whatever the normalisation
+    let e = fails(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&gt),
+        "--method",
+        "raw",
+        "-o",
+        s(&calib),
+    ]);
+    assert!(e.contains("--method raw needs --norm none"), "{e}");
+    // a metric depth map: --method raw without --norm none fails clearly, with it works
+    let depth_dir = tmp.path().join("metric");
+    std::fs::create_dir(&depth_dir).unwrap();
+    let d = moma_io::read_depth(&gt).unwrap();
+    moma_io::write_npy_f32(depth_dir.join("p.npy"), d.depth_m.view()).unwrap();
+    let p = depth_dir.join("p.npy");
+    let e = fails(&[
+        "calibrate",
+        "--pred",
+        s(&p),
+        "--pred-kind",
+        "depth",
+        "--gt",
+        s(&gt),
+        "--method",
+        "raw",
+        "-o",
+        s(&calib),
+    ]);
+    assert!(e.contains("--norm none") && e.contains("minmax"), "{e}");
+    assert!(!calib.exists(), "nothing written on error");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&p),
+        "--pred-kind",
+        "depth",
+        "--gt",
+        s(&gt),
+        "--method",
+        "raw",
+        "--norm",
+        "none",
+        "-o",
+        s(&calib),
+    ]);
+}
+
+#[test]
+fn a_calibration_with_a_workspace_still_aligns_after_being_copied() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let gt = scene.join("frames/frame_00/depth.png");
+    let size = moma_io::read_depth(&gt).unwrap().size();
+    let ws = tmp.path().join("ws.png");
+    let mask = moma_core::Mask::new(ndarray::Array2::from_shape_fn(size.shape(), |(v, _)| {
+        v > size.height / 4
+    }));
+    moma_io::write_mask(&ws, &mask).unwrap();
+    let calib = tmp.path().join("calib.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&gt),
+        "--workspace",
+        s(&ws),
+        "-o",
+        s(&calib),
+    ]);
+    let a = tmp.path().join("a");
+    ok(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "-o",
+        s(&a),
+    ]);
+    // copy the calibration elsewhere and delete the mask: the same output
+    let other = tempfile::tempdir().unwrap();
+    let moved = other.path().join("calib.json");
+    std::fs::copy(&calib, &moved).unwrap();
+    std::fs::remove_file(&ws).unwrap();
+    let b = tmp.path().join("b");
+    ok(&[
+        "align",
+        "--calib",
+        s(&moved),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "-o",
+        s(&b),
+    ]);
+    let x = moma_io::read_npy_f32(a.join("frame_01.depth.npy")).unwrap();
+    let y = moma_io::read_npy_f32(b.join("frame_01.depth.npy")).unwrap();
+    assert_eq!(x.dim(), y.dim());
+    assert!(
+        x.iter()
+            .zip(&y)
+            .all(|(p, q)| p == q || (p.is_nan() && q.is_nan()))
+    );
+    // and without the workspace the result differs (the workspace is really used)
+    let plain = tmp.path().join("plain.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&gt),
+        "-o",
+        s(&plain),
+    ]);
+    let c = tmp.path().join("c");
+    ok(&[
+        "align",
+        "--calib",
+        s(&plain),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "-o",
+        s(&c),
+    ]);
+    let z = moma_io::read_npy_f32(c.join("frame_01.depth.npy")).unwrap();
+    assert!(x.iter().zip(&z).any(|(p, q)| (p - q).abs() > 1e-4));
+    // another mask given to align is a mismatch
+    let other_ws = tmp.path().join("other.png");
+    moma_io::write_mask(&other_ws, &moma_core::Mask::full(size)).unwrap();
+    let e = fails(&[
+        "align",
+        "--calib",
+        s(&moved),
+        "--pred",
+        s(&pred.join("frame_01.npy")),
+        "--workspace",
+        s(&other_ws),
+        "-o",
+        s(&c),
+    ]);
+    assert!(e.contains("workspace mismatch"), "{e}");
+}
+
+#[test]
+fn bad_calibration_files_and_sample_counts_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let gt = scene.join("frames/frame_00/depth.png");
+    let calib = tmp.path().join("calib.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&gt),
+        "--method",
+        "lwlr",
+        "-o",
+        s(&calib),
+    ]);
+    let good: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+    let out = tmp.path().join("out");
+    let try_file = |v: &serde_json::Value| {
+        let p = tmp.path().join("bad.json");
+        std::fs::write(&p, serde_json::to_string(v).unwrap()).unwrap();
+        fails(&[
+            "align",
+            "--calib",
+            s(&p),
+            "--pred",
+            s(&pred.join("frame_01.npy")),
+            "-o",
+            s(&out),
+        ])
+    };
+    let mut v = good.clone();
+    v["calibration"]["model"]["bandwidth_px"] = serde_json::json!(-5.0);
+    let e = try_file(&v);
+    assert!(e.contains("bad.json") && e.contains("bandwidth"), "{e}");
+    let mut v = good.clone();
+    v["calibration"]["model"]["bandwidth_px"] = serde_json::json!(0.0);
+    assert!(try_file(&v).contains("bandwidth"));
+    let mut v = good.clone();
+    v["calibration"]["extra"] = serde_json::json!(1);
+    assert!(try_file(&v).contains("unknown field `extra`"));
+    // huge --samples: an error, not an overflow or an allocation failure
+    for sampling in ["random", "grid"] {
+        let e = fails(&[
+            "calibrate",
+            "--pred",
+            s(&pred.join("frame_00.npy")),
+            "--gt",
+            s(&gt),
+            "--samples",
+            "18446744073709551615",
+            "--sampling",
+            sampling,
+            "-o",
+            s(&calib),
+        ]);
+        assert!(e.contains("exceeds the limit"), "{e}");
+    }
+}
