@@ -260,7 +260,7 @@ impl PredictionSet {
         }
         let simulated = index.as_ref().is_some_and(|i| i.simulated);
         let label = match &index {
-            Some(i) if i.simulated => format!("SIMULATED {kind} ({})", i.source),
+            Some(i) if i.simulated => format!("SIMULATED {kind}"),
             Some(i) => format!("{kind}: {}", i.source),
             None => format!("{kind} predictions from {}", dir.display()),
         };
