@@ -421,7 +421,14 @@ mod tests {
     #[test]
     fn colourise_with_paints_invalid_pixels() {
         let v = array![[0.0f32, f32::NAN, 10.0]];
-        let img = colourise_with(v.view(), Colormap::Turbo, 0.0, 10.0, f32::is_finite, [1, 2, 3]);
+        let img = colourise_with(
+            v.view(),
+            Colormap::Turbo,
+            0.0,
+            10.0,
+            f32::is_finite,
+            [1, 2, 3],
+        );
         assert_eq!(img.get_pixel(0, 0).0, [48, 18, 59]);
         assert_eq!(img.get_pixel(1, 0).0, [1, 2, 3]);
         assert_eq!(img.get_pixel(2, 0).0, [122, 4, 3]);
