@@ -378,32 +378,48 @@ fn candle_core_cuda_available() -> bool {
     Path::new("/dev/nvidia0").exists()
 }
 
-/// `$MOMA_SHARED_DIR/reference/dav2`, else `../shared/reference/dav2` beside the repository; `None`
-/// (with a message) when absent.
-fn dav2_reference() -> Option<PathBuf> {
-    let shared = std::env::var_os("MOMA_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
-    let dir = shared.join("reference/dav2");
-    if dir.join("vits-rel.safetensors").is_file() {
-        Some(dir)
-    } else {
-        eprintln!("SKIPPED: {} not found (set MOMA_SHARED_DIR)", dir.display());
-        None
-    }
+/// The shared folder: `$MOMA_SHARED_DIR`, else `../shared` beside the workspace. Tests calling
+/// it are `#[ignore = "needs ../shared ..."]` and run with `-- --include-ignored` (CI does).
+///
+/// # Panics
+/// When it does not exist, naming where it was looked for.
+fn shared_dir() -> PathBuf {
+    let (dir, from) = match std::env::var_os("MOMA_SHARED_DIR") {
+        Some(d) => (PathBuf::from(d), "$MOMA_SHARED_DIR"),
+        None => (
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"),
+            "../shared beside the workspace (MOMA_SHARED_DIR unset)",
+        ),
+    };
+    assert!(
+        dir.is_dir(),
+        "this test needs the shared folder, not found at {} ({from}); set MOMA_SHARED_DIR, \
+         or run without --include-ignored to skip it",
+        dir.display()
+    );
+    dir
+}
+
+/// `shared_dir()/reference/dav2`.
+///
+/// # Panics
+/// As [`shared_dir`]; when it has no `vits-rel.safetensors`.
+fn dav2_reference() -> PathBuf {
+    let dir = shared_dir().join("reference/dav2");
+    assert!(
+        dir.join("vits-rel.safetensors").is_file(),
+        "{} not found (no vits-rel.safetensors)",
+        dir.display()
+    );
+    dir
 }
 
 /// `moma predict` as a user runs it, on the reference image and the ViT-S reference weights
 /// (random weights): the written prediction is the official full-image output.
 #[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn predict_reproduces_the_official_full_image_output() {
-    if cfg!(debug_assertions) && std::env::var_os("MOMA_HEAVY_TESTS").is_none() {
-        eprintln!(
-            "SKIPPED: ViT-S is slow in debug builds; run with --release or MOMA_HEAVY_TESTS=1"
-        );
-        return;
-    }
-    let Some(dir) = dav2_reference() else { return };
+    let dir = dav2_reference();
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("pred");
     let stdout = ok(&[

@@ -13,7 +13,7 @@ use crate::error::{EvalError, Result};
 use crate::protocol::{
     EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, evaluate, evaluate_one,
 };
-use crate::render::{LinePanel, Series, bar_plot, line_plot};
+use crate::render::{LinePanel, Series, bar_plot, line_plot, source_caption};
 use crate::report::{Table, headers_with_metrics, metric_cells, write_table};
 use moma_core::align::Method;
 
@@ -110,6 +110,7 @@ pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> 
         let path = dir.join(format!("ablation_samples_{set}.png"));
         line_plot(
             &path,
+            &plot_source(&rs),
             &[
                 LinePanel {
                     title: format!("{set}: MAE vs n"),
@@ -182,6 +183,7 @@ fn bar_by(
     bar_plot(
         path,
         title,
+        &plot_source(rows),
         "MAE [mm] (mean ± std over seeds)",
         &groups,
         &series,
@@ -416,12 +418,14 @@ pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<Ab
             .map(|m| (m.per_image.mae.mean * 1e3, m.per_image.mae.std * 1e3))
             .collect();
         vals.push((r.sensor.mean.mae * 1e3, 0.0));
+        let method_rows: Vec<&EvalResult> = r.methods.iter().collect();
         bar_plot(
             &path,
             &format!(
                 "{}: transparent objects (MAE inside the mask)",
                 r.sensor.set
             ),
+            &format!("{}; SENSOR = raw depth", plot_source(&method_rows)),
             "MAE [mm]",
             &groups,
             &[("MAE".into(), vals)],
@@ -469,6 +473,30 @@ fn title(what: &str, rows: &[EvalResult]) -> String {
             r.seeds
         ),
         None => what.to_string(),
+    }
+}
+
+/// The prediction source(s) of a plot's rows, for the strip above it: every distinct source once,
+/// simulated ones marked SIMULATED (see [`source_caption`]).
+fn plot_source(rows: &[&EvalResult]) -> String {
+    let mut seen: Vec<(&str, bool)> = Vec::new();
+    for r in rows {
+        if !seen.contains(&(r.source.as_str(), r.simulated)) {
+            seen.push((r.source.as_str(), r.simulated));
+        }
+    }
+    match seen.as_slice() {
+        [] => "predictions: none".into(),
+        [(label, sim)] => source_caption(label, *sim),
+        many if many.iter().all(|(_, sim)| *sim) => format!(
+            "SIMULATED predictions ({})",
+            many.iter().map(|(l, _)| *l).collect::<Vec<_>>().join("; ")
+        ),
+        many => many
+            .iter()
+            .map(|(l, sim)| source_caption(l, *sim))
+            .collect::<Vec<_>>()
+            .join("; "),
     }
 }
 

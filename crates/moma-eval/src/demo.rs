@@ -84,18 +84,14 @@ pub fn write_visuals(
             .filter(|(m, _)| m != "raw")
             .map(|(m, maps)| (m.clone(), maps[i].clone()))
             .collect();
+        // frame_figure appends the prediction source (SIMULATED / the model) to the title
         let title = format!(
-            "{} / {} ({role}; calibrated on {}, n = {}, seed {}){}",
+            "{} / {} ({role}; calibrated on {}, n = {}, seed {})",
             set.name,
             f.id,
             prep.calib_id(),
             config.samples,
             config.seed_base,
-            if preds.simulated {
-                " — SIMULATED prediction"
-            } else {
-                ""
-            }
         );
         let fig = out.join("figures").join(format!("{}.png", f.id));
         frame_figure(
@@ -103,6 +99,7 @@ pub fn write_visuals(
             &title,
             f,
             &preds.maps[i],
+            &preds.label,
             preds.simulated,
             &figure_methods,
         )?;

@@ -10,12 +10,14 @@ use ndarray::Array2;
 
 use crate::data::LoadedFrame;
 use crate::error::Result;
-use crate::render::{FigureRow, Panel, comparison_figure, quantile};
+use crate::render::{FigureRow, Panel, comparison_figure, quantile, source_caption};
 
 /// Panel width in pixels of the figures.
 pub const FIGURE_PANEL_W: u32 = 300;
 
 /// Writes the figure of one frame. `aligned` are `(method label, aligned depth)` in panel order.
+/// The figure's title is `title` followed by the prediction source ([`source_caption`] of
+/// `source_label` and `simulated`), so no figure leaves out where its predictions came from.
 ///
 /// # Errors
 /// Drawing or I/O failure.
@@ -24,6 +26,7 @@ pub fn frame_figure(
     title: &str,
     frame: &LoadedFrame,
     raw: &Prediction,
+    source_label: &str,
     simulated: bool,
     aligned: &[(String, MetricDepth)],
 ) -> Result<()> {
@@ -99,5 +102,6 @@ pub fn frame_figure(
             tick_scale: 1000.0,
         },
     ];
-    comparison_figure(path, title, &rows, FIGURE_PANEL_W)
+    let title = format!("{title} — {}", source_caption(source_label, simulated));
+    comparison_figure(path, &title, &rows, FIGURE_PANEL_W)
 }

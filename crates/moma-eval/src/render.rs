@@ -29,24 +29,54 @@ pub fn register_fonts() {
 /// Colour of invalid pixels in depth pictures.
 pub const INVALID_RGB: [u8; 3] = [40, 40, 40];
 
-/// Colourises a map with [`Colormap::Turbo`] over `[lo, hi]`; non-finite / invalid pixels
-/// dark grey ([`INVALID_RGB`]).
+/// Colourises a map with [`Colormap::Turbo`] over `[lo, hi]` through moma-io's colouriser
+/// ([`moma_io::colourise_with`], the one `moma align --colormap` uses); invalid pixels dark grey
+/// ([`INVALID_RGB`]).
 pub fn colourise(
     values: &ndarray::Array2<f32>,
     lo: f64,
     hi: f64,
     valid: impl Fn(f32) -> bool,
 ) -> RgbImage {
-    let (h, w) = values.dim();
-    let span = if hi > lo { hi - lo } else { 1.0 };
-    RgbImage::from_fn(w as u32, h as u32, |u, v| {
-        let z = values[[v as usize, u as usize]];
-        image::Rgb(if valid(z) {
-            Colormap::Turbo.rgb(((z as f64 - lo) / span) as f32)
-        } else {
-            INVALID_RGB
-        })
-    })
+    moma_io::colourise_with(
+        values.view(),
+        Colormap::Turbo,
+        lo as f32,
+        hi as f32,
+        valid,
+        INVALID_RGB,
+    )
+}
+
+/// What every plot and figure says about its predictions: `SIMULATED predictions (<label>)` for
+/// simulator output, else `predictions: <label>` (the label names the model, and says
+/// "random weights" for a network without trained weights).
+pub fn source_caption(label: &str, simulated: bool) -> String {
+    if simulated {
+        format!("SIMULATED predictions ({label})")
+    } else {
+        format!("predictions: {label}")
+    }
+}
+
+/// Height in pixels of the strip above a plot that names the prediction source.
+const SOURCE_STRIP_H: u32 = 28;
+
+/// Draws `source` (see [`source_caption`]) in the strip at the top of `root` and returns the area
+/// below it.
+fn source_strip<'a>(
+    path: &Path,
+    root: &DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>,
+    source: &str,
+) -> Result<DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>> {
+    let (top, rest) = root.split_vertically(SOURCE_STRIP_H);
+    top.draw(&Text::new(
+        source.to_string(),
+        (12, 6),
+        (FONT, 16).into_font().color(&BLACK),
+    ))
+    .map_err(|e| plot_err(path, e))?;
+    Ok(rest)
 }
 
 /// The `p`-quantile (0..1) of the finite values (NaN when none).
@@ -134,17 +164,28 @@ fn range_of(series: &[Series], f: impl Fn(&(f64, f64, f64)) -> [f64; 2], log: bo
     }
 }
 
-/// Draws panels side by side into a PNG of `panel_w × panel_h` pixels per panel.
+/// Draws panels side by side into a PNG of `panel_w × panel_h` pixels per panel, under a strip
+/// naming the prediction `source` (see [`source_caption`]).
 ///
 /// # Errors
 /// Drawing or I/O failure.
-pub fn line_plot(path: &Path, panels: &[LinePanel], panel_w: u32, panel_h: u32) -> Result<()> {
+pub fn line_plot(
+    path: &Path,
+    source: &str,
+    panels: &[LinePanel],
+    panel_w: u32,
+    panel_h: u32,
+) -> Result<()> {
     register_fonts();
-    let (w, h) = (panel_w * panels.len().max(1) as u32, panel_h);
+    let (w, h) = (
+        panel_w * panels.len().max(1) as u32,
+        panel_h + SOURCE_STRIP_H,
+    );
     let mut buf = vec![255u8; (w * h * 3) as usize];
     {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| plot_err(path, e))?;
+        let root = source_strip(path, &root, source)?;
         let areas = root.split_evenly((1, panels.len().max(1)));
         for (panel, area) in panels.iter().zip(areas.iter()) {
             let (x0, x1) = range_of(&panel.series, |p| [p.0, p.0], panel.log_x);
@@ -231,23 +272,29 @@ pub fn line_plot(path: &Path, panels: &[LinePanel], panel_w: u32, panel_h: u32) 
     save_rgb_buffer(path, buf, w, h)
 }
 
-/// Grouped bar chart: one group per `groups` entry, one bar per series, whiskers = std.
+/// Grouped bar chart: one group per `groups` entry, one bar per series, whiskers = std; a strip
+/// at the top names the prediction `source` (see [`source_caption`]).
 ///
 /// # Errors
 /// Drawing or I/O failure.
 pub fn bar_plot(
     path: &Path,
     title: &str,
+    source: &str,
     y_label: &str,
     groups: &[String],
     series: &[(String, Vec<(f64, f64)>)],
 ) -> Result<()> {
     register_fonts();
-    let (w, h) = ((220 * groups.len().max(1) as u32).max(640), 480u32);
+    let (w, h) = (
+        (220 * groups.len().max(1) as u32).max(640),
+        480u32 + SOURCE_STRIP_H,
+    );
     let mut buf = vec![255u8; (w * h * 3) as usize];
     {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| plot_err(path, e))?;
+        let root = source_strip(path, &root, source)?;
         let ymax = series
             .iter()
             .flat_map(|(_, v)| v.iter().map(|(m, s)| m + s))
@@ -550,10 +597,22 @@ mod tests {
     }
 
     #[test]
-    fn turbo_ends() {
-        let turbo = |t: f32| Colormap::Turbo.rgb(t);
-        assert_ne!(turbo(0.0), turbo(1.0));
-        assert_eq!(turbo(-1.0), turbo(0.0));
+    fn figures_colour_with_moma_io() {
+        // Same pixels as `moma align --colormap turbo` over the same range, grey where invalid.
+        let a = ndarray::array![[1.0f32, 1.5, 2.0], [f32::NAN, 0.0, 3.0]];
+        let fig = colourise(&a, 1.0, 2.0, is_valid_depth);
+        let io = moma_io::colourise(a.view(), Colormap::Turbo, 1.0, 2.0, is_valid_depth);
+        for (x, y, p) in fig.enumerate_pixels() {
+            if is_valid_depth(a[[y as usize, x as usize]]) {
+                assert_eq!(p, io.get_pixel(x, y));
+            } else {
+                assert_eq!(p.0, INVALID_RGB);
+            }
+        }
+        // published Turbo entries 0, 128 and 255
+        assert_eq!(fig.get_pixel(0, 0).0, [48, 18, 59]);
+        assert_eq!(fig.get_pixel(1, 0).0, [164, 252, 60]);
+        assert_eq!(fig.get_pixel(2, 0).0, [122, 4, 3]);
     }
 
     #[test]
@@ -562,6 +621,7 @@ mod tests {
         let p = dir.path().join("l.png");
         line_plot(
             &p,
+            "SIMULATED predictions (test)",
             &[LinePanel {
                 title: "t".into(),
                 x_label: "n".into(),
@@ -582,6 +642,7 @@ mod tests {
         bar_plot(
             &b,
             "bars",
+            "predictions: test",
             "MAE mm",
             &["x".into(), "y".into()],
             &[
@@ -591,5 +652,59 @@ mod tests {
         )
         .unwrap();
         assert!(b.exists());
+    }
+
+    /// Dark pixels in the source strip at the top of a plot.
+    fn ink_in_source_strip(path: &Path) -> usize {
+        let img = moma_io::read_rgb(path).unwrap();
+        (0..SOURCE_STRIP_H)
+            .flat_map(|y| (0..img.width()).map(move |x| (x, y)))
+            .filter(|&(x, y)| img.get_pixel(x, y).0.iter().all(|&c| c < 128))
+            .count()
+    }
+
+    #[test]
+    fn plots_name_their_prediction_source() {
+        assert_eq!(
+            source_caption("simulated inverse-depth (seed 0)", true),
+            "SIMULATED predictions (simulated inverse-depth (seed 0))"
+        );
+        assert_eq!(
+            source_caption("vits (random weights)", false),
+            "predictions: vits (random weights)"
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let bars = |name: &str, source: &str| {
+            let p = dir.path().join(name);
+            bar_plot(
+                &p,
+                "b",
+                source,
+                "MAE mm",
+                &["x".into()],
+                &[("s".into(), vec![(1.0, 0.1)])],
+            )
+            .unwrap();
+            p
+        };
+        // the strip holds the text and nothing else
+        assert_eq!(ink_in_source_strip(&bars("empty.png", "")), 0);
+        assert!(ink_in_source_strip(&bars("sim.png", "SIMULATED predictions (x)")) > 50);
+        let p = dir.path().join("line.png");
+        let panel = LinePanel {
+            title: "t".into(),
+            x_label: "n".into(),
+            y_label: "mm".into(),
+            log_x: false,
+            log_y: false,
+            series: vec![Series {
+                name: "a".into(),
+                points: vec![(1.0, 1.0, 0.0), (2.0, 2.0, 0.0)],
+            }],
+        };
+        line_plot(&p, "", std::slice::from_ref(&panel), 300, 200).unwrap();
+        assert_eq!(ink_in_source_strip(&p), 0);
+        line_plot(&p, "predictions: vits", &[panel], 300, 200).unwrap();
+        assert!(ink_in_source_strip(&p) > 50);
     }
 }

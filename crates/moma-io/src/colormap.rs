@@ -11,102 +11,64 @@ use crate::atomic::atomic_write;
 use crate::error::{IoError, Result};
 use crate::png_util::{PngPixels, encode_png, read_png_texts};
 
-/// A colour map from `t ∈ [0, 1]` to 8-bit sRGB.
+#[path = "colormap_tables.rs"]
+mod tables;
+
+/// A colour map from `t ∈ [0, 1]` to 8-bit sRGB, from the published 256-entry tables (as shipped by
+/// matplotlib): `t` picks entry `floor(256·t)` (clipped to `0..=255`, matplotlib's rule for a
+/// `ListedColormap`) and each component `x ∈ [0, 1]` becomes `round(255·x)`. See
+/// [`Colormap::rgb`] and [`colormap_index`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Colormap {
-    /// Google's Turbo (Mikhailov 2019): blue (near / small) to red (far / large).
+    /// Google's Turbo (Mikhailov 2019), the published 256-entry table: blue (near / small) to red
+    /// (far / large).
     #[default]
     Turbo,
-    /// Matplotlib's viridis (van der Walt & Smith 2015): dark purple to yellow, perceptually uniform.
+    /// Matplotlib's viridis (van der Walt & Smith 2015), its 256-entry table: dark purple to
+    /// yellow, perceptually uniform.
     Viridis,
 }
 
-// Turbo: polynomial approximation by Ruofei Du (Google), published with the colormap,
-// https://gist.github.com/mikhailov-work/0d177465a8151eb6ede1768d51d476c7 (Apache-2.0);
-// see https://ai.googleblog.com/2019/08/turbo-improved-rainbow-colormap-for.html.
-// r(x) = Σ_k c_k x^k, k = 0..5, per channel.
-const TURBO: [[f64; 6]; 3] = [
-    [
-        0.135_721_38,
-        4.615_392_60,
-        -42.660_322_58,
-        132.131_082_34,
-        -152.942_393_96,
-        59.286_379_43,
-    ],
-    [
-        0.091_402_61,
-        2.194_188_39,
-        4.842_966_58,
-        -14.185_033_33,
-        4.277_298_57,
-        2.829_566_04,
-    ],
-    [
-        0.106_673_30,
-        12.641_946_08,
-        -60.582_048_36,
-        110.362_767_71,
-        -89.903_109_12,
-        27.348_249_73,
-    ],
-];
+/// Number of entries of each colour table.
+pub const COLORMAP_ENTRIES: usize = 256;
 
-// Viridis: degree-6 least-squares polynomial fit by Matt Zucker,
-// https://www.shadertoy.com/view/WlfXRN (fitted to matplotlib's viridis LUT, CC0).
-// c_k per channel (r, g, b), k = 0..6.
-const VIRIDIS: [[f64; 7]; 3] = [
-    [
-        0.277_727_327_223_417_7,
-        0.105_093_043_108_577_4,
-        -0.330_861_828_725_556_3,
-        -4.634_230_498_983_486,
-        6.228_269_936_347_081,
-        4.776_384_997_670_288,
-        -5.435_455_855_934_631,
-    ],
-    [
-        0.005_407_344_544_966_578,
-        1.404_613_529_898_575,
-        0.214_847_559_468_213,
-        -5.799_100_973_351_585,
-        14.179_933_366_805_09,
-        -13.745_145_377_746_01,
-        4.645_852_612_178_535,
-    ],
-    [
-        0.334_099_805_335_306_1,
-        1.384_590_162_594_685,
-        0.095_095_163_028_236_59,
-        -19.332_440_956_279_87,
-        56.690_552_600_681_05,
-        -65.353_032_633_372_34,
-        26.312_435_249_583_2,
-    ],
-];
-
-fn horner(c: &[f64], x: f64) -> f64 {
-    c.iter().rev().fold(0.0, |acc, &k| acc * x + k)
+/// The table index of `t`, matplotlib's rule for a 256-entry `ListedColormap`:
+/// `i = floor(256·t)`, with `t = 1` (and anything above) the last entry and `t < 0` the first;
+/// NaN gives entry 0.
+pub fn colormap_index(t: f32) -> usize {
+    if t.is_nan() || t <= 0.0 {
+        return 0;
+    }
+    // f64: 256·t is exact for every f32 t, so the bin edges k/256 fall where they should.
+    let i = (f64::from(t) * COLORMAP_ENTRIES as f64).floor();
+    if i >= (COLORMAP_ENTRIES - 1) as f64 {
+        COLORMAP_ENTRIES - 1
+    } else {
+        i as usize
+    }
 }
 
-fn to_u8(v: f64) -> u8 {
-    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+/// A table component in `[0, 1]` as an 8-bit value: `round(255·x)`.
+fn to_u8(x: f64) -> u8 {
+    (x.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
 impl Colormap {
-    /// The colour of `t`, clamped to `[0, 1]` (NaN → 0).
-    pub fn rgb(self, t: f32) -> [u8; 3] {
-        let x = if t.is_nan() {
-            0.0
-        } else {
-            f64::from(t.clamp(0.0, 1.0))
-        };
-        let eval = |c: &[f64]| to_u8(horner(c, x));
+    /// The published table entry `index` (`0..256`, clamped), sRGB components in `[0, 1]`.
+    pub fn entry(self, index: usize) -> [f64; 3] {
+        let i = index.min(COLORMAP_ENTRIES - 1);
         match self {
-            Self::Turbo => [eval(&TURBO[0]), eval(&TURBO[1]), eval(&TURBO[2])],
-            Self::Viridis => [eval(&VIRIDIS[0]), eval(&VIRIDIS[1]), eval(&VIRIDIS[2])],
+            Self::Turbo => tables::TURBO[i],
+            Self::Viridis => tables::VIRIDIS[i],
         }
+    }
+
+    /// The 8-bit colour of `t ∈ [0, 1]`: table entry [`colormap_index`]`(t)` (matplotlib's
+    /// `floor(256·t)`, clipped), each component `round(255·x)`. Values outside `[0, 1]` are
+    /// clamped; NaN gives the first colour.
+    pub fn rgb(self, t: f32) -> [u8; 3] {
+        self.entry(colormap_index(t)).map(to_u8)
     }
 
     /// Lower-case name (`turbo`, `viridis`).
@@ -243,13 +205,27 @@ pub fn colourise(
     max: f32,
     is_valid: impl Fn(f32) -> bool,
 ) -> RgbImage {
+    colourise_with(values, colormap, min, max, is_valid, [0, 0, 0])
+}
+
+/// As [`colourise`], with pixels where `is_valid(v)` is false painted `invalid_rgb`.
+/// The one colouriser of the workspace: `moma align --colormap`, `moma predict` and the
+/// evaluation figures all come here.
+pub fn colourise_with(
+    values: ArrayView2<'_, f32>,
+    colormap: Colormap,
+    min: f32,
+    max: f32,
+    is_valid: impl Fn(f32) -> bool,
+    invalid_rgb: [u8; 3],
+) -> RgbImage {
     let (h, w) = values.dim();
     let span = if max > min {
         max - min
     } else {
         f32::MIN_POSITIVE
     };
-    let mut img = RgbImage::new(w as u32, h as u32);
+    let mut img = RgbImage::from_pixel(w as u32, h as u32, Rgb(invalid_rgb));
     for ((v, u), &z) in values.indexed_iter() {
         if is_valid(z) {
             img.put_pixel(u as u32, v as u32, Rgb(colormap.rgb((z - min) / span)));
@@ -363,58 +339,99 @@ mod tests {
     use super::*;
     use ndarray::array;
 
-    fn close(a: [u8; 3], b: [u8; 3], tol: i16) -> bool {
-        a.iter()
-            .zip(b)
-            .all(|(&x, y)| (i16::from(x) - i16::from(y)).abs() <= tol)
+    /// Published entries (matplotlib `_turbo_data` / `_viridis_data`, i.e. Mikhailov's Turbo table
+    /// and the viridis table), written out here, and their 8-bit values `round(255·x)` worked out
+    /// by hand from them.
+    const TURBO_PUBLISHED: [(usize, [f64; 3], [u8; 3]); 6] = [
+        (0, [0.18995, 0.07176, 0.23217], [48, 18, 59]),
+        (1, [0.19483, 0.08339, 0.26149], [50, 21, 67]),
+        (64, [0.15844, 0.73551, 0.92305], [40, 188, 235]),
+        (128, [0.64362, 0.98999, 0.23356], [164, 252, 60]),
+        (192, [0.98360, 0.49291, 0.12849], [251, 126, 33]),
+        (255, [0.47960, 0.01583, 0.01055], [122, 4, 3]),
+    ];
+    const VIRIDIS_PUBLISHED: [(usize, [f64; 3], [u8; 3]); 6] = [
+        (0, [0.267004, 0.004874, 0.329415], [68, 1, 84]), // #440154
+        (1, [0.268510, 0.009605, 0.335427], [68, 2, 86]),
+        (64, [0.229739, 0.322361, 0.545706], [59, 82, 139]),
+        (128, [0.127568, 0.566949, 0.550556], [33, 145, 140]), // #21918c
+        (192, [0.369214, 0.788888, 0.382914], [94, 201, 98]),
+        (255, [0.993248, 0.906157, 0.143936], [253, 231, 37]), // #fde725
+    ];
+
+    /// `t` in the middle of bin `i` of 256.
+    fn mid(i: usize) -> f32 {
+        (i as f32 + 0.5) / 256.0
     }
 
     #[test]
-    fn viridis_matches_matplotlib_anchors() {
-        // matplotlib viridis LUT entries 0, 128, 255: #440154, #21918c, #fde725.
-        assert!(
-            close(Colormap::Viridis.rgb(0.0), [68, 1, 84], 4),
-            "{:?}",
-            Colormap::Viridis.rgb(0.0)
-        );
-        assert!(close(
-            Colormap::Viridis.rgb(128.0 / 255.0),
-            [33, 145, 140],
-            4
-        ));
-        assert!(
-            close(Colormap::Viridis.rgb(1.0), [253, 231, 37], 4),
-            "{:?}",
-            Colormap::Viridis.rgb(1.0)
-        );
+    fn tables_equal_the_published_values_exactly() {
+        for (cmap, published) in [
+            (Colormap::Turbo, TURBO_PUBLISHED),
+            (Colormap::Viridis, VIRIDIS_PUBLISHED),
+        ] {
+            for (i, floats, bytes) in published {
+                assert_eq!(cmap.entry(i), floats, "{cmap} entry {i}");
+                assert_eq!(cmap.rgb(mid(i)), bytes, "{cmap} colour of bin {i}");
+            }
+        }
     }
 
     #[test]
-    fn turbo_matches_lut_anchors() {
-        // Turbo LUT (Mikhailov's gist, turbo_srgb_floats) entries 0, 128, 255:
-        // (0.18995, 0.07176, 0.23217), (0.64362, 0.98999, 0.23356), (0.47960, 0.01583, 0.01055).
-        // The published polynomial stays within ~32/255 of the LUT, worst at the dark ends.
-        let lut = |c: [f64; 3]| c.map(|v| (v * 255.0).round() as u8);
-        let t = Colormap::Turbo;
-        assert!(
-            close(t.rgb(0.0), lut([0.18995, 0.07176, 0.23217]), 35),
-            "{:?}",
-            t.rgb(0.0)
-        );
-        assert!(
-            close(t.rgb(128.0 / 255.0), lut([0.64362, 0.98999, 0.23356]), 24),
-            "{:?}",
-            t.rgb(0.5)
-        );
-        assert!(
-            close(t.rgb(1.0), lut([0.47960, 0.01583, 0.01055]), 25),
-            "{:?}",
-            t.rgb(1.0)
-        );
-        // Clamping and NaN.
+    fn whole_tables_match_matplotlib_checksums() {
+        // Σ over all 256 entries of r+g+b, and Σ i·(r + 2g + 3b), computed with matplotlib 3.11.2
+        // from `_turbo_data` / `_viridis_data`: any changed, swapped or missing entry shows.
+        for (cmap, sum, weighted) in [
+            (Colormap::Turbo, 392.575, 80_837.046_23),
+            (Colormap::Viridis, 331.700_518, 95_412.112_106),
+        ] {
+            let (mut s, mut w) = (0.0f64, 0.0f64);
+            for i in 0..COLORMAP_ENTRIES {
+                let [r, g, b] = cmap.entry(i);
+                s += r + g + b;
+                w += i as f64 * (r + 2.0 * g + 3.0 * b);
+            }
+            assert!((s - sum).abs() < 1e-9, "{cmap}: Σ = {s}");
+            assert!((w - weighted).abs() < 1e-7, "{cmap}: Σ i·(r+2g+3b) = {w}");
+        }
+    }
+
+    #[test]
+    fn index_rule_is_matplotlibs_floor_256t() {
+        assert_eq!(colormap_index(0.0), 0);
+        assert_eq!(colormap_index(1.0 / 256.0 - 1e-6), 0);
+        assert_eq!(colormap_index(1.0 / 256.0), 1);
+        assert_eq!(colormap_index(0.5), 128);
+        assert_eq!(colormap_index(127.99 / 256.0), 127);
+        assert_eq!(colormap_index(255.0 / 256.0), 255);
+        assert_eq!(colormap_index(1.0), 255);
+        // clamping and NaN
+        assert_eq!(colormap_index(-3.0), 0);
+        assert_eq!(colormap_index(7.0), 255);
+        assert_eq!(colormap_index(f32::NAN), 0);
+        assert_eq!(Colormap::Turbo.rgb(0.0), [48, 18, 59]);
+        assert_eq!(Colormap::Turbo.rgb(0.5), [164, 252, 60]);
+        assert_eq!(Colormap::Turbo.rgb(1.0), [122, 4, 3]);
+        assert_eq!(Colormap::Viridis.rgb(127.99 / 256.0), [33, 144, 141]);
         assert_eq!(Colormap::Turbo.rgb(-3.0), Colormap::Turbo.rgb(0.0));
         assert_eq!(Colormap::Turbo.rgb(7.0), Colormap::Turbo.rgb(1.0));
         assert_eq!(Colormap::Turbo.rgb(f32::NAN), Colormap::Turbo.rgb(0.0));
+    }
+
+    #[test]
+    fn colourise_with_paints_invalid_pixels() {
+        let v = array![[0.0f32, f32::NAN, 10.0]];
+        let img = colourise_with(
+            v.view(),
+            Colormap::Turbo,
+            0.0,
+            10.0,
+            f32::is_finite,
+            [1, 2, 3],
+        );
+        assert_eq!(img.get_pixel(0, 0).0, [48, 18, 59]);
+        assert_eq!(img.get_pixel(1, 0).0, [1, 2, 3]);
+        assert_eq!(img.get_pixel(2, 0).0, [122, 4, 3]);
     }
 
     #[test]

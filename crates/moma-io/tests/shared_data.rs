@@ -1,25 +1,46 @@
-//! Sanity checks on the real RGB-D sets of the shared data directory (skipped when absent).
+//! Sanity checks on the real RGB-D sets of the shared data directory.
 //!
-//! The directory is `$MOMA_SHARED_DIR/data`, else `<workspace root>/../shared/data`.
+//! The directory is `$MOMA_SHARED_DIR/data`, else `<workspace root>/../shared/data`. The tests are
+//! `#[ignore]`d (cargo lists them as ignored) and run with `-- --include-ignored` (CI does); then a
+//! missing folder or set fails.
 
 use std::path::PathBuf;
 
 use moma_io::{MomaSet, read_camera, rgb_size};
 
-fn shared_data() -> Option<PathBuf> {
-    let base = std::env::var_os("MOMA_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
-    let data = base.join("data");
-    if data.is_dir() {
-        Some(data)
-    } else {
-        eprintln!(
-            "SKIP: shared data not found at {} (set MOMA_SHARED_DIR to the directory holding data/)",
-            data.display()
-        );
-        None
-    }
+/// The shared folder: `$MOMA_SHARED_DIR`, else `../shared` beside the workspace.
+///
+/// # Panics
+/// When it does not exist, naming where it was looked for.
+fn shared_dir() -> PathBuf {
+    let (dir, from) = match std::env::var_os("MOMA_SHARED_DIR") {
+        Some(d) => (PathBuf::from(d), "$MOMA_SHARED_DIR"),
+        None => (
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"),
+            "../shared beside the workspace (MOMA_SHARED_DIR unset)",
+        ),
+    };
+    assert!(
+        dir.is_dir(),
+        "this test needs the shared folder, not found at {} ({from}); set MOMA_SHARED_DIR, \
+         or run without --include-ignored to skip it",
+        dir.display()
+    );
+    dir
+}
+
+/// `shared_dir()/data`.
+///
+/// # Panics
+/// As [`shared_dir`]; when it has no `data/`.
+fn shared_data() -> PathBuf {
+    let data = shared_dir().join("data");
+    assert!(
+        data.is_dir(),
+        "shared data not found at {} (set MOMA_SHARED_DIR to the directory holding data/)",
+        data.display()
+    );
+    data
 }
 
 const SETS: [(&str, usize); 4] = [
@@ -30,14 +51,16 @@ const SETS: [(&str, usize); 4] = [
 ];
 
 #[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn every_shared_set_opens_and_loads() {
-    let Some(data) = shared_data() else { return };
+    let data = shared_data();
     for (name, n_frames) in SETS {
         let root = data.join(name);
-        if !root.is_dir() {
-            eprintln!("SKIP set {name}: not present under {}", data.display());
-            continue;
-        }
+        assert!(
+            root.is_dir(),
+            "shared set {name} not present under {}",
+            data.display()
+        );
         let set = MomaSet::open(&root).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(set.camera, read_camera(root.join("camera.json")).unwrap());
         assert_eq!(set.frames.len(), n_frames, "{name}");

@@ -19,22 +19,43 @@ pub const MODELS: [&str; 5] = [
     "vits-rel",
 ];
 
-/// `$MOMA_SHARED_DIR/reference/dav2`, else `CARGO_MANIFEST_DIR/../../../shared/reference/dav2`;
-/// `None` (with a message on stderr) when absent, so tests skip instead of failing.
-pub fn reference_dir() -> Option<PathBuf> {
-    let shared = std::env::var_os("MOMA_SHARED_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"));
-    let dir = shared.join("reference/dav2");
-    if dir.join("input.png").is_file() {
-        Some(dir)
-    } else {
-        eprintln!(
-            "SKIPPED: Depth Anything V2 reference data not found at {} (set MOMA_SHARED_DIR)",
-            dir.display()
-        );
-        None
-    }
+/// The shared folder: `$MOMA_SHARED_DIR`, else `../shared` beside the workspace
+/// (`CARGO_MANIFEST_DIR/../../../shared`).
+///
+/// Tests that call this are `#[ignore = "needs ../shared ..."]`: they run only when asked for
+/// (`-- --include-ignored`, as CI does), so a missing folder is a failure, never a silent pass.
+///
+/// # Panics
+/// When the folder does not exist, naming where it was looked for.
+pub fn shared_dir() -> PathBuf {
+    let (dir, from) = match std::env::var_os("MOMA_SHARED_DIR") {
+        Some(d) => (PathBuf::from(d), "$MOMA_SHARED_DIR"),
+        None => (
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"),
+            "../shared beside the workspace (MOMA_SHARED_DIR unset)",
+        ),
+    };
+    assert!(
+        dir.is_dir(),
+        "this test needs the shared folder, not found at {} ({from}); set MOMA_SHARED_DIR, \
+         or run without --include-ignored to skip it",
+        dir.display()
+    );
+    dir
+}
+
+/// `shared_dir()/reference/dav2`, the Depth Anything V2 reference data.
+///
+/// # Panics
+/// As [`shared_dir`]; when the folder has no `input.png`.
+pub fn reference_dir() -> PathBuf {
+    let dir = shared_dir().join("reference/dav2");
+    assert!(
+        dir.join("input.png").is_file(),
+        "Depth Anything V2 reference data not found at {} (no input.png)",
+        dir.display()
+    );
+    dir
 }
 
 /// `NAME.input.npy`: the official pre-processed network input `(3, H, W)`.
