@@ -26,6 +26,10 @@ pub struct CloudConfig {
     /// Depth jump between 8-neighbours that marks a silhouette edge (the nearer pixel is the
     /// edge pixel), metres. Default 0.005 m (gqcnn uses a 2.5 mm gradient on smoothed depth).
     pub edge_jump_m: f32,
+    /// A [`crate::Scene`] computes normals and edges only in the bounding box of its object pixels
+    /// grown by this margin (the rest of the image is never queried for them), pixels. Default 48
+    /// (a 10 mm cup radius spans 30 px at 0.2 m with f = 600 px).
+    pub object_margin_px: usize,
 }
 
 impl Default for CloudConfig {
@@ -34,6 +38,7 @@ impl Default for CloudConfig {
             normal_step_px: 2,
             normal_max_jump_m: 0.01,
             edge_jump_m: 0.005,
+            object_margin_px: 48,
         }
     }
 }
@@ -90,6 +95,17 @@ impl OrganisedCloud {
         intrinsics: &Intrinsics,
         config: &CloudConfig,
     ) -> Result<Self> {
+        Self::build(depth, intrinsics, config, true)
+    }
+
+    /// Points only (normals unknown, no edges) when `with_normals` is false; see
+    /// [`Self::compute_normals`].
+    pub(crate) fn build(
+        depth: &MetricDepth,
+        intrinsics: &Intrinsics,
+        config: &CloudConfig,
+        with_normals: bool,
+    ) -> Result<Self> {
         intrinsics.validate().map_err(GraspError::Intrinsics)?;
         config.validate()?;
         let size = depth.size();
@@ -106,16 +122,14 @@ impl OrganisedCloud {
         let n = width * height;
         let mut points = vec![Vec3::zeros(); n];
         let mut valid = vec![false; n];
-        for ((i, &z), (p, ok)) in depth
-            .depth_m
-            .iter()
-            .enumerate()
-            .zip(points.iter_mut().zip(valid.iter_mut()))
-        {
-            if is_valid_depth(z) {
-                let (u, v) = ((i % width) as f32, (i / width) as f32);
-                *p = Vec3::new((u - cx) * z / fx, (v - cy) * z / fy, z);
-                *ok = true;
+        for (v, row) in depth.depth_m.outer_iter().enumerate() {
+            let y = (v as f32 - cy) / fy;
+            for (u, &z) in row.iter().enumerate() {
+                if is_valid_depth(z) {
+                    let i = v * width + u;
+                    points[i] = Vec3::new((u as f32 - cx) / fx * z, y * z, z);
+                    valid[i] = true;
+                }
             }
         }
         if !valid.iter().any(|&b| b) {
@@ -134,21 +148,39 @@ impl OrganisedCloud {
             normals: vec![Vec3::zeros(); n],
             near_edge: vec![false; n],
         };
-        let mut normals = vec![Vec3::zeros(); n];
-        let mut near_edge = vec![false; n];
+        if with_normals {
+            cloud.compute_normals(0, width, 0, height, config);
+        }
+        Ok(cloud)
+    }
+
+    /// Computes normals and edge flags of the pixels `u0..u1` × `v0..v1` (the rest keep theirs).
+    pub(crate) fn compute_normals(
+        &mut self,
+        u0: usize,
+        u1: usize,
+        v0: usize,
+        v1: usize,
+        config: &CloudConfig,
+    ) {
+        let width = self.width;
+        let mut normals = std::mem::take(&mut self.normals);
+        let mut near_edge = std::mem::take(&mut self.near_edge);
+        let this = &*self;
         normals
             .par_chunks_mut(width)
             .zip(near_edge.par_chunks_mut(width))
             .enumerate()
+            .skip(v0)
+            .take(v1.saturating_sub(v0))
             .for_each(|(v, (nrow, erow))| {
-                for u in 0..width {
-                    nrow[u] = cloud.normal_at(u, v, config);
-                    erow[u] = cloud.edge_at(u, v);
+                for u in u0..u1 {
+                    nrow[u] = this.normal_at(u, v, config);
+                    erow[u] = this.edge_at(u, v);
                 }
             });
-        cloud.normals = normals;
-        cloud.near_edge = near_edge;
-        Ok(cloud)
+        self.normals = normals;
+        self.near_edge = near_edge;
     }
 
     /// Image width, pixels.

@@ -47,6 +47,9 @@ pub struct ObjectComponent {
 }
 
 /// Depth map turned into everything the planners and the scorer need.
+///
+/// The cloud's normals and edge flags are computed only in the bounding box of the object pixels
+/// grown by [`CloudConfig::object_margin_px`]; elsewhere they are unknown / false.
 #[derive(Debug, Clone)]
 pub struct Scene {
     /// The organised cloud.
@@ -87,7 +90,15 @@ impl Scene {
                 got: m.size(),
             });
         }
-        let cloud = OrganisedCloud::from_depth(depth, intrinsics, &config.cloud)?;
+        intrinsics.validate().map_err(GraspError::Intrinsics)?;
+        if intrinsics.size() != depth.size() {
+            return Err(GraspError::SizeMismatch {
+                what: "camera intrinsics",
+                expected: depth.size(),
+                got: intrinsics.size(),
+            });
+        }
+        let mut cloud = OrganisedCloud::build(depth, intrinsics, &config.cloud, false)?;
         let size = depth.size();
         let masked: Option<Vec<bool>> = mask.map(|m| m.data().iter().copied().collect());
         let plane = match &masked {
@@ -115,6 +126,26 @@ impl Scene {
                 .collect(),
             (None, None) => vec![false; cloud.valid.len()],
         };
+        // Normals and edges only around the objects (the planners and the scorer query no other).
+        let (w, h) = (size.width, size.height);
+        let (mut u0, mut u1, mut v0, mut v1) = (usize::MAX, 0, usize::MAX, 0);
+        for (i, _) in object.iter().enumerate().filter(|(_, b)| **b) {
+            let (u, v) = (i % w, i / w);
+            u0 = u0.min(u);
+            u1 = u1.max(u);
+            v0 = v0.min(v);
+            v1 = v1.max(v);
+        }
+        if u0 != usize::MAX {
+            let m = config.cloud.object_margin_px;
+            cloud.compute_normals(
+                u0.saturating_sub(m),
+                (u1 + m + 1).min(w),
+                v0.saturating_sub(m),
+                (v1 + m + 1).min(h),
+                &config.cloud,
+            );
+        }
         let (mut labels, counts) = components_8(&object, size);
         let min_px = if masked.is_some() {
             1
