@@ -22,6 +22,9 @@ pub struct ExecConfig {
     pub occupancy_tol_m: f32,
     /// Radius of the disc giving a silhouette contact's normal, pixels. Default 3.
     pub silhouette_radius_px: usize,
+    /// A contact counts as on the object when an object pixel lies within this many pixels of it
+    /// (masks and depth edges of real frames disagree by a pixel or two). Default 2.
+    pub object_tolerance_px: usize,
     /// A parallel grasp collides when at least this many points lie inside a finger or the palm.
     /// Default 1 (graspnetAPI).
     pub collision_min_points: usize,
@@ -48,6 +51,7 @@ impl Default for ExecConfig {
             march_step_m: 0.001,
             occupancy_tol_m: 0.002,
             silhouette_radius_px: 3,
+            object_tolerance_px: 2,
             collision_min_points: 1,
             empty_min_points: 10,
             seal_bins: 72,
@@ -136,6 +140,16 @@ impl Scene {
             }
         }
         None
+    }
+
+    /// Whether an object pixel lies within `r` pixels (Chebyshev) of pixel `i`.
+    pub(crate) fn near_object(&self, i: usize, r: usize) -> bool {
+        let c = &self.cloud;
+        let (u, v) = (i % c.width, i / c.width);
+        (v.saturating_sub(r)..=(v + r).min(c.height - 1)).any(|nv| {
+            (u.saturating_sub(r)..=(u + r).min(c.width - 1))
+                .any(|nu| self.is_object(c.index(nu, nv)))
+        })
     }
 
     /// Horizontal (⟂ up) outward normal of a silhouette at pixel `i`.
@@ -286,7 +300,10 @@ impl Scene {
         let c1 = self.find_contact(pose.center - b * half, b, half, exec);
         let c2 = self.find_contact(pose.center + b * half, -b, half, exec);
         let contacts = match (c1, c2) {
-            (Some(x), Some(y)) if self.is_object(x.index) && self.is_object(y.index) => {
+            (Some(x), Some(y))
+                if self.near_object(x.index, exec.object_tolerance_px)
+                    && self.near_object(y.index, exec.object_tolerance_px) =>
+            {
                 Some([x, y])
             }
             _ => None,
