@@ -13,6 +13,7 @@ use crate::error::{GraspError, Result, positive};
 /// opening `w`; the palm spans the `palm_depth_m` behind the fingers over the whole width. Defaults:
 /// Robotiq 2F-85 as graspnetAPI models it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ParallelJaw {
     /// Largest opening, metres. Default 0.085 m.
     pub stroke_m: f32,
@@ -75,6 +76,7 @@ impl ParallelJaw {
 
 /// A suction cup approaching along its axis.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct SuctionCup {
     /// Cup radius (the seal ring), metres. Default 0.01 m.
     pub radius_m: f32,
