@@ -38,6 +38,8 @@ enum Command {
     Eval(cmd::eval::EvalArgs),
     /// Ablations: number of samples, normalisation, prediction source, transparent objects.
     Ablate(cmd::ablate::AblateArgs),
+    /// Plan parallel-jaw or suction grasps on one frame's metric depth (or calibrated prediction / RGB).
+    Grasp(cmd::grasp::GraspArgs),
     /// The whole idea in one command on a bundled procedural scene (or on a real set).
     Demo(cmd::demo::DemoArgs),
 }
@@ -52,6 +54,7 @@ fn main() -> std::process::ExitCode {
         Command::Simulate(args) => cmd::simulate::run(args),
         Command::Eval(args) => cmd::eval::run(args),
         Command::Ablate(args) => cmd::ablate::run(args),
+        Command::Grasp(args) => cmd::grasp::run(args),
         Command::Demo(args) => cmd::demo::run(args),
     };
     match result {

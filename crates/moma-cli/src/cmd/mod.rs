@@ -6,6 +6,7 @@ pub mod calibrate;
 pub mod common;
 pub mod demo;
 pub mod eval;
+pub mod grasp;
 pub mod metrics;
 pub mod predict;
 pub mod simulate;

@@ -1,0 +1,313 @@
+//! `moma grasp` end to end on a synthetic scene written to a temp dir: a 40 × 70 × 50 mm box on a
+//! table 0.7 m below a top-down camera (depth rendered in closed form: the box top at 0.65 m).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use moma_core::{Intrinsics, MetricDepth};
+use ndarray::Array2;
+
+const W: usize = 640;
+const H: usize = 480;
+
+fn moma(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args(args)
+        .output()
+        .expect("the moma binary runs")
+}
+
+fn ok(args: &[&str]) -> (String, String) {
+    let out = moma(args);
+    assert!(
+        out.status.success(),
+        "moma {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (
+        String::from_utf8(out.stdout).unwrap(),
+        String::from_utf8(out.stderr).unwrap(),
+    )
+}
+
+fn fails(args: &[&str]) -> String {
+    let out = moma(args);
+    assert!(!out.status.success(), "moma {args:?} should fail");
+    String::from_utf8(out.stderr).unwrap()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn camera() -> Intrinsics {
+    Intrinsics {
+        width: W,
+        height: H,
+        fx: 600.0,
+        fy: 600.0,
+        cx: 319.5,
+        cy: 239.5,
+    }
+}
+
+/// Box footprint |x| < 20 mm, |y| < 35 mm around the optical axis; `with_box = false`: bare table.
+fn scene(dir: &Path, with_box: bool) -> (PathBuf, PathBuf) {
+    let k = camera();
+    let depth = Array2::from_shape_fn((H, W), |(v, u)| {
+        let (x, y) = (
+            (u as f64 - k.cx) / k.fx * 0.65,
+            (v as f64 - k.cy) / k.fy * 0.65,
+        );
+        if with_box && x.abs() < 0.02 && y.abs() < 0.035 {
+            0.65f32
+        } else {
+            0.7
+        }
+    });
+    let depth_path = dir.join(if with_box { "box.png" } else { "table.png" });
+    moma_io::write_depth(&depth_path, &MetricDepth::new(depth)).unwrap();
+    let cam = dir.join("camera.json");
+    moma_io::write_camera(&cam, &k).unwrap();
+    (depth_path, cam)
+}
+
+#[test]
+fn parallel_json_closes_across_the_box() {
+    let dir = tempfile::tempdir().unwrap();
+    let (depth, cam) = scene(dir.path(), true);
+    let (out, _) = ok(&[
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "parallel",
+        "--json",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let arr = v.as_array().unwrap();
+    assert!(!arr.is_empty() && arr.len() <= 10);
+    let g = arr[0].as_object().unwrap();
+    let keys: Vec<&str> = g.keys().map(|k| k.as_str()).collect();
+    let mut sorted = keys.clone();
+    sorted.sort_unstable();
+    assert_eq!(
+        sorted,
+        [
+            "approach", "center_m", "closing", "kind", "score", "width_m"
+        ]
+    );
+    assert_eq!(g["kind"], "parallel");
+    let w = g["width_m"].as_f64().unwrap();
+    assert!((0.04..=0.085).contains(&w), "width {w}");
+    let closing: Vec<f64> = serde_json::from_value(g["closing"].clone()).unwrap();
+    assert!(
+        closing[0].abs() > 0.95,
+        "closing {closing:?} not across the 40 mm side (x)"
+    );
+    let c: Vec<f64> = serde_json::from_value(g["center_m"].clone()).unwrap();
+    assert!(
+        c[0].abs() < 0.005 && (c[2] - 0.65).abs() < 0.006,
+        "centre {c:?}"
+    );
+    // Best first.
+    let scores: Vec<f64> = arr.iter().map(|g| g["score"].as_f64().unwrap()).collect();
+    assert!(scores.windows(2).all(|w| w[0] >= w[1]));
+}
+
+#[test]
+fn suction_with_extrinsics_and_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let (depth, cam) = scene(dir.path(), true);
+    // Camera 1 m above the base origin looking down: base = (x, −y, 1 − z).
+    let ext = dir.path().join("camera_to_base.json");
+    std::fs::write(
+        &ext,
+        r#"{"camera_to_base": [[1,0,0,0],[0,-1,0,0],[0,0,-1,1],[0,0,0,1]]}"#,
+    )
+    .unwrap();
+    let out_dir = dir.path().join("out");
+    let (out, _) = ok(&[
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "suction",
+        "--extrinsics",
+        s(&ext),
+        "--top",
+        "3",
+        "--json",
+        "-o",
+        s(&out_dir),
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let arr = v.as_array().unwrap();
+    assert!(!arr.is_empty() && arr.len() <= 3);
+    for g in arr {
+        assert_eq!(g["kind"], "suction");
+        let p: Vec<f64> = serde_json::from_value(g["point_m"].clone()).unwrap();
+        let b: Vec<f64> = serde_json::from_value(g["base"]["point_m"].clone()).unwrap();
+        assert!(
+            (b[0] - p[0]).abs() < 1e-5
+                && (b[1] + p[1]).abs() < 1e-5
+                && (b[2] - (1.0 - p[2])).abs() < 1e-5
+        );
+        assert!(
+            (p[2] - 0.65).abs() < 0.002,
+            "suction point {p:?} not on the box top"
+        );
+        let a: Vec<f64> = serde_json::from_value(g["approach"].clone()).unwrap();
+        assert!(
+            a[2] > 0.996,
+            "approach {a:?} not straight down (into the surface)"
+        );
+    }
+    let written: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out_dir.join("grasps.json")).unwrap()).unwrap();
+    assert_eq!(written, v);
+    let overlay = moma_io::read_rgb(out_dir.join("overlay.png")).unwrap();
+    assert_eq!((overlay.width(), overlay.height()), (W as u32, H as u32));
+    // The best grasp is drawn in green at its projected point.
+    let p: Vec<f64> = serde_json::from_value(arr[0]["point_m"].clone()).unwrap();
+    let k = camera();
+    let (u, vv) = (k.fx * p[0] / p[2] + k.cx, k.fy * p[1] / p[2] + k.cy);
+    assert_eq!(
+        overlay.get_pixel(u.round() as u32, vv.round() as u32).0,
+        [0, 230, 0]
+    );
+    let ply = std::fs::read(out_dir.join("scene.ply")).unwrap();
+    let text = String::from_utf8_lossy(&ply[..300]);
+    assert!(text.starts_with("ply\nformat binary_little_endian 1.0"));
+    assert!(text.contains(&format!("element vertex {}", W * H + 8 * arr.len())));
+    assert!(text.contains(&format!("element face {}", 12 * arr.len())));
+}
+
+#[test]
+fn bare_table_gives_an_empty_list_and_a_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let (depth, cam) = scene(dir.path(), false);
+    let (out, err) = ok(&[
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "suction",
+        "--json",
+    ]);
+    assert_eq!(out.trim(), "[]");
+    assert!(
+        err.contains("no grasp found") && err.contains("no object"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bad_inputs_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (depth, cam) = scene(dir.path(), true);
+    let base = [
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "parallel",
+    ];
+    let run = |extra: &[&str]| {
+        let mut a: Vec<&str> = base.to_vec();
+        a.extend_from_slice(extra);
+        fails(&a)
+    };
+    let ext = dir.path().join("scaled.json");
+    std::fs::write(
+        &ext,
+        r#"{"camera_to_base": [[2,0,0,0],[0,2,0,0],[0,0,2,0],[0,0,0,1]]}"#,
+    )
+    .unwrap();
+    let err = run(&["--extrinsics", s(&ext)]);
+    assert!(
+        err.contains("scaled.json") && err.contains("rigid"),
+        "{err}"
+    );
+
+    let cfg = dir.path().join("jaw.json");
+    std::fs::write(&cfg, r#"{"stroke_m": -0.05}"#).unwrap();
+    let err = run(&["--gripper-config", s(&cfg)]);
+    assert!(
+        err.contains("jaw.json") && err.contains("stroke_m"),
+        "{err}"
+    );
+
+    let small = dir.path().join("small.json");
+    moma_io::write_camera(
+        &small,
+        &Intrinsics {
+            width: 320,
+            height: 240,
+            ..camera()
+        },
+    )
+    .unwrap();
+    let err = fails(&[
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&small),
+        "--gripper",
+        "suction",
+    ]);
+    assert!(
+        err.contains("small.json") && err.contains("box.png"),
+        "{err}"
+    );
+
+    let zeros = dir.path().join("zeros.png");
+    moma_io::write_depth(&zeros, &MetricDepth::new(Array2::zeros((H, W)))).unwrap();
+    let err = fails(&[
+        "grasp",
+        "--depth",
+        s(&zeros),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "suction",
+    ]);
+    assert!(
+        err.contains("zeros.png") && err.contains("no valid depth"),
+        "{err}"
+    );
+
+    // A mask over a region with no depth.
+    let holes = dir.path().join("holes.png");
+    let mut d = Array2::from_elem((H, W), 0.7f32);
+    d.slice_mut(ndarray::s![0..20, 0..20]).fill(0.0);
+    moma_io::write_depth(&holes, &MetricDepth::new(d)).unwrap();
+    let mut m = Array2::from_elem((H, W), false);
+    m.slice_mut(ndarray::s![0..20, 0..20]).fill(true);
+    let mask = dir.path().join("mask.png");
+    moma_io::write_mask(&mask, &moma_core::Mask::new(m)).unwrap();
+    let err = fails(&[
+        "grasp",
+        "--depth",
+        s(&holes),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "suction",
+        "--mask",
+        s(&mask),
+    ]);
+    assert!(
+        err.contains("mask.png") && err.contains("none of them has valid depth"),
+        "{err}"
+    );
+}

@@ -1,0 +1,70 @@
+//! Criterion benches on a 640×480 synthetic scene (two boxes on a table, exact ray casting).
+//!
+//! Targets (issue 9), one core: suction planning ≤ 20 ms, parallel-jaw top-10 ≤ 60 ms (scene build
+//! — cloud, normals, edges, plane, objects — included), scoring one grasp ≤ 2 ms. Run:
+//! `RAYON_NUM_THREADS=1 cargo bench -p moma-grasp --bench grasp -- --warm-up-time 1 --measurement-time 3`
+
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use common::{BoxSpec, Scene as Synth, intrinsics};
+use criterion::{Criterion, criterion_group, criterion_main};
+use moma_grasp::{
+    Grasp, Gripper, ParallelConfig, ParallelJaw, Scene, SceneConfig, ScoreConfig, SuctionConfig,
+    SuctionCup, plan_parallel, plan_suction, score_grasp,
+};
+use std::hint::black_box;
+
+fn benches(c: &mut Criterion) {
+    let b1 = BoxSpec::standard();
+    let b2 = BoxSpec {
+        x_m: -0.15,
+        y_m: 0.05,
+        yaw_rad: -0.3,
+        ..b1
+    };
+    let mut synth = Synth::top_down(0.7, Some(b1));
+    synth.boxes[1] = Some(b2);
+    let depth = synth.render();
+    let k = intrinsics();
+    let cfg = SceneConfig::default();
+    let scene = Scene::build(&depth, &k, None, &cfg).unwrap();
+    let jaw = ParallelJaw::default();
+    let cup = SuctionCup::default();
+    let pcfg = ParallelConfig::default();
+    let scfg = SuctionConfig::default();
+
+    c.bench_function("scene_build_640x480", |bch| {
+        bch.iter(|| Scene::build(black_box(&depth), &k, None, &cfg).unwrap())
+    });
+    c.bench_function("suction_plan_640x480_with_scene", |bch| {
+        bch.iter(|| {
+            let s = Scene::build(black_box(&depth), &k, None, &cfg).unwrap();
+            plan_suction(&s, &cup, &scfg).unwrap()
+        })
+    });
+    c.bench_function("parallel_top10_640x480_with_scene", |bch| {
+        bch.iter(|| {
+            let s = Scene::build(black_box(&depth), &k, None, &cfg).unwrap();
+            plan_parallel(&s, &jaw, &pcfg).unwrap()
+        })
+    });
+    c.bench_function("suction_plan_only", |bch| {
+        bch.iter(|| plan_suction(black_box(&scene), &cup, &scfg).unwrap())
+    });
+    c.bench_function("parallel_top10_plan_only", |bch| {
+        bch.iter(|| plan_parallel(black_box(&scene), &jaw, &pcfg).unwrap())
+    });
+    let pg: Grasp = plan_parallel(&scene, &jaw, &pcfg).unwrap().grasps[0];
+    let sg: Grasp = plan_suction(&scene, &cup, &scfg).unwrap().grasps[0];
+    let sc = ScoreConfig::default();
+    c.bench_function("score_one_parallel_grasp", |bch| {
+        bch.iter(|| score_grasp(black_box(&scene), &pg, &Gripper::Parallel(jaw), &sc).unwrap())
+    });
+    c.bench_function("score_one_suction_grasp", |bch| {
+        bch.iter(|| score_grasp(black_box(&scene), &sg, &Gripper::Suction(cup), &sc).unwrap())
+    });
+}
+
+criterion_group!(grasp, benches);
+criterion_main!(grasp);

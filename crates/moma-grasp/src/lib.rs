@@ -1,0 +1,71 @@
+//! # moma-grasp: grasps from (aligned) metric depth, and their proxy scoring
+//!
+//! Geometry only, no file I/O. One frame flows: [`MetricDepth`](moma_core::MetricDepth) +
+//! [`Intrinsics`](moma_core::Intrinsics) (+ optional object [`Mask`](moma_core::Mask)) →
+//! [`Scene`] (organised cloud, normals, silhouette edges, support plane, object components) →
+//! [`plan_parallel`] / [`plan_suction`] → [`PlanOutcome`] (grasps best first, or a reason) →
+//! optionally [`PlanOutcome::set_base`] with [`Extrinsics`] → [`score_grasp`] against a scene
+//! built from the ground-truth depth of the same frame (with the same mask).
+//!
+//! ## Conventions
+//! - **Frames.** Camera frame: x right, y down, z forward, metres. Pixel `(u, v)` = (column, row).
+//!   "Up" is the unit normal of the dominant support plane (table / tote floor), pointing towards
+//!   the camera. The base frame is `p_base = R p_cam + t` from a checked rigid [`Extrinsics`].
+//! - **Objects.** With a mask: masked pixels with valid depth. Without: pixels more than
+//!   [`SceneConfig::min_object_height_m`] (10 mm) above the plane in 8-connected regions of at
+//!   least [`SceneConfig::min_object_px`] (200) pixels. A grasp is never planned on the bare table.
+//! - **Scene volume (2.5-D).** A 3-D point is inside the scene when it lies at or behind the
+//!   observed surface at its pixel (tolerance [`ExecConfig::occupancy_tol_m`], 2 mm); holes in the
+//!   depth and rays leaving the image are free space.
+//! - **Contacts and normals (METHOD.md §8, shared by planner and scorer).** A finger closing along
+//!   the closing line (through the grasp centre) touches where the line first enters the scene
+//!   from free space. If the free sample before lies on a farther pixel (or a hole), the contact is
+//!   on a silhouette and its normal is the horizontal (⟂ up) direction of the depth-image
+//!   gradient across the edge, pointing out of the object; otherwise it is the observed surface
+//!   normal there. The contacts are antipodal at μ when both normals lie within `atan μ` of the
+//!   contact line (pointing out of the object); the smallest passing μ of
+//!   {0.2, 0.4, …, 1.2} is reported, success at μ = 0.8 ([`ScoreConfig::mu`]).
+//! - **Parallel jaw** ([`ParallelJaw`], Robotiq 2F-85 defaults): grasp frame x = approach,
+//!   y = closing, z = x × y, origin at the midpoint of the two contacts (`center_m`); the
+//!   fingertips reach `contact_to_tip_m` (10 mm) past the contact line. Fails on any point in a
+//!   finger or the palm (collision), fewer than 10 points between the fingers (empty), no object
+//!   point between them or a contact off the object (missed object), or non-antipodal contacts.
+//! - **Suction** ([`SuctionCup`], r = 10 mm, compliance 15 mm): `approach` points into the
+//!   surface. Seal: 72 ring points at the cup radius in the plane ⟂ approach, each within 5 mm of
+//!   the contact plane, nothing inside the ring more than 5 mm above it; quality
+//!   exp(−1e5·var(heights)). Execution: the hit along the approach ray must be on an object,
+//!   within ±compliance of the planned point, seal on the hit, approach ≤ 30° from its normal.
+//! - **Determinism.** Every random choice uses a `seed` field (ChaCha8); parallel loops collect in
+//!   input order, so results do not depend on the number of rayon threads.
+//!
+//! Scores from [`score_grasp`] are a *proxy* for robot success, not robot results.
+
+pub mod cloud;
+pub mod contact;
+pub mod error;
+pub mod extrinsics;
+pub mod grasp;
+pub mod gripper;
+pub mod nms;
+pub mod objects;
+pub mod parallel;
+pub mod plane;
+pub mod scene;
+pub mod score;
+pub mod suction;
+
+pub use cloud::{CloudConfig, OrganisedCloud, Vec3};
+pub use contact::{ExecConfig, MU_GRID};
+pub use error::{GraspError, Result};
+pub use extrinsics::Extrinsics;
+pub use grasp::{
+    FailureReason, Grasp, NoGraspReason, ParallelGrasp, ParallelPose, PlanOutcome, SuctionGrasp,
+    SuctionPose,
+};
+pub use gripper::{Gripper, ParallelJaw, SuctionCup};
+pub use objects::{MIN_TRIAL_COMPONENT_PX, components_8, mask_components};
+pub use parallel::{ParallelConfig, plan_parallel};
+pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};
+pub use scene::{ObjectComponent, Scene, SceneConfig};
+pub use score::{GraspScore, ScoreConfig, no_grasp, score_grasp, score_parallel, score_suction};
+pub use suction::{SuctionConfig, plan_suction};

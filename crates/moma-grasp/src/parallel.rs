@@ -1,0 +1,279 @@
+//! Parallel-jaw planning: Dex-Net-style antipodal sampling on silhouette contacts.
+//!
+//! 1. Contacts: object pixels on a silhouette edge (the near side of a depth jump), subsampled
+//!    with the seed; each has the outward horizontal normal `n₁` of the edge.
+//! 2. For each contact, the closing axis is `b = −n₁` and the approaches are top-down (`−up`) and
+//!    tilted about `b` by `±tilt_angles_deg`. The closing line runs `contact_depth_m` below the
+//!    contact along the approach; the opposite side is where that line leaves the object.
+//! 3. The grasp is executed on the planning scene with the proxy-scoring rules ([`crate::score`]):
+//!    contacts found by closing the fingers, friction cone at `planner_mu`, both fingers and the
+//!    palm collision-free, enough points between the fingers. The centre is then moved to the
+//!    midpoint of the two contacts found.
+//! 4. Score, rank, greedy NMS, top-K (each kept grasp re-executed at its final pose).
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::cloud::Vec3;
+use crate::contact::{ExecConfig, JawPose};
+use crate::error::{GraspError, Result, positive};
+use crate::grasp::{
+    FailureReason, Grasp, NoGraspReason, ParallelGrasp, ParallelPose, PlanOutcome, arr, tally,
+};
+use crate::gripper::ParallelJaw;
+use crate::nms::{greedy, rank, subsample};
+use crate::scene::Scene;
+
+/// Parallel-jaw planner settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParallelConfig {
+    /// Execution rules shared with the scorer.
+    pub exec: ExecConfig,
+    /// At most this many silhouette contacts are sampled (seeded). Default 400.
+    pub max_contact_samples: usize,
+    /// Approach tilts about the closing axis besides top-down (each used with both signs),
+    /// degrees. Default `[20]`.
+    pub tilt_angles_deg: Vec<f32>,
+    /// Depth of the closing line below the sampled contact along the approach, metres.
+    /// Default 0.003 m.
+    pub contact_depth_m: f32,
+    /// Friction coefficient a planned grasp must pass (the scorer uses 0.8). Default 0.6.
+    pub planner_mu: f32,
+    /// Free length along the closing line that ends the object when finding the far side, metres.
+    /// Default 0.003 m.
+    pub exit_gap_m: f32,
+    /// Least free space between a finger and its contact before closing, metres. Default 0.003 m.
+    pub min_clearance_m: f32,
+    /// Grasps returned at most. Default 10.
+    pub top_k: usize,
+    /// NMS: a grasp whose centre is within this of a kept one, metres, …  Default 0.01 m.
+    pub nms_distance_m: f32,
+    /// … and whose closing axis is within this angle of it, degrees, is suppressed. Default 30.
+    pub nms_angle_deg: f32,
+    /// Seed of the contact sampling. Default 0.
+    pub seed: u64,
+}
+
+impl Default for ParallelConfig {
+    fn default() -> Self {
+        Self {
+            exec: ExecConfig::default(),
+            max_contact_samples: 400,
+            tilt_angles_deg: vec![20.0],
+            contact_depth_m: 0.003,
+            planner_mu: 0.6,
+            exit_gap_m: 0.003,
+            min_clearance_m: 0.003,
+            top_k: 10,
+            nms_distance_m: 0.01,
+            nms_angle_deg: 30.0,
+            seed: 0,
+        }
+    }
+}
+
+impl ParallelConfig {
+    /// Checks the settings.
+    ///
+    /// # Errors
+    /// [`GraspError::InvalidConfig`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        self.exec.validate()?;
+        let e = GraspError::InvalidConfig;
+        positive("planner_mu", self.planner_mu, e)?;
+        positive("exit_gap_m", self.exit_gap_m, e)?;
+        positive("min_clearance_m", self.min_clearance_m, e)?;
+        positive("nms_distance_m", self.nms_distance_m, e)?;
+        if !(self.contact_depth_m.is_finite() && self.contact_depth_m >= 0.0) {
+            return Err(e(format!(
+                "contact_depth_m = {} must be >= 0",
+                self.contact_depth_m
+            )));
+        }
+        if self
+            .tilt_angles_deg
+            .iter()
+            .any(|t| !t.is_finite() || t.abs() >= 90.0)
+        {
+            return Err(e("tilt_angles_deg must lie in (-90, 90)".into()));
+        }
+        if self.top_k == 0 || self.max_contact_samples == 0 {
+            return Err(e("top_k and max_contact_samples must be >= 1".into()));
+        }
+        Ok(())
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Candidate {
+    pose: JawPose,
+    score: f32,
+}
+
+/// Planner score in `[0, 1]`:
+/// `0.4·(1 − μ_needed/1.2) + 0.2·(1 − width/stroke) + 0.3·exp(−(d/0.02 m)²) + 0.1·(1 − tilt/90°)`,
+/// `d` the distance from the grasp centre to the object's centroid across "up".
+fn grasp_score(mu_needed: f32, width: f32, stroke: f32, d_centre_m: f32, tilt_deg: f32) -> f32 {
+    let q_mu = (1.0 - mu_needed / 1.2).clamp(0.0, 1.0);
+    let q_w = (1.0 - width / stroke).clamp(0.0, 1.0);
+    let q_c = (-(d_centre_m / 0.02).powi(2)).exp();
+    let q_t = (1.0 - tilt_deg.abs() / 90.0).clamp(0.0, 1.0);
+    0.4 * q_mu + 0.2 * q_w + 0.3 * q_c + 0.1 * q_t
+}
+
+fn candidate(
+    scene: &Scene,
+    i: usize,
+    approach: Vec3,
+    closing: Vec3,
+    tilt_deg: f32,
+    jaw: &ParallelJaw,
+    config: &ParallelConfig,
+) -> std::result::Result<Candidate, FailureReason> {
+    let exec = &config.exec;
+    let step = exec.march_step_m;
+    let l0 = scene.cloud.points[i] + approach * config.contact_depth_m;
+    // Far side: where the closing line leaves the object for at least `exit_gap_m`.
+    let mut t_occ = 0.0f32;
+    let mut t = step;
+    loop {
+        if t > jaw.stroke_m {
+            return Err(FailureReason::NotAntipodal);
+        }
+        let q = l0 + closing * t;
+        match scene.occupied(&q, exec.occupancy_tol_m) {
+            Some(j) if scene.is_object(j) => t_occ = t,
+            _ if t - t_occ >= config.exit_gap_m => break,
+            _ => {}
+        }
+        t += step;
+    }
+    let clearance = jaw.opening_clearance_m.min((jaw.stroke_m - t_occ) / 2.0);
+    if clearance < config.min_clearance_m {
+        return Err(FailureReason::NotAntipodal);
+    }
+    let width = t_occ + 2.0 * clearance;
+    let pose = JawPose {
+        center: l0 + closing * (t_occ / 2.0),
+        approach,
+        closing,
+        width,
+    };
+    let run = scene.execute_parallel(&pose, jaw, exec, config.planner_mu, true);
+    if let Some(f) = run.failure {
+        return Err(f);
+    }
+    let Some([c1, c2]) = run.contacts else {
+        return Err(FailureReason::MissedObject);
+    };
+    let center = (c1.point + c2.point) / 2.0;
+    let up = scene.up();
+    let d_centre = scene.centroid(scene.label(c1.index)).map_or(0.0, |c| {
+        let d = center - c;
+        (d - up * d.dot(&up)).norm()
+    });
+    Ok(Candidate {
+        pose: JawPose { center, ..pose },
+        score: grasp_score(run.mu_needed, width, jaw.stroke_m, d_centre, tilt_deg),
+    })
+}
+
+/// Plans parallel-jaw grasps on `scene` (camera frame), best first, at most `config.top_k`.
+/// Deterministic for a given `config.seed`, with any number of rayon threads.
+///
+/// # Errors
+/// Invalid gripper or config. No grasp is not an error: see [`PlanOutcome::no_grasp_reason`].
+pub fn plan_parallel(
+    scene: &Scene,
+    jaw: &ParallelJaw,
+    config: &ParallelConfig,
+) -> Result<PlanOutcome> {
+    jaw.validate()?;
+    config.validate()?;
+    if scene.plane.is_none() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoSupportPlane));
+    }
+    if scene.components().is_empty() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoObject));
+    }
+    let cloud = &scene.cloud;
+    let edges: Vec<usize> = (0..cloud.valid.len())
+        .filter(|&i| scene.is_object(i) && cloud.near_edge[i])
+        .collect();
+    let samples = subsample(edges, config.max_contact_samples, config.seed);
+    let up = scene.up();
+    let a0 = -up;
+    let mut tilts = vec![0.0f32];
+    for t in &config.tilt_angles_deg {
+        tilts.push(*t);
+        tilts.push(-*t);
+    }
+    let r = config.exec.silhouette_radius_px;
+    let results: Vec<std::result::Result<Candidate, FailureReason>> = samples
+        .par_iter()
+        .flat_map_iter(|&i| {
+            let normal = scene.silhouette_normal(i, r);
+            tilts.iter().map(move |&tilt| {
+                let n1 = normal.ok_or(FailureReason::NotAntipodal)?;
+                let b = -(n1 - a0 * n1.dot(&a0)).normalize();
+                let th = tilt.to_radians();
+                let a = a0 * th.cos() + b.cross(&a0) * th.sin();
+                candidate(scene, i, a, b, tilt, jaw, config)
+            })
+        })
+        .collect();
+    if results.is_empty() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoCandidate));
+    }
+    let n_candidates = results.len();
+    let mut failures = Vec::new();
+    let mut cands = Vec::new();
+    for r in results {
+        match r {
+            Ok(c) => cands.push(c),
+            Err(f) => failures.push(f),
+        }
+    }
+    let scores: Vec<f32> = cands.iter().map(|c| c.score).collect();
+    let order = rank(&scores);
+    let cos_nms = config.nms_angle_deg.to_radians().cos();
+    let kept = greedy(
+        &order,
+        config.top_k,
+        |k| {
+            let run =
+                scene.execute_parallel(&cands[k].pose, jaw, &config.exec, config.planner_mu, false);
+            run.failure.is_none()
+        },
+        |a, b| {
+            let (pa, pb) = (&cands[a].pose, &cands[b].pose);
+            (pa.center - pb.center).norm() < config.nms_distance_m
+                && pa.closing.dot(&pb.closing).abs() >= cos_nms
+        },
+    );
+    let grasps: Vec<Grasp> = kept
+        .iter()
+        .map(|&k| {
+            let c = &cands[k];
+            Grasp::Parallel(ParallelGrasp {
+                score: c.score,
+                pose: ParallelPose {
+                    center_m: arr(&c.pose.center),
+                    approach: arr(&c.pose.approach),
+                    closing: arr(&c.pose.closing),
+                    width_m: c.pose.width,
+                },
+                base: None,
+            })
+        })
+        .collect();
+    let no_grasp_reason = grasps.is_empty().then(|| NoGraspReason::AllRejected {
+        candidates: n_candidates,
+        failures: tally(failures.into_iter()),
+    });
+    Ok(PlanOutcome {
+        grasps,
+        no_grasp_reason,
+        candidates: n_candidates,
+    })
+}

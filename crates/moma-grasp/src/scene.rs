@@ -1,0 +1,225 @@
+//! A scene ready for planning or scoring: cloud, support plane, object pixels and components.
+
+use moma_core::{Intrinsics, Mask, MetricDepth};
+use serde::{Deserialize, Serialize};
+
+use crate::cloud::{CloudConfig, OrganisedCloud, Vec3};
+use crate::error::{GraspError, Result, positive};
+use crate::objects::{MIN_TRIAL_COMPONENT_PX, components_8};
+use crate::plane::{PlaneConfig, SupportPlane, fit_support_plane};
+
+/// How a scene is built from a depth map.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SceneConfig {
+    /// Normals and edges.
+    pub cloud: CloudConfig,
+    /// Support-plane fit.
+    pub plane: PlaneConfig,
+    /// Without a mask, a pixel belongs to an object when it stands more than this above the
+    /// support plane, metres. Default 0.01 m (METHOD.md §8).
+    pub min_object_height_m: f32,
+    /// Without a mask, connected object regions smaller than this are specks (noise), not objects,
+    /// pixels. Default 200 (the trial rule of METHOD.md §8). With a mask every masked pixel with
+    /// valid depth is an object pixel.
+    pub min_object_px: usize,
+}
+
+impl Default for SceneConfig {
+    fn default() -> Self {
+        Self {
+            cloud: CloudConfig::default(),
+            plane: PlaneConfig::default(),
+            min_object_height_m: 0.01,
+            min_object_px: MIN_TRIAL_COMPONENT_PX,
+        }
+    }
+}
+
+/// One object region: an 8-connected component of the object pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ObjectComponent {
+    /// Label in [`Scene::label`] (1-based).
+    pub label: u32,
+    /// Pixels in the component.
+    pub pixel_count: usize,
+    /// Mean camera-frame point of the component, metres.
+    pub centroid_m: [f32; 3],
+}
+
+/// Depth map turned into everything the planners and the scorer need.
+///
+/// The cloud's normals and edge flags are computed only in the bounding box of the object pixels
+/// grown by [`CloudConfig::object_margin_px`]; elsewhere they are unknown / false.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The organised cloud.
+    pub cloud: OrganisedCloud,
+    /// The support plane; `None` when none was found.
+    pub plane: Option<SupportPlane>,
+    labels: Vec<u32>,
+    components: Vec<ObjectComponent>,
+    masked: bool,
+}
+
+impl Scene {
+    /// Builds the scene. With `mask`, objects are the masked pixels with valid depth and the plane
+    /// is fitted outside the mask (on all valid pixels when fewer than 3 lie outside); without, the
+    /// plane is fitted on all valid pixels and objects are regions more than
+    /// `min_object_height_m` above it with at least `min_object_px` pixels.
+    ///
+    /// # Errors
+    /// Invalid intrinsics/config, intrinsics or mask of another size than `depth`, all-invalid
+    /// depth, a mask whose pixels all lack depth.
+    pub fn build(
+        depth: &MetricDepth,
+        intrinsics: &Intrinsics,
+        mask: Option<&Mask>,
+        config: &SceneConfig,
+    ) -> Result<Self> {
+        positive(
+            "min_object_height_m",
+            config.min_object_height_m,
+            GraspError::InvalidConfig,
+        )?;
+        if let Some(m) = mask
+            && m.size() != depth.size()
+        {
+            return Err(GraspError::SizeMismatch {
+                what: "mask",
+                expected: depth.size(),
+                got: m.size(),
+            });
+        }
+        intrinsics.validate().map_err(GraspError::Intrinsics)?;
+        if intrinsics.size() != depth.size() {
+            return Err(GraspError::SizeMismatch {
+                what: "camera intrinsics",
+                expected: depth.size(),
+                got: intrinsics.size(),
+            });
+        }
+        let mut cloud = OrganisedCloud::build(depth, intrinsics, &config.cloud, false)?;
+        let size = depth.size();
+        let masked: Option<Vec<bool>> = mask.map(|m| m.data().iter().copied().collect());
+        let plane = match &masked {
+            Some(m) => {
+                let masked_px = m.iter().filter(|&&b| b).count();
+                let object_px = (0..m.len()).filter(|&i| m[i] && cloud.valid[i]).count();
+                if object_px == 0 {
+                    return Err(GraspError::MaskNoValidDepth { masked_px });
+                }
+                let outside: Vec<bool> = m.iter().map(|b| !b).collect();
+                let n_out = (0..m.len())
+                    .filter(|&i| outside[i] && cloud.valid[i])
+                    .count();
+                let region = (n_out >= 3).then_some(outside.as_slice());
+                fit_support_plane(&cloud, region, &config.plane)?
+            }
+            None => fit_support_plane(&cloud, None, &config.plane)?,
+        };
+        let object: Vec<bool> = match (&masked, &plane) {
+            (Some(m), _) => (0..m.len()).map(|i| m[i] && cloud.valid[i]).collect(),
+            (None, Some(p)) => (0..cloud.valid.len())
+                .map(|i| {
+                    cloud.valid[i] && p.height_m(&cloud.points[i]) > config.min_object_height_m
+                })
+                .collect(),
+            (None, None) => vec![false; cloud.valid.len()],
+        };
+        // Normals and edges only around the objects (the planners and the scorer query no other).
+        let (w, h) = (size.width, size.height);
+        let (mut u0, mut u1, mut v0, mut v1) = (usize::MAX, 0, usize::MAX, 0);
+        for (i, _) in object.iter().enumerate().filter(|(_, b)| **b) {
+            let (u, v) = (i % w, i / w);
+            u0 = u0.min(u);
+            u1 = u1.max(u);
+            v0 = v0.min(v);
+            v1 = v1.max(v);
+        }
+        if u0 != usize::MAX {
+            let m = config.cloud.object_margin_px;
+            cloud.compute_normals(
+                u0.saturating_sub(m),
+                (u1 + m + 1).min(w),
+                v0.saturating_sub(m),
+                (v1 + m + 1).min(h),
+                &config.cloud,
+            );
+        }
+        let (mut labels, counts) = components_8(&object, size);
+        let min_px = if masked.is_some() {
+            1
+        } else {
+            config.min_object_px
+        };
+        // Relabel so that kept components are 1..=k.
+        let mut remap = vec![0u32; counts.len() + 1];
+        let mut sums = Vec::new();
+        for (k, &c) in counts.iter().enumerate() {
+            if c >= min_px {
+                sums.push((Vec3::zeros(), 0usize));
+                remap[k + 1] = sums.len() as u32;
+            }
+        }
+        for (i, l) in labels.iter_mut().enumerate() {
+            *l = remap[*l as usize];
+            if *l > 0 {
+                let s = &mut sums[*l as usize - 1];
+                s.0 += cloud.points[i];
+                s.1 += 1;
+            }
+        }
+        let components = sums
+            .iter()
+            .enumerate()
+            .map(|(k, (sum, n))| {
+                let c = sum / *n as f32;
+                ObjectComponent {
+                    label: k as u32 + 1,
+                    pixel_count: *n,
+                    centroid_m: [c.x, c.y, c.z],
+                }
+            })
+            .collect();
+        Ok(Self {
+            cloud,
+            plane,
+            labels,
+            components,
+            masked: mask.is_some(),
+        })
+    }
+
+    /// Object label of pixel `index` (0 = not an object).
+    #[inline]
+    pub fn label(&self, index: usize) -> u32 {
+        self.labels[index]
+    }
+
+    /// Whether pixel `index` belongs to an object.
+    #[inline]
+    pub fn is_object(&self, index: usize) -> bool {
+        self.labels[index] != 0
+    }
+
+    /// The object components (label `k` is `components()[k - 1]`).
+    pub fn components(&self) -> &[ObjectComponent] {
+        &self.components
+    }
+
+    /// Whether objects came from a mask.
+    pub fn is_masked(&self) -> bool {
+        self.masked
+    }
+
+    /// "Up": the support plane's normal, or the direction towards the camera (`-z`) without a
+    /// plane.
+    pub fn up(&self) -> Vec3 {
+        self.plane.map_or(Vec3::new(0.0, 0.0, -1.0), |p| p.up())
+    }
+
+    /// Centroid of the component with `label` (metres); `None` for label 0.
+    pub(crate) fn centroid(&self, label: u32) -> Option<Vec3> {
+        (label > 0).then(|| Vec3::from(self.components[label as usize - 1].centroid_m))
+    }
+}

@@ -1,0 +1,279 @@
+//! Suction planning: seal, flatness, edge distance and a collision-free approach (METHOD.md §8).
+//!
+//! Candidates are object pixels with a surface normal on a `candidate_stride_px` grid (at most
+//! `max_candidates`, seeded); the approach is the inward normal `−n`. Each candidate's score is
+//! `seal quality × flatness × d / (d + r) × (1 + cos θ_up) / 2`, `d` the metric distance to the
+//! nearest depth edge and `r` the cup radius, `θ_up` the angle between the approach and straight
+//! down (−up): top-down picks are preferred to side picks. In score order, a candidate is kept when its execution on the
+//! planning scene succeeds (the scorer's rules), the tool cylinder behind the cup is free, and no
+//! kept grasp lies within `nms_distance_m`.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::cloud::{OrganisedCloud, Vec3};
+use crate::contact::{ExecConfig, perpendiculars};
+use crate::error::{GraspError, Result, positive};
+use crate::grasp::{
+    FailureReason, Grasp, NoGraspReason, PlanOutcome, SuctionGrasp, SuctionPose, arr, tally,
+};
+use crate::gripper::SuctionCup;
+use crate::nms::{greedy, rank, subsample};
+use crate::scene::Scene;
+
+/// Suction planner settings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SuctionConfig {
+    /// Execution rules shared with the scorer.
+    pub exec: ExecConfig,
+    /// Candidate grid step, pixels. Default 2.
+    pub candidate_stride_px: usize,
+    /// At most this many candidates (seeded subsample of the grid). Default 1500.
+    pub max_candidates: usize,
+    /// Grasps returned at most. Default 10.
+    pub top_k: usize,
+    /// NMS: a grasp within this distance of a kept one is suppressed, metres. Default 0.02 m.
+    pub nms_distance_m: f32,
+    /// Seed of the candidate subsampling. Default 0.
+    pub seed: u64,
+}
+
+impl Default for SuctionConfig {
+    fn default() -> Self {
+        Self {
+            exec: ExecConfig::default(),
+            candidate_stride_px: 2,
+            max_candidates: 1500,
+            top_k: 10,
+            nms_distance_m: 0.02,
+            seed: 0,
+        }
+    }
+}
+
+impl SuctionConfig {
+    /// Checks the settings.
+    ///
+    /// # Errors
+    /// [`GraspError::InvalidConfig`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        self.exec.validate()?;
+        positive(
+            "nms_distance_m",
+            self.nms_distance_m,
+            GraspError::InvalidConfig,
+        )?;
+        if self.candidate_stride_px == 0 || self.max_candidates == 0 || self.top_k == 0 {
+            return Err(GraspError::InvalidConfig(
+                "candidate_stride_px, max_candidates and top_k must be >= 1".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Chamfer (3-4) distance in pixels from every pixel to the nearest edge pixel.
+fn edge_distance_px(cloud: &OrganisedCloud) -> Vec<f32> {
+    let (w, h) = (cloud.width, cloud.height);
+    let big = u32::MAX / 4;
+    let mut d: Vec<u32> = (0..w * h)
+        .map(|i| if cloud.near_edge[i] { 0 } else { big })
+        .collect();
+    for v in 0..h {
+        for u in 0..w {
+            let i = v * w + u;
+            let mut best = d[i];
+            if u > 0 {
+                best = best.min(d[i - 1] + 3);
+            }
+            if v > 0 {
+                best = best.min(d[i - w] + 3);
+                if u > 0 {
+                    best = best.min(d[i - w - 1] + 4);
+                }
+                if u + 1 < w {
+                    best = best.min(d[i - w + 1] + 4);
+                }
+            }
+            d[i] = best;
+        }
+    }
+    for v in (0..h).rev() {
+        for u in (0..w).rev() {
+            let i = v * w + u;
+            let mut best = d[i];
+            if u + 1 < w {
+                best = best.min(d[i + 1] + 3);
+            }
+            if v + 1 < h {
+                best = best.min(d[i + w] + 3);
+                if u + 1 < w {
+                    best = best.min(d[i + w + 1] + 4);
+                }
+                if u > 0 {
+                    best = best.min(d[i + w - 1] + 4);
+                }
+            }
+            d[i] = best;
+        }
+    }
+    d.into_iter().map(|x| x as f32 / 3.0).collect()
+}
+
+impl Scene {
+    /// Whether the tool cylinder (radius `cup.radius_m`, from `seal_max_bump_m` to
+    /// `cup.tool_length_m` behind the surface point `p`, along `−a`) holds no scene point.
+    pub(crate) fn suction_path_clear(
+        &self,
+        p: &Vec3,
+        a: &Vec3,
+        cup: &SuctionCup,
+        exec: &ExecConfig,
+    ) -> bool {
+        let cloud = &self.cloud;
+        let (t0, t1, r) = (exec.seal_max_bump_m, cup.tool_length_m, cup.radius_m);
+        let (e1, e2) = perpendiculars(a);
+        let (mut u0, mut u1, mut v0, mut v1) = (f32::MAX, f32::MIN, f32::MAX, f32::MIN);
+        let mut full = false;
+        for t in [t0, t1] {
+            for e in [e1, -e1, e2, -e2] {
+                match cloud.project_uv(&(p - a * t + e * r)) {
+                    Some((u, v)) => {
+                        u0 = u0.min(u);
+                        u1 = u1.max(u);
+                        v0 = v0.min(v);
+                        v1 = v1.max(v);
+                    }
+                    None => full = true,
+                }
+            }
+        }
+        let (w, h) = (cloud.width as f32, cloud.height as f32);
+        if full {
+            (u0, u1, v0, v1) = (0.0, w - 1.0, 0.0, h - 1.0);
+        }
+        let u0 = (u0.floor() - 1.0).clamp(0.0, w - 1.0) as usize;
+        let u1 = (u1.ceil() + 1.0).clamp(0.0, w - 1.0) as usize;
+        let v0 = (v0.floor() - 1.0).clamp(0.0, h - 1.0) as usize;
+        let v1 = (v1.ceil() + 1.0).clamp(0.0, h - 1.0) as usize;
+        for v in v0..=v1 {
+            let row = v * cloud.width;
+            for i in row + u0..=row + u1 {
+                if !cloud.valid[i] {
+                    continue;
+                }
+                let d = p - cloud.points[i];
+                let t = d.dot(a);
+                if t < t0 || t > t1 {
+                    continue;
+                }
+                if (a * t - d).norm_squared() < r * r {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+}
+
+/// Plans suction grasps on `scene` (camera frame), best first, at most `config.top_k`.
+/// Deterministic for a given `config.seed`, with any number of rayon threads.
+///
+/// # Errors
+/// Invalid cup or config. No grasp is not an error: see [`PlanOutcome::no_grasp_reason`].
+pub fn plan_suction(
+    scene: &Scene,
+    cup: &SuctionCup,
+    config: &SuctionConfig,
+) -> Result<PlanOutcome> {
+    cup.validate()?;
+    config.validate()?;
+    if scene.plane.is_none() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoSupportPlane));
+    }
+    if scene.components().is_empty() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoObject));
+    }
+    let cloud = &scene.cloud;
+    let s = config.candidate_stride_px;
+    let grid: Vec<usize> = (0..cloud.height)
+        .step_by(s)
+        .flat_map(|v| (0..cloud.width).step_by(s).map(move |u| (u, v)))
+        .map(|(u, v)| cloud.index(u, v))
+        .filter(|&i| scene.is_object(i) && cloud.normal(i).is_some())
+        .collect();
+    if grid.is_empty() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoCandidate));
+    }
+    let samples = subsample(grid, config.max_candidates, config.seed);
+    let dist_px = edge_distance_px(cloud);
+    let exec = &config.exec;
+    let up = scene.up();
+    let results: Vec<std::result::Result<(usize, f32), FailureReason>> = samples
+        .par_iter()
+        .map(|&i| {
+            let p = cloud.points[i];
+            let n = cloud.normal(i).ok_or(FailureReason::ApproachAngle)?;
+            let a = -n;
+            let (quality, flatness) = scene.seal(&p, &a, cup, exec)?;
+            let d_m = dist_px[i] * cloud.metres_per_px(p.z);
+            let edge = d_m / (d_m + cup.radius_m);
+            let reach = (1.0 + a.dot(&-up)) / 2.0;
+            Ok((i, quality * flatness * edge * reach))
+        })
+        .collect();
+    let n_candidates = results.len();
+    let mut failures = Vec::new();
+    let mut cands = Vec::new();
+    for r in results {
+        match r {
+            Ok(c) => cands.push(c),
+            Err(f) => failures.push(f),
+        }
+    }
+    let scores: Vec<f32> = cands.iter().map(|c| c.1).collect();
+    let order = rank(&scores);
+    let pose = |k: usize| {
+        let i = cands[k].0;
+        (cloud.points[i], -cloud.normals[i])
+    };
+    let mut late_failures = Vec::new();
+    let kept = greedy(
+        &order,
+        config.top_k,
+        |k| {
+            let (p, a) = pose(k);
+            let failure = scene.execute_suction(&p, &a, cup, exec).or_else(|| {
+                (!scene.suction_path_clear(&p, &a, cup, exec)).then_some(FailureReason::Collision)
+            });
+            if let Some(f) = failure {
+                late_failures.push(f);
+            }
+            failure.is_none()
+        },
+        |a, b| (pose(a).0 - pose(b).0).norm() < config.nms_distance_m,
+    );
+    let grasps: Vec<Grasp> = kept
+        .iter()
+        .map(|&k| {
+            let (p, a) = pose(k);
+            Grasp::Suction(SuctionGrasp {
+                score: cands[k].1,
+                pose: SuctionPose {
+                    point_m: arr(&p),
+                    approach: arr(&a),
+                },
+                base: None,
+            })
+        })
+        .collect();
+    let no_grasp_reason = grasps.is_empty().then(|| NoGraspReason::AllRejected {
+        candidates: n_candidates,
+        failures: tally(failures.into_iter().chain(late_failures)),
+    });
+    Ok(PlanOutcome {
+        grasps,
+        no_grasp_reason,
+        candidates: n_candidates,
+    })
+}

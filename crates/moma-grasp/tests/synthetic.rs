@@ -1,0 +1,442 @@
+//! Synthetic scenes with known answers (issue 9 "How it will be checked").
+
+mod common;
+
+use common::{BoxSpec, Scene as Synth, intrinsics, v3};
+use moma_core::{Mask, MetricDepth};
+use moma_grasp::{
+    FailureReason, Grasp, GraspError, Gripper, NoGraspReason, ParallelConfig, ParallelJaw,
+    ParallelPose, Scene, SceneConfig, ScoreConfig, SuctionConfig, SuctionCup, SuctionPose, Vec3,
+    plan_parallel, plan_suction, score_grasp, score_parallel, score_suction,
+};
+use ndarray::Array2;
+
+const DIST_M: f64 = 0.7;
+
+fn build(depth: &MetricDepth) -> Scene {
+    Scene::build(depth, &intrinsics(), None, &SceneConfig::default()).unwrap()
+}
+
+fn box_scene() -> (Synth, BoxSpec, Scene) {
+    let b = BoxSpec::standard();
+    let synth = Synth::top_down(DIST_M, Some(b));
+    let scene = build(&synth.render());
+    (synth, b, scene)
+}
+
+fn angle_deg(a: Vec3, b: Vec3) -> f32 {
+    a.normalize()
+        .dot(&b.normalize())
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+fn top_parallel(scene: &Scene) -> moma_grasp::ParallelGrasp {
+    let out = plan_parallel(scene, &ParallelJaw::default(), &ParallelConfig::default()).unwrap();
+    match out.grasps.first() {
+        Some(Grasp::Parallel(g)) => *g,
+        other => panic!(
+            "expected a parallel grasp, got {other:?} ({:?})",
+            out.no_grasp_reason
+        ),
+    }
+}
+
+fn top_suction(scene: &Scene) -> moma_grasp::SuctionGrasp {
+    let out = plan_suction(scene, &SuctionCup::default(), &SuctionConfig::default()).unwrap();
+    match out.grasps.first() {
+        Some(Grasp::Suction(g)) => *g,
+        other => panic!(
+            "expected a suction grasp, got {other:?} ({:?})",
+            out.no_grasp_reason
+        ),
+    }
+}
+
+#[test]
+fn support_plane_of_top_down_box_scene_is_the_table() {
+    let (synth, _, scene) = box_scene();
+    let plane = scene.plane.unwrap();
+    assert!(angle_deg(plane.up(), v3(synth.up)) < 0.5);
+    // The table passes through z = 0.7 m on the optical axis: height 0 there.
+    assert!(plane.height_m(&Vec3::new(0.0, 0.0, DIST_M as f32)).abs() < 1e-3);
+    assert_eq!(scene.components().len(), 1, "one object: the box");
+}
+
+#[test]
+fn parallel_grasp_closes_across_the_narrow_side_of_a_box() {
+    let (synth, b, scene) = box_scene();
+    let g = top_parallel(&scene);
+    let (_, short) = synth.box_axes(&b);
+    let closing = Vec3::from(g.pose.closing);
+    assert!(
+        angle_deg(closing, v3(short)).min(angle_deg(-closing, v3(short))) < 10.0,
+        "closing {closing:?} is not along the short axis {short:?}"
+    );
+    assert!(
+        g.pose.width_m >= b.short_m as f32,
+        "width {}",
+        g.pose.width_m
+    );
+    assert!(g.pose.width_m <= ParallelJaw::default().stroke_m);
+    let d = synth.dist_to_top_centre_line(&b, Vec3::from(g.pose.center_m));
+    assert!(
+        d <= 0.005,
+        "centre {:?} is {d} m from the top-face centre line",
+        g.pose.center_m
+    );
+    // Approach from above: within the planner's tilt of straight down.
+    assert!(angle_deg(Vec3::from(g.pose.approach), -v3(synth.up)) <= 20.5);
+    for v in [g.pose.approach, g.pose.closing] {
+        assert!((Vec3::from(v).norm() - 1.0).abs() < 1e-4);
+    }
+    assert!(Vec3::from(g.pose.approach).dot(&closing).abs() < 1e-4);
+}
+
+#[test]
+fn planner_parallel_grasp_succeeds_when_scored_on_the_same_ground_truth() {
+    let (_, _, scene) = box_scene();
+    let g = top_parallel(&scene);
+    let s = score_grasp(
+        &scene,
+        &Grasp::Parallel(g),
+        &Gripper::Parallel(ParallelJaw::default()),
+        &ScoreConfig::default(),
+    )
+    .unwrap();
+    assert!(s.success, "{s:?}");
+    // Box faces: contact normals along the contact line, μ = 0.2 suffices.
+    assert_eq!(s.min_mu, Some(0.2));
+}
+
+#[test]
+fn suction_grasp_is_on_the_top_face_along_its_normal() {
+    let (synth, b, scene) = box_scene();
+    let g = top_suction(&scene);
+    let [x, y, h] = synth.box_coords(&b, Vec3::from(g.pose.point_m));
+    assert!((h - b.height_m).abs() < 0.002, "height {h}");
+    assert!(x.abs() < b.long_m / 2.0 && y.abs() < b.short_m / 2.0);
+    assert!(angle_deg(Vec3::from(g.pose.approach), -v3(synth.up)) < 5.0);
+    let s = score_suction(
+        &scene,
+        &g.pose,
+        &SuctionCup::default(),
+        &ScoreConfig::default(),
+    )
+    .unwrap();
+    assert!(s.success, "{s:?}");
+}
+
+#[test]
+fn parallel_grasp_through_the_table_is_a_collision() {
+    let (synth, b, scene) = box_scene();
+    let g = top_parallel(&scene);
+    // Same grasp moved 60 mm down along the approach: the fingers are inside the table.
+    let c = Vec3::from(g.pose.center_m) - v3(synth.up) * 0.06;
+    let pose = ParallelPose {
+        center_m: [c.x, c.y, c.z],
+        ..g.pose
+    };
+    let s = score_parallel(
+        &scene,
+        &pose,
+        &ParallelJaw::default(),
+        &ScoreConfig::default(),
+    )
+    .unwrap();
+    assert_eq!(s.failure, Some(FailureReason::Collision));
+    assert!(!s.success);
+    let _ = b;
+}
+
+#[test]
+fn parallel_scoring_reports_closed_form_friction_and_failures() {
+    let (synth, b, scene) = box_scene();
+    let (long, short) = synth.box_axes(&b);
+    let top = v3(synth.box_top_centre(&b));
+    let down = -v3(synth.up);
+    let centre = top + down * 0.01;
+    let jaw = ParallelJaw::default();
+    let cfg = ScoreConfig::default();
+    let pose = |closing: Vec3, width: f32, centre: Vec3| ParallelPose {
+        center_m: [centre.x, centre.y, centre.z],
+        approach: [down.x, down.y, down.z],
+        closing: [closing.x, closing.y, closing.z],
+        width_m: width,
+    };
+    // Across the short side: normals along the line → μ = 0.2.
+    let s = score_parallel(&scene, &pose(v3(short), 0.06, centre), &jaw, &cfg).unwrap();
+    assert!(s.success, "{s:?}");
+    assert_eq!(s.min_mu, Some(0.2));
+    // Closing 25° off the short axis: both contacts on the long faces, normals 25° off the
+    // line → μ needed = tan 25° = 0.466 → smallest grid μ 0.6 (still a success at 0.8).
+    let th = 25f32.to_radians();
+    let axis = v3(short) * th.cos() + v3(long) * th.sin();
+    let s = score_parallel(&scene, &pose(axis, 0.075, centre), &jaw, &cfg).unwrap();
+    assert_eq!(s.min_mu, Some(0.6), "{s:?}");
+    assert!(s.success);
+    // 40° off: μ needed = tan 40° = 0.839 → fails at 0.8, min μ 1.0.
+    let th = 40f32.to_radians();
+    let axis = v3(short) * th.cos() + v3(long) * th.sin();
+    let s = score_parallel(&scene, &pose(axis, 0.08, centre), &jaw, &cfg).unwrap();
+    assert_eq!(s.failure, Some(FailureReason::NotAntipodal), "{s:?}");
+    assert_eq!(s.min_mu, Some(1.0));
+    // In the air 60 mm above the box: nothing between the fingers.
+    let s = score_parallel(
+        &scene,
+        &pose(v3(short), 0.06, top - down * 0.06),
+        &jaw,
+        &cfg,
+    )
+    .unwrap();
+    assert_eq!(s.failure, Some(FailureReason::Empty));
+    // Across the long side, 70 mm + fingers: width 0.06 → fingers inside the box top = collision.
+    let s = score_parallel(&scene, &pose(v3(long), 0.06, centre), &jaw, &cfg).unwrap();
+    assert_eq!(s.failure, Some(FailureReason::Collision));
+}
+
+#[test]
+fn suction_scoring_failures_match_their_geometry() {
+    let (synth, b, scene) = box_scene();
+    let (long, short) = synth.box_axes(&b);
+    let top = v3(synth.box_top_centre(&b));
+    let down = -v3(synth.up);
+    let cup = SuctionCup::default();
+    let cfg = ScoreConfig::default();
+    let pose = |p: Vec3, a: Vec3| SuctionPose {
+        point_m: [p.x, p.y, p.z],
+        approach: [a.x, a.y, a.z],
+    };
+    let fail = |p: Vec3, a: Vec3, cup: &SuctionCup| {
+        score_suction(&scene, &pose(p, a), cup, &cfg)
+            .unwrap()
+            .failure
+    };
+    assert_eq!(fail(top, down, &cup), None);
+    // On the edge of the top face (middle of a long edge): half the ring hangs 50 mm down.
+    let edge = top + v3(short) * (b.short_m as f32 / 2.0 - 0.001);
+    assert_eq!(fail(edge, down, &cup), Some(FailureReason::SealBroken));
+    // On the table away from the box.
+    let table = top + v3(long) * 0.15 + down * b.height_m as f32;
+    assert_eq!(fail(table, down, &cup), Some(FailureReason::MissedObject));
+    // Planned 30 mm inside the box: the surface is met 30 mm early (> 15 mm compliance).
+    assert_eq!(
+        fail(top + down * 0.03, down, &cup),
+        Some(FailureReason::CupCrash)
+    );
+    // Planned 30 mm above the top face: never reached within the compliance.
+    assert_eq!(
+        fail(top - down * 0.03, down, &cup),
+        Some(FailureReason::NotReached)
+    );
+    // 35° off the normal with a 5 mm cup (the ring stays within 5 mm of the contact plane).
+    let small = SuctionCup {
+        radius_m: 0.005,
+        ..cup
+    };
+    let th = 35f32.to_radians();
+    let tilted = down * th.cos() + v3(long) * th.sin();
+    assert_eq!(
+        fail(top, tilted, &small),
+        Some(FailureReason::ApproachAngle)
+    );
+    let th = 25f32.to_radians();
+    let tilted = down * th.cos() + v3(long) * th.sin();
+    assert_eq!(fail(top, tilted, &small), None);
+}
+
+#[test]
+fn tilted_table_plane_and_grasps_follow_its_normal() {
+    let b = BoxSpec::standard();
+    let synth = Synth::tilted(DIST_M, 25f64.to_radians(), Some(b));
+    let scene = build(&synth.render());
+    let plane = scene.plane.unwrap();
+    assert!(
+        angle_deg(plane.up(), v3(synth.up)) < 0.5,
+        "up {:?}",
+        plane.up()
+    );
+    let g = top_suction(&scene);
+    assert!(angle_deg(Vec3::from(g.pose.approach), -v3(synth.up)) < 5.0);
+    let [_, _, h] = synth.box_coords(&b, Vec3::from(g.pose.point_m));
+    assert!((h - b.height_m).abs() < 0.002);
+    let p = top_parallel(&scene);
+    let s = score_parallel(
+        &scene,
+        &p.pose,
+        &ParallelJaw::default(),
+        &ScoreConfig::default(),
+    )
+    .unwrap();
+    assert!(s.success, "{s:?}");
+}
+
+#[test]
+fn holes_in_the_depth_do_not_stop_planning() {
+    let (_, _, _) = box_scene();
+    let synth = Synth::top_down(DIST_M, Some(BoxSpec::standard()));
+    let mut depth = synth.render();
+    // Every 7th pixel invalid (NaN), a 40x30 px block of zeros on the table, one on the box corner.
+    for (k, z) in depth.depth_m.iter_mut().enumerate() {
+        if k % 7 == 3 {
+            *z = f32::NAN;
+        }
+    }
+    depth
+        .depth_m
+        .slice_mut(ndarray::s![50..80, 60..100])
+        .fill(0.0);
+    depth
+        .depth_m
+        .slice_mut(ndarray::s![215..225, 290..300])
+        .fill(0.0);
+    let scene = build(&depth);
+    let out = plan_suction(&scene, &SuctionCup::default(), &SuctionConfig::default()).unwrap();
+    assert!(!out.grasps.is_empty(), "{:?}", out.no_grasp_reason);
+    let out = plan_parallel(&scene, &ParallelJaw::default(), &ParallelConfig::default()).unwrap();
+    assert!(!out.grasps.is_empty(), "{:?}", out.no_grasp_reason);
+}
+
+#[test]
+fn bare_table_gives_no_grasp_and_a_reason() {
+    let synth = Synth::top_down(DIST_M, None);
+    let scene = build(&synth.render());
+    let out = plan_suction(&scene, &SuctionCup::default(), &SuctionConfig::default()).unwrap();
+    assert!(out.grasps.is_empty());
+    assert_eq!(out.no_grasp_reason, Some(NoGraspReason::NoObject));
+    let out = plan_parallel(&scene, &ParallelJaw::default(), &ParallelConfig::default()).unwrap();
+    assert!(out.grasps.is_empty());
+    assert_eq!(out.no_grasp_reason, Some(NoGraspReason::NoObject));
+}
+
+#[test]
+fn mask_restricts_grasps_to_the_masked_object() {
+    // Two boxes; the mask selects the second one only.
+    let b1 = BoxSpec::standard();
+    let b2 = BoxSpec {
+        x_m: -0.15,
+        y_m: 0.05,
+        yaw_rad: -0.3,
+        ..b1
+    };
+    let mut synth = Synth::top_down(DIST_M, Some(b1));
+    synth.boxes[1] = Some(b2);
+    let depth = synth.render();
+    let k = intrinsics();
+    let mask = Mask::new(Array2::from_shape_fn((common::H, common::W), |(v, u)| {
+        let z = depth.depth_m[[v, u]] as f64;
+        let p = Vec3::new(
+            ((u as f64 - k.cx) * z / k.fx) as f32,
+            ((v as f64 - k.cy) * z / k.fy) as f32,
+            z as f32,
+        );
+        let [x, y, h] = synth.box_coords(&b2, p);
+        h > 0.04 && x.abs() < 0.04 && y.abs() < 0.025
+    }));
+    let scene = Scene::build(&depth, &k, Some(&mask), &SceneConfig::default()).unwrap();
+    for g in plan_suction(&scene, &SuctionCup::default(), &SuctionConfig::default())
+        .unwrap()
+        .grasps
+        .iter()
+        .chain(
+            plan_parallel(&scene, &ParallelJaw::default(), &ParallelConfig::default())
+                .unwrap()
+                .grasps
+                .iter(),
+        )
+    {
+        let [x, y, _] = synth.box_coords(&b2, Vec3::from(g.point_m()));
+        assert!(
+            x.abs() < 0.04 && y.abs() < 0.025,
+            "grasp {g:?} is not on the masked box"
+        );
+    }
+}
+
+#[test]
+fn planning_is_deterministic_across_thread_counts() {
+    let (_, _, scene) = box_scene();
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            (
+                plan_parallel(&scene, &ParallelJaw::default(), &ParallelConfig::default()).unwrap(),
+                plan_suction(&scene, &SuctionCup::default(), &SuctionConfig::default()).unwrap(),
+            )
+        })
+    };
+    let (p1, s1) = run(1);
+    let (p4, s4) = run(4);
+    assert_eq!(p1, p4);
+    assert_eq!(s1, s4);
+    assert!(p1.grasps.len() > 1 && s1.grasps.len() > 1);
+    // Best first.
+    for w in p1.grasps.windows(2).chain(s1.grasps.windows(2)) {
+        assert!(w[0].score() >= w[1].score());
+    }
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let k = intrinsics();
+    let cfg = SceneConfig::default();
+    let nan = MetricDepth::new(Array2::from_elem((common::H, common::W), f32::NAN));
+    assert!(matches!(
+        Scene::build(&nan, &k, None, &cfg),
+        Err(GraspError::AllInvalidDepth)
+    ));
+    let synth = Synth::top_down(DIST_M, Some(BoxSpec::standard()));
+    let mut depth = synth.render();
+    depth.depth_m.slice_mut(ndarray::s![0..10, 0..10]).fill(0.0);
+    let mut m = Array2::from_elem((common::H, common::W), false);
+    m.slice_mut(ndarray::s![0..10, 0..10]).fill(true);
+    let err = Scene::build(&depth, &k, Some(&Mask::new(m)), &cfg).unwrap_err();
+    assert!(
+        matches!(err, GraspError::MaskNoValidDepth { masked_px: 100 }),
+        "{err}"
+    );
+    let small = moma_core::Intrinsics {
+        width: 320,
+        height: 240,
+        ..k
+    };
+    let err = Scene::build(&depth, &small, None, &cfg).unwrap_err();
+    assert!(matches!(err, GraspError::SizeMismatch { .. }));
+    assert!(
+        err.to_string().contains("320x240") || err.to_string().contains("320"),
+        "{err}"
+    );
+    let wrong_mask = Mask::new(Array2::from_elem((10, 10), true));
+    assert!(matches!(
+        Scene::build(&depth, &k, Some(&wrong_mask), &cfg),
+        Err(GraspError::SizeMismatch { what: "mask", .. })
+    ));
+    let scene = build(&depth);
+    for jaw in [
+        ParallelJaw {
+            stroke_m: 0.0,
+            ..Default::default()
+        },
+        ParallelJaw {
+            finger_thickness_m: -0.01,
+            ..Default::default()
+        },
+        ParallelJaw {
+            palm_depth_m: f32::NAN,
+            ..Default::default()
+        },
+    ] {
+        let err = plan_parallel(&scene, &jaw, &ParallelConfig::default()).unwrap_err();
+        assert!(matches!(err, GraspError::InvalidGripper(_)), "{err}");
+    }
+    let cup = SuctionCup {
+        radius_m: -0.01,
+        ..Default::default()
+    };
+    let err = plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap_err();
+    assert!(err.to_string().contains("radius_m"), "{err}");
+}
