@@ -40,6 +40,8 @@ enum Command {
     Ablate(cmd::ablate::AblateArgs),
     /// Plan parallel-jaw or suction grasps on one frame's metric depth (or calibrated prediction / RGB).
     Grasp(cmd::grasp::GraspArgs),
+    /// Grasp success rates by PROXY: plan on aligned depth, execute on ground truth (METHOD.md §8).
+    GraspEval(cmd::grasp_eval::GraspEvalArgs),
     /// The whole idea in one command on a bundled procedural scene (or on a real set).
     Demo(cmd::demo::DemoArgs),
 }
@@ -55,6 +57,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(args) => cmd::eval::run(args),
         Command::Ablate(args) => cmd::ablate::run(args),
         Command::Grasp(args) => cmd::grasp::run(args),
+        Command::GraspEval(args) => cmd::grasp_eval::run(args),
         Command::Demo(args) => cmd::demo::run(args),
     };
     match result {

@@ -14,7 +14,6 @@
 
 use std::collections::BTreeMap;
 
-use moma_core::align::Method;
 use moma_core::normalise::NormalisedMap;
 use moma_core::{Mask, MetricDepth};
 use moma_grasp::{
@@ -302,17 +301,16 @@ pub fn grasp_evaluate(
         }
     };
     // planned on a depth map per evaluated frame (index into set.frames)
-    let tally_on = |depth_of: &dyn Fn(usize) -> Option<MetricDepth>,
-                    gripper: GripperKind|
-     -> Result<Tally> {
+    // `depths[i]`: the depth planned on for frame i (None: nothing to plan on)
+    let tally_on = |depths: &[Option<&MetricDepth>], gripper: GripperKind| -> Result<Tally> {
         let outcomes: Vec<std::result::Result<(), FailureReason>> = trials
             .par_iter()
             .zip(&gt)
             .map(|(t, g)| {
-                let (Some(g), Some(d)) = (g, depth_of(t.frame)) else {
+                let (Some(g), Some(d)) = (g, depths[t.frame]) else {
                     return Ok(Err(FailureReason::NoGrasp));
                 };
-                run_trial(&d, g, set, t.mask.as_ref(), gripper, config)
+                run_trial(d, g, set, t.mask.as_ref(), gripper, config)
             })
             .collect::<Result<_>>()?;
         let mut tally = Tally::default();
@@ -341,8 +339,9 @@ pub fn grasp_evaluate(
                     }
                 })
                 .collect::<Result<_>>()?;
+            let depths: Vec<Option<&MetricDepth>> = aligned.iter().map(Option::as_ref).collect();
             for (k, &g) in config.grippers.iter().enumerate() {
-                per_gripper[k].merge(tally_on(&|i| aligned[i].clone(), g)?);
+                per_gripper[k].merge(tally_on(&depths, g)?);
             }
         }
         for (k, &g) in config.grippers.iter().enumerate() {
@@ -355,13 +354,16 @@ pub fn grasp_evaluate(
             ));
         }
     }
+    let gt_depths: Vec<Option<&MetricDepth>> = set.frames.iter().map(|f| Some(&f.gt)).collect();
     for &g in &config.grippers {
-        let t = tally_on(&|i| Some(set.frames[i].gt.clone()), g)?;
+        let t = tally_on(&gt_depths, g)?;
         rows.push(row("gt".into(), g, t, "ground-truth depth", false));
     }
     if eval_idx.iter().any(|&i| set.frames[i].raw_depth.is_some()) {
+        let raw: Vec<Option<&MetricDepth>> =
+            set.frames.iter().map(|f| f.raw_depth.as_ref()).collect();
         for &g in &config.grippers {
-            let t = tally_on(&|i| set.frames[i].raw_depth.clone(), g)?;
+            let t = tally_on(&raw, g)?;
             rows.push(row("sensor".into(), g, t, "raw sensor depth", false));
         }
     }

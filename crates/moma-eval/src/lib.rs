@@ -36,6 +36,7 @@ pub mod data;
 pub mod demo;
 pub mod error;
 pub mod figure;
+pub mod grasp_eval;
 pub mod imgproc;
 pub mod protocol;
 pub mod render;

@@ -14,7 +14,7 @@ use moma_grasp::{
 };
 use serde::Deserialize;
 
-use super::common::{KindArg, ModelArgs, SourceArgs, create_dir, print_json};
+use super::common::{ModelArgs, SourceArgs, create_dir, print_json};
 
 /// `--gripper` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -67,9 +67,10 @@ pub struct GraspArgs {
     /// A prediction file of the frame (.npy, .pfm, 16-bit .png), with --calib.
     #[arg(long, value_name = "FILE", requires = "calib", conflicts_with = "rgb")]
     pub pred: Option<PathBuf>,
-    /// What --pred holds (default: what the calibration was fitted on).
-    #[arg(long, value_enum, requires = "pred")]
-    pub pred_kind: Option<KindArg>,
+    /// What --pred holds: depth | inverse-depth (default: from predictions.json beside it and
+    /// the calibration file, which must agree).
+    #[arg(long, value_name = "KIND", requires = "pred")]
+    pub pred_kind: Option<PredictionKind>,
     /// RGB image of the frame, run through the depth model (--weights or --hub), with --calib.
     #[arg(long, value_name = "IMG", requires = "calib")]
     pub rgb: Option<PathBuf>,
@@ -163,27 +164,15 @@ fn load_depth(args: &GraspArgs) -> Result<(MetricDepth, String, Option<RgbImage>
         bail!("--calib needs the frame: --pred FILE or --rgb IMG (with --weights or --hub)");
     }
     let calib = moma_io::read_calibration(calib_path)?;
-    let kind = args
-        .pred_kind
-        .map_or(calib.prediction_kind, PredictionKind::from);
     let source = SourceArgs {
         pred: args.pred.iter().cloned().collect(),
-        pred_kind: match kind {
-            PredictionKind::Depth => KindArg::Depth,
-            PredictionKind::InverseDepth => KindArg::InverseDepth,
-        },
+        pred_kind: args.pred_kind,
         rgb: args.rgb.iter().cloned().collect(),
         model: args.model.clone(),
     };
-    let mut opened = source.open()?;
-    if opened.kind() != calib.prediction_kind {
-        bail!(
-            "{} was calibrated on {} predictions but the input is {} (set --pred-kind, or use the same model head)",
-            calib_path.display(),
-            calib.prediction_kind,
-            opened.kind()
-        );
-    }
+    let mut opened = source
+        .open(Some(calib.prediction_kind))
+        .with_context(|| format!("the frame for {}", calib_path.display()))?;
     let input = opened.get(0)?;
     calib
         .image_size
@@ -195,10 +184,9 @@ fn load_depth(args: &GraspArgs) -> Result<(MetricDepth, String, Option<RgbImage>
                 calib_path.display()
             )
         })?;
-    // The calibration owns its workspace after the core refactor; nothing to pass here.
     let depth = calib
         .calibration
-        .align(&input.prediction, None)
+        .align(&input.prediction)
         .with_context(|| format!("aligning {}", input.path.display()))?;
     Ok((depth, input.path.display().to_string(), input.rgb))
 }

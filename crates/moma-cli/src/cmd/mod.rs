@@ -7,6 +7,7 @@ pub mod common;
 pub mod demo;
 pub mod eval;
 pub mod grasp;
+pub mod grasp_eval;
 pub mod metrics;
 pub mod predict;
 pub mod simulate;
