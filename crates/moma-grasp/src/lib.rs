@@ -22,7 +22,8 @@
 //!   from free space. If the free sample before lies on a farther pixel (or a hole), the contact is
 //!   on a silhouette and its normal is the horizontal (⟂ up) direction of the depth-image
 //!   gradient across the edge, pointing out of the object; otherwise it is the observed surface
-//!   normal there. The contacts are antipodal at μ when both normals lie within `atan μ` of the
+//!   normal there. A contact is on the object when an object pixel lies within
+//!   [`ExecConfig::object_tolerance_px`] (2 px) of it. The contacts are antipodal at μ when both normals lie within `atan μ` of the
 //!   contact line (pointing out of the object); the smallest passing μ of
 //!   {0.2, 0.4, …, 1.2} is reported, success at μ = 0.8 ([`ScoreConfig::mu`]).
 //! - **Parallel jaw** ([`ParallelJaw`], Robotiq 2F-85 defaults): grasp frame x = approach,
@@ -39,6 +40,10 @@
 //!   input order, so results do not depend on the number of rayon threads.
 //!
 //! Scores from [`score_grasp`] are a *proxy* for robot success, not robot results.
+//!
+//! Known limitation: without a mask, anything more than 10 mm above the support plane is an
+//! object, including walls, tote rims, robot parts or hole-filled background at the image border;
+//! pass a mask (or a workspace-cropped depth) on such scenes.
 
 pub mod cloud;
 pub mod contact;
