@@ -263,14 +263,12 @@ pub fn grasp_evaluate(
     let mut trials = Vec::new();
     for &i in &eval_idx {
         match &set.frames[i].mask {
-            Some(m) => trials.extend(
-                mask_components(m, config.min_object_px)
-                    .into_iter()
-                    .map(|c| Trial {
-                        frame: i,
-                        mask: Some(c),
-                    }),
-            ),
+            Some(m) => trials.extend(mask_components(m, config.min_object_px).into_iter().map(
+                |c| Trial {
+                    frame: i,
+                    mask: Some(c),
+                },
+            )),
             None => trials.push(Trial {
                 frame: i,
                 mask: None,
@@ -283,8 +281,8 @@ pub fn grasp_evaluate(
         .map(|s| config.eval.seed_base + s)
         .collect();
     let mut rows = Vec::new();
-    let row = |method: String, gripper: GripperKind, t: Tally, source: &str, simulated: bool| {
-        GraspRow {
+    let row =
+        |method: String, gripper: GripperKind, t: Tally, source: &str, simulated: bool| GraspRow {
             set: set.name.clone(),
             method,
             gripper,
@@ -298,8 +296,7 @@ pub fn grasp_evaluate(
             failures: t.failures,
             source: source.to_string(),
             simulated,
-        }
-    };
+        };
     // planned on a depth map per evaluated frame (index into set.frames)
     // `depths[i]`: the depth planned on for frame i (None: nothing to plan on)
     let tally_on = |depths: &[Option<&MetricDepth>], gripper: GripperKind| -> Result<Tally> {
@@ -325,9 +322,11 @@ pub fn grasp_evaluate(
         let maps: Vec<NormalisedMap> = (0..set.frames.len())
             .map(|i| prep.normalised(i, &norm))
             .collect::<Result<_>>()?;
-        let mut per_gripper: Vec<Tally> = config.grippers.iter().map(|_| Tally::default()).collect();
+        let mut per_gripper: Vec<Tally> =
+            config.grippers.iter().map(|_| Tally::default()).collect();
         for &seed in &seeds {
-            let cal = prep.calibrate(&method, &norm, &maps[prep.calib], config.eval.samples, seed)?;
+            let cal =
+                prep.calibrate(&method, &norm, &maps[prep.calib], config.eval.samples, seed)?;
             let aligned: Vec<Option<MetricDepth>> = (0..set.frames.len())
                 .map(|i| {
                     if eval_idx.contains(&i) {
@@ -386,7 +385,11 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
     let title = format!(
         "{}grasp success by PROXY (top-1 grasp planned on the method's depth, executed on the \
          ground-truth depth; METHOD.md §8) — not robot trials; predictions: {}",
-        if simulated { "SIMULATED predictions — " } else { "" },
+        if simulated {
+            "SIMULATED predictions — "
+        } else {
+            ""
+        },
         sources.join(", ")
     );
     Table {

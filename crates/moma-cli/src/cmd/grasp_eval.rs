@@ -37,7 +37,12 @@ pub struct GraspEvalArgs {
     #[command(flatten)]
     pub eval: EvalOptions,
     /// Grippers, comma-separated: parallel, suction.
-    #[arg(long, value_delimiter = ',', default_value = "parallel,suction", value_name = "GRIPPERS")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "parallel,suction",
+        value_name = "GRIPPERS"
+    )]
     pub gripper: Vec<GripperKind>,
     /// Smallest mask component that counts as an object (one trial), pixels.
     #[arg(long, default_value_t = moma_grasp::MIN_TRIAL_COMPONENT_PX, value_name = "PX")]

@@ -372,7 +372,7 @@ impl AlignmentModel {
                 {
                     finite(name, x)?;
                 }
-                if !(m.canonical.f_px > 0.0) {
+                if m.canonical.f_px.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                     return Err(CoreError::InvalidParameter(format!(
                         "ssra canonical f_px is {}, must be > 0",
                         m.canonical.f_px
