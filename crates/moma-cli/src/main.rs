@@ -40,6 +40,12 @@ enum Command {
     Ablate(cmd::ablate::AblateArgs),
     /// The whole idea in one command on a bundled procedural scene (or on a real set).
     Demo(cmd::demo::DemoArgs),
+    /// Fine-tune Depth Anything V2 with LoRA on moma sets; write an adapter.
+    #[cfg(feature = "candle")]
+    Finetune(cmd::finetune::FinetuneArgs),
+    /// LoRA adapter utilities (merge into full weights).
+    #[cfg(feature = "candle")]
+    Lora(cmd::lora::LoraArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -53,6 +59,10 @@ fn main() -> std::process::ExitCode {
         Command::Eval(args) => cmd::eval::run(args),
         Command::Ablate(args) => cmd::ablate::run(args),
         Command::Demo(args) => cmd::demo::run(args),
+        #[cfg(feature = "candle")]
+        Command::Finetune(args) => cmd::finetune::run(args),
+        #[cfg(feature = "candle")]
+        Command::Lora(args) => cmd::lora::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

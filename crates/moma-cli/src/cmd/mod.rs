@@ -6,6 +6,10 @@ pub mod calibrate;
 pub mod common;
 pub mod demo;
 pub mod eval;
+#[cfg(feature = "candle")]
+pub mod finetune;
+#[cfg(feature = "candle")]
+pub mod lora;
 pub mod metrics;
 pub mod predict;
 pub mod simulate;
