@@ -78,7 +78,7 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
         "--steps",
         "60",
         "--lr",
-        "3e-3",
+        "1e-2",
         "--lora-rank",
         "4",
         "--seed",
