@@ -44,6 +44,12 @@ enum Command {
     GraspEval(cmd::grasp_eval::GraspEvalArgs),
     /// The whole idea in one command on a bundled procedural scene (or on a real set).
     Demo(cmd::demo::DemoArgs),
+    /// Fine-tune Depth Anything V2 with LoRA on moma sets; write an adapter.
+    #[cfg(feature = "candle")]
+    Finetune(cmd::finetune::FinetuneArgs),
+    /// LoRA adapter utilities (merge into full weights).
+    #[cfg(feature = "candle")]
+    Lora(cmd::lora::LoraArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -59,6 +65,10 @@ fn main() -> std::process::ExitCode {
         Command::Grasp(args) => cmd::grasp::run(args),
         Command::GraspEval(args) => cmd::grasp_eval::run(args),
         Command::Demo(args) => cmd::demo::run(args),
+        #[cfg(feature = "candle")]
+        Command::Finetune(args) => cmd::finetune::run(args),
+        #[cfg(feature = "candle")]
+        Command::Lora(args) => cmd::lora::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -9,6 +9,9 @@ pub enum DepthError {
     /// Weights could not be loaded (missing/unexpected keys, shape mismatches, corrupt file).
     #[error("cannot load weights from {path}: {reason}")]
     Weights { path: String, reason: String },
+    /// A model configuration file is unreadable or inconsistent.
+    #[error("bad model configuration {path}: {reason}")]
+    Config { path: String, reason: String },
     /// The backend failed while running.
     #[error("backend error: {0}")]
     Backend(String),

@@ -265,6 +265,7 @@ mod tests {
                 Backbone::Vits => "vits",
                 Backbone::Vitb => "vitb",
                 Backbone::Vitl => "vitl",
+                Backbone::Custom(_) => panic!("{}: hub checkpoints are released sizes", c.name),
             };
             assert!(c.file.ends_with(&format!("_{tag}.pth")), "{}", c.file);
             assert_eq!(c.spec().input_size, 518);

@@ -9,6 +9,7 @@
 
 #[cfg(feature = "candle")]
 pub mod candle;
+mod config;
 pub mod error;
 pub mod hub;
 mod loader;
@@ -16,8 +17,12 @@ mod loader;
 pub mod onnx;
 pub mod preprocess;
 
+pub use config::{CustomArch, ModelConfigFile};
 pub use error::{DepthError, Result};
-pub use loader::{Backend, DeviceRequest, LoadOptions, Precision, load_model, load_model_with};
+pub use loader::{
+    Backend, DeviceRequest, LoadOptions, Precision, load_model, load_model_with,
+    load_model_with_adapter,
+};
 
 use moma_core::{Prediction, PredictionKind};
 use ndarray::{Array2, Array3};
@@ -33,6 +38,8 @@ pub enum Backbone {
     Vitb,
     /// ViT-L (embed 1024, depth 24, 16 heads).
     Vitl,
+    /// Any other size, e.g. the tiny test models (from a JSON file, see [`ModelConfigFile`]).
+    Custom(CustomArch),
 }
 
 /// Output head.

@@ -179,6 +179,49 @@ pub fn load_model_with(
     }
 }
 
+/// As [`load_model_with`], with a LoRA adapter file merged into the weights at load time (candle
+/// backend only; `None` is plain [`load_model_with`]).
+///
+/// # Errors
+/// As [`load_model_with`]; [`DepthError::Unavailable`] for an adapter with the ONNX backend;
+/// [`DepthError::Weights`] for an unreadable adapter or one made for other base weights or another
+/// model size.
+#[cfg_attr(not(feature = "candle"), allow(unused_variables))]
+pub fn load_model_with_adapter(
+    weights: impl AsRef<Path>,
+    spec: ModelSpec,
+    options: &LoadOptions,
+    adapter: Option<&Path>,
+) -> Result<Box<dyn DepthModel>> {
+    let Some(adapter) = adapter else {
+        return load_model_with(weights, spec, options);
+    };
+    let weights = weights.as_ref();
+    match options.backend {
+        #[cfg(feature = "candle")]
+        Backend::Candle => {
+            if !weights.is_file() {
+                return Err(DepthError::Weights {
+                    path: weights.display().to_string(),
+                    reason: "no such file".into(),
+                });
+            }
+            let device = crate::candle::open_device(options.device)?;
+            let dtype = crate::candle::precision_dtype(options.precision, &device)?;
+            Ok(Box::new(crate::candle::CandleDepthModel::load_with_adapter(
+                weights,
+                crate::candle::DepthAnythingConfig::from_spec(&spec),
+                adapter,
+                &device,
+                dtype,
+            )?))
+        }
+        _ => Err(DepthError::Unavailable(
+            "LoRA adapters are merged by the candle backend (use --backend candle, or `moma lora merge` for other runtimes)".into(),
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -9,15 +9,30 @@ use indicatif::{ProgressBar, ProgressStyle};
 use moma_core::{Prediction, PredictionKind};
 use moma_depth::{Backbone, DepthModel, DeviceRequest, Head, ModelSpec, Precision};
 
-/// `--model` values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum BackboneArg {
-    /// ViT-S (24.8 M parameters).
-    Vits,
-    /// ViT-B (97.5 M parameters).
-    Vitb,
-    /// ViT-L (335.3 M parameters).
-    Vitl,
+/// `--model` values: a released size, or a custom architecture from a JSON file.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ModelArg {
+    /// ViT-S (24.8 M parameters), ViT-B (97.5 M) or ViT-L (335.3 M).
+    Preset(Backbone),
+    /// A JSON configuration (`embed_dim`, `depth`, `num_heads`, `intermediate_layers`, `features`,
+    /// `out_channels`, `head`, `max_depth`), e.g. the tiny test models.
+    File(PathBuf),
+}
+
+impl std::str::FromStr for ModelArg {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "vits" => Ok(Self::Preset(Backbone::Vits)),
+            "vitb" => Ok(Self::Preset(Backbone::Vitb)),
+            "vitl" => Ok(Self::Preset(Backbone::Vitl)),
+            _ if has_extension(Path::new(s), "json") => Ok(Self::File(PathBuf::from(s))),
+            _ => Err(format!(
+                "unknown model {s:?} (expected vits, vitb, vitl or a configuration PATH.json)"
+            )),
+        }
+    }
 }
 
 /// `--head` values.
@@ -64,15 +79,16 @@ pub struct ModelArgs {
     /// CC-BY-NC-4.0.
     #[arg(long, value_name = "NAME", conflicts_with_all = ["weights", "model", "head", "max_depth"])]
     pub hub: Option<String>,
-    /// Backbone size.
-    #[arg(long, value_enum, default_value_t = BackboneArg::Vits)]
-    pub model: BackboneArg,
-    /// Output head: relative (inverse depth) or metric (depth in metres).
-    #[arg(long, value_enum, default_value_t = HeadArg::Relative)]
-    pub head: HeadArg,
-    /// Largest depth of the metric head, metres (20 indoor, 80 outdoor).
-    #[arg(long, default_value_t = 20.0, value_name = "METRES")]
-    pub max_depth: f32,
+    /// Network: vits, vitb, vitl, or a custom configuration PATH.json (which fixes the head and
+    /// max depth).
+    #[arg(long, default_value = "vits", value_name = "vits|vitb|vitl|PATH.json")]
+    pub model: ModelArg,
+    /// Output head: relative (inverse depth) or metric (depth in metres) [default: relative].
+    #[arg(long, value_enum)]
+    pub head: Option<HeadArg>,
+    /// Largest depth of the metric head, metres (20 indoor, 80 outdoor) [default: 20].
+    #[arg(long, value_name = "METRES")]
+    pub max_depth: Option<f32>,
     /// Network input lower bound, pixels (multiple of 14).
     #[arg(long, default_value_t = 518, value_name = "PX")]
     pub input_size: usize,
@@ -86,6 +102,10 @@ pub struct ModelArgs {
     /// Arithmetic precision of the candle backend (f16/bf16 are for GPUs).
     #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
     pub dtype: DtypeArg,
+    /// A LoRA adapter (`moma finetune` output) merged into the weights at load (candle backend;
+    /// it must have been trained on these exact weights).
+    #[arg(long, value_name = "ADAPTER")]
+    pub lora: Option<PathBuf>,
 }
 
 /// A loaded depth model and the weights file it came from.
@@ -97,21 +117,64 @@ pub struct LoadedModel {
 }
 
 impl ModelArgs {
-    /// The network these arguments describe.
-    pub fn spec(&self) -> ModelSpec {
-        ModelSpec {
-            backbone: match self.model {
-                BackboneArg::Vits => Backbone::Vits,
-                BackboneArg::Vitb => Backbone::Vitb,
-                BackboneArg::Vitl => Backbone::Vitl,
-            },
-            head: match self.head {
-                HeadArg::Relative => Head::Relative,
-                HeadArg::Metric => Head::Metric {
-                    max_depth_m: self.max_depth,
+    /// The network these arguments describe. A JSON `--model` fixes the head and max depth:
+    /// `--head`/`--max-depth` that disagree with it are an error.
+    ///
+    /// # Errors
+    /// Bad `--input-size` or `--max-depth`, an unreadable configuration file, a disagreeing head.
+    pub fn spec(&self) -> Result<ModelSpec> {
+        if self.input_size == 0 || !self.input_size.is_multiple_of(14) {
+            bail!(
+                "--input-size {} must be a positive multiple of 14",
+                self.input_size
+            );
+        }
+        if let Some(m) = self.max_depth
+            && !(m.is_finite() && m > 0.0)
+        {
+            bail!("--max-depth {m} must be a positive number of metres");
+        }
+        match &self.model {
+            ModelArg::Preset(backbone) => Ok(ModelSpec {
+                backbone: *backbone,
+                head: match self.head.unwrap_or(HeadArg::Relative) {
+                    HeadArg::Relative => Head::Relative,
+                    HeadArg::Metric => Head::Metric {
+                        max_depth_m: self.max_depth.unwrap_or(20.0),
+                    },
                 },
-            },
-            input_size: self.input_size,
+                input_size: self.input_size,
+            }),
+            ModelArg::File(path) => {
+                let file = moma_depth::ModelConfigFile::read(path)?;
+                let spec = file.spec(self.input_size);
+                let (file_head, file_max) = match spec.head {
+                    Head::Relative => (HeadArg::Relative, None),
+                    Head::Metric { max_depth_m } => (HeadArg::Metric, Some(max_depth_m)),
+                };
+                if let Some(h) = self.head
+                    && h != file_head
+                {
+                    bail!(
+                        "--head {} disagrees with the {} head of --model {}",
+                        head_name(h),
+                        head_name(file_head),
+                        path.display()
+                    );
+                }
+                if let Some(m) = self.max_depth
+                    && Some(m) != file_max
+                {
+                    bail!(
+                        "--max-depth {m} disagrees with --model {} ({})",
+                        path.display(),
+                        file_max.map_or("relative head, no max depth".to_string(), |f| format!(
+                            "max_depth {f}"
+                        ))
+                    );
+                }
+                Ok(spec)
+            }
         }
     }
 
@@ -120,21 +183,10 @@ impl ModelArgs {
     /// # Errors
     /// Missing `--weights`, unreadable weights, a backend or device this build lacks.
     pub fn load(&self) -> Result<LoadedModel> {
-        if self.input_size == 0 || !self.input_size.is_multiple_of(14) {
-            bail!(
-                "--input-size {} must be a positive multiple of 14",
-                self.input_size
-            );
-        }
-        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
-            bail!(
-                "--max-depth {} must be a positive number of metres",
-                self.max_depth
-            );
-        }
         let (weights, spec) = match (&self.weights, &self.hub) {
-            (Some(w), _) => (w.clone(), self.spec()),
+            (Some(w), _) => (w.clone(), self.spec()?),
             (None, Some(name)) => {
+                self.spec()?;
                 let checkpoint = moma_depth::hub::find(name)?;
                 let path = moma_depth::hub::fetch(checkpoint)
                     .with_context(|| format!("getting checkpoint {}", checkpoint.name))?;
@@ -161,9 +213,17 @@ impl ModelArgs {
                 DtypeArg::Bf16 => Precision::Bf16,
             },
         };
-        let model = moma_depth::load_model_with(&weights, spec, &options)
-            .with_context(|| format!("loading depth model {}", weights.display()))?;
+        let model =
+            moma_depth::load_model_with_adapter(&weights, spec, &options, self.lora.as_deref())
+                .with_context(|| format!("loading depth model {}", weights.display()))?;
         Ok(LoadedModel { model, weights })
+    }
+}
+
+fn head_name(h: HeadArg) -> &'static str {
+    match h {
+        HeadArg::Relative => "relative",
+        HeadArg::Metric => "metric",
     }
 }
 

@@ -6,8 +6,12 @@ pub mod calibrate;
 pub mod common;
 pub mod demo;
 pub mod eval;
+#[cfg(feature = "candle")]
+pub mod finetune;
 pub mod grasp;
 pub mod grasp_eval;
+#[cfg(feature = "candle")]
+pub mod lora;
 pub mod metrics;
 pub mod predict;
 pub mod simulate;

@@ -372,7 +372,7 @@ pub fn interpolate_bicubic_scale_factor(
 }
 
 /// PyTorch `get_cubic_upsample_coefficients` (aten/src/ATen/native/UpSample.h), a = −0.75.
-fn torch_cubic_coefficients(t: f32) -> [f32; 4] {
+pub(crate) fn torch_cubic_coefficients(t: f32) -> [f32; 4] {
     let a = CUBIC_A;
     let conv1 = |x: f32| ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0;
     let conv2 = |x: f32| ((a * x - 5.0 * a) * x + 8.0 * a) * x - 4.0 * a;

@@ -19,6 +19,7 @@
 pub mod dinov2;
 pub mod dpt;
 mod ops;
+pub mod train;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -134,12 +135,25 @@ impl DepthAnythingConfig {
         )
     }
 
+    /// A custom size ([`crate::ModelConfigFile`]); MLP hidden width 4 × `embed_dim`.
+    pub fn custom(arch: crate::CustomArch, head: Head) -> Self {
+        Self::preset(
+            Backbone::Custom(arch),
+            (arch.embed_dim, arch.depth, arch.num_heads),
+            arch.intermediate_layers,
+            arch.features,
+            arch.out_channels,
+            head,
+        )
+    }
+
     /// The preset of a [`ModelSpec`] (with its head and input size).
     pub fn from_spec(spec: &ModelSpec) -> Self {
         let mut c = match spec.backbone {
             Backbone::Vits => Self::vit_small(spec.head),
             Backbone::Vitb => Self::vit_base(spec.head),
             Backbone::Vitl => Self::vit_large(spec.head),
+            Backbone::Custom(a) => Self::custom(a, spec.head),
         };
         c.input_size = spec.input_size;
         c
@@ -478,6 +492,43 @@ impl OpenedCheckpoint {
     }
 }
 
+/// Opens a checkpoint with the official key names (`.safetensors` memory-mapped, or a PyTorch
+/// `.pth` zip archive) as a [`VarBuilder`] reading in `dtype` on `device`, after checking every
+/// tensor name and shape against `config`.
+///
+/// # Errors
+/// [`DepthError::Weights`] naming the file (unreadable, mismatching keys or shapes, non-float
+/// tensors); [`DepthError::Shape`] for an inconsistent `config`.
+pub fn open_checkpoint(
+    path: &Path,
+    config: &DepthAnythingConfig,
+    device: &Device,
+    dtype: DType,
+) -> Result<VarBuilder<'static>> {
+    let werr = |reason: String| DepthError::Weights {
+        path: path.display().to_string(),
+        reason,
+    };
+    config.validate()?;
+    let opened = match WeightsFormat::sniff(path).map_err(werr)? {
+        WeightsFormat::Safetensors => OpenedCheckpoint::safetensors(path),
+        WeightsFormat::PyTorchZip => OpenedCheckpoint::pytorch(path),
+    }
+    .map_err(werr)?;
+    config.check_tensors(&opened.shapes).map_err(werr)?;
+    if !opened.non_float.is_empty() {
+        return Err(werr(format!(
+            "non-float tensors: {}",
+            opened.non_float.join(", ")
+        )));
+    }
+    Ok(VarBuilder::from_backend(
+        opened.backend,
+        dtype,
+        device.clone(),
+    ))
+}
+
 /// The candle dtype of `precision` on `device`.
 ///
 /// # Errors
@@ -540,24 +591,31 @@ impl CandleDepthModel {
             path: path.display().to_string(),
             reason,
         };
-        config.validate()?;
-        let opened = match WeightsFormat::sniff(path).map_err(werr)? {
-            WeightsFormat::Safetensors => OpenedCheckpoint::safetensors(path),
-            WeightsFormat::PyTorchZip => OpenedCheckpoint::pytorch(path),
-        }
-        .map_err(werr)?;
-        config.check_tensors(&opened.shapes).map_err(werr)?;
-        if !opened.non_float.is_empty() {
-            return Err(werr(format!(
-                "non-float tensors: {}",
-                opened.non_float.join(", ")
-            )));
-        }
-        let vb = VarBuilder::from_backend(opened.backend, dtype, device.clone());
+        let vb = open_checkpoint(path, &config, device, dtype)?;
         Self::from_var_builder(config, vb).map_err(|e| match e {
             DepthError::Backend(reason) => werr(reason),
             other => other,
         })
+    }
+
+    /// As [`CandleDepthModel::load_as`], with the LoRA adapter file `adapter` merged into the
+    /// weights ([`train::merge_adapter`]).
+    ///
+    /// # Errors
+    /// As [`CandleDepthModel::load_as`]; an unreadable adapter or one made for other base weights
+    /// or another model size ([`DepthError::Weights`] naming the adapter).
+    pub fn load_with_adapter(
+        path: impl AsRef<Path>,
+        config: DepthAnythingConfig,
+        adapter: &Path,
+        device: &Device,
+        dtype: DType,
+    ) -> Result<Self> {
+        let path = path.as_ref();
+        let a = train::Adapter::load(adapter)?;
+        let base = open_checkpoint(path, &config, device, dtype)?;
+        let vb = train::merge_adapter(base, &config, &a, adapter)?;
+        Self::from_var_builder(config, vb)
     }
 
     /// Loads the preset of `spec` (see [`DepthAnythingConfig::from_spec`]).

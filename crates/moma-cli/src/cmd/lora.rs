@@ -1,0 +1,64 @@
+//! `moma lora`: LoRA adapter utilities (`merge`).
+
+use std::path::PathBuf;
+
+use anyhow::{Result, bail};
+use clap::{Args, Subcommand};
+use moma_depth::candle::DepthAnythingConfig;
+
+use super::common::ModelArgs;
+
+/// LoRA adapter utilities.
+#[derive(Debug, Clone, Args)]
+pub struct LoraArgs {
+    #[command(subcommand)]
+    pub command: LoraCommand,
+}
+
+/// `moma lora` subcommands.
+#[derive(Debug, Clone, Subcommand)]
+pub enum LoraCommand {
+    /// Merge an adapter into its base weights; write full f32 weights (.safetensors, official
+    /// key names) that any runtime loads without --lora.
+    ///
+    /// Example:
+    ///   moma lora merge --weights depth_anything_v2_vits.pth --model vits --lora glass.safetensors -o merged.safetensors
+    #[command(verbatim_doc_comment)]
+    Merge(MergeArgs),
+}
+
+/// `moma lora merge` arguments.
+#[derive(Debug, Clone, Args)]
+pub struct MergeArgs {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Output weights file (.safetensors).
+    #[arg(short, long, value_name = "FILE")]
+    pub output: PathBuf,
+}
+
+/// Runs `moma lora`.
+///
+/// # Errors
+/// Missing arguments, unreadable weights or adapter, an adapter for other weights, I/O errors.
+pub fn run(args: &LoraArgs) -> Result<()> {
+    match &args.command {
+        LoraCommand::Merge(a) => {
+            let Some(weights) = &a.model.weights else {
+                bail!("lora merge needs --weights FILE");
+            };
+            let Some(adapter) = &a.model.lora else {
+                bail!("lora merge needs --lora ADAPTER");
+            };
+            let config = DepthAnythingConfig::from_spec(&a.model.spec()?);
+            moma_depth::candle::train::write_merged(weights, &config, adapter, &a.output)?;
+            eprintln!(
+                "wrote {} ({} merged into {})",
+                a.output.display(),
+                adapter.display(),
+                weights.display()
+            );
+            Ok(())
+        }
+    }
+}

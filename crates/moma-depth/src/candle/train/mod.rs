@@ -1,0 +1,17 @@
+//! Fine-tuning Depth Anything V2 (issue 10): a differentiable training network ([`TrainNet`]),
+//! LoRA adapters ([`LoraConfig`]) and losses ([`loss::loss`]).
+//!
+//! Random-weight reference models learn nothing meaningful: every loss computed on them is a test
+//! of the machinery, not of a depth model's accuracy.
+
+pub mod adapter;
+pub mod finetune;
+mod lora;
+pub mod loss;
+mod model;
+
+pub use adapter::{Adapter, fingerprint, merge_adapter, write_merged};
+pub use finetune::{OptimSettings, Sample, Schedule, Trainer, lr_factor};
+pub use lora::{LoraConfig, LoraTarget};
+pub use loss::{LossKind, loss, valid_indices};
+pub use model::{LoraPart, ParamSource, TrainNet};
