@@ -187,22 +187,7 @@ fn describe(v: &Option<serde_json::Value>) -> String {
 pub fn read_calibration(path: impl AsRef<Path>) -> Result<CalibrationFile> {
     let path = path.as_ref();
     let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
-    let header: Header = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
-    let format_ok =
-        matches!(&header.format, Some(serde_json::Value::String(s)) if s == CALIBRATION_FORMAT);
-    let version_ok = header.version.as_ref().and_then(serde_json::Value::as_u64)
-        == Some(u64::from(CALIBRATION_VERSION));
-    if !format_ok || !version_ok {
-        return Err(IoError::CalibrationVersion {
-            path: path.to_path_buf(),
-            format: describe(&header.format),
-            version: describe(&header.version),
-            supported: CALIBRATION_VERSION,
-        });
-    }
-    let file: CalibrationFile = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
-    file.check(path)?;
-    Ok(file)
+    parse_calibration(path, &text)
 }
 
 /// Writes a calibration file atomically (pretty-printed JSON).
@@ -232,3 +217,27 @@ pub fn write_calibration(path: impl AsRef<Path>, file: &CalibrationFile) -> Resu
         w.write_all(text.as_bytes()).map_err(write_err(path))
     })
 }
+
+/// [`read_calibration`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_calibration`], [`IoError::Io`] aside.
+pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
+    let header: Header = serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
+    let format_ok =
+        matches!(&header.format, Some(serde_json::Value::String(s)) if s == CALIBRATION_FORMAT);
+    let version_ok = header.version.as_ref().and_then(serde_json::Value::as_u64)
+        == Some(u64::from(CALIBRATION_VERSION));
+    if !format_ok || !version_ok {
+        return Err(IoError::CalibrationVersion {
+            path: path.to_path_buf(),
+            format: describe(&header.format),
+            version: describe(&header.version),
+            supported: CALIBRATION_VERSION,
+        });
+    }
+    let file: CalibrationFile = serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
+    file.check(path)?;
+    Ok(file)
+}
+

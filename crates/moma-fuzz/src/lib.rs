@@ -1,0 +1,297 @@
+//! # moma-fuzz — fuzzing MOMA's parsers on stable Rust
+//!
+//! A seeded byte mutator ([`mutate::Mutator`]: bit flips, byte sets, inserts, deletes, splices
+//! between seeds, interesting integers, header-field rewrites of decimal numbers, truncation;
+//! PNG chunk CRCs repaired so mutations reach the decoder) over seed corpora ([`seeds`]: small
+//! files written by moma-io's writers, plus real files from `$MOMA_SHARED_DIR` read at run time).
+//!
+//! Each input runs under [`std::panic::catch_unwind`] on a worker thread watched by the calling
+//! thread: a panic is a finding, an input still running after [`HANG_LIMIT`] is a hang finding,
+//! and (with [`CountingAlloc`] installed as the global allocator, as the `moma-fuzz` binary does)
+//! an input that requests one allocation over [`ALLOC_LIMIT_BYTES`] is a memory finding. Each
+//! finding is saved as `OUT/TARGET/KIND-seedS-iterI.bin` with a `.txt` description; the input is
+//! a pure function of `(seed, target, iteration)`, so `--replay` reproduces it.
+//!
+//! An abort (e.g. an allocation the machine cannot satisfy) ends the process; rerun with the same
+//! `--seed` to reproduce it.
+
+pub mod mutate;
+pub mod seeds;
+pub mod targets;
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::panic::AssertUnwindSafe;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::mutate::{Mutator, fix_png_crcs};
+use crate::seeds::Corpus;
+use crate::targets::Target;
+
+/// An input still running after this long is a hang finding.
+pub const HANG_LIMIT: Duration = Duration::from_secs(1);
+
+/// One allocation larger than this while parsing one input is a memory finding: the decoders'
+/// limits ([`moma_io::MAX_IMAGE_PIXELS`] at 8 bytes per pixel = 512 MiB) keep every legitimate
+/// allocation below it.
+pub const ALLOC_LIMIT_BYTES: usize = 1 << 30;
+
+static LARGEST_ALLOC: AtomicUsize = AtomicUsize::new(0);
+
+/// The system allocator, recording the largest single allocation since [`reset_largest_alloc`].
+/// Install it with `#[global_allocator]` to detect inputs that make a parser allocate what a
+/// header claims.
+pub struct CountingAlloc;
+
+// SAFETY: forwards every call to `System` unchanged; only records sizes.
+unsafe impl GlobalAlloc for CountingAlloc {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        LARGEST_ALLOC.fetch_max(layout.size(), Ordering::Relaxed);
+        // SAFETY: the caller upholds `GlobalAlloc::alloc`'s contract.
+        unsafe { System.alloc(layout) }
+    }
+
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        LARGEST_ALLOC.fetch_max(layout.size(), Ordering::Relaxed);
+        // SAFETY: as `alloc`.
+        unsafe { System.alloc_zeroed(layout) }
+    }
+
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: `ptr` was allocated by `System` with `layout`.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        LARGEST_ALLOC.fetch_max(new_size, Ordering::Relaxed);
+        // SAFETY: as `GlobalAlloc::realloc`.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+/// Forgets the largest allocation recorded so far.
+pub fn reset_largest_alloc() {
+    LARGEST_ALLOC.store(0, Ordering::Relaxed);
+}
+
+/// The largest single allocation since [`reset_largest_alloc`], bytes (0 without [`CountingAlloc`]).
+pub fn largest_alloc() -> usize {
+    LARGEST_ALLOC.load(Ordering::Relaxed)
+}
+
+/// What went wrong with one input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FindingKind {
+    /// The parser panicked.
+    Panic,
+    /// The parser ran longer than [`HANG_LIMIT`].
+    Hang,
+    /// The parser asked for one allocation over [`ALLOC_LIMIT_BYTES`].
+    Memory,
+}
+
+/// One finding.
+#[derive(Debug, Clone, Serialize)]
+pub struct Finding {
+    /// Kind.
+    pub kind: FindingKind,
+    /// Iteration of the input (with the seed, it reproduces the input).
+    pub iteration: u64,
+    /// The panic message, the time, or the allocation size.
+    pub message: String,
+    /// Where the input was saved.
+    pub saved: Option<PathBuf>,
+}
+
+/// The outcome of fuzzing one target.
+#[derive(Debug, Clone, Serialize)]
+pub struct TargetReport {
+    /// Target name.
+    pub target: &'static str,
+    /// Seeds in its corpus (generated, shared).
+    pub seeds: (usize, usize),
+    /// Inputs run (seeds included).
+    pub inputs: u64,
+    /// Inputs the parser accepted (the rest were refused with an error).
+    pub accepted: u64,
+    /// Wall-clock time spent, seconds.
+    pub seconds: f64,
+    /// Findings.
+    pub findings: Vec<Finding>,
+}
+
+/// The input of iteration `i` (`i < corpus.len()`: the seeds themselves, unchanged).
+pub fn input(target: Target, corpus: &Corpus, seed: u64, iteration: u64) -> Vec<u8> {
+    let all: Vec<&[u8]> = corpus.all().map(|s| s.data.as_slice()).collect();
+    if all.is_empty() {
+        return vec![];
+    }
+    if let Some(s) = usize::try_from(iteration).ok().and_then(|i| all.get(i)) {
+        return s.to_vec();
+    }
+    let index = Target::ALL.iter().position(|&t| t == target).unwrap_or(0) as u64;
+    let mut m = Mutator::for_input(seed, index, iteration);
+    // Generated seeds are small and fast: pick them three times out of four when there are
+    // shared ones.
+    let n_gen = corpus.generated.len();
+    let pick = if n_gen > 0 && (corpus.shared.is_empty() || m.chance(0.75)) {
+        m.below(n_gen)
+    } else {
+        n_gen + m.below(corpus.shared.len())
+    };
+    let mut data = all[pick].to_vec();
+    m.mutate(&mut data, &all);
+    if target.is_png() && m.chance(0.8) {
+        fix_png_crcs(&mut data);
+    }
+    data
+}
+
+/// Runs `target` on one input under `catch_unwind`: `Ok(accepted)` or `Err(panic message)`.
+///
+/// # Errors
+/// The panic message when the parser panicked.
+pub fn run_one(target: Target, data: &[u8]) -> Result<bool, String> {
+    std::panic::catch_unwind(AssertUnwindSafe(|| target.run(data).is_ok())).map_err(|p| {
+        p.downcast_ref::<String>()
+            .cloned()
+            .or_else(|| p.downcast_ref::<&str>().map(|s| (*s).to_string()))
+            .unwrap_or_else(|| "panic with a non-string payload".into())
+    })
+}
+
+fn save_finding(
+    out: &Path,
+    target: Target,
+    seed: u64,
+    iteration: u64,
+    kind: FindingKind,
+    message: &str,
+    data: &[u8],
+) -> Option<PathBuf> {
+    let dir = out.join(target.name());
+    std::fs::create_dir_all(&dir).ok()?;
+    let stem = format!("{kind:?}-seed{seed}-iter{iteration}").to_lowercase();
+    let bin = dir.join(format!("{stem}.bin"));
+    std::fs::write(&bin, data).ok()?;
+    let text = format!(
+        "target: {}\nkind: {kind:?}\nseed: {seed}\niteration: {iteration}\nmessage: {message}\n\
+         replay: moma-fuzz --target {} --replay {}\n",
+        target.name(),
+        target.name(),
+        bin.display()
+    );
+    std::fs::write(dir.join(format!("{stem}.txt")), text).ok()?;
+    Some(bin)
+}
+
+/// Fuzzes `target` for `duration` starting at iteration 0 with `seed`, saving findings under
+/// `out`. Stops early at a hang (the stuck worker thread cannot be stopped; it is left behind).
+pub fn fuzz_target(
+    target: Target,
+    corpus: Arc<Corpus>,
+    seed: u64,
+    duration: Duration,
+    out: &Path,
+) -> TargetReport {
+    let started = Instant::now();
+    let iteration = Arc::new(AtomicU64::new(0));
+    // Milliseconds since `started` at which the current input began; u64::MAX between inputs.
+    let input_started_ms = Arc::new(AtomicU64::new(u64::MAX));
+    let stop = Arc::new(AtomicBool::new(false));
+    let (tx, rx) = std::sync::mpsc::channel::<Finding>();
+    let worker = {
+        let (corpus, iteration, input_started_ms, stop) = (
+            Arc::clone(&corpus),
+            Arc::clone(&iteration),
+            Arc::clone(&input_started_ms),
+            Arc::clone(&stop),
+        );
+        let out = out.to_path_buf();
+        std::thread::spawn(move || {
+            let mut accepted = 0u64;
+            while !stop.load(Ordering::Relaxed) {
+                let i = iteration.load(Ordering::Relaxed);
+                let data = input(target, &corpus, seed, i);
+                reset_largest_alloc();
+                input_started_ms.store(started.elapsed().as_millis() as u64, Ordering::Relaxed);
+                let result = run_one(target, &data);
+                input_started_ms.store(u64::MAX, Ordering::Relaxed);
+                let biggest = largest_alloc();
+                let finding = match result {
+                    Ok(ok) => {
+                        accepted += u64::from(ok);
+                        (biggest > ALLOC_LIMIT_BYTES).then(|| {
+                            (
+                                FindingKind::Memory,
+                                format!("one allocation of {biggest} bytes (limit {ALLOC_LIMIT_BYTES})"),
+                            )
+                        })
+                    }
+                    Err(msg) => Some((FindingKind::Panic, msg)),
+                };
+                if let Some((kind, message)) = finding {
+                    let saved = save_finding(&out, target, seed, i, kind, &message, &data);
+                    let _ = tx.send(Finding {
+                        kind,
+                        iteration: i,
+                        message,
+                        saved,
+                    });
+                }
+                iteration.store(i + 1, Ordering::Relaxed);
+            }
+            accepted
+        })
+    };
+    let mut findings = vec![];
+    let mut hung = false;
+    loop {
+        std::thread::sleep(Duration::from_millis(20));
+        findings.extend(rx.try_iter());
+        let now_ms = started.elapsed().as_millis() as u64;
+        let began = input_started_ms.load(Ordering::Relaxed);
+        if began != u64::MAX && now_ms.saturating_sub(began) > HANG_LIMIT.as_millis() as u64 {
+            let i = iteration.load(Ordering::Relaxed);
+            let data = input(target, &corpus, seed, i);
+            let message = format!("input still running after {} ms", now_ms - began);
+            let saved = save_finding(out, target, seed, i, FindingKind::Hang, &message, &data);
+            findings.push(Finding {
+                kind: FindingKind::Hang,
+                iteration: i,
+                message,
+                saved,
+            });
+            hung = true;
+            break;
+        }
+        if started.elapsed() >= duration {
+            break;
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    let mut accepted = 0;
+    if !hung {
+        // The worker finishes its current input (under HANG_LIMIT) and stops.
+        accepted = worker.join().unwrap_or(0);
+        findings.extend(rx.try_iter());
+    }
+    TargetReport {
+        target: target.name(),
+        seeds: (corpus.generated.len(), corpus.shared.len()),
+        inputs: iteration.load(Ordering::Relaxed),
+        accepted,
+        seconds: started.elapsed().as_secs_f64(),
+        findings,
+    }
+}
+
+/// Silences the default panic message while fuzzing (panics are collected as findings).
+pub fn quiet_panics() {
+    std::panic::set_hook(Box::new(|_| {}));
+}
