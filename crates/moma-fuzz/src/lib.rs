@@ -20,10 +20,11 @@ pub mod seeds;
 pub mod targets;
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::panic::AssertUnwindSafe;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
@@ -40,9 +41,17 @@ pub const HANG_LIMIT: Duration = Duration::from_secs(1);
 /// allocation below it.
 pub const ALLOC_LIMIT_BYTES: usize = 1 << 30;
 
-static LARGEST_ALLOC: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    // Const-initialised and without destructor: safe to touch from inside the allocator.
+    static LARGEST_ALLOC: Cell<usize> = const { Cell::new(0) };
+}
 
-/// The system allocator, recording the largest single allocation since [`reset_largest_alloc`].
+fn record(size: usize) {
+    let _ = LARGEST_ALLOC.try_with(|c| c.set(c.get().max(size)));
+}
+
+/// The system allocator, recording per thread the largest single allocation since
+/// [`reset_largest_alloc`] (work a parser hands to other threads is not counted).
 /// Install it with `#[global_allocator]` to detect inputs that make a parser allocate what a
 /// header claims.
 pub struct CountingAlloc;
@@ -50,13 +59,13 @@ pub struct CountingAlloc;
 // SAFETY: forwards every call to `System` unchanged; only records sizes.
 unsafe impl GlobalAlloc for CountingAlloc {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        LARGEST_ALLOC.fetch_max(layout.size(), Ordering::Relaxed);
+        record(layout.size());
         // SAFETY: the caller upholds `GlobalAlloc::alloc`'s contract.
         unsafe { System.alloc(layout) }
     }
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        LARGEST_ALLOC.fetch_max(layout.size(), Ordering::Relaxed);
+        record(layout.size());
         // SAFETY: as `alloc`.
         unsafe { System.alloc_zeroed(layout) }
     }
@@ -67,20 +76,21 @@ unsafe impl GlobalAlloc for CountingAlloc {
     }
 
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        LARGEST_ALLOC.fetch_max(new_size, Ordering::Relaxed);
+        record(new_size);
         // SAFETY: as `GlobalAlloc::realloc`.
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }
 
-/// Forgets the largest allocation recorded so far.
+/// Forgets the largest allocation this thread recorded so far.
 pub fn reset_largest_alloc() {
-    LARGEST_ALLOC.store(0, Ordering::Relaxed);
+    LARGEST_ALLOC.with(|c| c.set(0));
 }
 
-/// The largest single allocation since [`reset_largest_alloc`], bytes (0 without [`CountingAlloc`]).
+/// The largest single allocation of this thread since [`reset_largest_alloc`], bytes (0 without
+/// [`CountingAlloc`]).
 pub fn largest_alloc() -> usize {
-    LARGEST_ALLOC.load(Ordering::Relaxed)
+    LARGEST_ALLOC.with(Cell::get)
 }
 
 /// What went wrong with one input.
@@ -125,8 +135,36 @@ pub struct TargetReport {
     pub findings: Vec<Finding>,
 }
 
+/// A parser on one input: `Ok` accepted, `Err(message)` refused; a panic is a finding.
+pub type Parser = Arc<dyn Fn(&[u8]) -> Result<(), String> + Send + Sync>;
+
+/// A parser under test, as the runner sees it.
+#[derive(Clone)]
+pub struct Harness {
+    /// Name (folder of its findings).
+    pub name: &'static str,
+    /// Index mixed into the mutator's seed, so targets get different inputs.
+    pub index: u64,
+    /// Whether inputs are PNG files (chunk CRCs are repaired after mutation, most of the time).
+    pub png: bool,
+    /// The parser: `Ok` accepted, `Err(message)` refused; a panic is a finding.
+    pub parse: Parser,
+}
+
+impl Harness {
+    /// The harness of one of moma's targets.
+    pub fn of(target: Target) -> Self {
+        Self {
+            name: target.name(),
+            index: Target::ALL.iter().position(|&t| t == target).unwrap_or(0) as u64,
+            png: target.is_png(),
+            parse: Arc::new(move |data| target.run(data)),
+        }
+    }
+}
+
 /// The input of iteration `i` (`i < corpus.len()`: the seeds themselves, unchanged).
-pub fn input(target: Target, corpus: &Corpus, seed: u64, iteration: u64) -> Vec<u8> {
+pub fn input(harness: &Harness, corpus: &Corpus, seed: u64, iteration: u64) -> Vec<u8> {
     let all: Vec<&[u8]> = corpus.all().map(|s| s.data.as_slice()).collect();
     if all.is_empty() {
         return vec![];
@@ -134,8 +172,7 @@ pub fn input(target: Target, corpus: &Corpus, seed: u64, iteration: u64) -> Vec<
     if let Some(s) = usize::try_from(iteration).ok().and_then(|i| all.get(i)) {
         return s.to_vec();
     }
-    let index = Target::ALL.iter().position(|&t| t == target).unwrap_or(0) as u64;
-    let mut m = Mutator::for_input(seed, index, iteration);
+    let mut m = Mutator::for_input(seed, harness.index, iteration);
     // Generated seeds are small and fast: pick them three times out of four when there are
     // shared ones.
     let n_gen = corpus.generated.len();
@@ -146,18 +183,18 @@ pub fn input(target: Target, corpus: &Corpus, seed: u64, iteration: u64) -> Vec<
     };
     let mut data = all[pick].to_vec();
     m.mutate(&mut data, &all);
-    if target.is_png() && m.chance(0.8) {
+    if harness.png && m.chance(0.8) {
         fix_png_crcs(&mut data);
     }
     data
 }
 
-/// Runs `target` on one input under `catch_unwind`: `Ok(accepted)` or `Err(panic message)`.
+/// Runs `harness` on one input under `catch_unwind`: `Ok(accepted)` or `Err(panic message)`.
 ///
 /// # Errors
 /// The panic message when the parser panicked.
-pub fn run_one(target: Target, data: &[u8]) -> Result<bool, String> {
-    std::panic::catch_unwind(AssertUnwindSafe(|| target.run(data).is_ok())).map_err(|p| {
+pub fn run_one(harness: &Harness, data: &[u8]) -> Result<bool, String> {
+    std::panic::catch_unwind(AssertUnwindSafe(|| (harness.parse)(data).is_ok())).map_err(|p| {
         p.downcast_ref::<String>()
             .cloned()
             .or_else(|| p.downcast_ref::<&str>().map(|s| (*s).to_string()))
@@ -167,14 +204,14 @@ pub fn run_one(target: Target, data: &[u8]) -> Result<bool, String> {
 
 fn save_finding(
     out: &Path,
-    target: Target,
+    name: &str,
     seed: u64,
     iteration: u64,
     kind: FindingKind,
     message: &str,
     data: &[u8],
 ) -> Option<PathBuf> {
-    let dir = out.join(target.name());
+    let dir = out.join(name);
     std::fs::create_dir_all(&dir).ok()?;
     let stem = format!("{kind:?}-seed{seed}-iter{iteration}").to_lowercase();
     let bin = dir.join(format!("{stem}.bin"));
@@ -182,8 +219,8 @@ fn save_finding(
     let text = format!(
         "target: {}\nkind: {kind:?}\nseed: {seed}\niteration: {iteration}\nmessage: {message}\n\
          replay: moma-fuzz --target {} --replay {}\n",
-        target.name(),
-        target.name(),
+        name,
+        name,
         bin.display()
     );
     std::fs::write(dir.join(format!("{stem}.txt")), text).ok()?;
@@ -192,13 +229,16 @@ fn save_finding(
 
 /// Fuzzes `target` for `duration` starting at iteration 0 with `seed`, saving findings under
 /// `out`. Stops early at a hang (the stuck worker thread cannot be stopped; it is left behind).
+///
+/// # Errors
+/// The worker thread cannot be started.
 pub fn fuzz_target(
-    target: Target,
+    harness: &Harness,
     corpus: Arc<Corpus>,
     seed: u64,
     duration: Duration,
     out: &Path,
-) -> TargetReport {
+) -> std::io::Result<TargetReport> {
     let started = Instant::now();
     let iteration = Arc::new(AtomicU64::new(0));
     // Milliseconds since `started` at which the current input began; u64::MAX between inputs.
@@ -213,14 +253,17 @@ pub fn fuzz_target(
             Arc::clone(&stop),
         );
         let out = out.to_path_buf();
-        std::thread::spawn(move || {
+        let harness = harness.clone();
+        std::thread::Builder::new()
+            .name(WORKER_THREAD.into())
+            .spawn(move || {
             let mut accepted = 0u64;
             while !stop.load(Ordering::Relaxed) {
                 let i = iteration.load(Ordering::Relaxed);
-                let data = input(target, &corpus, seed, i);
+                let data = input(&harness, &corpus, seed, i);
                 reset_largest_alloc();
                 input_started_ms.store(started.elapsed().as_millis() as u64, Ordering::Relaxed);
-                let result = run_one(target, &data);
+                let result = run_one(&harness, &data);
                 input_started_ms.store(u64::MAX, Ordering::Relaxed);
                 let biggest = largest_alloc();
                 let finding = match result {
@@ -236,7 +279,7 @@ pub fn fuzz_target(
                     Err(msg) => Some((FindingKind::Panic, msg)),
                 };
                 if let Some((kind, message)) = finding {
-                    let saved = save_finding(&out, target, seed, i, kind, &message, &data);
+                    let saved = save_finding(&out, harness.name, seed, i, kind, &message, &data);
                     let _ = tx.send(Finding {
                         kind,
                         iteration: i,
@@ -247,7 +290,7 @@ pub fn fuzz_target(
                 iteration.store(i + 1, Ordering::Relaxed);
             }
             accepted
-        })
+        })?
     };
     let mut findings = vec![];
     let mut hung = false;
@@ -258,9 +301,17 @@ pub fn fuzz_target(
         let began = input_started_ms.load(Ordering::Relaxed);
         if began != u64::MAX && now_ms.saturating_sub(began) > HANG_LIMIT.as_millis() as u64 {
             let i = iteration.load(Ordering::Relaxed);
-            let data = input(target, &corpus, seed, i);
+            let data = input(harness, &corpus, seed, i);
             let message = format!("input still running after {} ms", now_ms - began);
-            let saved = save_finding(out, target, seed, i, FindingKind::Hang, &message, &data);
+            let saved = save_finding(
+                out,
+                harness.name,
+                seed,
+                i,
+                FindingKind::Hang,
+                &message,
+                &data,
+            );
             findings.push(Finding {
                 kind: FindingKind::Hang,
                 iteration: i,
@@ -281,17 +332,26 @@ pub fn fuzz_target(
         accepted = worker.join().unwrap_or(0);
         findings.extend(rx.try_iter());
     }
-    TargetReport {
-        target: target.name(),
+    Ok(TargetReport {
+        target: harness.name,
         seeds: (corpus.generated.len(), corpus.shared.len()),
         inputs: iteration.load(Ordering::Relaxed),
         accepted,
         seconds: started.elapsed().as_secs_f64(),
         findings,
-    }
+    })
 }
 
-/// Silences the default panic message while fuzzing (panics are collected as findings).
+/// Name of the threads that run inputs.
+const WORKER_THREAD: &str = "moma-fuzz-worker";
+
+/// Silences panic messages on the fuzzing worker threads (their panics are collected as
+/// findings); panics elsewhere are reported by the previous hook as usual.
 pub fn quiet_panics() {
-    std::panic::set_hook(Box::new(|_| {}));
+    let previous = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        if std::thread::current().name() != Some(WORKER_THREAD) {
+            previous(info);
+        }
+    }));
 }

@@ -9,7 +9,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::Parser;
 use moma_fuzz::targets::Target;
-use moma_fuzz::{CountingAlloc, TargetReport, fuzz_target, quiet_panics, run_one, seeds};
+use moma_fuzz::{CountingAlloc, Harness, TargetReport, fuzz_target, quiet_panics, run_one, seeds};
 
 #[global_allocator]
 static ALLOC: CountingAlloc = CountingAlloc;
@@ -64,17 +64,26 @@ fn run(args: &Args) -> anyhow::Result<bool> {
     } else {
         vec![Target::from_name(&args.target).with_context(|| {
             let names: Vec<_> = Target::ALL.iter().map(|t| t.name()).collect();
-            format!("unknown target '{}' (expected all or one of {})", args.target, names.join(", "))
+            format!(
+                "unknown target '{}' (expected all or one of {})",
+                args.target,
+                names.join(", ")
+            )
         })?]
     };
     if let Some(path) = &args.replay {
         let [target] = targets[..] else {
             bail!("--replay needs one --target");
         };
-        let data = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-        return Ok(match run_one(target, &data) {
+        let data =
+            std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+        return Ok(match run_one(&Harness::of(target), &data) {
             Ok(accepted) => {
-                println!("{}: no panic (input {})", target.name(), if accepted { "accepted" } else { "refused" });
+                println!(
+                    "{}: no panic (input {})",
+                    target.name(),
+                    if accepted { "accepted" } else { "refused" }
+                );
                 if let Err(e) = target.run(&data) {
                     println!("  {e}");
                 }
@@ -102,11 +111,20 @@ fn run(args: &Args) -> anyhow::Result<bool> {
     quiet_panics();
     let mut reports: Vec<TargetReport> = vec![];
     if !args.json {
-        println!("{:<20} {:>6} {:>10} {:>10} {:>8} {:>9}", "target", "seeds", "inputs", "accepted", "seconds", "findings");
+        println!(
+            "{:<20} {:>6} {:>10} {:>10} {:>8} {:>9}",
+            "target", "seeds", "inputs", "accepted", "seconds", "findings"
+        );
     }
     for target in targets {
         let corpus = Arc::new(seeds::corpus(target, shared.as_deref())?);
-        let report = fuzz_target(target, corpus, args.seed, Duration::from_secs_f64(per_target), &args.out);
+        let report = fuzz_target(
+            &Harness::of(target),
+            corpus,
+            args.seed,
+            Duration::from_secs_f64(per_target),
+            &args.out,
+        )?;
         if !args.json {
             println!(
                 "{:<20} {:>6} {:>10} {:>10} {:>8.1} {:>9}",
@@ -118,11 +136,21 @@ fn run(args: &Args) -> anyhow::Result<bool> {
                 report.findings.len()
             );
             for f in &report.findings {
-                let saved = f.saved.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "not saved".into());
-                println!("  {:?} at iteration {}: {} ({saved})", f.kind, f.iteration, f.message);
+                let saved = f
+                    .saved
+                    .as_ref()
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_else(|| "not saved".into());
+                println!(
+                    "  {:?} at iteration {}: {} ({saved})",
+                    f.kind, f.iteration, f.message
+                );
             }
         }
-        let hung = report.findings.iter().any(|f| f.kind == moma_fuzz::FindingKind::Hang);
+        let hung = report
+            .findings
+            .iter()
+            .any(|f| f.kind == moma_fuzz::FindingKind::Hang);
         reports.push(report);
         if hung {
             eprintln!("a hang leaves a stuck thread behind: stopping here");

@@ -70,7 +70,9 @@ impl Mutator {
     pub fn for_input(seed: u64, target: u64, iteration: u64) -> Self {
         let mixed = seed
             ^ target.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-            ^ iteration.wrapping_mul(0xD1B5_4A32_D192_ED03).rotate_left(17);
+            ^ iteration
+                .wrapping_mul(0xD1B5_4A32_D192_ED03)
+                .rotate_left(17);
         Self {
             rng: ChaCha8Rng::seed_from_u64(mixed),
         }
@@ -155,7 +157,11 @@ impl Mutator {
             5 | 6 if len > 0 => {
                 let width = [1usize, 2, 4, 8][self.below(4)];
                 let v = INTERESTING[self.below(INTERESTING.len())];
-                let v = if self.chance(0.2) { v.wrapping_neg() } else { v };
+                let v = if self.chance(0.2) {
+                    v.wrapping_neg()
+                } else {
+                    v
+                };
                 let bytes = if self.chance(0.5) {
                     v.to_le_bytes()[..width].to_vec()
                 } else {
@@ -193,7 +199,11 @@ fn digit_runs(data: &[u8]) -> Vec<(usize, usize)> {
     let mut i = 0;
     while i < scan.len() {
         if scan[i].is_ascii_digit() {
-            let start = if i > 0 && scan[i - 1] == b'-' { i - 1 } else { i };
+            let start = if i > 0 && scan[i - 1] == b'-' {
+                i - 1
+            } else {
+                i
+            };
             while i < scan.len() && (scan[i].is_ascii_digit() || scan[i] == b'.') {
                 i += 1;
             }
@@ -275,7 +285,11 @@ mod tests {
         assert_eq!(run(3), run(3));
         let distinct: std::collections::HashSet<Vec<u8>> = (0..200).map(run).collect();
         assert!(distinct.len() > 150, "{}", distinct.len());
-        assert!((0..200).map(run).any(|d| d.windows(6).any(|w| w == b"100000")));
+        assert!(
+            (0..200)
+                .map(run)
+                .any(|d| d.windows(6).any(|w| w == b"100000"))
+        );
     }
 
     #[test]

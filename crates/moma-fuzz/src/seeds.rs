@@ -3,8 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
-use moma_core::pipeline::{CalibrationConfig, calibrate};
 use moma_core::align::Method;
+use moma_core::pipeline::{CalibrationConfig, calibrate};
 use moma_core::{Intrinsics, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
 
@@ -158,13 +158,16 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
                 let mask = Mask::new(Array2::from_shape_fn((5, 7), |(v, u)| (u * v) % 3 == 0));
                 moma_io::write_mask(p("mask.png"), &mask)?;
                 seeds.push(gen_seed("mask.png", &p("mask.png"))?);
-                let rgb = image::RgbImage::from_fn(6, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 0]));
+                let rgb = image::RgbImage::from_fn(6, 4, |x, y| {
+                    image::Rgb([x as u8 * 40, y as u8 * 60, 0])
+                });
                 moma_io::write_rgb(p("rgb.png"), &rgb)?;
                 seeds.push(gen_seed("rgb.png", &p("rgb.png"))?);
             }
         }
         Target::Rgb => {
-            let rgb = image::RgbImage::from_fn(6, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 99]));
+            let rgb =
+                image::RgbImage::from_fn(6, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 99]));
             for name in ["rgb.png", "rgb.jpg"] {
                 moma_io::write_rgb(p(name), &rgb)?;
                 seeds.push(gen_seed(name, &p(name))?);
@@ -176,11 +179,24 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
         Target::Npy => {
             moma_io::write_npy_f32(p("d.npy"), depth_map(2, 3).depth_m.view())?;
             seeds.push(gen_seed("f4-2x3.npy", &p("d.npy"))?);
-            let f8: Vec<u8> = (0..4).flat_map(|i| (0.5 + f64::from(i)).to_le_bytes()).collect();
-            seeds.push(bytes_seed("f8-1x2x2.npy", npy("<f8", false, "(1, 2, 2)", &f8)));
-            let f4: Vec<u8> = (0..6).flat_map(|i| (1.0 + i as f32).to_be_bytes()).collect();
-            seeds.push(bytes_seed("f4be-fortran-3x2.npy", npy(">f4", true, "(3, 2)", &f4)));
-            seeds.push(bytes_seed("i4-2x1x1.npy", npy("<i4", false, "(2, 1, 1)", &[1, 0, 0, 0, 2, 0, 0, 0])));
+            let f8: Vec<u8> = (0..4)
+                .flat_map(|i| (0.5 + f64::from(i)).to_le_bytes())
+                .collect();
+            seeds.push(bytes_seed(
+                "f8-1x2x2.npy",
+                npy("<f8", false, "(1, 2, 2)", &f8),
+            ));
+            let f4: Vec<u8> = (0..6)
+                .flat_map(|i| (1.0 + i as f32).to_be_bytes())
+                .collect();
+            seeds.push(bytes_seed(
+                "f4be-fortran-3x2.npy",
+                npy(">f4", true, "(3, 2)", &f4),
+            ));
+            seeds.push(bytes_seed(
+                "i4-2x1x1.npy",
+                npy("<i4", false, "(2, 1, 1)", &[1, 0, 0, 0, 2, 0, 0, 0]),
+            ));
         }
         Target::Pfm => {
             let m = depth_map(3, 4).depth_m;
@@ -227,7 +243,11 @@ fn read_seed(path: PathBuf) -> Option<Seed> {
 
 fn sorted_dirs(dir: &Path) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|r| r.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect())
+        .map(|r| {
+            r.filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_dir())
+                .collect()
+        })
         .unwrap_or_default();
     v.sort();
     v
@@ -253,11 +273,17 @@ fn shared_seeds(target: Target, root: &Path) -> Vec<Seed> {
         Target::DepthPng => frame_files(&["depth.png", "raw_depth.png"]),
         Target::Mask => frame_files(&["mask.png"]),
         Target::Rgb => frame_files(&["rgb.png"]).into_iter().take(2).collect(),
-        Target::Camera => sets.iter().filter_map(|s| read_seed(s.join("camera.json"))).collect(),
-        Target::Npy => ["tiny-metric-392.output_net.npy", "tiny-metric.output_full.npy"]
+        Target::Camera => sets
             .iter()
-            .filter_map(|n| read_seed(dav2.join(n)))
+            .filter_map(|s| read_seed(s.join("camera.json")))
             .collect(),
+        Target::Npy => [
+            "tiny-metric-392.output_net.npy",
+            "tiny-metric.output_full.npy",
+        ]
+        .iter()
+        .filter_map(|n| read_seed(dav2.join(n)))
+        .collect(),
         Target::Pfm | Target::Calibration => vec![],
         Target::Safetensors => ["tiny-metric.safetensors", "tiny-metric-392.safetensors"]
             .iter()

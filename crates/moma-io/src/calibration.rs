@@ -240,4 +240,3 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
     file.check(path)?;
     Ok(file)
 }
-

@@ -323,6 +323,19 @@ pub fn npy_f32_from_bytes(path: &Path, bytes: &[u8]) -> Result<Array2<f32>> {
 /// `ndarray-npy` allocates for it. A header this function cannot parse is left to `ndarray-npy`
 /// (which reports it as corrupt).
 fn check_npy_header(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some((preamble, header_len)) = npy_header_len(bytes) {
+        let follow = bytes.len() as u64 - preamble;
+        if header_len > follow {
+            // ndarray-npy would allocate the claimed header length before reading it.
+            return Err(IoError::corrupt(
+                path,
+                "npy",
+                format!(
+                    "header claims {header_len} bytes, only {follow} follow (file is truncated)"
+                ),
+            ));
+        }
+    }
     let Some((header, data_start)) = npy_header_text(bytes) else {
         return Ok(());
     };
@@ -367,11 +380,33 @@ fn check_npy_header(path: &Path, bytes: &[u8]) -> Result<()> {
             format!(
                 "header's shape {shape:?} of {item_bytes}-byte items needs {need} data bytes, \
                  the file has {have}{}",
-                if need > have { " (file is truncated)" } else { "" }
+                if need > have {
+                    " (file is truncated)"
+                } else {
+                    ""
+                }
             ),
         ));
     }
     Ok(())
+}
+
+/// The length of an npy file's preamble (magic, version, length field) and the header length it
+/// claims, if the magic string and version are well-formed.
+fn npy_header_len(bytes: &[u8]) -> Option<(u64, u64)> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return None;
+    }
+    match bytes[6] {
+        1 => Some((10, u64::from(u16::from_le_bytes([bytes[8], bytes[9]])))),
+        2 | 3 if bytes.len() >= 12 => Some((
+            12,
+            u64::from(u32::from_le_bytes([
+                bytes[8], bytes[9], bytes[10], bytes[11],
+            ])),
+        )),
+        _ => None,
+    }
 }
 
 /// The header dictionary text of an npy file and the offset of its data, if the magic string,
@@ -381,7 +416,10 @@ fn npy_header_text(bytes: &[u8]) -> Option<(&str, usize)> {
         return None;
     }
     let (len, start) = match bytes[6] {
-        1 => (usize::from(u16::from_le_bytes([bytes[8], bytes[9]])), 10usize),
+        1 => (
+            usize::from(u16::from_le_bytes([bytes[8], bytes[9]])),
+            10usize,
+        ),
         2 | 3 if bytes.len() >= 12 => {
             let n = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
             (usize::try_from(n).ok()?, 12)
@@ -396,7 +434,11 @@ fn npy_header_text(bytes: &[u8]) -> Option<(&str, usize)> {
 /// The tuple after `'shape':` in an npy header dictionary.
 fn npy_dict_shape(header: &str) -> Option<Vec<u64>> {
     let rest = &header[header.find("'shape'")? + "'shape'".len()..];
-    let rest = rest.trim_start().strip_prefix(':')?.trim_start().strip_prefix('(')?;
+    let rest = rest
+        .trim_start()
+        .strip_prefix(':')?
+        .trim_start()
+        .strip_prefix('(')?;
     let inner = &rest[..rest.find(')')?];
     inner
         .split(',')

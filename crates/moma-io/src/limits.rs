@@ -101,8 +101,13 @@ mod tests {
         let p = Path::new("x.png");
         assert!(check_image_size(p, "PNG", MAX_IMAGE_SIDE_PX, 1).is_ok());
         assert!(check_image_size(p, "PNG", 8192, 8192).is_ok());
-        let e = check_image_size(p, "PNG", 8192, 8193).unwrap_err().to_string();
-        assert!(e.contains("8192x8193") && e.contains("67108864 pixels"), "{e}");
+        let e = check_image_size(p, "PNG", 8192, 8193)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("8192x8193") && e.contains("67108864 pixels"),
+            "{e}"
+        );
         let e = check_image_size(p, "PNG", MAX_IMAGE_SIDE_PX + 1, 1)
             .unwrap_err()
             .to_string();

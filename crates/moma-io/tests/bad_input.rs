@@ -701,8 +701,14 @@ fn png_header_claiming_100000_squared_is_too_large() {
     ] {
         let m = msg(&e);
         assert!(
-            matches!(e, IoError::TooLarge { width: 100_000, height: 100_000, .. })
-                && m.contains("huge.png")
+            matches!(
+                e,
+                IoError::TooLarge {
+                    width: 100_000,
+                    height: 100_000,
+                    ..
+                }
+            ) && m.contains("huge.png")
                 && m.contains("100000x100000")
                 && m.contains("65535 pixels per side"),
             "{m}"
@@ -764,8 +770,14 @@ fn npy_header_claiming_100000_squared_is_too_large() {
         ] {
             let m = msg(&e);
             assert!(
-                matches!(e, IoError::TooLarge { width: 100_000, height: 100_000, .. })
-                    && m.contains("huge.npy")
+                matches!(
+                    e,
+                    IoError::TooLarge {
+                        width: 100_000,
+                        height: 100_000,
+                        ..
+                    }
+                ) && m.contains("huge.npy")
                     && m.contains("npy header claims 100000x100000"),
                 "{m}"
             );
@@ -788,7 +800,9 @@ fn npy_data_length_must_match_the_header() {
     std::fs::write(&p, npy_bytes("<f8", "(2, 3)", &[0; 40])).unwrap();
     let m = msg(&read_npy_f32(&p).unwrap_err());
     assert!(
-        m.contains("len.npy") && m.contains("needs 48 data bytes, the file has 40") && m.contains("truncated"),
+        m.contains("len.npy")
+            && m.contains("needs 48 data bytes, the file has 40")
+            && m.contains("truncated"),
         "{m}"
     );
     std::fs::write(&p, npy_bytes("<f8", "(2, 3)", &[0; 56])).unwrap();
@@ -807,9 +821,44 @@ fn pfm_header_claiming_100000_squared_is_too_large() {
     let e = read_depth(&p).unwrap_err();
     let m = msg(&e);
     assert!(
-        matches!(e, IoError::TooLarge { width: 100_000, height: 100_000, .. })
-            && m.contains("huge.pfm")
+        matches!(
+            e,
+            IoError::TooLarge {
+                width: 100_000,
+                height: 100_000,
+                ..
+            }
+        ) && m.contains("huge.pfm")
             && m.contains("PFM header claims 100000x100000"),
         "{m}"
     );
+}
+
+#[test]
+fn npy_header_length_beyond_the_file_is_refused_before_allocation() {
+    // Found by moma-fuzz (npy target, seed 0, iteration 17129): a version-3 npy header whose
+    // 32-bit length field claims 3 GB in a 187-byte file made ndarray-npy allocate 3 GB for the
+    // header before reading it.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("long_header.npy");
+    let mut b = b"\x93NUMPY\x03\x00".to_vec();
+    b.extend_from_slice(&0xb400_12b6u32.to_le_bytes());
+    b.extend_from_slice(b"{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2), }\n");
+    b.extend_from_slice(&[0; 16]);
+    std::fs::write(&p, &b).unwrap();
+    let e = read_npy_f32(&p).unwrap_err();
+    let m = msg(&e);
+    assert!(
+        matches!(e, IoError::Corrupt { .. })
+            && m.contains("long_header.npy")
+            && m.contains("header claims 3019903670 bytes")
+            && m.contains(&format!("only {} follow", b.len() - 12)),
+        "{m}"
+    );
+    // Version 1 (16-bit length) likewise.
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend_from_slice(&0xfff0u16.to_le_bytes());
+    b.extend_from_slice(b"{'descr': '<f4', 'shape': (1, 1), }\n");
+    std::fs::write(&p, &b).unwrap();
+    assert!(msg(&read_npy_f32(&p).unwrap_err()).contains("header claims 65520 bytes"));
 }
