@@ -41,6 +41,11 @@ impl Default for SamplingConfig {
     }
 }
 
+/// Largest number of calibration samples accepted (`n`): 100 000, 33 times the largest count of
+/// the ablations (3000). A bound on user input: larger values are refused with
+/// [`CoreError::InvalidParameter`] instead of overflowing the grid's `k × k` or allocating for them.
+pub const MAX_SAMPLES: usize = 100_000;
+
 /// A pixel position: `u` = column, `v` = row (pixels).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct Pixel {
@@ -68,7 +73,7 @@ pub struct Pixel {
 ///   The seed is not used.
 ///
 /// # Errors
-/// No valid pixel; size mismatch between `gt` and `restrict`; `n == 0`.
+/// No valid pixel; size mismatch between `gt` and `restrict`; `n == 0` or `n >` [`MAX_SAMPLES`].
 ///
 /// # Example
 /// ```
@@ -87,6 +92,12 @@ pub fn sample_pixels(
         return Err(CoreError::InvalidParameter(
             "number of calibration samples n must be at least 1".into(),
         ));
+    }
+    if config.n > MAX_SAMPLES {
+        return Err(CoreError::InvalidParameter(format!(
+            "number of calibration samples n = {} exceeds the limit of {MAX_SAMPLES}",
+            config.n
+        )));
     }
     let size = gt.size();
     if let Some(r) = restrict {
@@ -143,12 +154,13 @@ fn sample_grid(eligible: &Array2<bool>, n: usize) -> Result<Vec<Pixel>> {
     }
     let k = ((n as f64).sqrt().floor() as usize).max(1);
     let mut out: Vec<Pixel> = Vec::with_capacity(k * k);
+    let mut seen = std::collections::HashSet::with_capacity(k * k);
     for j in 0..k {
         let vn = (j as f64 + 0.5) * h as f64 / k as f64 - 0.5;
         for i in 0..k {
             let un = (i as f64 + 0.5) * w as f64 / k as f64 - 0.5;
             if let Some(p) = nearest_eligible(eligible, un, vn)
-                && !out.contains(&p)
+                && seen.insert(p)
             {
                 out.push(p);
             }

@@ -292,10 +292,10 @@ impl std::fmt::Debug for OnnxDepthModel {
     }
 }
 
-fn backend(what: &str) -> impl FnOnce(ort::Error) -> DepthError + '_ {
-    move |source| DepthError::Onnx {
+fn backend<E: Into<ort::Error>>(what: &str) -> impl FnOnce(E) -> DepthError + '_ {
+    move |e| DepthError::Onnx {
         context: what.to_string(),
-        source,
+        source: e.into(),
     }
 }
 

@@ -64,7 +64,8 @@ pub fn check_safetensors_header(
     prefix: &[u8],
     file_len: u64,
 ) -> Result<Vec<TensorEntry>> {
-    let bad = |reason: String| weights_err(path, format!("not a valid .safetensors file: {reason}"));
+    let bad =
+        |reason: String| weights_err(path, format!("not a valid .safetensors file: {reason}"));
     if file_len > MAX_WEIGHTS_FILE_BYTES {
         return Err(bad(format!(
             "file is {file_len} bytes, over the limit of {MAX_WEIGHTS_FILE_BYTES}"
@@ -113,7 +114,9 @@ pub fn check_safetensors_header(
             continue;
         }
         let tensor = |what: &str| bad(format!("tensor '{name}': {what}"));
-        let info = info.as_object().ok_or_else(|| tensor("entry is not an object"))?;
+        let info = info
+            .as_object()
+            .ok_or_else(|| tensor("entry is not an object"))?;
         let dtype = info
             .get("dtype")
             .and_then(serde_json::Value::as_str)
@@ -122,7 +125,11 @@ pub fn check_safetensors_header(
         let shape = info
             .get("shape")
             .and_then(serde_json::Value::as_array)
-            .and_then(|a| a.iter().map(serde_json::Value::as_u64).collect::<Option<Vec<u64>>>())
+            .and_then(|a| {
+                a.iter()
+                    .map(serde_json::Value::as_u64)
+                    .collect::<Option<Vec<u64>>>()
+            })
             .ok_or_else(|| tensor("shape is not a list of non-negative integers"))?;
         let offsets = info
             .get("data_offsets")
@@ -237,7 +244,10 @@ mod tests {
         // A tensor claiming 100000 × 100000 floats in a 16-byte data section.
         let h = r#"{"a":{"dtype":"F32","shape":[100000,100000],"data_offsets":[0,16]}}"#;
         let m = msg(&file(h, 16));
-        assert!(m.contains("w.safetensors") && m.contains("needs 40000000000 bytes"), "{m}");
+        assert!(
+            m.contains("w.safetensors") && m.contains("needs 40000000000 bytes"),
+            "{m}"
+        );
         // Offsets beyond the data; overflowing shapes; unknown dtypes.
         let h = r#"{"a":{"dtype":"F32","shape":[4],"data_offsets":[0,16]}}"#;
         assert!(msg(&file(h, 8)).contains("outside the 8 data bytes"));

@@ -45,6 +45,9 @@ fn a_loaded_model_predicts_on_another_thread() {
     // the worker thread; the model came back and is usable.
     let want = reference_output(&dir, name, "full");
     let (err, range) = max_abs_err(&pred.values, &want);
-    assert!(err / range < 1e-3, "max abs err {err:.3e} of range {range:.4}");
+    assert!(
+        err / range < 1e-3,
+        "max abs err {err:.3e} of range {range:.4}"
+    );
     assert_eq!(pred.kind, model.spec().head.prediction_kind());
 }

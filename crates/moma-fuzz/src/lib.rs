@@ -6,7 +6,8 @@
 //! files written by moma-io's writers, plus real files from `$MOMA_SHARED_DIR` read at run time).
 //!
 //! Each input runs under [`std::panic::catch_unwind`] on a worker thread watched by the calling
-//! thread: a panic is a finding, an input still running after [`HANG_LIMIT`] is a hang finding,
+//! thread: a panic is a finding, an input that used [`HANG_LIMIT`] of CPU time (or ran for
+//! [`HANG_WALL_LIMIT`]) is a hang finding,
 //! and (with [`CountingAlloc`] installed as the global allocator, as the `moma-fuzz` binary does)
 //! an input that requests one allocation over [`ALLOC_LIMIT_BYTES`] is a memory finding. Each
 //! finding is saved as `OUT/TARGET/KIND-seedS-iterI.bin` with a `.txt` description; the input is
@@ -33,8 +34,53 @@ use crate::mutate::{Mutator, fix_png_crcs};
 use crate::seeds::Corpus;
 use crate::targets::Target;
 
-/// An input still running after this long is a hang finding.
+/// An input that has used this much CPU time is a hang finding (on Linux, where the watchdog
+/// reads the worker thread's CPU clock; elsewhere this much wall-clock time).
 pub const HANG_LIMIT: Duration = Duration::from_secs(1);
+
+/// An input still running after this much wall-clock time is a hang finding whatever CPU time
+/// it used (blocked or sleeping). Longer than [`HANG_LIMIT`] so that a loaded machine, where an
+/// input waits for a core, does not produce false hangs.
+pub const HANG_WALL_LIMIT: Duration = Duration::from_secs(10);
+
+/// A CPU clock of one thread, readable from other threads (Linux).
+#[derive(Clone, Copy)]
+struct ThreadClock(#[cfg(target_os = "linux")] libc::clockid_t);
+
+impl ThreadClock {
+    /// The CPU clock of the calling thread, if the platform has one.
+    fn current() -> Option<Self> {
+        #[cfg(target_os = "linux")]
+        {
+            let mut id: libc::clockid_t = 0;
+            // SAFETY: `pthread_self` is the calling thread; `id` is a valid out-pointer.
+            let rc = unsafe { libc::pthread_getcpuclockid(libc::pthread_self(), &mut id) };
+            (rc == 0).then_some(Self(id))
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            None
+        }
+    }
+
+    /// CPU time of the thread, nanoseconds.
+    fn nanos(self) -> Option<u64> {
+        #[cfg(target_os = "linux")]
+        {
+            let mut t = libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            };
+            // SAFETY: `t` is a valid out-pointer; a clock id of an exited thread gives an error.
+            let rc = unsafe { libc::clock_gettime(self.0, &mut t) };
+            (rc == 0).then(|| t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64)
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            None
+        }
+    }
+}
 
 /// One allocation larger than this while parsing one input is a memory finding: the decoders'
 /// limits ([`moma_io::MAX_IMAGE_PIXELS`] at 8 bytes per pixel = 512 MiB) keep every legitimate
@@ -244,12 +290,16 @@ pub fn fuzz_target(
     // Milliseconds since `started` at which the current input began; u64::MAX between inputs.
     let input_started_ms = Arc::new(AtomicU64::new(u64::MAX));
     let stop = Arc::new(AtomicBool::new(false));
+    // The worker's CPU clock and its reading when the current input began.
+    let (clock_tx, clock_rx) = std::sync::mpsc::channel::<Option<ThreadClock>>();
+    let input_started_cpu_ns = Arc::new(AtomicU64::new(0));
     let (tx, rx) = std::sync::mpsc::channel::<Finding>();
     let worker = {
-        let (corpus, iteration, input_started_ms, stop) = (
+        let (corpus, iteration, input_started_ms, input_started_cpu_ns, stop) = (
             Arc::clone(&corpus),
             Arc::clone(&iteration),
             Arc::clone(&input_started_ms),
+            Arc::clone(&input_started_cpu_ns),
             Arc::clone(&stop),
         );
         let out = out.to_path_buf();
@@ -257,11 +307,16 @@ pub fn fuzz_target(
         std::thread::Builder::new()
             .name(WORKER_THREAD.into())
             .spawn(move || {
+            let clock = ThreadClock::current();
+            let _ = clock_tx.send(clock);
             let mut accepted = 0u64;
             while !stop.load(Ordering::Relaxed) {
                 let i = iteration.load(Ordering::Relaxed);
                 let data = input(&harness, &corpus, seed, i);
                 reset_largest_alloc();
+                if let Some(ns) = clock.and_then(ThreadClock::nanos) {
+                    input_started_cpu_ns.store(ns, Ordering::Relaxed);
+                }
                 input_started_ms.store(started.elapsed().as_millis() as u64, Ordering::Relaxed);
                 let result = run_one(&harness, &data);
                 input_started_ms.store(u64::MAX, Ordering::Relaxed);
@@ -292,6 +347,7 @@ pub fn fuzz_target(
             accepted
         })?
     };
+    let worker_clock = clock_rx.recv().ok().flatten();
     let mut findings = vec![];
     let mut hung = false;
     loop {
@@ -299,10 +355,26 @@ pub fn fuzz_target(
         findings.extend(rx.try_iter());
         let now_ms = started.elapsed().as_millis() as u64;
         let began = input_started_ms.load(Ordering::Relaxed);
-        if began != u64::MAX && now_ms.saturating_sub(began) > HANG_LIMIT.as_millis() as u64 {
+        let wall_ms = now_ms.saturating_sub(began);
+        let hang = if began == u64::MAX || wall_ms <= HANG_LIMIT.as_millis() as u64 {
+            None
+        } else if wall_ms > HANG_WALL_LIMIT.as_millis() as u64 {
+            Some(format!("input still running after {wall_ms} ms"))
+        } else {
+            let cpu_ms = worker_clock.and_then(ThreadClock::nanos).map(|ns| {
+                ns.saturating_sub(input_started_cpu_ns.load(Ordering::Relaxed)) / 1_000_000
+            });
+            match cpu_ms {
+                Some(cpu) if cpu > HANG_LIMIT.as_millis() as u64 => Some(format!(
+                    "input still running after {cpu} ms of CPU time ({wall_ms} ms wall-clock)"
+                )),
+                Some(_) => None,
+                None => Some(format!("input still running after {wall_ms} ms")),
+            }
+        };
+        if let Some(message) = hang {
             let i = iteration.load(Ordering::Relaxed);
             let data = input(harness, &corpus, seed, i);
-            let message = format!("input still running after {} ms", now_ms - began);
             let saved = save_finding(
                 out,
                 harness.name,
