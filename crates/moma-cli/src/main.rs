@@ -79,18 +79,11 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// The error and its causes joined by ": ", skipping a cause whose text the message before it
-/// already contains (library errors often include their source in their own message).
+/// The error and its causes joined by ": ". Every library error names only its own context and
+/// keeps its cause as `source()`, so each part appears once.
 fn error_chain(err: &anyhow::Error) -> String {
-    let mut text = String::new();
-    for cause in err.chain() {
-        let part = cause.to_string();
-        if !text.contains(&part) {
-            if !text.is_empty() {
-                text.push_str(": ");
-            }
-            text.push_str(&part);
-        }
-    }
-    text
+    err.chain()
+        .map(ToString::to_string)
+        .collect::<Vec<_>>()
+        .join(": ")
 }

@@ -470,3 +470,101 @@ fn predict_reproduces_the_official_full_image_output() {
     );
     assert!(err / range < 1e-3, "{err} of range {range}");
 }
+
+/// The `error: ` line of a failed run, split at ": " into the parts of its chain.
+fn error_parts(stderr: &str) -> (String, Vec<String>) {
+    let line = stderr
+        .lines()
+        .find(|l| l.starts_with("error: "))
+        .unwrap_or_else(|| panic!("no error line in:\n{stderr}"));
+    let parts = line["error: ".len()..]
+        .split(": ")
+        .map(str::to_string)
+        .collect();
+    (line.to_string(), parts)
+}
+
+fn assert_each_part_once(line: &str, parts: &[String]) {
+    for (i, p) in parts.iter().enumerate() {
+        assert!(!parts[i + 1..].contains(p), "'{p}' repeated in: {line}");
+    }
+}
+
+/// A nested error prints each part of its chain once: a corrupt file inside a set (set, frame,
+/// file and the decoder's reason), and a missing file (the file, then the operating system's
+/// reason).
+#[test]
+fn nested_errors_print_each_part_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    // frame_01's depth map cut in half: the set lists it, decoding it fails.
+    let depth = scene.join("frames/frame_01/depth.png");
+    let bytes = std::fs::read(&depth).unwrap();
+    std::fs::write(&depth, &bytes[..bytes.len() / 2]).unwrap();
+    let err = fails(&[
+        "eval",
+        "--set",
+        s(&scene),
+        "--simulate",
+        "-o",
+        s(&tmp.path().join("out")),
+    ]);
+    let (line, parts) = error_parts(&err);
+    assert!(parts.len() >= 3, "{line}");
+    assert_each_part_once(&line, &parts);
+    assert_eq!(line.matches(s(&depth)).count(), 1, "{line}");
+    assert!(line.contains("frame_01") && line.contains("PNG"), "{line}");
+
+    // A missing ground-truth file: the path once, the OS reason once, as the last part.
+    let missing = tmp.path().join("no-such-depth.png");
+    let err = fails(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--pred-kind",
+        "inverse-depth",
+        "--gt",
+        s(&missing),
+        "-o",
+        s(&tmp.path().join("c.json")),
+    ]);
+    let (line, parts) = error_parts(&err);
+    assert_each_part_once(&line, &parts);
+    assert_eq!(line.matches(s(&missing)).count(), 1, "{line}");
+    assert_eq!(line.matches("os error 2").count(), 1, "{line}");
+    assert!(
+        parts.last().is_some_and(|p| p.contains("os error 2")),
+        "{line}"
+    );
+}
+
+/// `--samples` beyond the limit is refused with the limit named (not an overflow or a huge
+/// allocation), for both sampling strategies.
+#[test]
+fn huge_sample_counts_fail_clearly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    for sampling in ["random", "grid"] {
+        let calib = tmp.path().join(format!("calib-{sampling}.json"));
+        let err = fails(&[
+            "calibrate",
+            "--pred",
+            s(&pred.join("frame_00.npy")),
+            "--pred-kind",
+            "inverse-depth",
+            "--gt",
+            s(&scene.join("frames/frame_00/depth.png")),
+            "--samples",
+            "18446744073709551615",
+            "--sampling",
+            sampling,
+            "-o",
+            s(&calib),
+        ]);
+        assert!(
+            err.contains("18446744073709551615") && err.contains("exceeds the limit of 100000"),
+            "{err}"
+        );
+        assert!(!calib.exists());
+    }
+}

@@ -53,10 +53,6 @@ impl std::str::FromStr for SamplingStrategy {
     }
 }
 
-/// Largest number of calibration samples accepted (n, and ⌊√n⌋² for grid sampling): far more
-/// than any fit needs, small enough that no buffer size can overflow.
-pub const MAX_SAMPLES: usize = 10_000_000;
-
 /// Sampling settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SamplingConfig {
@@ -77,6 +73,11 @@ impl Default for SamplingConfig {
         }
     }
 }
+
+/// Largest number of calibration samples accepted (`n`): 100 000, 33 times the largest count of
+/// the ablations (3000). A bound on user input: larger values are refused with
+/// [`CoreError::InvalidParameter`] instead of overflowing the grid's `k × k` or allocating for them.
+pub const MAX_SAMPLES: usize = 100_000;
 
 /// A pixel position: `u` = column, `v` = row (pixels).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -105,7 +106,7 @@ pub struct Pixel {
 ///   The seed is not used.
 ///
 /// # Errors
-/// No valid pixel; size mismatch between `gt` and `restrict`; `n == 0`.
+/// No valid pixel; size mismatch between `gt` and `restrict`; `n == 0` or `n >` [`MAX_SAMPLES`].
 ///
 /// # Example
 /// ```

@@ -405,3 +405,28 @@ fn sampling_errors() {
         Err(CoreError::SizeMismatch { .. })
     ));
 }
+
+#[test]
+fn huge_sample_counts_are_refused_not_overflowed() {
+    use moma_core::sampling::MAX_SAMPLES;
+    let gt = gt_with_holes(8, 6);
+    for strategy in [SamplingStrategy::Random, SamplingStrategy::Grid] {
+        // The limit itself is accepted (every valid pixel is returned, as for any n ≥ valid).
+        let c = SamplingConfig {
+            strategy,
+            n: MAX_SAMPLES,
+            seed: 0,
+        };
+        assert!(!sample_pixels(&gt, &c, None).unwrap().is_empty());
+        // Above it, and at usize::MAX (whose grid k·k would overflow), a clear error.
+        for n in [MAX_SAMPLES + 1, usize::MAX] {
+            let e = sample_pixels(&gt, &SamplingConfig { n, ..c }, None)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&n.to_string()) && e.contains("exceeds the limit of 100000"),
+                "{e}"
+            );
+        }
+    }
+}

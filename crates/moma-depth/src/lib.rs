@@ -16,6 +16,7 @@ mod loader;
 #[cfg(feature = "onnx")]
 pub mod onnx;
 pub mod preprocess;
+pub mod weights_limits;
 
 pub use config::{CustomArch, ModelConfigFile};
 pub use error::{DepthError, Result};
@@ -77,7 +78,13 @@ pub struct ModelSpec {
 }
 
 /// A monocular depth model: RGB in, a [`Prediction`] (with its kind) out, at the image's resolution.
-pub trait DepthModel {
+///
+/// Every model is [`Send`]: a robot program can load it on one thread and move it to a worker
+/// thread (`Box<dyn DepthModel>`, as [`load_model`] returns, is `Send` too). Inference takes
+/// `&mut self`, so the trait does not require [`Sync`]; both backends are nevertheless `Sync`
+/// (candle's tensors are immutable and reference-counted, an ONNX Runtime session may be shared
+/// across threads), which the crate checks at compile time.
+pub trait DepthModel: Send {
     /// What the model is.
     fn spec(&self) -> ModelSpec;
 
@@ -110,3 +117,16 @@ pub trait DepthModel {
         Ok(Prediction::new(full, spec.head.prediction_kind()))
     }
 }
+
+/// Compile-time checks: the trait objects and both backends can cross threads.
+#[allow(dead_code)]
+const _: () = {
+    const fn assert_send<T: Send + ?Sized>() {}
+    const fn assert_send_sync<T: Send + Sync + ?Sized>() {}
+    assert_send::<dyn DepthModel>();
+    assert_send::<Box<dyn DepthModel>>();
+    #[cfg(feature = "candle")]
+    assert_send_sync::<candle::CandleDepthModel>();
+    #[cfg(feature = "onnx")]
+    assert_send_sync::<onnx::OnnxDepthModel>();
+};

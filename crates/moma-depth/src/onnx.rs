@@ -292,8 +292,11 @@ impl std::fmt::Debug for OnnxDepthModel {
     }
 }
 
-fn backend<E: std::fmt::Display>(what: &str) -> impl FnOnce(E) -> DepthError + '_ {
-    move |e| DepthError::Backend(format!("ONNX Runtime: {what}: {e}"))
+fn backend<E: Into<ort::Error>>(what: &str) -> impl FnOnce(E) -> DepthError + '_ {
+    move |e| DepthError::Onnx {
+        context: what.to_string(),
+        source: e.into(),
+    }
 }
 
 fn fmt_shape(s: &[i64]) -> String {
@@ -342,6 +345,7 @@ impl OnnxDepthModel {
         if !path.is_file() {
             return Err(weights_err("no such file".into()));
         }
+        crate::weights_limits::check_weights_file_size(path)?;
         let rt = runtime_with(None)?;
         let intra = options
             .intra_threads
@@ -373,7 +377,10 @@ impl OnnxDepthModel {
         }
         let session = builder
             .commit_from_file(path)
-            .map_err(|e| weights_err(format!("ONNX Runtime cannot load the model: {e}")))?;
+            .map_err(|source| DepthError::Onnx {
+                context: format!("cannot load the model {}", path.display()),
+                source,
+            })?;
 
         if session.inputs().len() != 1 {
             return Err(weights_err(format!(

@@ -177,8 +177,18 @@ fn onnx_bad_model_files_are_errors() {
     );
     // Not an ONNX file at all.
     let not_onnx = OnnxDepthModel::load(dir.join("tiny-rel.json"), spec);
+    // ONNX Runtime's own error is kept as the typed source, under a message naming the file.
     match not_onnx {
-        Err(DepthError::Weights { reason, .. }) => eprintln!("not-ONNX file: {reason}"),
-        other => panic!("expected a weights error, got {other:?}"),
+        Err(err @ DepthError::Onnx { .. }) => {
+            let msg = err.to_string();
+            assert!(
+                msg.contains("cannot load the model") && msg.contains("tiny-rel.json"),
+                "{msg}"
+            );
+            let source = std::error::Error::source(&err).expect("ort error as source");
+            assert!(!msg.contains(&source.to_string()), "{msg}");
+            eprintln!("not-ONNX file: {msg}: {source}");
+        }
+        other => panic!("expected ONNX Runtime's error, got {other:?}"),
     }
 }

@@ -5,28 +5,28 @@ use std::path::PathBuf;
 /// Errors of the evaluation layer. Every variant names the set / frame / file it is about.
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {
-    /// A file could not be read or written.
-    #[error("{path}: {source}")]
+    /// A file could not be read or written (the message names the file; the cause is the source).
+    #[error("{}", path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The cause.
+        #[source]
         source: std::io::Error,
     },
     /// A MOMA file could not be read or written (`moma-io`; the message names the file).
     #[error(transparent)]
     MomaIo(Box<moma_io::IoError>),
-    /// A file of one frame could not be read or written (the message names set, frame and file).
-    ///
-    /// The cause is part of the message and deliberately not an error `source()`, so that
-    /// error-chain printers (`anyhow`'s `{:#}`) do not print it twice.
-    #[error("set '{set}', frame '{frame}': {error}")]
+    /// A file of one frame could not be read or written: the message names set and frame, the
+    /// source (which names the file) says what went wrong.
+    #[error("set '{set}', frame '{frame}'")]
     FrameIo {
         /// Set name.
         set: String,
         /// Frame id.
         frame: String,
         /// The cause (names the file).
+        #[source]
         error: Box<moma_io::IoError>,
     },
     /// A file's content is malformed (bad JSON...).
@@ -56,11 +56,12 @@ pub enum EvalError {
         message: String,
     },
     /// An error of the maths layer, with context.
-    #[error("{context}: {source}")]
+    #[error("{context}")]
     Core {
         /// Where it happened (set, frame, method).
         context: String,
         /// The cause.
+        #[source]
         source: moma_core::CoreError,
     },
     /// A parameter is outside its meaningful range.

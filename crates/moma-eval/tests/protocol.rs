@@ -23,6 +23,17 @@ fn close(a: f64, b: f64, what: &str) {
     assert!((a - b).abs() <= 1e-6, "{what}: moma {a} vs reference {b}");
 }
 
+/// The error and its sources joined by ": ", as the CLI prints them.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut parts = vec![e.to_string()];
+    let mut source = e.source();
+    while let Some(s) = source {
+        parts.push(s.to_string());
+        source = s.source();
+    }
+    parts.join(": ")
+}
+
 #[test]
 fn raw_metrics_match_reference_per_image_mean() {
     let set = set(4);
@@ -183,7 +194,7 @@ fn one_frame_set_is_an_error() {
     )
     .unwrap_err();
     assert!(matches!(e, EvalError::Set { .. }), "{e}");
-    assert!(e.to_string().contains("synthetic"), "{e}");
+    assert!(chain(&e).contains("synthetic"), "{e}");
 }
 
 #[test]
@@ -194,7 +205,7 @@ fn mask_without_valid_ground_truth_names_the_frame() {
         |(v, u)| u < 3 && v < 3,
     )));
     let e = evaluate(&s, &preds(3), &config(&["gssa"], Normalisation::Minmax, 1)).unwrap_err();
-    let msg = e.to_string();
+    let msg = chain(&e);
     assert!(
         msg.contains("f2") && msg.contains("no pixel with valid ground truth"),
         "{msg}"
@@ -209,7 +220,7 @@ fn size_mismatch_names_the_frame() {
         moma_core::PredictionKind::Depth,
     );
     let e = evaluate(&set(3), &p, &config(&["gssa"], Normalisation::Minmax, 1)).unwrap_err();
-    let msg = e.to_string();
+    let msg = chain(&e);
     assert!(
         msg.contains("'f1'") && msg.contains("prediction is"),
         "{msg}"
@@ -223,7 +234,7 @@ fn missing_prediction_file_names_the_frame() {
     moma_io::write_npy_f32(dir.path().join("f0.npy"), preds(1).maps[0].values.view()).unwrap();
     let e =
         PredictionSet::read(&s, dir.path(), Some(moma_core::PredictionKind::Depth)).unwrap_err();
-    let msg = e.to_string();
+    let msg = chain(&e);
     assert!(
         msg.contains("'f1'") && msg.contains("missing prediction file"),
         "{msg}"
@@ -235,7 +246,7 @@ fn unknown_calibration_frame_is_an_error() {
     let mut c = config(&["gssa"], Normalisation::Minmax, 1);
     c.calib_frame = Some("nope".into());
     let e = evaluate(&set(3), &preds(3), &c).unwrap_err();
-    assert!(e.to_string().contains("nope"));
+    assert!(chain(&e).contains("nope"));
     c.calib_frame = Some("f2".into());
     let r = evaluate(&set(3), &preds(3), &c).unwrap();
     assert_eq!(r[0].calib_frame, "f2");
@@ -343,13 +354,13 @@ fn workspace_of_the_wrong_size_or_empty_is_an_error() {
     let (s, p) = (set(3), preds(3));
     let mut c = config(&["gssa"], Normalisation::Minmax, 1);
     c.workspace = Some(moma_core::Mask::full(moma_core::ImageSize::new(W + 1, H)));
-    let msg = evaluate(&s, &p, &c).unwrap_err().to_string();
+    let msg = chain(&evaluate(&s, &p, &c).unwrap_err());
     assert!(
         msg.contains("workspace") && msg.contains("synthetic"),
         "{msg}"
     );
     c.workspace = Some(moma_core::Mask::new(Array2::from_elem((H, W), false)));
-    let msg = evaluate(&s, &p, &c).unwrap_err().to_string();
+    let msg = chain(&evaluate(&s, &p, &c).unwrap_err());
     assert!(msg.contains("workspace") && msg.contains("empty"), "{msg}");
 }
 
@@ -359,8 +370,6 @@ fn load_errors_name_the_frame_and_file() {
     moma_eval::data::write_set(dir.path(), &set(2)).unwrap();
     let bad = dir.path().join("frames").join("f1").join("depth.png");
     std::fs::write(&bad, b"not a png").unwrap();
-    let msg = moma_eval::data::load_set(dir.path())
-        .unwrap_err()
-        .to_string();
+    let msg = chain(&moma_eval::data::load_set(dir.path()).unwrap_err());
     assert!(msg.contains("'f1'") && msg.contains("depth.png"), "{msg}");
 }

@@ -17,7 +17,15 @@ use crate::error::{IoError, Result};
 pub fn read_camera(path: impl AsRef<Path>) -> Result<Intrinsics> {
     let path = path.as_ref();
     let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
-    let k: Intrinsics = serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
+    parse_camera(path, &text)
+}
+
+/// [`read_camera`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_camera`].
+pub fn parse_camera(path: &Path, text: &str) -> Result<Intrinsics> {
+    let k: Intrinsics = serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
     k.validate().map_err(|e| IoError::core(path, e))?;
     Ok(k)
 }

@@ -12,7 +12,8 @@ use ndarray_npy::{ReadNpyError, ReadNpyExt, WriteNpyExt};
 
 use crate::atomic::{atomic_write, write_err};
 use crate::error::{IoError, Result};
-use crate::png_util::{PngPixels, decode_image, encode_png, pixel_type};
+use crate::limits::{MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, check_image_size};
+use crate::png_util::{PngPixels, decode_image_bytes, encode_png, pixel_type};
 
 /// Stored units per metre of a depth PNG: uint16 millimetres.
 pub const PNG_DEPTH_UNITS_PER_M: f64 = 1000.0;
@@ -237,7 +238,19 @@ pub fn write_prediction(path: impl AsRef<Path>, pred: &Prediction) -> Result<()>
 /// corrupt file.
 pub fn read_png16(path: impl AsRef<Path>) -> Result<Array2<u16>> {
     let path = path.as_ref();
-    let img = decode_image(path, Some(image::ImageFormat::Png))?;
+    let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
+    png16_from_bytes(path, &bytes)
+}
+
+/// [`read_png16`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_png16`]; [`IoError::TooLarge`] when the header claims more than
+/// [`crate::MAX_IMAGE_PIXELS`] pixels or [`crate::MAX_IMAGE_SIDE_PX`] pixels per side, and
+/// [`IoError::Corrupt`] when it claims more pixel data than the file can hold, both before
+/// anything is allocated.
+pub fn png16_from_bytes(path: &Path, bytes: &[u8]) -> Result<Array2<u16>> {
+    let img = decode_image_bytes(path, bytes, Some(image::ImageFormat::Png))?;
     match img {
         image::DynamicImage::ImageLuma16(buf) => {
             let (w, h) = (buf.width() as usize, buf.height() as usize);
@@ -275,9 +288,21 @@ pub(crate) fn write_png16(
 pub fn read_npy_f32(path: impl AsRef<Path>) -> Result<Array2<f32>> {
     let path = path.as_ref();
     let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
-    let arr: ArrayD<f32> = match ArrayD::<f32>::read_npy(&bytes[..]) {
+    npy_f32_from_bytes(path, &bytes)
+}
+
+/// [`read_npy_f32`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_npy_f32`]; [`IoError::TooLarge`] when the header's shape holds more than
+/// [`crate::MAX_IMAGE_PIXELS`] elements or a side over [`crate::MAX_IMAGE_SIDE_PX`], and
+/// [`IoError::Corrupt`] when the data length differs from what the shape and dtype need, both
+/// before anything is allocated.
+pub fn npy_f32_from_bytes(path: &Path, bytes: &[u8]) -> Result<Array2<f32>> {
+    check_npy_header(path, bytes)?;
+    let arr: ArrayD<f32> = match ArrayD::<f32>::read_npy(bytes) {
         Ok(a) => a,
-        Err(ReadNpyError::WrongDescriptor(_)) => match ArrayD::<f64>::read_npy(&bytes[..]) {
+        Err(ReadNpyError::WrongDescriptor(_)) => match ArrayD::<f64>::read_npy(bytes) {
             Ok(a) => a.mapv(|v| v as f32),
             Err(ReadNpyError::WrongDescriptor(desc)) => {
                 return Err(IoError::unsupported(
@@ -292,6 +317,148 @@ pub fn read_npy_f32(path: impl AsRef<Path>) -> Result<Array2<f32>> {
         Err(e) => return Err(npy_read_error(path, e)),
     };
     squeeze_2d(path, arr)
+}
+
+/// Checks the shape an npy header claims against the limits and the data length, before
+/// `ndarray-npy` allocates for it. A header this function cannot parse is left to `ndarray-npy`
+/// (which reports it as corrupt).
+fn check_npy_header(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some((preamble, header_len)) = npy_header_len(bytes) {
+        let follow = bytes.len() as u64 - preamble;
+        if header_len > follow {
+            // ndarray-npy would allocate the claimed header length before reading it.
+            return Err(IoError::corrupt(
+                path,
+                "npy",
+                format!(
+                    "header claims {header_len} bytes, only {follow} follow (file is truncated)"
+                ),
+            ));
+        }
+    }
+    let Some((header, data_start)) = npy_header_text(bytes) else {
+        return Ok(());
+    };
+    let Some(shape) = npy_dict_shape(header) else {
+        return Ok(());
+    };
+    let mut elements: u64 = 1;
+    for &d in &shape {
+        elements = elements.saturating_mul(d);
+    }
+    // (H, W), (1, H, W) or (H, W, 1): the two largest dimensions are height and width; any
+    // other shape is refused later, but never allocated.
+    let mut sides = shape.clone();
+    sides.sort_unstable_by(|a, b| b.cmp(a));
+    let (height, width) = match sides.as_slice() {
+        [] => (1, 1),
+        [n] => (*n, 1),
+        [a, b, ..] => (*a, elements.checked_div(*a).unwrap_or(*b)),
+    };
+    if elements > MAX_IMAGE_PIXELS || shape.iter().any(|&d| d > MAX_IMAGE_SIDE_PX) {
+        return Err(IoError::TooLarge {
+            path: path.to_path_buf(),
+            format: "npy",
+            width,
+            height,
+            limit: if elements > MAX_IMAGE_PIXELS {
+                format!("{MAX_IMAGE_PIXELS} pixels")
+            } else {
+                format!("{MAX_IMAGE_SIDE_PX} pixels per side")
+            },
+        });
+    }
+    let Some(item_bytes) = npy_dict_item_bytes(header) else {
+        return Ok(());
+    };
+    let need = elements * item_bytes;
+    let have = (bytes.len() - data_start) as u64;
+    if need != have {
+        return Err(IoError::corrupt(
+            path,
+            "npy",
+            format!(
+                "header's shape {shape:?} of {item_bytes}-byte items needs {need} data bytes, \
+                 the file has {have}{}",
+                if need > have {
+                    " (file is truncated)"
+                } else {
+                    ""
+                }
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The length of an npy file's preamble (magic, version, length field) and the header length it
+/// claims, if the magic string and version are well-formed.
+fn npy_header_len(bytes: &[u8]) -> Option<(u64, u64)> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return None;
+    }
+    match bytes[6] {
+        1 => Some((10, u64::from(u16::from_le_bytes([bytes[8], bytes[9]])))),
+        2 | 3 if bytes.len() >= 12 => Some((
+            12,
+            u64::from(u32::from_le_bytes([
+                bytes[8], bytes[9], bytes[10], bytes[11],
+            ])),
+        )),
+        _ => None,
+    }
+}
+
+/// The header dictionary text of an npy file and the offset of its data, if the magic string,
+/// version and header length are well-formed.
+fn npy_header_text(bytes: &[u8]) -> Option<(&str, usize)> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return None;
+    }
+    let (len, start) = match bytes[6] {
+        1 => (
+            usize::from(u16::from_le_bytes([bytes[8], bytes[9]])),
+            10usize,
+        ),
+        2 | 3 if bytes.len() >= 12 => {
+            let n = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+            (usize::try_from(n).ok()?, 12)
+        }
+        _ => return None,
+    };
+    let end = len.checked_add(start)?;
+    let text = std::str::from_utf8(bytes.get(start..end)?).ok()?;
+    Some((text, end))
+}
+
+/// The tuple after `'shape':` in an npy header dictionary.
+fn npy_dict_shape(header: &str) -> Option<Vec<u64>> {
+    let rest = &header[header.find("'shape'")? + "'shape'".len()..];
+    let rest = rest
+        .trim_start()
+        .strip_prefix(':')?
+        .trim_start()
+        .strip_prefix('(')?;
+    let inner = &rest[..rest.find(')')?];
+    inner
+        .split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| t.trim_end_matches('L').parse::<u64>().ok())
+        .collect()
+}
+
+/// The item size in bytes of the `'descr'` of an npy header dictionary (`'<f4'` → 4).
+fn npy_dict_item_bytes(header: &str) -> Option<u64> {
+    let rest = &header[header.find("'descr'")? + "'descr'".len()..];
+    let rest = rest.trim_start().strip_prefix(':')?.trim_start();
+    let quote = rest.chars().next().filter(|c| *c == '\'' || *c == '"')?;
+    let descr = &rest[1..][..rest[1..].find(quote)?];
+    let digits = descr.trim_start_matches(|c: char| !c.is_ascii_digit());
+    match digits.parse::<u64>() {
+        Ok(n) if (1..=16).contains(&n) && descr.len() == 3 => Some(n),
+        _ => None,
+    }
 }
 
 fn npy_read_error(path: &Path, e: ReadNpyError) -> IoError {
@@ -363,7 +530,17 @@ pub fn write_npy_f32(path: impl AsRef<Path>, values: ArrayView2<'_, f32>) -> Res
 pub fn read_pfm(path: impl AsRef<Path>) -> Result<Array2<f32>> {
     let path = path.as_ref();
     let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
-    parse_pfm(path, &bytes)
+    pfm_from_bytes(path, &bytes)
+}
+
+/// [`read_pfm`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_pfm`]; [`IoError::TooLarge`] when the header claims more than
+/// [`crate::MAX_IMAGE_PIXELS`] pixels or [`crate::MAX_IMAGE_SIDE_PX`] pixels per side (checked
+/// before the data length and before anything is allocated).
+pub fn pfm_from_bytes(path: &Path, bytes: &[u8]) -> Result<Array2<f32>> {
+    parse_pfm(path, bytes)
 }
 
 fn parse_pfm(path: &Path, bytes: &[u8]) -> Result<Array2<f32>> {
@@ -410,6 +587,7 @@ fn parse_pfm(path: &Path, bytes: &[u8]) -> Result<Array2<f32>> {
     if width == 0 || height == 0 {
         return Err(bad(format!("image size {width}x{height} is empty")));
     }
+    check_image_size(path, "PFM", width as u64, height as u64)?;
     if !scale.is_finite() || scale == 0.0 {
         return Err(bad(format!(
             "scale {scale} must be finite and nonzero (its sign is the byte order)"

@@ -11,7 +11,7 @@ use moma_core::{CoreError, ImageSize};
 #[derive(Debug, thiserror::Error)]
 pub enum IoError {
     /// The operating system refused an operation (missing file, permission, full disk...).
-    #[error("{}: cannot {action}: {source}", path.display())]
+    #[error("{}: cannot {action}", path.display())]
     Io {
         /// The file or directory.
         path: PathBuf,
@@ -92,14 +92,33 @@ pub enum IoError {
         /// What is wrong.
         message: String,
     },
-    /// A `moma-core` check failed on data read from or destined for this file.
-    #[error("{}: {source}", path.display())]
+    /// A `moma-core` check failed on data read from or destined for this file (the message
+    /// names the file; the check's own message is the source).
+    #[error("{}", path.display())]
     Core {
         /// The file.
         path: PathBuf,
         /// The underlying error.
         #[source]
         source: CoreError,
+    },
+    /// A header claims an image larger than this build accepts ([`crate::MAX_IMAGE_PIXELS`],
+    /// [`crate::MAX_IMAGE_SIDE_PX`]); refused before anything is allocated for it.
+    #[error(
+        "{}: {format} header claims {width}x{height} pixels, over the limit of {limit}",
+        path.display()
+    )]
+    TooLarge {
+        /// The file.
+        path: PathBuf,
+        /// The format, e.g. `"PNG"`, `"npy"`, `"PFM"`.
+        format: &'static str,
+        /// Claimed width, pixels (npy: the product of all dimensions but the first).
+        width: u64,
+        /// Claimed height, pixels.
+        height: u64,
+        /// The limit exceeded, e.g. `"67108864 pixels"`.
+        limit: String,
     },
 }
 
@@ -114,7 +133,8 @@ impl IoError {
             | Self::CalibrationVersion { path, .. }
             | Self::SizeMismatch { path, .. }
             | Self::Invalid { path, .. }
-            | Self::Core { path, .. } => path,
+            | Self::Core { path, .. }
+            | Self::TooLarge { path, .. } => path,
         }
     }
 

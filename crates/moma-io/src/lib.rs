@@ -15,6 +15,7 @@
 //! | RGB-D sets | the "moma set" directory layout | [`MomaSet::open`] | [`MomaSetWriter`] |
 //! | calibrations | versioned JSON (`moma-calibration` v1) | [`read_calibration`] | [`write_calibration`] |
 //! | pictures | colour-mapped PNG (turbo/viridis) with its range in `tEXt` chunks; colour bar | [`read_colour_scale`] | [`write_depth_colormap`], [`colour_bar`] |
+//! | limits | every decoder refuses headers claiming more than [`MAX_IMAGE_PIXELS`] pixels or [`MAX_IMAGE_SIDE_PX`] per side, or more data than the file holds, before allocating | [`check_image_size`] | — |
 //! | point clouds | PLY, binary little-endian or ASCII, metres, camera frame | — | [`write_ply`], [`write_depth_ply`] |
 //!
 //! Metric depth and predictions are kept apart by type: [`write_depth`] accepts only a
@@ -48,6 +49,7 @@ mod camera;
 mod colormap;
 mod depth;
 mod error;
+mod limits;
 mod ply;
 mod png_util;
 mod predictions;
@@ -59,7 +61,7 @@ pub use calibration::{
     CALIBRATION_FORMAT, CALIBRATION_VERSION, CalibrationFile, CreationInfo,
     OLDEST_CALIBRATION_VERSION, parse_calibration, read_calibration, write_calibration,
 };
-pub use camera::{read_camera, write_camera};
+pub use camera::{parse_camera, read_camera, write_camera};
 pub use colormap::{
     COLORMAP_ENTRIES, Colormap, ColourScale, DepthRange, TEXT_COLORMAP, TEXT_MAX_M, TEXT_MIN_M,
     colormap_index, colour_bar, colourise, colourise_depth, colourise_with, read_colour_scale,
@@ -67,18 +69,20 @@ pub use colormap::{
 };
 pub use depth::{
     DepthFormat, DepthWriteStats, PNG_DEPTH_MAX_M, PNG_DEPTH_UNITS_PER_M, PfmByteOrder,
-    depth_to_mm, read_depth, read_depth_sized, read_npy_f32, read_pfm, read_png16, read_prediction,
-    write_depth, write_npy_f32, write_pfm, write_prediction,
+    depth_to_mm, npy_f32_from_bytes, pfm_from_bytes, png16_from_bytes, read_depth,
+    read_depth_sized, read_npy_f32, read_pfm, read_png16, read_prediction, write_depth,
+    write_npy_f32, write_pfm, write_prediction,
 };
 pub use error::{IoError, Result};
+pub use limits::{DEFLATE_MAX_RATIO, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, check_image_size};
 pub use ply::{PlyFormat, ply_header, write_depth_ply, write_ply};
 pub use predictions::{
     PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PredictionIndex, PredictionIndexHead,
     read_prediction_index, read_prediction_index_for, resolve_prediction_kind,
 };
 pub use raster::{
-    JPEG_QUALITY, read_mask, read_mask_sized, read_rgb, read_rgb_sized, rgb_size, write_mask,
-    write_rgb,
+    JPEG_QUALITY, mask_from_bytes, read_mask, read_mask_sized, read_rgb, read_rgb_sized,
+    rgb_from_bytes, rgb_size, write_mask, write_rgb,
 };
 pub use set::{
     CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, LoadedFrame, LoadedSet, MASK_FILE,

@@ -1,31 +1,35 @@
 //! Internal PNG/JPEG helpers shared by the depth, mask, RGB and colour-map modules.
 
 use std::fs::File;
-use std::io::{BufReader, Write};
+use std::io::{BufReader, Cursor, Write};
 use std::path::Path;
 
-use image::{DynamicImage, ImageFormat, ImageReader};
+use image::{DynamicImage, ImageDecoder, ImageFormat, ImageReader, Limits};
 
 use crate::error::{IoError, Result};
+use crate::limits::{
+    MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, check_image_size, check_png_length, png_ihdr,
+};
 
-/// Opens `path` (an [`IoError::Io`] when it cannot be opened) and decodes it as `format`
-/// (PNG or JPEG; `None`: guessed from the content). Decoding failures, truncation included,
-/// are [`IoError::Corrupt`].
-pub(crate) fn decode_image(path: &Path, format: Option<ImageFormat>) -> Result<DynamicImage> {
-    let file = File::open(path).map_err(|e| IoError::io(path, "open", e))?;
-    let mut reader = ImageReader::new(BufReader::new(file));
-    let name = match format {
-        Some(f) => {
-            reader.set_format(f);
-            format_name(f)
-        }
+/// Decodes the content of `path` (`bytes`) as `format` (PNG or JPEG; `None`: guessed from the
+/// content). The size the header claims is checked before any pixel memory is allocated
+/// ([`check_image_size`], and for PNG [`check_png_length`]). Decoding failures, truncation
+/// included, are [`IoError::Corrupt`].
+pub(crate) fn decode_image_bytes(
+    path: &Path,
+    bytes: &[u8],
+    format: Option<ImageFormat>,
+) -> Result<DynamicImage> {
+    let mut reader = ImageReader::new(Cursor::new(bytes));
+    let format = match format {
+        Some(f) => f,
         None => {
             reader = reader
                 .with_guessed_format()
                 .map_err(|e| IoError::io(path, "read", e))?;
             match reader.format() {
-                Some(f) => format_name(f),
-                None => {
+                Some(f @ (ImageFormat::Png | ImageFormat::Jpeg)) => f,
+                _ => {
                     return Err(IoError::corrupt(
                         path,
                         "image",
@@ -35,9 +39,25 @@ pub(crate) fn decode_image(path: &Path, format: Option<ImageFormat>) -> Result<D
             }
         }
     };
-    reader
-        .decode()
-        .map_err(|e| IoError::corrupt(path, name, e.to_string()))
+    let name = format_name(format);
+    if format == ImageFormat::Png
+        && let Some((width, height, bits_per_pixel)) = png_ihdr(bytes)
+    {
+        check_image_size(path, name, width, height)?;
+        check_png_length(path, width, height, bits_per_pixel, bytes.len() as u64)?;
+    }
+    reader.set_format(format);
+    let corrupt = |e: image::ImageError| IoError::corrupt(path, name, e.to_string());
+    let mut decoder = reader.into_decoder().map_err(corrupt)?;
+    let (width, height) = decoder.dimensions();
+    check_image_size(path, name, u64::from(width), u64::from(height))?;
+    let mut limits = Limits::default();
+    limits.max_image_width = Some(MAX_IMAGE_SIDE_PX as u32);
+    limits.max_image_height = Some(MAX_IMAGE_SIDE_PX as u32);
+    // The largest pixel type (RGBA, 16 bits per channel) at the largest accepted size.
+    limits.max_alloc = Some(MAX_IMAGE_PIXELS * 8);
+    decoder.set_limits(limits).map_err(corrupt)?;
+    DynamicImage::from_decoder(decoder).map_err(corrupt)
 }
 
 fn format_name(f: ImageFormat) -> &'static str {

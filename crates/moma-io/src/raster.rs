@@ -8,7 +8,7 @@ use ndarray::Array2;
 
 use crate::atomic::atomic_write;
 use crate::error::{IoError, Result};
-use crate::png_util::{PngPixels, decode_image, encode_png};
+use crate::png_util::{PngPixels, decode_image_bytes, encode_png};
 
 /// Reads a mask PNG: a pixel is inside when its value is nonzero.
 ///
@@ -21,7 +21,18 @@ use crate::png_util::{PngPixels, decode_image, encode_png};
 /// Unreadable ([`IoError::Io`]) or corrupt/truncated ([`IoError::Corrupt`]) PNG.
 pub fn read_mask(path: impl AsRef<Path>) -> Result<Mask> {
     let path = path.as_ref();
-    let img = decode_image(path, Some(ImageFormat::Png))?;
+    let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
+    mask_from_bytes(path, &bytes)
+}
+
+/// [`read_mask`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_mask`]; [`IoError::TooLarge`] / [`IoError::Corrupt`] when the header claims more
+/// than [`crate::MAX_IMAGE_PIXELS`] pixels or more pixel data than the file can hold (checked
+/// before anything is allocated).
+pub fn mask_from_bytes(path: &Path, bytes: &[u8]) -> Result<Mask> {
+    let img = decode_image_bytes(path, bytes, Some(ImageFormat::Png))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let inside: Vec<bool> = match img {
         DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(|v| v != 0).collect(),
@@ -81,7 +92,17 @@ pub fn write_mask(path: impl AsRef<Path>, mask: &Mask) -> Result<()> {
 /// Unreadable ([`IoError::Io`]), not PNG/JPEG, corrupt or truncated ([`IoError::Corrupt`]).
 pub fn read_rgb(path: impl AsRef<Path>) -> Result<RgbImage> {
     let path = path.as_ref();
-    Ok(decode_image(path, None)?.to_rgb8())
+    let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
+    rgb_from_bytes(path, &bytes)
+}
+
+/// [`read_rgb`] on the content of a file already in memory; `path` names it in errors.
+///
+/// # Errors
+/// As [`read_rgb`]; [`IoError::TooLarge`] when the header claims more than
+/// [`crate::MAX_IMAGE_PIXELS`] pixels (checked before anything is allocated).
+pub fn rgb_from_bytes(path: &Path, bytes: &[u8]) -> Result<RgbImage> {
+    Ok(decode_image_bytes(path, bytes, None)?.to_rgb8())
 }
 
 /// Reads an RGB image ([`read_rgb`]) and checks it is `expected` pixels in size.

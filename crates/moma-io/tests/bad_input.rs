@@ -6,8 +6,15 @@ use moma_core::{ImageSize, Intrinsics, Mask, MetricDepth, Prediction, Prediction
 use moma_io::*;
 use ndarray::{Array2, array};
 
+/// The error and its sources joined by ": ", as the CLI prints them.
 fn msg(e: &IoError) -> String {
-    e.to_string()
+    let mut parts = vec![e.to_string()];
+    let mut source = std::error::Error::source(e);
+    while let Some(s) = source {
+        parts.push(s.to_string());
+        source = s.source();
+    }
+    parts.join(": ")
 }
 
 fn write_small_png(path: &Path) {
@@ -740,4 +747,218 @@ fn ply_colour_image_mismatch() {
     .unwrap_err();
     assert!(matches!(e, IoError::Core { .. }), "{e}");
     assert!(!p.exists());
+}
+
+// ---------------------------------------------------------------------------------------------
+// Resource limits: headers claiming huge images are refused before allocation
+// ---------------------------------------------------------------------------------------------
+
+/// CRC-32 (ISO-HDLC, as PNG uses), bit by bit.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = 0xFFFF_FFFFu32;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+/// A PNG signature and a well-formed `IHDR` chunk (16-bit grayscale), then `tail`.
+fn png_header(width: u32, height: u32, tail: &[u8]) -> Vec<u8> {
+    let mut chunk = b"IHDR".to_vec();
+    chunk.extend_from_slice(&width.to_be_bytes());
+    chunk.extend_from_slice(&height.to_be_bytes());
+    chunk.extend_from_slice(&[16, 0, 0, 0, 0]); // bit depth, grayscale, deflate, filter, no interlace
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    out.extend_from_slice(&13u32.to_be_bytes());
+    out.extend_from_slice(&chunk);
+    out.extend_from_slice(&crc32(&chunk).to_be_bytes());
+    out.extend_from_slice(tail);
+    out
+}
+
+#[test]
+fn crc32_matches_the_published_check_value() {
+    assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+}
+
+#[test]
+fn png_header_claiming_100000_squared_is_too_large() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("huge.png");
+    std::fs::write(&p, png_header(100_000, 100_000, &[])).unwrap();
+    for e in [
+        read_depth(&p).unwrap_err(),
+        read_png16(&p).unwrap_err(),
+        read_mask(&p).unwrap_err(),
+        read_rgb(&p).unwrap_err(),
+    ] {
+        let m = msg(&e);
+        assert!(
+            matches!(
+                e,
+                IoError::TooLarge {
+                    width: 100_000,
+                    height: 100_000,
+                    ..
+                }
+            ) && m.contains("huge.png")
+                && m.contains("100000x100000")
+                && m.contains("65535 pixels per side"),
+            "{m}"
+        );
+    }
+    // Within the side limit but over the pixel limit.
+    std::fs::write(&p, png_header(60_000, 60_000, &[])).unwrap();
+    let e = read_png16(&p).unwrap_err();
+    assert!(
+        matches!(e, IoError::TooLarge { .. }) && msg(&e).contains("67108864 pixels"),
+        "{e}"
+    );
+}
+
+#[test]
+fn png_header_claiming_more_than_the_file_can_hold_is_corrupt() {
+    // 8000×8000 16-bit is within the limits but needs 128 MB of pixel data: at deflate's best
+    // ratio (1032:1) at least 124 032 bytes of file, and the file has 33 + 4.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("short.png");
+    std::fs::write(&p, png_header(8000, 8000, b"\0\0\0\0")).unwrap();
+    let e = read_png16(&p).unwrap_err();
+    let m = msg(&e);
+    assert!(
+        matches!(e, IoError::Corrupt { .. })
+            && m.contains("short.png")
+            && m.contains("8000x8000")
+            && m.contains("128000000 bytes")
+            && m.contains("at least 124032")
+            && m.contains("only 37"),
+        "{m}"
+    );
+}
+
+/// An npy v1.0 file: header dictionary padded to a multiple of 64 bytes, then `data`.
+fn npy_bytes(descr: &str, shape: &str, data: &[u8]) -> Vec<u8> {
+    let mut dict = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + dict.len() + 1) % 64 != 0 {
+        dict.push(' ');
+    }
+    dict.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+    out.extend_from_slice(dict.as_bytes());
+    out.extend_from_slice(data);
+    out
+}
+
+#[test]
+fn npy_header_claiming_100000_squared_is_too_large() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("huge.npy");
+    for shape in ["(100000, 100000)", "(1, 100000, 100000)"] {
+        std::fs::write(&p, npy_bytes("<f4", shape, &[0; 16])).unwrap();
+        for e in [
+            read_depth(&p).unwrap_err(),
+            read_npy_f32(&p).unwrap_err(),
+            read_prediction(&p, PredictionKind::Depth).unwrap_err(),
+        ] {
+            let m = msg(&e);
+            assert!(
+                matches!(
+                    e,
+                    IoError::TooLarge {
+                        width: 100_000,
+                        height: 100_000,
+                        ..
+                    }
+                ) && m.contains("huge.npy")
+                    && m.contains("npy header claims 100000x100000"),
+                "{m}"
+            );
+        }
+    }
+    // A product that overflows 64 bits is refused too (not wrapped around).
+    let shape = "(4294967296, 4294967296, 4294967296)";
+    std::fs::write(&p, npy_bytes("<f4", shape, &[])).unwrap();
+    assert!(matches!(
+        read_npy_f32(&p).unwrap_err(),
+        IoError::TooLarge { .. }
+    ));
+}
+
+#[test]
+fn npy_data_length_must_match_the_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("len.npy");
+    // 2×3 float64 needs 48 bytes.
+    std::fs::write(&p, npy_bytes("<f8", "(2, 3)", &[0; 40])).unwrap();
+    let m = msg(&read_npy_f32(&p).unwrap_err());
+    assert!(
+        m.contains("len.npy")
+            && m.contains("needs 48 data bytes, the file has 40")
+            && m.contains("truncated"),
+        "{m}"
+    );
+    std::fs::write(&p, npy_bytes("<f8", "(2, 3)", &[0; 56])).unwrap();
+    let m = msg(&read_npy_f32(&p).unwrap_err());
+    assert!(m.contains("needs 48 data bytes, the file has 56"), "{m}");
+    // Exactly right: reads.
+    std::fs::write(&p, npy_bytes("<f8", "(2, 3)", &[0; 48])).unwrap();
+    assert_eq!(read_npy_f32(&p).unwrap(), Array2::<f32>::zeros((2, 3)));
+}
+
+#[test]
+fn pfm_header_claiming_100000_squared_is_too_large() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("huge.pfm");
+    std::fs::write(&p, b"Pf\n100000 100000\n-1.0\n\0\0\0\0").unwrap();
+    let e = read_depth(&p).unwrap_err();
+    let m = msg(&e);
+    assert!(
+        matches!(
+            e,
+            IoError::TooLarge {
+                width: 100_000,
+                height: 100_000,
+                ..
+            }
+        ) && m.contains("huge.pfm")
+            && m.contains("PFM header claims 100000x100000"),
+        "{m}"
+    );
+}
+
+#[test]
+fn npy_header_length_beyond_the_file_is_refused_before_allocation() {
+    // Found by moma-fuzz (npy target, seed 0, iteration 17129): a version-3 npy header whose
+    // 32-bit length field claims 3 GB in a 187-byte file made ndarray-npy allocate 3 GB for the
+    // header before reading it.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("long_header.npy");
+    let mut b = b"\x93NUMPY\x03\x00".to_vec();
+    b.extend_from_slice(&0xb400_12b6u32.to_le_bytes());
+    b.extend_from_slice(b"{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2), }\n");
+    b.extend_from_slice(&[0; 16]);
+    std::fs::write(&p, &b).unwrap();
+    let e = read_npy_f32(&p).unwrap_err();
+    let m = msg(&e);
+    assert!(
+        matches!(e, IoError::Corrupt { .. })
+            && m.contains("long_header.npy")
+            && m.contains("header claims 3019903670 bytes")
+            && m.contains(&format!("only {} follow", b.len() - 12)),
+        "{m}"
+    );
+    // Version 1 (16-bit length) likewise.
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend_from_slice(&0xfff0u16.to_le_bytes());
+    b.extend_from_slice(b"{'descr': '<f4', 'shape': (1, 1), }\n");
+    std::fs::write(&p, &b).unwrap();
+    assert!(msg(&read_npy_f32(&p).unwrap_err()).contains("header claims 65520 bytes"));
 }

@@ -125,10 +125,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let pred = input.prediction;
     let size = pred.size();
 
+    // The I/O error names the ground-truth file; the context adds which prediction it is for.
     let gt = moma_io::read_depth_sized(&args.gt, size).with_context(|| {
         format!(
-            "reading ground truth {} (for prediction {})",
-            args.gt.display(),
+            "reading the ground truth for prediction {}",
             input.path.display()
         )
     })?;

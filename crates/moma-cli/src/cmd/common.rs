@@ -215,7 +215,8 @@ impl ModelArgs {
         };
         let model =
             moma_depth::load_model_with_adapter(&weights, spec, &options, self.lora.as_deref())
-                .with_context(|| format!("loading depth model {}", weights.display()))?;
+                // Weight-file errors name the file themselves.
+                .context("loading the depth model")?;
         Ok(LoadedModel { model, weights })
     }
 }

@@ -36,13 +36,9 @@ pub struct MetricsArgs {
 
 pub fn run(args: &MetricsArgs) -> Result<()> {
     let pred = moma_io::read_depth(&args.pred)?;
-    let gt = moma_io::read_depth_sized(&args.gt, pred.size()).with_context(|| {
-        format!(
-            "reading ground truth {} (for {})",
-            args.gt.display(),
-            args.pred.display()
-        )
-    })?;
+    // The I/O error names the ground-truth file; the context adds which map it is for.
+    let gt = moma_io::read_depth_sized(&args.gt, pred.size())
+        .with_context(|| format!("reading the ground truth for {}", args.pred.display()))?;
     let mask = args
         .mask
         .as_ref()

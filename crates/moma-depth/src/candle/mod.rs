@@ -370,7 +370,18 @@ pub fn open_device(request: DeviceRequest) -> Result<Device> {
 }
 
 fn backend(e: candle_core::Error) -> DepthError {
-    DepthError::Backend(e.to_string())
+    DepthError::Candle {
+        context: "running the network".into(),
+        source: e,
+    }
+}
+
+/// candle's error `e` while reading the weight file `path`.
+fn weights_source(path: &Path) -> impl FnOnce(candle_core::Error) -> DepthError + '_ {
+    move |source| DepthError::Candle {
+        context: format!("cannot load weights from {}", path.display()),
+        source,
+    }
 }
 
 /// Depth Anything V2 on candle; implements [`DepthModel`]. Computes in the dtype it was loaded with
@@ -450,11 +461,11 @@ impl OpenedCheckpoint {
     }
 
     /// A `.safetensors` checkpoint (memory-mapped).
-    fn safetensors(path: &Path) -> std::result::Result<Self, String> {
+    fn safetensors(path: &Path) -> Result<Self> {
         // SAFETY: the file is mapped read-only; as everywhere with mmap, it must not be truncated
         // while mapped. The mapping lives only during loading (weights are copied into tensors).
         let st = unsafe { candle_core::safetensors::MmapedSafetensors::new(path) }
-            .map_err(|e| e.to_string())?;
+            .map_err(weights_source(path))?;
         let listing: Vec<_> = st
             .tensors()
             .into_iter()
@@ -469,9 +480,9 @@ impl OpenedCheckpoint {
 
     /// A PyTorch zip checkpoint: a plain state dict (the official releases), or one nested under
     /// `state_dict` or `model`.
-    fn pytorch(path: &Path) -> std::result::Result<Self, String> {
+    fn pytorch(path: &Path) -> Result<Self> {
         use candle_core::pickle::PthTensors;
-        let mut pth = PthTensors::new(path, None).map_err(|e| e.to_string())?;
+        let mut pth = PthTensors::new(path, None).map_err(weights_source(path))?;
         for key in ["state_dict", "model"] {
             if !pth.tensor_infos().is_empty() {
                 break;
@@ -481,7 +492,10 @@ impl OpenedCheckpoint {
             }
         }
         if pth.tensor_infos().is_empty() {
-            return Err("no tensors found in the PyTorch archive (expected a state dict)".into());
+            return Err(DepthError::Weights {
+                path: path.display().to_string(),
+                reason: "no tensors found in the PyTorch archive (expected a state dict)".into(),
+            });
         }
         let listing: Vec<_> = pth
             .tensor_infos()
@@ -511,8 +525,14 @@ pub fn open_checkpoint(
     };
     config.validate()?;
     let opened = match WeightsFormat::sniff(path).map_err(werr)? {
-        WeightsFormat::Safetensors => OpenedCheckpoint::safetensors(path),
-        WeightsFormat::PyTorchZip => OpenedCheckpoint::pytorch(path),
+        WeightsFormat::Safetensors => {
+            crate::weights_limits::check_safetensors_file(path)?;
+            OpenedCheckpoint::safetensors(path)
+        }
+        WeightsFormat::PyTorchZip => {
+            crate::weights_limits::check_weights_file_size(path)?;
+            OpenedCheckpoint::pytorch(path)
+        }
     }
     .map_err(werr)?;
     config.check_tensors(&opened.shapes).map_err(werr)?;
@@ -593,7 +613,7 @@ impl CandleDepthModel {
         };
         let vb = open_checkpoint(path, &config, device, dtype)?;
         Self::from_var_builder(config, vb).map_err(|e| match e {
-            DepthError::Backend(reason) => werr(reason),
+            DepthError::Candle { source, .. } => weights_source(path)(source),
             other => other,
         })
     }
@@ -630,13 +650,17 @@ impl CandleDepthModel {
     /// `depth_head.*` (e.g. `VarBuilder::zeros` for shape tests, a `VarMap` for fine-tuning).
     ///
     /// # Errors
-    /// Missing or mis-shaped variables ([`DepthError::Backend`]).
+    /// Missing or mis-shaped variables ([`DepthError::Candle`]).
     pub fn from_var_builder(config: DepthAnythingConfig, vb: VarBuilder) -> Result<Self> {
         config.validate()?;
         let device = vb.device().clone();
         let dtype = vb.dtype();
-        let encoder = DinoV2::new(&config, vb.pp("pretrained")).map_err(backend)?;
-        let head = DptHead::new(&config, vb.pp("depth_head")).map_err(backend)?;
+        let building = |source| DepthError::Candle {
+            context: "building the network from its variables".into(),
+            source,
+        };
+        let encoder = DinoV2::new(&config, vb.pp("pretrained")).map_err(building)?;
+        let head = DptHead::new(&config, vb.pp("depth_head")).map_err(building)?;
         Ok(Self {
             config,
             encoder,
