@@ -6,6 +6,14 @@ Prints medians in milliseconds. The Rust number comes from the `align_timing` ex
 crates/moma-py (build it with `cargo build --release -p moma-py --example align_timing`),
 run in the same session on the same calibration file and prediction. The NumPy number is SSRA's
 apply written in NumPy (float32, same normalisation: inverse depth → 1/d, min-max).
+
+Run it with glibc's malloc thresholds pinned, so that the Python process (whose NumPy allocations
+raise glibc's dynamic mmap threshold) and the Rust process allocate the 1.2 MB output the same way:
+
+    MALLOC_MMAP_THRESHOLD_=67108864 MALLOC_TRIM_THRESHOLD_=134217728 python benches/python/bench_align.py
+
+Without it, the stand-alone Rust process mmaps every fresh output buffer and pays ~1 ms of page
+faults per call (1.5 ms instead of 0.5 ms at 640×480), which would flatter the Python number.
 """
 
 import argparse

@@ -8,8 +8,8 @@
 use moma_core::Mask;
 use ndarray::Array2;
 use numpy::{
-    PyArray2, PyArray3, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArray,
-    PyUntypedArrayMethods,
+    PyArray2, PyArray3, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArray, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 
@@ -25,7 +25,12 @@ fn as_ndarray<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, P
         .map_err(|_| value_err(format!("{what}: not convertible to a NumPy array")))
 }
 
-fn check_ndim(arr: &Bound<'_, PyUntypedArray>, ndim: usize, what: &str, layout: &str) -> PyResult<()> {
+fn check_ndim(
+    arr: &Bound<'_, PyUntypedArray>,
+    ndim: usize,
+    what: &str,
+    layout: &str,
+) -> PyResult<()> {
     if arr.ndim() != ndim {
         return Err(value_err(format!(
             "{what} must be a {ndim}-D array ({layout}), got shape {:?}",
@@ -47,7 +52,9 @@ fn dtype_kind(arr: &Bound<'_, PyUntypedArray>) -> PyResult<char> {
 /// `moma.InvalidInputError`: not array-like, not 2-D, or not of a real dtype.
 pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyArray2<'py, f32>> {
     if let Ok(a) = obj.cast::<PyArray2<f32>>() {
-        return a.try_readonly().map_err(|e| value_err(format!("{what}: {e}")));
+        return a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")));
     }
     let arr = as_ndarray(obj, what)?;
     check_ndim(&arr, 2, what, "height × width")?;
@@ -65,7 +72,8 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
     let conv = conv
         .cast_into::<PyArray2<f32>>()
         .map_err(|_| value_err(format!("{what}: cannot convert to a float32 2-D array")))?;
-    conv.try_readonly().map_err(|e| value_err(format!("{what}: {e}")))
+    conv.try_readonly()
+        .map_err(|e| value_err(format!("{what}: {e}")))
 }
 
 /// An `H × W × 3` `uint8` RGB image as an [`image::RgbImage`] (one copy into the image buffer).
@@ -74,7 +82,9 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
 /// `moma.InvalidInputError`: not 3-D with 3 channels, or not `uint8`.
 pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage> {
     let ro: PyReadonlyArray3<'_, u8> = match obj.cast::<PyArray3<u8>>() {
-        Ok(a) => a.try_readonly().map_err(|e| value_err(format!("{what}: {e}")))?,
+        Ok(a) => a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?,
         Err(_) => {
             let arr = as_ndarray(obj, what)?;
             check_ndim(&arr, 3, what, "height × width × 3, uint8")?;
@@ -93,7 +103,10 @@ pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage
         )));
     }
     if h == 0 || w == 0 {
-        return Err(value_err(format!("{what} is empty (shape {:?})", view.shape())));
+        return Err(value_err(format!(
+            "{what} is empty (shape {:?})",
+            view.shape()
+        )));
     }
     let data: Vec<u8> = match view.as_slice() {
         Some(s) => s.to_vec(),
@@ -113,11 +126,15 @@ pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage
 /// `moma.InvalidInputError`: not 2-D, or another dtype.
 pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
     if let Ok(a) = obj.cast::<PyArray2<bool>>() {
-        let ro = a.try_readonly().map_err(|e| value_err(format!("{what}: {e}")))?;
+        let ro = a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?;
         return Ok(Mask::new(ro.as_array().to_owned()));
     }
     if let Ok(a) = obj.cast::<PyArray2<u8>>() {
-        let ro = a.try_readonly().map_err(|e| value_err(format!("{what}: {e}")))?;
+        let ro = a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?;
         return Ok(Mask::new(ro.as_array().mapv(|v| v != 0)));
     }
     let arr = as_ndarray(obj, what)?;
@@ -133,7 +150,9 @@ pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
 /// # Errors
 /// As [`mask`].
 pub fn opt_mask(obj: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Option<Mask>> {
-    obj.filter(|o| !o.is_none()).map(|o| mask(o, what)).transpose()
+    obj.filter(|o| !o.is_none())
+        .map(|o| mask(o, what))
+        .transpose()
 }
 
 /// Owned copy of a 2-D `float32` argument (for moma types that own their pixels).

@@ -20,7 +20,9 @@ use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{Normalisation, NormalisationConfig, normalise};
 use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
-use moma_core::{CoreError, Intrinsics as CoreIntrinsics, Mask, MetricDepth, Prediction, PredictionKind};
+use moma_core::{
+    CoreError, Intrinsics as CoreIntrinsics, Mask, MetricDepth, Prediction, PredictionKind,
+};
 use moma_depth::{Backbone, DepthModel as DepthModelTrait, Head, ModelSpec};
 use moma_io::{CalibrationFile, CreationInfo};
 use ndarray::{Array2, ArrayView2, ArrayViewMut2};
@@ -221,7 +223,9 @@ fn align_into_core(
             got: pred.kind,
         });
     }
-    cal.samples.image_size.expect_eq("prediction", pred.size())?;
+    cal.samples
+        .image_size
+        .expect_eq("prediction", pred.size())?;
     let normalised = normalise(pred, &cal.normalisation, workspace)?;
     cal.model.apply_into(normalised.values.view(), out)
 }
@@ -244,7 +248,11 @@ impl Calibration {
 impl Calibration {
     /// Aligns a prediction of the calibrated kind and size: metric depth, float32 metres, NaN where
     /// no depth can be inferred. The GIL is released during the computation.
-    fn align<'py>(&self, py: Python<'py>, pred: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    fn align<'py>(
+        &self,
+        py: Python<'py>,
+        pred: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let ro = f32_2d(pred, "pred")?;
         let view = ro.as_array();
         let depth = py
@@ -258,7 +266,12 @@ impl Calibration {
 
     /// Like `align`, writing metres into `out` (float32, same shape as `pred`, writable) instead
     /// of allocating the result.
-    fn align_into(&self, py: Python<'_>, pred: &Bound<'_, PyAny>, out: &Bound<'_, PyAny>) -> PyResult<()> {
+    fn align_into(
+        &self,
+        py: Python<'_>,
+        pred: &Bound<'_, PyAny>,
+        out: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
         let out = out.cast::<PyArray2<f32>>().map_err(|_| {
             value_err("out must be a writable 2-D float32 NumPy array (height × width)")
         })?;
@@ -445,7 +458,8 @@ fn calibrate(
         .detach(|| {
             let pred = Prediction::new(pred_v.to_owned(), kind);
             if let Some(k) = &intrinsics {
-                k.size().expect_eq("prediction (vs camera intrinsics)", pred.size())?;
+                k.size()
+                    .expect_eq("prediction (vs camera intrinsics)", pred.size())?;
             }
             let gt = MetricDepth::new(gt_v.to_owned());
             moma_core::pipeline::calibrate(
@@ -515,10 +529,9 @@ fn depth_to_points<'py>(
         depth.size().expect_eq("rgb", got).py()?;
     }
     let k = cam.inner;
-    let points = py
-        .detach(|| moma_core::depth_to_points(&depth, &k))
-        .py()?;
-    let xyz = Array2::from_shape_fn((points.len(), 3), |(i, j)| points[i].xyz_m[j]).into_pyarray(py);
+    let points = py.detach(|| moma_core::depth_to_points(&depth, &k)).py()?;
+    let xyz =
+        Array2::from_shape_fn((points.len(), 3), |(i, j)| points[i].xyz_m[j]).into_pyarray(py);
     match image {
         None => Ok(xyz.into_any()),
         Some(img) => {
@@ -663,10 +676,10 @@ fn load_depth_model(
         "onnx" => load_onnx(weights, spec, device, precision),
         _ => {
             let dev = moma_depth::candle::open_device(device)?;
-            let config = config.unwrap_or_else(|| {
-                moma_depth::candle::DepthAnythingConfig::from_spec(&spec)
-            });
-            let m = moma_depth::candle::CandleDepthModel::load_with(weights, config, &dev, precision)?;
+            let config =
+                config.unwrap_or_else(|| moma_depth::candle::DepthAnythingConfig::from_spec(&spec));
+            let m =
+                moma_depth::candle::CandleDepthModel::load_with(weights, config, &dev, precision)?;
             let runtime = m.runtime();
             Ok((Box::new(m), runtime))
         }
@@ -759,10 +772,7 @@ impl DepthModel {
         let config = match config {
             None => None,
             Some(d) => {
-                let text: String = py
-                    .import("json")?
-                    .call_method1("dumps", (d,))?
-                    .extract()?;
+                let text: String = py.import("json")?.call_method1("dumps", (d,))?.extract()?;
                 let c: moma_depth::candle::DepthAnythingConfig = serde_json::from_str(&text)
                     .map_err(|e| value_err(format!("config: not a DepthAnythingConfig: {e}")))?;
                 Some(c)
@@ -782,7 +792,11 @@ impl DepthModel {
     /// Runs the network on an 8-bit RGB image (`height × width × 3`, uint8) and returns the
     /// prediction at the image's size (float32): inverse depth (relative head, unitless) or
     /// depth in metres (metric head); see `kind`. The GIL is released during inference.
-    fn predict<'py>(&self, py: Python<'py>, rgb: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        rgb: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let image = rgb_image(rgb, "rgb")?;
         let pred = py
             .detach(|| {
