@@ -36,7 +36,8 @@ def predict(depth_m):
 gt_m = grab(0.0)
 gt_m[rng.random(gt_m.shape) < 0.2] = 0.0
 cal = moma.calibrate(predict(grab(0.0)), gt_m, CAM, kind="inverse-depth", samples=100, seed=0)
-print(cal, "\n", {k: v for k, v in cal.report.items() if k != "model"})
+print(cal)
+print({k: v for k, v in cal.report.items() if k != "model"})
 
 # 2. the loop: align each new prediction into a reused buffer
 out = np.empty((H, W), dtype=np.float32)

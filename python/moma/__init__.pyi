@@ -5,8 +5,6 @@ from ._errors import MomaFileError as MomaFileError
 from ._moma import Calibration as Calibration
 from ._moma import DepthModel as DepthModel
 from ._moma import Intrinsics as Intrinsics
-from ._moma import Metrics as Metrics
-from ._moma import Report as Report
 from ._moma import __version__ as __version__
 from ._moma import calibrate as calibrate
 from ._moma import depth_to_points as depth_to_points
@@ -17,3 +15,23 @@ from ._moma import read_prediction as read_prediction
 from ._moma import read_rgb as read_rgb
 from ._moma import write_depth as write_depth
 from ._moma import write_prediction as write_prediction
+
+__all__ = [
+    "BackendError",
+    "Calibration",
+    "DepthModel",
+    "Intrinsics",
+    "InvalidInputError",
+    "MomaError",
+    "MomaFileError",
+    "__version__",
+    "calibrate",
+    "depth_to_points",
+    "has_onnx",
+    "metrics",
+    "read_depth",
+    "read_prediction",
+    "read_rgb",
+    "write_depth",
+    "write_prediction",
+]

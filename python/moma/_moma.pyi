@@ -7,7 +7,7 @@ without conversion, anything else is converted to ``float32`` once. Bad arrays o
 """
 
 from os import PathLike
-from typing import Any, Literal, Optional, Tuple, TypedDict, Union, overload
+from typing import Any, Literal, Optional, Tuple, TypedDict, Union, final, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -20,9 +20,25 @@ _Sampling = Literal["random", "grid"]
 _F32 = npt.NDArray[np.float32]
 _Mask = Union[npt.NDArray[np.bool_], npt.NDArray[np.uint8]]
 
+__all__ = [
+    "Calibration",
+    "DepthModel",
+    "Intrinsics",
+    "__version__",
+    "calibrate",
+    "depth_to_points",
+    "has_onnx",
+    "metrics",
+    "read_depth",
+    "read_prediction",
+    "read_rgb",
+    "write_depth",
+    "write_prediction",
+]
+
 __version__: str
 
-class Report(TypedDict):
+class _Report(TypedDict):
     """``Calibration.report``: the fields ``moma calibrate --json`` prints."""
 
     method: str
@@ -34,7 +50,7 @@ class Report(TypedDict):
     model: dict[str, Any]
     """The fitted parameters (as in the calibration file)."""
 
-class Metrics(TypedDict):
+class _Metrics(TypedDict):
     """``moma.metrics``: depth accuracy over pixels valid in both maps."""
 
     d105: float
@@ -52,19 +68,20 @@ class Metrics(TypedDict):
     n: int
     """Number of pixels evaluated."""
 
-class WriteStats(TypedDict):
+class _WriteStats(TypedDict):
     pixels: int
     invalid: int
     """Pixels that were NaN / ±inf / ≤ 0 m."""
     out_of_range: int
     """Valid depths the format cannot hold (PNG: < 0.5 mm or > 65.535 m), written as 0."""
 
+@final
 class Intrinsics:
     """Pinhole intrinsics in pixels for a ``width × height`` image (x right, y down, z forward)."""
 
-    def __init__(
-        self, fx: float, fy: float, cx: float, cy: float, width: int, height: int
-    ) -> None:
+    def __new__(
+        cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int
+    ) -> "Intrinsics":
         """``fx``, ``fy``: focal lengths (px, > 0); ``cx``, ``cy``: principal point (px);
         ``width``, ``height``: image size (px). Raises ``InvalidInputError`` on invalid values."""
     @staticmethod
@@ -87,6 +104,7 @@ class Intrinsics:
     def to_dict(self) -> dict[str, Any]:
         """The ``camera.json`` fields."""
 
+@final
 class Calibration:
     """A fitted alignment (the content of a ``moma calibrate`` calibration file)."""
 
@@ -102,7 +120,7 @@ class Calibration:
     def load(path: _Path) -> "Calibration":
         """Reads a file written by ``moma calibrate`` or ``Calibration.save``."""
     @property
-    def report(self) -> Report: ...
+    def report(self) -> _Report: ...
     @property
     def kind(self) -> _Kind:
         """Prediction kind this calibration accepts."""
@@ -151,7 +169,7 @@ def calibrate(
 
 def metrics(
     depth_m: npt.ArrayLike, gt_m: npt.ArrayLike, mask: Optional[_Mask] = None
-) -> Metrics:
+) -> _Metrics:
     """Accuracy of ``depth_m`` (metres) against ``gt_m`` (metres) over pixels valid in both."""
 
 @overload
@@ -163,7 +181,7 @@ def depth_to_points(
 def read_depth(path: _Path) -> _F32:
     """Metric depth from uint16 PNG (mm, 0 = none), ``.npy`` or ``.pfm`` (m): float32 metres, NaN = none."""
 
-def write_depth(path: _Path, depth_m: npt.ArrayLike) -> WriteStats:
+def write_depth(path: _Path, depth_m: npt.ArrayLike) -> _WriteStats:
     """Writes metric depth by extension: ``.png`` uint16 mm, ``.npy``/``.pfm`` float32 m (atomic)."""
 
 def read_prediction(path: _Path) -> _F32:
@@ -178,11 +196,12 @@ def write_prediction(path: _Path, pred: npt.ArrayLike) -> None:
 def has_onnx() -> bool:
     """Whether this build has the ONNX Runtime backend."""
 
+@final
 class DepthModel:
     """Depth Anything V2. Thread-safe (one inference at a time per object); releases the GIL."""
 
-    def __init__(
-        self,
+    def __new__(
+        cls,
         weights: _Path,
         model: Literal["vits", "vitb", "vitl"] = "vits",
         head: Literal["relative", "metric"] = "relative",
@@ -194,7 +213,7 @@ class DepthModel:
         input_size: int = 518,
         dtype: Literal["f32", "f16", "bf16"] = "f32",
         config: Optional[dict[str, Any]] = None,
-    ) -> None:
+    ) -> "DepthModel":
         """``weights``: official checkpoint (.pth / .safetensors; candle) or .onnx (onnx builds);
         ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
         largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14);

@@ -120,7 +120,7 @@ fn to_py_json<'py>(py: Python<'py>, value: &impl serde::Serialize) -> PyResult<B
 
 /// Pinhole camera intrinsics in pixels, for an image of `width × height` pixels.
 #[pyclass(module = "moma", frozen, eq)]
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 struct Intrinsics {
     inner: CoreIntrinsics,
 }
@@ -756,7 +756,7 @@ impl DepthModel {
             "auto" => "candle",
             b => b,
         };
-        if input_size == 0 || input_size % 14 != 0 {
+        if input_size == 0 || !input_size.is_multiple_of(14) {
             return Err(value_err(format!(
                 "input_size {input_size} must be a positive multiple of 14 pixels"
             )));
