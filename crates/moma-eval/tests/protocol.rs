@@ -281,7 +281,10 @@ fn set_round_trips_through_the_layout() {
     for (a, b) in back.frames.iter().zip(&s.frames) {
         assert_eq!(a.mask, b.mask);
         for (x, y) in a.gt.depth_m.iter().zip(b.gt.depth_m.iter()) {
-            assert!((x - y).abs() <= 0.0005 + 1e-6);
+            // invalid depth (0 here) reads back as NaN, moma's one convention
+            let (vx, vy) = (moma_core::is_valid_depth(*x), moma_core::is_valid_depth(*y));
+            assert_eq!(vx, vy);
+            assert!(!vx || (x - y).abs() <= 0.0005 + 1e-6);
         }
     }
 }
@@ -371,5 +374,5 @@ fn load_errors_name_the_frame_and_file() {
     let bad = dir.path().join("frames").join("f1").join("depth.png");
     std::fs::write(&bad, b"not a png").unwrap();
     let msg = chain(&moma_eval::data::load_set(dir.path()).unwrap_err());
-    assert!(msg.contains("'f1'") && msg.contains("depth.png"), "{msg}");
+    assert!(msg.contains("f1") && msg.contains("depth.png"), "{msg}");
 }

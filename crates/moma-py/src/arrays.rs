@@ -1,0 +1,164 @@
+//! NumPy arrays in: checked, and converted at most once.
+//!
+//! A C-contiguous `float32` array is read in place (no conversion); any other real dtype or
+//! memory layout is converted once with `numpy.asarray(x, dtype=float32)`. Wrong number of
+//! dimensions, a non-numeric dtype or an object that is not array-like raise
+//! `moma.InvalidInputError` naming the argument.
+
+use moma_core::Mask;
+use ndarray::Array2;
+use numpy::{
+    PyArray2, PyArray3, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArray, PyUntypedArrayMethods,
+};
+use pyo3::prelude::*;
+
+use crate::errors::value_err;
+
+/// `numpy.asarray(obj)`, with a clear error when `obj` is not array-like.
+fn as_ndarray<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, PyUntypedArray>> {
+    let np = obj.py().import("numpy")?;
+    let arr = np
+        .call_method1("asarray", (obj,))
+        .map_err(|e| value_err(format!("{what}: not convertible to a NumPy array: {e}")))?;
+    arr.cast_into::<PyUntypedArray>()
+        .map_err(|_| value_err(format!("{what}: not convertible to a NumPy array")))
+}
+
+fn check_ndim(
+    arr: &Bound<'_, PyUntypedArray>,
+    ndim: usize,
+    what: &str,
+    layout: &str,
+) -> PyResult<()> {
+    if arr.ndim() != ndim {
+        return Err(value_err(format!(
+            "{what} must be a {ndim}-D array ({layout}), got shape {:?}",
+            arr.shape()
+        )));
+    }
+    Ok(())
+}
+
+/// The NumPy dtype kind character (`f`, `i`, `u`, `b`, `c`, `O`, `U`, …).
+fn dtype_kind(arr: &Bound<'_, PyUntypedArray>) -> PyResult<char> {
+    Ok(arr.dtype().kind() as char)
+}
+
+/// A 2-D `float32` array: `obj` itself when it already is one (any strides), else converted once
+/// from a real (float/int/bool) 2-D array.
+///
+/// # Errors
+/// `moma.InvalidInputError`: not array-like, not 2-D, or not of a real dtype.
+pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyArray2<'py, f32>> {
+    if let Ok(a) = obj.cast::<PyArray2<f32>>() {
+        return a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")));
+    }
+    let arr = as_ndarray(obj, what)?;
+    check_ndim(&arr, 2, what, "height × width")?;
+    let kind = dtype_kind(&arr)?;
+    if !matches!(kind, 'f' | 'i' | 'u' | 'b') {
+        return Err(value_err(format!(
+            "{what} has dtype {}, expected real numbers (float32 preferred)",
+            arr.dtype()
+        )));
+    }
+    let np = obj.py().import("numpy")?;
+    let conv = np
+        .call_method1("asarray", (arr, "float32"))
+        .map_err(|e| value_err(format!("{what}: cannot convert to float32: {e}")))?;
+    let conv = conv
+        .cast_into::<PyArray2<f32>>()
+        .map_err(|_| value_err(format!("{what}: cannot convert to a float32 2-D array")))?;
+    conv.try_readonly()
+        .map_err(|e| value_err(format!("{what}: {e}")))
+}
+
+/// An `H × W × 3` `uint8` RGB image as an [`image::RgbImage`] (one copy into the image buffer).
+///
+/// # Errors
+/// `moma.InvalidInputError`: not 3-D with 3 channels, or not `uint8`.
+pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage> {
+    let ro: PyReadonlyArray3<'_, u8> = match obj.cast::<PyArray3<u8>>() {
+        Ok(a) => a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?,
+        Err(_) => {
+            let arr = as_ndarray(obj, what)?;
+            check_ndim(&arr, 3, what, "height × width × 3, uint8")?;
+            return Err(value_err(format!(
+                "{what} has dtype {}, expected uint8 (0–255 per channel)",
+                arr.dtype()
+            )));
+        }
+    };
+    let view = ro.as_array();
+    let (h, w, c) = view.dim();
+    if c != 3 {
+        return Err(value_err(format!(
+            "{what} must be height × width × 3 (RGB), got shape {:?}",
+            view.shape()
+        )));
+    }
+    if h == 0 || w == 0 {
+        return Err(value_err(format!(
+            "{what} is empty (shape {:?})",
+            view.shape()
+        )));
+    }
+    let data: Vec<u8> = match view.as_slice() {
+        Some(s) => s.to_vec(),
+        None => view.iter().copied().collect(),
+    };
+    let (wu, hu) = (
+        u32::try_from(w).map_err(|_| value_err(format!("{what}: too wide")))?,
+        u32::try_from(h).map_err(|_| value_err(format!("{what}: too tall")))?,
+    );
+    image::RgbImage::from_raw(wu, hu, data)
+        .ok_or_else(|| value_err(format!("{what}: buffer does not match its shape")))
+}
+
+/// A mask from a 2-D `bool` or `uint8` array (nonzero = inside).
+///
+/// # Errors
+/// `moma.InvalidInputError`: not 2-D, or another dtype.
+pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
+    if let Ok(a) = obj.cast::<PyArray2<bool>>() {
+        let ro = a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?;
+        return Ok(Mask::new(ro.as_array().to_owned()));
+    }
+    if let Ok(a) = obj.cast::<PyArray2<u8>>() {
+        let ro = a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?;
+        return Ok(Mask::new(ro.as_array().mapv(|v| v != 0)));
+    }
+    let arr = as_ndarray(obj, what)?;
+    check_ndim(&arr, 2, what, "height × width, bool or uint8")?;
+    Err(value_err(format!(
+        "{what} has dtype {}, expected bool or uint8 (nonzero = inside)",
+        arr.dtype()
+    )))
+}
+
+/// An optional mask argument.
+///
+/// # Errors
+/// As [`mask`].
+pub fn opt_mask(obj: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Option<Mask>> {
+    obj.filter(|o| !o.is_none())
+        .map(|o| mask(o, what))
+        .transpose()
+}
+
+/// Owned copy of a 2-D `float32` argument (for moma types that own their pixels).
+///
+/// # Errors
+/// As [`f32_2d`].
+pub fn f32_owned(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Array2<f32>> {
+    Ok(f32_2d(obj, what)?.as_array().to_owned())
+}

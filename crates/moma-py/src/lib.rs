@@ -1,0 +1,791 @@
+//! # moma-py — the Python extension `moma._moma`
+//!
+//! Thin bindings over moma-core (calibration, alignment, metrics, back-projection), moma-io
+//! (depth files, camera.json, calibration files in the CLI's format) and moma-depth (Depth
+//! Anything V2, candle backend; ONNX Runtime with the `onnx` feature). The Python package
+//! (`python/moma`) re-exports everything and holds the exception classes and type stubs.
+//!
+//! Conventions: arrays are NumPy `(height, width)`; depth in metres (`float32`, NaN = no depth);
+//! pixel coordinates u right, v down; camera frame x right, y down, z forward. The GIL is released
+//! while aligning, calibrating and running the depth model.
+
+mod arrays;
+mod errors;
+
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+use moma_core::align::{Method, lwlr};
+use moma_core::metrics::DepthMetrics;
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig};
+use moma_core::sampling::{SamplingConfig, SamplingStrategy};
+use moma_core::{
+    CoreError, Intrinsics as CoreIntrinsics, Mask, MetricDepth, Prediction, PredictionKind,
+};
+use moma_depth::{Backbone, DepthModel as DepthModelTrait, Head, ModelSpec};
+use moma_io::{CalibrationFile, CreationInfo};
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
+use numpy::{IntoPyArray, PyArray2, PyArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use crate::arrays::{f32_2d, f32_owned, opt_mask, rgb_image};
+use crate::errors::{Kind, ResultExt, err, value_err};
+
+// ---------------------------------------------------------------------------------------------
+// names → moma-core enums (each name is defined once, in moma-core, with FromStr / Display)
+
+fn parse_kind(s: &str) -> PyResult<PredictionKind> {
+    s.parse::<PredictionKind>().py()
+}
+
+fn parse_norm(s: &str) -> PyResult<Normalisation> {
+    s.parse::<Normalisation>().py()
+}
+
+fn parse_sampling(s: &str) -> PyResult<SamplingStrategy> {
+    s.parse::<SamplingStrategy>().py()
+}
+
+/// The alignment method, built as `moma calibrate` builds it (`method_from` in moma-cli).
+fn parse_method(
+    s: &str,
+    bandwidth_px: Option<f64>,
+    intrinsics: Option<CoreIntrinsics>,
+) -> PyResult<Method> {
+    if let Some(b) = bandwidth_px
+        && !(b.is_finite() && b > 0.0)
+    {
+        return Err(value_err(format!(
+            "bandwidth_px {b} must be a positive number of pixels"
+        )));
+    }
+    let method: Method = s.parse().py()?;
+    Ok(match method.with_intrinsics(intrinsics) {
+        Method::Lwlr(cfg) => Method::Lwlr(lwlr::LwlrConfig {
+            bandwidth_px: bandwidth_px.or(cfg.bandwidth_px),
+            ..cfg
+        }),
+        other => other,
+    })
+}
+
+/// A serde value as a Python object (through `json.loads`).
+fn to_py_json<'py>(py: Python<'py>, value: &impl serde::Serialize) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(value)
+        .map_err(|e| err(Kind::Backend, format!("cannot encode as JSON: {e}")))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Intrinsics
+
+/// Pinhole camera intrinsics in pixels, for an image of `width × height` pixels.
+#[pyclass(module = "moma", frozen, eq)]
+#[derive(Debug, Clone, PartialEq)]
+struct Intrinsics {
+    inner: CoreIntrinsics,
+}
+
+#[pymethods]
+impl Intrinsics {
+    #[new]
+    #[pyo3(signature = (fx, fy, cx, cy, width, height))]
+    fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: usize, height: usize) -> PyResult<Self> {
+        let inner = CoreIntrinsics {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+        };
+        inner.validate().py()?;
+        Ok(Self { inner })
+    }
+
+    /// Reads a `camera.json` (`{"width","height","fx","fy","cx","cy"}`, pixels).
+    #[staticmethod]
+    fn load(path: PathBuf) -> PyResult<Self> {
+        Ok(Self {
+            inner: moma_io::read_camera(&path).py()?,
+        })
+    }
+
+    /// Writes a `camera.json` (atomically).
+    fn save(&self, path: PathBuf) -> PyResult<()> {
+        moma_io::write_camera(&path, &self.inner).py()
+    }
+
+    #[getter]
+    fn fx(&self) -> f64 {
+        self.inner.fx
+    }
+    #[getter]
+    fn fy(&self) -> f64 {
+        self.inner.fy
+    }
+    #[getter]
+    fn cx(&self) -> f64 {
+        self.inner.cx
+    }
+    #[getter]
+    fn cy(&self) -> f64 {
+        self.inner.cy
+    }
+    #[getter]
+    fn width(&self) -> usize {
+        self.inner.width
+    }
+    #[getter]
+    fn height(&self) -> usize {
+        self.inner.height
+    }
+
+    /// The fields as a dict (the `camera.json` keys).
+    fn to_dict<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_py_json(py, &self.inner)
+    }
+
+    fn __repr__(&self) -> String {
+        let k = &self.inner;
+        format!(
+            "Intrinsics(fx={}, fy={}, cx={}, cy={}, width={}, height={})",
+            k.fx, k.fy, k.cx, k.cy, k.width, k.height
+        )
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Calibration
+
+/// A fitted calibration (alignment + normalisation), as written by `moma calibrate`.
+#[pyclass(module = "moma", frozen)]
+struct Calibration {
+    /// The calibration; it owns its workspace mask (embedded in the file).
+    inner: CoreCalibration,
+    intrinsics: Option<CoreIntrinsics>,
+    created: Option<CreationInfo>,
+}
+
+impl Calibration {
+    fn prediction(&self, values: ArrayView2<'_, f32>) -> Prediction {
+        Prediction::new(values.to_owned(), self.inner.prediction_kind)
+    }
+
+    fn file(&self) -> CalibrationFile {
+        let created = self
+            .created
+            .clone()
+            .unwrap_or_else(|| CreationInfo::now().with_source("python", "moma.calibrate"));
+        CalibrationFile::new(self.inner.clone(), self.intrinsics, created)
+    }
+}
+
+#[pymethods]
+impl Calibration {
+    /// Aligns a prediction of the calibrated kind and size: metric depth, float32 metres, NaN where
+    /// no depth can be inferred. The GIL is released during the computation.
+    fn align<'py>(
+        &self,
+        py: Python<'py>,
+        pred: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let ro = f32_2d(pred, "pred")?;
+        let view = ro.as_array();
+        let depth = py
+            .detach(|| {
+                let pred = self.prediction(view);
+                self.inner.align(&pred)
+            })
+            .py()?;
+        Ok(depth.depth_m.into_pyarray(py))
+    }
+
+    /// Like `align`, writing metres into `out` (float32, same shape as `pred`, writable) instead
+    /// of allocating the result.
+    fn align_into(
+        &self,
+        py: Python<'_>,
+        pred: &Bound<'_, PyAny>,
+        out: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
+        let out = out.cast::<PyArray2<f32>>().map_err(|_| {
+            value_err("out must be a writable 2-D float32 NumPy array (height × width)")
+        })?;
+        let mut rw = out
+            .try_readwrite()
+            .map_err(|e| value_err(format!("out: {e}")))?;
+        let ro = f32_2d(pred, "pred")?;
+        let view = ro.as_array();
+        let mut out_view = rw.as_array_mut();
+        py.detach(|| {
+            let pred = self.prediction(view);
+            self.inner.align_into(&pred, &mut out_view)
+        })
+        .py()
+    }
+
+    /// Writes the calibration in the CLI's file format (`moma-calibration` v2, JSON, atomic),
+    /// the workspace mask (if any) embedded: the file is self-contained.
+    fn save(&self, path: PathBuf) -> PyResult<()> {
+        moma_io::write_calibration(&path, &self.file()).py()
+    }
+
+    /// Reads a calibration file written by `moma calibrate` or `Calibration.save` (any version
+    /// this moma reads; version 1 is migrated).
+    #[staticmethod]
+    fn load(path: PathBuf) -> PyResult<Self> {
+        let file = moma_io::read_calibration(&path).py()?;
+        Ok(Self {
+            inner: file.calibration,
+            intrinsics: file.intrinsics,
+            created: Some(file.created),
+        })
+    }
+
+    /// The fit summary, as `moma calibrate --json` prints it: `method`, `n_used`,
+    /// `rms_residual_m` (metres), `fit_time_s` (seconds), `model` (the fitted parameters).
+    #[getter]
+    fn report<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let r = &self.inner.report;
+        let d = PyDict::new(py);
+        d.set_item("method", &r.method)?;
+        d.set_item("n_used", r.n_used)?;
+        d.set_item("rms_residual_m", r.rms_residual_m)?;
+        d.set_item("fit_time_s", r.fit_time_s)?;
+        d.set_item("model", to_py_json(py, &self.inner.model)?)?;
+        Ok(d)
+    }
+
+    /// `"depth"` or `"inverse-depth"`: the prediction kind this calibration accepts.
+    #[getter]
+    fn kind(&self) -> String {
+        self.inner.prediction_kind.to_string()
+    }
+
+    /// Alignment method name (`ssra`, `gssa`, `lwlr`, `raw`).
+    #[getter]
+    fn method(&self) -> &'static str {
+        self.inner.model.name()
+    }
+
+    /// Normalisation name (`minmax`, `minmax-unit`, `median`, `none`).
+    #[getter]
+    fn norm(&self) -> &'static str {
+        self.inner.normalisation.method.name()
+    }
+
+    /// Alignment space: `"inverse"` (disparity predictor, 1/z target) or `"depth"`.
+    #[getter]
+    fn space(&self) -> &'static str {
+        self.inner.normalisation.space.name()
+    }
+
+    /// Calibration image size `(height, width)` in pixels (the NumPy shape predictions must have).
+    #[getter]
+    fn shape(&self) -> (usize, usize) {
+        self.inner.samples.image_size.shape()
+    }
+
+    /// The camera intrinsics recorded with the calibration, if any.
+    #[getter]
+    fn intrinsics(&self) -> Option<Intrinsics> {
+        self.intrinsics.map(|inner| Intrinsics { inner })
+    }
+
+    /// The workspace mask used for normalisation (bool, height × width), if any.
+    #[getter]
+    fn workspace<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray2<bool>>> {
+        self.inner
+            .workspace
+            .as_ref()
+            .map(|w| w.mask().data().clone().into_pyarray(py))
+    }
+
+    /// The calibration samples as an `n × 4` float64 array: u (px), v (px), normalised prediction, depth (m).
+    #[getter]
+    fn samples<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        let s = &self.inner.samples.samples;
+        Array2::from_shape_fn((s.len(), 4), |(i, j)| match j {
+            0 => s[i].u,
+            1 => s[i].v,
+            2 => s[i].pred,
+            _ => s[i].depth_m,
+        })
+        .into_pyarray(py)
+    }
+
+    /// The calibration file's JSON text (what `save` writes).
+    fn to_json(&self) -> PyResult<String> {
+        serde_json::to_string_pretty(&self.file())
+            .map_err(|e| err(Kind::Backend, format!("cannot encode calibration: {e}")))
+    }
+
+    fn __repr__(&self) -> String {
+        let r = &self.inner.report;
+        let (h, w) = self.inner.samples.image_size.shape();
+        format!(
+            "Calibration(method='{}', kind='{}', norm='{}', shape=({h}, {w}), n_used={}, rms_residual_m={:.6})",
+            r.method,
+            self.inner.prediction_kind,
+            self.inner.normalisation.method.name(),
+            r.n_used,
+            r.rms_residual_m
+        )
+    }
+}
+
+/// Fits an alignment on one frame (the `moma calibrate` step).
+#[pyfunction]
+#[pyo3(signature = (pred, gt_m, cam=None, *, kind, method="ssra", norm="minmax", samples=100,
+    sampling="random", seed=0, mask=None, workspace=None, space=None, bandwidth_px=None))]
+#[allow(clippy::too_many_arguments)]
+fn calibrate(
+    py: Python<'_>,
+    pred: &Bound<'_, PyAny>,
+    gt_m: &Bound<'_, PyAny>,
+    cam: Option<&Intrinsics>,
+    kind: &str,
+    method: &str,
+    norm: &str,
+    samples: usize,
+    sampling: &str,
+    seed: u64,
+    mask: Option<&Bound<'_, PyAny>>,
+    workspace: Option<&Bound<'_, PyAny>>,
+    space: Option<&str>,
+    bandwidth_px: Option<f64>,
+) -> PyResult<Calibration> {
+    let kind = parse_kind(kind)?;
+    let intrinsics = cam.map(|c| c.inner);
+    let space = match space {
+        Some(s) => s.parse::<AlignSpace>().py()?,
+        None => AlignSpace::native(kind),
+    };
+    let config = CalibrationConfig {
+        method: parse_method(method, bandwidth_px, intrinsics)?,
+        normalisation: NormalisationConfig {
+            method: parse_norm(norm)?,
+            space,
+        },
+        sampling: SamplingConfig {
+            strategy: parse_sampling(sampling)?,
+            n: samples,
+            seed,
+        },
+    };
+    let pred_ro = f32_2d(pred, "pred")?;
+    let gt_ro = f32_2d(gt_m, "gt_m")?;
+    let sample_mask = opt_mask(mask, "mask")?;
+    let workspace = opt_mask(workspace, "workspace")?;
+    let (pred_v, gt_v) = (pred_ro.as_array(), gt_ro.as_array());
+    let inner = py
+        .detach(|| {
+            let pred = Prediction::new(pred_v.to_owned(), kind);
+            if let Some(k) = &intrinsics {
+                k.size()
+                    .expect_eq("prediction (vs camera intrinsics)", pred.size())?;
+            }
+            let gt = MetricDepth::new(gt_v.to_owned());
+            moma_core::pipeline::calibrate(
+                &pred,
+                &gt,
+                &config,
+                workspace.as_ref(),
+                sample_mask.as_ref(),
+            )
+        })
+        .py()?;
+    Ok(Calibration {
+        inner,
+        intrinsics,
+        created: None,
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// metrics, points, files
+
+/// Depth metrics of `depth_m` against `gt_m` over pixels valid in both (and inside `mask`).
+#[pyfunction]
+#[pyo3(signature = (depth_m, gt_m, mask=None))]
+fn metrics<'py>(
+    py: Python<'py>,
+    depth_m: &Bound<'py, PyAny>,
+    gt_m: &Bound<'py, PyAny>,
+    mask: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let pred = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+    let gt = MetricDepth::new(f32_owned(gt_m, "gt_m")?);
+    let mask = opt_mask(mask, "mask")?;
+    let m = py
+        .detach(|| DepthMetrics::compute(&pred, &gt, mask.as_ref()))
+        .py()?;
+    let d = PyDict::new(py);
+    d.set_item("d105", m.d105)?;
+    d.set_item("d110", m.d110)?;
+    d.set_item("d125", m.d125)?;
+    d.set_item("rel", m.rel)?;
+    d.set_item("rmse", m.rmse)?;
+    d.set_item("mae", m.mae)?;
+    d.set_item("n", m.n)?;
+    Ok(d)
+}
+
+/// Back-projects the valid pixels of `depth_m` (row-major order): `N × 3` float32 points in
+/// metres, camera frame; with `rgb`, also their `N × 3` uint8 colours.
+#[pyfunction]
+#[pyo3(signature = (depth_m, cam, rgb=None))]
+fn depth_to_points<'py>(
+    py: Python<'py>,
+    depth_m: &Bound<'py, PyAny>,
+    cam: &Intrinsics,
+    rgb: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+    let image = rgb
+        .filter(|o| !o.is_none())
+        .map(|o| rgb_image(o, "rgb"))
+        .transpose()?;
+    if let Some(img) = &image {
+        let got = moma_core::ImageSize::new(img.width() as usize, img.height() as usize);
+        depth.size().expect_eq("rgb", got).py()?;
+    }
+    let k = cam.inner;
+    let points = py.detach(|| moma_core::depth_to_points(&depth, &k)).py()?;
+    let xyz =
+        Array2::from_shape_fn((points.len(), 3), |(i, j)| points[i].xyz_m[j]).into_pyarray(py);
+    match image {
+        None => Ok(xyz.into_any()),
+        Some(img) => {
+            let colours = Array2::from_shape_fn((points.len(), 3), |(i, j)| {
+                img.get_pixel(points[i].u, points[i].v).0[j]
+            })
+            .into_pyarray(py);
+            Ok((xyz, colours).into_pyobject(py)?.into_any())
+        }
+    }
+}
+
+/// Reads metric depth: uint16 PNG (millimetres, 0 = none), `.npy` (metres) or `.pfm` (metres).
+/// Returns float32 metres, NaN where there is no depth.
+#[pyfunction]
+fn read_depth(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyArray2<f32>>> {
+    let depth = py.detach(|| moma_io::read_depth(&path)).py()?;
+    Ok(depth.depth_m.into_pyarray(py))
+}
+
+/// Writes metric depth (metres) by extension: `.png` uint16 millimetres (NaN/≤0/out of range → 0),
+/// `.npy` float32 metres, `.pfm` metres. Atomic. Returns `{"pixels", "invalid", "out_of_range"}`.
+#[pyfunction]
+fn write_depth<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    depth_m: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+    let stats = py.detach(|| moma_io::write_depth(&path, &depth)).py()?;
+    let d = PyDict::new(py);
+    d.set_item("pixels", stats.pixels)?;
+    d.set_item("invalid", stats.invalid)?;
+    d.set_item("out_of_range", stats.out_of_range)?;
+    Ok(d)
+}
+
+/// Reads a raw prediction (unitless): `.npy` (f32/f64), `.pfm`, or uint16 PNG raw values.
+#[pyfunction]
+fn read_prediction(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyArray2<f32>>> {
+    // The kind only labels the values; reading does not depend on it.
+    let pred = py
+        .detach(|| moma_io::read_prediction(&path, PredictionKind::Depth))
+        .py()?;
+    Ok(pred.values.into_pyarray(py))
+}
+
+/// Reads an 8-bit RGB image (PNG / JPEG) as a `height × width × 3` uint8 array.
+#[pyfunction]
+fn read_rgb(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, numpy::PyArray3<u8>>> {
+    let img = py.detach(|| moma_io::read_rgb(&path)).py()?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let arr = ndarray::Array3::from_shape_vec((h, w, 3), img.into_raw())
+        .map_err(|e| err(Kind::File, format!("{}: {e}", path.display())))?;
+    Ok(arr.into_pyarray(py))
+}
+
+/// Writes a raw prediction (unitless): `.npy` or `.pfm` (atomic).
+#[pyfunction]
+fn write_prediction(py: Python<'_>, path: PathBuf, pred: &Bound<'_, PyAny>) -> PyResult<()> {
+    let pred = Prediction::new(f32_owned(pred, "pred")?, PredictionKind::Depth);
+    py.detach(|| moma_io::write_prediction(&path, &pred)).py()
+}
+
+// ---------------------------------------------------------------------------------------------
+// DepthModel
+
+type BoxedModel = Box<dyn DepthModelTrait + Send>;
+
+/// Depth Anything V2 (candle backend; ONNX Runtime in builds with the `onnx` feature).
+///
+/// The network sits behind a mutex: one inference at a time per model object (the forward pass
+/// takes `&mut self`), usable from any thread; the GIL is released while it runs. The concrete
+/// backend types are boxed as `Send` here because `Box<dyn DepthModel>` from `load_model_with`
+/// is not `Send` yet.
+#[pyclass(module = "moma", frozen)]
+struct DepthModel {
+    model: Mutex<BoxedModel>,
+    spec: ModelSpec,
+    runtime: String,
+}
+
+fn parse_backbone(s: &str) -> PyResult<Backbone> {
+    Ok(match s {
+        "vits" => Backbone::Vits,
+        "vitb" => Backbone::Vitb,
+        "vitl" => Backbone::Vitl,
+        other => {
+            return Err(value_err(format!(
+                "unknown model '{other}' (expected 'vits', 'vitb' or 'vitl')"
+            )));
+        }
+    })
+}
+
+fn parse_head(s: &str, max_depth_m: f32) -> PyResult<Head> {
+    match s {
+        "relative" => Ok(Head::Relative),
+        "metric" => {
+            if !(max_depth_m.is_finite() && max_depth_m > 0.0) {
+                return Err(value_err(format!(
+                    "max_depth {max_depth_m} must be a positive number of metres"
+                )));
+            }
+            Ok(Head::Metric { max_depth_m })
+        }
+        other => Err(value_err(format!(
+            "unknown head '{other}' (expected 'relative' or 'metric')"
+        ))),
+    }
+}
+
+fn parse_precision(s: &str) -> PyResult<moma_depth::Precision> {
+    Ok(match s {
+        "f32" | "float32" => moma_depth::Precision::F32,
+        "f16" | "float16" => moma_depth::Precision::F16,
+        "bf16" | "bfloat16" => moma_depth::Precision::Bf16,
+        other => {
+            return Err(value_err(format!(
+                "unknown dtype '{other}' (expected 'f32', 'f16' or 'bf16')"
+            )));
+        }
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn load_depth_model(
+    weights: &std::path::Path,
+    spec: ModelSpec,
+    config: Option<moma_depth::candle::DepthAnythingConfig>,
+    backend: &str,
+    device: moma_depth::DeviceRequest,
+    precision: moma_depth::Precision,
+) -> Result<(BoxedModel, String), moma_depth::DepthError> {
+    if !weights.is_file() {
+        return Err(moma_depth::DepthError::Weights {
+            path: weights.display().to_string(),
+            reason: "no such file".into(),
+        });
+    }
+    match backend {
+        "onnx" => load_onnx(weights, spec, device, precision),
+        _ => {
+            let dev = moma_depth::candle::open_device(device)?;
+            let config =
+                config.unwrap_or_else(|| moma_depth::candle::DepthAnythingConfig::from_spec(&spec));
+            let m =
+                moma_depth::candle::CandleDepthModel::load_with(weights, config, &dev, precision)?;
+            let runtime = m.runtime();
+            Ok((Box::new(m), runtime))
+        }
+    }
+}
+
+#[cfg(feature = "onnx")]
+fn load_onnx(
+    weights: &std::path::Path,
+    spec: ModelSpec,
+    device: moma_depth::DeviceRequest,
+    precision: moma_depth::Precision,
+) -> Result<(BoxedModel, String), moma_depth::DepthError> {
+    use moma_depth::{DeviceRequest, Precision};
+    if !matches!(device, DeviceRequest::Auto | DeviceRequest::Cpu) || precision != Precision::F32 {
+        return Err(moma_depth::DepthError::Unavailable(
+            "the ONNX Runtime backend runs on the CPU in the model's own precision (device='cpu', dtype='f32')".into(),
+        ));
+    }
+    let m = moma_depth::onnx::OnnxDepthModel::load(weights, spec)?;
+    let runtime = m.runtime();
+    Ok((Box::new(m), runtime))
+}
+
+#[cfg(not(feature = "onnx"))]
+fn load_onnx(
+    _weights: &std::path::Path,
+    _spec: ModelSpec,
+    _device: moma_depth::DeviceRequest,
+    _precision: moma_depth::Precision,
+) -> Result<(BoxedModel, String), moma_depth::DepthError> {
+    Err(moma_depth::DepthError::Unavailable(
+        "this moma wheel was built without the ONNX Runtime backend: use backend=\"candle\", or \
+         rebuild with `pip install . --config-settings=build-args=\"--features onnx\"`"
+            .into(),
+    ))
+}
+
+#[pymethods]
+impl DepthModel {
+    #[new]
+    #[pyo3(signature = (weights, model="vits", head="relative", backend="candle", device="cpu",
+        lora=None, *, max_depth=20.0, input_size=518, dtype="f32", config=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        py: Python<'_>,
+        weights: PathBuf,
+        model: &str,
+        head: &str,
+        backend: &str,
+        device: &str,
+        lora: Option<PathBuf>,
+        max_depth: f32,
+        input_size: usize,
+        dtype: &str,
+        config: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
+        if let Some(l) = lora {
+            return Err(err(
+                Kind::Backend,
+                format!(
+                    "LoRA adapters are not supported by this moma build (lora={})",
+                    l.display()
+                ),
+            ));
+        }
+        if !matches!(backend, "candle" | "onnx" | "auto") {
+            return Err(value_err(format!(
+                "unknown backend '{backend}' (expected 'candle' or 'onnx')"
+            )));
+        }
+        let backend = match backend {
+            "auto" if weights.extension().is_some_and(|e| e == "onnx") => "onnx",
+            "auto" => "candle",
+            b => b,
+        };
+        if input_size == 0 || !input_size.is_multiple_of(14) {
+            return Err(value_err(format!(
+                "input_size {input_size} must be a positive multiple of 14 pixels"
+            )));
+        }
+        let spec = ModelSpec {
+            backbone: parse_backbone(model)?,
+            head: parse_head(head, max_depth)?,
+            input_size,
+        };
+        let device: moma_depth::DeviceRequest = device.parse().map_err(value_err)?;
+        let precision = parse_precision(dtype)?;
+        // A custom architecture (e.g. small test networks): the DepthAnythingConfig fields as a dict.
+        let config = match config {
+            None => None,
+            Some(d) => {
+                let text: String = py.import("json")?.call_method1("dumps", (d,))?.extract()?;
+                let c: moma_depth::candle::DepthAnythingConfig = serde_json::from_str(&text)
+                    .map_err(|e| value_err(format!("config: not a DepthAnythingConfig: {e}")))?;
+                Some(c)
+            }
+        };
+        let spec = config.as_ref().map_or(spec, |c| c.spec());
+        let (model, runtime) = py
+            .detach(|| load_depth_model(&weights, spec, config, backend, device, precision))
+            .py()?;
+        Ok(Self {
+            model: Mutex::new(model),
+            spec,
+            runtime,
+        })
+    }
+
+    /// Runs the network on an 8-bit RGB image (`height × width × 3`, uint8) and returns the
+    /// prediction at the image's size (float32): inverse depth (relative head, unitless) or
+    /// depth in metres (metric head); see `kind`. The GIL is released during inference.
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        rgb: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let image = rgb_image(rgb, "rgb")?;
+        let pred = py
+            .detach(|| {
+                let mut model = self.model.lock().map_err(|_| {
+                    moma_depth::DepthError::Backend(
+                        "the model is unusable: an earlier inference panicked".into(),
+                    )
+                })?;
+                model.predict(&image)
+            })
+            .py()?;
+        Ok(pred.values.into_pyarray(py))
+    }
+
+    /// `"inverse-depth"` (relative head) or `"depth"` (metric head, metres): pass it to `calibrate`.
+    #[getter]
+    fn kind(&self) -> String {
+        self.spec.head.prediction_kind().to_string()
+    }
+
+    /// Network input short-side lower bound, pixels.
+    #[getter]
+    fn input_size(&self) -> usize {
+        self.spec.input_size
+    }
+
+    /// Backend, device and precision, e.g. for provenance records.
+    #[getter]
+    fn runtime(&self) -> &str {
+        &self.runtime
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "DepthModel(kind='{}', input_size={}, runtime='{}')",
+            self.spec.head.prediction_kind(),
+            self.spec.input_size,
+            self.runtime
+        )
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+
+/// Whether this build has the ONNX Runtime backend.
+#[pyfunction]
+fn has_onnx() -> bool {
+    cfg!(feature = "onnx")
+}
+
+#[pymodule]
+fn _moma(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<Intrinsics>()?;
+    m.add_class::<Calibration>()?;
+    m.add_class::<DepthModel>()?;
+    m.add_function(wrap_pyfunction!(calibrate, m)?)?;
+    m.add_function(wrap_pyfunction!(metrics, m)?)?;
+    m.add_function(wrap_pyfunction!(depth_to_points, m)?)?;
+    m.add_function(wrap_pyfunction!(read_depth, m)?)?;
+    m.add_function(wrap_pyfunction!(write_depth, m)?)?;
+    m.add_function(wrap_pyfunction!(read_prediction, m)?)?;
+    m.add_function(wrap_pyfunction!(write_prediction, m)?)?;
+    m.add_function(wrap_pyfunction!(read_rgb, m)?)?;
+    m.add_function(wrap_pyfunction!(has_onnx, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,233 @@
+"""Type stubs of the Rust extension ``moma._moma`` (re-exported by ``moma``).
+
+Units: depth in metres (``_m``), pixels (``_px``); arrays are ``(height, width)``.
+Array arguments accept any real dtype and memory layout; a C-contiguous ``float32`` array is read
+without conversion, anything else is converted to ``float32`` once. Bad arrays or parameters raise
+``moma.InvalidInputError`` (a ``ValueError``); file problems ``moma.MomaFileError`` (an ``OSError``).
+"""
+
+from os import PathLike
+from typing import Any, Literal, Optional, Tuple, TypedDict, Union, final, overload
+
+import numpy as np
+import numpy.typing as npt
+
+_Path = Union[str, "PathLike[str]"]
+_Kind = Literal["depth", "inverse-depth"]
+_Method = Literal["ssra", "gssa", "lwlr", "lwlr-exact", "raw"]
+_Norm = Literal["minmax", "minmax-unit", "median", "none"]
+_Sampling = Literal["random", "grid"]
+_F32 = npt.NDArray[np.float32]
+_Mask = Union[npt.NDArray[np.bool_], npt.NDArray[np.uint8]]
+
+__all__ = [
+    "Calibration",
+    "DepthModel",
+    "Intrinsics",
+    "__version__",
+    "calibrate",
+    "depth_to_points",
+    "has_onnx",
+    "metrics",
+    "read_depth",
+    "read_prediction",
+    "read_rgb",
+    "write_depth",
+    "write_prediction",
+]
+
+__version__: str
+
+class _Report(TypedDict):
+    """``Calibration.report``: the fields ``moma calibrate --json`` prints."""
+
+    method: str
+    n_used: int
+    rms_residual_m: float
+    """RMS residual on the calibration samples, metres."""
+    fit_time_s: float
+    """Wall time of the fit, seconds."""
+    model: dict[str, Any]
+    """The fitted parameters (as in the calibration file)."""
+
+class _Metrics(TypedDict):
+    """``moma.metrics``: depth accuracy over pixels valid in both maps."""
+
+    d105: float
+    """Fraction of pixels with max(z/z*, z*/z) < 1.05."""
+    d110: float
+    """Fraction with ratio < 1.10."""
+    d125: float
+    """Fraction with ratio < 1.25."""
+    rel: float
+    """Mean absolute relative error |z − z*| / z*."""
+    rmse: float
+    """Root-mean-square error, metres."""
+    mae: float
+    """Mean absolute error, metres."""
+    n: int
+    """Number of pixels evaluated."""
+
+class _WriteStats(TypedDict):
+    pixels: int
+    invalid: int
+    """Pixels that were NaN / ±inf / ≤ 0 m."""
+    out_of_range: int
+    """Valid depths the format cannot hold (PNG: < 0.5 mm or > 65.535 m), written as 0."""
+
+@final
+class Intrinsics:
+    """Pinhole intrinsics in pixels for a ``width × height`` image (x right, y down, z forward)."""
+
+    def __new__(
+        cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int
+    ) -> "Intrinsics":
+        """``fx``, ``fy``: focal lengths (px, > 0); ``cx``, ``cy``: principal point (px);
+        ``width``, ``height``: image size (px). Raises ``InvalidInputError`` on invalid values."""
+    @staticmethod
+    def load(path: _Path) -> "Intrinsics":
+        """Reads a ``camera.json`` (``{"width","height","fx","fy","cx","cy"}``, pixels)."""
+    def save(self, path: _Path) -> None:
+        """Writes a ``camera.json`` (atomically)."""
+    @property
+    def fx(self) -> float: ...
+    @property
+    def fy(self) -> float: ...
+    @property
+    def cx(self) -> float: ...
+    @property
+    def cy(self) -> float: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+    def to_dict(self) -> dict[str, Any]:
+        """The ``camera.json`` fields."""
+
+@final
+class Calibration:
+    """A fitted alignment (the content of a ``moma calibrate`` calibration file)."""
+
+    def align(self, pred: npt.ArrayLike) -> _F32:
+        """Metric depth (float32 metres, NaN where no depth can be inferred) from a prediction
+        of the calibrated kind and shape. Releases the GIL."""
+    def align_into(self, pred: npt.ArrayLike, out: _F32) -> None:
+        """Like ``align``, writing metres into ``out`` (writable float32, same shape)."""
+    def save(self, path: _Path) -> None:
+        """Writes the CLI's calibration format (``moma-calibration`` v2 JSON, atomic), the
+        workspace mask (if any) embedded: the file is self-contained."""
+    @staticmethod
+    def load(path: _Path) -> "Calibration":
+        """Reads a file written by ``moma calibrate`` or ``Calibration.save``."""
+    @property
+    def report(self) -> _Report: ...
+    @property
+    def space(self) -> Literal["depth", "inverse"]:
+        """Alignment space: ``"inverse"`` (disparity predictor, 1/z target) or ``"depth"``."""
+    @property
+    def kind(self) -> _Kind:
+        """Prediction kind this calibration accepts."""
+    @property
+    def method(self) -> str: ...
+    @property
+    def norm(self) -> str: ...
+    @property
+    def shape(self) -> Tuple[int, int]:
+        """``(height, width)`` in pixels that predictions must have."""
+    @property
+    def intrinsics(self) -> Optional[Intrinsics]: ...
+    @property
+    def workspace(self) -> Optional[npt.NDArray[np.bool_]]:
+        """Normalisation workspace mask, if any."""
+    @property
+    def samples(self) -> npt.NDArray[np.float64]:
+        """``n × 4``: u (px), v (px), normalised prediction, ground-truth depth (m)."""
+    def to_json(self) -> str:
+        """The calibration file's JSON text."""
+
+def calibrate(
+    pred: npt.ArrayLike,
+    gt_m: npt.ArrayLike,
+    cam: Optional[Intrinsics] = None,
+    *,
+    kind: _Kind,
+    method: _Method = "ssra",
+    norm: _Norm = "minmax",
+    samples: int = 100,
+    sampling: _Sampling = "random",
+    seed: int = 0,
+    mask: Optional[_Mask] = None,
+    workspace: Optional[_Mask] = None,
+    space: Optional[Literal["depth", "inverse"]] = None,
+    bandwidth_px: Optional[float] = None,
+) -> Calibration:
+    """Fits an alignment on one frame.
+
+    ``pred``: the model's output (H×W, no NaN); ``gt_m``: ground-truth depth in metres (0/NaN =
+    invalid); ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
+    required, never guessed; ``samples``: number of calibration pixels; ``seed``: of the random
+    sampling; ``mask``: draw samples only inside (bool/uint8 H×W, nonzero = inside);
+    ``workspace``: normalise over this region (embedded in the calibration); ``space``:
+    ``"inverse"`` (disparity predictor, 1/z target) or ``"depth"``, default the prediction's own
+    (inverse-depth → inverse); ``bandwidth_px``: LWLR bandwidth in pixels."""
+
+def metrics(
+    depth_m: npt.ArrayLike, gt_m: npt.ArrayLike, mask: Optional[_Mask] = None
+) -> _Metrics:
+    """Accuracy of ``depth_m`` (metres) against ``gt_m`` (metres) over pixels valid in both."""
+
+@overload
+def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...
+@overload
+def depth_to_points(
+    depth_m: npt.ArrayLike, cam: Intrinsics, rgb: npt.NDArray[np.uint8]
+) -> Tuple[_F32, npt.NDArray[np.uint8]]: ...
+def read_depth(path: _Path) -> _F32:
+    """Metric depth from uint16 PNG (mm, 0 = none), ``.npy`` or ``.pfm`` (m): float32 metres, NaN = none."""
+
+def write_depth(path: _Path, depth_m: npt.ArrayLike) -> _WriteStats:
+    """Writes metric depth by extension: ``.png`` uint16 mm, ``.npy``/``.pfm`` float32 m (atomic)."""
+
+def read_prediction(path: _Path) -> _F32:
+    """A raw (unitless) prediction from ``.npy``, ``.pfm`` or uint16 PNG."""
+
+def read_rgb(path: _Path) -> npt.NDArray[np.uint8]:
+    """An 8-bit RGB image (PNG / JPEG) as ``height × width × 3`` uint8."""
+
+def write_prediction(path: _Path, pred: npt.ArrayLike) -> None:
+    """Writes a raw prediction to ``.npy`` or ``.pfm`` (atomic)."""
+
+def has_onnx() -> bool:
+    """Whether this build has the ONNX Runtime backend."""
+
+@final
+class DepthModel:
+    """Depth Anything V2. Thread-safe (one inference at a time per object); releases the GIL."""
+
+    def __new__(
+        cls,
+        weights: _Path,
+        model: Literal["vits", "vitb", "vitl"] = "vits",
+        head: Literal["relative", "metric"] = "relative",
+        backend: Literal["candle", "onnx", "auto"] = "candle",
+        device: str = "cpu",
+        lora: Optional[_Path] = None,
+        *,
+        max_depth: float = 20.0,
+        input_size: int = 518,
+        dtype: Literal["f32", "f16", "bf16"] = "f32",
+        config: Optional[dict[str, Any]] = None,
+    ) -> "DepthModel":
+        """``weights``: official checkpoint (.pth / .safetensors; candle) or .onnx (onnx builds);
+        ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
+        largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14);
+        ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields);
+        ``lora``: not supported yet (raises ``BackendError``)."""
+    def predict(self, rgb: npt.NDArray[np.uint8]) -> _F32:
+        """RGB uint8 ``H×W×3`` → float32 ``H×W`` prediction of kind ``self.kind``."""
+    @property
+    def kind(self) -> _Kind: ...
+    @property
+    def input_size(self) -> int: ...
+    @property
+    def runtime(self) -> str: ...

@@ -1,0 +1,200 @@
+"""Calibration and alignment against closed-form expectations (synthetic scenes with known SSRA
+parameters) and NumPy re-implementations of the maths."""
+
+import numpy as np
+import pytest
+
+import moma
+from conftest import TRUE, metrics_np, normalise_np, scene, ssra_apply_np
+
+
+@pytest.mark.parametrize(
+    "kind,norm", [("inverse-depth", "minmax"), ("depth", "none"), ("depth", "median")]
+)
+def test_ssra_recovers_known_parameters(kind, norm):
+    pred, gt = scene(kind=kind, norm=norm)
+    cal = moma.calibrate(pred, gt, kind=kind, norm=norm, samples=100, seed=3)
+    model = cal.report["model"]
+    assert model["method"] == "ssra"
+    assert model["alpha_m_per_px"] == pytest.approx(TRUE["alpha"], rel=1e-3)
+    assert model["beta_m_per_px"] == pytest.approx(TRUE["beta"], rel=1e-3)
+    assert model["gamma_m"] == pytest.approx(TRUE["gamma"], rel=1e-4)
+    assert model["t3_m"] == pytest.approx(TRUE["t3"], abs=1e-4)
+    assert cal.report["n_used"] == 100
+    assert cal.report["rms_residual_m"] < 1e-4
+    assert cal.kind == kind and cal.method == "ssra" and cal.norm == norm
+    assert cal.shape == pred.shape
+
+
+def test_align_reproduces_ground_truth_and_numpy_apply(small_scene):
+    pred, gt = small_scene
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", seed=0)
+    depth = cal.align(pred)
+    assert depth.dtype == np.float32 and depth.shape == pred.shape
+    valid = np.isfinite(gt) & (gt > 0)
+    np.testing.assert_allclose(depth[valid], gt[valid], rtol=1e-4, atol=1e-5)
+    m = cal.report["model"]
+    want = ssra_apply_np(
+        normalise_np(pred, "inverse-depth"),
+        m["alpha_m_per_px"],
+        m["beta_m_per_px"],
+        m["gamma_m"],
+        m["t3_m"],
+    )
+    np.testing.assert_allclose(depth, want, rtol=1e-5, atol=1e-6)
+
+
+def test_align_of_another_frame_uses_the_same_parameters(small_scene):
+    pred, gt = small_scene
+    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    other = (pred * 1.3 + 0.2).astype(np.float32)
+    m = cal.report["model"]
+    want = ssra_apply_np(
+        normalise_np(other, "inverse-depth"),
+        m["alpha_m_per_px"], m["beta_m_per_px"], m["gamma_m"], m["t3_m"],
+    )
+    np.testing.assert_allclose(cal.align(other), want, rtol=1e-5, atol=1e-6)
+
+
+def test_inverse_depth_zero_gives_nan():
+    pred, gt = scene()
+    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    p2 = pred.copy()
+    p2[10, 20] = 0.0  # no depth can be inferred from zero disparity
+    out = cal.align(p2)
+    assert np.isnan(out[10, 20])
+    assert np.isfinite(np.delete(out.ravel(), 10 * 160 + 20)).all()
+
+
+def test_align_into_matches_align_and_does_not_reallocate(small_scene):
+    pred, gt = small_scene
+    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    out = np.full(pred.shape, -1.0, dtype=np.float32)
+    ptr = out.ctypes.data
+    cal.align_into(pred, out)
+    assert out.ctypes.data == ptr
+    np.testing.assert_array_equal(out, cal.align(pred))
+
+
+def test_other_dtypes_and_layouts_give_the_same_result(small_scene):
+    pred, gt = small_scene
+    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    ref = cal.align(pred)
+    np.testing.assert_array_equal(cal.align(np.asfortranarray(pred)), ref)
+    np.testing.assert_array_equal(cal.align(pred.astype(np.float64)), ref)
+    big = np.zeros((pred.shape[0], pred.shape[1] * 2), dtype=np.float32)
+    big[:, ::2] = pred  # non-contiguous view
+    np.testing.assert_array_equal(cal.align(big[:, ::2]), ref)
+    np.testing.assert_array_equal(cal.align(pred.tolist()), ref)
+    # a strided output buffer is written in place too
+    out_big = np.zeros_like(big)
+    cal.align_into(pred, out_big[:, ::2])
+    np.testing.assert_array_equal(out_big[:, ::2], ref)
+
+
+def test_calibration_does_not_modify_inputs(small_scene):
+    pred, gt = small_scene
+    p0, g0 = pred.copy(), gt.copy()
+    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal.align(pred)
+    np.testing.assert_array_equal(pred, p0)
+    np.testing.assert_array_equal(gt, g0)
+
+
+def test_seed_is_deterministic_and_matters(small_scene):
+    pred, gt = small_scene
+    a = moma.calibrate(pred, gt, kind="inverse-depth", samples=20, seed=1)
+    b = moma.calibrate(pred, gt, kind="inverse-depth", samples=20, seed=1)
+    c = moma.calibrate(pred, gt, kind="inverse-depth", samples=20, seed=2)
+    np.testing.assert_array_equal(a.samples, b.samples)
+    assert not np.array_equal(a.samples[:, :2], c.samples[:, :2])
+
+
+def test_sample_mask_restricts_samples(small_scene):
+    pred, gt = small_scene
+    mask = np.zeros(pred.shape, dtype=np.uint8)
+    mask[40:80, 50:120] = 255
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", mask=mask, samples=50)
+    u, v = cal.samples[:, 0], cal.samples[:, 1]
+    assert ((u >= 50) & (u < 120) & (v >= 40) & (v < 80)).all()
+
+
+def test_workspace_normalisation_matches_numpy():
+    pred, _ = scene(holes=False)
+    ws = np.zeros(pred.shape, dtype=bool)
+    ws[20:100, 30:140] = True
+    zhat = normalise_np(pred, "inverse-depth", "minmax", region=ws)
+    gt = ssra_apply_np(zhat, **TRUE).astype(np.float32)
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", workspace=ws)
+    np.testing.assert_array_equal(cal.workspace, ws)
+    np.testing.assert_allclose(cal.align(pred), gt, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["gssa", "lwlr", "lwlr-exact", "raw"])
+def test_other_methods_run(small_scene, method):
+    pred, gt = small_scene
+    kind = "depth" if method == "raw" else "inverse-depth"
+    cal = moma.calibrate(pred, gt, kind=kind, method=method)
+    out = cal.align(pred)
+    assert out.shape == pred.shape and cal.method == method.split("-")[0]
+
+
+def test_gssa_recovers_scale_and_shift():
+    rng = np.random.default_rng(5)
+    pred = rng.uniform(1, 3, (60, 80)).astype(np.float32)
+    gt = (0.4 * pred + 0.25).astype(np.float32)
+    cal = moma.calibrate(pred, gt, kind="depth", method="gssa", norm="none")
+    m = cal.report["model"]
+    assert m["scale"] == pytest.approx(0.4, rel=1e-5)
+    assert m["shift_m"] == pytest.approx(0.25, abs=1e-5)
+
+
+def test_metrics_match_numpy():
+    rng = np.random.default_rng(7)
+    gt = rng.uniform(0.3, 2.0, (50, 70)).astype(np.float32)
+    pred = (gt * rng.uniform(0.8, 1.2, gt.shape)).astype(np.float32)
+    gt[0, :10] = 0.0
+    gt[1, :10] = np.nan
+    pred[2, :5] = np.nan
+    pred[3, :5] = -0.5  # a wrong answer, still counted
+    mask = rng.random(gt.shape) > 0.2
+    for m in (None, mask):
+        got = moma.metrics(pred, gt, mask=m)
+        want = metrics_np(pred, gt, m)
+        assert got["n"] == want["n"]
+        for k in ("d105", "d110", "d125", "rel", "rmse", "mae"):
+            assert got[k] == pytest.approx(want[k], rel=1e-5, abs=1e-7), k
+
+
+def test_depth_to_points_back_projects(cam):
+    depth = np.full((120, 160), np.nan, dtype=np.float32)
+    depth[10, 20] = 2.0
+    depth[100, 150] = 0.5
+    pts = moma.depth_to_points(depth, cam)
+    assert pts.dtype == np.float32 and pts.shape == (2, 3)
+    np.testing.assert_allclose(
+        pts[0], [(20 - 79.5) * 2.0 / 150, (10 - 59.5) * 2.0 / 150, 2.0], rtol=1e-6
+    )
+    np.testing.assert_allclose(
+        pts[1], [(150 - 79.5) * 0.5 / 150, (100 - 59.5) * 0.5 / 150, 0.5], rtol=1e-6
+    )
+    rgb = np.zeros((120, 160, 3), dtype=np.uint8)
+    rgb[10, 20] = (1, 2, 3)
+    rgb[100, 150] = (250, 0, 7)
+    pts2, col = moma.depth_to_points(depth, cam, rgb=rgb)
+    np.testing.assert_array_equal(pts2, pts)
+    np.testing.assert_array_equal(col, [[1, 2, 3], [250, 0, 7]])
+
+
+def test_intrinsics_fields(cam):
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) == (150, 150, 79.5, 59.5, 160, 120)
+    assert cam == moma.Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    assert cam.to_dict()["fx"] == 150.0
+
+
+def test_ssra_with_camera_reports_canonical_parameters(small_scene, cam):
+    pred, gt = small_scene
+    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth")
+    can = cal.report["model"]["canonical"]
+    assert can["f_px"] == 150.0 and can["cx_px"] == 79.5 and can["cy_px"] == 59.5
+    assert cal.intrinsics == cam
