@@ -116,7 +116,10 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
     ] {
         let config = CalibrationConfig {
             method,
-            normalisation: Default::default(),
+            normalisation: moma_core::NormalisationConfig::native(
+                moma_core::Normalisation::Minmax,
+                pred.kind,
+            ),
             sampling: moma_core::sampling::SamplingConfig {
                 n: 40,
                 ..Default::default()
@@ -135,7 +138,6 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
                 cx: 16.0,
                 cy: 12.0,
             }),
-            None,
             moma_io::CreationInfo::now(),
         );
         let p = dir.join(format!("calib-{name}.json"));

@@ -18,19 +18,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let file = moma_io::read_calibration(calib)?;
     let pred = moma_io::read_prediction(pred, file.prediction_kind)?;
-    let workspace = file
-        .workspace_mask
-        .as_ref()
-        .map(|p| moma_io::read_mask_sized(p, file.image_size))
-        .transpose()?;
     // Warm-up (first-touch page faults, LWLR map cache), then timed calls.
     for _ in 0..5 {
-        std::hint::black_box(file.calibration.align(&pred, workspace.as_ref())?);
+        std::hint::black_box(file.calibration.align(&pred)?);
     }
     let mut ms = Vec::with_capacity(repeats);
     for _ in 0..repeats.max(1) {
         let t = Instant::now();
-        let depth = file.calibration.align(&pred, workspace.as_ref())?;
+        let depth = file.calibration.align(&pred)?;
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(depth);
     }

@@ -73,7 +73,7 @@ impl IntoPyErr for CoreError {
 
 impl IntoPyErr for IoError {
     fn into_py_err(self) -> PyErr {
-        err(Kind::File, self.to_string())
+        err(Kind::File, chain(&self))
     }
 }
 
@@ -81,11 +81,23 @@ impl IntoPyErr for DepthError {
     fn into_py_err(self) -> PyErr {
         let kind = match &self {
             DepthError::Shape(_) => Kind::Value,
-            DepthError::Weights { .. } => Kind::File,
-            DepthError::Backend(_) | DepthError::Unavailable(_) => Kind::Backend,
+            DepthError::Weights { .. } | DepthError::Config { .. } => Kind::File,
+            _ => Kind::Backend,
         };
-        err(kind, self.to_string())
+        err(kind, chain(&self))
     }
+}
+
+/// The error and its sources joined by ": " (each library error prints only its own part).
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        text.push_str(": ");
+        text.push_str(&s.to_string());
+        source = s.source();
+    }
+    text
 }
 
 /// `result.map_err(IntoPyErr::into_py_err)`, shorter.

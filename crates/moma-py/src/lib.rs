@@ -20,12 +20,10 @@ use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
-use moma_core::{
-    CoreError, Intrinsics as CoreIntrinsics, Mask, MetricDepth, Prediction, PredictionKind,
-};
+use moma_core::{Intrinsics as CoreIntrinsics, MetricDepth, Prediction, PredictionKind};
 use moma_depth::{Backbone, DepthModel as DepthModelTrait, Head, ModelSpec};
 use moma_io::{CalibrationFile, CreationInfo};
-use ndarray::{Array2, ArrayView2, ArrayViewMut2};
+use ndarray::{Array2, ArrayView2};
 use numpy::{IntoPyArray, PyArray2, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;

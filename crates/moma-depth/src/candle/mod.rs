@@ -533,8 +533,7 @@ pub fn open_checkpoint(
             crate::weights_limits::check_weights_file_size(path)?;
             OpenedCheckpoint::pytorch(path)
         }
-    }
-    .map_err(werr)?;
+    }?;
     config.check_tensors(&opened.shapes).map_err(werr)?;
     if !opened.non_float.is_empty() {
         return Err(werr(format!(
@@ -607,10 +606,6 @@ impl CandleDepthModel {
         dtype: DType,
     ) -> Result<Self> {
         let path = path.as_ref();
-        let werr = |reason: String| DepthError::Weights {
-            path: path.display().to_string(),
-            reason,
-        };
         let vb = open_checkpoint(path, &config, device, dtype)?;
         Self::from_var_builder(config, vb).map_err(|e| match e {
             DepthError::Candle { source, .. } => weights_source(path)(source),
