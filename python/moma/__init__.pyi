@@ -8,6 +8,7 @@ from ._moma import Intrinsics as Intrinsics
 from ._moma import __version__ as __version__
 from ._moma import calibrate as calibrate
 from ._moma import depth_to_points as depth_to_points
+from ._moma import plan_grasps as plan_grasps
 from ._moma import has_onnx as has_onnx
 from ._moma import metrics as metrics
 from ._moma import read_depth as read_depth
@@ -27,6 +28,7 @@ __all__ = [
     "__version__",
     "calibrate",
     "depth_to_points",
+    "plan_grasps",
     "has_onnx",
     "metrics",
     "read_depth",

@@ -27,6 +27,7 @@ __all__ = [
     "__version__",
     "calibrate",
     "depth_to_points",
+    "plan_grasps",
     "has_onnx",
     "metrics",
     "read_depth",
@@ -175,6 +176,19 @@ def metrics(
     depth_m: npt.ArrayLike, gt_m: npt.ArrayLike, mask: Optional[_Mask] = None
 ) -> _Metrics:
     """Accuracy of ``depth_m`` (metres) against ``gt_m`` (metres) over pixels valid in both."""
+
+def plan_grasps(
+    depth_m: npt.ArrayLike,
+    cam: Intrinsics,
+    gripper: Literal["parallel", "suction"] = "parallel",
+    mask: Optional[_Mask] = None,
+    top: int = 10,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Grasps on metric depth (metres), best first, as ``moma grasp --json`` prints them:
+    parallel ``{"kind", "score", "center_m", "approach", "closing", "width_m"}``, suction
+    ``{"kind", "score", "point_m", "approach"}``; camera frame x right, y down, z forward,
+    metres. ``mask``: the objects (nonzero = inside). An empty list when nothing is graspable."""
 
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...

@@ -467,6 +467,68 @@ fn depth_to_points<'py>(
     }
 }
 
+/// Plans grasps on a metric depth map (metres): the same planner and the same dicts as
+/// `moma grasp --json`, best first. Parallel: `{"kind": "parallel", "score", "center_m",
+/// "approach", "closing", "width_m"}`; suction: `{"kind": "suction", "score", "point_m",
+/// "approach"}`; camera frame (x right, y down, z forward, metres). `mask`: the objects to grasp
+/// (bool/uint8 H×W); without one, whatever stands more than 10 mm above the support plane. No
+/// grasp found is an empty list, not an error. The GIL is released while planning.
+#[pyfunction]
+#[pyo3(signature = (depth_m, cam, gripper="parallel", mask=None, top=10, seed=0))]
+fn plan_grasps<'py>(
+    py: Python<'py>,
+    depth_m: &Bound<'py, PyAny>,
+    cam: &Intrinsics,
+    gripper: &str,
+    mask: Option<&Bound<'py, PyAny>>,
+    top: usize,
+    seed: u64,
+) -> PyResult<Bound<'py, PyAny>> {
+    use moma_grasp::{
+        ParallelConfig, ParallelJaw, Scene, SceneConfig, SuctionConfig, SuctionCup,
+        plan_parallel, plan_suction,
+    };
+    if top == 0 {
+        return Err(value_err("top must be at least 1"));
+    }
+    if gripper != "parallel" && gripper != "suction" {
+        return Err(value_err(format!(
+            "unknown gripper '{gripper}' (expected 'parallel' or 'suction')"
+        )));
+    }
+    let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+    let mask = opt_mask(mask, "mask")?;
+    let k = cam.inner;
+    let parallel = gripper == "parallel";
+    let outcome = py
+        .detach(|| -> Result<_, moma_grasp::GraspError> {
+            let scene = Scene::build(&depth, &k, mask.as_ref(), &SceneConfig::default())?;
+            if parallel {
+                plan_parallel(
+                    &scene,
+                    &ParallelJaw::default(),
+                    &ParallelConfig {
+                        top_k: top,
+                        seed,
+                        ..ParallelConfig::default()
+                    },
+                )
+            } else {
+                plan_suction(
+                    &scene,
+                    &SuctionCup::default(),
+                    &SuctionConfig {
+                        top_k: top,
+                        seed,
+                        ..SuctionConfig::default()
+                    },
+                )
+            }
+        })
+        .map_err(|e| value_err(e.to_string()))?;
+    to_py_json(py, &outcome.grasps)
+}
+
 /// Reads metric depth: uint16 PNG (millimetres, 0 = none), `.npy` (metres) or `.pfm` (metres).
 /// Returns float32 metres, NaN where there is no depth.
 #[pyfunction]
@@ -779,6 +841,7 @@ fn _moma(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(calibrate, m)?)?;
     m.add_function(wrap_pyfunction!(metrics, m)?)?;
     m.add_function(wrap_pyfunction!(depth_to_points, m)?)?;
+    m.add_function(wrap_pyfunction!(plan_grasps, m)?)?;
     m.add_function(wrap_pyfunction!(read_depth, m)?)?;
     m.add_function(wrap_pyfunction!(write_depth, m)?)?;
     m.add_function(wrap_pyfunction!(read_prediction, m)?)?;

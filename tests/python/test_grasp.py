@@ -1,0 +1,80 @@
+"""`moma.plan_grasps`: a box of known size on a table, seen straight down by a pinhole camera;
+the same dicts as `moma grasp --json` (compared with the CLI when its binary is found)."""
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+import moma
+from conftest import moma_bin
+
+W, H, F = 320, 240, 300.0
+TABLE_M, TOP_M = 0.70, 0.65  # camera looks straight down: table at 0.70 m, box top 50 mm above
+BOX_HALF_M = (0.035, 0.020)  # 70 mm × 40 mm footprint, long side along x
+
+
+def box_scene():
+    cam = moma.Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    x_top = (u - cam.cx) / F * TOP_M
+    y_top = (v - cam.cy) / F * TOP_M
+    on_box = (np.abs(x_top) <= BOX_HALF_M[0]) & (np.abs(y_top) <= BOX_HALF_M[1])
+    depth = np.where(on_box, TOP_M, TABLE_M).astype(np.float32)
+    return cam, depth, on_box
+
+
+def test_suction_on_the_top_face_and_parallel_across_the_narrow_side():
+    cam, depth, box = box_scene()
+    suction = moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=3)
+    assert suction and suction[0]["kind"] == "suction"
+    assert set(suction[0]) == {"kind", "score", "point_m", "approach"}
+    x, y, z = suction[0]["point_m"]
+    assert abs(z - TOP_M) < 0.003 and abs(x) < BOX_HALF_M[0] and abs(y) < BOX_HALF_M[1]
+    a = np.array(suction[0]["approach"])
+    assert np.degrees(np.arccos(np.clip(a @ [0, 0, 1], -1, 1))) < 5.0  # into the top face
+    scores = [g["score"] for g in suction]
+    assert scores == sorted(scores, reverse=True)
+
+    parallel = moma.plan_grasps(depth, cam, gripper="parallel", mask=box, top=5)
+    assert parallel and parallel[0]["kind"] == "parallel"
+    g = parallel[0]
+    assert set(g) == {"kind", "score", "center_m", "approach", "closing", "width_m"}
+    closing = np.abs(np.array(g["closing"]))
+    assert closing[1] > 0.9  # closes across the 40 mm side (y)
+    assert 2 * BOX_HALF_M[1] <= g["width_m"] <= 0.085
+
+
+def test_nothing_graspable_is_an_empty_list_and_bad_input_raises():
+    cam, depth, _ = box_scene()
+    table = np.full_like(depth, TABLE_M)
+    assert moma.plan_grasps(table, cam, gripper="suction") == []
+    with pytest.raises(ValueError, match="gripper"):
+        moma.plan_grasps(depth, cam, gripper="vacuum")
+    with pytest.raises(ValueError):
+        moma.plan_grasps(np.full_like(depth, np.nan), cam)
+    with pytest.raises(ValueError):
+        moma.plan_grasps(depth[:, :10], cam)
+
+
+@pytest.mark.skipif(moma_bin() is None, reason="moma CLI not found: set MOMA_BIN")
+def test_same_grasps_as_the_cli(tmp_path):
+    cam, depth, _ = box_scene()
+    moma.write_depth(str(tmp_path / "d.npy"), depth)
+    cam.save(str(tmp_path / "camera.json"))
+    for gripper in ("suction", "parallel"):
+        out = subprocess.run(
+            [moma_bin(), "grasp", "--depth", str(tmp_path / "d.npy"), "--camera",
+             str(tmp_path / "camera.json"), "--gripper", gripper, "--top", "3", "--json"],
+            capture_output=True, text=True, timeout=300,
+        )
+        assert out.returncode == 0, out.stderr
+        cli = json.loads(out.stdout)
+        py = moma.plan_grasps(depth, cam, gripper=gripper, top=3)
+        assert len(py) == len(cli) > 0
+        for a, b in zip(py, cli):
+            assert a["kind"] == b["kind"]
+            for key in a:
+                if key != "kind":
+                    np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-6)
