@@ -91,7 +91,10 @@ fn ssra_local_beats_ssra_on_a_bump() {
     assert!(!m.fallback, "the bump should be worth a correction: {m:?}");
     assert!(m.chosen.loo_rms < m.global_loo_rms);
     let (e_ssra, e_loc) = (held_out_mae(&ssra, 0.15), held_out_mae(&loc, 0.15));
-    println!("held-out MAE: ssra {e_ssra:.5} m, ssra-local {e_loc:.5} m; chosen {:?}", m.chosen);
+    println!(
+        "held-out MAE: ssra {e_ssra:.5} m, ssra-local {e_loc:.5} m; chosen {:?}",
+        m.chosen
+    );
     assert!(e_loc < 0.6 * e_ssra, "ssra-local {e_loc} vs ssra {e_ssra}");
     // gssa-local also corrects GSSA
     let (gssa, _) = method("gssa").fit(&set).unwrap();
@@ -117,7 +120,11 @@ fn planar_field_falls_back_or_matches_ssra() {
             worst = worst.max((loc.predict_at(uf, vf, p) - ssra.predict_at(uf, vf, p)).abs());
         }
     }
-    assert!(m.fallback || worst < 1e-9, "fallback {} worst {worst}", m.fallback);
+    assert!(
+        m.fallback || worst < 1e-9,
+        "fallback {} worst {worst}",
+        m.fallback
+    );
 }
 
 #[test]
@@ -234,7 +241,10 @@ fn serde_round_trip_and_validation() {
     let mut value = serde_json::to_value(&model).unwrap();
     value["chosen"]["bandwidth_px"] = serde_json::json!(-3.0);
     let bad: AlignmentModel = serde_json::from_value(value).unwrap();
-    assert!(matches!(bad.validate(), Err(CoreError::InvalidParameter(_))));
+    assert!(matches!(
+        bad.validate(),
+        Err(CoreError::InvalidParameter(_))
+    ));
     // node maps of the wrong length are refused
     let mut value = serde_json::to_value(&model).unwrap();
     value["node_scale"] = serde_json::json!([1.0]);
@@ -277,7 +287,11 @@ fn too_few_samples_are_errors() {
     let set = scene_samples(5, 10, 0.15, 0.0);
     assert!(matches!(
         method("ssra-local").fit(&set),
-        Err(CoreError::TooFewSamples { need: 6, got: 5, .. })
+        Err(CoreError::TooFewSamples {
+            need: 6,
+            got: 5,
+            ..
+        })
     ));
     let three = SampleSet {
         image_size: set.image_size,
@@ -317,4 +331,67 @@ fn names_round_trip() {
         assert_eq!(back, m, "{json}");
     }
     assert!("ssra_local".parse::<Method>().is_err());
+}
+
+#[test]
+fn pipeline_calibrates_validates_and_round_trips_local_and_auto() {
+    use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+    use moma_core::pipeline::{Calibration, CalibrationConfig, calibrate};
+    use moma_core::sampling::SamplingConfig;
+    use moma_core::{MetricDepth, Prediction, PredictionKind};
+    let gt = Array2::from_shape_fn((H, W), |(v, u)| depth_m(u as f64, v as f64) as f32);
+    let z = Array2::from_shape_fn((H, W), |(v, u)| zhat(u as f64, v as f64, 0.15) as f32);
+    let (gt, pred) = (
+        MetricDepth::new(gt),
+        Prediction::new(z, PredictionKind::Depth),
+    );
+    for name in ["ssra-local", "gssa-local", "auto"] {
+        let cfg = CalibrationConfig {
+            method: method(name),
+            normalisation: NormalisationConfig {
+                method: Normalisation::None,
+                space: AlignSpace::Depth,
+            },
+            sampling: SamplingConfig {
+                n: 100,
+                seed: 3,
+                ..Default::default()
+            },
+        };
+        let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+        assert_eq!(cal.report.method, name);
+        cal.validate().unwrap();
+        let back: Calibration =
+            serde_json::from_str(&serde_json::to_string(&cal).unwrap()).unwrap();
+        back.validate().unwrap();
+        let (a, b) = (cal.align(&pred).unwrap(), back.align(&pred).unwrap());
+        assert_eq!(a.depth_m, b.depth_m);
+    }
+}
+
+#[test]
+fn noisy_planar_field_is_not_made_worse() {
+    // SSRA is the true model; with 1 mm noise the guard must keep ssra-local's held-out error
+    // within 20 µm of SSRA's on every seed (it may keep a mild correction fitted to noise).
+    let mut fallbacks = 0;
+    for seed in 0..10 {
+        let set = scene_samples(100, 100 + seed, 0.0, 0.001);
+        let (ssra, _) = method("ssra").fit(&set).unwrap();
+        let (loc, _) = method("ssra-local").fit(&set).unwrap();
+        let (e_s, e_l) = (held_out_mae(&ssra, 0.0), held_out_mae(&loc, 0.0));
+        fallbacks += usize::from(local(&loc).fallback);
+        println!(
+            "seed {seed}: ssra {e_s:.6} ssra-local {e_l:.6} fallback {}",
+            local(&loc).fallback
+        );
+        assert!(
+            e_l <= e_s + 2e-4,
+            "seed {seed}: ssra-local {e_l} vs ssra {e_s}"
+        );
+    }
+    println!("fallbacks: {fallbacks}/10");
+    assert!(
+        fallbacks >= 5,
+        "the guard should usually fall back on a planar field"
+    );
 }
