@@ -110,6 +110,61 @@ fn bench_apply(c: &mut Criterion) {
     g.finish();
 }
 
+/// Samples on a planar scale field plus a Gaussian bump (σ = 60 px), so that the local
+/// correction is kept (no fallback).
+fn bumpy_samples(size: ImageSize, n: usize, seed: u64) -> SampleSet {
+    let mut set = samples(size, n, seed);
+    for s in &mut set.samples {
+        let bump = 0.1 * (-((s.u - 400.0).powi(2) + (s.v - 240.0).powi(2)) / 7200.0).exp();
+        s.depth_m += s.pred * bump;
+    }
+    set
+}
+
+fn bench_local(c: &mut Criterion) {
+    let p1 = pool(1);
+    let size = ImageSize::new(640, 480);
+    let set = bumpy_samples(size, 100, 11);
+    let mut g = c.benchmark_group("local");
+    for name in ["ssra-local", "gssa-local"] {
+        let method: Method = name.parse().unwrap();
+        g.bench_function(BenchmarkId::new("fit_incl_cv_n100", name), |b| {
+            p1.install(|| b.iter(|| method.fit(black_box(&set)).unwrap()))
+        });
+    }
+    let method: Method = "ssra-local".parse().unwrap();
+    let (model, _) = method.fit(&set).unwrap();
+    match &model {
+        AlignmentModel::Local(m) => assert!(!m.fallback, "bench scene must keep the correction"),
+        _ => unreachable!(),
+    }
+    let z = zhat(size);
+    let mut out = Array2::<f32>::zeros(size.shape());
+    g.throughput(Throughput::Elements(size.pixels() as u64));
+    g.bench_function("apply_ssra_local_640x480_maps_cached", |b| {
+        p1.install(|| {
+            b.iter(|| {
+                model
+                    .apply_into(black_box(z.view()), &mut out.view_mut())
+                    .unwrap()
+            })
+        })
+    });
+    g.bench_function("fit_and_first_apply_ssra_local_640x480_n100", |b| {
+        p1.install(|| {
+            b.iter(|| {
+                let (m, _) = method.fit(black_box(&set)).unwrap();
+                m.apply_into(z.view(), &mut out.view_mut()).unwrap()
+            })
+        })
+    });
+    g.sample_size(10);
+    g.bench_function("fit_auto_n100", |b| {
+        p1.install(|| b.iter(|| Method::Auto.fit(black_box(&set)).unwrap()))
+    });
+    g.finish();
+}
+
 fn lwlr_model(cfg: LwlrConfig, size: ImageSize, n: usize) -> LwlrModel {
     match Method::Lwlr(cfg).fit(&samples(size, n, 7)).unwrap().0 {
         AlignmentModel::Lwlr(m) => m,
@@ -186,6 +241,7 @@ criterion_group!(
     bench_fits,
     bench_apply,
     bench_lwlr,
+    bench_local,
     bench_metrics,
     bench_normalise
 );

@@ -232,6 +232,21 @@ pub fn fit(samples: &SampleSet, config: &LwlrConfig) -> Result<LwlrModel> {
     Ok(model)
 }
 
+/// Like [`fit`] without computing the full-size maps (for leave-one-out refits that only call
+/// [`LwlrModel::predict`]).
+pub(crate) fn fit_unmapped(samples: &SampleSet, config: &LwlrConfig) -> Result<LwlrModel> {
+    config.validate(samples.image_size)?;
+    let global = gssa::fit(&samples.samples)?;
+    Ok(LwlrModel {
+        config: *config,
+        image_size: samples.image_size,
+        bandwidth_px: config.bandwidth_for(samples.image_size),
+        global,
+        samples: samples.samples.clone(),
+        maps: OnceLock::new(),
+    })
+}
+
 /// Precomputed per-sample quantities of a model.
 struct Prepared {
     /// Sample positions (u, v), pixels.
@@ -554,7 +569,7 @@ fn local_solve(p: &Prepared, s: [f64; 5]) -> Option<(f64, f64)> {
 /// Half-pixel-centre source position of output coordinate `x` when resizing `n` nodes to `len`
 /// pixels: `(x + ½)·n/len − ½`, clamped to `[0, n − 1]`; returns `(i0, i1, frac)`.
 #[inline]
-fn half_pixel_source(x: f64, n: usize, len: usize) -> (usize, usize, f64) {
+pub(crate) fn half_pixel_source(x: f64, n: usize, len: usize) -> (usize, usize, f64) {
     let src = (x + 0.5) * n as f64 / len as f64 - 0.5;
     if src <= 0.0 || n == 1 {
         return (0, 0, 0.0);
@@ -568,7 +583,13 @@ fn half_pixel_source(x: f64, n: usize, len: usize) -> (usize, usize, f64) {
 
 /// Bilinear resize of a row-major `ny × nx` f64 grid to `h × w` f32 (half-pixel centres, clamped).
 /// Horizontal pass on the node rows first, then a vectorised vertical blend per output row.
-fn resize_bilinear(src: &[f64], nx: usize, ny: usize, w: usize, h: usize) -> Array2<f32> {
+pub(crate) fn resize_bilinear(
+    src: &[f64],
+    nx: usize,
+    ny: usize,
+    w: usize,
+    h: usize,
+) -> Array2<f32> {
     let xs: Vec<(usize, usize, f64)> = (0..w).map(|x| half_pixel_source(x as f64, nx, w)).collect();
     let mut rows = vec![0.0f32; ny * w];
     for r in 0..ny {

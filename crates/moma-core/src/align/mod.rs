@@ -4,6 +4,7 @@
 //! [`AlignmentModel`].
 
 pub mod gssa;
+pub mod local;
 pub mod lwlr;
 pub mod ssra;
 
@@ -164,6 +165,15 @@ pub enum Method {
     Ssra(ssra::SsraConfig),
     /// Locally weighted linear regression.
     Lwlr(lwlr::LwlrConfig),
+    /// SSRA plus a cross-validated local scale/shift correction (METHOD.md §10).
+    #[serde(rename = "ssra-local")]
+    SsraLocal(local::LocalConfig),
+    /// GSSA plus a cross-validated local scale/shift correction (METHOD.md §10).
+    #[serde(rename = "gssa-local")]
+    GssaLocal(local::LocalConfig),
+    /// The method with the lowest leave-one-out error on the calibration samples among gssa,
+    /// ssra, lwlr, gssa-local and ssra-local.
+    Auto,
 }
 
 /// A fitted alignment: everything needed to turn a normalised map into metres. Serialisable into a calibration file.
@@ -178,11 +188,25 @@ pub enum AlignmentModel {
     Ssra(ssra::SsraModel),
     /// Locally weighted linear regression.
     Lwlr(lwlr::LwlrModel),
+    /// Global fit plus local correction (`ssra-local`, `gssa-local`).
+    Local(Box<local::LocalModel>),
+    /// The method chosen by leave-one-out cross-validation.
+    Auto(local::AutoModel),
 }
 
 impl Method {
     /// Every method name [`Method::from_str`](std::str::FromStr) accepts, in documentation order.
-    pub const NAMES: [&'static str; 6] = ["ssra", "gssa", "lwlr", "lwlr-exact", "lwlr-bare", "raw"];
+    pub const NAMES: [&'static str; 9] = [
+        "ssra",
+        "gssa",
+        "lwlr",
+        "lwlr-exact",
+        "lwlr-bare",
+        "ssra-local",
+        "gssa-local",
+        "auto",
+        "raw",
+    ];
 
     /// Method name as used on the command line and in files: `ssra`, `gssa`, `raw`, and for
     /// LWLR the preset its settings follow (`lwlr` grid solve, `lwlr-exact` exact solve with
@@ -193,6 +217,9 @@ impl Method {
             Self::Gssa => "gssa",
             Self::Ssra(_) => "ssra",
             Self::Lwlr(cfg) => lwlr_name(cfg),
+            Self::SsraLocal(_) => "ssra-local",
+            Self::GssaLocal(_) => "gssa-local",
+            Self::Auto => "auto",
         }
     }
 
@@ -205,13 +232,17 @@ impl Method {
         }
     }
 
-    /// Minimum number of samples the method needs (RAW: 0, GSSA: 2, SSRA: 4, LWLR: 2).
+    /// Minimum number of samples the method needs (RAW: 0, GSSA: 2, SSRA: 4, LWLR: 2,
+    /// gssa-local: 4, ssra-local: 6, auto: 3).
     pub fn min_samples(&self) -> usize {
         match self {
             Self::Raw => 0,
             Self::Gssa => gssa::MIN_SAMPLES,
             Self::Ssra(_) => ssra::MIN_SAMPLES,
             Self::Lwlr(_) => lwlr::MIN_SAMPLES,
+            Self::GssaLocal(_) => local::GSSA_LOCAL_MIN_SAMPLES,
+            Self::SsraLocal(_) => local::SSRA_LOCAL_MIN_SAMPLES,
+            Self::Auto => local::AUTO_MIN_SAMPLES,
         }
     }
 
@@ -245,6 +276,13 @@ impl Method {
             Self::Gssa => AlignmentModel::Gssa(gssa::fit(&samples.samples)?),
             Self::Ssra(cfg) => AlignmentModel::Ssra(ssra::fit(samples, cfg)?),
             Self::Lwlr(cfg) => AlignmentModel::Lwlr(lwlr::fit(samples, cfg)?),
+            Self::SsraLocal(cfg) => {
+                AlignmentModel::Local(Box::new(local::fit(samples, local::LocalBase::Ssra, cfg)?))
+            }
+            Self::GssaLocal(cfg) => {
+                AlignmentModel::Local(Box::new(local::fit(samples, local::LocalBase::Gssa, cfg)?))
+            }
+            Self::Auto => AlignmentModel::Auto(local::fit_auto(samples)?),
         };
         let rms_residual_m = match &model {
             AlignmentModel::Raw => rms_residual(&samples.samples, |s| s.pred),
@@ -253,6 +291,9 @@ impl Method {
                 rms_residual(&samples.samples, |s| m.predict(s.u, s.v, s.pred))
             }
             AlignmentModel::Lwlr(m) => m.rms_residual_m(),
+            m @ (AlignmentModel::Local(_) | AlignmentModel::Auto(_)) => {
+                rms_residual(&samples.samples, |s| m.predict_at(s.u, s.v, s.pred))
+            }
         };
         let report = FitReport {
             method: self.name().to_string(),
@@ -290,6 +331,9 @@ impl std::str::FromStr for Method {
             "lwlr" => Ok(Self::Lwlr(lwlr::LwlrConfig::faithful())),
             "lwlr-exact" => Ok(Self::Lwlr(lwlr::LwlrConfig::exact())),
             "lwlr-bare" => Ok(Self::Lwlr(lwlr::LwlrConfig::bare_exact())),
+            "ssra-local" => Ok(Self::SsraLocal(local::LocalConfig::default())),
+            "gssa-local" => Ok(Self::GssaLocal(local::LocalConfig::default())),
+            "auto" => Ok(Self::Auto),
             "raw" => Ok(Self::Raw),
             other => Err(CoreError::InvalidParameter(format!(
                 "unknown method '{other}' (expected one of: {})",
@@ -300,13 +344,16 @@ impl std::str::FromStr for Method {
 }
 
 impl AlignmentModel {
-    /// Method name (`raw`, `gssa`, `ssra`, `lwlr`, `lwlr-exact`, `lwlr-bare`).
+    /// Method name (`raw`, `gssa`, `ssra`, `lwlr`, `lwlr-exact`, `lwlr-bare`, `ssra-local`,
+    /// `gssa-local`, `auto`).
     pub fn name(&self) -> &'static str {
         match self {
             Self::Raw => "raw",
             Self::Gssa(_) => "gssa",
             Self::Ssra(_) => "ssra",
             Self::Lwlr(m) => lwlr_name(&m.config),
+            Self::Local(m) => m.name(),
+            Self::Auto(_) => "auto",
         }
     }
 
@@ -319,6 +366,8 @@ impl AlignmentModel {
             Self::Gssa(m) => m.predict(pred),
             Self::Ssra(m) => m.predict(u, v, pred),
             Self::Lwlr(m) => m.predict_at_pixel(u, v, pred),
+            Self::Local(m) => m.predict_at(u, v, pred),
+            Self::Auto(m) => m.chosen.predict_at(u, v, pred),
         }
     }
 
@@ -405,6 +454,8 @@ impl AlignmentModel {
                 Ok(())
             }
             Self::Lwlr(m) => m.validate(),
+            Self::Local(m) => m.validate(),
+            Self::Auto(m) => m.validate(),
         }
     }
 
@@ -414,6 +465,8 @@ impl AlignmentModel {
             Self::Raw | Self::Gssa(_) => None,
             Self::Ssra(m) => Some(m.image_size),
             Self::Lwlr(m) => Some(m.image_size),
+            Self::Local(m) => Some(m.image_size),
+            Self::Auto(m) => m.chosen.image_size(),
         }
     }
 
@@ -453,6 +506,8 @@ impl AlignmentModel {
             }
             Self::Ssra(m) => m.apply_into(normalised, out),
             Self::Lwlr(m) => m.apply_into(normalised, out),
+            Self::Local(m) => m.apply_into(normalised, out),
+            Self::Auto(m) => m.chosen.apply_into(normalised, out)?,
         }
         Ok(())
     }

@@ -282,7 +282,7 @@ pub fn fit(samples: &SampleSet, config: &SsraConfig) -> Result<SsraModel> {
 /// Solves `m x = b` for a symmetric positive semi-definite 4×4 `m` by Jacobi scaling and
 /// Cholesky; `None` when a scaled pivot is below [`MIN_PIVOT`] (or not finite).
 #[allow(clippy::needless_range_loop)] // index notation mirrors the matrix algebra
-fn solve_spd4(m: &[[f64; 4]; 4], b: &[f64; 4]) -> Option<[f64; 4]> {
+pub(crate) fn solve_spd4(m: &[[f64; 4]; 4], b: &[f64; 4]) -> Option<[f64; 4]> {
     let mut d = [0.0f64; 4];
     for i in 0..4 {
         if !(m[i][i] > 0.0 && m[i][i].is_finite()) {
