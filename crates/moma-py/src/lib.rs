@@ -485,8 +485,8 @@ fn plan_grasps<'py>(
     seed: u64,
 ) -> PyResult<Bound<'py, PyAny>> {
     use moma_grasp::{
-        ParallelConfig, ParallelJaw, Scene, SceneConfig, SuctionConfig, SuctionCup,
-        plan_parallel, plan_suction,
+        ParallelConfig, ParallelJaw, Scene, SceneConfig, SuctionConfig, SuctionCup, plan_parallel,
+        plan_suction,
     };
     if top == 0 {
         return Err(value_err("top must be at least 1"));
