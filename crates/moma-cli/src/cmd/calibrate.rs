@@ -37,7 +37,9 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "PNG")]
     pub workspace: Option<PathBuf>,
     /// Alignment method: ssra (the paper's), gssa, lwlr (BoostingDepth's grid solve),
-    /// lwlr-exact, lwlr-bare, raw (metric predictions used as metres; needs --norm none).
+    /// lwlr-exact, lwlr-bare, ssra-local / gssa-local (global fit + local correction, bandwidth
+    /// and ridge by leave-one-out), auto (the best of those by leave-one-out), raw (metric
+    /// predictions used as metres; needs --norm none).
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,

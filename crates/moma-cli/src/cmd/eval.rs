@@ -92,7 +92,8 @@ pub struct PredArgs {
 #[derive(Debug, Clone, Args)]
 pub struct EvalOptions {
     /// Methods, comma-separated: ssra, gssa, lwlr (BoostingDepth's grid variant), lwlr-exact,
-    /// lwlr-bare, raw. Default: ssra,gssa,lwlr, and raw for metric (depth) predictions.
+    /// lwlr-bare, ssra-local, gssa-local, auto, raw. Default: ssra,gssa,lwlr, and raw for metric
+    /// (depth) predictions.
     #[arg(long, value_delimiter = ',', value_name = "METHODS")]
     pub methods: Vec<Method>,
     /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none.
