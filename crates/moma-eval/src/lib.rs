@@ -16,6 +16,7 @@
 //! use moma_eval::protocol::{EvalConfig, evaluate};
 //! use moma_eval::scene::SceneConfig;
 //! use moma_core::ImageSize;
+//! use moma_core::align::Method;
 //!
 //! // a small version of the `moma demo` scene, simulated predictions, 2 seeds
 //! let demo = DemoScene {
@@ -23,7 +24,8 @@
 //!     ..Default::default()
 //! };
 //! let (set, preds) = build_demo(&demo, None)?;
-//! let config = EvalConfig { methods: vec!["ssra".into(), "gssa".into()], seeds: 2, ..Default::default() };
+//! let methods = vec![Method::Ssra(Default::default()), Method::Gssa];
+//! let config = EvalConfig { methods, seeds: 2, ..Default::default() };
 //! let results = evaluate(&set, &preds, &config)?;
 //! assert_eq!(results.len(), 2);
 //! assert!(results[0].per_image.mae.mean < 0.05); // metres
