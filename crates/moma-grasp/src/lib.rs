@@ -49,6 +49,7 @@ pub mod cloud;
 pub mod contact;
 pub mod error;
 pub mod extrinsics;
+pub mod footprint;
 pub mod grasp;
 pub mod gripper;
 pub mod nms;
@@ -63,6 +64,7 @@ pub use cloud::{CloudConfig, OrganisedCloud, Vec3};
 pub use contact::{ExecConfig, MU_GRID};
 pub use error::{GraspError, Result};
 pub use extrinsics::Extrinsics;
+pub use footprint::FootprintConfig;
 pub use grasp::{
     FailureReason, Grasp, NoGraspReason, ParallelGrasp, ParallelPose, PlanOutcome, SuctionGrasp,
     SuctionPose,
