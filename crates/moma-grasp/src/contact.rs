@@ -241,13 +241,14 @@ impl Scene {
 
     /// Counts points in the fingers + palm (collision), between the fingers, and object points
     /// between the fingers.
-    /// With `soft` (planning), points inside a soft silhouette ([`crate::OrganisedCloud`]'s mixed pixels) do
-    /// not collide.
+    /// With `soft` (planning), points inside a soft silhouette ([`crate::OrganisedCloud`]'s mixed
+    /// pixels) do not collide, until `mixed_until` other points already collide.
     pub(crate) fn scan_jaw(
         &self,
         pose: &JawPose,
         jaw: &ParallelJaw,
         soft: Option<&Soft>,
+        mixed_until: usize,
     ) -> (usize, usize, usize) {
         let (c, a, b) = (pose.center, pose.approach, pose.closing);
         let hz = a.cross(&b);
@@ -303,7 +304,11 @@ impl Scene {
                     continue;
                 }
                 if x < x_base || y >= half_w {
-                    if !soft.is_some_and(|s| cloud.is_mixed(i, s.window_px, s.jump_m)) {
+                    // Mixed pixels are looked for only until the grasp collides anyway
+                    // (`mixed_until` real collisions), which keeps colliding candidates cheap.
+                    if collide >= mixed_until
+                        || !soft.is_some_and(|s| cloud.is_mixed(i, s.window_px, s.jump_m))
+                    {
                         collide += 1;
                     }
                 } else {
@@ -373,9 +378,9 @@ impl Scene {
                     finger_length_m: jaw.finger_length_m - m,
                     ..*jaw
                 };
-                self.scan_jaw(pose, &short, soft)
+                self.scan_jaw(pose, &short, soft, exec.collision_min_points)
             }
-            _ => self.scan_jaw(pose, jaw, soft),
+            _ => self.scan_jaw(pose, jaw, soft, exec.collision_min_points),
         };
         let failure = if collide >= exec.collision_min_points {
             Some(FailureReason::Collision)

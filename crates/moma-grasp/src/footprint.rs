@@ -391,7 +391,12 @@ fn one_candidate(
         closing: b,
         width,
     };
-    let (collide, between, between_obj) = scene.scan_jaw(&pose, ctx.test_jaw, Some(ctx.soft));
+    let (collide, between, between_obj) = scene.scan_jaw(
+        &pose,
+        ctx.test_jaw,
+        Some(ctx.soft),
+        ctx.exec.collision_min_points,
+    );
     if collide >= ctx.exec.collision_min_points {
         return Err(FailureReason::Collision);
     }

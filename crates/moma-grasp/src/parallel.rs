@@ -273,6 +273,28 @@ pub fn plan_parallel(
     Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
 }
 
+/// Runs only the tolerant pass of [`plan_parallel`] (soft silhouettes, collision margin, mixed
+/// pixels, footprint candidates), whatever the strict pass would find; for benches and
+/// diagnostics.
+///
+/// # Errors
+/// Invalid gripper or config.
+pub fn plan_parallel_tolerant(
+    scene: &Scene,
+    jaw: &ParallelJaw,
+    config: &ParallelConfig,
+) -> Result<PlanOutcome> {
+    jaw.validate()?;
+    config.validate()?;
+    if scene.plane.is_none() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoSupportPlane));
+    }
+    if scene.components().is_empty() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoObject));
+    }
+    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+}
+
 /// One planning pass: strict (`soft = None`: the scorer's rules, edge candidates only) or
 /// tolerant (soft silhouettes, collision margin, footprint candidates).
 fn plan_pass(

