@@ -34,6 +34,7 @@ use crate::scene::Scene;
 
 /// Settings of the footprint candidates (see the module docs).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct FootprintConfig {
     /// Whether footprint candidates are generated at all. Default true.
     pub enabled: bool,

@@ -41,6 +41,7 @@ use crate::scene::Scene;
 
 /// Parallel-jaw planner settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ParallelConfig {
     /// Execution rules shared with the scorer.
     pub exec: ExecConfig,
