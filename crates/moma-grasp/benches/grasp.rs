@@ -1,7 +1,8 @@
 //! Criterion benches on a 640×480 synthetic scene (two boxes on a table, exact ray casting).
 //!
 //! Targets (issue 9), one core: suction planning ≤ 20 ms, parallel-jaw top-10 ≤ 60 ms (scene build
-//! — cloud, normals, edges, plane, objects — included), scoring one grasp ≤ 2 ms. Run:
+//! — cloud, normals, edges, plane, objects — included), scoring one grasp ≤ 2 ms. When the strict
+//! parallel pass finds nothing, the tolerant pass runs too: worst case = both. Run:
 //! `RAYON_NUM_THREADS=1 cargo bench -p moma-grasp --bench grasp -- --warm-up-time 1 --measurement-time 3`
 
 #[path = "../tests/common/mod.rs"]
@@ -11,7 +12,7 @@ use common::{BoxSpec, Scene as Synth, intrinsics};
 use criterion::{Criterion, criterion_group, criterion_main};
 use moma_grasp::{
     Grasp, Gripper, ParallelConfig, ParallelJaw, Scene, SceneConfig, ScoreConfig, SuctionConfig,
-    SuctionCup, plan_parallel, plan_suction, score_grasp,
+    SuctionCup, plan_parallel, plan_parallel_tolerant, plan_suction, score_grasp,
 };
 use std::hint::black_box;
 
@@ -47,6 +48,12 @@ fn benches(c: &mut Criterion) {
         bch.iter(|| {
             let s = Scene::build(black_box(&depth), &k, None, &cfg).unwrap();
             plan_parallel(&s, &jaw, &pcfg).unwrap()
+        })
+    });
+    c.bench_function("parallel_tolerant_pass_640x480_with_scene", |bch| {
+        bch.iter(|| {
+            let s = Scene::build(black_box(&depth), &k, None, &cfg).unwrap();
+            plan_parallel_tolerant(&s, &jaw, &pcfg).unwrap()
         })
     });
     c.bench_function("suction_plan_only", |bch| {

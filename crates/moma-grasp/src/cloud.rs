@@ -317,6 +317,17 @@ impl OrganisedCloud {
     /// its exact perpendicular), turned into a camera-frame direction at the pixel's depth. `None`
     /// when no neighbour is farther by more than the edge jump.
     pub(crate) fn silhouette_direction(&self, index: usize, radius_px: usize) -> Option<Vec3> {
+        self.silhouette_direction_with(index, radius_px, self.edge_jump_m)
+    }
+
+    /// [`Self::silhouette_direction`] with pixels farther by more than `jump_m` counting as the
+    /// far side.
+    pub(crate) fn silhouette_direction_with(
+        &self,
+        index: usize,
+        radius_px: usize,
+        jump_m: f32,
+    ) -> Option<Vec3> {
         if !self.valid[index] {
             return None;
         }
@@ -337,7 +348,7 @@ impl OrganisedCloud {
                     continue;
                 }
                 let j = self.index(nu as usize, nv as usize);
-                if !self.valid[j] || self.points[j].z - z > self.edge_jump_m {
+                if !self.valid[j] || self.points[j].z - z > jump_m {
                     gu += du;
                     gv += dv;
                 }
@@ -346,6 +357,45 @@ impl OrganisedCloud {
         let d = Vec3::new(gu as f32 * z / self.fx, gv as f32 * z / self.fy, 0.0);
         let norm = d.norm();
         (norm > 1e-9).then(|| d / norm)
+    }
+
+    /// Whether a valid pixel within `window_px` (Chebyshev) of `index` lies farther than it by more
+    /// than `jump_m`: a silhouette spread over a few pixels (soft edges of predicted depth).
+    pub(crate) fn is_soft_edge(&self, index: usize, window_px: usize, jump_m: f32) -> bool {
+        if !self.valid[index] {
+            return false;
+        }
+        let (u, v) = (index % self.width, index / self.width);
+        let z = self.points[index].z;
+        (v.saturating_sub(window_px)..=(v + window_px).min(self.height - 1)).any(|nv| {
+            (u.saturating_sub(window_px)..=(u + window_px).min(self.width - 1)).any(|nu| {
+                let j = self.index(nu, nv);
+                self.valid[j] && self.points[j].z - z > jump_m
+            })
+        })
+    }
+
+    /// Whether pixel `index` lies inside a soft silhouette: within `window_px` some valid pixel is
+    /// farther and some nearer by more than `jump_m` (a blend of the object and what lies behind
+    /// it, which predicted depth puts in mid-air behind the object).
+    pub(crate) fn is_mixed(&self, index: usize, window_px: usize, jump_m: f32) -> bool {
+        if !self.valid[index] {
+            return false;
+        }
+        let (u, v) = (index % self.width, index / self.width);
+        let z = self.points[index].z;
+        let (mut far, mut near) = (false, false);
+        for nv in v.saturating_sub(window_px)..=(v + window_px).min(self.height - 1) {
+            for nu in u.saturating_sub(window_px)..=(u + window_px).min(self.width - 1) {
+                let j = self.index(nu, nv);
+                if self.valid[j] {
+                    let d = self.points[j].z - z;
+                    far |= d > jump_m;
+                    near |= d < -jump_m;
+                }
+            }
+        }
+        far && near
     }
 
     /// Metric size of one pixel at depth `z_m` (metres per pixel, along u).

@@ -94,6 +94,19 @@ pub(crate) struct JawPose {
     pub width: f32,
 }
 
+/// Planner-only tolerances for soft, noisy (predicted) depth; the scorer uses none.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Soft {
+    /// Silhouette when a pixel within this many pixels is farther by more than `jump_m`.
+    pub window_px: usize,
+    /// Depth drop over the window that makes a silhouette, metres.
+    pub jump_m: f32,
+    /// Disc radius of the silhouette normal, pixels.
+    pub radius_px: usize,
+    /// Fingertips shortened by this in the collision test, metres.
+    pub collision_margin_m: f32,
+}
+
 /// A contact found by closing a finger.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Contact {
@@ -161,6 +174,17 @@ impl Scene {
         (n > 1e-3).then(|| h / n)
     }
 
+    /// Horizontal outward normal of a soft silhouette at pixel `i` (planning only).
+    pub(crate) fn soft_silhouette_normal(&self, i: usize, soft: &Soft) -> Option<Vec3> {
+        let d = self
+            .cloud
+            .silhouette_direction_with(i, soft.radius_px, soft.jump_m)?;
+        let up = self.up();
+        let h = d - up * d.dot(&up);
+        let n = h.norm();
+        (n > 1e-3).then(|| h / n)
+    }
+
     /// Marches from `start` along unit `dir` for `length` metres and returns the first point inside
     /// the scene. Contact normal (METHOD.md §8): when the previous sample was free because its pixel
     /// lies farther (or is a hole / off-image), the contact is on a silhouette and its normal is the
@@ -172,6 +196,7 @@ impl Scene {
         dir: Vec3,
         length: f32,
         exec: &ExecConfig,
+        soft: Option<&Soft>,
     ) -> Option<Contact> {
         let step = exec.march_step_m;
         let n_steps = (length / step).ceil() as usize;
@@ -194,7 +219,11 @@ impl Scene {
                     }
                 };
                 let r = exec.silhouette_radius_px;
-                let normal = if silhouette {
+                let normal = if let Some(s) =
+                    soft.filter(|s| silhouette || self.cloud.is_soft_edge(i, s.window_px, s.jump_m))
+                {
+                    self.soft_silhouette_normal(i, s).or(self.cloud.normal(i))
+                } else if silhouette {
                     self.silhouette_normal(i, r).or(self.cloud.normal(i))
                 } else {
                     self.cloud.normal(i).or(self.silhouette_normal(i, r))
@@ -212,7 +241,15 @@ impl Scene {
 
     /// Counts points in the fingers + palm (collision), between the fingers, and object points
     /// between the fingers.
-    pub(crate) fn scan_jaw(&self, pose: &JawPose, jaw: &ParallelJaw) -> (usize, usize, usize) {
+    /// With `soft` (planning), points inside a soft silhouette ([`crate::OrganisedCloud`]'s mixed
+    /// pixels) do not collide, until `mixed_until` other points already collide.
+    pub(crate) fn scan_jaw(
+        &self,
+        pose: &JawPose,
+        jaw: &ParallelJaw,
+        soft: Option<&Soft>,
+        mixed_until: usize,
+    ) -> (usize, usize, usize) {
         let (c, a, b) = (pose.center, pose.approach, pose.closing);
         let hz = a.cross(&b);
         let half_h = jaw.finger_height_m / 2.0;
@@ -267,7 +304,13 @@ impl Scene {
                     continue;
                 }
                 if x < x_base || y >= half_w {
-                    collide += 1;
+                    // Mixed pixels are looked for only until the grasp collides anyway
+                    // (`mixed_until` real collisions), which keeps colliding candidates cheap.
+                    if collide >= mixed_until
+                        || !soft.is_some_and(|s| cloud.is_mixed(i, s.window_px, s.jump_m))
+                    {
+                        collide += 1;
+                    }
                 } else {
                     between += 1;
                     if self.labels_at(i) {
@@ -286,7 +329,8 @@ impl Scene {
 
     /// Executes a parallel grasp (METHOD.md §8). Reasons in the order collision, empty, missed
     /// object, not antipodal at `mu`. With `early_exit` (planning), the cheap contact and friction
-    /// tests run first and the first failure is returned.
+    /// tests run first and the first failure is returned. `soft` (planning only) recognises
+    /// silhouettes spread over a few pixels and shortens the fingertips in the collision test.
     pub(crate) fn execute_parallel(
         &self,
         pose: &JawPose,
@@ -294,11 +338,12 @@ impl Scene {
         exec: &ExecConfig,
         mu: f32,
         early_exit: bool,
+        soft: Option<&Soft>,
     ) -> ParallelExec {
         let half = pose.width / 2.0;
         let b = pose.closing;
-        let c1 = self.find_contact(pose.center - b * half, b, half, exec);
-        let c2 = self.find_contact(pose.center + b * half, -b, half, exec);
+        let c1 = self.find_contact(pose.center - b * half, b, half, exec, soft);
+        let c2 = self.find_contact(pose.center + b * half, -b, half, exec, soft);
         let contacts = match (c1, c2) {
             (Some(x), Some(y))
                 if self.near_object(x.index, exec.object_tolerance_px)
@@ -325,7 +370,18 @@ impl Scene {
                 contacts,
             };
         }
-        let (collide, between, between_obj) = self.scan_jaw(pose, jaw);
+        let (collide, between, between_obj) = match soft {
+            Some(s) if s.collision_margin_m > 0.0 => {
+                let m = s.collision_margin_m.min(jaw.contact_to_tip_m);
+                let short = ParallelJaw {
+                    contact_to_tip_m: jaw.contact_to_tip_m - m,
+                    finger_length_m: jaw.finger_length_m - m,
+                    ..*jaw
+                };
+                self.scan_jaw(pose, &short, soft, exec.collision_min_points)
+            }
+            _ => self.scan_jaw(pose, jaw, soft, exec.collision_min_points),
+        };
         let failure = if collide >= exec.collision_min_points {
             Some(FailureReason::Collision)
         } else if between < exec.empty_min_points {

@@ -31,6 +31,14 @@
 //!   fingertips reach `contact_to_tip_m` (10 mm) past the contact line. Fails on any point in a
 //!   finger or the palm (collision), fewer than 10 points between the fingers (empty), no object
 //!   point between them or a contact off the object (missed object), or non-antipodal contacts.
+//! - **Planning on aligned depth.** Depth aligned from a depth-model prediction has soft
+//!   silhouettes (spread over 3–5 px), normals rotating across them and a few mm of correlated
+//!   noise (METHOD.md §6). [`plan_parallel`] first applies the scorer's rules to the planning
+//!   depth; when that finds no grasp, a tolerant pass ([`ParallelConfig::tolerant_pass`]) detects
+//!   silhouettes as a depth drop over a small window, averages their normals over a larger disc,
+//!   shortens the fingertips by a collision margin, ignores mixed silhouette pixels (blends of
+//!   object and background in mid-air behind the object) as obstacles, and adds top-down
+//!   footprint candidates ([`FootprintConfig`]). The scorer's rules never change.
 //! - **Suction** ([`SuctionCup`], r = 10 mm, compliance 15 mm): `approach` points into the
 //!   surface. Seal: 72 ring points at the cup radius in the plane ⟂ approach, each within 5 mm of
 //!   the contact plane, nothing inside the ring more than 5 mm above it; quality
@@ -49,6 +57,7 @@ pub mod cloud;
 pub mod contact;
 pub mod error;
 pub mod extrinsics;
+pub mod footprint;
 pub mod grasp;
 pub mod gripper;
 pub mod nms;
@@ -63,13 +72,14 @@ pub use cloud::{CloudConfig, OrganisedCloud, Vec3};
 pub use contact::{ExecConfig, MU_GRID};
 pub use error::{GraspError, Result};
 pub use extrinsics::Extrinsics;
+pub use footprint::FootprintConfig;
 pub use grasp::{
     FailureReason, Grasp, NoGraspReason, ParallelGrasp, ParallelPose, PlanOutcome, SuctionGrasp,
     SuctionPose,
 };
 pub use gripper::{Gripper, ParallelJaw, SuctionCup};
 pub use objects::{MIN_TRIAL_COMPONENT_PX, components_8, mask_components};
-pub use parallel::{ParallelConfig, plan_parallel};
+pub use parallel::{ParallelConfig, plan_parallel, plan_parallel_tolerant};
 pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};
 pub use scene::{ObjectComponent, Scene, SceneConfig};
 pub use score::{GraspScore, ScoreConfig, no_grasp, score_grasp, score_parallel, score_suction};

@@ -9,14 +9,29 @@
 //!    contacts found by closing the fingers, friction cone at `planner_mu`, both fingers and the
 //!    palm collision-free, enough points between the fingers. The centre is then moved to the
 //!    midpoint of the two contacts found.
-//! 4. Score, rank, greedy NMS, top-K (each kept grasp re-executed at its final pose).
+//! 4. Score, rank, greedy NMS, top-K (each kept edge grasp re-executed at its final pose).
+//!
+//! This strict pass applies the scorer's own rules to the planning depth. On depth aligned from a
+//! depth-model prediction (METHOD.md §6: silhouettes spread over 3–5 px, normals rotating over
+//! the soft edge, a few mm of correlated noise) it rejects every candidate, so when it finds no
+//! grasp a **tolerant pass** ([`ParallelConfig::tolerant_pass`]) runs the same steps with
+//! - silhouettes found as a depth drop over a small window (`soft_edge_window_px`,
+//!   `soft_edge_jump_m`) and their normals averaged over a larger disc (`soft_normal_radius_px`);
+//! - the fingertips shortened by `collision_margin_m` in the collision test, and mixed pixels of
+//!   a soft silhouette (a blend of object and background, in mid-air behind the object) not
+//!   counted as collisions;
+//! - footprint candidates ([`crate::footprint`]): top-down grasps across the object's top-view
+//!   footprint, which need neither sharp depth edges nor clean per-pixel normals.
+//!
+//! The scorer ([`crate::score`]) keeps the strict rules on the ground truth.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::cloud::Vec3;
-use crate::contact::{ExecConfig, JawPose};
+use crate::contact::{ExecConfig, JawPose, Soft};
 use crate::error::{GraspError, Result, positive};
+use crate::footprint::{FootprintConfig, footprint_candidates};
 use crate::grasp::{
     FailureReason, Grasp, NoGraspReason, ParallelGrasp, ParallelPose, PlanOutcome, arr, tally,
 };
@@ -26,6 +41,7 @@ use crate::scene::Scene;
 
 /// Parallel-jaw planner settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ParallelConfig {
     /// Execution rules shared with the scorer.
     pub exec: ExecConfig,
@@ -52,6 +68,28 @@ pub struct ParallelConfig {
     pub nms_angle_deg: f32,
     /// Seed of the contact sampling. Default 0.
     pub seed: u64,
+    /// When the strict pass (the scorer's own rules on the planning depth) finds no grasp, run a
+    /// tolerant pass for depth aligned from a depth-model prediction: soft silhouettes
+    /// (`soft_edge_*`), the collision margin, mixed silhouette pixels ignored in the collision
+    /// test, and footprint candidates. Default true.
+    pub tolerant_pass: bool,
+    /// Tolerant pass: a contact is on a silhouette when a pixel within this many pixels lies
+    /// farther by more than `soft_edge_jump_m` (depth-model output spreads a silhouette over 3–5
+    /// px, so adjacent pixels never jump), pixels. Default 3.
+    pub soft_edge_window_px: usize,
+    /// Tolerant pass: depth drop over that window marking a silhouette, metres. Default 0.008 m.
+    pub soft_edge_jump_m: f32,
+    /// Tolerant pass: radius of the disc giving a silhouette contact's normal (larger than the
+    /// scorer's [`ExecConfig::silhouette_radius_px`] to average over the soft edge), pixels.
+    /// Default 6.
+    pub soft_normal_radius_px: usize,
+    /// Tolerant pass: the fingertips are shortened by this in the collision test, so that a few mm
+    /// of depth noise on the table or the object do not reject every grasp, metres. Default
+    /// 0.003 m.
+    pub collision_margin_m: f32,
+    /// Tolerant pass: footprint candidates (robust to soft silhouettes and noisy depth), see
+    /// [`FootprintConfig`]. Default: enabled.
+    pub footprint: FootprintConfig,
 }
 
 impl Default for ParallelConfig {
@@ -68,22 +106,50 @@ impl Default for ParallelConfig {
             nms_distance_m: 0.01,
             nms_angle_deg: 30.0,
             seed: 0,
+            tolerant_pass: true,
+            soft_edge_window_px: 3,
+            soft_edge_jump_m: 0.008,
+            soft_normal_radius_px: 6,
+            collision_margin_m: 0.003,
+            footprint: FootprintConfig::default(),
         }
     }
 }
 
 impl ParallelConfig {
+    pub(crate) fn soft(&self) -> Soft {
+        Soft {
+            window_px: self.soft_edge_window_px,
+            jump_m: self.soft_edge_jump_m,
+            radius_px: self.soft_normal_radius_px,
+            collision_margin_m: self.collision_margin_m,
+        }
+    }
+
     /// Checks the settings.
     ///
     /// # Errors
     /// [`GraspError::InvalidConfig`] naming the field.
     pub fn validate(&self) -> Result<()> {
         self.exec.validate()?;
+        self.footprint.validate()?;
         let e = GraspError::InvalidConfig;
         positive("planner_mu", self.planner_mu, e)?;
         positive("exit_gap_m", self.exit_gap_m, e)?;
         positive("min_clearance_m", self.min_clearance_m, e)?;
         positive("nms_distance_m", self.nms_distance_m, e)?;
+        positive("soft_edge_jump_m", self.soft_edge_jump_m, e)?;
+        if !(self.collision_margin_m.is_finite() && self.collision_margin_m >= 0.0) {
+            return Err(e(format!(
+                "collision_margin_m = {} must be >= 0",
+                self.collision_margin_m
+            )));
+        }
+        if self.soft_edge_window_px == 0 || self.soft_normal_radius_px == 0 {
+            return Err(e(
+                "soft_edge_window_px and soft_normal_radius_px must be >= 1".into(),
+            ));
+        }
         if !(self.contact_depth_m.is_finite() && self.contact_depth_m >= 0.0) {
             return Err(e(format!(
                 "contact_depth_m = {} must be >= 0",
@@ -108,6 +174,8 @@ impl ParallelConfig {
 struct Candidate {
     pose: JawPose,
     score: f32,
+    /// Already tested at its final pose (footprint candidates).
+    tested: bool,
 }
 
 /// Planner score in `[0, 1]`:
@@ -121,6 +189,7 @@ fn grasp_score(mu_needed: f32, width: f32, stroke: f32, d_centre_m: f32, tilt_de
     0.4 * q_mu + 0.2 * q_w + 0.3 * q_c + 0.1 * q_t
 }
 
+#[allow(clippy::too_many_arguments)]
 fn candidate(
     scene: &Scene,
     i: usize,
@@ -129,6 +198,7 @@ fn candidate(
     tilt_deg: f32,
     jaw: &ParallelJaw,
     config: &ParallelConfig,
+    soft: Option<&Soft>,
 ) -> std::result::Result<Candidate, FailureReason> {
     let exec = &config.exec;
     let step = exec.march_step_m;
@@ -159,7 +229,7 @@ fn candidate(
         closing,
         width,
     };
-    let run = scene.execute_parallel(&pose, jaw, exec, config.planner_mu, true);
+    let run = scene.execute_parallel(&pose, jaw, exec, config.planner_mu, true, soft);
     if let Some(f) = run.failure {
         return Err(f);
     }
@@ -175,6 +245,7 @@ fn candidate(
     Ok(Candidate {
         pose: JawPose { center, ..pose },
         score: grasp_score(run.mu_needed, width, jaw.stroke_m, d_centre, tilt_deg),
+        tested: false,
     })
 }
 
@@ -196,6 +267,43 @@ pub fn plan_parallel(
     if scene.components().is_empty() {
         return Ok(PlanOutcome::none(NoGraspReason::NoObject));
     }
+    let strict = plan_pass(scene, jaw, config, None);
+    if !strict.grasps.is_empty() || !config.tolerant_pass {
+        return Ok(strict);
+    }
+    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+}
+
+/// Runs only the tolerant pass of [`plan_parallel`] (soft silhouettes, collision margin, mixed
+/// pixels, footprint candidates), whatever the strict pass would find; for benches and
+/// diagnostics.
+///
+/// # Errors
+/// Invalid gripper or config.
+pub fn plan_parallel_tolerant(
+    scene: &Scene,
+    jaw: &ParallelJaw,
+    config: &ParallelConfig,
+) -> Result<PlanOutcome> {
+    jaw.validate()?;
+    config.validate()?;
+    if scene.plane.is_none() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoSupportPlane));
+    }
+    if scene.components().is_empty() {
+        return Ok(PlanOutcome::none(NoGraspReason::NoObject));
+    }
+    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+}
+
+/// One planning pass: strict (`soft = None`: the scorer's rules, edge candidates only) or
+/// tolerant (soft silhouettes, collision margin, footprint candidates).
+fn plan_pass(
+    scene: &Scene,
+    jaw: &ParallelJaw,
+    config: &ParallelConfig,
+    soft: Option<&Soft>,
+) -> PlanOutcome {
     let cloud = &scene.cloud;
     let edges: Vec<usize> = (0..cloud.valid.len())
         .filter(|&i| scene.is_object(i) && cloud.near_edge[i])
@@ -209,21 +317,46 @@ pub fn plan_parallel(
         tilts.push(-*t);
     }
     let r = config.exec.silhouette_radius_px;
-    let results: Vec<std::result::Result<Candidate, FailureReason>> = samples
+    let mut results: Vec<std::result::Result<Candidate, FailureReason>> = samples
         .par_iter()
         .flat_map_iter(|&i| {
-            let normal = scene.silhouette_normal(i, r);
+            let normal = soft
+                .and_then(|s| scene.soft_silhouette_normal(i, s))
+                .or_else(|| scene.silhouette_normal(i, r));
             tilts.iter().map(move |&tilt| {
                 let n1 = normal.ok_or(FailureReason::NotAntipodal)?;
                 let b = -(n1 - a0 * n1.dot(&a0)).normalize();
                 let th = tilt.to_radians();
                 let a = a0 * th.cos() + b.cross(&a0) * th.sin();
-                candidate(scene, i, a, b, tilt, jaw, config)
+                candidate(scene, i, a, b, tilt, jaw, config, soft)
             })
         })
         .collect();
+    if let Some(soft) = soft.filter(|_| config.footprint.enabled) {
+        let fp = footprint_candidates(
+            scene,
+            jaw,
+            config.planner_mu,
+            &config.footprint,
+            &config.exec,
+            soft,
+        );
+        results.extend(fp.into_iter().map(|r| {
+            r.map(|g| {
+                let d_centre = scene.centroid(g.label).map_or(0.0, |c| {
+                    let d = g.pose.center - c;
+                    (d - up * d.dot(&up)).norm()
+                });
+                Candidate {
+                    pose: g.pose,
+                    score: grasp_score(g.mu_needed, g.pose.width, jaw.stroke_m, d_centre, 0.0),
+                    tested: true,
+                }
+            })
+        }));
+    }
     if results.is_empty() {
-        return Ok(PlanOutcome::none(NoGraspReason::NoCandidate));
+        return PlanOutcome::none(NoGraspReason::NoCandidate);
     }
     let n_candidates = results.len();
     let mut failures = Vec::new();
@@ -241,8 +374,17 @@ pub fn plan_parallel(
         &order,
         config.top_k,
         |k| {
-            let run =
-                scene.execute_parallel(&cands[k].pose, jaw, &config.exec, config.planner_mu, false);
+            if cands[k].tested {
+                return true;
+            }
+            let run = scene.execute_parallel(
+                &cands[k].pose,
+                jaw,
+                &config.exec,
+                config.planner_mu,
+                false,
+                soft,
+            );
             run.failure.is_none()
         },
         |a, b| {
@@ -271,9 +413,9 @@ pub fn plan_parallel(
         candidates: n_candidates,
         failures: tally(failures.into_iter()),
     });
-    Ok(PlanOutcome {
+    PlanOutcome {
         grasps,
         no_grasp_reason,
         candidates: n_candidates,
-    })
+    }
 }

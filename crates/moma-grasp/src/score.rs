@@ -89,7 +89,7 @@ pub fn score_parallel(
         closing: b.normalize(),
         width: pose.width_m,
     };
-    let run = gt.execute_parallel(&jp, jaw, &config.exec, config.mu, false);
+    let run = gt.execute_parallel(&jp, jaw, &config.exec, config.mu, false, None);
     Ok(GraspScore {
         success: run.failure.is_none(),
         failure: run.failure,
