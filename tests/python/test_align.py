@@ -13,7 +13,7 @@ from conftest import TRUE, metrics_np, normalise_np, scene, ssra_apply_np
 )
 def test_ssra_recovers_known_parameters(kind, norm):
     pred, gt = scene(kind=kind, norm=norm)
-    cal = moma.calibrate(pred, gt, kind=kind, norm=norm, samples=100, seed=3)
+    cal = moma.calibrate(pred, gt, kind=kind, norm=norm, samples=100, seed=3, space="depth")
     model = cal.report["model"]
     assert model["method"] == "ssra"
     assert model["alpha_m_per_px"] == pytest.approx(TRUE["alpha"], rel=1e-3)
@@ -28,7 +28,7 @@ def test_ssra_recovers_known_parameters(kind, norm):
 
 def test_align_reproduces_ground_truth_and_numpy_apply(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", seed=0)
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", seed=0)
     depth = cal.align(pred)
     assert depth.dtype == np.float32 and depth.shape == pred.shape
     valid = np.isfinite(gt) & (gt > 0)
@@ -46,7 +46,7 @@ def test_align_reproduces_ground_truth_and_numpy_apply(small_scene):
 
 def test_align_of_another_frame_uses_the_same_parameters(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
     other = (pred * 1.3 + 0.2).astype(np.float32)
     m = cal.report["model"]
     want = ssra_apply_np(
@@ -58,7 +58,7 @@ def test_align_of_another_frame_uses_the_same_parameters(small_scene):
 
 def test_inverse_depth_zero_gives_nan():
     pred, gt = scene()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
     p2 = pred.copy()
     p2[10, 20] = 0.0  # no depth can be inferred from zero disparity
     out = cal.align(p2)
@@ -68,7 +68,7 @@ def test_inverse_depth_zero_gives_nan():
 
 def test_align_into_matches_align_and_does_not_reallocate(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
     out = np.full(pred.shape, -1.0, dtype=np.float32)
     ptr = out.ctypes.data
     cal.align_into(pred, out)
@@ -78,7 +78,7 @@ def test_align_into_matches_align_and_does_not_reallocate(small_scene):
 
 def test_other_dtypes_and_layouts_give_the_same_result(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
     ref = cal.align(pred)
     np.testing.assert_array_equal(cal.align(np.asfortranarray(pred)), ref)
     np.testing.assert_array_equal(cal.align(pred.astype(np.float64)), ref)
@@ -95,7 +95,7 @@ def test_other_dtypes_and_layouts_give_the_same_result(small_scene):
 def test_calibration_does_not_modify_inputs(small_scene):
     pred, gt = small_scene
     p0, g0 = pred.copy(), gt.copy()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
     cal.align(pred)
     np.testing.assert_array_equal(pred, p0)
     np.testing.assert_array_equal(gt, g0)
@@ -103,9 +103,9 @@ def test_calibration_does_not_modify_inputs(small_scene):
 
 def test_seed_is_deterministic_and_matters(small_scene):
     pred, gt = small_scene
-    a = moma.calibrate(pred, gt, kind="inverse-depth", samples=20, seed=1)
-    b = moma.calibrate(pred, gt, kind="inverse-depth", samples=20, seed=1)
-    c = moma.calibrate(pred, gt, kind="inverse-depth", samples=20, seed=2)
+    a = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", samples=20, seed=1)
+    b = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", samples=20, seed=1)
+    c = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", samples=20, seed=2)
     np.testing.assert_array_equal(a.samples, b.samples)
     assert not np.array_equal(a.samples[:, :2], c.samples[:, :2])
 
@@ -114,7 +114,7 @@ def test_sample_mask_restricts_samples(small_scene):
     pred, gt = small_scene
     mask = np.zeros(pred.shape, dtype=np.uint8)
     mask[40:80, 50:120] = 255
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", mask=mask, samples=50)
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", mask=mask, samples=50)
     u, v = cal.samples[:, 0], cal.samples[:, 1]
     assert ((u >= 50) & (u < 120) & (v >= 40) & (v < 80)).all()
 
@@ -125,7 +125,7 @@ def test_workspace_normalisation_matches_numpy():
     ws[20:100, 30:140] = True
     zhat = normalise_np(pred, "inverse-depth", "minmax", region=ws)
     gt = ssra_apply_np(zhat, **TRUE).astype(np.float32)
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", workspace=ws)
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", workspace=ws)
     np.testing.assert_array_equal(cal.workspace, ws)
     np.testing.assert_allclose(cal.align(pred), gt, rtol=1e-4, atol=1e-5)
 
@@ -134,9 +134,10 @@ def test_workspace_normalisation_matches_numpy():
 def test_other_methods_run(small_scene, method):
     pred, gt = small_scene
     kind = "depth" if method == "raw" else "inverse-depth"
-    cal = moma.calibrate(pred, gt, kind=kind, method=method)
+    norm = "none" if method == "raw" else "minmax"
+    cal = moma.calibrate(pred, gt, kind=kind, method=method, norm=norm)
     out = cal.align(pred)
-    assert out.shape == pred.shape and cal.method == method.split("-")[0]
+    assert out.shape == pred.shape and cal.method == method
 
 
 def test_gssa_recovers_scale_and_shift():
@@ -194,7 +195,27 @@ def test_intrinsics_fields(cam):
 
 def test_ssra_with_camera_reports_canonical_parameters(small_scene, cam):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth", space="depth")
     can = cal.report["model"]["canonical"]
     assert can["f_px"] == 150.0 and can["cx_px"] == 79.5 and can["cy_px"] == 59.5
     assert cal.intrinsics == cam
+
+
+def test_inverse_space_recovers_a_shifted_disparity_exactly():
+    """METHOD.md §1: d = a/z + b with b = -0.5·mean(a/z) is undone in inverse space (the
+    default for inverse-depth predictions) and not in depth space."""
+    _, gt = scene(holes=False)
+    a = 0.8
+    b = -0.5 * np.mean(a / gt)
+    d = (a / gt + b).astype(np.float32)
+    cal = moma.calibrate(d, gt, kind="inverse-depth", method="gssa")
+    assert cal.space == "inverse"
+    np.testing.assert_allclose(cal.align(d), gt, rtol=2e-5)
+    depth_space = moma.calibrate(d, gt, kind="inverse-depth", method="gssa", space="depth")
+    assert np.nanmean(np.abs(depth_space.align(d) - gt)) > 100 * np.nanmean(np.abs(cal.align(d) - gt))
+
+
+def test_raw_needs_norm_none():
+    pred, gt = scene(holes=False)
+    with pytest.raises(ValueError, match="normalisation 'none'"):
+        moma.calibrate(gt, gt, kind="depth", method="raw")
