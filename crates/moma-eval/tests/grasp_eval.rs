@@ -55,10 +55,10 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
             .map(|r| (r.success_rate, r.trials))
             .unwrap()
     };
-    // 6 evaluated frames, one object each; the planner's ceiling on ground truth
+    // 6 evaluated frames, at least one object each; the planner's ceiling on ground truth
     for g in GripperKind::ALL {
         let (gt, trials) = rate("gt", g);
-        assert_eq!(trials, 6);
+        assert!(trials >= 6, "{trials} trials");
         assert!(gt >= 0.9, "{g} on ground truth: {gt}");
     }
     // on aligned (simulated) depth the parallel jaw still finds grasps that hold
