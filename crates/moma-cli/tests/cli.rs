@@ -3,34 +3,10 @@
 //! implementation of METHOD.md §3 written here.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
-fn moma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_moma"))
-        .args(args)
-        .output()
-        .expect("the moma binary runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = moma(args);
-    assert!(
-        out.status.success(),
-        "moma {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8(out.stdout).expect("utf-8 stdout")
-}
-
-fn fails(args: &[&str]) -> String {
-    let out = moma(args);
-    assert!(!out.status.success(), "moma {args:?} should fail");
-    String::from_utf8(out.stderr).expect("utf-8 stderr")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
+mod common;
+use common::{fails, ok, s};
 
 /// Builds the demo scene (3 frames, simulated inverse-depth predictions) once per test.
 fn demo(dir: &Path) -> (PathBuf, PathBuf) {

@@ -4,34 +4,9 @@
 //! Runs on the bundled demo scene (no ../shared needed).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-fn moma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_moma"))
-        .args(args)
-        .output()
-        .expect("the moma binary runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = moma(args);
-    assert!(
-        out.status.success(),
-        "moma {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8(out.stdout).expect("utf-8 stdout")
-}
-
-fn fails(args: &[&str]) -> String {
-    let out = moma(args);
-    assert!(!out.status.success(), "moma {args:?} should fail");
-    String::from_utf8(out.stderr).expect("utf-8 stderr")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
+mod common;
+use common::{fails, ok, s};
 
 /// The demo scene (3 frames) and its SIMULATED inverse-depth predictions with predictions.json.
 fn demo(dir: &Path) -> (PathBuf, PathBuf) {
