@@ -8,3 +8,19 @@
 pub(crate) fn join<'a>(names: impl IntoIterator<Item = &'a str>) -> String {
     names.into_iter().collect::<Vec<_>>().join(", ")
 }
+
+/// The value of `all` whose name is `s`, or an error listing the accepted names:
+/// "unknown {what} '{s}' (expected one of: a, b, …)".
+pub(crate) fn parse<T: Copy>(
+    s: &str,
+    all: &[T],
+    name: fn(T) -> &'static str,
+    what: &str,
+) -> crate::Result<T> {
+    all.iter().copied().find(|&v| name(v) == s).ok_or_else(|| {
+        crate::CoreError::InvalidParameter(format!(
+            "unknown {what} '{s}' (expected one of: {})",
+            join(all.iter().map(|&v| name(v)))
+        ))
+    })
+}

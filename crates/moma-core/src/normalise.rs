@@ -51,15 +51,7 @@ impl std::fmt::Display for Normalisation {
 impl std::str::FromStr for Normalisation {
     type Err = CoreError;
     fn from_str(s: &str) -> Result<Self> {
-        Self::ALL
-            .into_iter()
-            .find(|n| n.name() == s)
-            .ok_or_else(|| {
-                CoreError::InvalidParameter(format!(
-                    "unknown normalisation '{s}' (expected one of: {})",
-                    crate::names::join(Self::ALL.iter().map(|n| n.name()))
-                ))
-            })
+        crate::names::parse(s, &Self::ALL, Self::name, "normalisation")
     }
 }
 
@@ -139,14 +131,7 @@ impl std::fmt::Display for AlignSpace {
 impl std::str::FromStr for AlignSpace {
     type Err = CoreError;
     fn from_str(s: &str) -> Result<Self> {
-        Self::ALL
-            .into_iter()
-            .find(|n| n.name() == s)
-            .ok_or_else(|| {
-                CoreError::InvalidParameter(format!(
-                    "unknown alignment space '{s}' (expected 'depth' or 'inverse')"
-                ))
-            })
+        crate::names::parse(s, &Self::ALL, Self::name, "alignment space")
     }
 }
 

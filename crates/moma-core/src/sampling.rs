@@ -42,14 +42,7 @@ impl std::fmt::Display for SamplingStrategy {
 impl std::str::FromStr for SamplingStrategy {
     type Err = CoreError;
     fn from_str(s: &str) -> Result<Self> {
-        Self::ALL
-            .into_iter()
-            .find(|n| n.name() == s)
-            .ok_or_else(|| {
-                CoreError::InvalidParameter(format!(
-                    "unknown sampling strategy '{s}' (expected 'random' or 'grid')"
-                ))
-            })
+        crate::names::parse(s, &Self::ALL, Self::name, "sampling strategy")
     }
 }
 
