@@ -190,3 +190,110 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     // Nothing was written over the corrupt file by the failed runs.
     assert_eq!(std::fs::read(&corrupt).unwrap(), b"not an adapter");
 }
+
+/// Tensors of an adapter file, by name, as f32 values.
+fn adapter_values(p: &Path) -> Vec<(String, Vec<f32>)> {
+    let a = moma_depth::candle::train::Adapter::load(p).unwrap();
+    a.tensors
+        .iter()
+        .map(|(k, t)| (k.clone(), t.flatten_all().unwrap().to_vec1().unwrap()))
+        .collect()
+}
+
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn resume_continues_bit_for_bit_and_crops_are_checked() {
+    let Some(shared) = shared() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let config = tmp.path().join("tiny-metric.json");
+    std::fs::write(&config, TINY).unwrap();
+    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let set = shared.join("data/gqcnn-primesense");
+    // Non-square frames (640×480 → the whole network-size frame, 4:3), batch 2 with gradient
+    // accumulation, LoRA dropout, augmentation, a trained head and clipping: every random draw
+    // and every optimiser state must come back on resume.
+    let base: Vec<&str> = vec![
+        "finetune",
+        "--set",
+        s(&set),
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "56",
+        "--device",
+        "cpu",
+        "--steps",
+        "4",
+        "--batch",
+        "2",
+        "--accumulate",
+        "2",
+        "--lora-rank",
+        "2",
+        "--lora-dropout",
+        "0.1",
+        "--train-head",
+        "--head-lr-mult",
+        "0.1",
+        "--clip-grad-norm",
+        "0.5",
+        "--lr",
+        "1e-2",
+        "--seed",
+        "3",
+        "--json",
+    ];
+    let run = |extra: &[&str]| -> serde_json::Value {
+        let mut a = base.clone();
+        a.extend(extra);
+        serde_json::from_str(&ok(&a)).unwrap()
+    };
+    let straight = tmp.path().join("straight.safetensors");
+    let j = run(&["-o", s(&straight)]);
+    assert_eq!(j["steps"], 4);
+    assert!(tmp.path().join("straight.optim.safetensors").is_file());
+    let half = tmp.path().join("half.safetensors");
+    let j = run(&["--stop-after", "2", "-o", s(&half)]);
+    assert_eq!(j["steps"], 2);
+    let resumed = tmp.path().join("resumed.safetensors");
+    let j = run(&["--resume", s(&half), "-o", s(&resumed)]);
+    assert_eq!(j["steps"], 2);
+    let (a, b) = (adapter_values(&straight), adapter_values(&resumed));
+    assert_eq!(a.len(), b.len());
+    for ((ka, va), (kb, vb)) in a.iter().zip(&b) {
+        assert_eq!(ka, kb);
+        assert!(
+            va.iter().zip(vb).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{ka}: 2 + resume + 2 steps differ from 4 steps"
+        );
+    }
+    // Resume with other settings: refused, naming the setting.
+    let (x_out, y_out) = (
+        tmp.path().join("x.safetensors"),
+        tmp.path().join("y.safetensors"),
+    );
+    let mut other_lr = base.clone();
+    other_lr.extend(["--resume", s(&half), "-o", s(&x_out)]);
+    let i = other_lr.iter().position(|&x| x == "1e-2").unwrap();
+    other_lr[i] = "2e-2";
+    let e = fails(&other_lr);
+    assert!(e.contains("optim.lr (state 0.01, this run 0.02)"), "{e}");
+    // An adapter without its optimiser state: refused.
+    let lonely = tmp.path().join("lonely.safetensors");
+    std::fs::copy(&half, &lonely).unwrap();
+    let mut a = base.clone();
+    a.extend(["--resume", s(&lonely), "-o", s(&y_out)]);
+    assert!(fails(&a).contains("no optimiser state"));
+    assert!(!x_out.exists() && !y_out.exists());
+
+    // Crops: a non-square crop trains; too large or not multiples of 14 is an error.
+    let crop = tmp.path().join("crop.safetensors");
+    let j = run(&["--crop", "42x56", "--stop-after", "1", "-o", s(&crop)]);
+    assert_eq!(j["steps"], 1);
+    let e = fails(&[&base[..], &["--crop", "560x560", "-o", s(&crop)]].concat());
+    assert!(e.contains("larger than the network-size frames"), "{e}");
+    let e = fails(&[&base[..], &["--crop", "50x56", "-o", s(&crop)]].concat());
+    assert!(e.contains("multiples of 14"), "{e}");
+}

@@ -9,7 +9,10 @@ mod common;
 use candle_core::{DType, Device, Tensor, Var};
 use common::{reference_dir, reference_input, tiny_config};
 use moma_depth::DepthModel;
-use moma_depth::candle::train::{LoraConfig, LoraTarget, LossKind, ParamSource, TrainNet, loss};
+use moma_depth::candle::train::{
+    Adapter, LoraConfig, LoraTarget, LossKind, OptimSettings, ParamSource, Sample, Schedule,
+    TrainNet, Trainer, loss, optim_state_path,
+};
 use moma_depth::candle::{CandleDepthModel, open_checkpoint};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -169,4 +172,200 @@ fn gradients_match_central_finite_differences_in_f64() {
         worst = worst.max(worst_key);
     }
     eprintln!("worst relative error over all checked entries: {worst:.2e}");
+}
+
+/// A trainer on the tiny metric model: LoRA r = 2 on q, v with dropout, one head weight trained,
+/// gradient clipping active (norm 0.05), 6 steps with warm-up and one-cycle.
+fn tiny_trainer(adapter: Option<&Adapter>) -> Trainer {
+    let dir = reference_dir();
+    let config = tiny_config(&dir, "tiny-metric");
+    let path = dir.join("tiny-metric.safetensors");
+    let vb = open_checkpoint(&path, &config, &Device::Cpu, DType::F32).unwrap();
+    let head = "depth_head.scratch.output_conv2.0.weight";
+    let mut net = TrainNet::new(&config, ParamSource::new(vb, move |n: &str| n == head)).unwrap();
+    let mut lora = LoraConfig::new(2);
+    lora.dropout = 0.1;
+    lora.seed = 5;
+    net.add_lora(&lora).unwrap();
+    if let Some(a) = adapter {
+        net.set_lora_values(a).unwrap();
+    }
+    let settings = OptimSettings {
+        loss: LossKind::Silog,
+        lr: 1e-2,
+        head_lr: 1e-1,
+        weight_decay: 0.01,
+        steps: 6,
+        warmup: 2,
+        schedule: Schedule::OneCycle,
+        accumulate: 2,
+        min_depth_m: 0.001,
+        max_depth_m: 20.0,
+        clip_grad_norm: 0.05,
+    };
+    Trainer::new(net, settings).unwrap()
+}
+
+/// Non-square synthetic samples (28×42: a 2×3 patch grid).
+fn tiny_samples() -> Vec<Sample> {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    (0..3)
+        .map(|_| Sample {
+            input: ndarray::Array3::from_shape_fn((3, 28, 42), |_| rng.random_range(-2.0..2.0)),
+            gt_m: ndarray::Array2::from_shape_fn((28, 42), |_| rng.random_range(0.5..10.0)),
+            mask: None,
+        })
+        .collect()
+}
+
+fn run_steps(t: &mut Trainer, samples: &[Sample], steps: std::ops::Range<usize>) -> Vec<f64> {
+    steps
+        .map(|s| {
+            let micro = vec![vec![&samples[s % 3]], vec![&samples[(s + 1) % 3]]];
+            t.step(&micro).unwrap()
+        })
+        .collect()
+}
+
+fn trained_values(t: &Trainer) -> Vec<(String, Vec<f32>)> {
+    t.net()
+        .lora_vars()
+        .iter()
+        .chain(t.net().base_vars())
+        .map(|(k, v)| {
+            let vals = v.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            (k.clone(), vals)
+        })
+        .collect()
+}
+
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn resume_with_optimiser_state_continues_bit_for_bit() {
+    let samples = tiny_samples();
+    let run = serde_json::json!({"seed": 5, "lr": 1e-2});
+    // Straight: 6 steps.
+    let mut straight = tiny_trainer(None);
+    let losses = run_steps(&mut straight, &samples, 0..6);
+    assert!(losses.iter().all(|l| l.is_finite()));
+    assert!(straight.last_grad_norm() > 0.05, "clipping never engaged");
+    // 3 steps, save adapter + state, a fresh trainer, restore, 3 more.
+    let tmp = tempfile::tempdir().unwrap();
+    let adapter_path = tmp.path().join("a.safetensors");
+    let state = optim_state_path(&adapter_path);
+    assert_eq!(state, tmp.path().join("a.optim.safetensors"));
+    let mut first = tiny_trainer(None);
+    let head_before = trained_values(&first);
+    let l1 = run_steps(&mut first, &samples, 0..3);
+    first
+        .net()
+        .adapter("fp", serde_json::json!({}))
+        .unwrap()
+        .save(&adapter_path)
+        .unwrap();
+    first.save_state(&state, &run).unwrap();
+    let adapter = Adapter::load(&adapter_path).unwrap();
+    let mut second = tiny_trainer(Some(&adapter));
+    let lora_only = trained_values(&second);
+    // Other settings: refused, naming the key, nothing changed.
+    let other = serde_json::json!({"seed": 5, "lr": 2e-2});
+    let err = second.load_state(&state, &other).unwrap_err().to_string();
+    assert!(err.contains("lr (state 0.01, this run 0.02)"), "{err}");
+    assert_eq!(second.steps_done(), 0);
+    assert_eq!(trained_values(&second), lora_only);
+    assert_ne!(lora_only, head_before);
+    // A corrupt state file: a clear error.
+    let junk = tmp.path().join("junk.optim.safetensors");
+    std::fs::write(&junk, b"not a state").unwrap();
+    let err = second.load_state(&junk, &run).unwrap_err().to_string();
+    assert!(err.contains("junk.optim.safetensors"), "{err}");
+    // The real resume.
+    second.load_state(&state, &run).unwrap();
+    assert_eq!(second.steps_done(), 3);
+    let l2 = run_steps(&mut second, &samples, 3..6);
+    assert_eq!([l1, l2].concat(), losses, "losses differ after resume");
+    let (a, b) = (trained_values(&straight), trained_values(&second));
+    assert_eq!(a.len(), b.len());
+    for ((ka, va), (kb, vb)) in a.iter().zip(&b) {
+        assert_eq!(ka, kb);
+        assert!(
+            va.iter().zip(vb).all(|(x, y)| x.to_bits() == y.to_bits()),
+            "{ka}: resumed values differ from the straight run"
+        );
+    }
+}
+
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn recomputed_attention_gives_the_composed_gradients() {
+    // f32, batch 2, every LoRA target with non-zero B, a trained head weight: the memory-light
+    // attention (probabilities recomputed in the backward) against the composed softmax.
+    let dir = reference_dir();
+    let config = tiny_config(&dir, "tiny-metric");
+    let path = dir.join("tiny-metric.safetensors");
+    let vb = open_checkpoint(&path, &config, &Device::Cpu, DType::F32).unwrap();
+    let head = "depth_head.scratch.refinenet2.resConfUnit1.conv1.weight";
+    let mut net = TrainNet::new(&config, ParamSource::new(vb, move |n: &str| n == head)).unwrap();
+    let mut lora = LoraConfig::new(2);
+    lora.targets = LoraTarget::ALL.to_vec();
+    net.add_lora(&lora).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for (k, v) in net.lora_vars() {
+        if k.ends_with("lora_B") {
+            let n = v.as_tensor().elem_count();
+            let vals: Vec<f32> = (0..n).map(|_| rng.random_range(-0.2..0.2)).collect();
+            v.set(&Tensor::from_vec(vals, v.as_tensor().shape(), &Device::Cpu).unwrap())
+                .unwrap();
+        }
+    }
+    let (h, w) = (42, 70);
+    let x: Vec<f32> = (0..2 * 3 * h * w)
+        .map(|_| rng.random_range(-2.0..2.0))
+        .collect();
+    let x = Tensor::from_vec(x, (2, 3, h, w), &Device::Cpu).unwrap();
+    let gt: Vec<f32> = (0..2 * h * w)
+        .map(|_| rng.random_range(1.0..15.0))
+        .collect();
+    let gt = Tensor::from_vec(gt, (2, h, w), &Device::Cpu).unwrap();
+    let valid: Vec<u32> = (0..(2 * h * w) as u32).collect();
+    let vars = net.all_vars();
+    let mut run = |recompute: bool| {
+        net.set_recompute_attention(recompute);
+        let l = loss(LossKind::Silog, &net.forward(&x).unwrap(), &gt, &valid).unwrap();
+        let g = l.backward().unwrap();
+        let grads: Vec<Vec<f32>> = vars
+            .iter()
+            .map(|v| {
+                g.get(v.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap()
+            })
+            .collect();
+        (l.to_scalar::<f32>().unwrap(), grads)
+    };
+    let (l_fast, g_fast) = run(true);
+    let (l_ref, g_ref) = run(false);
+    assert!(
+        ((l_fast - l_ref) / l_ref).abs() < 1e-5,
+        "loss {l_fast} vs {l_ref}"
+    );
+    let mut worst = 0.0f32;
+    for (i, (a, b)) in g_fast.iter().zip(&g_ref).enumerate() {
+        let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0, "variable {i}: zero gradient");
+        let err = a
+            .iter()
+            .zip(b)
+            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()))
+            / scale;
+        worst = worst.max(err);
+        assert!(
+            err < 1e-4,
+            "variable {i}: relative gradient difference {err:.2e}"
+        );
+    }
+    eprintln!("recomputed vs composed attention: worst relative gradient difference {worst:.2e}");
 }

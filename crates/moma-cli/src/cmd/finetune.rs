@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_depth::candle::train::{
     Adapter, LoraConfig, LoraTarget, LossKind, OptimSettings, ParamSource, Sample, Schedule,
-    TrainNet, Trainer, fingerprint,
+    TrainNet, Trainer, derive_seed, fingerprint, seed_tag,
 };
 use moma_depth::candle::{DepthAnythingConfig, open_checkpoint, open_device, precision_dtype};
 use moma_depth::{Head, preprocess};
@@ -115,9 +115,29 @@ pub struct FinetuneArgs {
     /// Seed of the split, initialisation, crops, augmentation and dropout.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Continue from this adapter (same rank, alpha and targets; its matrices and step count).
+    /// Continue from this adapter and its optimiser state `ADAPTER.optim.safetensors` (written
+    /// next to every saved adapter): LoRA matrices, AdamW moments, trained head weights and the
+    /// step, so the run continues exactly as if it had not stopped. Every other setting must be
+    /// the original run's (a difference is an error that names it).
     #[arg(long, value_name = "ADAPTER")]
     pub resume: Option<PathBuf>,
+    /// Stop after N optimiser steps of this invocation (the schedule still spans --steps);
+    /// continue later with --resume.
+    #[arg(long, value_name = "N")]
+    pub stop_after: Option<usize>,
+    /// Clip the global L2 norm of the gradients to this value (as PyTorch clip_grad_norm_);
+    /// 0 = no clipping.
+    #[arg(long, default_value_t = 1.0, value_name = "NORM")]
+    pub clip_grad_norm: f64,
+    /// Random crop HxW (pixels, multiples of 14, at most the network-size frame) of every
+    /// training frame [default: the whole frame, resized as `moma predict` does: the shorter
+    /// side to --input-size, aspect kept, both sides multiples of 14].
+    #[arg(long, value_name = "HxW", value_parser = parse_crop)]
+    pub crop: Option<(usize, usize)>,
+    /// Diagnostics: keep the T×T attention probabilities of every block for the backward (the
+    /// composed softmax) instead of recomputing them there; more memory, for comparisons.
+    #[arg(long, hide = true)]
+    pub keep_attention: bool,
     /// Output adapter file (.safetensors).
     #[arg(short, long, value_name = "ADAPTER")]
     pub output: PathBuf,
@@ -144,6 +164,20 @@ struct Summary {
     val_frames: usize,
     /// What these numbers are.
     note: &'static str,
+}
+
+/// `HxW` → (H, W), both positive multiples of 14.
+fn parse_crop(s: &str) -> std::result::Result<(usize, usize), String> {
+    let bad = || format!("--crop {s:?}: expected HxW in pixels, e.g. 518x686");
+    let (h, w) = s.trim().split_once(['x', 'X']).ok_or_else(bad)?;
+    let h: usize = h.trim().parse().map_err(|_| bad())?;
+    let w: usize = w.trim().parse().map_err(|_| bad())?;
+    if h == 0 || w == 0 || !h.is_multiple_of(14) || !w.is_multiple_of(14) {
+        return Err(format!(
+            "--crop {h}x{w}: both sides must be positive multiples of 14 (the ViT patch size)"
+        ));
+    }
+    Ok((h, w))
 }
 
 /// One frame at network resolution (before cropping / augmentation).
@@ -216,11 +250,16 @@ fn load_frames(
     Ok(out)
 }
 
-/// A random `side × side` crop (side = the network input lower bound, a multiple of 14), with a
+/// A random `crop` (H, W) of the network-size frame (the whole frame when `None`), with a
 /// horizontal flip (p = 0.5) and brightness/contrast jitter (±20 %) when `augment`.
-fn training_sample(f: &Frame, side: usize, augment: bool, rng: &mut ChaCha8Rng) -> Sample {
+fn training_sample(
+    f: &Frame,
+    crop: Option<(usize, usize)>,
+    augment: bool,
+    rng: &mut ChaCha8Rng,
+) -> Sample {
     let (_, h, w) = f.input.dim();
-    let (ch, cw) = (side.min(h), side.min(w));
+    let (ch, cw) = crop.map_or((h, w), |(ch, cw)| (ch.min(h), cw.min(w)));
     let y0 = rng.random_range(0..=h - ch);
     let x0 = rng.random_range(0..=w - cw);
     let mut input = f.input.slice(s![.., y0..y0 + ch, x0..x0 + cw]).to_owned();
@@ -324,6 +363,15 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     if !(args.lr.is_finite() && args.lr > 0.0) {
         bail!("--lr {} must be positive", args.lr);
     }
+    if !(args.clip_grad_norm.is_finite() && args.clip_grad_norm >= 0.0) {
+        bail!(
+            "--clip-grad-norm {} must be a finite norm ≥ 0 (0 = no clipping)",
+            args.clip_grad_norm
+        );
+    }
+    if args.stop_after == Some(0) {
+        bail!("--stop-after 0: nothing to do");
+    }
 
     // Data: a seeded split by frame.
     let mut frames = load_frames(m, &args.sets, args.mask_loss)?;
@@ -350,6 +398,15 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         .into_iter()
         .map(|(_, f)| f)
         .collect();
+    if let (Some((ch, cw)), Some(f)) = (args.crop, train.first()) {
+        let (_, h, w) = f.input.dim();
+        if ch > h || cw > w {
+            bail!(
+                "--crop {ch}x{cw} is larger than the network-size frames ({h}x{w} at --input-size {}); use a smaller crop or a larger --input-size",
+                m.input_size
+            );
+        }
+    }
     let per_step = args.batch * args.accumulate;
     let steps = match (args.steps, args.epochs) {
         (Some(s), _) => s,
@@ -370,20 +427,30 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         train_head && name.starts_with("depth_head.")
     });
     let mut net = TrainNet::new(&config, src)?;
+    net.set_recompute_attention(!args.keep_attention);
     net.add_lora(&lora)?;
-    let mut start_step = 0;
+    let mut resumed: Option<(PathBuf, u64)> = None;
     if let Some(resume) = &args.resume {
         let a = Adapter::load(resume)?;
         a.check_base(&config, &fp)
             .map_err(|e| anyhow::anyhow!("--resume {}: {e}", resume.display()))?;
         net.set_lora_values(&a)
             .with_context(|| format!("--resume {}", resume.display()))?;
-        start_step = a.settings["steps_done"].as_u64().unwrap_or(0) as usize;
-        if args.train_head {
-            eprintln!(
-                "note: --resume restores the adapters only; the head restarts from --weights"
+        let Some(done) = a.settings["steps_done"].as_u64() else {
+            bail!(
+                "--resume {}: the adapter does not record its step (settings.steps_done)",
+                resume.display()
+            );
+        };
+        let state = moma_depth::candle::train::optim_state_path(resume);
+        if !state.is_file() {
+            bail!(
+                "--resume {}: no optimiser state {} next to it (moma finetune writes it with every adapter; without it the AdamW moments and the schedule position cannot be restored)",
+                resume.display(),
+                state.display()
             );
         }
+        resumed = Some((state, done));
     }
     let settings = OptimSettings {
         loss: loss_kind,
@@ -396,9 +463,36 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         accumulate: args.accumulate,
         min_depth_m: args.min_depth,
         max_depth_m,
+        clip_grad_norm: args.clip_grad_norm,
     };
+    // What a resumed run must share with the run it continues.
+    let run_settings = serde_json::json!({
+        "base_fingerprint": fp,
+        "model": spec,
+        "optim": settings,
+        "lora": lora,
+        "batch": args.batch,
+        "seed": args.seed,
+        "sets": args.sets,
+        "train_head": args.train_head,
+        "input_size": m.input_size,
+        "crop": args.crop,
+        "augment": !args.no_augment,
+        "mask_loss": args.mask_loss,
+        "val_frac": args.val_frac,
+    });
     let mut trainer = Trainer::new(net, settings.clone())?;
-    trainer.set_steps_done(start_step);
+    if let Some((state, done)) = &resumed {
+        trainer.load_state(state, &run_settings)?;
+        if trainer.steps_done() as u64 != *done {
+            bail!(
+                "--resume: the adapter is at step {done} but its optimiser state {} at step {} (an interrupted save?)",
+                state.display(),
+                trainer.steps_done()
+            );
+        }
+    }
+    let start_step = trainer.steps_done();
     let record = |trainer: &Trainer, done: usize| -> Result<Adapter> {
         Ok(trainer.net().adapter(
             &fp,
@@ -414,7 +508,13 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
             }),
         )?)
     };
-    let save = |trainer: &Trainer, done: usize, path: &Path| -> Result<()> {
+    // The optimiser state first, the adapter last: a step mismatch reveals an interrupted save.
+    let save = |trainer: &Trainer, path: &Path| -> Result<()> {
+        let done = trainer.steps_done();
+        trainer.save_state(
+            &moma_depth::candle::train::optim_state_path(path),
+            &run_settings,
+        )?;
         record(trainer, done)?.save(path)?;
         Ok(())
     };
@@ -426,20 +526,38 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     };
     let bar = progress(steps, "fine-tuning", args.json);
     let mut losses = Vec::with_capacity(steps);
-    let mut order: Vec<usize> = vec![];
+    // Every draw of a step comes from (seed, step) or (seed, epoch): a resumed run draws what
+    // the uninterrupted run would have.
+    let mut order: (Option<u64>, Vec<usize>) = (None, vec![]);
     let t0 = Instant::now();
-    let side = m.input_size;
-    for step in start_step..steps {
+    let end = args
+        .stop_after
+        .map_or(steps, |k| (start_step + k).min(steps));
+    for step in start_step..end {
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(derive_seed(args.seed, seed_tag::AUGMENT, step as u64));
         let mut micro = Vec::with_capacity(args.accumulate);
-        for _ in 0..args.accumulate {
+        for a in 0..args.accumulate {
             let mut b = Vec::with_capacity(args.batch);
-            for _ in 0..args.batch {
-                if order.is_empty() {
-                    order = (0..train.len()).collect();
-                    order.shuffle(&mut rng);
+            for k in 0..args.batch {
+                let j = ((step * args.accumulate + a) * args.batch + k) as u64;
+                let epoch = j / train.len() as u64;
+                if order.0 != Some(epoch) {
+                    let mut perm: Vec<usize> = (0..train.len()).collect();
+                    perm.shuffle(&mut ChaCha8Rng::seed_from_u64(derive_seed(
+                        args.seed,
+                        seed_tag::ORDER,
+                        epoch,
+                    )));
+                    order = (Some(epoch), perm);
                 }
-                let i = order.pop().unwrap_or(0);
-                b.push(training_sample(&train[i], side, !args.no_augment, &mut rng));
+                let i = order.1[(j % train.len() as u64) as usize];
+                b.push(training_sample(
+                    &train[i],
+                    args.crop,
+                    !args.no_augment,
+                    &mut rng,
+                ));
             }
             micro.push(b);
         }
@@ -459,8 +577,8 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
                 "step {done}: train loss {l:.5}, validation loss {v:.5}"
             ));
         }
-        if args.save_every > 0 && done % args.save_every == 0 && done < steps {
-            save(&trainer, done, &args.output)?;
+        if args.save_every > 0 && done % args.save_every == 0 && done < end {
+            save(&trainer, &args.output)?;
         }
     }
     bar.finish_and_clear();
@@ -470,7 +588,7 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     } else {
         0.0
     };
-    save(&trainer, steps, &args.output)?;
+    save(&trainer, &args.output)?;
     let val_after = if val.is_empty() {
         None
     } else {

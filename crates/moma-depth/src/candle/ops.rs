@@ -446,6 +446,31 @@ pub(crate) fn attention(qkv: &Tensor, num_heads: usize, scale: f32) -> Result<Te
         .apply_op1_no_bwd(&AttentionOp { num_heads, scale })
 }
 
+/// [`attention`]'s CPU f32 kernel on one contiguous `(n, 3c)` slice → `(n, c)` (the training
+/// network's memory-light attention, which recomputes the probabilities in its backward).
+///
+/// # Errors
+/// Shape errors.
+pub(crate) fn attention_cpu_f32(
+    qkv: &[f32],
+    n: usize,
+    num_heads: usize,
+    scale: f32,
+) -> Result<Vec<f32>> {
+    if n == 0 || !qkv.len().is_multiple_of(n) {
+        candle_core::bail!("attention: {} values are not {n} rows", qkv.len());
+    }
+    let storage = CpuStorage::F32(qkv.to_vec());
+    let layout = Layout::contiguous((n, qkv.len() / n));
+    match (AttentionOp { num_heads, scale })
+        .cpu_fwd(&storage, &layout)?
+        .0
+    {
+        CpuStorage::F32(v) => Ok(v),
+        _ => candle_core::bail!("attention: f32 kernel returned another dtype"),
+    }
+}
+
 struct AttentionOp {
     num_heads: usize,
     scale: f32,

@@ -32,14 +32,14 @@ pub struct Adapter {
     pub tensors: BTreeMap<String, Tensor>,
 }
 
-fn aerr(path: &Path, reason: impl Into<String>) -> DepthError {
+pub(crate) fn aerr(path: &Path, reason: impl Into<String>) -> DepthError {
     DepthError::Weights {
         path: path.display().to_string(),
         reason: reason.into(),
     }
 }
 
-fn backend(e: candle_core::Error) -> DepthError {
+pub(crate) fn backend(e: candle_core::Error) -> DepthError {
     DepthError::Backend(e.to_string())
 }
 
@@ -77,14 +77,40 @@ pub fn fingerprint(vb: &VarBuilder, config: &DepthAnythingConfig) -> Result<Stri
     Ok(format!("{h:016x}"))
 }
 
-struct F32View {
-    shape: Vec<usize>,
-    bytes: Vec<u8>,
+/// Raw little-endian tensor bytes for safetensors serialisation (f32 unless `dtype` says f64).
+pub(crate) struct F32View {
+    pub(crate) shape: Vec<usize>,
+    pub(crate) bytes: Vec<u8>,
+    pub(crate) f64: bool,
+}
+
+impl F32View {
+    /// A view of `t` in its own dtype when f64, else in f32 (bit-exact for f32 and f64).
+    pub(crate) fn of(t: &Tensor) -> candle_core::Result<Self> {
+        let t = t.detach().to_device(&Device::Cpu)?;
+        let shape = t.dims().to_vec();
+        let flat = t.flatten_all()?;
+        Ok(if t.dtype() == DType::F64 {
+            let v: Vec<f64> = flat.to_vec1()?;
+            Self {
+                shape,
+                bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                f64: true,
+            }
+        } else {
+            let v: Vec<f32> = flat.to_dtype(DType::F32)?.to_vec1()?;
+            Self {
+                shape,
+                bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                f64: false,
+            }
+        })
+    }
 }
 
 impl View for &F32View {
     fn dtype(&self) -> Dtype {
-        Dtype::F32
+        if self.f64 { Dtype::F64 } else { Dtype::F32 }
     }
     fn shape(&self) -> &[usize] {
         &self.shape
@@ -115,6 +141,7 @@ impl Adapter {
                 F32View {
                     shape: t.dims().to_vec(),
                     bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                    f64: false,
                 },
             );
         }
@@ -399,6 +426,7 @@ pub fn write_merged(
             F32View {
                 shape,
                 bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                f64: false,
             },
         );
     }
@@ -413,7 +441,7 @@ pub fn write_merged(
 }
 
 /// Temporary file in the same folder, then a rename.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
     let dir = dir.unwrap_or(Path::new("."));
     let name = path

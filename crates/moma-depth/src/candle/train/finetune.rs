@@ -1,16 +1,20 @@
 //! The fine-tuning loop: AdamW on the LoRA matrices (and optionally the DPT head with its own
-//! learning rate), a warm-up + one-cycle or poly schedule, gradient accumulation, a NaN/inf stop.
+//! learning rate), a warm-up + one-cycle or poly schedule, gradient accumulation, global
+//! gradient-norm clipping, a NaN/inf stop, and an optimiser state that resumes bit for bit.
 //! Data preparation (moma sets, augmentation) is the caller's.
 
 use std::fmt;
 use std::str::FromStr;
 
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
 use candle_core::backprop::GradStore;
-use candle_core::{Result, Tensor, Var};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW};
+use candle_core::{DType, Device, Result, Tensor, Var};
 use ndarray::{Array2, Array3};
 use serde::{Deserialize, Serialize};
 
+use super::adapter::{F32View, aerr, write_atomic};
 use super::{LossKind, TrainNet, loss, valid_indices};
 
 /// Learning-rate schedule after a linear warm-up.
@@ -94,55 +98,167 @@ pub struct OptimSettings {
     pub min_depth_m: f32,
     /// Valid ground truth: at most this depth, metres.
     pub max_depth_m: f32,
+    /// Largest global L2 norm of the gradients of all trained variables (larger ones are scaled
+    /// down to it, as PyTorch `clip_grad_norm_`); 0 = no clipping.
+    #[serde(default)]
+    pub clip_grad_norm: f64,
+}
+
+/// Value of the `format` metadata key of an optimiser-state file.
+pub const OPTIM_STATE_FORMAT: &str = "moma-lora-optim-v1";
+
+/// Stream tags of [`derive_seed`].
+pub mod seed_tag {
+    /// The order in which an epoch visits the training frames.
+    pub const ORDER: u64 = 1;
+    /// Crops and augmentation of one optimiser step.
+    pub const AUGMENT: u64 = 2;
+    /// LoRA dropout masks of one optimiser step.
+    pub const DROPOUT: u64 = 3;
+}
+
+/// A seed for stream `tag`, item `index` (an epoch, a step) of a run seeded with `seed`
+/// (splitmix64 mixing). Every random draw of a training step comes from such a seed, so a run
+/// resumed at step k draws exactly what the uninterrupted run drew from step k on.
+pub fn derive_seed(seed: u64, tag: u64, index: u64) -> u64 {
+    let mut z = seed;
+    for x in [tag, index] {
+        z = z
+            .wrapping_add(0x9e37_79b9_7f4a_7c15)
+            .wrapping_add(x.wrapping_mul(0xd1b5_4a32_d192_ed03));
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+    }
+    z
+}
+
+/// The optimiser-state file written next to an adapter: `a.safetensors` → `a.optim.safetensors`.
+pub fn optim_state_path(adapter: &Path) -> PathBuf {
+    adapter.with_extension("optim.safetensors")
+}
+
+/// Scales the gradients of `vars` in `grads` so that their global L2 norm is at most `max_norm`,
+/// as PyTorch `clip_grad_norm_` (factor `max_norm / (norm + 1e-6)` when that is below 1;
+/// `max_norm` ≤ 0: no clipping). Returns the global norm before clipping (computed in f64; NaN or
+/// infinite when a gradient is, and then nothing is scaled).
+///
+/// # Errors
+/// Tensor errors.
+pub fn clip_grad_norm(grads: &mut GradStore, vars: &[Var], max_norm: f64) -> Result<f64> {
+    let mut sq = 0.0f64;
+    for var in vars {
+        if let Some(g) = grads.get(var.as_tensor()) {
+            sq += g
+                .to_dtype(DType::F64)?
+                .sqr()?
+                .sum_all()?
+                .to_scalar::<f64>()?;
+        }
+    }
+    let norm = sq.sqrt();
+    if max_norm > 0.0 && norm.is_finite() {
+        let coef = max_norm / (norm + 1e-6);
+        if coef < 1.0 {
+            for var in vars {
+                if let Some(g) = grads.get(var.as_tensor()) {
+                    let scaled = (g * coef)?;
+                    grads.insert(var.as_tensor(), scaled);
+                }
+            }
+        }
+    }
+    Ok(norm)
+}
+
+/// One AdamW parameter group: variables with their first and second moments.
+struct Group {
+    /// `"lora"` or `"head"`.
+    kind: &'static str,
+    names: Vec<String>,
+    vars: Vec<Var>,
+    m: Vec<Tensor>,
+    v: Vec<Tensor>,
+    peak_lr: f64,
+}
+
+impl Group {
+    fn new(
+        kind: &'static str,
+        vars: &std::collections::BTreeMap<String, Var>,
+        peak_lr: f64,
+    ) -> Result<Option<Self>> {
+        if vars.is_empty() {
+            return Ok(None);
+        }
+        let zeros = |v: &Var| v.as_tensor().zeros_like();
+        Ok(Some(Self {
+            kind,
+            names: vars.keys().cloned().collect(),
+            vars: vars.values().cloned().collect(),
+            m: vars.values().map(zeros).collect::<Result<_>>()?,
+            v: vars.values().map(zeros).collect::<Result<_>>()?,
+            peak_lr,
+        }))
+    }
+
+    /// AdamW (β 0.9/0.999, ε 1e-8, decoupled weight decay; the arithmetic of candle-nn's
+    /// `AdamW`) at learning rate `lr`, step `t` (1-based).
+    fn update(&mut self, grads: &GradStore, lr: f64, weight_decay: f64, t: usize) -> Result<()> {
+        let (beta1, beta2, eps) = (0.9f64, 0.999f64, 1e-8);
+        let t = i32::try_from(t).unwrap_or(i32::MAX);
+        let scale_m = 1.0 / (1.0 - beta1.powi(t));
+        let scale_v = 1.0 / (1.0 - beta2.powi(t));
+        for ((theta, m), v) in self.vars.iter().zip(&mut self.m).zip(&mut self.v) {
+            let Some(g) = grads.get(theta.as_tensor()) else {
+                continue;
+            };
+            let next_m = ((&*m * beta1)? + (g * (1.0 - beta1))?)?;
+            let next_v = ((&*v * beta2)? + (g.sqr()? * (1.0 - beta2))?)?;
+            let m_hat = (&next_m * scale_m)?;
+            let v_hat = (&next_v * scale_v)?;
+            let next_theta = (theta.as_tensor() * (1.0 - lr * weight_decay))?;
+            let adjusted = (m_hat / (v_hat.sqrt()? + eps)?)?;
+            theta.set(&(next_theta - (adjusted * lr)?)?)?;
+            *m = next_m;
+            *v = next_v;
+        }
+        Ok(())
+    }
 }
 
 /// A training run in progress.
 pub struct Trainer {
     net: TrainNet,
-    lora_opt: Option<AdamW>,
-    head_opt: Option<AdamW>,
-    lora_vars: Vec<Var>,
-    head_vars: Vec<Var>,
+    groups: Vec<Group>,
     settings: OptimSettings,
     step: usize,
+    last_grad_norm: f64,
 }
 
 impl Trainer {
-    /// Optimisers over the network's LoRA variables and its trained base (head) variables.
+    /// AdamW over the network's LoRA variables and its trained base (head) variables, each
+    /// group with its own peak learning rate.
     ///
     /// # Errors
     /// No variable to train.
     pub fn new(net: TrainNet, settings: OptimSettings) -> Result<Self> {
-        let lora_vars: Vec<Var> = net.lora_vars().values().cloned().collect();
-        let head_vars: Vec<Var> = net.base_vars().values().cloned().collect();
-        if lora_vars.is_empty() && head_vars.is_empty() {
+        let groups: Vec<Group> = [
+            Group::new("lora", net.lora_vars(), settings.lr)?,
+            Group::new("head", net.base_vars(), settings.head_lr)?,
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        if groups.is_empty() {
             candle_core::bail!("nothing to train: no LoRA adapters and no trained head");
         }
-        let params = |lr: f64| ParamsAdamW {
-            lr,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            weight_decay: settings.weight_decay,
-        };
-        let lora_opt = if lora_vars.is_empty() {
-            None
-        } else {
-            Some(AdamW::new(lora_vars.clone(), params(settings.lr))?)
-        };
-        let head_opt = if head_vars.is_empty() {
-            None
-        } else {
-            Some(AdamW::new(head_vars.clone(), params(settings.head_lr))?)
-        };
         Ok(Self {
             net,
-            lora_opt,
-            head_opt,
-            lora_vars,
-            head_vars,
+            groups,
             settings,
             step: 0,
+            last_grad_norm: f64::NAN,
         })
     }
 
@@ -156,9 +272,16 @@ impl Trainer {
         self.step
     }
 
-    /// Sets the step counter (when resuming).
-    pub fn set_steps_done(&mut self, step: usize) {
-        self.step = step;
+    /// Global gradient norm of the last step, before clipping (NaN before the first step).
+    pub fn last_grad_norm(&self) -> f64 {
+        self.last_grad_norm
+    }
+
+    fn vars(&self) -> Vec<Var> {
+        self.groups
+            .iter()
+            .flat_map(|g| g.vars.iter().cloned())
+            .collect()
     }
 
     fn batch_loss(&mut self, batch: &[&Sample]) -> Result<Tensor> {
@@ -197,30 +320,36 @@ impl Trainer {
         loss(self.settings.loss, &y, &gt, &valid)
     }
 
-    /// One optimiser step over `micro` micro-batches (gradients accumulated, loss averaged);
-    /// returns the mean loss. A NaN or infinite loss is an error and leaves the weights as they
-    /// were.
+    /// One optimiser step over `micro` micro-batches (gradients accumulated, loss averaged,
+    /// global gradient norm clipped to [`OptimSettings::clip_grad_norm`]); returns the mean loss.
+    /// LoRA dropout masks are drawn from a generator seeded by the LoRA seed and the step. A NaN
+    /// or infinite loss or gradient is an error and leaves the weights as they were.
     ///
     /// # Errors
-    /// Shape errors, no valid pixel, a non-finite loss.
+    /// Shape errors, no valid pixel, a non-finite loss or gradient norm.
     pub fn step(&mut self, micro: &[Vec<&Sample>]) -> Result<f64> {
+        if let Some(seed) = self.net.lora_config().map(|l| l.seed) {
+            self.net
+                .reseed_dropout(derive_seed(seed, seed_tag::DROPOUT, self.step as u64));
+        }
         self.net.set_training(true);
         let n = micro.len().max(1) as f64;
         let mut total = 0.0;
         let mut acc: Option<GradStore> = None;
-        let vars: Vec<Var> = self
-            .lora_vars
-            .iter()
-            .chain(self.head_vars.iter())
-            .cloned()
-            .collect();
+        let vars = self.vars();
         for batch in micro {
-            let l = (self.batch_loss(batch)? / n)?;
-            let v = l.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?;
+            let l = match self.batch_loss(batch).and_then(|l| l / n) {
+                Ok(l) => l,
+                Err(e) => {
+                    self.net.set_training(false);
+                    return Err(e);
+                }
+            };
+            let v = l.to_dtype(DType::F64)?.to_scalar::<f64>()?;
             if !v.is_finite() {
                 self.net.set_training(false);
                 candle_core::bail!(
-                    "loss is {} at step {}: stopping (the last saved adapter is kept)",
+                    "loss is {} at step {}: stopping (the last saved adapter is kept; a lower learning rate may help)",
                     v * n,
                     self.step + 1
                 );
@@ -243,18 +372,21 @@ impl Trainer {
             }
         }
         self.net.set_training(false);
-        let Some(grads) = acc else {
+        let Some(mut grads) = acc else {
             candle_core::bail!("no micro-batch");
         };
+        let norm = clip_grad_norm(&mut grads, &vars, self.settings.clip_grad_norm)?;
+        self.last_grad_norm = norm;
+        if !norm.is_finite() {
+            candle_core::bail!(
+                "gradient norm is {norm} at step {}: stopping (the last saved adapter is kept; a lower learning rate may help)",
+                self.step + 1
+            );
+        }
         let s = &self.settings;
         let f = lr_factor(s.schedule, self.step, s.steps, s.warmup);
-        if let Some(o) = &mut self.lora_opt {
-            o.set_learning_rate(s.lr * f);
-            o.step(&grads)?;
-        }
-        if let Some(o) = &mut self.head_opt {
-            o.set_learning_rate(s.head_lr * f);
-            o.step(&grads)?;
+        for g in &mut self.groups {
+            g.update(&grads, g.peak_lr * f, s.weight_decay, self.step + 1)?;
         }
         self.step += 1;
         Ok(total)
@@ -271,15 +403,228 @@ impl Trainer {
         let mut sum = 0.0;
         for s in samples {
             let l = self.batch_loss(&[s])?.detach();
-            sum += l.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?;
+            sum += l.to_dtype(DType::F64)?.to_scalar::<f64>()?;
         }
         Ok(sum / samples.len() as f64)
     }
+
+    /// Writes the optimiser state atomically to `path` (safetensors): the AdamW moments of every
+    /// trained variable (`exp_avg.NAME`, `exp_avg_sq.NAME`), the trained head weights
+    /// (`param.NAME`; LoRA matrices are in the adapter), the step count and `run` (the settings
+    /// of the run, JSON; [`Trainer::load_state`] refuses a state made with other settings).
+    /// Tensors keep their dtype (f32 or f64), so a resumed run continues bit for bit.
+    ///
+    /// # Errors
+    /// [`crate::DepthError::Weights`] naming the file.
+    pub fn save_state(&self, path: &Path, run: &serde_json::Value) -> crate::Result<()> {
+        let err = |e: candle_core::Error| aerr(path, e.to_string());
+        let mut views = BTreeMap::new();
+        for g in &self.groups {
+            for (i, name) in g.names.iter().enumerate() {
+                views.insert(
+                    format!("exp_avg.{name}"),
+                    F32View::of(&g.m[i]).map_err(err)?,
+                );
+                views.insert(
+                    format!("exp_avg_sq.{name}"),
+                    F32View::of(&g.v[i]).map_err(err)?,
+                );
+                if g.kind == "head" {
+                    views.insert(
+                        format!("param.{name}"),
+                        F32View::of(g.vars[i].as_tensor()).map_err(err)?,
+                    );
+                }
+            }
+        }
+        let mut meta = HashMap::new();
+        meta.insert("format".to_string(), OPTIM_STATE_FORMAT.to_string());
+        meta.insert("step".to_string(), self.step.to_string());
+        meta.insert("run".to_string(), run.to_string());
+        let bytes = safetensors::tensor::serialize(&views, Some(meta))
+            .map_err(|e| aerr(path, e.to_string()))?;
+        write_atomic(path, &bytes)
+    }
+
+    /// Restores a state written by [`Trainer::save_state`]: moments, trained head weights and
+    /// the step count (so the schedule continues where it stopped).
+    ///
+    /// # Errors
+    /// [`crate::DepthError::Weights`] naming the file: unreadable, not a moma optimiser state,
+    /// made with settings other than `run` (the differing keys are named), missing, extra or
+    /// mis-shaped tensors. Nothing is changed on error.
+    pub fn load_state(&mut self, path: &Path, run: &serde_json::Value) -> crate::Result<()> {
+        let bytes = std::fs::read(path).map_err(|e| aerr(path, e.to_string()))?;
+        let (_, header) = safetensors::SafeTensors::read_metadata(&bytes)
+            .map_err(|e| aerr(path, format!("not a safetensors file: {e}")))?;
+        let meta = header
+            .metadata()
+            .clone()
+            .ok_or_else(|| aerr(path, "no metadata: not a moma optimiser state"))?;
+        if meta.get("format").map(String::as_str) != Some(OPTIM_STATE_FORMAT) {
+            return Err(aerr(
+                path,
+                format!("not a moma optimiser state (format {OPTIM_STATE_FORMAT:?} expected)"),
+            ));
+        }
+        let step: usize = meta
+            .get("step")
+            .and_then(|s| s.parse().ok())
+            .ok_or_else(|| aerr(path, "bad or missing `step` in metadata"))?;
+        let stored: serde_json::Value = meta
+            .get("run")
+            .and_then(|s| serde_json::from_str(s).ok())
+            .ok_or_else(|| aerr(path, "bad or missing `run` settings in metadata"))?;
+        if &stored != run {
+            return Err(aerr(path, settings_difference(&stored, run)));
+        }
+        let mut tensors: HashMap<String, Tensor> =
+            candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)
+                .map_err(|e| aerr(path, e.to_string()))?;
+        // Everything is read and checked before anything is set.
+        let mut updates: Vec<(usize, usize, Tensor, Tensor, Option<Tensor>)> = vec![];
+        for (gi, g) in self.groups.iter().enumerate() {
+            for (i, name) in g.names.iter().enumerate() {
+                let want = g.vars[i].as_tensor();
+                let mut take = |key: String| -> crate::Result<Tensor> {
+                    let t = tensors
+                        .remove(&key)
+                        .ok_or_else(|| aerr(path, format!("missing tensor {key}")))?;
+                    if t.dims() != want.dims() {
+                        return Err(aerr(
+                            path,
+                            format!("{key}: shape {:?}, expected {:?}", t.dims(), want.dims()),
+                        ));
+                    }
+                    t.to_dtype(want.dtype())
+                        .and_then(|t| t.to_device(want.device()))
+                        .map_err(|e| aerr(path, e.to_string()))
+                };
+                let m = take(format!("exp_avg.{name}"))?;
+                let v = take(format!("exp_avg_sq.{name}"))?;
+                let p = if g.kind == "head" {
+                    Some(take(format!("param.{name}"))?)
+                } else {
+                    None
+                };
+                updates.push((gi, i, m, v, p));
+            }
+        }
+        if let Some(k) = tensors.keys().min() {
+            return Err(aerr(
+                path,
+                format!("unexpected tensor {k} (a state of another set of trained variables)"),
+            ));
+        }
+        for (gi, i, m, v, p) in updates {
+            let g = &mut self.groups[gi];
+            if let Some(p) = p {
+                g.vars[i].set(&p).map_err(|e| aerr(path, e.to_string()))?;
+            }
+            g.m[i] = m;
+            g.v[i] = v;
+        }
+        self.step = step;
+        Ok(())
+    }
+}
+
+/// The settings that differ between two JSON values, as `key.sub (state A, this run B)`,
+/// descending into objects.
+fn differences(path: &str, a: &serde_json::Value, b: &serde_json::Value, out: &mut Vec<String>) {
+    use serde_json::Value;
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+            for k in keys {
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                match (x.get(k), y.get(k)) {
+                    (Some(u), Some(v)) => differences(&p, u, v, out),
+                    (u, v) => {
+                        let show = |v: Option<&Value>| v.map_or("-".into(), Value::to_string);
+                        out.push(format!("{p} (state {}, this run {})", show(u), show(v)));
+                    }
+                }
+            }
+        }
+        _ if a != b => out.push(format!("{path} (state {a}, this run {b})")),
+        _ => {}
+    }
+}
+
+/// Why a stored run's settings are not this run's.
+fn settings_difference(stored: &serde_json::Value, run: &serde_json::Value) -> String {
+    let mut diffs = vec![];
+    differences("", stored, run, &mut diffs);
+    format!(
+        "made with other settings; resume with the settings of the original run: {}",
+        diffs.join(", ")
+    )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Gradients `c1`, `c2` of `loss = c1·x + c2·y` (closed form).
+    fn linear_grads(c1: &[f64], c2: &[f64]) -> (GradStore, Vec<Var>) {
+        let dev = Device::Cpu;
+        let x = Var::zeros(c1.len(), DType::F64, &dev).unwrap();
+        let y = Var::zeros(c2.len(), DType::F64, &dev).unwrap();
+        let t1 = Tensor::new(c1, &dev).unwrap();
+        let t2 = Tensor::new(c2, &dev).unwrap();
+        let l = ((x.as_tensor() * &t1).unwrap().sum_all().unwrap()
+            + (y.as_tensor() * &t2).unwrap().sum_all().unwrap())
+        .unwrap();
+        (l.backward().unwrap(), vec![x, y])
+    }
+
+    fn grad(g: &GradStore, v: &Var) -> Vec<f64> {
+        g.get(v.as_tensor()).unwrap().to_vec1().unwrap()
+    }
+
+    #[test]
+    fn clipping_scales_the_global_norm_to_the_limit() {
+        let (c1, c2) = ([3.0, -4.0, 12.0], [0.0, 84.0]);
+        // Global norm: √(9 + 16 + 144 + 7056) = √7225 = 85.
+        let (mut g, vars) = linear_grads(&c1, &c2);
+        let norm = clip_grad_norm(&mut g, &vars, 1.7).unwrap();
+        assert!((norm - 85.0).abs() < 1e-12);
+        let k = 1.7 / (85.0 + 1e-6);
+        for (v, c) in vars.iter().zip([&c1[..], &c2[..]]) {
+            for (a, b) in grad(&g, v).iter().zip(c) {
+                assert!((a - b * k).abs() < 1e-12, "{a} vs {}", b * k);
+            }
+        }
+        let after = clip_grad_norm(&mut g, &vars, 0.0).unwrap();
+        assert!((after - 1.7).abs() < 1e-7, "clipped norm {after}");
+        // Below the limit, or clipping off: untouched.
+        for limit in [85.5, 0.0] {
+            let (mut g, vars) = linear_grads(&c1, &c2);
+            assert!((clip_grad_norm(&mut g, &vars, limit).unwrap() - 85.0).abs() < 1e-12);
+            assert_eq!(grad(&g, &vars[0]), c1.to_vec());
+            assert_eq!(grad(&g, &vars[1]), c2.to_vec());
+        }
+        // A NaN gradient: reported, nothing scaled.
+        let (mut g, vars) = linear_grads(&[f64::NAN, 1.0], &[2.0]);
+        assert!(clip_grad_norm(&mut g, &vars, 1.0).unwrap().is_nan());
+        assert_eq!(grad(&g, &vars[1]), vec![2.0]);
+    }
+
+    #[test]
+    fn derived_seeds_differ_by_stream_and_index_and_repeat() {
+        let a = derive_seed(1, seed_tag::AUGMENT, 0);
+        assert_eq!(a, derive_seed(1, seed_tag::AUGMENT, 0));
+        assert_ne!(a, derive_seed(1, seed_tag::AUGMENT, 1));
+        assert_ne!(a, derive_seed(1, seed_tag::DROPOUT, 0));
+        assert_ne!(a, derive_seed(2, seed_tag::AUGMENT, 0));
+        let path = optim_state_path(Path::new("dir/glass.safetensors"));
+        assert_eq!(path, Path::new("dir/glass.optim.safetensors"));
+    }
 
     #[test]
     fn schedules_warm_up_then_decay() {

@@ -5,13 +5,17 @@
 //! of the machinery, not of a depth model's accuracy.
 
 pub mod adapter;
+mod attention;
 pub mod finetune;
 mod lora;
 pub mod loss;
 mod model;
 
 pub use adapter::{Adapter, fingerprint, merge_adapter, write_merged};
-pub use finetune::{OptimSettings, Sample, Schedule, Trainer, lr_factor};
+pub use finetune::{
+    OPTIM_STATE_FORMAT, OptimSettings, Sample, Schedule, Trainer, clip_grad_norm, derive_seed,
+    lr_factor, optim_state_path, seed_tag,
+};
 pub use lora::{LoraConfig, LoraTarget};
 pub use loss::{LossKind, loss, valid_indices};
 pub use model::{LoraPart, ParamSource, TrainNet};

@@ -220,6 +220,8 @@ struct TBlock {
     fc2: TLinear,
     ls2: Tensor,
     num_heads: usize,
+    /// Attention that keeps no probabilities and recomputes them in the backward (CPU).
+    recompute_attention: bool,
 }
 
 impl TBlock {
@@ -244,6 +246,7 @@ impl TBlock {
             fc2,
             ls2,
             num_heads: cfg.num_heads,
+            recompute_attention: true,
         })
     }
 
@@ -252,13 +255,18 @@ impl TBlock {
         let h = self.num_heads;
         let hd = d / h;
         let qkv = self.qkv.forward(&self.norm1.forward(x)?, dropout)?;
-        let qkv = qkv.reshape((b, t, 3, h, hd))?.permute((2, 0, 3, 1, 4))?;
-        let q = qkv.get(0)?.contiguous()?;
-        let k = qkv.get(1)?.contiguous()?;
-        let v = qkv.get(2)?.contiguous()?;
-        let att = (q.matmul(&k.t()?)? * (1.0 / (hd as f64).sqrt()))?;
-        let att = softmax_last(&att)?;
-        let o = att.matmul(&v)?.transpose(1, 2)?.reshape((b, t, d))?;
+        let scale = 1.0 / (hd as f64).sqrt();
+        let o = if self.recompute_attention && super::attention::supported(&qkv) {
+            super::attention::attention(&qkv, h, scale)?
+        } else {
+            let qkv = qkv.reshape((b, t, 3, h, hd))?.permute((2, 0, 3, 1, 4))?;
+            let q = qkv.get(0)?.contiguous()?;
+            let k = qkv.get(1)?.contiguous()?;
+            let v = qkv.get(2)?.contiguous()?;
+            let att = (q.matmul(&k.t()?)? * scale)?;
+            let att = softmax_last(&att)?;
+            att.matmul(&v)?.transpose(1, 2)?.reshape((b, t, d))?
+        };
         let a = self.proj.forward(&o, dropout)?.broadcast_mul(&self.ls1)?;
         let x = (x + a)?;
         let m = self
@@ -603,6 +611,26 @@ impl TrainNet {
     /// Turns LoRA dropout on (training) or off (evaluation).
     pub fn set_training(&mut self, on: bool) {
         self.dropout.active = on;
+    }
+
+    /// Restarts the LoRA dropout generator at `seed` (the trainer derives it from the seed and
+    /// the step, so a resumed run draws the same masks as an uninterrupted one).
+    pub(crate) fn reseed_dropout(&mut self, seed: u64) {
+        self.dropout.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
+    /// Attention that keeps no `T × T` probabilities for the backward and recomputes them
+    /// there (default on; CPU f32/f64, other devices always use composed operations). Off: the
+    /// composed softmax, whose graph keeps scores, exponentials and probabilities per block.
+    pub fn set_recompute_attention(&mut self, on: bool) {
+        for b in &mut self.blocks {
+            b.recompute_attention = on;
+        }
+    }
+
+    /// The attached adapters' settings.
+    pub fn lora_config(&self) -> Option<&LoraConfig> {
+        self.lora_config.as_ref()
     }
 
     /// Adds LoRA adapters to every block as `lora` says: A Kaiming-uniform (a = √5, bound
