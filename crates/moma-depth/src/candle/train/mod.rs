@@ -7,6 +7,7 @@
 pub mod adapter;
 mod attention;
 pub mod finetune;
+mod frozen;
 mod lora;
 pub mod loss;
 mod model;

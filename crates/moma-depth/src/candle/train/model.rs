@@ -13,6 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::adapter::Adapter;
+use super::frozen::frozen;
 use super::lora::{LoraConfig, LoraTarget};
 use crate::Head;
 use crate::candle::DepthAnythingConfig;
@@ -117,7 +118,17 @@ impl TLinear {
 
     fn forward(&self, x: &Tensor, dropout: &mut Dropout) -> Result<Tensor> {
         let out_dim = self.w.dim(0)?;
-        let mut y = x.broadcast_matmul(&self.w.t()?)?.broadcast_add(&self.b)?;
+        let mut y = if self.w.is_variable() {
+            x.broadcast_matmul(&self.w.t()?)?
+        } else {
+            let (w1, w2) = (self.w.clone(), self.w.clone());
+            frozen(
+                x,
+                move |x| x.broadcast_matmul(&w1.t()?),
+                move |g| g.broadcast_matmul(&w2),
+            )?
+        }
+        .broadcast_add(&self.b)?;
         if !self.lora.is_empty() {
             let xd = dropout.apply(x)?;
             for p in &self.lora {
@@ -329,8 +340,18 @@ pub(crate) fn upsample_bilinear_ac(x: &Tensor, oh: usize, ow: usize) -> Result<T
     let (b, c, h, w) = x.dims4()?;
     let rw = matrix(bilinear_ac_matrix(w, ow), ow, w, x)?;
     let rh = matrix(bilinear_ac_matrix(h, oh), oh, h, x)?;
-    let y = x.reshape((b * c * h, w))?.matmul(&rw.t()?)?; // (B·C·h, ow)
-    let y = rh.broadcast_matmul(&y.reshape((b * c, h, ow))?)?; // (B·C, oh, ow)
+    let rw2 = rw.clone();
+    let y = frozen(
+        &x.reshape((b * c * h, w))?,
+        move |x| x.matmul(&rw.t()?),
+        move |g| g.matmul(&rw2),
+    )?; // (B·C·h, ow)
+    let rh2 = rh.clone();
+    let y = frozen(
+        &y.reshape((b * c, h, ow))?,
+        move |y| rh.broadcast_matmul(y),
+        move |g| rh2.t()?.broadcast_matmul(g),
+    )?; // (B·C, oh, ow)
     y.reshape((b, c, oh, ow))
 }
 
@@ -367,15 +388,26 @@ impl TConv {
             // 1×1 convolution as a matmul over channels.
             let (b, c, h, w) = x.dims4()?;
             let wm = self.w.squeeze(3)?.squeeze(2)?;
-            wm.broadcast_matmul(&x.reshape((b, c, h * w))?)?
-                .reshape((b, wm.dim(0)?, h, w))?
+            let c_out = wm.dim(0)?;
+            let x = x.reshape((b, c, h * w))?;
+            let y = if self.w.is_variable() {
+                wm.broadcast_matmul(&x)?
+            } else {
+                let wm2 = wm.clone();
+                frozen(
+                    &x,
+                    move |x| wm.broadcast_matmul(x),
+                    move |g| wm2.t()?.broadcast_matmul(g),
+                )?
+            };
+            y.reshape((b, c_out, h, w))?
         } else if self.stride == 1 {
-            x.conv2d(&self.w, self.padding, 1, 1, 1)?
+            self.conv_stride1(x)?
         } else {
             // candle 0.11's conv2d backward gets the input gradient's width wrong for strided
             // convolutions whose height and width need different output paddings (it uses the
             // height's for both). Stride s = stride-1 convolution, then every s-th row and column.
-            let y = x.conv2d(&self.w, self.padding, 1, 1, 1)?;
+            let y = self.conv_stride1(x)?;
             let (_, _, h, w) = y.dims4()?;
             let pick = |n: usize| -> Result<Tensor> {
                 let idx: Vec<u32> = (0..n as u32).step_by(self.stride).collect();
@@ -387,6 +419,23 @@ impl TConv {
             Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
             None => Ok(y),
         }
+    }
+}
+
+impl TConv {
+    /// Stride-1 convolution; a frozen kernel gets no gradient (its input does: the transposed
+    /// convolution, as candle's backward computes it).
+    fn conv_stride1(&self, x: &Tensor) -> Result<Tensor> {
+        let p = self.padding;
+        if self.w.is_variable() {
+            return x.conv2d(&self.w, p, 1, 1, 1);
+        }
+        let (w1, w2) = (self.w.clone(), self.w.clone());
+        frozen(
+            x,
+            move |x| x.conv2d(&w1, p, 1, 1, 1),
+            move |g| g.conv_transpose2d(&w2, p, 0, 1, 1),
+        )
     }
 }
 
