@@ -463,7 +463,11 @@ impl Calibration {
     ///
     /// # Errors
     /// As [`Calibration::align`].
-    pub fn align_view(&self, pred: ArrayView2<'_, f32>, kind: PredictionKind) -> Result<MetricDepth> {
+    pub fn align_view(
+        &self,
+        pred: ArrayView2<'_, f32>,
+        kind: PredictionKind,
+    ) -> Result<MetricDepth> {
         self.check_prediction(pred, kind)?;
         if let Some(pass) = self.fused_pass(pred, kind)? {
             let mut out = Array2::<f32>::uninit(pred.raw_dim());
@@ -489,7 +493,8 @@ impl Calibration {
     ) -> Result<()> {
         self.check_prediction(pred, kind)?;
         if let Some(pass) = self.fused_pass(pred, kind)? {
-            ImageSize::of(&pred).expect_eq("output buffer", ImageSize::new(out.ncols(), out.nrows()))?;
+            ImageSize::of(&pred)
+                .expect_eq("output buffer", ImageSize::new(out.ncols(), out.nrows()))?;
             crate::fused::apply(&pass, pred, out);
             return Ok(());
         }

@@ -27,7 +27,13 @@ fn scene(kind: PredictionKind) -> (MetricDepth, Array2<f32>) {
             PredictionKind::InverseDepth => 2.0 / z - 0.7,
             PredictionKind::Depth => 1.3 * z + 0.2,
         } + 0.003 * ((u + 3 * v) as f32).cos();
-        if (u * 7 + v * 11) % 97 == 0 { -0.25 } else if (u + v) % 131 == 5 { 0.0 } else { p }
+        if (u * 7 + v * 11) % 97 == 0 {
+            -0.25
+        } else if (u + v) % 131 == 5 {
+            0.0
+        } else {
+            p
+        }
     });
     (MetricDepth::new(gt), pred)
 }
@@ -71,7 +77,11 @@ fn assert_same(what: &str, got: ArrayView2<'_, f32>, want: ArrayView2<'_, f32>) 
             assert!(g.is_nan(), "{what} at {i:?}: got {g}, want NaN");
             nan += 1;
         } else {
-            assert_eq!(g.to_bits(), w.to_bits(), "{what} at {i:?}: got {g}, want {w}");
+            assert_eq!(
+                g.to_bits(),
+                w.to_bits(),
+                "{what} at {i:?}: got {g}, want {w}"
+            );
         }
     }
     assert!(nan < got.len(), "{what}: all NaN");
@@ -104,7 +114,8 @@ fn fused_path_equals_unfused_bit_for_bit() {
                         else {
                             continue;
                         };
-                        let what = format!("{kind} {method} {norm} {space} ws={}", region.is_some());
+                        let what =
+                            format!("{kind} {method} {norm} {space} ws={}", region.is_some());
                         let want = unfused(&cal, &pred, kind);
                         let got = cal.align_view(pred.view(), kind).unwrap().depth_m;
                         assert_same(&what, got.view(), want.view());
@@ -138,7 +149,8 @@ fn strided_input_and_output_give_the_same_result() {
     let (_, pred) = scene(kind);
     for method in [Method::Gssa, Method::Ssra(SsraConfig::default())] {
         for space in AlignSpace::ALL {
-            let cal = calibration(kind, method.clone(), Normalisation::Minmax, space, None).unwrap();
+            let cal =
+                calibration(kind, method.clone(), Normalisation::Minmax, space, None).unwrap();
             let want = unfused(&cal, &pred, kind);
             // Column-major copy (Fortran order): the view is not row-contiguous.
             let mut fortran = Array2::<f32>::zeros(SIZE.shape().f());
@@ -149,7 +161,10 @@ fn strided_input_and_output_give_the_same_result() {
             // Every other column of a wider array.
             let mut wide = Array2::<f32>::zeros((SIZE.height, 2 * SIZE.width));
             wide.slice_mut(s![.., ..;2]).assign(&pred);
-            let got = cal.align_view(wide.slice(s![.., ..;2]), kind).unwrap().depth_m;
+            let got = cal
+                .align_view(wide.slice(s![.., ..;2]), kind)
+                .unwrap()
+                .depth_m;
             assert_same("strided input", got.view(), want.view());
             // A strided output.
             let mut out_wide = Array2::<f32>::zeros((SIZE.height, 2 * SIZE.width));
@@ -220,11 +235,16 @@ fn fused_path_reports_the_unfused_errors() {
 fn fused_inverse_space_shifted_disparity_is_recovered() {
     // Independent expectation: d = 2/z − 0.7 exactly (no ripple, no invalid pixel) is affine in
     // 1/z, so GSSA in inverse space recovers z to float precision.
-    let gt = Array2::from_shape_fn(SIZE.shape(), |(v, u)| 0.5 + 0.006 * u as f32 + 0.004 * v as f32);
+    let gt = Array2::from_shape_fn(SIZE.shape(), |(v, u)| {
+        0.5 + 0.006 * u as f32 + 0.004 * v as f32
+    });
     let pred = gt.mapv(|z| 2.0 / z - 0.7);
     let config = CalibrationConfig {
         method: Method::Gssa,
-        normalisation: NormalisationConfig::native(Normalisation::Minmax, PredictionKind::InverseDepth),
+        normalisation: NormalisationConfig::native(
+            Normalisation::Minmax,
+            PredictionKind::InverseDepth,
+        ),
         sampling: SamplingConfig {
             n: 50,
             seed: 1,
