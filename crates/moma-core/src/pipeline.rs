@@ -6,6 +6,8 @@
 //!   owns everything needed later, including the workspace mask.
 //! - [`Calibration::align`] / [`Calibration::align_into`]: any later prediction of the same
 //!   camera to metric depth (metres), the latter without allocating.
+//! - [`Calibration::align_view`] / [`Calibration::align_view_into`]: the same from a borrowed
+//!   view (e.g. a NumPy buffer), without copying the prediction; what `align` runs.
 //!
 //! The evaluation caches normalised maps and calls the same steps through
 //! [`calibrate_normalised`] and [`Calibration::align_normalised`], which [`calibrate`] and
