@@ -10,6 +10,7 @@ from ._moma import calibrate as calibrate
 from ._moma import depth_to_points as depth_to_points
 from ._moma import plan_grasps as plan_grasps
 from ._moma import has_onnx as has_onnx
+from ._moma import lora_fingerprint as lora_fingerprint
 from ._moma import metrics as metrics
 from ._moma import read_depth as read_depth
 from ._moma import read_prediction as read_prediction
@@ -30,6 +31,7 @@ __all__ = [
     "depth_to_points",
     "plan_grasps",
     "has_onnx",
+    "lora_fingerprint",
     "metrics",
     "read_depth",
     "read_prediction",

@@ -111,9 +111,11 @@ class Calibration:
 
     def align(self, pred: npt.ArrayLike) -> _F32:
         """Metric depth (float32 metres, NaN where no depth can be inferred) from a prediction
-        of the calibrated kind and shape. Releases the GIL."""
+        of the calibrated kind and shape. A float32 array (any strides) is read in place, not
+        copied; other dtypes are converted once. Releases the GIL."""
     def align_into(self, pred: npt.ArrayLike, out: _F32) -> None:
-        """Like ``align``, writing metres into ``out`` (writable float32, same shape)."""
+        """Like ``align``, writing metres into ``out`` (writable float32, same shape; any
+        strides) without allocating."""
     def save(self, path: _Path) -> None:
         """Writes the CLI's calibration format (``moma-calibration`` v2 JSON, atomic), the
         workspace mask (if any) embedded: the file is self-contained."""
@@ -214,6 +216,18 @@ def write_prediction(path: _Path, pred: npt.ArrayLike) -> None:
 def has_onnx() -> bool:
     """Whether this build has the ONNX Runtime backend."""
 
+def lora_fingerprint(
+    weights: _Path,
+    model: Literal["vits", "vitb", "vitl"] = "vits",
+    head: Literal["relative", "metric"] = "relative",
+    *,
+    config: Optional[dict[str, Any]] = None,
+) -> str:
+    """The fingerprint (16 hex digits) of base weights that a LoRA adapter for them must carry
+    in its ``base_fingerprint`` metadata, as ``moma finetune`` writes it: for adapters trained
+    elsewhere and written in moma's ``moma-lora-v1`` layout. Raises ``MomaFileError`` for
+    unreadable weights or ones that do not fit the architecture."""
+
 @final
 class DepthModel:
     """Depth Anything V2. Thread-safe (one inference at a time per object); releases the GIL."""
@@ -236,7 +250,10 @@ class DepthModel:
         ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
         largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14);
         ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields);
-        ``lora``: not supported yet (raises ``BackendError``)."""
+        ``lora``: a LoRA adapter file (``moma finetune`` output, ``moma-lora-v1`` safetensors)
+        merged into the weights at load (candle backend; no per-frame cost). An adapter made for
+        other base weights or another architecture raises ``MomaFileError``; with
+        ``backend="onnx"``, ``BackendError``."""
     def predict(self, rgb: npt.NDArray[np.uint8]) -> _F32:
         """RGB uint8 ``H×W×3`` → float32 ``H×W`` prediction of kind ``self.kind``."""
     @property

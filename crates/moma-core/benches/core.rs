@@ -236,8 +236,68 @@ fn bench_normalise(c: &mut Criterion) {
     g.finish();
 }
 
+/// The whole run-time step `Calibration::align` on 640×480 (normalisation + model + reciprocal
+/// in inverse space): the fused view path (`align_view_into`, `align_view` allocating its output)
+/// against the unfused steps (`normalise` then `align_normalised_into`).
+fn bench_align(c: &mut Criterion) {
+    let p1 = pool(1);
+    let size = ImageSize::new(640, 480);
+    let gt = MetricDepth::new(Array2::from_shape_fn(size.shape(), |(v, u)| {
+        0.5 + ((u * 3 + v) % 500) as f32 * 1e-3
+    }));
+    let kind = PredictionKind::InverseDepth;
+    let pred = Prediction::new(gt.depth_m.mapv(|z| 2.0 / z - 0.5), kind);
+    let mut out = Array2::<f32>::zeros(size.shape());
+    let mut g = c.benchmark_group("align");
+    g.throughput(Throughput::Elements(size.pixels() as u64));
+    for (name, method) in [
+        ("ssra", Method::Ssra(SsraConfig::default())),
+        ("gssa", Method::Gssa),
+    ] {
+        for space in moma_core::AlignSpace::ALL {
+            let config = moma_core::CalibrationConfig {
+                method: method.clone(),
+                normalisation: NormalisationConfig {
+                    method: Normalisation::Minmax,
+                    space,
+                },
+                sampling: moma_core::sampling::SamplingConfig::default(),
+            };
+            let cal = moma_core::calibrate(&pred, &gt, &config, None, None).unwrap();
+            let id = format!("{name}_{space}_640x480");
+            g.bench_function(BenchmarkId::new("fused_into", &id), |b| {
+                p1.install(|| {
+                    b.iter(|| {
+                        cal.align_view_into(
+                            black_box(pred.values.view()),
+                            kind,
+                            &mut out.view_mut(),
+                        )
+                        .unwrap()
+                    })
+                })
+            });
+            g.bench_function(BenchmarkId::new("fused_alloc", &id), |b| {
+                p1.install(|| {
+                    b.iter(|| cal.align_view(black_box(pred.values.view()), kind).unwrap())
+                })
+            });
+            g.bench_function(BenchmarkId::new("unfused_into", &id), |b| {
+                p1.install(|| {
+                    b.iter(|| {
+                        let n = cal.normalise(black_box(&pred)).unwrap();
+                        cal.align_normalised_into(&n, &mut out.view_mut()).unwrap()
+                    })
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
 criterion_group!(
     benches,
+    bench_align,
     bench_fits,
     bench_apply,
     bench_lwlr,

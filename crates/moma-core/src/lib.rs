@@ -13,6 +13,7 @@
 pub mod align;
 pub mod camera;
 pub mod error;
+mod fused;
 pub mod image;
 mod kernels;
 pub mod metrics;

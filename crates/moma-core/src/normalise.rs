@@ -1,7 +1,7 @@
 //! Normalisation of a depth model's output (METHOD.md §1).
 //!
 
-use ndarray::Array2;
+use ndarray::{Array2, ArrayView2};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{CoreError, Result};
@@ -219,12 +219,26 @@ pub fn normalise(
     config: &NormalisationConfig,
     region: Option<&Mask>,
 ) -> Result<NormalisedMap> {
-    let size = pred.size();
+    normalise_view(pred.values.view(), pred.kind, config, region)
+}
+
+/// [`normalise`] reading the prediction through a view (`values` of kind `kind`, any strides):
+/// no copy of the input is made (a non-row-major view is read through one standard-layout copy).
+///
+/// # Errors
+/// As [`normalise`].
+pub fn normalise_view(
+    values: ArrayView2<'_, f32>,
+    kind: PredictionKind,
+    config: &NormalisationConfig,
+    region: Option<&Mask>,
+) -> Result<NormalisedMap> {
+    let size = crate::image::ImageSize::of(&values);
     if let Some(r) = region {
         size.expect_eq("normalisation region", r.size())?;
     }
     // 1. non-finite check over the whole map (vectorised count; position only on error).
-    let d_std = pred.values.as_standard_layout();
+    let d_std = values.as_standard_layout();
     let d: &[f32] = d_std.as_slice().unwrap_or(&[]);
     let bad = d.iter().filter(|x| !x.is_finite()).count();
     if bad > 0 {
@@ -237,7 +251,7 @@ pub fn normalise(
         });
     }
     // 2. kind conversion.
-    let invert = AlignSpace::native(pred.kind) != config.space;
+    let invert = AlignSpace::native(kind) != config.space;
     let mut z: Vec<f32> = if invert {
         d.iter()
             .map(|&x| if x > 0.0 { 1.0 / x } else { f32::NAN })
@@ -250,10 +264,7 @@ pub fn normalise(
     let inside: Option<&[bool]> = r_std.as_ref().and_then(|r| r.as_slice());
     let (min, max, n) = crate::kernels::finite_min_max(&z, inside);
     if n == 0 {
-        return Err(CoreError::NoValidPixels(match region {
-            Some(_) => "the normalisation region holds no valid prediction pixel".into(),
-            None => "the prediction holds no valid pixel".into(),
-        }));
+        return Err(no_valid_pixels(region.is_some()));
     }
     let (median, mad) = if config.method == Normalisation::Median {
         let mut vals: Vec<f32> = match inside {
@@ -277,7 +288,41 @@ pub fn normalise(
         n,
     };
     // 4. the affine map ẑ = a·z + b.
-    let (a, b) = match config.method {
+    let (a, b) = affine_coefficients(config.method, &stats)?;
+    if config.method != Normalisation::None {
+        crate::kernels::affine_f64(&mut z, a, b);
+    }
+    let values = Array2::from_shape_vec(size.shape(), z).map_err(|_| CoreError::BufferLength {
+        len: d.len(),
+        size,
+        expected: size.pixels(),
+    })?;
+    Ok(NormalisedMap { values, stats })
+}
+
+/// The error for a map or region without a valid pixel.
+pub(crate) fn no_valid_pixels(in_region: bool) -> CoreError {
+    CoreError::NoValidPixels(if in_region {
+        "the normalisation region holds no valid prediction pixel".into()
+    } else {
+        "the prediction holds no valid pixel".into()
+    })
+}
+
+/// The affine map `ẑ = a·z + b` of `method` for the statistics `stats` (min, max, n; median and
+/// mad for `median`).
+///
+/// # Errors
+/// [`CoreError::Degenerate`]: `z_max = z_min` (min-max forms) or `μ = 0` (median).
+pub(crate) fn affine_coefficients(method: Normalisation, stats: &NormStats) -> Result<(f64, f64)> {
+    let NormStats {
+        min,
+        max,
+        median,
+        mad,
+        n,
+    } = *stats;
+    Ok(match method {
         Normalisation::Minmax | Normalisation::MinmaxUnit => {
             let range = max - min;
             if range.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) || !range.is_finite() {
@@ -285,7 +330,7 @@ pub fn normalise(
                     "constant prediction: z_max = z_min = {min} over {n} pixel(s); min-max normalisation is undefined"
                 )));
             }
-            let offset = if config.method == Normalisation::Minmax {
+            let offset = if method == Normalisation::Minmax {
                 min
             } else {
                 0.0
@@ -301,16 +346,7 @@ pub fn normalise(
             (1.0 / mad, -median / mad)
         }
         Normalisation::None => (1.0, 0.0),
-    };
-    if config.method != Normalisation::None {
-        crate::kernels::affine_f64(&mut z, a, b);
-    }
-    let values = Array2::from_shape_vec(size.shape(), z).map_err(|_| CoreError::BufferLength {
-        len: d.len(),
-        size,
-        expected: size.pixels(),
-    })?;
-    Ok(NormalisedMap { values, stats })
+    })
 }
 
 /// Median (mean of the two middle values for even length) and mean absolute deviation from it,

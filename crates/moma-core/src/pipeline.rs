@@ -6,6 +6,8 @@
 //!   owns everything needed later, including the workspace mask.
 //! - [`Calibration::align`] / [`Calibration::align_into`]: any later prediction of the same
 //!   camera to metric depth (metres), the latter without allocating.
+//! - [`Calibration::align_view`] / [`Calibration::align_view_into`]: the same from a borrowed
+//!   view (e.g. a NumPy buffer), without copying the prediction; what `align` runs.
 //!
 //! The evaluation caches normalised maps and calls the same steps through
 //! [`calibrate_normalised`] and [`Calibration::align_normalised`], which [`calibrate`] and
@@ -44,14 +46,16 @@
 
 use std::sync::Arc;
 
-use ndarray::{Array2, ArrayViewMut2};
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::align::{AlignmentModel, FitReport, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
-use crate::normalise::{AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise};
+use crate::normalise::{
+    AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise, normalise_view,
+};
 use crate::sampling::{SamplingConfig, sample_pixels};
 
 /// Everything a calibration decides.
@@ -403,18 +407,36 @@ impl Calibration {
     /// # Errors
     /// Kind or size mismatch with the calibration, normalisation errors.
     pub fn normalise(&self, pred: &Prediction) -> Result<NormalisedMap> {
-        if pred.kind != self.prediction_kind {
-            return Err(CoreError::KindMismatch {
-                expected: self.prediction_kind,
-                got: pred.kind,
-            });
-        }
-        self.image_size().expect_eq("prediction", pred.size())?;
-        normalise(
+        self.normalise_view(pred.values.view(), pred.kind)
+    }
+
+    /// [`Calibration::normalise`] of a prediction read through a view (`pred` of kind `kind`).
+    ///
+    /// # Errors
+    /// As [`Calibration::normalise`].
+    pub fn normalise_view(
+        &self,
+        pred: ArrayView2<'_, f32>,
+        kind: PredictionKind,
+    ) -> Result<NormalisedMap> {
+        self.check_prediction(pred, kind)?;
+        normalise_view(
             pred,
+            kind,
             &self.normalisation,
             self.workspace.as_deref().map(Workspace::mask),
         )
+    }
+
+    fn check_prediction(&self, pred: ArrayView2<'_, f32>, kind: PredictionKind) -> Result<()> {
+        if kind != self.prediction_kind {
+            return Err(CoreError::KindMismatch {
+                expected: self.prediction_kind,
+                got: kind,
+            });
+        }
+        self.image_size()
+            .expect_eq("prediction", ImageSize::of(&pred))
     }
 
     /// Turns a later prediction into metric depth (metres; NaN where no depth follows: a
@@ -423,18 +445,86 @@ impl Calibration {
     /// # Errors
     /// Kind or size mismatch with the calibration, normalisation errors.
     pub fn align(&self, pred: &Prediction) -> Result<MetricDepth> {
-        let normalised = self.normalise(pred)?;
-        self.align_normalised(&normalised)
+        self.align_view(pred.values.view(), pred.kind)
     }
 
-    /// [`Calibration::align`] writing metres into `out` (the calibration's image size), for
+    /// [`Calibration::align_into`] writing metres into `out` (the calibration's image size), for
     /// per-frame use without allocating the output.
     ///
     /// # Errors
     /// As [`Calibration::align`], and a size mismatch of `out`.
     pub fn align_into(&self, pred: &Prediction, out: &mut ArrayViewMut2<'_, f32>) -> Result<()> {
-        let normalised = self.normalise(pred)?;
+        self.align_view_into(pred.values.view(), pred.kind, out)
+    }
+
+    /// [`Calibration::align`] of a prediction read through a view (`pred` of kind `kind`, any
+    /// strides): the prediction is not copied. For GSSA and SSRA (and `auto` choosing them) with
+    /// min-max or no normalisation, normalisation, alignment and the reciprocal of inverse space
+    /// run fused in two passes over the image (see the `fused` module); the result is identical
+    /// bit for bit to normalising and then applying the model.
+    ///
+    /// # Errors
+    /// As [`Calibration::align`].
+    pub fn align_view(
+        &self,
+        pred: ArrayView2<'_, f32>,
+        kind: PredictionKind,
+    ) -> Result<MetricDepth> {
+        self.check_prediction(pred, kind)?;
+        if let Some(pass) = self.fused_pass(pred, kind)? {
+            let mut out = Array2::<f32>::uninit(pred.raw_dim());
+            crate::fused::apply(&pass, pred, &mut out.view_mut());
+            // SAFETY: `fused::apply` writes every element of `out`, which has the shape of `pred`.
+            let out = unsafe { out.assume_init() };
+            return Ok(MetricDepth::new(out));
+        }
+        let normalised = self.normalise_view(pred, kind)?;
+        self.align_normalised(&normalised)
+    }
+
+    /// [`Calibration::align_view`] writing metres into `out` (the calibration's image size)
+    /// without allocating.
+    ///
+    /// # Errors
+    /// As [`Calibration::align`], and a size mismatch of `out`.
+    pub fn align_view_into(
+        &self,
+        pred: ArrayView2<'_, f32>,
+        kind: PredictionKind,
+        out: &mut ArrayViewMut2<'_, f32>,
+    ) -> Result<()> {
+        self.check_prediction(pred, kind)?;
+        if let Some(pass) = self.fused_pass(pred, kind)? {
+            ImageSize::of(&pred)
+                .expect_eq("output buffer", ImageSize::new(out.ncols(), out.nrows()))?;
+            crate::fused::apply(&pass, pred, out);
+            return Ok(());
+        }
+        let normalised = self.normalise_view(pred, kind)?;
         self.align_normalised_into(&normalised, out)
+    }
+
+    /// The fused path's statistics pass for a checked prediction, `None` where it does not apply.
+    fn fused_pass(
+        &self,
+        pred: ArrayView2<'_, f32>,
+        kind: PredictionKind,
+    ) -> Result<Option<crate::fused::FusedPass>> {
+        let size = self.image_size();
+        let Some(terms) = crate::fused::ModelTerms::of(&self.model, size.width, size.height) else {
+            return Ok(None);
+        };
+        let region = self.workspace.as_deref().map(Workspace::mask);
+        if let Some(r) = region {
+            size.expect_eq("normalisation region", r.size())?;
+        }
+        crate::fused::prepare(
+            pred,
+            AlignSpace::native(kind) != self.normalisation.space,
+            &self.normalisation,
+            region,
+            terms,
+        )
     }
 
     /// The alignment of a prediction already normalised by [`Calibration::normalise`].

@@ -23,7 +23,7 @@ use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_core::{Intrinsics as CoreIntrinsics, MetricDepth, Prediction, PredictionKind};
 use moma_depth::{Backbone, DepthModel as DepthModelTrait, Head, ModelSpec};
 use moma_io::{CalibrationFile, CreationInfo};
-use ndarray::{Array2, ArrayView2};
+use ndarray::Array2;
 use numpy::{IntoPyArray, PyArray2, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -168,10 +168,6 @@ struct Calibration {
 }
 
 impl Calibration {
-    fn prediction(&self, values: ArrayView2<'_, f32>) -> Prediction {
-        Prediction::new(values.to_owned(), self.inner.prediction_kind)
-    }
-
     fn file(&self) -> CalibrationFile {
         let created = self
             .created
@@ -191,13 +187,10 @@ impl Calibration {
         pred: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let ro = f32_2d(pred, "pred")?;
+        // Borrowed, not copied: NumPy's buffer is read in place (any strides).
         let view = ro.as_array();
-        let depth = py
-            .detach(|| {
-                let pred = self.prediction(view);
-                self.inner.align(&pred)
-            })
-            .py()?;
+        let kind = self.inner.prediction_kind;
+        let depth = py.detach(|| self.inner.align_view(view, kind)).py()?;
         Ok(depth.depth_m.into_pyarray(py))
     }
 
@@ -218,11 +211,9 @@ impl Calibration {
         let ro = f32_2d(pred, "pred")?;
         let view = ro.as_array();
         let mut out_view = rw.as_array_mut();
-        py.detach(|| {
-            let pred = self.prediction(view);
-            self.inner.align_into(&pred, &mut out_view)
-        })
-        .py()
+        let kind = self.inner.prediction_kind;
+        py.detach(|| self.inner.align_view_into(view, kind, &mut out_view))
+            .py()
     }
 
     /// Writes the calibration in the CLI's file format (`moma-calibration` v2, JSON, atomic),
@@ -650,6 +641,7 @@ fn load_depth_model(
     backend: &str,
     device: moma_depth::DeviceRequest,
     precision: moma_depth::Precision,
+    lora: Option<&std::path::Path>,
 ) -> Result<(BoxedModel, String), moma_depth::DepthError> {
     if !weights.is_file() {
         return Err(moma_depth::DepthError::Weights {
@@ -658,13 +650,29 @@ fn load_depth_model(
         });
     }
     match backend {
+        "onnx" if lora.is_some() => Err(moma_depth::DepthError::Unavailable(
+            "LoRA adapters are merged by the candle backend (use backend=\"candle\", or \
+             `moma lora merge` to write merged weights for other runtimes)"
+                .into(),
+        )),
         "onnx" => load_onnx(weights, spec, device, precision),
         _ => {
             let dev = moma_depth::candle::open_device(device)?;
             let config =
                 config.unwrap_or_else(|| moma_depth::candle::DepthAnythingConfig::from_spec(&spec));
-            let m =
-                moma_depth::candle::CandleDepthModel::load_with(weights, config, &dev, precision)?;
+            let m = match lora {
+                // The adapter is merged into the weights once, here: no per-frame cost.
+                Some(adapter) => moma_depth::candle::CandleDepthModel::load_with_adapter(
+                    weights,
+                    config,
+                    adapter,
+                    &dev,
+                    moma_depth::candle::precision_dtype(precision, &dev)?,
+                )?,
+                None => moma_depth::candle::CandleDepthModel::load_with(
+                    weights, config, &dev, precision,
+                )?,
+            };
             let runtime = m.runtime();
             Ok((Box::new(m), runtime))
         }
@@ -703,6 +711,60 @@ fn load_onnx(
     ))
 }
 
+/// A custom architecture (e.g. small test networks): the `DepthAnythingConfig` fields as a dict.
+fn parse_config(
+    py: Python<'_>,
+    config: Option<&Bound<'_, PyDict>>,
+) -> PyResult<Option<moma_depth::candle::DepthAnythingConfig>> {
+    let Some(d) = config else {
+        return Ok(None);
+    };
+    let text: String = py.import("json")?.call_method1("dumps", (d,))?.extract()?;
+    serde_json::from_str(&text)
+        .map(Some)
+        .map_err(|e| value_err(format!("config: not a DepthAnythingConfig: {e}")))
+}
+
+/// The fingerprint of base weights that a LoRA adapter for them must carry (its
+/// `base_fingerprint` metadata, as `moma finetune` writes it): 16 hex digits of a 64-bit FNV-1a
+/// hash of every base tensor (names, shapes, values in f32). For writing adapters trained
+/// elsewhere in moma's `moma-lora-v1` layout.
+#[pyfunction]
+#[pyo3(signature = (weights, model="vits", head="relative", *, config=None))]
+fn lora_fingerprint(
+    py: Python<'_>,
+    weights: PathBuf,
+    model: &str,
+    head: &str,
+    config: Option<&Bound<'_, PyDict>>,
+) -> PyResult<String> {
+    let config = match parse_config(py, config)? {
+        Some(c) => c,
+        None => moma_depth::candle::DepthAnythingConfig::from_spec(&ModelSpec {
+            backbone: parse_backbone(model)?,
+            head: parse_head(head, 20.0)?,
+            input_size: 518,
+        }),
+    };
+    py.detach(|| {
+        if !weights.is_file() {
+            return Err(moma_depth::DepthError::Weights {
+                path: weights.display().to_string(),
+                reason: "no such file".into(),
+            });
+        }
+        let dev = moma_depth::candle::open_device(moma_depth::DeviceRequest::Cpu)?;
+        let vb = moma_depth::candle::open_checkpoint(
+            &weights,
+            &config,
+            &dev,
+            moma_depth::candle::precision_dtype(moma_depth::Precision::F32, &dev)?,
+        )?;
+        moma_depth::candle::train::fingerprint(&vb, &config)
+    })
+    .py()
+}
+
 #[pymethods]
 impl DepthModel {
     #[new]
@@ -722,15 +784,6 @@ impl DepthModel {
         dtype: &str,
         config: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
-        if let Some(l) = lora {
-            return Err(err(
-                Kind::Backend,
-                format!(
-                    "LoRA adapters are not supported by this moma build (lora={})",
-                    l.display()
-                ),
-            ));
-        }
         if !matches!(backend, "candle" | "onnx" | "auto") {
             return Err(value_err(format!(
                 "unknown backend '{backend}' (expected 'candle' or 'onnx')"
@@ -754,18 +807,20 @@ impl DepthModel {
         let device: moma_depth::DeviceRequest = device.parse().map_err(value_err)?;
         let precision = parse_precision(dtype)?;
         // A custom architecture (e.g. small test networks): the DepthAnythingConfig fields as a dict.
-        let config = match config {
-            None => None,
-            Some(d) => {
-                let text: String = py.import("json")?.call_method1("dumps", (d,))?.extract()?;
-                let c: moma_depth::candle::DepthAnythingConfig = serde_json::from_str(&text)
-                    .map_err(|e| value_err(format!("config: not a DepthAnythingConfig: {e}")))?;
-                Some(c)
-            }
-        };
+        let config = parse_config(py, config)?;
         let spec = config.as_ref().map_or(spec, |c| c.spec());
         let (model, runtime) = py
-            .detach(|| load_depth_model(&weights, spec, config, backend, device, precision))
+            .detach(|| {
+                load_depth_model(
+                    &weights,
+                    spec,
+                    config,
+                    backend,
+                    device,
+                    precision,
+                    lora.as_deref(),
+                )
+            })
             .py()?;
         Ok(Self {
             model: Mutex::new(model),
@@ -848,5 +903,6 @@ fn _moma(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(write_prediction, m)?)?;
     m.add_function(wrap_pyfunction!(read_rgb, m)?)?;
     m.add_function(wrap_pyfunction!(has_onnx, m)?)?;
+    m.add_function(wrap_pyfunction!(lora_fingerprint, m)?)?;
     Ok(())
 }

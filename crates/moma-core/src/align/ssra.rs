@@ -193,14 +193,24 @@ impl SsraModel {
         normalised: ArrayView2<'_, f32>,
         out: &mut ArrayViewMut2<'_, f32>,
     ) {
-        let col: Vec<f32> = (0..normalised.ncols())
-            .map(|u| (self.alpha_m_per_px * u as f64) as f32)
-            .collect();
+        let col = self.column_terms(normalised.ncols());
         let t = self.t3_m as f32;
         crate::kernels::map_rows(normalised, out, |v, zin, zout| {
-            let r = (self.beta_m_per_px * v as f64 + self.gamma_m) as f32;
-            crate::kernels::ssra_row(zin, zout, &col, r, t);
+            crate::kernels::ssra_row(zin, zout, &col, self.row_term(v), t);
         });
+    }
+
+    /// The per-column part `αu` of the scale field for `width` columns (f32, as applied).
+    pub(crate) fn column_terms(&self, width: usize) -> Vec<f32> {
+        (0..width)
+            .map(|u| (self.alpha_m_per_px * u as f64) as f32)
+            .collect()
+    }
+
+    /// The per-row part `βv + γ` of the scale field for row `v` (f32, as applied).
+    #[inline]
+    pub(crate) fn row_term(&self, v: usize) -> f32 {
+        (self.beta_m_per_px * v as f64 + self.gamma_m) as f32
     }
 }
 
