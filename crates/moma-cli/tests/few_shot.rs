@@ -17,8 +17,14 @@ fn demo(dir: &Path) -> (PathBuf, PathBuf) {
 fn calibrate_with_several_frames() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
-    let p = |k: usize| pred.join(format!("frame_0{k}.npy"));
-    let g = |k: usize| scene.join(format!("frames/frame_0{k}/depth.png"));
+    let ps: Vec<PathBuf> = (0..3)
+        .map(|k| pred.join(format!("frame_0{k}.npy")))
+        .collect();
+    let gs: Vec<PathBuf> = (0..3)
+        .map(|k| scene.join(format!("frames/frame_0{k}/depth.png")))
+        .collect();
+    let p = |k: usize| ps[k].as_path();
+    let g = |k: usize| gs[k].as_path();
     let (one, two) = (tmp.path().join("one.json"), tmp.path().join("two.json"));
     let base = [
         "--pred-kind",
@@ -30,7 +36,7 @@ fn calibrate_with_several_frames() {
     ];
 
     // The one-frame form, unchanged.
-    let mut args = vec!["calibrate", "--pred", s(&p(0)), "--gt", s(&g(0))];
+    let mut args = vec!["calibrate", "--pred", s(p(0)), "--gt", s(g(0))];
     args.extend(base);
     args.extend(["-o", s(&one), "--json"]);
     let j1: serde_json::Value = serde_json::from_str(&ok(&args)).unwrap();
@@ -41,13 +47,13 @@ fn calibrate_with_several_frames() {
     let mut args = vec![
         "calibrate",
         "--pred",
-        s(&p(0)),
+        s(p(0)),
         "--gt",
-        s(&g(0)),
+        s(g(0)),
         "--pred",
-        s(&p(1)),
+        s(p(1)),
         "--gt",
-        s(&g(1)),
+        s(g(1)),
     ];
     args.extend(base);
     args.extend(["-o", s(&two), "--json"]);
@@ -71,11 +77,11 @@ fn calibrate_with_several_frames() {
     let mut args = vec![
         "calibrate",
         "--pred",
-        s(&p(0)),
-        s(&p(1)),
+        s(p(0)),
+        s(p(1)),
         "--gt",
-        s(&g(0)),
-        s(&g(1)),
+        s(g(0)),
+        s(g(1)),
     ];
     args.extend(base);
     args.extend(["-o", s(&two)]);
@@ -87,7 +93,7 @@ fn calibrate_with_several_frames() {
         "--calib",
         s(&two),
         "--pred",
-        s(&p(2)),
+        s(p(2)),
         "-o",
         s(&aligned),
     ]);

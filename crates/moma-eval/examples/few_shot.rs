@@ -2,7 +2,9 @@
 //! inverse depth), the same as `moma eval SETS --simulate --calib-frames 1,2,3 --methods
 //! ssra,gssa,lwlr` without building the CLI:
 //!
-//! `cargo run --release -p moma-eval --example few_shot -- SET_DIR... [--ks 1,2,3] [--seeds 10]`
+//! `cargo run --release -p moma-eval --example few_shot -- SET_DIR... [--ks 1,2,3] [--seeds 10]
+//! [--norm minmax] [--fluctuation 0.03]` (`--fluctuation`: the simulator's per-frame
+//! fluctuation of a_k, b_k, METHOD.md §6 component 4).
 //!
 //! Prints the table (notes for sets with too few frames), then per set and method whether
 //! K = 3 is worse than K = 1, and the per-frame MAE of each K (which frames K helps).
@@ -20,6 +22,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut dirs = Vec::new();
     let mut ks: Vec<usize> = vec![1, 2, 3];
     let mut seeds = 10;
+    let mut norm = moma_core::normalise::Normalisation::Minmax;
+    let mut sim_config = SimulatorConfig::default();
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -32,6 +36,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     .collect::<Result<_, _>>()?;
             }
             "--seeds" => seeds = args.next().ok_or("--seeds needs a number")?.parse()?,
+            "--norm" => norm = args.next().ok_or("--norm needs a name")?.parse()?,
+            "--fluctuation" => {
+                sim_config.frame_fluctuation =
+                    args.next().ok_or("--fluctuation needs a number")?.parse()?;
+            }
             _ => dirs.push(std::path::PathBuf::from(a)),
         }
     }
@@ -41,17 +50,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .map(|s| s.parse::<Method>())
             .collect::<Result<_, _>>()?,
         seeds,
+        norms: vec![norm],
         ..Default::default()
     };
     let (mut all, mut notes) = (Vec::new(), Vec::new());
     for dir in &dirs {
         let set = load_set(dir)?;
-        let sim = Simulator::new(
-            SimulatorConfig::default(),
-            0,
-            PredictionKind::InverseDepth,
-            set.intrinsics,
-        )?;
+        let sim = Simulator::new(sim_config, 0, PredictionKind::InverseDepth, set.intrinsics)?;
         let maps = simulate_frames(&set, &sim, TransparencySource::Auto)?;
         let preds = PredictionSet {
             label: "SIMULATED inverse-depth (seed 0)".into(),
