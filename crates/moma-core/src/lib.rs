@@ -26,4 +26,6 @@ pub use camera::{CameraPoint, Intrinsics, depth_to_points};
 pub use error::{CoreError, Result};
 pub use image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
 pub use normalise::{AlignSpace, Normalisation, NormalisationConfig};
-pub use pipeline::{Calibration, CalibrationConfig, Workspace, calibrate};
+pub use pipeline::{
+    Calibration, CalibrationConfig, CalibrationFrame, Workspace, calibrate, calibrate_frames,
+};

@@ -257,6 +257,8 @@ pub struct Calibration {
 /// Calibrates from one frame: normalise `pred` (over `workspace` if given), sample ground truth
 /// (restricted to `sample_region` if given), fit in `config.normalisation.space`.
 ///
+/// The same as [`calibrate_frames`] with one frame.
+///
 /// # Errors
 /// [`CalibrationConfig::check`] failures (RAW on inverse depth or with normalisation), any error
 /// of the steps, size mismatches between inputs, an empty workspace.
@@ -267,16 +269,135 @@ pub fn calibrate(
     workspace: Option<&Mask>,
     sample_region: Option<&Mask>,
 ) -> Result<Calibration> {
-    config.check(pred.kind)?;
+    calibrate_frames(
+        &[CalibrationFrame {
+            pred,
+            gt,
+            sample_region,
+        }],
+        config,
+        workspace,
+    )
+}
+
+/// One frame of a (few-shot) calibration: the depth model's prediction, the ground truth of the
+/// same frame, and where its samples may be drawn (`None`: anywhere with valid ground truth).
+#[derive(Debug, Clone, Copy)]
+pub struct CalibrationFrame<'a> {
+    /// The depth model's output for the frame.
+    pub pred: &'a Prediction,
+    /// Ground-truth depth of the same frame, metres.
+    pub gt: &'a MetricDepth,
+    /// Draw this frame's samples only inside this mask.
+    pub sample_region: Option<&'a Mask>,
+}
+
+/// A calibration frame whose prediction is already normalised (see [`calibrate_frames_normalised`]).
+#[derive(Debug, Clone, Copy)]
+pub struct NormalisedFrame<'a> {
+    /// The prediction normalised with the calibration's normalisation over its workspace.
+    pub normalised: &'a NormalisedMap,
+    /// Ground-truth depth of the same frame, metres.
+    pub gt: &'a MetricDepth,
+    /// Draw this frame's samples only inside this mask.
+    pub sample_region: Option<&'a Mask>,
+}
+
+/// The sampling seed of calibration frame `index`: `seed` for frame 0 (so that one frame
+/// reproduces [`calibrate`]), `seed + index · 0x9E37_79B9_7F4A_7C15` (wrapping) for the others,
+/// so that frames of the same size do not draw the same pixel positions.
+pub fn frame_seed(seed: u64, index: usize) -> u64 {
+    seed.wrapping_add((index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+/// Few-shot calibration (one fit over several frames of the same camera): each frame's
+/// prediction is normalised on its own (same formula, space and `workspace`), `config.sampling.n`
+/// samples are drawn **per frame** (frame `i` with seed [`frame_seed`]`(seed, i)`, inside its
+/// own `sample_region`), and one model is fitted on the union. [`Calibration::samples`] holds
+/// every frame's samples, frame after frame. With one frame this is exactly [`calibrate`].
+///
+/// Averaging over frames reduces what changes from frame to frame in the depth model's output
+/// (METHOD.md §6: the per-frame fluctuation of scale and shift); it cannot remove what every
+/// frame shares.
+///
+/// # Errors
+/// No frame; frames of different sizes or prediction kinds (naming the frame, counted from 0);
+/// [`CalibrationConfig::check`] failures; any error of [`calibrate`], naming the frame.
+pub fn calibrate_frames(
+    frames: &[CalibrationFrame<'_>],
+    config: &CalibrationConfig,
+    workspace: Option<&Mask>,
+) -> Result<Calibration> {
+    let (kind, _) = check_frames(frames.iter().map(|f| (f.pred.kind, f.pred.size())))?;
+    config.check(kind)?;
     let workspace = workspace
         .map(|m| Workspace::new(m.clone()).map(Arc::new))
         .transpose()?;
-    let normalised = normalise(
-        pred,
-        &config.normalisation,
-        workspace.as_ref().map(|w| w.mask()),
-    )?;
-    calibrate_normalised(&normalised, pred.kind, gt, config, workspace, sample_region)
+    let normalised = frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            normalise(
+                f.pred,
+                &config.normalisation,
+                workspace.as_ref().map(|w| w.mask()),
+            )
+            .map_err(|e| in_frame(frames.len(), i, e))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let normalised_frames: Vec<NormalisedFrame<'_>> = normalised
+        .iter()
+        .zip(frames)
+        .map(|(normalised, f)| NormalisedFrame {
+            normalised,
+            gt: f.gt,
+            sample_region: f.sample_region,
+        })
+        .collect();
+    calibrate_frames_normalised(&normalised_frames, kind, config, workspace)
+}
+
+/// Checks that there is at least one frame and that every frame's prediction has the kind and
+/// size of frame 0's; returns them.
+fn check_frames(
+    frames: impl Iterator<Item = (PredictionKind, ImageSize)>,
+) -> Result<(PredictionKind, ImageSize)> {
+    let mut first: Option<(PredictionKind, ImageSize)> = None;
+    for (i, (kind, pred_size)) in frames.enumerate() {
+        let (kind0, size0) = *first.get_or_insert((kind, pred_size));
+        if kind != kind0 {
+            return Err(CoreError::InvalidParameter(format!(
+                "calibration frame {i}: the prediction is '{kind}', but frame 0's is '{kind0}'; \
+                 all calibration frames must come from the same depth model"
+            )));
+        }
+        if pred_size != size0 {
+            return Err(CoreError::InvalidParameter(format!(
+                "calibration frame {i}: the prediction is {pred_size}, but frame 0's is {size0}; \
+                 all calibration frames must have the same size (one camera)"
+            )));
+        }
+    }
+    first.ok_or_else(|| {
+        CoreError::InvalidParameter("calibration needs at least one frame, got none".into())
+    })
+}
+
+/// Names frame `i` in an error of a several-frame calibration (one frame: unchanged).
+fn in_frame(n_frames: usize, i: usize, e: CoreError) -> CoreError {
+    if n_frames <= 1 {
+        return e;
+    }
+    match e {
+        CoreError::InvalidParameter(m) => {
+            CoreError::InvalidParameter(format!("calibration frame {i}: {m}"))
+        }
+        CoreError::NoValidPixels(m) => {
+            CoreError::NoValidPixels(format!("calibration frame {i}: {m}"))
+        }
+        CoreError::Degenerate(m) => CoreError::Degenerate(format!("calibration frame {i}: {m}")),
+        other => other,
+    }
 }
 
 /// [`calibrate`] from a prediction already normalised with `config.normalisation` over
@@ -292,14 +413,62 @@ pub fn calibrate_normalised(
     workspace: Option<Arc<Workspace>>,
     sample_region: Option<&Mask>,
 ) -> Result<Calibration> {
+    calibrate_frames_normalised(
+        &[NormalisedFrame {
+            normalised,
+            gt,
+            sample_region,
+        }],
+        kind,
+        config,
+        workspace,
+    )
+}
+
+/// [`calibrate_frames`] from predictions already normalised with `config.normalisation` over
+/// `workspace`, each on its own.
+///
+/// # Errors
+/// As [`calibrate_frames`].
+pub fn calibrate_frames_normalised(
+    frames: &[NormalisedFrame<'_>],
+    kind: PredictionKind,
+    config: &CalibrationConfig,
+    workspace: Option<Arc<Workspace>>,
+) -> Result<Calibration> {
     config.check(kind)?;
-    let size = ImageSize::of(&normalised.values.view());
-    size.expect_eq("ground truth", gt.size())?;
+    let (_, size) = check_frames(
+        frames
+            .iter()
+            .map(|f| (kind, ImageSize::of(&f.normalised.values.view()))),
+    )?;
+    for (i, f) in frames.iter().enumerate() {
+        if i == 0 {
+            size.expect_eq("ground truth", f.gt.size())?;
+        } else if f.gt.size() != size {
+            return Err(CoreError::InvalidParameter(format!(
+                "calibration frame {i}: the ground truth is {}, but the predictions are {size}",
+                f.gt.size()
+            )));
+        }
+    }
     if let Some(w) = &workspace {
         size.expect_eq("workspace mask", w.mask().size())?;
     }
-    let pixels = sample_pixels(gt, &config.sampling, sample_region)?;
-    let samples = SampleSet::gather(normalised, gt, &pixels)?;
+    let mut samples = SampleSet {
+        image_size: size,
+        samples: Vec::new(),
+    };
+    for (i, f) in frames.iter().enumerate() {
+        let sampling = SamplingConfig {
+            seed: frame_seed(config.sampling.seed, i),
+            ..config.sampling
+        };
+        let pixels = sample_pixels(f.gt, &sampling, f.sample_region)
+            .map_err(|e| in_frame(frames.len(), i, e))?;
+        let frame_samples = SampleSet::gather(f.normalised, f.gt, &pixels)?;
+        samples.samples.extend(frame_samples.samples);
+    }
     let space = config.normalisation.space;
     let (model, report) = match space {
         AlignSpace::Depth => config.method.fit(&samples)?,

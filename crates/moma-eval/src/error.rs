@@ -45,6 +45,19 @@ pub enum EvalError {
         /// What is wrong.
         message: String,
     },
+    /// The set has too few frames for what was asked (e.g. few-shot calibration on K frames
+    /// needs K + 1); an evaluation of several sets notes it and goes on.
+    #[error("set '{set}': too few frames: {frames}, needs at least {needed} ({why})")]
+    TooFewFrames {
+        /// Set name.
+        set: String,
+        /// Frames the set has.
+        frames: usize,
+        /// Frames needed.
+        needed: usize,
+        /// What they are needed for.
+        why: String,
+    },
     /// A problem with one frame of a set (missing prediction, size mismatch, no valid pixel...).
     #[error("set '{set}', frame '{frame}': {message}")]
     Frame {

@@ -15,7 +15,9 @@ use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise,
 };
-use moma_core::pipeline::{Calibration, CalibrationConfig, Workspace, calibrate_normalised};
+use moma_core::pipeline::{
+    Calibration, CalibrationConfig, NormalisedFrame, Workspace, calibrate_frames_normalised,
+};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_core::{Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
 use rayon::prelude::*;
@@ -160,6 +162,9 @@ pub struct EvalResult {
     pub pred_kind: PredictionKind,
     /// Method name.
     pub method: String,
+    /// Calibration variant: `one-shot` (one calibration frame, the paper's protocol) or
+    /// `few-shot-K` (K frames, [`evaluate_few_shot`]).
+    pub variant: String,
     /// Normalisation name (`none` for RAW).
     pub norm: String,
     /// Alignment space.
@@ -168,7 +173,7 @@ pub struct EvalResult {
     pub samples: usize,
     /// Number of seeds.
     pub seeds: usize,
-    /// Calibration frame id.
+    /// Calibration frame id (several frames: their ids joined by `+`).
     pub calib_frame: String,
     /// Evaluated frames.
     pub eval_frames: usize,
@@ -191,6 +196,8 @@ pub struct JsonRow {
     pub set: String,
     /// Method.
     pub method: String,
+    /// Calibration variant (`one-shot`, `few-shot-K`, ...).
+    pub variant: String,
     /// Normalisation.
     pub norm: String,
     /// n.
@@ -209,11 +216,44 @@ impl From<&EvalResult> for JsonRow {
         Self {
             set: r.set.clone(),
             method: r.method.clone(),
+            variant: r.variant.clone(),
             norm: r.norm.clone(),
             samples: r.samples,
             seeds: r.seeds,
             calib_frame: r.calib_frame.clone(),
             metrics: r.per_image,
+        }
+    }
+}
+
+/// A set (or variant) that could not be evaluated as asked, shown as a row of the table instead
+/// of stopping the evaluation of the other sets.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct EvalNote {
+    /// Set name.
+    pub set: String,
+    /// The variant(s) concerned (e.g. `few-shot`).
+    pub variant: String,
+    /// What happened, short (e.g. "too few frames: 3, needs at least 4").
+    pub note: String,
+}
+
+impl EvalNote {
+    /// The note for an error that only concerns its own set ([`EvalError::TooFewFrames`]);
+    /// `None` for any other error (which should stop the evaluation).
+    pub fn from_error(e: &EvalError, variant: &str) -> Option<Self> {
+        match e {
+            EvalError::TooFewFrames {
+                set,
+                frames,
+                needed,
+                why,
+            } => Some(Self {
+                set: set.clone(),
+                variant: variant.to_string(),
+                note: format!("too few frames: {frames}, needs at least {needed} ({why})"),
+            }),
+            _ => None,
         }
     }
 }
@@ -456,7 +496,8 @@ impl<'a> Prepared<'a> {
     }
 
     /// Calibrates `method` on the calibration frame (normalised as `calib_map`) with sampling
-    /// seed `seed`: [`calibrate_normalised`], the library path of `moma calibrate`.
+    /// seed `seed`: [`moma_core::pipeline::calibrate_normalised`], the library path of
+    /// `moma calibrate`.
     ///
     /// # Errors
     /// Sampling or fitting errors, naming the frame.
@@ -468,7 +509,37 @@ impl<'a> Prepared<'a> {
         n: usize,
         seed: u64,
     ) -> Result<Calibration> {
-        let f = &self.set.frames[self.calib];
+        self.calibrate_on(
+            method,
+            norm,
+            &[(self.calib, calib_map, self.sample_region.as_ref())],
+            n,
+            seed,
+        )
+    }
+
+    /// Where frame `i`'s calibration samples may be drawn: its ground truth within the depth
+    /// range (`None`: no range, anywhere with valid ground truth).
+    pub fn sample_region_of(&self, i: usize) -> Option<Mask> {
+        self.config
+            .depth_range_m
+            .map(|r| Mask::new(self.set.frames[i].gt.depth_m.mapv(|z| in_range(z, Some(r)))))
+    }
+
+    /// Calibrates `method` on several frames `(index, normalised map, sample region)` with
+    /// sampling seed `seed` and `n` samples per frame: [`calibrate_frames_normalised`], the
+    /// library path of `moma calibrate` with several frames. One frame is [`Prepared::calibrate`].
+    ///
+    /// # Errors
+    /// Sampling or fitting errors, naming the frames.
+    pub fn calibrate_on(
+        &self,
+        method: &Method,
+        norm: &NormalisationConfig,
+        frames: &[(usize, &NormalisedMap, Option<&Mask>)],
+        n: usize,
+        seed: u64,
+    ) -> Result<Calibration> {
         let config = CalibrationConfig {
             method: method.clone(),
             normalisation: *norm,
@@ -478,20 +549,28 @@ impl<'a> Prepared<'a> {
                 seed,
             },
         };
-        calibrate_normalised(
-            calib_map,
-            self.preds.maps[self.calib].kind,
-            &f.gt,
-            &config,
-            self.workspace.clone(),
-            self.sample_region.as_ref(),
-        )
-        .map_err(|e| {
+        let inputs: Vec<NormalisedFrame<'_>> = frames
+            .iter()
+            .map(|&(i, normalised, sample_region)| NormalisedFrame {
+                normalised,
+                gt: &self.set.frames[i].gt,
+                sample_region,
+            })
+            .collect();
+        let kind = self.preds.maps[self.calib].kind;
+        calibrate_frames_normalised(&inputs, kind, &config, self.workspace.clone()).map_err(|e| {
+            let ids = frames
+                .iter()
+                .map(|&(i, _, _)| format!("'{}'", self.set.frames[i].id))
+                .collect::<Vec<_>>()
+                .join(", ");
+            let what = if frames.len() == 1 {
+                "calibration frame"
+            } else {
+                "calibration frames"
+            };
             EvalError::core(
-                format!(
-                    "set '{}', calibration frame '{}', method {method}",
-                    self.set.name, f.id
-                ),
+                format!("set '{}', {what} {ids}, method {method}", self.set.name),
                 e,
             )
         })
@@ -553,6 +632,14 @@ pub fn evaluate(
     config: &EvalConfig,
 ) -> Result<Vec<EvalResult>> {
     let prep = Prepared::new(set, preds, config)?;
+    jobs(&prep, config)
+        .iter()
+        .map(|(m, norm)| evaluate_one(&prep, m, norm, config.samples))
+        .collect()
+}
+
+/// The distinct (method, effective normalisation) pairs of `config`, in table order.
+fn jobs(prep: &Prepared<'_>, config: &EvalConfig) -> Vec<(Method, NormalisationConfig)> {
     let mut jobs: Vec<(Method, NormalisationConfig)> = Vec::new();
     for m in &config.methods {
         let m = prep.method(m);
@@ -563,9 +650,84 @@ pub fn evaluate(
             }
         }
     }
-    jobs.iter()
-        .map(|(m, norm)| evaluate_one(&prep, m, norm, config.samples))
-        .collect()
+    jobs
+}
+
+/// Few-shot evaluation (`moma eval --calib-frames K1,K2,...`): for every K, every (method,
+/// normalisation) is calibrated on the first K frames in sorted frame-id order (one fit over
+/// `config.samples` samples per frame, [`moma_core::pipeline::calibrate_frames`]) and scored on
+/// the **same** frames for every K: those after the largest K. Rows are labelled
+/// [`few_shot_variant`] (`one-shot` for K = 1, `few-shot-K` otherwise), K in the order given,
+/// then method and normalisation as in [`evaluate`].
+///
+/// # Errors
+/// [`EvalError::TooFewFrames`] when the set has no frame left to score after the largest K
+/// (the caller may note it and go on with other sets); an empty list, K = 0, or
+/// `config.calib_frame` given as well ([`EvalError::InvalidParameter`]); otherwise as
+/// [`evaluate`].
+pub fn evaluate_few_shot(
+    set: &LoadedSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+    ks: &[usize],
+) -> Result<Vec<EvalResult>> {
+    let k_max = check_calib_frame_counts(ks)?;
+    if let Some(id) = &config.calib_frame {
+        return Err(EvalError::InvalidParameter(format!(
+            "a calibration frame ('{id}') and calibration frame counts cannot both be given: \
+             --calib-frames calibrates on the first K frames in sorted order"
+        )));
+    }
+    if set.frames.len() <= k_max {
+        return Err(EvalError::TooFewFrames {
+            set: set.name.clone(),
+            frames: set.frames.len(),
+            needed: k_max + 1,
+            why: format!("{k_max} to calibrate on and at least 1 to score"),
+        });
+    }
+    let prep = Prepared::new(set, preds, config)?;
+    let eval_idx: Vec<usize> = (k_max..set.frames.len()).collect();
+    let jobs = jobs(&prep, config);
+    let mut out = Vec::with_capacity(ks.len() * jobs.len());
+    for &k in ks {
+        let calib: Vec<usize> = (0..k).collect();
+        for (m, norm) in &jobs {
+            out.push(evaluate_variant(
+                &prep,
+                m,
+                norm,
+                config.samples,
+                &calib,
+                &eval_idx,
+                &few_shot_variant(k),
+            )?);
+        }
+    }
+    Ok(out)
+}
+
+/// Checks the K values of `--calib-frames` (at least one, each ≥ 1, no repeats); returns the
+/// largest.
+///
+/// # Errors
+/// [`EvalError::InvalidParameter`] naming the problem.
+pub fn check_calib_frame_counts(ks: &[usize]) -> Result<usize> {
+    if ks.contains(&0) {
+        return Err(EvalError::InvalidParameter(
+            "calibration frame counts must be at least 1, got 0".into(),
+        ));
+    }
+    for (i, k) in ks.iter().enumerate() {
+        if ks[..i].contains(k) {
+            return Err(EvalError::InvalidParameter(format!(
+                "calibration frame count {k} is given twice"
+            )));
+        }
+    }
+    ks.iter().copied().max().ok_or_else(|| {
+        EvalError::InvalidParameter("give at least one calibration frame count".into())
+    })
 }
 
 /// Evaluates one (method, normalisation) with `n` samples over all seeds.
@@ -577,6 +739,44 @@ pub fn evaluate_one(
     method: &Method,
     norm: &NormalisationConfig,
     n: usize,
+) -> Result<EvalResult> {
+    evaluate_variant(
+        prep,
+        method,
+        norm,
+        n,
+        &[prep.calib],
+        &prep.eval_indices(),
+        ONE_SHOT,
+    )
+}
+
+/// The variant name of the paper's protocol (one calibration frame).
+pub const ONE_SHOT: &str = "one-shot";
+
+/// The variant name of calibration on `k` frames: `one-shot` for 1, else `few-shot-K`.
+pub fn few_shot_variant(k: usize) -> String {
+    if k == 1 {
+        ONE_SHOT.to_string()
+    } else {
+        format!("few-shot-{k}")
+    }
+}
+
+/// Evaluates one (method, normalisation) with `n` samples per calibration frame over all
+/// seeds: calibrates on the frames `calib` (one fit; one frame is the paper's protocol), scores
+/// the frames `eval_idx`, labels the row `variant`.
+///
+/// # Errors
+/// As [`evaluate`].
+pub fn evaluate_variant(
+    prep: &Prepared<'_>,
+    method: &Method,
+    norm: &NormalisationConfig,
+    n: usize,
+    calib: &[usize],
+    eval_idx: &[usize],
+    variant: &str,
 ) -> Result<EvalResult> {
     let set = prep.set;
     let config = &prep.config;
@@ -592,14 +792,28 @@ pub fn evaluate_one(
         .into_par_iter()
         .map(|i| prep.normalised(i, norm))
         .collect::<Result<_>>()?;
-    let eval_idx = prep.eval_indices();
+    let regions: Vec<Option<Mask>> = calib
+        .iter()
+        .map(|&i| {
+            if i == prep.calib {
+                prep.sample_region.clone()
+            } else {
+                prep.sample_region_of(i)
+            }
+        })
+        .collect();
+    let calib_inputs: Vec<(usize, &NormalisedMap, Option<&Mask>)> = calib
+        .iter()
+        .zip(&regions)
+        .map(|(&i, r)| (i, &maps[i], r.as_ref()))
+        .collect();
     let seeds: Vec<u64> = (0..config.seeds as u64)
         .map(|s| config.seed_base + s)
         .collect();
     let per_seed: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
-            let cal = prep.calibrate(&method, norm, &maps[prep.calib], n, seed)?;
+            let cal = prep.calibrate_on(&method, norm, &calib_inputs, n, seed)?;
             let ms = eval_idx
                 .iter()
                 .map(|&i| prep.score(&cal, &maps[i], i).map(|(_, m)| m))
@@ -641,11 +855,16 @@ pub fn evaluate_one(
         simulated: prep.preds.simulated,
         pred_kind: prep.preds.maps[0].kind,
         method: method.to_string(),
+        variant: variant.to_string(),
         norm: norm.method.to_string(),
         space: norm.space,
         samples: n,
         seeds: seeds.len(),
-        calib_frame: prep.calib_id().to_string(),
+        calib_frame: calib
+            .iter()
+            .map(|&i| set.frames[i].id.as_str())
+            .collect::<Vec<_>>()
+            .join("+"),
         eval_frames: eval_idx.len(),
         per_image: MetricSummary::over_seeds(&image_means),
         pooled: MetricSummary::over_seeds(&pooled_),

@@ -6,7 +6,7 @@ use serde::Serialize;
 
 use crate::data::write_text;
 use crate::error::{EvalError, Result};
-use crate::protocol::{EvalResult, JsonRow, MetricSummary, Stat};
+use crate::protocol::{EvalNote, EvalResult, JsonRow, MetricSummary, Stat};
 
 /// A plain table of strings with a title.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -138,17 +138,40 @@ pub fn headers_with_metrics(keys: &[&str]) -> Vec<String> {
 
 /// The paper-style table of an evaluation (per-image mean, mean ± std over seeds).
 pub fn eval_table(results: &[EvalResult], pooled: bool) -> Table {
-    let mut headers = headers_with_metrics(&["set", "method", "norm"]);
+    eval_table_with_notes(results, &[], pooled)
+}
+
+/// [`eval_table`] followed by one row per note (a set that could not be evaluated as asked,
+/// e.g. too few frames for few-shot calibration): set, variant, and the note in the first
+/// metric column.
+pub fn eval_table_with_notes(results: &[EvalResult], notes: &[EvalNote], pooled: bool) -> Table {
+    let mut headers = headers_with_metrics(&["set", "method", "variant", "norm"]);
     headers.push("fit ms".into());
-    let rows = results
+    let mut rows: Vec<Vec<String>> = results
         .iter()
         .map(|r| {
-            let mut row = vec![r.set.clone(), r.method.to_uppercase(), r.norm.clone()];
+            let mut row = vec![
+                r.set.clone(),
+                r.method.to_uppercase(),
+                r.variant.clone(),
+                r.norm.clone(),
+            ];
             row.extend(metric_cells(if pooled { &r.pooled } else { &r.per_image }));
             row.push(format!("{:.3}", r.fit_time_median_s * 1e3));
             row
         })
         .collect();
+    for n in notes {
+        let mut row = vec![
+            n.set.clone(),
+            "—".to_string(),
+            n.variant.clone(),
+            "—".to_string(),
+            n.note.clone(),
+        ];
+        row.resize(headers.len(), "—".to_string());
+        rows.push(row);
+    }
     let first = results.first();
     let sim = results.iter().any(|r| r.simulated);
     let title = match first {
@@ -199,6 +222,7 @@ pub fn eval_csv(results: &[EvalResult]) -> String {
         "simulated",
         "pred_kind",
         "method",
+        "variant",
         "norm",
         "samples",
         "seeds",
@@ -230,6 +254,7 @@ pub fn eval_csv(results: &[EvalResult]) -> String {
                 r.simulated.to_string(),
                 r.pred_kind.to_string(),
                 r.method.clone(),
+                r.variant.clone(),
                 r.norm.clone(),
                 r.samples.to_string(),
                 r.seeds.to_string(),
@@ -272,10 +297,24 @@ pub fn to_json<T: Serialize + ?Sized>(v: &T) -> Result<String> {
 /// # Errors
 /// I/O failure.
 pub fn write_eval_outputs(dir: &Path, stem: &str, results: &[EvalResult]) -> Result<Vec<PathBuf>> {
+    write_eval_outputs_with_notes(dir, stem, results, &[])
+}
+
+/// [`write_eval_outputs`] with notes as rows of the Markdown tables (see
+/// [`eval_table_with_notes`]); CSV and JSON hold the results only.
+///
+/// # Errors
+/// I/O failure.
+pub fn write_eval_outputs_with_notes(
+    dir: &Path,
+    stem: &str,
+    results: &[EvalResult],
+    notes: &[EvalNote],
+) -> Result<Vec<PathBuf>> {
     let md = format!(
         "{}\n{}\n",
-        eval_table(results, false).to_markdown(),
-        eval_table(results, true).to_markdown()
+        eval_table_with_notes(results, notes, false).to_markdown(),
+        eval_table_with_notes(results, notes, true).to_markdown()
     );
     let paths = vec![
         dir.join(format!("{stem}.md")),

@@ -1,4 +1,5 @@
-//! `moma calibrate`: fit an alignment on one RGB-D frame and write a calibration file.
+//! `moma calibrate`: fit an alignment on one RGB-D frame (or several: few-shot) and write a
+//! calibration file.
 
 use std::path::PathBuf;
 
@@ -6,33 +7,39 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_core::align::{Method, lwlr};
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-use moma_core::pipeline::{CalibrationConfig, calibrate};
+use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_io::{CalibrationFile, CreationInfo};
 
 use super::common::{SourceArgs, print_json};
 
-/// Fit an alignment from one frame's prediction and ground truth.
+/// Fit an alignment from one frame's prediction and ground truth, or from several frames of the
+/// same camera (few-shot: repeat --pred P --gt G; each frame is normalised on its own, --samples
+/// are drawn per frame, one fit over all).
 ///
 /// Examples:
 ///   moma calibrate --pred pred/0000.npy --pred-kind inverse-depth --gt set/frames/0000/depth.png \
 ///       --camera set/camera.json -o calib.json
 ///   moma calibrate --rgb set/frames/0000/rgb.png --weights depth_anything_v2_vits.safetensors \
 ///       --gt set/frames/0000/depth.png --camera set/camera.json --method ssra --samples 100 --seed 7 -o calib.json
+///   moma calibrate --pred pred/0000.npy --gt set/frames/0000/depth.png \
+///       --pred pred/0001.npy --gt set/frames/0001/depth.png --camera set/camera.json -o calib.json
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct CalibrateArgs {
     #[command(flatten)]
     pub source: SourceArgs,
     /// Ground-truth depth of the same frame: uint16 PNG (mm, 0 = none), .npy (m) or .pfm (m).
-    #[arg(long, value_name = "FILE")]
-    pub gt: PathBuf,
+    /// Several frames: one --gt per --pred / --rgb, in the same order.
+    #[arg(long, value_name = "FILE", required = true, num_args = 1..)]
+    pub gt: Vec<PathBuf>,
     /// camera.json intrinsics (pixels); used for SSRA's canonical parameters and point clouds.
     #[arg(long, value_name = "FILE")]
     pub camera: Option<PathBuf>,
-    /// Draw calibration samples only inside this mask (8-bit PNG, nonzero = inside).
-    #[arg(long, value_name = "PNG")]
-    pub mask: Option<PathBuf>,
+    /// Draw calibration samples only inside this mask (8-bit PNG, nonzero = inside). Several
+    /// frames: one mask for all, or one per frame in the order of --gt.
+    #[arg(long, value_name = "PNG", num_args = 1..)]
+    pub mask: Vec<PathBuf>,
     /// Normalise over this workspace mask instead of the whole map (same mask at run time).
     #[arg(long, value_name = "PNG")]
     pub workspace: Option<PathBuf>,
@@ -50,13 +57,13 @@ pub struct CalibrateArgs {
     /// prediction's own (inverse-depth predictions align in inverse space, depth in depth space).
     #[arg(long, value_name = "SPACE")]
     pub space: Option<AlignSpace>,
-    /// Number of calibration samples n.
+    /// Number of calibration samples n (per frame).
     #[arg(long, default_value_t = 100)]
     pub samples: usize,
     /// How samples are chosen: random (MOMA's protocol, seeded) or grid (BoostingDepth's).
     #[arg(long, default_value = "random", value_name = "SAMPLING")]
     pub sampling: SamplingStrategy,
-    /// Seed of the random sampling.
+    /// Seed of the random sampling (frame i > 0 of several uses a seed derived from it and i).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// LWLR bandwidth in pixels (default: 50 px at 640 px width, scaled with the image width).
@@ -118,29 +125,60 @@ pub fn normalisation_from(
 }
 
 pub fn run(args: &CalibrateArgs) -> Result<()> {
-    if args.source.pred.len() + args.source.rgb.len() != 1 {
-        bail!("calibrate takes exactly one --pred FILE or one --rgb IMG (the calibration frame)");
+    let n_inputs = args.source.pred.len() + args.source.rgb.len();
+    if n_inputs != args.gt.len() {
+        bail!(
+            "calibrate takes one --gt per --pred / --rgb (the calibration frames, in order): got \
+             {n_inputs} prediction input(s) and {} ground truth file(s)",
+            args.gt.len()
+        );
+    }
+    if args.mask.len() > 1 && args.mask.len() != args.gt.len() {
+        bail!(
+            "give one --mask for all frames or one per frame: got {} masks for {} frames",
+            args.mask.len(),
+            args.gt.len()
+        );
     }
     let intrinsics = args.camera.as_ref().map(moma_io::read_camera).transpose()?;
     let mut source = args.source.open(None)?;
-    let input = source.get(0)?;
-    let pred = input.prediction;
-    let size = pred.size();
-
-    // The I/O error names the ground-truth file; the context adds which prediction it is for.
-    let gt = moma_io::read_depth_sized(&args.gt, size).with_context(|| {
-        format!(
-            "reading the ground truth for prediction {}",
-            input.path.display()
-        )
-    })?;
+    let mut inputs = Vec::with_capacity(n_inputs);
+    let mut gts = Vec::with_capacity(n_inputs);
+    for (i, gt_path) in args.gt.iter().enumerate() {
+        let input = source.get(i)?;
+        let size = input.prediction.size();
+        if let Some(first) = inputs.first() {
+            let first: &super::common::SourcedPrediction = first;
+            if size != first.prediction.size() {
+                bail!(
+                    "calibration frames must have the same size (one camera): {} is {size}, \
+                     but {} is {}",
+                    input.path.display(),
+                    first.path.display(),
+                    first.prediction.size()
+                );
+            }
+        }
+        // The I/O error names the ground-truth file; the context adds which prediction it is for.
+        let gt = moma_io::read_depth_sized(gt_path, size).with_context(|| {
+            format!(
+                "reading the ground truth for prediction {}",
+                input.path.display()
+            )
+        })?;
+        gts.push(gt);
+        inputs.push(input);
+    }
+    let first = &inputs[0];
+    let size = first.prediction.size();
+    let kind = first.prediction.kind;
     if let Some(k) = &intrinsics {
         k.size()
             .expect_eq("prediction (vs camera.json)", size)
             .with_context(|| {
                 format!(
                     "{} does not match {}",
-                    input.path.display(),
+                    first.path.display(),
                     args.camera
                         .as_ref()
                         .map(|p| p.display().to_string())
@@ -148,11 +186,11 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 )
             })?;
     }
-    let sample_mask = args
+    let sample_masks = args
         .mask
-        .as_ref()
+        .iter()
         .map(|p| moma_io::read_mask_sized(p, size))
-        .transpose()?;
+        .collect::<Result<Vec<_>, _>>()?;
     let workspace = args
         .workspace
         .as_ref()
@@ -161,7 +199,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
 
     let method = method_from(&args.method, args.bandwidth_px, intrinsics)?;
     let config = CalibrationConfig {
-        normalisation: normalisation_from(&method, args.norm, args.space, pred.kind),
+        normalisation: normalisation_from(&method, args.norm, args.space, kind),
         method,
         sampling: SamplingConfig {
             strategy: args.sampling,
@@ -169,49 +207,78 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             seed: args.seed,
         },
     };
-    config.check(pred.kind).with_context(|| {
+    config.check(kind).with_context(|| {
         format!(
             "--method {} with --norm {} on {} predictions ({}): --method raw needs --norm none \
              and a metric depth prediction",
             config.method,
             config.normalisation.method,
-            pred.kind,
-            input.path.display()
+            kind,
+            first.path.display()
         )
     })?;
-    let calibration = calibrate(
-        &pred,
-        &gt,
-        &config,
-        workspace.as_ref(),
-        sample_mask.as_ref(),
-    )
-    .with_context(|| {
-        format!(
-            "calibration failed (prediction {}, ground truth {})",
-            input.path.display(),
-            args.gt.display()
-        )
-    })?;
-
-    let mut created = CreationInfo::now()
-        .with_source(
-            if input.rgb.is_some() {
-                "rgb"
+    let frames: Vec<CalibrationFrame<'_>> = inputs
+        .iter()
+        .zip(&gts)
+        .enumerate()
+        .map(|(i, (input, gt))| CalibrationFrame {
+            pred: &input.prediction,
+            gt,
+            sample_region: sample_masks.get(i).or(sample_masks.first()),
+        })
+        .collect();
+    let calibration =
+        calibrate_frames(&frames, &config, workspace.as_ref()).with_context(|| {
+            let pairs: Vec<String> = inputs
+                .iter()
+                .zip(&args.gt)
+                .map(|(input, gt)| {
+                    format!(
+                        "prediction {}, ground truth {}",
+                        input.path.display(),
+                        gt.display()
+                    )
+                })
+                .collect();
+            if pairs.len() == 1 {
+                format!("calibration failed ({})", pairs[0])
             } else {
-                "prediction"
-            },
-            &input.path,
-        )
-        .with_source("ground_truth", &args.gt);
+                let listed: Vec<String> = pairs
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| format!("frame {i}: {p}"))
+                    .collect();
+                format!("calibration failed ({})", listed.join("; "))
+            }
+        })?;
+
+    // One frame: the roles as before; frame i > 0 of several: "<role> (frame i)".
+    let role = |r: &str, i: usize| {
+        if i == 0 {
+            r.to_string()
+        } else {
+            format!("{r} (frame {i})")
+        }
+    };
+    let mut created = CreationInfo::now();
+    for (i, (input, gt)) in inputs.iter().zip(&args.gt).enumerate() {
+        let kind_role = if input.rgb.is_some() {
+            "rgb"
+        } else {
+            "prediction"
+        };
+        created = created
+            .with_source(role(kind_role, i), &input.path)
+            .with_source(role("ground_truth", i), gt);
+    }
     if let Some(p) = &args.camera {
         created = created.with_source("camera", p);
     }
-    if let Some(p) = &args.mask {
-        created = created.with_source("sample_mask", p);
+    for (i, p) in args.mask.iter().enumerate() {
+        created = created.with_source(role("sample_mask", i), p);
     }
     if let Some(w) = &args.source.model.weights
-        && input.rgb.is_some()
+        && first.rgb.is_some()
     {
         created = created.with_source("weights", w);
     }
@@ -222,18 +289,25 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     moma_io::write_calibration(&args.output, &file)?;
 
     let report = &file.calibration.report;
+    let n_frames = inputs.len();
     if args.json {
         print_json(&serde_json::json!({
             "output": args.output,
             "method": report.method,
+            "frames": n_frames,
             "n_used": report.n_used,
             "rms_residual_m": report.rms_residual_m,
             "fit_time_s": report.fit_time_s,
             "model": file.calibration.model,
         }))?;
     } else {
+        let from = if n_frames == 1 {
+            String::new()
+        } else {
+            format!(" from {n_frames} frames")
+        };
         println!(
-            "calibrated {} on {} samples: RMS residual {:.2} mm, fit {:.1} µs",
+            "calibrated {} on {} samples{from}: RMS residual {:.2} mm, fit {:.1} µs",
             report.method,
             report.n_used,
             report.rms_residual_m * 1e3,

@@ -10,8 +10,10 @@ use moma_core::align::Method;
 use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::sampling::SamplingStrategy;
 use moma_eval::data::LoadedSet;
-use moma_eval::protocol::{EvalConfig, PredictionSet, evaluate};
-use moma_eval::report::{contract_json, eval_table, write_eval_outputs};
+use moma_eval::protocol::{
+    EvalConfig, EvalNote, PredictionSet, check_calib_frame_counts, evaluate, evaluate_few_shot,
+};
+use moma_eval::report::{contract_json, eval_table_with_notes, write_eval_outputs_with_notes};
 use moma_eval::simulate::{Simulator, simulate_frames};
 
 use super::common::{ModelArgs, create_dir, join_paths};
@@ -24,9 +26,10 @@ use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 /// every other frame, which is scored inside its mask (whole image when there is no mask):
 /// δ1.05, δ1.10, δ1.25, REL, RMSE, MAE. Per-image metrics are averaged over frames; the table
 /// shows mean ± std (population) over sampling seeds; the pixel-pooled variant is written too.
-/// Writes OUT/results.{md,csv,json}; --json prints one JSON array (one object per set, method and
-/// normalisation: set, method, norm, samples, seeds, calib_frame and d105, d110, d125, rel,
-/// rmse, mae as {"mean", "std"}, RMSE/MAE in metres) to stdout and the table to stderr.
+/// Writes OUT/results.{md,csv,json}; --json prints one JSON array (one object per set, method,
+/// variant and normalisation: set, method, variant, norm, samples, seeds, calib_frame and d105,
+/// d110, d125, rel, rmse, mae as {"mean", "std"}, RMSE/MAE in metres) to stdout and the table to
+/// stderr. `variant` is `one-shot` unless --calib-frames asks for few-shot calibration.
 ///
 /// Predictions: --pred DIR (<frame-id>.npy, float32 H×W, of kind --pred-kind; with several sets
 /// either one --pred per set or one root holding a folder per set name), --simulate (simulated
@@ -38,6 +41,7 @@ use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 ///   moma eval --set data/a --set data/b --pred preds/ --methods ssra,gssa --norm minmax,median
 ///   moma eval --set data/m2t2-table --simulate --max-gt-depth 2.0 --figures -o out/m2t2  # out/m2t2/m2t2-table/figures/
 ///   moma eval --set data/gqcnn-primesense --weights da2_vits.safetensors --model vits
+///   moma eval --set data/gqcnn-primesense --simulate --calib-frames 1,2,3  # few-shot
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct EvalArgs {
@@ -57,6 +61,17 @@ pub struct EvalArgs {
     /// Print the JSON contract array to stdout (tables go to stderr).
     #[arg(long)]
     pub json: bool,
+    /// Few-shot calibration: calibrate on the first K frames in sorted frame-id order (one fit,
+    /// --samples per frame), for each K given (e.g. 1,2,3). Every K scores the same frames: those
+    /// after the largest K. Rows are labelled `one-shot` (K = 1) or `few-shot-K`; a set with too
+    /// few frames gets a row saying so.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "K",
+        conflicts_with = "calib_frame"
+    )]
+    pub calib_frames: Vec<usize>,
 }
 
 /// Where predictions come from (shared by eval, ablate and demo).
@@ -267,12 +282,31 @@ pub fn model_predictions(set: &LoadedSet, model: &ModelArgs) -> Result<Predictio
 
 pub fn run(args: &EvalArgs) -> Result<()> {
     let t0 = Instant::now();
+    let few_shot = !args.calib_frames.is_empty();
+    if few_shot {
+        check_calib_frame_counts(&args.calib_frames).context("--calib-frames")?;
+    }
     let mut all = Vec::new();
+    let mut notes = Vec::new();
     for (i, dir) in args.set.iter().enumerate() {
         let set = load_set(dir)?;
         let preds = args.pred.predictions(&set, i, args.set.len())?;
         let config = args.eval.config(preds.kind()?)?;
-        let results = evaluate(&set, &preds, &config)?;
+        let results = if few_shot {
+            match evaluate_few_shot(&set, &preds, &config, &args.calib_frames) {
+                Ok(r) => r,
+                Err(e) => match EvalNote::from_error(&e, "few-shot") {
+                    Some(note) => {
+                        eprintln!("note: {e}; skipped");
+                        notes.push(note);
+                        continue;
+                    }
+                    None => return Err(e.into()),
+                },
+            }
+        } else {
+            evaluate(&set, &preds, &config)?
+        };
         if args.figures {
             let out = args.out.join(&set.name);
             let files = moma_eval::demo::write_visuals(&set, &preds, &config, &out, false)?;
@@ -286,8 +320,8 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         all.extend(results);
     }
     create_dir(&args.out)?;
-    let files = write_eval_outputs(&args.out, "results", &all)?;
-    let table = eval_table(&all, false).to_text();
+    let files = write_eval_outputs_with_notes(&args.out, "results", &all, &notes)?;
+    let table = eval_table_with_notes(&all, &notes, false).to_text();
     if args.json {
         eprintln!("{table}");
         println!("{}", contract_json(&all)?);
