@@ -11,10 +11,14 @@
 //!    midpoint of the two contacts found.
 //! 4. Score, rank, greedy NMS, top-K (each kept edge grasp re-executed at its final pose).
 //!
+//! When that finds nothing, the same strict pass runs with the steeper tilts
+//! [`ParallelConfig::fallback_tilt_angles_deg`] (40° and 60° by default) only: an object held in
+//! a robot hand or under an overhang cannot be reached from above, but often from the side.
+//!
 //! This strict pass applies the scorer's own rules to the planning depth. On depth aligned from a
 //! depth-model prediction (METHOD.md §6: silhouettes spread over 3–5 px, normals rotating over
-//! the soft edge, a few mm of correlated noise) it rejects every candidate, so when it finds no
-//! grasp a **tolerant pass** ([`ParallelConfig::tolerant_pass`]) runs the same steps with
+//! the soft edge, a few mm of correlated noise) it rejects every candidate, so when neither strict
+//! pass finds a grasp a **tolerant pass** ([`ParallelConfig::tolerant_pass`]) runs the same steps with
 //! - silhouettes found as a depth drop over a small window (`soft_edge_window_px`,
 //!   `soft_edge_jump_m`) and their normals averaged over a larger disc (`soft_normal_radius_px`);
 //! - the fingertips shortened by `collision_margin_m` in the collision test, and mixed pixels of
@@ -50,6 +54,11 @@ pub struct ParallelConfig {
     /// Approach tilts about the closing axis besides top-down (each used with both signs),
     /// degrees. Default `[20]`.
     pub tilt_angles_deg: Vec<f32>,
+    /// When the strict pass with `tilt_angles_deg` finds no grasp, it runs again with these
+    /// steeper approach tilts about the closing axis (each with both signs), degrees: objects
+    /// whose top is blocked (held in a robot hand, under an overhang) or seen only from the side
+    /// can often be reached only from an angle. Empty = no such retry. Default `[40, 60]`.
+    pub fallback_tilt_angles_deg: Vec<f32>,
     /// Depth of the closing line below the sampled contact along the approach, metres.
     /// Default 0.003 m.
     pub contact_depth_m: f32,
@@ -98,6 +107,7 @@ impl Default for ParallelConfig {
             exec: ExecConfig::default(),
             max_contact_samples: 400,
             tilt_angles_deg: vec![20.0],
+            fallback_tilt_angles_deg: vec![40.0, 60.0],
             contact_depth_m: 0.003,
             planner_mu: 0.6,
             exit_gap_m: 0.003,
@@ -159,9 +169,12 @@ impl ParallelConfig {
         if self
             .tilt_angles_deg
             .iter()
+            .chain(&self.fallback_tilt_angles_deg)
             .any(|t| !t.is_finite() || t.abs() >= 90.0)
         {
-            return Err(e("tilt_angles_deg must lie in (-90, 90)".into()));
+            return Err(e(
+                "tilt_angles_deg and fallback_tilt_angles_deg must lie in (-90, 90)".into(),
+            ));
         }
         if self.top_k == 0 || self.max_contact_samples == 0 {
             return Err(e("top_k and max_contact_samples must be >= 1".into()));
@@ -267,11 +280,86 @@ pub fn plan_parallel(
     if scene.components().is_empty() {
         return Ok(PlanOutcome::none(NoGraspReason::NoObject));
     }
-    let strict = plan_pass(scene, jaw, config, None);
-    if !strict.grasps.is_empty() || !config.tolerant_pass {
+    let strict = plan_pass(
+        scene,
+        jaw,
+        config,
+        &with_top_down(&config.tilt_angles_deg),
+        None,
+    );
+    if !strict.grasps.is_empty() {
         return Ok(strict);
     }
-    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+    let mut outcome = strict;
+    if !config.fallback_tilt_angles_deg.is_empty() {
+        let steep = plan_pass(
+            scene,
+            jaw,
+            config,
+            &signed(&config.fallback_tilt_angles_deg),
+            None,
+        );
+        if !steep.grasps.is_empty() {
+            return Ok(steep);
+        }
+        outcome = merge_no_grasp(outcome, steep);
+    }
+    if !config.tolerant_pass {
+        return Ok(outcome);
+    }
+    let tolerant = plan_pass(
+        scene,
+        jaw,
+        config,
+        &with_top_down(&config.tilt_angles_deg),
+        Some(&config.soft()),
+    );
+    if !tolerant.grasps.is_empty() {
+        return Ok(tolerant);
+    }
+    Ok(merge_no_grasp(outcome, tolerant))
+}
+
+/// `tilts` with both signs, each once.
+fn signed(tilts: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * tilts.len());
+    for t in tilts {
+        out.push(*t);
+        out.push(-*t);
+    }
+    out
+}
+
+/// Top-down (0°) followed by `tilts` with both signs.
+fn with_top_down(tilts: &[f32]) -> Vec<f32> {
+    let mut out = vec![0.0];
+    out.extend(signed(tilts));
+    out
+}
+
+/// Two grasp-less outcomes as one: the candidates and failure counts of both passes.
+fn merge_no_grasp(a: PlanOutcome, b: PlanOutcome) -> PlanOutcome {
+    let failures = |o: &PlanOutcome| match &o.no_grasp_reason {
+        Some(NoGraspReason::AllRejected { failures, .. }) => failures.clone(),
+        _ => Vec::new(),
+    };
+    let (fa, fb) = (failures(&a), failures(&b));
+    if fa.is_empty() && fb.is_empty() {
+        return a;
+    }
+    let all = fa
+        .iter()
+        .chain(&fb)
+        .flat_map(|(r, n)| std::iter::repeat_n(*r, *n));
+    let candidates = a.candidates + b.candidates;
+    PlanOutcome {
+        grasps: Vec::new(),
+        no_grasp_reason: Some(NoGraspReason::AllRejected {
+            candidates,
+            failures: tally(all),
+        }),
+        candidates,
+    }
 }
 
 /// Runs only the tolerant pass of [`plan_parallel`] (soft silhouettes, collision margin, mixed
@@ -293,15 +381,23 @@ pub fn plan_parallel_tolerant(
     if scene.components().is_empty() {
         return Ok(PlanOutcome::none(NoGraspReason::NoObject));
     }
-    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+    Ok(plan_pass(
+        scene,
+        jaw,
+        config,
+        &with_top_down(&config.tilt_angles_deg),
+        Some(&config.soft()),
+    ))
 }
 
-/// One planning pass: strict (`soft = None`: the scorer's rules, edge candidates only) or
-/// tolerant (soft silhouettes, collision margin, footprint candidates).
+/// One planning pass with approach `tilts` (degrees about the closing axis, 0 = top-down):
+/// strict (`soft = None`: the scorer's rules, edge candidates only) or tolerant (soft
+/// silhouettes, collision margin, footprint candidates).
 fn plan_pass(
     scene: &Scene,
     jaw: &ParallelJaw,
     config: &ParallelConfig,
+    tilts: &[f32],
     soft: Option<&Soft>,
 ) -> PlanOutcome {
     let cloud = &scene.cloud;
@@ -311,11 +407,6 @@ fn plan_pass(
     let samples = subsample(edges, config.max_contact_samples, config.seed);
     let up = scene.up();
     let a0 = -up;
-    let mut tilts = vec![0.0f32];
-    for t in &config.tilt_angles_deg {
-        tilts.push(*t);
-        tilts.push(-*t);
-    }
     let r = config.exec.silhouette_radius_px;
     let mut results: Vec<std::result::Result<Candidate, FailureReason>> = samples
         .par_iter()
