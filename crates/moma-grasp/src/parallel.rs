@@ -216,28 +216,38 @@ fn candidate(
     let exec = &config.exec;
     let step = exec.march_step_m;
     let l0 = scene.cloud.points[i] + approach * config.contact_depth_m;
-    // Far side: where the closing line leaves the object for at least `exit_gap_m`.
+    // Near side: where the closing line enters the object (`l0` itself, or farther on when moving
+    // along a tilted approach, or past a rounded edge, left the object); far side: where it leaves
+    // the object for at least `exit_gap_m`.
+    let mut t_in: Option<f32> = None;
     let mut t_occ = 0.0f32;
     let mut t = step;
     loop {
-        if t > jaw.stroke_m {
-            return Err(FailureReason::NotAntipodal);
+        match t_in {
+            None if t > jaw.stroke_m => return Err(FailureReason::MissedObject),
+            Some(t0) if t - t0 > jaw.stroke_m => return Err(FailureReason::NotAntipodal),
+            _ => {}
         }
         let q = l0 + closing * t;
         match scene.occupied(&q, exec.occupancy_tol_m) {
-            Some(j) if scene.is_object(j) => t_occ = t,
-            _ if t - t_occ >= config.exit_gap_m => break,
+            Some(j) if scene.is_object(j) => {
+                t_in.get_or_insert(t - step);
+                t_occ = t;
+            }
+            _ if t_in.is_some() && t - t_occ >= config.exit_gap_m => break,
             _ => {}
         }
         t += step;
     }
-    let clearance = jaw.opening_clearance_m.min((jaw.stroke_m - t_occ) / 2.0);
+    let t_in = t_in.unwrap_or(0.0);
+    let span = t_occ - t_in;
+    let clearance = jaw.opening_clearance_m.min((jaw.stroke_m - span) / 2.0);
     if clearance < config.min_clearance_m {
         return Err(FailureReason::NotAntipodal);
     }
-    let width = t_occ + 2.0 * clearance;
+    let width = span + 2.0 * clearance;
     let pose = JawPose {
-        center: l0 + closing * (t_occ / 2.0),
+        center: l0 + closing * ((t_in + t_occ) / 2.0),
         approach,
         closing,
         width,
@@ -508,5 +518,65 @@ fn plan_pass(
         grasps,
         no_grasp_reason,
         candidates: n_candidates,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use moma_core::{Intrinsics, MetricDepth};
+    use ndarray::Array2;
+
+    use super::*;
+    use crate::scene::SceneConfig;
+
+    /// Top-down camera 0.7 m above a table with a 40 (x) × 60 (y) × 50 mm box centred on the axis.
+    fn box_scene() -> (Scene, Intrinsics) {
+        let k = Intrinsics {
+            width: 640,
+            height: 480,
+            fx: 600.0,
+            fy: 600.0,
+            cx: 319.5,
+            cy: 239.5,
+        };
+        let depth = Array2::from_shape_fn((480, 640), |(v, u)| {
+            let (x, y) = ((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy);
+            if (x * 0.65).abs() < 0.02 && (y * 0.65).abs() < 0.03 {
+                0.65f32
+            } else {
+                0.7
+            }
+        });
+        let scene = Scene::build(&MetricDepth::new(depth), &k, None, &SceneConfig::default());
+        (scene.unwrap(), k)
+    }
+
+    #[test]
+    fn closing_line_starting_off_the_object_is_centred_on_the_part_inside_it() {
+        // Regression (m2t2-table, tilted candidates): the sampled contact moved along the
+        // approach may lie off the object; the grasp must span the object part of the closing
+        // line, not start at that point (which found no near-side contact: missed_object).
+        let (scene, k) = box_scene();
+        // A table pixel 60 mm left of the box's −x side (at 0.7 m), closing towards +x.
+        let u = (k.cx + (-0.08) / 0.7 * k.fx).round() as usize;
+        let v = k.cy.round() as usize;
+        let i = scene.cloud.index(u, v);
+        assert!(!scene.is_object(i));
+        let config = ParallelConfig {
+            contact_depth_m: 0.02 + 0.003,
+            ..ParallelConfig::default()
+        };
+        let jaw = ParallelJaw::default();
+        let a = Vec3::new(0.0, 0.0, 1.0);
+        let b = Vec3::new(1.0, 0.0, 0.0);
+        // Move that pixel's point up so that the closing line starts in free space above the
+        // table, 3 mm below the box top, 60 mm before the box.
+        let start = Vec3::new(-0.08, 0.0, 0.65 + 0.003) - a * config.contact_depth_m;
+        let mut shifted = scene.clone();
+        shifted.cloud.points[i] = start;
+        let c = candidate(&shifted, i, a, b, 0.0, &jaw, &config, None).unwrap();
+        // Centred on the box (x = 0) within 2 mm, width = 40 mm + 2 × 10 mm clearance.
+        assert!(c.pose.center.x.abs() < 0.002, "{:?}", c.pose);
+        assert!((c.pose.width - 0.06).abs() < 0.003, "{:?}", c.pose);
     }
 }
