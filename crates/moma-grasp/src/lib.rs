@@ -34,11 +34,13 @@
 //! - **Planning on aligned depth.** Depth aligned from a depth-model prediction has soft
 //!   silhouettes (spread over 3–5 px), normals rotating across them and a few mm of correlated
 //!   noise (METHOD.md §6). [`plan_parallel`] first applies the scorer's rules to the planning
-//!   depth; when that finds no grasp, a tolerant pass ([`ParallelConfig::tolerant_pass`]) detects
-//!   silhouettes as a depth drop over a small window, averages their normals over a larger disc,
-//!   shortens the fingertips by a collision margin, ignores mixed silhouette pixels (blends of
-//!   object and background in mid-air behind the object) as obstacles, and adds top-down
-//!   footprint candidates ([`FootprintConfig`]). The scorer's rules never change.
+//!   depth (then again with the steeper [`ParallelConfig::fallback_tilt_angles_deg`], for objects
+//!   whose top is blocked); when that finds no grasp, a tolerant pass
+//!   ([`ParallelConfig::tolerant_pass`]) detects silhouettes as a depth drop over a small window,
+//!   averages their normals over a larger disc, shortens the fingertips by a collision margin,
+//!   ignores mixed silhouette pixels (blends of object and background in mid-air behind the
+//!   object) as obstacles, and adds top-down footprint candidates ([`FootprintConfig`]). The
+//!   scorer's rules never change.
 //! - **Suction** ([`SuctionCup`], r = 10 mm, compliance 15 mm): `approach` points into the
 //!   surface. Seal: 72 ring points at the cup radius in the plane ⟂ approach, each within 5 mm of
 //!   the contact plane, nothing inside the ring more than 5 mm above it; quality

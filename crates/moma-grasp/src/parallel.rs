@@ -11,10 +11,14 @@
 //!    midpoint of the two contacts found.
 //! 4. Score, rank, greedy NMS, top-K (each kept edge grasp re-executed at its final pose).
 //!
+//! When that finds nothing, the same strict pass runs with the steeper tilts
+//! [`ParallelConfig::fallback_tilt_angles_deg`] (40° and 60° by default) only: an object held in
+//! a robot hand or under an overhang cannot be reached from above, but often from the side.
+//!
 //! This strict pass applies the scorer's own rules to the planning depth. On depth aligned from a
 //! depth-model prediction (METHOD.md §6: silhouettes spread over 3–5 px, normals rotating over
-//! the soft edge, a few mm of correlated noise) it rejects every candidate, so when it finds no
-//! grasp a **tolerant pass** ([`ParallelConfig::tolerant_pass`]) runs the same steps with
+//! the soft edge, a few mm of correlated noise) it rejects every candidate, so when neither strict
+//! pass finds a grasp a **tolerant pass** ([`ParallelConfig::tolerant_pass`]) runs the same steps with
 //! - silhouettes found as a depth drop over a small window (`soft_edge_window_px`,
 //!   `soft_edge_jump_m`) and their normals averaged over a larger disc (`soft_normal_radius_px`);
 //! - the fingertips shortened by `collision_margin_m` in the collision test, and mixed pixels of
@@ -50,6 +54,11 @@ pub struct ParallelConfig {
     /// Approach tilts about the closing axis besides top-down (each used with both signs),
     /// degrees. Default `[20]`.
     pub tilt_angles_deg: Vec<f32>,
+    /// When the strict pass with `tilt_angles_deg` finds no grasp, it runs again with these
+    /// steeper approach tilts about the closing axis (each with both signs), degrees: objects
+    /// whose top is blocked (held in a robot hand, under an overhang) or seen only from the side
+    /// can often be reached only from an angle. Empty = no such retry. Default `[40, 60]`.
+    pub fallback_tilt_angles_deg: Vec<f32>,
     /// Depth of the closing line below the sampled contact along the approach, metres.
     /// Default 0.003 m.
     pub contact_depth_m: f32,
@@ -98,6 +107,7 @@ impl Default for ParallelConfig {
             exec: ExecConfig::default(),
             max_contact_samples: 400,
             tilt_angles_deg: vec![20.0],
+            fallback_tilt_angles_deg: vec![40.0, 60.0],
             contact_depth_m: 0.003,
             planner_mu: 0.6,
             exit_gap_m: 0.003,
@@ -159,9 +169,12 @@ impl ParallelConfig {
         if self
             .tilt_angles_deg
             .iter()
+            .chain(&self.fallback_tilt_angles_deg)
             .any(|t| !t.is_finite() || t.abs() >= 90.0)
         {
-            return Err(e("tilt_angles_deg must lie in (-90, 90)".into()));
+            return Err(e(
+                "tilt_angles_deg and fallback_tilt_angles_deg must lie in (-90, 90)".into(),
+            ));
         }
         if self.top_k == 0 || self.max_contact_samples == 0 {
             return Err(e("top_k and max_contact_samples must be >= 1".into()));
@@ -203,28 +216,38 @@ fn candidate(
     let exec = &config.exec;
     let step = exec.march_step_m;
     let l0 = scene.cloud.points[i] + approach * config.contact_depth_m;
-    // Far side: where the closing line leaves the object for at least `exit_gap_m`.
+    // Near side: where the closing line enters the object (`l0` itself, or farther on when moving
+    // along a tilted approach, or past a rounded edge, left the object); far side: where it leaves
+    // the object for at least `exit_gap_m`.
+    let mut t_in: Option<f32> = None;
     let mut t_occ = 0.0f32;
     let mut t = step;
     loop {
-        if t > jaw.stroke_m {
-            return Err(FailureReason::NotAntipodal);
+        match t_in {
+            None if t > jaw.stroke_m => return Err(FailureReason::MissedObject),
+            Some(t0) if t - t0 > jaw.stroke_m => return Err(FailureReason::NotAntipodal),
+            _ => {}
         }
         let q = l0 + closing * t;
         match scene.occupied(&q, exec.occupancy_tol_m) {
-            Some(j) if scene.is_object(j) => t_occ = t,
-            _ if t - t_occ >= config.exit_gap_m => break,
+            Some(j) if scene.is_object(j) => {
+                t_in.get_or_insert(t - step);
+                t_occ = t;
+            }
+            _ if t_in.is_some() && t - t_occ >= config.exit_gap_m => break,
             _ => {}
         }
         t += step;
     }
-    let clearance = jaw.opening_clearance_m.min((jaw.stroke_m - t_occ) / 2.0);
+    let t_in = t_in.unwrap_or(0.0);
+    let span = t_occ - t_in;
+    let clearance = jaw.opening_clearance_m.min((jaw.stroke_m - span) / 2.0);
     if clearance < config.min_clearance_m {
         return Err(FailureReason::NotAntipodal);
     }
-    let width = t_occ + 2.0 * clearance;
+    let width = span + 2.0 * clearance;
     let pose = JawPose {
-        center: l0 + closing * (t_occ / 2.0),
+        center: l0 + closing * ((t_in + t_occ) / 2.0),
         approach,
         closing,
         width,
@@ -267,11 +290,86 @@ pub fn plan_parallel(
     if scene.components().is_empty() {
         return Ok(PlanOutcome::none(NoGraspReason::NoObject));
     }
-    let strict = plan_pass(scene, jaw, config, None);
-    if !strict.grasps.is_empty() || !config.tolerant_pass {
+    let strict = plan_pass(
+        scene,
+        jaw,
+        config,
+        &with_top_down(&config.tilt_angles_deg),
+        None,
+    );
+    if !strict.grasps.is_empty() {
         return Ok(strict);
     }
-    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+    let mut outcome = strict;
+    if !config.fallback_tilt_angles_deg.is_empty() {
+        let steep = plan_pass(
+            scene,
+            jaw,
+            config,
+            &signed(&config.fallback_tilt_angles_deg),
+            None,
+        );
+        if !steep.grasps.is_empty() {
+            return Ok(steep);
+        }
+        outcome = merge_no_grasp(outcome, steep);
+    }
+    if !config.tolerant_pass {
+        return Ok(outcome);
+    }
+    let tolerant = plan_pass(
+        scene,
+        jaw,
+        config,
+        &with_top_down(&config.tilt_angles_deg),
+        Some(&config.soft()),
+    );
+    if !tolerant.grasps.is_empty() {
+        return Ok(tolerant);
+    }
+    Ok(merge_no_grasp(outcome, tolerant))
+}
+
+/// `tilts` with both signs, each once.
+fn signed(tilts: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * tilts.len());
+    for t in tilts {
+        out.push(*t);
+        out.push(-*t);
+    }
+    out
+}
+
+/// Top-down (0°) followed by `tilts` with both signs.
+fn with_top_down(tilts: &[f32]) -> Vec<f32> {
+    let mut out = vec![0.0];
+    out.extend(signed(tilts));
+    out
+}
+
+/// Two grasp-less outcomes as one: the candidates and failure counts of both passes.
+fn merge_no_grasp(a: PlanOutcome, b: PlanOutcome) -> PlanOutcome {
+    let failures = |o: &PlanOutcome| match &o.no_grasp_reason {
+        Some(NoGraspReason::AllRejected { failures, .. }) => failures.clone(),
+        _ => Vec::new(),
+    };
+    let (fa, fb) = (failures(&a), failures(&b));
+    if fa.is_empty() && fb.is_empty() {
+        return a;
+    }
+    let all = fa
+        .iter()
+        .chain(&fb)
+        .flat_map(|(r, n)| std::iter::repeat_n(*r, *n));
+    let candidates = a.candidates + b.candidates;
+    PlanOutcome {
+        grasps: Vec::new(),
+        no_grasp_reason: Some(NoGraspReason::AllRejected {
+            candidates,
+            failures: tally(all),
+        }),
+        candidates,
+    }
 }
 
 /// Runs only the tolerant pass of [`plan_parallel`] (soft silhouettes, collision margin, mixed
@@ -293,15 +391,23 @@ pub fn plan_parallel_tolerant(
     if scene.components().is_empty() {
         return Ok(PlanOutcome::none(NoGraspReason::NoObject));
     }
-    Ok(plan_pass(scene, jaw, config, Some(&config.soft())))
+    Ok(plan_pass(
+        scene,
+        jaw,
+        config,
+        &with_top_down(&config.tilt_angles_deg),
+        Some(&config.soft()),
+    ))
 }
 
-/// One planning pass: strict (`soft = None`: the scorer's rules, edge candidates only) or
-/// tolerant (soft silhouettes, collision margin, footprint candidates).
+/// One planning pass with approach `tilts` (degrees about the closing axis, 0 = top-down):
+/// strict (`soft = None`: the scorer's rules, edge candidates only) or tolerant (soft
+/// silhouettes, collision margin, footprint candidates).
 fn plan_pass(
     scene: &Scene,
     jaw: &ParallelJaw,
     config: &ParallelConfig,
+    tilts: &[f32],
     soft: Option<&Soft>,
 ) -> PlanOutcome {
     let cloud = &scene.cloud;
@@ -311,11 +417,6 @@ fn plan_pass(
     let samples = subsample(edges, config.max_contact_samples, config.seed);
     let up = scene.up();
     let a0 = -up;
-    let mut tilts = vec![0.0f32];
-    for t in &config.tilt_angles_deg {
-        tilts.push(*t);
-        tilts.push(-*t);
-    }
     let r = config.exec.silhouette_radius_px;
     let mut results: Vec<std::result::Result<Candidate, FailureReason>> = samples
         .par_iter()
@@ -417,5 +518,65 @@ fn plan_pass(
         grasps,
         no_grasp_reason,
         candidates: n_candidates,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use moma_core::{Intrinsics, MetricDepth};
+    use ndarray::Array2;
+
+    use super::*;
+    use crate::scene::SceneConfig;
+
+    /// Top-down camera 0.7 m above a table with a 40 (x) × 60 (y) × 50 mm box centred on the axis.
+    fn box_scene() -> (Scene, Intrinsics) {
+        let k = Intrinsics {
+            width: 640,
+            height: 480,
+            fx: 600.0,
+            fy: 600.0,
+            cx: 319.5,
+            cy: 239.5,
+        };
+        let depth = Array2::from_shape_fn((480, 640), |(v, u)| {
+            let (x, y) = ((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy);
+            if (x * 0.65).abs() < 0.02 && (y * 0.65).abs() < 0.03 {
+                0.65f32
+            } else {
+                0.7
+            }
+        });
+        let scene = Scene::build(&MetricDepth::new(depth), &k, None, &SceneConfig::default());
+        (scene.unwrap(), k)
+    }
+
+    #[test]
+    fn closing_line_starting_off_the_object_is_centred_on_the_part_inside_it() {
+        // Regression (m2t2-table, tilted candidates): the sampled contact moved along the
+        // approach may lie off the object; the grasp must span the object part of the closing
+        // line, not start at that point (which found no near-side contact: missed_object).
+        let (scene, k) = box_scene();
+        // A table pixel 60 mm left of the box's −x side (at 0.7 m), closing towards +x.
+        let u = (k.cx + (-0.08) / 0.7 * k.fx).round() as usize;
+        let v = k.cy.round() as usize;
+        let i = scene.cloud.index(u, v);
+        assert!(!scene.is_object(i));
+        let config = ParallelConfig {
+            contact_depth_m: 0.02 + 0.003,
+            ..ParallelConfig::default()
+        };
+        let jaw = ParallelJaw::default();
+        let a = Vec3::new(0.0, 0.0, 1.0);
+        let b = Vec3::new(1.0, 0.0, 0.0);
+        // Move that pixel's point up so that the closing line starts in free space above the
+        // table, 3 mm below the box top, 60 mm before the box.
+        let start = Vec3::new(-0.08, 0.0, 0.65 + 0.003) - a * config.contact_depth_m;
+        let mut shifted = scene.clone();
+        shifted.cloud.points[i] = start;
+        let c = candidate(&shifted, i, a, b, 0.0, &jaw, &config, None).unwrap();
+        // Centred on the box (x = 0) within 2 mm, width = 40 mm + 2 × 10 mm clearance.
+        assert!(c.pose.center.x.abs() < 0.002, "{:?}", c.pose);
+        assert!((c.pose.width - 0.06).abs() < 0.003, "{:?}", c.pose);
     }
 }
