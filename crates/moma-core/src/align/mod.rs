@@ -3,6 +3,7 @@
 //! A new method is one new module + one variant in [`Method`] and
 //! [`AlignmentModel`].
 
+mod grid;
 pub mod gssa;
 pub mod local;
 pub mod lwlr;
