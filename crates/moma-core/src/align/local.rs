@@ -1,5 +1,5 @@
 //! Local correction on top of a global fit (`ssra-local`, `gssa-local`; METHOD.md §10) and
-//! `auto`, the method chosen by leave-one-out cross-validation.
+//! `auto`, the method chosen by cross-validation.
 //!
 //! The global model (SSRA or GSSA) gives `F(u, v, ẑ)` in the target space (metres in depth space,
 //! 1/m in inverse space: the method works on whatever target the samples carry). At each node of a
@@ -14,21 +14,48 @@
 //! value is `s F + t` with `s = 1 + δs`, `t = δt − δs c`; `(s, t)` are stored at the grid nodes and
 //! resized bilinearly to full size with LWLR's half-pixel-centre rule.
 //!
-//! `b` and `λ` are chosen by leave-one-out cross-validation over
-//! [`LocalConfig::bandwidth_fractions`] (× image diagonal) × [`LocalConfig::ridges`]:
-//! - the global part's LOO prediction is exact and closed-form (hat matrix of the linear least
-//!   squares: `y_k − F₍₋ₖ₎(k) = r_k / (1 − h_kk)`);
-//! - the local part drops sample `k`'s weight from the node sums of the (up to four) nodes around
-//!   it, re-solves those 2×2 systems and interpolates, then corrects `F₍₋ₖ₎(k)`. The other samples
-//!   keep their full-fit `F` (an approximation: the global model has 2–4 parameters fitted on all
-//!   n samples). As `λ → ∞` the local LOO error tends to the global one exactly.
+//! `b` and `λ` are chosen by cross-validation on the calibration samples over
+//! [`LocalConfig::bandwidth_fractions`] (× image diagonal, each raised to a floor) ×
+//! [`LocalConfig::ridges`]. Three rules make the choice statistically sound rather than
+//! optimistic (issue 12: with plain leave-one-out and "lowest error wins", `ssra-local` was
+//! worse than SSRA inside the objects of the shared sets on simulated predictions, because the
+//! correction learnt structure of the calibration frame that other frames do not share):
 //!
-//! Guard: when the best candidate's LOO RMS is not below the global fit's, the model falls back to
-//! the global fit (`fallback: true`, no correction maps).
+//! 1. **Spatially buffered cross-validation** ([`LocalConfig::cv_buffer_fraction`], default
+//!    0.1 × diagonal): sample `k` is predicted by the models fitted without `k` *and without
+//!    every sample within the buffer radius of it* (spatial leave-one-out with a buffer; Le Rest
+//!    et al. 2014, Roberts et al. 2017). Residuals of a depth model are spatially correlated at
+//!    the scale of scene content (objects, their blurred halo); plain leave-one-out then predicts a
+//!    sample from neighbours that share its error and rewards corrections that copy that error.
+//!    The buffer makes the score the error where no calibration sample is near — what a
+//!    correction meets on a new frame.
+//!    - global part: the normal equations minus the buffer's terms, solved (exact refits; with
+//!      no neighbour in the buffer the closed-form hat-matrix LOO `y_k − r_k/(1 − h_kk)`);
+//!    - local part: the buffer's weights are dropped from the node sums of the (up to four) nodes
+//!      around `k`, those 2×2 systems re-solved and interpolated, then applied to the global
+//!      part's prediction. The remaining samples keep their full-fit `F` (an approximation: the
+//!      global model has 2–4 parameters fitted on all n samples). As `λ → ∞` the local error
+//!      tends to the global one exactly.
+//! 2. **Bandwidth floor** ([`min_bandwidth_px`], [`LocalConfig::min_node_samples`] = 10): a
+//!    candidate bandwidth is raised until a grid node sees on average 10 samples' worth of
+//!    weight (five per local parameter) when the n samples cover the image uniformly,
+//!    `n·2πb²/(W·H) ≥ 10` (35 px for 100 samples at 320×240, 70 px at 640×480, 121 px at
+//!    1280×720); narrower kernels interpolate between one or two samples.
+//! 3. **One-standard-error rule** ([`one_standard_error_choice`]) on the paired squared CV
+//!    errors, models ordered from simplest to most complex: the global fit, then the candidates
+//!    from the widest bandwidth and largest ridge to the narrowest and smallest. The kept model is
+//!    the simplest whose mean error is within one standard error of the best's; in particular the
+//!    correction is kept only when it beats the global fit by more than the noise of the
+//!    comparison, else the model falls back to the global fit (`fallback: true`, no correction
+//!    maps; `chosen` then records the candidate with the lowest CV error).
 //!
-//! `auto` computes the LOO RMS of gssa, ssra, lwlr, gssa-local and ssra-local on the calibration
-//! samples (gssa, ssra: hat matrix; lwlr: exact refits without each sample; local variants: as
-//! above) and keeps the method with the lowest (first in that order on ties).
+//! `auto` scores gssa, ssra, gssa-local, ssra-local and lwlr ([`AUTO_CANDIDATES`], simplest
+//! first) by the same buffered cross-validation (gssa, ssra: refits from the normal equations;
+//! lwlr: exact refits; local variants: as above, the model each keeps) and applies the same
+//! one-standard-error rule. The candidates' CV RMS are recorded.
+//!
+//! The errors are in target units (1/m in inverse space): the fit does not know the space.
+//! Scoring in metres instead was measured and not better (docs/evaluation.md).
 
 use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
@@ -188,7 +215,7 @@ impl GlobalFit {
     }
 }
 
-/// One (bandwidth, ridge) candidate and its leave-one-out RMS.
+/// One (bandwidth, ridge) candidate and its cross-validated RMS error.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LocalCandidate {
@@ -196,7 +223,8 @@ pub struct LocalCandidate {
     pub bandwidth_px: f64,
     /// Ridge λ, units of weight.
     pub ridge: f64,
-    /// Leave-one-out RMS error on the calibration samples, target units (metres in depth space).
+    /// Cross-validated RMS error on the calibration samples (spatially buffered leave-one-out,
+    /// field name kept for file compatibility), target units (metres in depth space).
     pub loo_rms: f64,
 }
 
@@ -219,13 +247,16 @@ pub struct LocalModel {
     pub image_size: ImageSize,
     /// The global fit.
     pub global: GlobalFit,
-    /// Leave-one-out RMS of the global fit alone, target units.
+    /// Cross-validated RMS error of the global fit alone, target units.
     pub global_loo_rms: f64,
-    /// Every candidate in order (bandwidth-major), with its LOO RMS.
+    /// Every candidate in order (bandwidth-major, after the floor; duplicates dropped), with its
+    /// cross-validated RMS error.
     pub candidates: Vec<LocalCandidate>,
-    /// The best candidate (lowest LOO RMS, first on ties).
+    /// The candidate kept by the one-standard-error rule; on fallback the one with the lowest
+    /// cross-validated error (first on ties).
     pub chosen: LocalCandidate,
-    /// `true` when the best candidate did not beat the global fit: the model is the global fit.
+    /// `true` when no candidate beat the global fit by more than one standard error: the model
+    /// is the global fit.
     pub fallback: bool,
     /// Grid nodes per row.
     pub nodes_x: usize,
@@ -693,7 +724,7 @@ impl LocalModel {
         }
     }
 
-    /// The leave-one-out RMS of the model as used: the global one on fallback, else the chosen
+    /// The cross-validated RMS error of the model as used: the global one on fallback, else the chosen
     /// candidate's.
     pub fn loo_rms(&self) -> f64 {
         if self.fallback {
@@ -843,12 +874,12 @@ impl LocalModel {
 pub struct AutoCandidate {
     /// Method name.
     pub method: String,
-    /// Leave-one-out RMS on the calibration samples (target units); `None` when the method could
+    /// Cross-validated RMS error on the calibration samples (target units); `None` when the method could
     /// not be fitted on these samples.
     pub loo_rms: Option<f64>,
 }
 
-/// `auto`'s result: the chosen fitted model and every candidate's LOO RMS.
+/// `auto`'s result: the chosen fitted model and every candidate's cross-validated RMS error.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AutoModel {
