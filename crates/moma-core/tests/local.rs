@@ -241,6 +241,61 @@ fn bandwidth_floor_merges_candidates_below_it() {
 }
 
 #[test]
+fn clustered_samples_fall_back_to_plain_leave_one_out() {
+    // 40 samples in a 20-px square: every 40-px buffer holds them all, so the buffered refits are
+    // undefined and plain leave-one-out is used: the same errors as with no buffer, and no error
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let samples: Vec<Sample> = (0..40)
+        .map(|_| {
+            let u = rng.random_range(100..120) as f64;
+            let v = rng.random_range(100..120) as f64;
+            Sample {
+                u,
+                v,
+                pred: zhat(u, v, 0.15),
+                depth_m: depth_m(u, v) + rng.random_range(-0.001..0.001),
+            }
+        })
+        .collect();
+    let set = SampleSet {
+        image_size: ImageSize::new(W, H),
+        samples,
+    };
+    let plain = LocalConfig {
+        cv_buffer_fraction: 0.0,
+        ..Default::default()
+    };
+    for base in [LocalBase::Gssa, LocalBase::Ssra] {
+        let m = fit_local(&set, base, &LocalConfig::default()).unwrap();
+        let m0 = fit_local(&set, base, &plain).unwrap();
+        assert_eq!(m.global_loo_rms, m0.global_loo_rms, "{base:?}");
+        assert_eq!(m.candidates, m0.candidates, "{base:?}");
+    }
+    assert!(Method::Auto.fit(&set).is_ok());
+    // plain leave-one-out is exact also with samples sharing a pixel (several here): brute force
+    let m = fit_local(&set, LocalBase::Gssa, &LocalConfig::default()).unwrap();
+    let mut ss = 0.0;
+    for k in 0..set.len() {
+        let rest: Vec<Sample> = set
+            .samples
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| *i != k)
+            .map(|(_, s)| *s)
+            .collect();
+        let g = moma_core::align::gssa::fit(&rest).unwrap();
+        let s = set.samples[k];
+        ss += (g.predict(s.pred) - s.depth_m).powi(2);
+    }
+    let brute = (ss / set.len() as f64).sqrt();
+    assert!(
+        (brute - m.global_loo_rms).abs() < 1e-9 * brute,
+        "brute {brute} vs {}",
+        m.global_loo_rms
+    );
+}
+
+#[test]
 fn one_standard_error_rule_prefers_the_simplest_model_within_noise() {
     // model 1 beats model 0 by 0.5 on average with paired differences (1, 0): mean 0.5,
     // standard error sqrt(0.5/2) = 0.5 → not more than one SE: the simpler model 0 is kept

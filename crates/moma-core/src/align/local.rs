@@ -30,7 +30,9 @@
 //!    The buffer makes the score the error where no calibration sample is near — what a
 //!    correction meets on a new frame.
 //!    - global part: the normal equations minus the buffer's terms, solved (exact refits; with
-//!      no neighbour in the buffer the closed-form hat-matrix LOO `y_k − r_k/(1 − h_kk)`);
+//!      no neighbour in any buffer the closed-form hat-matrix LOO `y_k − r_k/(1 − h_kk)`; when
+//!      some buffer leaves the global fit undetermined — samples clustered in a small region —
+//!      plain leave-one-out is used for every model);
 //!    - local part: the buffer's weights are dropped from the node sums of the (up to four) nodes
 //!      around `k`, those 2×2 systems re-solved and interpolated, then applied to the global
 //!      part's prediction. The remaining samples keep their full-fit `F` (an approximation: the
@@ -337,44 +339,50 @@ fn global_features(samples: &[Sample], base: LocalBase) -> (Vec<[f64; 4]>, usize
 }
 
 /// Predictions at each sample `k` of the global model refitted without the samples of
-/// `buffers[k]` (which holds `k`): the normal equations minus those samples' terms, solved.
+/// `buffers[k]` (which holds `k`): normal equations summed over the remaining samples (directly,
+/// not by subtraction, so that a large buffer cannot leave rounding residue that looks solvable)
+/// and solved.
+///
+/// # Errors
+/// [`CoreError::Degenerate`] when fewer samples than parameters + 1 remain or the refit is
+/// singular.
 fn buffered_global(
     samples: &[Sample],
     base: LocalBase,
     buffers: &[Vec<usize>],
 ) -> Result<Vec<f64>> {
     let (x, dim) = global_features(samples, base);
-    let mut a = [[0.0f64; 4]; 4];
-    let mut b = [0.0f64; 4];
-    for (xi, s) in x.iter().zip(samples) {
-        for i in 0..4 {
-            b[i] += xi[i] * s.depth_m;
-            for j in 0..4 {
-                a[i][j] += xi[i] * xi[j];
-            }
-        }
-    }
+    let mut out = vec![false; samples.len()];
     (0..samples.len())
         .map(|k| {
-            let (mut ak, mut bk) = (a, b);
+            out.iter_mut().for_each(|o| *o = false);
             for &m in &buffers[k] {
-                for i in 0..4 {
-                    bk[i] -= x[m][i] * samples[m].depth_m;
-                    for j in 0..4 {
-                        ak[i][j] -= x[m][i] * x[m][j];
-                    }
-                }
+                out[m] = true;
             }
-            for (i, row) in ak.iter_mut().enumerate().skip(dim) {
-                row[i] = 1.0;
-            }
-            let theta = solve_spd4(&ak, &bk).ok_or_else(|| {
+            let undetermined = || {
                 CoreError::Degenerate(format!(
                     "without the {} samples near sample {k} the global fit is undetermined; \
                      cross-validation is undefined",
                     buffers[k].len()
                 ))
-            })?;
+            };
+            if samples.len() - buffers[k].len() < dim + 1 {
+                return Err(undetermined());
+            }
+            let mut a = [[0.0f64; 4]; 4];
+            let mut b = [0.0f64; 4];
+            for ((xi, s), _) in x.iter().zip(samples).zip(&out).filter(|(_, o)| !**o) {
+                for i in 0..4 {
+                    b[i] += xi[i] * s.depth_m;
+                    for j in 0..4 {
+                        a[i][j] += xi[i] * xi[j];
+                    }
+                }
+            }
+            for (i, row) in a.iter_mut().enumerate().skip(dim) {
+                row[i] = 1.0;
+            }
+            let theta = solve_spd4(&a, &b).ok_or_else(undetermined)?;
             Ok(x[k].iter().zip(&theta).map(|(p, q)| p * q).sum())
         })
         .collect()
@@ -451,14 +459,14 @@ impl Prep<'_> {
     }
 }
 
-/// The one-standard-error rule on paired leave-one-out losses (Breiman et al. 1984; Hastie,
+/// The one-standard-error rule on paired cross-validation losses (Breiman et al. 1984; Hastie,
 /// Tibshirani & Friedman, *Elements of Statistical Learning* §7.10): `losses[i][k]` is model
-/// `i`'s squared LOO error on sample `k`, models ordered from simplest to most complex. Returns
+/// `i`'s squared cross-validation error on sample `k`, models ordered from simplest to most complex. Returns
 /// the index of the simplest model whose mean loss is not worse than the best model's by more
 /// than one standard error of the paired differences `losses[i][k] − losses[best][k]`.
 ///
 /// Pairing makes the comparison sensitive to consistent gains and blind to gains that a few
-/// samples produce (LOO RMS differences of a few percent are within noise on 100 samples). A
+/// samples produce (CV RMS differences of a few percent are often within noise on 100 samples). A
 /// more complex model is therefore kept only when it beats every simpler one by more than the
 /// noise of the comparison. Non-finite mean losses are never chosen; `None` when none is finite.
 pub fn one_standard_error_choice(losses: &[&[f64]]) -> Option<usize> {
@@ -489,7 +497,8 @@ fn diagonal_px(size: ImageSize) -> f64 {
 }
 
 /// For each sample `k`, the samples left out when predicting it: `k` and every sample within
-/// `radius_px` of it (pixels; 0: `k` alone, plain leave-one-out).
+/// `radius_px` of it (pixels; 0: `k` alone, plain leave-one-out, also when another sample sits
+/// on the same pixel).
 fn cv_buffers(samples: &[Sample], radius_px: f64) -> Vec<Vec<usize>> {
     let r2 = radius_px * radius_px;
     (0..samples.len())
@@ -497,11 +506,38 @@ fn cv_buffers(samples: &[Sample], radius_px: f64) -> Vec<Vec<usize>> {
             let p = &samples[k];
             (0..samples.len())
                 .filter(|&i| {
-                    i == k || (samples[i].u - p.u).powi(2) + (samples[i].v - p.v).powi(2) <= r2
+                    i == k
+                        || (radius_px > 0.0
+                            && (samples[i].u - p.u).powi(2) + (samples[i].v - p.v).powi(2) <= r2)
                 })
                 .collect()
         })
         .collect()
+}
+
+/// The cross-validation buffers of `config` for `samples` ([`cv_buffers`] at
+/// `cv_buffer_fraction` × the diagonal), or plain leave-one-out when leaving some sample's
+/// buffer out would leave the global fit undetermined (samples clustered in a small region):
+/// SSRA's (GSSA's below 5 samples) refit is tried for every buffer.
+fn cv_plan(samples: &SampleSet, config: &LocalConfig) -> Vec<Vec<usize>> {
+    let s = &samples.samples;
+    let buffers = cv_buffers(
+        s,
+        config.cv_buffer_fraction * diagonal_px(samples.image_size),
+    );
+    if buffers.iter().all(|b| b.len() == 1) {
+        return buffers;
+    }
+    let base = if s.len() > ssra::MIN_SAMPLES {
+        LocalBase::Ssra
+    } else {
+        LocalBase::Gssa
+    };
+    if buffered_global(s, base, &buffers).is_ok() {
+        buffers
+    } else {
+        cv_buffers(s, 0.0)
+    }
 }
 
 /// The smallest bandwidth (pixels) at which a grid node sees, on average, `min_node_samples`
@@ -543,7 +579,7 @@ fn fit_with_loo(
     }
     let s = &samples.samples;
     let diag = diagonal_px(size);
-    let buffers = cv_buffers(s, config.cv_buffer_fraction * diag);
+    let buffers = cv_plan(samples, config);
     let buffered = buffers.iter().any(|b| b.len() > 1);
     let (global, mut f_loo) = match base {
         LocalBase::Gssa => {
@@ -957,14 +993,11 @@ fn lwlr_loo(
 pub const AUTO_CANDIDATES: [&str; 5] = ["gssa", "ssra", "gssa-local", "ssra-local", "lwlr"];
 
 /// Fits `method` (one of [`AUTO_CANDIDATES`], default settings) on `samples` with its
-/// leave-one-out predictions (target units).
+/// cross-validated predictions (target units).
 fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, AlignmentModel)> {
     let s = &samples.samples;
     let config = LocalConfig::default();
-    let buffers = cv_buffers(
-        s,
-        config.cv_buffer_fraction * diagonal_px(samples.image_size),
-    );
+    let buffers = cv_plan(samples, &config);
     let buffered = buffers.iter().any(|b| b.len() > 1);
     match method {
         "gssa" => {
@@ -1012,10 +1045,11 @@ fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, Alignme
     }
 }
 
-/// Leave-one-out predictions (target units) of `method` — one of [`AUTO_CANDIDATES`], with
-/// default settings — on `samples`, as `auto` computes them: closed form for gssa and ssra,
-/// exact refits for lwlr, and for the local variants those of the model kept by their own
-/// selection (the global fit's on fallback).
+/// Cross-validated predictions (target units) of `method` — one of [`AUTO_CANDIDATES`], with
+/// default settings — on `samples`, as `auto` computes them (spatially buffered leave-one-out,
+/// see the module docs): refits from the normal equations for gssa and ssra, exact refits for
+/// lwlr, and for the local variants those of the model kept by their own selection (the global
+/// fit's on fallback).
 ///
 /// # Errors
 /// An unknown method; the method's fitting errors.
