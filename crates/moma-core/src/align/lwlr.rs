@@ -346,8 +346,8 @@ impl LwlrModel {
     }
 
     /// The fitted value at the pixel nearest to `(u, v)` (clamped to the image) from the cached
-    /// full-size maps: `S[v, u]·ẑ + T[v, u]`, exactly what [`LwlrModel::apply_into`] computes
-    /// there (in f64).
+    /// full-size maps: `S[v, u]·ẑ + T[v, u]`, exactly what
+    /// [`super::AlignmentModel::apply`] computes there (in f64).
     pub fn predict_at_pixel(&self, u: f64, v: f64, pred: f64) -> f64 {
         let m = self.maps();
         let (w, h) = (self.image_size.width, self.image_size.height);
