@@ -45,8 +45,10 @@ pub struct CalibrateArgs {
     pub workspace: Option<PathBuf>,
     /// Alignment method: ssra (the paper's), gssa, lwlr (BoostingDepth's grid solve),
     /// lwlr-exact, lwlr-bare, ssra-local / gssa-local (global fit + local correction, bandwidth
-    /// and ridge by leave-one-out), auto (the best of those by leave-one-out), raw (metric
-    /// predictions used as metres; needs --norm none).
+    /// and ridge by spatially buffered cross-validation, kept only when it beats the global fit
+    /// by more than one standard error), auto (the simplest of gssa, ssra, gssa-local,
+    /// ssra-local, lwlr within one standard error of the best by that cross-validation), raw
+    /// (metric predictions used as metres; needs --norm none).
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,

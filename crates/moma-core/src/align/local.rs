@@ -1,5 +1,5 @@
 //! Local correction on top of a global fit (`ssra-local`, `gssa-local`; METHOD.md §10) and
-//! `auto`, the method chosen by leave-one-out cross-validation.
+//! `auto`, the method chosen by cross-validation.
 //!
 //! The global model (SSRA or GSSA) gives `F(u, v, ẑ)` in the target space (metres in depth space,
 //! 1/m in inverse space: the method works on whatever target the samples carry). At each node of a
@@ -14,29 +14,59 @@
 //! value is `s F + t` with `s = 1 + δs`, `t = δt − δs c`; `(s, t)` are stored at the grid nodes and
 //! resized bilinearly to full size with LWLR's half-pixel-centre rule.
 //!
-//! `b` and `λ` are chosen by leave-one-out cross-validation over
-//! [`LocalConfig::bandwidth_fractions`] (× image diagonal) × [`LocalConfig::ridges`]:
-//! - the global part's LOO prediction is exact and closed-form (hat matrix of the linear least
-//!   squares: `y_k − F₍₋ₖ₎(k) = r_k / (1 − h_kk)`);
-//! - the local part drops sample `k`'s weight from the node sums of the (up to four) nodes around
-//!   it, re-solves those 2×2 systems and interpolates, then corrects `F₍₋ₖ₎(k)`. The other samples
-//!   keep their full-fit `F` (an approximation: the global model has 2–4 parameters fitted on all
-//!   n samples). As `λ → ∞` the local LOO error tends to the global one exactly.
+//! `b` and `λ` are chosen by cross-validation on the calibration samples over
+//! [`LocalConfig::bandwidth_fractions`] (× image diagonal, each raised to a floor) ×
+//! [`LocalConfig::ridges`]. Three rules make the choice statistically sound rather than
+//! optimistic (issue 12: with plain leave-one-out and "lowest error wins", `ssra-local` was
+//! worse than SSRA inside the objects of the shared sets on simulated predictions, because the
+//! correction learnt structure of the calibration frame that other frames do not share):
 //!
-//! Guard: when the best candidate's LOO RMS is not below the global fit's, the model falls back to
-//! the global fit (`fallback: true`, no correction maps).
+//! 1. **Spatially buffered cross-validation** ([`LocalConfig::cv_buffer_fraction`], default
+//!    0.1 × diagonal): sample `k` is predicted by the models fitted without `k` *and without
+//!    every sample within the buffer radius of it* (spatial leave-one-out with a buffer; Le Rest
+//!    et al. 2014, Roberts et al. 2017). Residuals of a depth model are spatially correlated at
+//!    the scale of scene content (objects, their blurred halo); plain leave-one-out then predicts a
+//!    sample from neighbours that share its error and rewards corrections that copy that error.
+//!    The buffer makes the score the error where no calibration sample is near — what a
+//!    correction meets on a new frame.
+//!    - global part: the normal equations minus the buffer's terms, solved (exact refits; with
+//!      no neighbour in any buffer the closed-form hat-matrix LOO `y_k − r_k/(1 − h_kk)`; when
+//!      some buffer leaves the global fit undetermined — samples clustered in a small region —
+//!      plain leave-one-out is used for every model);
+//!    - local part: the buffer's weights are dropped from the node sums of the (up to four) nodes
+//!      around `k`, those 2×2 systems re-solved and interpolated, then applied to the global
+//!      part's prediction. The remaining samples keep their full-fit `F` (an approximation: the
+//!      global model has 2–4 parameters fitted on all n samples). As `λ → ∞` the local error
+//!      tends to the global one exactly.
+//! 2. **Bandwidth floor** ([`min_bandwidth_px`], [`LocalConfig::min_node_samples`] = 10): a
+//!    candidate bandwidth is raised until a grid node sees on average 10 samples' worth of
+//!    weight (five per local parameter) when the n samples cover the image uniformly,
+//!    `n·2πb²/(W·H) ≥ 10` (35 px for 100 samples at 320×240, 70 px at 640×480, 121 px at
+//!    1280×720); narrower kernels interpolate between one or two samples.
+//! 3. **One-standard-error rule** ([`one_standard_error_choice`]) on the paired squared CV
+//!    errors, models ordered from simplest to most complex: the global fit, then the candidates
+//!    from the widest bandwidth and largest ridge to the narrowest and smallest. The kept model is
+//!    the simplest whose mean error is within one standard error of the best's; in particular the
+//!    correction is kept only when it beats the global fit by more than the noise of the
+//!    comparison, else the model falls back to the global fit (`fallback: true`, no correction
+//!    maps; `chosen` then records the candidate with the lowest CV error).
 //!
-//! `auto` computes the LOO RMS of gssa, ssra, lwlr, gssa-local and ssra-local on the calibration
-//! samples (gssa, ssra: hat matrix; lwlr: exact refits without each sample; local variants: as
-//! above) and keeps the method with the lowest (first in that order on ties).
-
-use std::sync::{Arc, OnceLock};
+//! `auto` scores gssa, ssra, gssa-local, ssra-local and lwlr ([`AUTO_CANDIDATES`], simplest
+//! first) by the same buffered cross-validation (gssa, ssra: refits from the normal equations;
+//! lwlr: exact refits; local variants: as above, the model each keeps) and applies the same
+//! one-standard-error rule. The candidates' CV RMS are recorded.
+//!
+//! The errors are in target units (1/m in inverse space): the fit does not know the space.
+//! Scoring in metres instead was measured and not better (docs/evaluation.md).
 
 use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 
+use super::grid::{
+    self, MapCache, WeightTables, half_pixel_source, interpolate_nodes, resize_bilinear,
+};
 use super::gssa::{self, GssaModel};
-use super::lwlr::{self, half_pixel_source, resize_bilinear};
+use super::lwlr;
 use super::ssra::{self, SsraConfig, SsraModel, solve_spd4};
 use super::{AlignmentModel, Sample, SampleSet};
 use crate::error::{CoreError, Result};
@@ -62,8 +92,9 @@ pub enum LocalBase {
     Ssra,
 }
 
-/// Settings of the local correction. `Default`: b ∈ {0.05, 0.1, 0.2, 0.4} × image diagonal,
-/// λ ∈ {0.1, 1, 10, 100}, grid every 32 px from 16 px.
+/// Settings of the local correction. `Default`: b ∈ {0.05, 0.1, 0.2, 0.4} × image diagonal
+/// (each raised to the floor of 10 samples per node), λ ∈ {0.1, 1, 10, 100}, grid every 32 px
+/// from 16 px.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LocalConfig {
@@ -75,6 +106,14 @@ pub struct LocalConfig {
     pub grid_step_px: usize,
     /// Position of the first grid node, pixels.
     pub grid_offset_px: usize,
+    /// Bandwidth floor: a candidate bandwidth is raised so that a grid node sees on average at
+    /// least this many samples' worth of weight ([`min_bandwidth_px`]); 10 = five samples per
+    /// local parameter (scale and shift). Must be ≥ 0.
+    pub min_node_samples: f64,
+    /// Spatial buffer of the cross-validation, as a fraction of the image diagonal: each
+    /// sample is predicted without every sample within this radius of it (0: plain
+    /// leave-one-out). Must be ≥ 0.
+    pub cv_buffer_fraction: f64,
 }
 
 impl Default for LocalConfig {
@@ -84,6 +123,8 @@ impl Default for LocalConfig {
             ridges: vec![0.1, 1.0, 10.0, 100.0],
             grid_step_px: 32,
             grid_offset_px: 16,
+            min_node_samples: 10.0,
+            cv_buffer_fraction: 0.1,
         }
     }
 }
@@ -114,19 +155,25 @@ impl LocalConfig {
                 "local correction grid step must be ≥ 1 px".into(),
             ));
         }
+        if !(self.cv_buffer_fraction.is_finite() && self.cv_buffer_fraction >= 0.0) {
+            return Err(CoreError::InvalidParameter(format!(
+                "local correction cv_buffer_fraction must be finite and ≥ 0, got {}",
+                self.cv_buffer_fraction
+            )));
+        }
+        if !(self.min_node_samples.is_finite() && self.min_node_samples >= 0.0) {
+            return Err(CoreError::InvalidParameter(format!(
+                "local correction min_node_samples must be finite and ≥ 0, got {}",
+                self.min_node_samples
+            )));
+        }
         Ok(())
     }
 
     /// Grid node positions (columns, rows), pixels: `offset + step·i` below the image size (at
     /// least one node per axis).
     pub fn grid_nodes(&self, size: ImageSize) -> (Vec<f64>, Vec<f64>) {
-        let step = self.grid_step_px.max(1);
-        let off = self.grid_offset_px;
-        let axis = |len: usize| -> Vec<f64> {
-            let v: Vec<f64> = (off..len).step_by(step).map(|x| x as f64).collect();
-            if v.is_empty() { vec![off as f64] } else { v }
-        };
-        (axis(size.width), axis(size.height))
+        grid::grid_nodes(self.grid_step_px, self.grid_offset_px, size)
     }
 }
 
@@ -170,7 +217,7 @@ impl GlobalFit {
     }
 }
 
-/// One (bandwidth, ridge) candidate and its leave-one-out RMS.
+/// One (bandwidth, ridge) candidate and its cross-validated RMS error.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LocalCandidate {
@@ -178,7 +225,8 @@ pub struct LocalCandidate {
     pub bandwidth_px: f64,
     /// Ridge λ, units of weight.
     pub ridge: f64,
-    /// Leave-one-out RMS error on the calibration samples, target units (metres in depth space).
+    /// Cross-validated RMS error on the calibration samples (spatially buffered leave-one-out,
+    /// field name kept for file compatibility), target units (metres in depth space).
     pub loo_rms: f64,
 }
 
@@ -192,7 +240,7 @@ struct LocalMaps {
 /// Fitted local correction on a global model. Serialises the global fit, the candidates, the
 /// chosen pair and the correction `(s, t)` at the grid nodes; full-size maps are computed on first
 /// use and cached.
-#[derive(Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LocalModel {
     /// Settings.
@@ -201,13 +249,16 @@ pub struct LocalModel {
     pub image_size: ImageSize,
     /// The global fit.
     pub global: GlobalFit,
-    /// Leave-one-out RMS of the global fit alone, target units.
+    /// Cross-validated RMS error of the global fit alone, target units.
     pub global_loo_rms: f64,
-    /// Every candidate in order (bandwidth-major), with its LOO RMS.
+    /// Every candidate in order (bandwidth-major, after the floor; duplicates dropped), with its
+    /// cross-validated RMS error.
     pub candidates: Vec<LocalCandidate>,
-    /// The best candidate (lowest LOO RMS, first on ties).
+    /// The candidate kept by the one-standard-error rule; on fallback the one with the lowest
+    /// cross-validated error (first on ties).
     pub chosen: LocalCandidate,
-    /// `true` when the best candidate did not beat the global fit: the model is the global fit.
+    /// `true` when no candidate beat the global fit by more than one standard error: the model
+    /// is the global fit.
     pub fallback: bool,
     /// Grid nodes per row.
     pub nodes_x: usize,
@@ -218,37 +269,7 @@ pub struct LocalModel {
     /// Correction shift t at the nodes, target units, row-major (empty on fallback).
     pub node_shift: Vec<f64>,
     #[serde(skip)]
-    maps: OnceLock<Arc<LocalMaps>>,
-}
-
-impl std::fmt::Debug for LocalModel {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LocalModel")
-            .field("image_size", &self.image_size)
-            .field("global", &self.global)
-            .field("global_loo_rms", &self.global_loo_rms)
-            .field("chosen", &self.chosen)
-            .field("fallback", &self.fallback)
-            .field("nodes", &(self.nodes_x, self.nodes_y))
-            .finish()
-    }
-}
-
-/// Equality of the fitted quantities (the cached maps follow from them).
-impl PartialEq for LocalModel {
-    fn eq(&self, o: &Self) -> bool {
-        self.config == o.config
-            && self.image_size == o.image_size
-            && self.global == o.global
-            && self.global_loo_rms == o.global_loo_rms
-            && self.candidates == o.candidates
-            && self.chosen == o.chosen
-            && self.fallback == o.fallback
-            && self.nodes_x == o.nodes_x
-            && self.nodes_y == o.nodes_y
-            && self.node_scale == o.node_scale
-            && self.node_shift == o.node_shift
-    }
+    maps: MapCache<LocalMaps>,
 }
 
 /// Leave-one-out predictions `F₍₋ₖ₎(k)` of GSSA from the hat matrix.
@@ -297,6 +318,76 @@ fn ssra_loo(samples: &[Sample], m: &SsraModel) -> Result<Vec<f64>> {
         .collect()
 }
 
+/// Features of the global model's linear least squares: GSSA `[ẑ, 1]`, SSRA
+/// `[ẑ(u − ū), ẑ(v − v̄), ẑ, 1]` (padded with zeros to four).
+fn global_features(samples: &[Sample], base: LocalBase) -> (Vec<[f64; 4]>, usize) {
+    let n = samples.len().max(1) as f64;
+    match base {
+        LocalBase::Gssa => (samples.iter().map(|s| [s.pred, 1.0, 0.0, 0.0]).collect(), 2),
+        LocalBase::Ssra => {
+            let mu = samples.iter().map(|s| s.u).sum::<f64>() / n;
+            let mv = samples.iter().map(|s| s.v).sum::<f64>() / n;
+            (
+                samples
+                    .iter()
+                    .map(|s| [s.pred * (s.u - mu), s.pred * (s.v - mv), s.pred, 1.0])
+                    .collect(),
+                4,
+            )
+        }
+    }
+}
+
+/// Predictions at each sample `k` of the global model refitted without the samples of
+/// `buffers[k]` (which holds `k`): normal equations summed over the remaining samples (directly,
+/// not by subtraction, so that a large buffer cannot leave rounding residue that looks solvable)
+/// and solved.
+///
+/// # Errors
+/// [`CoreError::Degenerate`] when fewer samples than parameters + 1 remain or the refit is
+/// singular.
+fn buffered_global(
+    samples: &[Sample],
+    base: LocalBase,
+    buffers: &[Vec<usize>],
+) -> Result<Vec<f64>> {
+    let (x, dim) = global_features(samples, base);
+    let mut out = vec![false; samples.len()];
+    (0..samples.len())
+        .map(|k| {
+            out.iter_mut().for_each(|o| *o = false);
+            for &m in &buffers[k] {
+                out[m] = true;
+            }
+            let undetermined = || {
+                CoreError::Degenerate(format!(
+                    "without the {} samples near sample {k} the global fit is undetermined; \
+                     cross-validation is undefined",
+                    buffers[k].len()
+                ))
+            };
+            if samples.len() - buffers[k].len() < dim + 1 {
+                return Err(undetermined());
+            }
+            let mut a = [[0.0f64; 4]; 4];
+            let mut b = [0.0f64; 4];
+            for ((xi, s), _) in x.iter().zip(samples).zip(&out).filter(|(_, o)| !**o) {
+                for i in 0..4 {
+                    b[i] += xi[i] * s.depth_m;
+                    for j in 0..4 {
+                        a[i][j] += xi[i] * xi[j];
+                    }
+                }
+            }
+            for (i, row) in a.iter_mut().enumerate().skip(dim) {
+                row[i] = 1.0;
+            }
+            let theta = solve_spd4(&a, &b).ok_or_else(undetermined)?;
+            Ok(x[k].iter().zip(&theta).map(|(p, q)| p * q).sum())
+        })
+        .collect()
+}
+
 /// `F₍₋ₖ₎(k) = y − r/(1 − h)`.
 fn loo_value(k: usize, s: &Sample, fitted: f64, h: f64) -> Result<f64> {
     if !(h.is_finite() && h < LEVERAGE_MAX) {
@@ -307,13 +398,13 @@ fn loo_value(k: usize, s: &Sample, fitted: f64, h: f64) -> Result<f64> {
     Ok(s.depth_m - (s.depth_m - fitted) / (1.0 - h))
 }
 
-fn rms(values: impl Iterator<Item = f64>) -> f64 {
-    let (mut ss, mut n) = (0.0, 0usize);
-    for v in values {
-        ss += v * v;
-        n += 1;
+/// `sqrt(mean(x))` of squared errors (0 for none): the RMS.
+fn mean_sqrt(sq: &[f64]) -> f64 {
+    if sq.is_empty() {
+        0.0
+    } else {
+        (sq.iter().sum::<f64>() / sq.len() as f64).sqrt()
     }
-    if n == 0 { 0.0 } else { (ss / n as f64).sqrt() }
 }
 
 /// Per-sample quantities of the correction.
@@ -329,39 +420,30 @@ struct Prep<'a> {
 }
 
 impl Prep<'_> {
-    /// Node sums `[Σw, Σwx, Σwx², Σwe, Σwxe]` (row-major nodes) and the weight tables.
-    fn node_sums(&self, b: f64) -> (Vec<[f64; 5]>, Vec<f64>, Vec<f64>) {
-        let inv = 1.0 / (2.0 * b * b);
+    /// Node sums `[Σw, Σwx, Σwx², Σwe, Σwxe]` (row-major nodes) at bandwidth `b` (pixels) and
+    /// the weight tables.
+    fn node_sums(&self, b: f64) -> (Vec<[f64; 5]>, WeightTables) {
         let (nx, ny) = (self.cols.len(), self.rows.len());
-        let mut wu = vec![0.0; self.samples.len() * nx];
-        let mut wv = vec![0.0; self.samples.len() * ny];
-        for (k, s) in self.samples.iter().enumerate() {
-            for (j, &u) in self.cols.iter().enumerate() {
-                wu[k * nx + j] = (-(u - s.u).powi(2) * inv).exp();
-            }
-            for (i, &v) in self.rows.iter().enumerate() {
-                wv[k * ny + i] = (-(v - s.v).powi(2) * inv).exp();
-            }
-        }
+        let tables = WeightTables::new(
+            self.samples.iter().map(|s| (s.u, s.v)),
+            &self.cols,
+            &self.rows,
+            1.0 / (2.0 * b * b),
+        );
+        let mut coef = vec![[0.0f64; 5]; self.samples.len()];
+        let mut row: [Vec<f64>; 5] = std::array::from_fn(|_| vec![0.0f64; tables.stride]);
         let mut sums = vec![[0.0f64; 5]; nx * ny];
-        for k in 0..self.samples.len() {
+        let fill = |k: usize, w: f64| {
             let (x, e) = (self.x[k], self.e[k]);
-            let c = [1.0, x, x * x, e, x * e];
-            for i in 0..ny {
-                let a = wv[k * ny + i];
-                if a < 1e-300 {
-                    continue;
-                }
-                let row = &mut sums[i * nx..(i + 1) * nx];
-                for (j, acc) in row.iter_mut().enumerate() {
-                    let w = a * wu[k * nx + j];
-                    for (t, ct) in acc.iter_mut().zip(&c) {
-                        *t += w * ct;
-                    }
-                }
+            [w, w * x, w * x * x, w * e, w * x * e]
+        };
+        for i in 0..ny {
+            tables.row_sums(i, fill, &mut coef, &mut row);
+            for (j, acc) in sums[i * nx..(i + 1) * nx].iter_mut().enumerate() {
+                *acc = [row[0][j], row[1][j], row[2][j], row[3][j], row[4][j]];
             }
         }
-        (sums, wu, wv)
+        (sums, tables)
     }
 
     /// Solves one node's ridge system; returns `(δs, δt)`.
@@ -377,12 +459,117 @@ impl Prep<'_> {
     }
 }
 
+/// The one-standard-error rule on paired cross-validation losses (Breiman et al. 1984; Hastie,
+/// Tibshirani & Friedman, *Elements of Statistical Learning* §7.10): `losses[i][k]` is model
+/// `i`'s squared cross-validation error on sample `k`, models ordered from simplest to most complex. Returns
+/// the index of the simplest model whose mean loss is not worse than the best model's by more
+/// than one standard error of the paired differences `losses[i][k] − losses[best][k]`.
+///
+/// Pairing makes the comparison sensitive to consistent gains and blind to gains that a few
+/// samples produce (CV RMS differences of a few percent are often within noise on 100 samples). A
+/// more complex model is therefore kept only when it beats every simpler one by more than the
+/// noise of the comparison. Non-finite mean losses are never chosen; `None` when none is finite.
+pub fn one_standard_error_choice(losses: &[&[f64]]) -> Option<usize> {
+    let mean = |l: &[f64]| l.iter().sum::<f64>() / l.len().max(1) as f64;
+    let means: Vec<f64> = losses.iter().map(|l| mean(l)).collect();
+    let best = (0..losses.len())
+        .filter(|&i| means[i].is_finite())
+        .min_by(|&a, &b| means[a].total_cmp(&means[b]).then(a.cmp(&b)))?;
+    (0..=best).find(|&i| {
+        if !means[i].is_finite() || losses[i].len() != losses[best].len() {
+            return false;
+        }
+        let n = losses[i].len() as f64;
+        let d: Vec<f64> = losses[i]
+            .iter()
+            .zip(losses[best])
+            .map(|(a, b)| a - b)
+            .collect();
+        let md = mean(&d);
+        let var = d.iter().map(|x| (x - md).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+        md <= (var / n).sqrt()
+    })
+}
+
+/// The image diagonal, pixels.
+fn diagonal_px(size: ImageSize) -> f64 {
+    ((size.width * size.width + size.height * size.height) as f64).sqrt()
+}
+
+/// For each sample `k`, the samples left out when predicting it: `k` and every sample within
+/// `radius_px` of it (pixels; 0: `k` alone, plain leave-one-out, also when another sample sits
+/// on the same pixel).
+fn cv_buffers(samples: &[Sample], radius_px: f64) -> Vec<Vec<usize>> {
+    let r2 = radius_px * radius_px;
+    (0..samples.len())
+        .map(|k| {
+            let p = &samples[k];
+            (0..samples.len())
+                .filter(|&i| {
+                    i == k
+                        || (radius_px > 0.0
+                            && (samples[i].u - p.u).powi(2) + (samples[i].v - p.v).powi(2) <= r2)
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The cross-validation buffers of `config` for `samples` ([`cv_buffers`] at
+/// `cv_buffer_fraction` × the diagonal), or plain leave-one-out when leaving some sample's
+/// buffer out would leave the global fit undetermined (samples clustered in a small region):
+/// SSRA's (GSSA's below 5 samples) refit is tried for every buffer.
+fn cv_plan(samples: &SampleSet, config: &LocalConfig) -> Vec<Vec<usize>> {
+    let s = &samples.samples;
+    let buffers = cv_buffers(
+        s,
+        config.cv_buffer_fraction * diagonal_px(samples.image_size),
+    );
+    if buffers.iter().all(|b| b.len() == 1) {
+        return buffers;
+    }
+    let base = if s.len() > ssra::MIN_SAMPLES {
+        LocalBase::Ssra
+    } else {
+        LocalBase::Gssa
+    };
+    if buffered_global(s, base, &buffers).is_ok() {
+        buffers
+    } else {
+        cv_buffers(s, 0.0)
+    }
+}
+
+/// The smallest bandwidth (pixels) at which a grid node sees, on average, `min_node_samples`
+/// samples' worth of Gaussian weight when `n` samples are spread uniformly over `size`:
+/// `n · 2πb² / (W·H) = min_node_samples`.
+pub fn min_bandwidth_px(n: usize, size: ImageSize, min_node_samples: f64) -> f64 {
+    (min_node_samples * size.pixels() as f64 / (2.0 * std::f64::consts::PI * n.max(1) as f64))
+        .sqrt()
+}
+
 /// Fits the global model and the cross-validated local correction.
+///
+/// Candidates: every bandwidth `f × diagonal` of [`LocalConfig::bandwidth_fractions`], raised to
+/// [`min_bandwidth_px`] (duplicates dropped), × every ridge. Selection
+/// ([`one_standard_error_choice`]) over the global fit (simplest), then the candidates from the
+/// widest bandwidth and largest ridge to the narrowest and smallest: the model falls back to the
+/// global fit unless a correction beats it by more than one standard error.
 ///
 /// # Errors
 /// Too few samples (gssa-local < 4, ssra-local < 6); the global fit's errors
 /// ([`CoreError::Degenerate`] ...); a sample with leverage 1; bad settings.
 pub fn fit(samples: &SampleSet, base: LocalBase, config: &LocalConfig) -> Result<LocalModel> {
+    Ok(fit_with_loo(samples, base, config)?.0)
+}
+
+/// [`fit`], also returning the leave-one-out predictions of the model as kept (the global
+/// fit's on fallback), target units.
+fn fit_with_loo(
+    samples: &SampleSet,
+    base: LocalBase,
+    config: &LocalConfig,
+) -> Result<(LocalModel, Vec<f64>)> {
     config.validate()?;
     let size = samples.image_size;
     if size.pixels() == 0 {
@@ -391,7 +578,10 @@ pub fn fit(samples: &SampleSet, base: LocalBase, config: &LocalConfig) -> Result
         )));
     }
     let s = &samples.samples;
-    let (global, f_loo) = match base {
+    let diag = diagonal_px(size);
+    let buffers = cv_plan(samples, config);
+    let buffered = buffers.iter().any(|b| b.len() > 1);
+    let (global, mut f_loo) = match base {
         LocalBase::Gssa => {
             let m = gssa::fit(s)?;
             (GlobalFit::Gssa(m), gssa_loo(s, &m)?)
@@ -401,7 +591,15 @@ pub fn fit(samples: &SampleSet, base: LocalBase, config: &LocalConfig) -> Result
             (GlobalFit::Ssra(m), ssra_loo(s, &m)?)
         }
     };
-    let global_loo_rms = rms(s.iter().zip(&f_loo).map(|(p, f)| p.depth_m - f));
+    if buffered {
+        f_loo = buffered_global(s, base, &buffers)?;
+    }
+    let global_sq: Vec<f64> = s
+        .iter()
+        .zip(&f_loo)
+        .map(|(p, f)| (p.depth_m - f).powi(2))
+        .collect();
+    let global_loo_rms = mean_sqrt(&global_sq);
     let n = s.len() as f64;
     let f: Vec<f64> = s.iter().map(|p| global.predict(p.u, p.v, p.pred)).collect();
     let c = f.iter().sum::<f64>() / n;
@@ -418,7 +616,20 @@ pub fn fit(samples: &SampleSet, base: LocalBase, config: &LocalConfig) -> Result
     };
     let (nx, ny) = (prep.cols.len(), prep.rows.len());
     let (w, h) = (size.width, size.height);
-    let diag = ((w * w + h * h) as f64).sqrt();
+    let own: Vec<[f64; 5]> = prep
+        .x
+        .iter()
+        .zip(&prep.e)
+        .map(|(&x, &e)| [1.0, x, x * x, e, x * e])
+        .collect();
+    let b_min = min_bandwidth_px(s.len(), size, config.min_node_samples);
+    let mut bandwidths: Vec<f64> = Vec::new();
+    for &frac in &config.bandwidth_fractions {
+        let b = (frac * diag).max(b_min);
+        if !bandwidths.contains(&b) {
+            bandwidths.push(b);
+        }
+    }
     // bilinear neighbours of each sample's pixel
     let neighbours: Vec<[(usize, usize, f64); 2]> = s
         .iter()
@@ -429,68 +640,96 @@ pub fn fit(samples: &SampleSet, base: LocalBase, config: &LocalConfig) -> Result
         .collect();
 
     let mut candidates = Vec::new();
-    let mut best: Option<(usize, Vec<[f64; 5]>)> = None;
-    for &frac in &config.bandwidth_fractions {
-        let b = frac * diag;
-        let (sums, wu, wv) = prep.node_sums(b);
+    let mut cand_sq: Vec<Vec<f64>> = Vec::new();
+    let mut cand_pred: Vec<Vec<f64>> = Vec::new();
+    for &b in &bandwidths {
+        let (sums, tables) = prep.node_sums(b);
         for &ridge in &config.ridges {
-            let resid = s.iter().enumerate().map(|(k, p)| {
-                let [(x0, x1, fx), (y0, y1, fy)] = neighbours[k];
-                let (xk, ek) = (prep.x[k], prep.e[k]);
-                let own = [1.0, xk, xk * xk, ek, xk * ek];
-                let at = |i: usize, j: usize| {
-                    let wk = wu[k * nx + j] * wv[k * ny + i];
-                    let mut sm = sums[i * nx + j];
-                    for (t, o) in sm.iter_mut().zip(&own) {
-                        *t -= wk * o;
-                    }
-                    prep.solve(&sm, ridge)
-                };
-                let (a00, a01, a10, a11) = (at(y0, x0), at(y0, x1), at(y1, x0), at(y1, x1));
-                let bil = |p00: f64, p01: f64, p10: f64, p11: f64| {
-                    (p00 * (1.0 - fx) + p01 * fx) * (1.0 - fy) + (p10 * (1.0 - fx) + p11 * fx) * fy
-                };
-                let ds = bil(a00.0, a01.0, a10.0, a11.0);
-                let dt = bil(a00.1, a01.1, a10.1, a11.1);
-                let fl = f_loo[k];
-                p.depth_m - (fl + ds * (fl - c) + dt)
-            });
-            let loo_rms = rms(resid);
+            let loo: Vec<f64> = (0..s.len())
+                .map(|k| {
+                    let [(x0, x1, fx), (y0, y1, fy)] = neighbours[k];
+                    let at = |i: usize, j: usize| {
+                        let mut sm = sums[i * nx + j];
+                        for &m in &buffers[k] {
+                            let wm = tables.weight(m, i, j);
+                            for (t, o) in sm.iter_mut().zip(&own[m]) {
+                                *t -= wm * o;
+                            }
+                        }
+                        prep.solve(&sm, ridge)
+                    };
+                    let (a00, a01, a10, a11) = (at(y0, x0), at(y0, x1), at(y1, x0), at(y1, x1));
+                    let bil = |p00: f64, p01: f64, p10: f64, p11: f64| {
+                        (p00 * (1.0 - fx) + p01 * fx) * (1.0 - fy)
+                            + (p10 * (1.0 - fx) + p11 * fx) * fy
+                    };
+                    let ds = bil(a00.0, a01.0, a10.0, a11.0);
+                    let dt = bil(a00.1, a01.1, a10.1, a11.1);
+                    let fl = f_loo[k];
+                    fl + ds * (fl - c) + dt
+                })
+                .collect();
+            let sq: Vec<f64> = s
+                .iter()
+                .zip(&loo)
+                .map(|(p, y)| (p.depth_m - y).powi(2))
+                .collect();
             candidates.push(LocalCandidate {
                 bandwidth_px: b,
                 ridge,
-                loo_rms,
+                loo_rms: mean_sqrt(&sq),
             });
-            let idx = candidates.len() - 1;
-            let better = match &best {
-                None => true,
-                Some((bi, _)) => loo_rms < candidates[*bi].loo_rms,
-            };
-            if better {
-                best = Some((idx, sums.clone()));
-            }
+            cand_sq.push(sq);
+            cand_pred.push(loo);
         }
     }
-    let (bi, best_sums) = best
-        .ok_or_else(|| CoreError::InvalidParameter("local correction has no candidate".into()))?;
-    let chosen = candidates[bi];
-    if !chosen.loo_rms.is_finite() {
+    if let Some(bad) = candidates.iter().find(|c| !c.loo_rms.is_finite()) {
         return Err(CoreError::Degenerate(format!(
-            "local correction leave-one-out error is {} on these {} samples",
-            chosen.loo_rms,
+            "local correction leave-one-out error is {} (bandwidth {:.1} px, ridge {}) on these {} samples",
+            bad.loo_rms,
+            bad.bandwidth_px,
+            bad.ridge,
             s.len()
         )));
     }
-    let fallback = chosen.loo_rms >= global_loo_rms;
+    // simplest first: the global fit, then widest bandwidth / largest ridge first
+    let mut order: Vec<usize> = (0..candidates.len()).collect();
+    order.sort_by(|&a, &b| {
+        let (ca, cb) = (&candidates[a], &candidates[b]);
+        cb.bandwidth_px
+            .total_cmp(&ca.bandwidth_px)
+            .then(cb.ridge.total_cmp(&ca.ridge))
+            .then(a.cmp(&b))
+    });
+    let mut losses: Vec<&[f64]> = vec![&global_sq];
+    losses.extend(order.iter().map(|&i| cand_sq[i].as_slice()));
+    let pick = one_standard_error_choice(&losses).unwrap_or(0);
+    let fallback = pick == 0;
+    // the chosen candidate: the one kept, or on fallback the best by LOO RMS (for the report)
+    let ci = if fallback {
+        (0..candidates.len())
+            .min_by(|&a, &b| candidates[a].loo_rms.total_cmp(&candidates[b].loo_rms))
+            .unwrap_or(0)
+    } else {
+        order[pick - 1]
+    };
+    let chosen = *candidates
+        .get(ci)
+        .ok_or_else(|| CoreError::InvalidParameter("local correction has no candidate".into()))?;
     let (mut node_scale, mut node_shift) = (Vec::new(), Vec::new());
-    if !fallback {
-        for sm in &best_sums {
+    let loo = if fallback {
+        f_loo
+    } else {
+        let b = chosen.bandwidth_px;
+        let (sums, _) = prep.node_sums(b);
+        for sm in &sums {
             let (ds, dt) = prep.solve(sm, chosen.ridge);
             node_scale.push(1.0 + ds);
             node_shift.push(dt - ds * c);
         }
-    }
-    Ok(LocalModel {
+        std::mem::take(&mut cand_pred[ci])
+    };
+    let model = LocalModel {
         config: config.clone(),
         image_size: size,
         global,
@@ -502,8 +741,9 @@ pub fn fit(samples: &SampleSet, base: LocalBase, config: &LocalConfig) -> Result
         nodes_y: ny,
         node_scale,
         node_shift,
-        maps: OnceLock::new(),
-    })
+        maps: MapCache::default(),
+    };
+    Ok((model, loo))
 }
 
 fn nearest_pixel(u: f64, v: f64, size: ImageSize) -> (f64, f64) {
@@ -520,7 +760,7 @@ impl LocalModel {
         }
     }
 
-    /// The leave-one-out RMS of the model as used: the global one on fallback, else the chosen
+    /// The cross-validated RMS error of the model as used: the global one on fallback, else the chosen
     /// candidate's.
     pub fn loo_rms(&self) -> f64 {
         if self.fallback {
@@ -539,15 +779,9 @@ impl LocalModel {
         if self.fallback {
             return fv;
         }
-        let (nx, ny) = (self.nodes_x, self.nodes_y);
-        let (x0, x1, fx) = half_pixel_source(u, nx, self.image_size.width);
-        let (y0, y1, fy) = half_pixel_source(v, ny, self.image_size.height);
-        let bil = |m: &[f64]| {
-            let top = m[y0 * nx + x0] * (1.0 - fx) + m[y0 * nx + x1] * fx;
-            let bot = m[y1 * nx + x0] * (1.0 - fx) + m[y1 * nx + x1] * fx;
-            top * (1.0 - fy) + bot * fy
-        };
-        bil(&self.node_scale) * fv + bil(&self.node_shift)
+        let (nx, ny, size) = (self.nodes_x, self.nodes_y, self.image_size);
+        interpolate_nodes(&self.node_scale, nx, ny, size, u, v) * fv
+            + interpolate_nodes(&self.node_shift, nx, ny, size, u, v)
     }
 
     fn maps(&self) -> &LocalMaps {
@@ -563,7 +797,7 @@ impl LocalModel {
                 *o = (sv * g) as f32;
                 shift[[v, u]] = (sv * t0 + f64::from(t[[v, u]])) as f32;
             }
-            Arc::new(LocalMaps { scale, shift })
+            LocalMaps { scale, shift }
         })
     }
 
@@ -676,18 +910,18 @@ impl LocalModel {
 pub struct AutoCandidate {
     /// Method name.
     pub method: String,
-    /// Leave-one-out RMS on the calibration samples (target units); `None` when the method could
+    /// Cross-validated RMS error on the calibration samples (target units); `None` when the method could
     /// not be fitted on these samples.
     pub loo_rms: Option<f64>,
 }
 
-/// `auto`'s result: the chosen fitted model and every candidate's LOO RMS.
+/// `auto`'s result: the chosen fitted model and every candidate's cross-validated RMS error.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AutoModel {
     /// The chosen method fitted on all samples.
     pub chosen: Box<AlignmentModel>,
-    /// Every candidate in the order tried (gssa, ssra, lwlr, gssa-local, ssra-local).
+    /// Every candidate in the order tried, simplest first ([`AUTO_CANDIDATES`]).
     pub candidates: Vec<AutoCandidate>,
 }
 
@@ -728,10 +962,14 @@ impl AutoModel {
     }
 }
 
-/// LOO RMS of LWLR by exact refits without each sample.
-fn lwlr_loo(samples: &SampleSet, cfg: &lwlr::LwlrConfig) -> Result<f64> {
+/// Cross-validated predictions of LWLR by exact refits without each sample's buffer.
+fn lwlr_loo(
+    samples: &SampleSet,
+    cfg: &lwlr::LwlrConfig,
+    buffers: &[Vec<usize>],
+) -> Result<Vec<f64>> {
     let s = &samples.samples;
-    let mut resid = Vec::with_capacity(s.len());
+    let mut loo = Vec::with_capacity(s.len());
     let mut rest = SampleSet {
         image_size: samples.image_size,
         samples: Vec::with_capacity(s.len()),
@@ -741,16 +979,88 @@ fn lwlr_loo(samples: &SampleSet, cfg: &lwlr::LwlrConfig) -> Result<f64> {
         rest.samples.extend(
             s.iter()
                 .enumerate()
-                .filter(|(i, _)| *i != k)
+                .filter(|(i, _)| !buffers[k].contains(i))
                 .map(|(_, q)| *q),
         );
         let m = lwlr::fit_unmapped(&rest, cfg)?;
-        resid.push(p.depth_m - m.predict(p.u, p.v, p.pred));
+        loo.push(m.predict(p.u, p.v, p.pred));
     }
-    Ok(rms(resid.into_iter()))
+    Ok(loo)
 }
 
-/// Fits `auto`: every candidate method, its LOO RMS, the lowest kept.
+/// The methods `auto` considers, simplest first: the order in which the one-standard-error rule
+/// prefers them.
+pub const AUTO_CANDIDATES: [&str; 5] = ["gssa", "ssra", "gssa-local", "ssra-local", "lwlr"];
+
+/// Fits `method` (one of [`AUTO_CANDIDATES`], default settings) on `samples` with its
+/// cross-validated predictions (target units).
+fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, AlignmentModel)> {
+    let s = &samples.samples;
+    let config = LocalConfig::default();
+    let buffers = cv_plan(samples, &config);
+    let buffered = buffers.iter().any(|b| b.len() > 1);
+    match method {
+        "gssa" => {
+            let m = gssa::fit(s)?;
+            let loo = if buffered {
+                buffered_global(s, LocalBase::Gssa, &buffers)?
+            } else {
+                gssa_loo(s, &m)?
+            };
+            Ok((loo, AlignmentModel::Gssa(m)))
+        }
+        "ssra" => {
+            if s.len() < ssra::MIN_SAMPLES + 1 {
+                return Err(too_few("ssra", s.len(), ssra::MIN_SAMPLES + 1));
+            }
+            let m = ssra::fit(samples, &SsraConfig::default())?;
+            let loo = if buffered {
+                buffered_global(s, LocalBase::Ssra, &buffers)?
+            } else {
+                ssra_loo(s, &m)?
+            };
+            Ok((loo, AlignmentModel::Ssra(m)))
+        }
+        "gssa-local" | "ssra-local" => {
+            let (name, base, need) = if method == "gssa-local" {
+                ("gssa-local", LocalBase::Gssa, GSSA_LOCAL_MIN_SAMPLES)
+            } else {
+                ("ssra-local", LocalBase::Ssra, SSRA_LOCAL_MIN_SAMPLES)
+            };
+            if s.len() < need {
+                return Err(too_few(name, s.len(), need));
+            }
+            let (m, loo) = fit_with_loo(samples, base, &config)?;
+            Ok((loo, AlignmentModel::Local(Box::new(m))))
+        }
+        "lwlr" => {
+            let cfg = lwlr::LwlrConfig::faithful();
+            let loo = lwlr_loo(samples, &cfg, &buffers)?;
+            Ok((loo, AlignmentModel::Lwlr(lwlr::fit(samples, &cfg)?)))
+        }
+        other => Err(CoreError::InvalidParameter(format!(
+            "auto: '{other}' is not a candidate method (expected one of: {})",
+            AUTO_CANDIDATES.join(", ")
+        ))),
+    }
+}
+
+/// Cross-validated predictions (target units) of `method` — one of [`AUTO_CANDIDATES`], with
+/// default settings — on `samples`, as `auto` computes them (spatially buffered leave-one-out,
+/// see the module docs): refits from the normal equations for gssa and ssra, exact refits for
+/// lwlr, and for the local variants those of the model kept by their own selection (the global
+/// fit's on fallback).
+///
+/// # Errors
+/// An unknown method; the method's fitting errors.
+pub fn loo_predictions(samples: &SampleSet, method: &str) -> Result<Vec<f64>> {
+    samples.validate()?;
+    Ok(fit_candidate(samples, method)?.0)
+}
+
+/// Fits `auto`: every method of [`AUTO_CANDIDATES`] with its leave-one-out errors on the
+/// calibration samples; kept is the simplest method within one standard error of the best
+/// ([`one_standard_error_choice`] on the paired squared LOO errors).
 ///
 /// # Errors
 /// [`CoreError::TooFewSamples`] below 3 samples; [`CoreError::Degenerate`] when no candidate
@@ -758,71 +1068,35 @@ fn lwlr_loo(samples: &SampleSet, cfg: &lwlr::LwlrConfig) -> Result<f64> {
 pub fn fit_auto(samples: &SampleSet) -> Result<AutoModel> {
     let s = &samples.samples;
     let mut candidates = Vec::new();
-    let mut best: Option<(f64, AlignmentModel)> = None;
+    let mut fitted: Vec<(Vec<f64>, AlignmentModel)> = Vec::new();
     let mut first_err = None;
-    let mut consider = |name: &'static str, r: Result<(f64, AlignmentModel)>| match r {
-        Ok((loo, model)) => {
-            candidates.push(AutoCandidate {
-                method: name.to_string(),
-                loo_rms: Some(loo),
-            });
-            if best.as_ref().is_none_or(|(b, _)| loo < *b) {
-                best = Some((loo, model));
+    for name in AUTO_CANDIDATES {
+        match fit_candidate(samples, name) {
+            Ok((loo, model)) => {
+                let sq: Vec<f64> = s
+                    .iter()
+                    .zip(&loo)
+                    .map(|(p, y)| (p.depth_m - y).powi(2))
+                    .collect();
+                candidates.push(AutoCandidate {
+                    method: name.to_string(),
+                    loo_rms: Some(mean_sqrt(&sq)),
+                });
+                fitted.push((sq, model));
+            }
+            Err(e) => {
+                candidates.push(AutoCandidate {
+                    method: name.to_string(),
+                    loo_rms: None,
+                });
+                first_err.get_or_insert(e);
             }
         }
-        Err(e) => {
-            candidates.push(AutoCandidate {
-                method: name.to_string(),
-                loo_rms: None,
-            });
-            first_err.get_or_insert(e);
-        }
-    };
-    consider(
-        "gssa",
-        gssa::fit(s).and_then(|m| {
-            let f = gssa_loo(s, &m)?;
-            Ok((
-                rms(s.iter().zip(&f).map(|(p, v)| p.depth_m - v)),
-                AlignmentModel::Gssa(m),
-            ))
-        }),
-    );
-    consider(
-        "ssra",
-        if s.len() < ssra::MIN_SAMPLES + 1 {
-            Err(too_few("ssra", s.len(), ssra::MIN_SAMPLES + 1))
-        } else {
-            ssra::fit(samples, &SsraConfig::default()).and_then(|m| {
-                let f = ssra_loo(s, &m)?;
-                Ok((
-                    rms(s.iter().zip(&f).map(|(p, v)| p.depth_m - v)),
-                    AlignmentModel::Ssra(m),
-                ))
-            })
-        },
-    );
-    let lcfg = lwlr::LwlrConfig::faithful();
-    consider(
-        "lwlr",
-        lwlr_loo(samples, &lcfg)
-            .and_then(|loo| Ok((loo, AlignmentModel::Lwlr(lwlr::fit(samples, &lcfg)?)))),
-    );
-    for (name, base, need) in [
-        ("gssa-local", LocalBase::Gssa, GSSA_LOCAL_MIN_SAMPLES),
-        ("ssra-local", LocalBase::Ssra, SSRA_LOCAL_MIN_SAMPLES),
-    ] {
-        let r = if s.len() < need {
-            Err(too_few(name, s.len(), need))
-        } else {
-            fit(samples, base, &LocalConfig::default())
-                .map(|m| (m.loo_rms(), AlignmentModel::Local(Box::new(m))))
-        };
-        consider(name, r);
     }
-    match best {
-        Some((_, model)) => Ok(AutoModel {
-            chosen: Box::new(model),
+    let losses: Vec<&[f64]> = fitted.iter().map(|(sq, _)| sq.as_slice()).collect();
+    match one_standard_error_choice(&losses) {
+        Some(i) => Ok(AutoModel {
+            chosen: Box::new(fitted.swap_remove(i).1),
             candidates,
         }),
         None => Err(first_err.unwrap_or_else(|| {

@@ -35,17 +35,15 @@
 //! pre-fit identical in both; the difference is the 32-px grid plus bilinear resize only); their
 //! MAE against the ground truth is 2.80 mm (grid) vs 2.78 mm (exact).
 
-use std::sync::{Arc, OnceLock};
-
 use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::grid::{self, MapCache, WeightTables, interpolate_nodes, resize_bilinear};
 use super::gssa::{self, GssaModel};
 use super::{Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::image::ImageSize;
-use crate::kernels::{LWLR_BLOCK, lwlr_row_sums};
 
 /// Fewest samples LWLR needs (the global pre-fit needs 2).
 pub const MIN_SAMPLES: usize = 2;
@@ -172,7 +170,7 @@ pub struct LwlrMaps {
 
 /// Fitted LWLR. Serialises compactly (config, samples, pre-fit); the full-size maps are
 /// computed on first use ([`LwlrModel::maps`]) and cached.
-#[derive(Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LwlrModel {
     /// Settings.
@@ -186,31 +184,7 @@ pub struct LwlrModel {
     /// The calibration samples.
     pub samples: Vec<Sample>,
     #[serde(skip)]
-    maps: OnceLock<Arc<LwlrMaps>>,
-}
-
-impl std::fmt::Debug for LwlrModel {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LwlrModel")
-            .field("config", &self.config)
-            .field("image_size", &self.image_size)
-            .field("bandwidth_px", &self.bandwidth_px)
-            .field("global", &self.global)
-            .field("n_samples", &self.samples.len())
-            .field("maps_cached", &self.maps.get().is_some())
-            .finish()
-    }
-}
-
-/// Equality of the fitted quantities (the cached maps follow from them).
-impl PartialEq for LwlrModel {
-    fn eq(&self, other: &Self) -> bool {
-        self.config == other.config
-            && self.image_size == other.image_size
-            && self.bandwidth_px == other.bandwidth_px
-            && self.global == other.global
-            && self.samples == other.samples
-    }
+    maps: MapCache<LwlrMaps>,
 }
 
 /// Fits LWLR: validates the settings, fits the global scale-shift, and computes the maps.
@@ -226,7 +200,7 @@ pub fn fit(samples: &SampleSet, config: &LwlrConfig) -> Result<LwlrModel> {
         bandwidth_px: config.bandwidth_for(samples.image_size),
         global,
         samples: samples.samples.clone(),
-        maps: OnceLock::new(),
+        maps: MapCache::default(),
     };
     model.maps();
     Ok(model)
@@ -243,7 +217,7 @@ pub(crate) fn fit_unmapped(samples: &SampleSet, config: &LwlrConfig) -> Result<L
         bandwidth_px: config.bandwidth_for(samples.image_size),
         global,
         samples: samples.samples.clone(),
-        maps: OnceLock::new(),
+        maps: MapCache::default(),
     })
 }
 
@@ -281,7 +255,7 @@ impl FromF64 for f64 {
 impl LwlrModel {
     /// The full-size `(scale, shift)` maps for [`LwlrModel::image_size`], computed once and cached.
     pub fn maps(&self) -> &LwlrMaps {
-        self.maps.get_or_init(|| Arc::new(self.compute_maps()))
+        self.maps.get_or_init(|| self.compute_maps())
     }
 
     /// Number of singular local fits that fell back to the global fit (computes the maps if needed).
@@ -324,13 +298,11 @@ impl LwlrModel {
     /// Grid node positions (columns, rows) in pixels: `offset + step·i` below the image size
     /// (at least one node per axis, at `offset`).
     pub fn grid_nodes(&self) -> (Vec<f64>, Vec<f64>) {
-        let step = self.config.grid_step_px.max(1);
-        let off = self.config.grid_offset_px;
-        let axis = |len: usize| -> Vec<f64> {
-            let v: Vec<f64> = (off..len).step_by(step).map(|x| x as f64).collect();
-            if v.is_empty() { vec![off as f64] } else { v }
-        };
-        (axis(self.image_size.width), axis(self.image_size.height))
+        grid::grid_nodes(
+            self.config.grid_step_px,
+            self.config.grid_offset_px,
+            self.image_size,
+        )
     }
 
     /// Metric depth (metres) the model gives at pixel `(u, v)` for ẑ = `pred`, in f64, without
@@ -351,14 +323,10 @@ impl LwlrModel {
                 let mut s = vec![0.0f64; nx * ny];
                 let mut t = vec![0.0f64; nx * ny];
                 solve_lattice(&p, &cols, &rows, &mut s, &mut t);
-                let (x0, x1, fx) = half_pixel_source(u, nx, self.image_size.width);
-                let (y0, y1, fy) = half_pixel_source(v, ny, self.image_size.height);
-                let bil = |m: &[f64]| {
-                    let top = m[y0 * nx + x0] * (1.0 - fx) + m[y0 * nx + x1] * fx;
-                    let bot = m[y1 * nx + x0] * (1.0 - fx) + m[y1 * nx + x1] * fx;
-                    top * (1.0 - fy) + bot * fy
-                };
-                (bil(&s), bil(&t))
+                (
+                    interpolate_nodes(&s, nx, ny, self.image_size, u, v),
+                    interpolate_nodes(&t, nx, ny, self.image_size, u, v),
+                )
             }
         };
         scale * pred + shift
@@ -378,8 +346,8 @@ impl LwlrModel {
     }
 
     /// The fitted value at the pixel nearest to `(u, v)` (clamped to the image) from the cached
-    /// full-size maps: `S[v, u]·ẑ + T[v, u]`, exactly what [`LwlrModel::apply_into`] computes
-    /// there (in f64).
+    /// full-size maps: `S[v, u]·ẑ + T[v, u]`, exactly what
+    /// [`super::AlignmentModel::apply`] computes there (in f64).
     pub fn predict_at_pixel(&self, u: f64, v: f64, pred: f64) -> f64 {
         let m = self.maps();
         let (w, h) = (self.image_size.width, self.image_size.height);
@@ -483,23 +451,8 @@ fn solve_lattice<T: FromF64>(
 ) -> usize {
     let n = p.uv.len();
     let nx = cols.len();
-    let stride = nx.div_ceil(LWLR_BLOCK) * LWLR_BLOCK;
-    // column table wu[k·stride + j] = exp(−(u_j − u_k)²/2b²), zero-padded; row table wv[k·ny + i].
-    let mut wu = vec![0.0f64; n * stride];
-    for (k, &(uk, _)) in p.uv.iter().enumerate() {
-        for (j, &u) in cols.iter().enumerate() {
-            let d = u - uk;
-            wu[k * stride + j] = (-d * d * p.inv_2b2).exp();
-        }
-    }
-    let ny = rows.len();
-    let mut wv = vec![0.0f64; n * ny];
-    for (k, &(_, vk)) in p.uv.iter().enumerate() {
-        for (i, &v) in rows.iter().enumerate() {
-            let d = v - vk;
-            wv[k * ny + i] = (-d * d * p.inv_2b2).exp();
-        }
-    }
+    let tables = WeightTables::new(p.uv.iter().copied(), cols, rows, p.inv_2b2);
+    let stride = tables.stride;
     let singular = std::sync::atomic::AtomicUsize::new(0);
     out_scale
         .par_chunks_mut(nx)
@@ -513,12 +466,11 @@ fn solve_lattice<T: FromF64>(
                 )
             },
             |(coef, sums), (i, (srow, trow))| {
-                for (k, c) in coef.iter_mut().enumerate() {
-                    let w = wv[k * ny + i];
+                let fill = |k: usize, w: f64| {
                     let (x, y) = p.xy[k];
-                    *c = [w, w * x, w * x * x, w * y, w * x * y];
-                }
-                lwlr_row_sums(&wu, stride, coef, sums);
+                    [w, w * x, w * x * x, w * y, w * x * y]
+                };
+                tables.row_sums(i, fill, coef, sums);
                 let mut bad = 0;
                 for j in 0..nx {
                     let (a, c) = match local_solve(
@@ -564,48 +516,4 @@ fn local_solve(p: &Prepared, s: [f64; 5]) -> Option<(f64, f64)> {
     let a = (num + lam * s4) / det;
     let c = (s3 - a * s1) / diag;
     (a.is_finite() && c.is_finite()).then_some((a, c))
-}
-
-/// Half-pixel-centre source position of output coordinate `x` when resizing `n` nodes to `len`
-/// pixels: `(x + ½)·n/len − ½`, clamped to `[0, n − 1]`; returns `(i0, i1, frac)`.
-#[inline]
-pub(crate) fn half_pixel_source(x: f64, n: usize, len: usize) -> (usize, usize, f64) {
-    let src = (x + 0.5) * n as f64 / len as f64 - 0.5;
-    if src <= 0.0 || n == 1 {
-        return (0, 0, 0.0);
-    }
-    let i0 = src.floor() as usize;
-    if i0 >= n - 1 {
-        return (n - 1, n - 1, 0.0);
-    }
-    (i0, i0 + 1, src - i0 as f64)
-}
-
-/// Bilinear resize of a row-major `ny × nx` f64 grid to `h × w` f32 (half-pixel centres, clamped).
-/// Horizontal pass on the node rows first, then a vectorised vertical blend per output row.
-pub(crate) fn resize_bilinear(
-    src: &[f64],
-    nx: usize,
-    ny: usize,
-    w: usize,
-    h: usize,
-) -> Array2<f32> {
-    let xs: Vec<(usize, usize, f64)> = (0..w).map(|x| half_pixel_source(x as f64, nx, w)).collect();
-    let mut rows = vec![0.0f32; ny * w];
-    for r in 0..ny {
-        let s = &src[r * nx..(r + 1) * nx];
-        for (o, &(x0, x1, f)) in rows[r * w..(r + 1) * w].iter_mut().zip(&xs) {
-            *o = (s[x0] * (1.0 - f) + s[x1] * f) as f32;
-        }
-    }
-    let mut out = vec![0.0f32; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, orow)| {
-        let (y0, y1, fy) = half_pixel_source(y as f64, ny, h);
-        let (a, b) = (&rows[y0 * w..(y0 + 1) * w], &rows[y1 * w..(y1 + 1) * w]);
-        let (wa, wb) = ((1.0 - fy) as f32, fy as f32);
-        for ((o, &p), &q) in orow.iter_mut().zip(a).zip(b) {
-            *o = p * wa + q * wb;
-        }
-    });
-    Array2::from_shape_vec((h, w), out).unwrap_or_default()
 }

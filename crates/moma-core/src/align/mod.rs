@@ -3,6 +3,7 @@
 //! A new method is one new module + one variant in [`Method`] and
 //! [`AlignmentModel`].
 
+mod grid;
 pub mod gssa;
 pub mod local;
 pub mod lwlr;
@@ -171,8 +172,9 @@ pub enum Method {
     /// GSSA plus a cross-validated local scale/shift correction (METHOD.md §10).
     #[serde(rename = "gssa-local")]
     GssaLocal(local::LocalConfig),
-    /// The method with the lowest leave-one-out error on the calibration samples among gssa,
-    /// ssra, lwlr, gssa-local and ssra-local.
+    /// The simplest of gssa, ssra, gssa-local, ssra-local and lwlr whose cross-validated error
+    /// on the calibration samples is within one standard error of the best's
+    /// ([`local::fit_auto`]).
     Auto,
 }
 
