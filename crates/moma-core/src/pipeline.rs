@@ -44,7 +44,7 @@
 
 use std::sync::Arc;
 
-use ndarray::{Array2, ArrayViewMut2};
+use ndarray::{Array2, ArrayView3, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -52,6 +52,7 @@ use crate::align::{AlignmentModel, FitReport, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use crate::normalise::{AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise};
+use crate::realign::{AnchorStore, RealignConfig, RealignReport, realign_in_place};
 use crate::sampling::{SamplingConfig, sample_pixels};
 
 /// Everything a calibration decides.
@@ -248,6 +249,11 @@ pub struct Calibration {
     /// The workspace the normalisation statistics are computed over (`None`: the whole map).
     #[serde(default)]
     pub workspace: Option<Arc<Workspace>>,
+    /// The calibration frame's grey and ground truth for per-frame re-alignment on static
+    /// anchors ([`crate::realign`]); absent unless added with [`Calibration::with_anchors`]
+    /// (and then not written, so files without it stay valid).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub anchors: Option<Arc<AnchorStore>>,
 }
 
 /// Calibrates from one frame: normalise `pred` (over `workspace` if given), sample ground truth
@@ -323,6 +329,7 @@ pub fn calibrate_normalised(
         report,
         samples,
         workspace,
+        anchors: None,
     })
 }
 
@@ -378,6 +385,10 @@ impl Calibration {
         }
         if let Some(w) = &self.workspace {
             size.expect_eq("workspace mask", w.mask().size())?;
+        }
+        if let Some(a) = &self.anchors {
+            a.validate()?;
+            size.expect_eq("anchor store", a.image_size())?;
         }
         let method = self.model.name();
         if method != self.report.method {
@@ -463,5 +474,75 @@ impl Calibration {
             crate::kernels::reciprocal_positive(out);
         }
         Ok(())
+    }
+}
+
+impl Calibration {
+    /// Adds the anchor store for per-frame re-alignment ([`crate::realign`]): the calibration
+    /// frame's RGB `(height, width, 3)` and its ground truth (the frame the calibration was
+    /// fitted on, or any frame of the same fixed camera with ground truth).
+    ///
+    /// # Errors
+    /// Size mismatches with the calibration, no valid static ground-truth depth.
+    pub fn with_anchors(mut self, rgb: ArrayView3<'_, u8>, gt: &MetricDepth) -> Result<Self> {
+        self.image_size()
+            .expect_eq("anchor ground truth", gt.size())?;
+        self.anchors = Some(Arc::new(AnchorStore::new(rgb, gt)?));
+        Ok(self)
+    }
+
+    /// The anchor store, or an error saying how to get one.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] when the calibration holds no anchor store.
+    pub fn anchor_store(&self) -> Result<&AnchorStore> {
+        self.anchors.as_deref().ok_or_else(|| {
+            CoreError::InvalidParameter(
+                "this calibration holds no anchor store, so it cannot re-align on static \
+                 anchors: calibrate again with the calibration frame's RGB \
+                 (`moma calibrate --rgb IMG --anchors`, or `Calibration::with_anchors`)"
+                    .into(),
+            )
+        })
+    }
+
+    /// [`Calibration::align`], then per-frame re-alignment on static anchors found in this
+    /// frame's RGB `(height, width, 3)` ([`crate::realign::realign_in_place`]): metres, and the
+    /// per-frame report (when the correction is rejected or too few anchors remain, the one-shot
+    /// result is returned and the report says why).
+    ///
+    /// # Errors
+    /// No anchor store ([`Calibration::anchor_store`]), the errors of [`Calibration::align`],
+    /// an RGB of another size.
+    pub fn align_realigned(
+        &self,
+        pred: &Prediction,
+        rgb: ArrayView3<'_, u8>,
+        config: &RealignConfig,
+    ) -> Result<(MetricDepth, RealignReport)> {
+        let store = self.anchor_store()?;
+        let mut depth = self.align(pred)?;
+        let report = realign_in_place(
+            store,
+            rgb,
+            self.space(),
+            config,
+            &mut depth.depth_m.view_mut(),
+        )?;
+        Ok((depth, report))
+    }
+
+    /// Re-aligns a result of this calibration in place (as [`Calibration::align_realigned`]
+    /// after [`Calibration::align_normalised_into`]).
+    ///
+    /// # Errors
+    /// As [`Calibration::align_realigned`].
+    pub fn realign_into(
+        &self,
+        rgb: ArrayView3<'_, u8>,
+        config: &RealignConfig,
+        depth_m: &mut ArrayViewMut2<'_, f32>,
+    ) -> Result<RealignReport> {
+        realign_in_place(self.anchor_store()?, rgb, self.space(), config, depth_m)
     }
 }
