@@ -479,15 +479,37 @@ impl Calibration {
 
 impl Calibration {
     /// Adds the anchor store for per-frame re-alignment ([`crate::realign`]): the calibration
-    /// frame's RGB `(height, width, 3)` and its ground truth (the frame the calibration was
-    /// fitted on, or any frame of the same fixed camera with ground truth).
+    /// frame's RGB `(height, width, 3)`, its ground truth and its prediction (the frame the
+    /// calibration was fitted on, or any frame of the same fixed camera with ground truth); the
+    /// store keeps this calibration's own result on that prediction too.
     ///
     /// # Errors
-    /// Size mismatches with the calibration, no valid static ground-truth depth.
-    pub fn with_anchors(mut self, rgb: ArrayView3<'_, u8>, gt: &MetricDepth) -> Result<Self> {
+    /// Size or kind mismatches with the calibration, no valid static ground-truth depth.
+    pub fn with_anchors(
+        self,
+        rgb: ArrayView3<'_, u8>,
+        gt: &MetricDepth,
+        pred: &Prediction,
+    ) -> Result<Self> {
+        let normalised = self.normalise(pred)?;
+        self.with_anchors_normalised(rgb, gt, &normalised)
+    }
+
+    /// [`Calibration::with_anchors`] from the prediction already normalised by
+    /// [`Calibration::normalise`].
+    ///
+    /// # Errors
+    /// As [`Calibration::with_anchors`].
+    pub fn with_anchors_normalised(
+        mut self,
+        rgb: ArrayView3<'_, u8>,
+        gt: &MetricDepth,
+        normalised: &NormalisedMap,
+    ) -> Result<Self> {
         self.image_size()
             .expect_eq("anchor ground truth", gt.size())?;
-        self.anchors = Some(Arc::new(AnchorStore::new(rgb, gt)?));
+        let own = self.align_normalised(normalised)?;
+        self.anchors = Some(Arc::new(AnchorStore::new(rgb, gt)?.with_one_shot(&own)?));
         Ok(self)
     }
 

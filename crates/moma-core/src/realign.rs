@@ -77,6 +77,7 @@ pub struct AnchorStore {
     size: ImageSize,
     grey: Array2<u8>,
     depth_mm: Array2<u16>,
+    one_shot_mm: Option<Array2<u16>>,
 }
 
 /// The serialised form of an [`AnchorStore`].
@@ -91,6 +92,10 @@ struct AnchorStoreFile {
     grey_b64: String,
     /// Depth in mm at half resolution, u16 little-endian row-major, base64.
     depth_mm_b64: String,
+    /// The calibration's own one-shot result on the calibration frame at the same pixels, mm,
+    /// u16 little-endian, base64 (absent: only the ground-truth target is available).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    one_shot_mm_b64: Option<String>,
 }
 
 fn half(size: ImageSize) -> (usize, usize) {
@@ -189,6 +194,7 @@ impl AnchorStore {
             size,
             grey,
             depth_mm,
+            one_shot_mm: None,
         };
         if store.valid_depth_px() == 0 {
             return Err(CoreError::NoValidPixels(
@@ -196,6 +202,31 @@ impl AnchorStore {
             ));
         }
         Ok(store)
+    }
+
+    /// Records the calibration's one-shot result on the calibration frame (metres, full
+    /// resolution) at the store's pixels, for the `calibration-output` target.
+    ///
+    /// # Errors
+    /// Size mismatch.
+    pub fn with_one_shot(mut self, one_shot: &MetricDepth) -> Result<Self> {
+        self.size
+            .expect_eq("calibration one-shot depth", one_shot.size())?;
+        let (hh, hw) = half(self.size);
+        self.one_shot_mm = Some(Array2::from_shape_fn((hh, hw), |(i, j)| {
+            let z = one_shot.depth_m[[2 * i, 2 * j]];
+            if is_valid_depth(z) && z * 1000.0 < u16::MAX as f32 - 0.5 {
+                (z * 1000.0).round().max(1.0) as u16
+            } else {
+                0
+            }
+        }));
+        Ok(self)
+    }
+
+    /// Whether the calibration's one-shot result is stored.
+    pub fn has_one_shot(&self) -> bool {
+        self.one_shot_mm.is_some()
     }
 
     /// Full-resolution image size, pixels.
@@ -210,7 +241,9 @@ impl AnchorStore {
 
     /// Size of the stored arrays, bytes (before base64).
     pub fn stored_bytes(&self) -> usize {
-        self.grey.len() + 2 * self.depth_mm.len()
+        self.grey.len()
+            + 2 * self.depth_mm.len()
+            + self.one_shot_mm.as_ref().map_or(0, |a| 2 * a.len())
     }
 
     /// Checks internal consistency (array shapes against the image size).
@@ -228,7 +261,13 @@ impl AnchorStore {
                 self.size
             )));
         }
-        if self.grey.dim() != (hh, hw) || self.depth_mm.dim() != (hh, hw) {
+        if self.grey.dim() != (hh, hw)
+            || self.depth_mm.dim() != (hh, hw)
+            || self
+                .one_shot_mm
+                .as_ref()
+                .is_some_and(|a| a.dim() != (hh, hw))
+        {
             return Err(CoreError::InvalidParameter(format!(
                 "anchor store arrays are not {hw}x{hh} (half of {})",
                 self.size
@@ -240,12 +279,14 @@ impl AnchorStore {
 
 impl From<AnchorStore> for AnchorStoreFile {
     fn from(s: AnchorStore) -> Self {
-        let depth: Vec<u8> = s.depth_mm.iter().flat_map(|d| d.to_le_bytes()).collect();
+        let le = |a: &Array2<u16>| -> Vec<u8> { a.iter().flat_map(|d| d.to_le_bytes()).collect() };
+        let depth = le(&s.depth_mm);
         Self {
             width: s.size.width,
             height: s.size.height,
             grey_b64: b64_encode(&s.grey.iter().copied().collect::<Vec<u8>>()),
             depth_mm_b64: b64_encode(&depth),
+            one_shot_mm_b64: s.one_shot_mm.as_ref().map(|a| b64_encode(&le(a))),
         }
     }
 }
@@ -273,23 +314,30 @@ impl TryFrom<AnchorStoreFile> for AnchorStore {
                 hh * hw
             ));
         }
-        let depth =
-            b64_decode(&f.depth_mm_b64).map_err(|e| format!("anchor store depth_mm_b64: {e}"))?;
-        if depth.len() != 2 * hh * hw {
-            return Err(format!(
-                "anchor store depth_mm_b64 holds {} bytes, expected {} ({hw}x{hh} u16)",
-                depth.len(),
-                2 * hh * hw
-            ));
-        }
-        let depth: Vec<u16> = depth
-            .chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]))
-            .collect();
+        let u16s = |field: &str, text: &str| -> std::result::Result<Array2<u16>, String> {
+            let bytes = b64_decode(text).map_err(|e| format!("anchor store {field}: {e}"))?;
+            if bytes.len() != 2 * hh * hw {
+                return Err(format!(
+                    "anchor store {field} holds {} bytes, expected {} ({hw}x{hh} u16)",
+                    bytes.len(),
+                    2 * hh * hw
+                ));
+            }
+            let v: Vec<u16> = bytes
+                .chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect();
+            Array2::from_shape_vec((hh, hw), v).map_err(|e| e.to_string())
+        };
         Ok(Self {
             size,
             grey: Array2::from_shape_vec((hh, hw), grey).map_err(|e| e.to_string())?,
-            depth_mm: Array2::from_shape_vec((hh, hw), depth).map_err(|e| e.to_string())?,
+            depth_mm: u16s("depth_mm_b64", &f.depth_mm_b64)?,
+            one_shot_mm: f
+                .one_shot_mm_b64
+                .as_deref()
+                .map(|t| u16s("one_shot_mm_b64", t))
+                .transpose()?,
         })
     }
 }
@@ -399,6 +447,42 @@ impl std::str::FromStr for CorrectionModel {
     }
 }
 
+/// What the correction is fitted to at the anchors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum AnchorTarget {
+    /// The calibration frame's ground truth: also corrects the one-shot fit's own error on the
+    /// background (which need not transfer to the objects).
+    GroundTruth,
+    /// The calibration's own one-shot result on the calibration frame: removes only the model's
+    /// change since calibration (the per-frame fluctuation), the fit itself is kept. Needs
+    /// [`AnchorStore::with_one_shot`].
+    #[default]
+    CalibrationOutput,
+}
+
+impl std::fmt::Display for AnchorTarget {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::GroundTruth => "ground-truth",
+            Self::CalibrationOutput => "calibration-output",
+        })
+    }
+}
+
+impl std::str::FromStr for AnchorTarget {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "ground-truth" => Ok(Self::GroundTruth),
+            "calibration-output" => Ok(Self::CalibrationOutput),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown re-alignment target '{other}' (expected calibration-output or ground-truth)"
+            ))),
+        }
+    }
+}
+
 /// Settings of the re-alignment (module documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -407,9 +491,12 @@ pub struct RealignConfig {
     pub thresholds: AnchorThresholds,
     /// Correction form.
     pub model: CorrectionModel,
-    /// Ridge λ towards the identity, in anchor equivalents (default 10).
+    /// What the correction is fitted to.
+    pub target: AnchorTarget,
+    /// Ridge λ towards the identity, in anchor equivalents (default 100; with the default 200
+    /// anchors a strong shrinkage, chosen by the ablation in docs/evaluation.md).
     pub ridge: f64,
-    /// Most anchors used (seeded subsample; default 2000).
+    /// Most anchors used (seeded subsample; default 200).
     pub max_anchors: usize,
     /// Fewest anchors (before the split) for a correction to be tried (default 50).
     pub min_anchors: usize,
@@ -428,8 +515,9 @@ impl Default for RealignConfig {
         Self {
             thresholds: AnchorThresholds::default(),
             model: CorrectionModel::ScaleShift,
-            ridge: 10.0,
-            max_anchors: 2000,
+            target: AnchorTarget::default(),
+            ridge: 100.0,
+            max_anchors: 200,
             min_anchors: 50,
             min_anchor_fraction: 0.05,
             holdout_fraction: 0.3,
@@ -501,8 +589,9 @@ pub struct RealignReport {
 /// Anchors of one frame: full-resolution pixels with their calibration depth.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Anchors {
-    /// `(u, v, z_m)`: column, row (full resolution, pixels) and calibration depth (metres).
-    pub pixels: Vec<(u32, u32, f32)>,
+    /// `(u, v, z_m, one_shot_m)`: column, row (full resolution, pixels), calibration ground
+    /// truth and the calibration's one-shot result there (metres; NaN when not stored).
+    pub pixels: Vec<(u32, u32, f32, f32)>,
     /// Global brightness gain (None: no usable pixel to estimate it).
     pub gain: Option<f64>,
 }
@@ -608,7 +697,9 @@ pub fn find_anchors(
         for j in 1..hw.saturating_sub(1) {
             let d = depth[i * hw + j];
             if d > 0 && best[i * hw + j] <= 1.0 {
-                pixels.push(((2 * j) as u32, (2 * i) as u32, d as f32 * 1e-3));
+                let o = store.one_shot_mm.as_ref().map_or(0, |a| a[[i, j]]);
+                let o = if o > 0 { o as f32 * 1e-3 } else { f32::NAN };
+                pixels.push(((2 * j) as u32, (2 * i) as u32, d as f32 * 1e-3, o));
             }
         }
     }
@@ -778,13 +869,24 @@ pub fn realign_in_place(
         accepted: false,
         reason: String::new(),
     };
+    if config.target == AnchorTarget::CalibrationOutput && !store.has_one_shot() {
+        return Err(CoreError::InvalidParameter(
+            "re-alignment target calibration-output needs the calibration's one-shot result in \
+             the anchor store (AnchorStore::with_one_shot); this store holds only ground truth"
+                .into(),
+        ));
+    }
     let mut obs: Vec<Obs> = anchors
         .pixels
         .iter()
-        .filter_map(|&(u, v, z)| {
+        .filter_map(|&(u, v, gt, cal)| {
+            let z = match config.target {
+                AnchorTarget::GroundTruth => gt,
+                AnchorTarget::CalibrationOutput => cal,
+            };
             let d = depth_m[[v as usize, u as usize]];
             let y = space.target_from_depth(d as f64);
-            (is_valid_depth(d) && y.is_finite()).then(|| Obs {
+            (is_valid_depth(d) && is_valid_depth(z) && y.is_finite()).then(|| Obs {
                 u: u as f64,
                 v: v as f64,
                 z_m: z as f64,

@@ -65,6 +65,10 @@ pub struct EvalConfig {
     /// `workspace`. Sampling and scoring are unchanged. Not serialised.
     #[serde(skip)]
     pub workspace: Option<Mask>,
+    /// Per-frame re-alignment on static anchors: when given, every (method, normalisation)
+    /// also gets rows with `variant` `realign-anchors` ([`crate::realign`]).
+    #[serde(default)]
+    pub realign: Option<crate::realign::RealignEval>,
 }
 
 impl Default for EvalConfig {
@@ -80,6 +84,7 @@ impl Default for EvalConfig {
             sampling: SamplingStrategy::Random,
             depth_range_m: None,
             workspace: None,
+            realign: None,
         }
     }
 }
@@ -160,6 +165,8 @@ pub struct EvalResult {
     pub pred_kind: PredictionKind,
     /// Method name.
     pub method: String,
+    /// Variant of the calibration: `one-shot` (default), `realign-anchors`, ...
+    pub variant: String,
     /// Normalisation name (`none` for RAW).
     pub norm: String,
     /// Alignment space.
@@ -182,6 +189,9 @@ pub struct EvalResult {
     pub fit_rms_residual_m: f64,
     /// Per-frame detail.
     pub frames: Vec<FrameResult>,
+    /// Re-alignment statistics (variant `realign-anchors` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub realign: Option<crate::realign::RealignStats>,
 }
 
 /// The `--json` contract: one object per (set, method, norm) with exactly these keys.
@@ -191,6 +201,8 @@ pub struct JsonRow {
     pub set: String,
     /// Method.
     pub method: String,
+    /// Variant: `one-shot` by default.
+    pub variant: String,
     /// Normalisation.
     pub norm: String,
     /// n.
@@ -209,6 +221,7 @@ impl From<&EvalResult> for JsonRow {
         Self {
             set: r.set.clone(),
             method: r.method.clone(),
+            variant: r.variant.clone(),
             norm: r.norm.clone(),
             samples: r.samples,
             seeds: r.seeds,
@@ -297,7 +310,7 @@ pub struct Prepared<'a> {
     pub sample_region: Option<Mask>,
     /// The workspace every normalisation uses, as a calibration owns it.
     pub workspace: Option<Arc<Workspace>>,
-    config: EvalConfig,
+    pub(crate) config: EvalConfig,
 }
 
 fn in_range(z: f32, range: Option<(f64, f64)>) -> bool {
@@ -563,9 +576,25 @@ pub fn evaluate(
             }
         }
     }
-    jobs.iter()
+    let mut results = jobs
+        .iter()
         .map(|(m, norm)| evaluate_one(&prep, m, norm, config.samples))
-        .collect()
+        .collect::<Result<Vec<_>>>()?;
+    if let Some(r) = &config.realign {
+        for (m, norm) in &jobs {
+            for &b in &r.brightness {
+                results.push(crate::realign::evaluate_realign(
+                    &prep,
+                    m,
+                    norm,
+                    config.samples,
+                    r,
+                    b,
+                )?);
+            }
+        }
+    }
+    Ok(results)
 }
 
 /// Evaluates one (method, normalisation) with `n` samples over all seeds.
@@ -641,6 +670,7 @@ pub fn evaluate_one(
         simulated: prep.preds.simulated,
         pred_kind: prep.preds.maps[0].kind,
         method: method.to_string(),
+        variant: "one-shot".into(),
         norm: norm.method.to_string(),
         space: norm.space,
         samples: n,
@@ -652,6 +682,7 @@ pub fn evaluate_one(
         fit_time_median_s: median,
         fit_rms_residual_m: resid,
         frames,
+        realign: None,
     })
 }
 

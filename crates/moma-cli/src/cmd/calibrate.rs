@@ -68,6 +68,14 @@ pub struct CalibrateArgs {
     /// Print the calibration summary as JSON on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Store the anchor store for per-frame re-alignment (`moma align --realign anchors`): the
+    /// calibration frame's grey and ground truth at half resolution (about 384 kB at 640×480,
+    /// base64 in the file). Uses the --rgb image, or --anchors-rgb with --pred.
+    #[arg(long)]
+    pub anchors: bool,
+    /// The calibration frame's RGB for --anchors when calibrating from --pred.
+    #[arg(long, value_name = "IMG", requires = "anchors")]
+    pub anchors_rgb: Option<PathBuf>,
 }
 
 /// The method with the command line's LWLR bandwidth and SSRA intrinsics.
@@ -194,6 +202,21 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         )
     })?;
 
+    let calibration = if args.anchors {
+        let rgb = match (&args.anchors_rgb, &input.rgb) {
+            (Some(p), _) => moma_io::read_rgb_sized(p, size)?,
+            (None, Some(img)) => img.clone(),
+            (None, None) => bail!(
+                "--anchors needs the calibration frame's RGB: calibrate from --rgb IMG, or give \
+                 --anchors-rgb IMG with --pred"
+            ),
+        };
+        calibration
+            .with_anchors(super::common::rgb_view(&rgb)?, &gt, &pred)
+            .with_context(|| format!("building the anchor store from {}", args.gt.display()))?
+    } else {
+        calibration
+    };
     let mut created = CreationInfo::now()
         .with_source(
             if input.rgb.is_some() {
@@ -217,6 +240,9 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     }
     if let Some(p) = &args.workspace {
         created = created.with_source("workspace (embedded)", p);
+    }
+    if let Some(p) = &args.anchors_rgb {
+        created = created.with_source("anchors_rgb (embedded)", p);
     }
     let file = CalibrationFile::new(calibration, intrinsics, created);
     moma_io::write_calibration(&args.output, &file)?;
