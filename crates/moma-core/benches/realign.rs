@@ -41,11 +41,8 @@ fn bench(c: &mut Criterion) {
     // one-shot result off by a global scale
     let one_shot = gt.depth_m.mapv(|z| 1.05 * z);
     let config = RealignConfig::default();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap();
-    pool.install(|| {
+    // re-alignment is single-threaded code (no rayon inside): one core
+    {
         c.bench_function("find_anchors_640x480", |b| {
             b.iter(|| {
                 find_anchors(&store, black_box(frame_rgb.view()), &config.thresholds).unwrap()
@@ -70,7 +67,7 @@ fn bench(c: &mut Criterion) {
         c.bench_function("copy_only_640x480", |b| {
             b.iter(|| depth.assign(black_box(&one_shot)))
         });
-    });
+    }
 }
 
 criterion_group!(benches, bench);

@@ -10,7 +10,7 @@
 //! Grey g = (R + 2G + B)/4, averaged over 2×2 blocks (half resolution, which also halves sensor
 //! noise). For the frame (g_f) against the calibration (g_c):
 //! 1. **Global gain** k = median of g_f/g_c over pixels with g_c in [20, 235] and g_f in
-//!    [1, 250] (every 3rd half-resolution pixel): absorbs a global brightness / exposure change;
+//!    [1, 250] (every 7th half-resolution pixel): absorbs a global brightness / exposure change;
 //!    new objects are a minority and do not move the median.
 //! 2. **Pixel match under a displacement** s (one of the 9 half-resolution shifts of a 3×3 set):
 //!    g_f(p) ≤ 250 (not saturated) and |g_f(p) − k·g_c(p + s)| ≤ `abs_grey` + `rel`·k·g_c(p)
@@ -20,6 +20,9 @@
 //!    half-resolution patch matches under that same s. The common displacement tolerates one to
 //!    two full-resolution pixels of vibration without letting a textured new object pass by
 //!    matching each pixel to a different neighbour; object borders drop out.
+//!    Rules 2–3 are tested at candidate pixels only, every [`ANCHOR_STRIDE`]-th
+//!    half-resolution pixel in each direction (4 800 candidates at 640×480), the undisplaced
+//!    patch first.
 //! 4. **Valid static depth**: the stored calibration depth at the pixel is valid and within 3 %
 //!    of its 3×3 half-resolution neighbours (no depth edge, where vibration or the model's edge
 //!    smoothing would make the anchor wrong).
@@ -61,6 +64,11 @@ use serde::{Deserialize, Serialize};
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, MetricDepth, is_valid_depth};
 use crate::normalise::AlignSpace;
+
+/// Anchor candidates are every `ANCHOR_STRIDE`-th half-resolution pixel in each direction (a
+/// full-resolution stride of 4 pixels): 4 800 candidates at 640×480, far more than a correction
+/// of at most four parameters needs, at a quarter of the cost.
+pub const ANCHOR_STRIDE: usize = 2;
 
 /// Smallest image an anchor store accepts, pixels per side.
 pub const MIN_ANCHOR_IMAGE_SIDE_PX: usize = 8;
@@ -128,18 +136,23 @@ fn grey_half(rgb: &ArrayView3<'_, u8>, hh: usize, hw: usize, out: &mut Vec<f32>)
     };
     let stride = 3 * w;
     for i in 0..hh {
-        let r0 = &data[2 * i * stride..(2 * i + 1) * stride];
-        let r1 = &data[(2 * i + 1) * stride..(2 * i + 2) * stride];
-        for j in 0..hw {
-            let k = 6 * j;
-            let mut s = 0u32;
-            for row in [r0, r1] {
-                let p = &row[k..k + 6];
-                s += p[0] as u32 + 2 * p[1] as u32 + p[2] as u32;
-                s += p[3] as u32 + 2 * p[4] as u32 + p[5] as u32;
-            }
-            out.push(s as f32 / 16.0);
-        }
+        let r0 = &data[2 * i * stride..2 * i * stride + 6 * hw];
+        let r1 = &data[(2 * i + 1) * stride..(2 * i + 1) * stride + 6 * hw];
+        out.extend(r0.chunks_exact(6).zip(r1.chunks_exact(6)).map(|(a, b)| {
+            let s = a[0] as u32
+                + 2 * a[1] as u32
+                + a[2] as u32
+                + a[3] as u32
+                + 2 * a[4] as u32
+                + a[5] as u32
+                + b[0] as u32
+                + 2 * b[1] as u32
+                + b[2] as u32
+                + b[3] as u32
+                + 2 * b[4] as u32
+                + b[5] as u32;
+            s as f32 / 16.0
+        }));
     }
 }
 
@@ -237,6 +250,21 @@ impl AnchorStore {
     /// Half-resolution pixels holding a valid static depth.
     pub fn valid_depth_px(&self) -> usize {
         self.depth_mm.iter().filter(|&&d| d > 0).count()
+    }
+
+    /// Anchor candidates (every [`ANCHOR_STRIDE`]-th interior half-resolution pixel in each
+    /// direction) holding a valid static depth: the most anchors a frame can have.
+    pub fn candidate_px(&self) -> usize {
+        let (hh, hw) = half(self.size);
+        (1..hh.saturating_sub(1))
+            .step_by(ANCHOR_STRIDE)
+            .map(|i| {
+                (1..hw.saturating_sub(1))
+                    .step_by(ANCHOR_STRIDE)
+                    .filter(|&j| self.depth_mm[[i, j]] > 0)
+                    .count()
+            })
+            .sum()
     }
 
     /// Size of the stored arrays, bytes (before base64).
@@ -625,7 +653,7 @@ pub fn find_anchors(
     let mut ratios: Vec<f32> = gc
         .iter()
         .zip(&gf)
-        .step_by(3)
+        .step_by(7)
         .filter(|&(&c, &f)| (20..=235).contains(&c) && (1.0..=250.0).contains(&f))
         .map(|(&c, &f)| f / c as f32)
         .collect();
@@ -635,69 +663,51 @@ pub fn find_anchors(
             gain: None,
         });
     };
-    // rules 2 and 3: per displacement s of the 3×3 set, the normalised difference
-    // e_s(p) = |g_f(p) − k·g_c(p + s)| / (abs + rel·k·g_c(p)), its maximum over the 3×3 patch
-    // around p (separable max filter), then the minimum over s: ≤ 1 means the whole patch
-    // matches under one common displacement.
-    let n = hh * hw;
-    let tol: Vec<f32> = gc
-        .iter()
-        .map(|&c| 1.0 / (thresholds.abs_grey + thresholds.rel * k * c as f32).max(1e-6))
-        .collect();
-    let mut best = vec![f32::INFINITY; n];
-    let mut e = vec![0f32; n];
-    let mut m = vec![0f32; n];
-    for di in [-1isize, 0, 1] {
-        for dj in [-1isize, 0, 1] {
-            for i in 0..hh {
-                let a = (i as isize + di).clamp(0, hh as isize - 1) as usize;
-                let crow = &gc[a * hw..(a + 1) * hw];
-                let frow = &gf[i * hw..(i + 1) * hw];
-                let trow = &tol[i * hw..(i + 1) * hw];
-                let erow = &mut e[i * hw..(i + 1) * hw];
-                for j in 0..hw {
-                    let b = (j as isize + dj).clamp(0, hw as isize - 1) as usize;
-                    let f = frow[j];
-                    erow[j] = if f > 250.0 {
-                        f32::INFINITY
-                    } else {
-                        (f - k * crow[b] as f32).abs() * trow[j]
-                    };
-                }
-            }
-            // horizontal max into m, vertical max back into e
-            for i in 0..hh {
-                let r = &e[i * hw..(i + 1) * hw];
-                let o = &mut m[i * hw..(i + 1) * hw];
-                for j in 0..hw {
-                    let lo = j.saturating_sub(1);
-                    let hi = (j + 1).min(hw - 1);
-                    o[j] = r[lo].max(r[j]).max(r[hi]);
-                }
-            }
-            for i in 1..hh.saturating_sub(1) {
-                for j in 0..hw {
-                    let x = m[(i - 1) * hw + j]
-                        .max(m[i * hw + j])
-                        .max(m[(i + 1) * hw + j]);
-                    let bi = &mut best[i * hw + j];
-                    if x < *bi {
-                        *bi = x;
-                    }
-                }
-            }
-        }
-    }
-    // rule 4 (valid static depth)
+    // rules 2–4 at the candidate pixels (every ANCHOR_STRIDE-th half-resolution pixel in each
+    // direction): for some displacement s, every pixel q of the 3×3 patch around p must match,
+    // |g_f(q) − k·g_c(q + s)| ≤ abs + rel·k·g_c(q); tests stop at the first mismatch.
     let depth = store.depth_mm.as_slice().ok_or_else(|| {
         CoreError::InvalidParameter("anchor store depth is not contiguous".into())
     })?;
+    let one_shot = store.one_shot_mm.as_ref().and_then(|a| a.as_slice());
+    let (abs, rel) = (thresholds.abs_grey, thresholds.rel * k);
     let mut pixels = Vec::new();
-    for i in 1..hh.saturating_sub(1) {
-        for j in 1..hw.saturating_sub(1) {
+    for i in (1..hh.saturating_sub(1)).step_by(ANCHOR_STRIDE) {
+        for j in (1..hw.saturating_sub(1)).step_by(ANCHOR_STRIDE) {
             let d = depth[i * hw + j];
-            if d > 0 && best[i * hw + j] <= 1.0 {
-                let o = store.one_shot_mm.as_ref().map_or(0, |a| a[[i, j]]);
+            if d == 0 {
+                continue;
+            }
+            let matches = |di: isize, dj: isize| {
+                for a in i - 1..=i + 1 {
+                    let sa = (a as isize + di).clamp(0, hh as isize - 1) as usize;
+                    for b in j - 1..=j + 1 {
+                        let sb = (b as isize + dj).clamp(0, hw as isize - 1) as usize;
+                        let f = gf[a * hw + b];
+                        let tol = abs + rel * gc[a * hw + b] as f32;
+                        if f > 250.0 || (f - k * gc[sa * hw + sb] as f32).abs() > tol {
+                            return false;
+                        }
+                    }
+                }
+                true
+            };
+            // the undisplaced patch first (the common case for an unchanged pixel)
+            let unchanged = matches(0, 0)
+                || [
+                    (-1, -1),
+                    (-1, 0),
+                    (-1, 1),
+                    (0, -1),
+                    (0, 1),
+                    (1, -1),
+                    (1, 0),
+                    (1, 1),
+                ]
+                .iter()
+                .any(|&(di, dj)| matches(di, dj));
+            if unchanged {
+                let o = one_shot.map_or(0, |a| a[i * hw + j]);
                 let o = if o > 0 { o as f32 * 1e-3 } else { f32::NAN };
                 pixels.push(((2 * j) as u32, (2 * i) as u32, d as f32 * 1e-3, o));
             }
@@ -897,7 +907,7 @@ pub fn realign_in_place(
         .collect();
     let need = config
         .min_anchors
-        .max((config.min_anchor_fraction * store.valid_depth_px() as f64).ceil() as usize);
+        .max((config.min_anchor_fraction * store.candidate_px() as f64).ceil() as usize);
     if obs.len() < need {
         report.anchors_used = obs.len();
         report.reason = format!(
@@ -907,8 +917,9 @@ pub fn realign_in_place(
         return Ok(report);
     }
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    obs.shuffle(&mut rng);
-    obs.truncate(config.max_anchors);
+    let take = config.max_anchors.min(obs.len());
+    let (chosen, _) = obs.partial_shuffle(&mut rng, take);
+    let obs = chosen.to_vec();
     report.anchors_used = obs.len();
     let n_hold =
         ((obs.len() as f64 * config.holdout_fraction).round() as usize).clamp(1, obs.len() - 4);
@@ -935,7 +946,34 @@ pub fn realign_in_place(
             "kept the one-shot result: the correction is degenerate on all anchors".into();
         return Ok(report);
     };
+    if fin.model == CorrectionModel::ScaleShift {
+        // t̂ = (1 + c₀)·y + c₁·y₀: one affine map of the target for every pixel
+        let (a, b) = ((1.0 + fin.c[0]) as f32, (fin.c[1] * fin.y0) as f32);
+        match space {
+            AlignSpace::Depth => depth_m.mapv_inplace(|z| {
+                let t = a * z + b;
+                if is_valid_depth(z) && t > 0.0 {
+                    t
+                } else if is_valid_depth(z) {
+                    f32::NAN
+                } else {
+                    z
+                }
+            }),
+            AlignSpace::Inverse => depth_m.mapv_inplace(|z| {
+                let t = a / z + b;
+                if is_valid_depth(z) {
+                    if t > 0.0 { 1.0 / t } else { f32::NAN }
+                } else {
+                    z
+                }
+            }),
+        }
+    }
     for ((v, u), d) in depth_m.indexed_iter_mut() {
+        if fin.model == CorrectionModel::ScaleShift {
+            break;
+        }
         let z = *d as f64;
         if !is_valid_depth(*d) {
             continue;

@@ -134,7 +134,12 @@ fn recovers_global_change_on_background_and_improves_the_object() {
         let (ob, oa) = (mae_m(&one_shot, &truth, obj), mae_m(&re, &truth, obj));
         assert!(ob > 0.03 && oa < 0.5e-3, "object MAE {ob} -> {oa}");
         // the object is not an anchor: anchors cover at most the background
-        let background_half_px = (W / 2 - 2) * (H / 2 - 2) - 25 * 20;
+        // anchor candidates: every 2nd interior half-resolution pixel
+        let background_half_px = (1..H / 2 - 1)
+            .step_by(2)
+            .flat_map(|i| (1..W / 2 - 1).step_by(2).map(move |j| (2 * j, 2 * i)))
+            .filter(|&(u, v)| !in_object(u, v))
+            .count();
         assert!(report.anchors <= background_half_px, "{}", report.anchors);
         assert!(
             report.anchors > background_half_px * 8 / 10,
@@ -267,7 +272,7 @@ fn fully_covered_background_falls_back_cleanly() {
         .align_realigned(&pred, covered.view(), &RealignConfig::default())
         .unwrap();
     assert!(!report.accepted);
-    let valid = cal.anchor_store().unwrap().valid_depth_px();
+    let valid = cal.anchor_store().unwrap().candidate_px();
     assert!(report.anchors * 20 < valid, "{} of {valid}", report.anchors);
     assert!(report.reason.contains("anchor"), "{}", report.reason);
     assert!(report.held_out_rmse_before_m.is_none() && report.held_out_rmse_after_m.is_none());
