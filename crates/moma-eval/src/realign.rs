@@ -14,9 +14,11 @@
 //! extra per-frame fluctuation of the simulator's component-4 form applied to the evaluated
 //! frames' predictions: in inverse-depth form q (q = the prediction for `inverse-depth`, 1/p for
 //! `depth`), q ← (1 + κ ln β)·q + κ ln β·min q, κ = [`RealignEval::brightness_response`]
-//! (default 0.05, i.e. about −1.1 % / +0.9 % at β = 0.8 / 1.2). For inverse-depth predictions
-//! under min-max normalisation this affine change is removed by the normalisation (as for the
-//! simulator's own component 4); for depth predictions it is not.
+//! (default 0.05, i.e. about −1.1 % / +0.9 % at β = 0.8 / 1.2); values ≤ 0 (no depth, the
+//! model's ReLU region) stay as they are. For inverse-depth predictions under min-max
+//! normalisation the affine change would be removed by the normalisation, but the zeros pinned at
+//! 0 keep the minimum fixed, so it does change the one-shot result (the one-shot baseline of a
+//! β ≠ 1 row differs from the β = 1 row; [`RealignStats::one_shot_mae_m`] records it).
 
 use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
