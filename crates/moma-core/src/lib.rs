@@ -20,6 +20,7 @@ pub mod metrics;
 mod names;
 pub mod normalise;
 pub mod pipeline;
+pub mod realign;
 pub mod sampling;
 
 pub use camera::{CameraPoint, Intrinsics, depth_to_points};

@@ -46,7 +46,7 @@
 
 use std::sync::Arc;
 
-use ndarray::{Array2, ArrayView2, ArrayViewMut2};
+use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -56,6 +56,7 @@ use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use crate::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise, normalise_view,
 };
+use crate::realign::{AnchorStore, RealignConfig, RealignReport, realign_in_place};
 use crate::sampling::{SamplingConfig, sample_pixels};
 
 /// Everything a calibration decides.
@@ -252,6 +253,11 @@ pub struct Calibration {
     /// The workspace the normalisation statistics are computed over (`None`: the whole map).
     #[serde(default)]
     pub workspace: Option<Arc<Workspace>>,
+    /// The calibration frame's grey and ground truth for per-frame re-alignment on static
+    /// anchors ([`crate::realign`]); absent unless added with [`Calibration::with_anchors`]
+    /// (and then not written, so files without it stay valid).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub anchors: Option<Arc<AnchorStore>>,
 }
 
 /// Calibrates from one frame: normalise `pred` (over `workspace` if given), sample ground truth
@@ -496,6 +502,7 @@ pub fn calibrate_frames_normalised(
         report,
         samples,
         workspace,
+        anchors: None,
     })
 }
 
@@ -551,6 +558,10 @@ impl Calibration {
         }
         if let Some(w) = &self.workspace {
             size.expect_eq("workspace mask", w.mask().size())?;
+        }
+        if let Some(a) = &self.anchors {
+            a.validate()?;
+            size.expect_eq("anchor store", a.image_size())?;
         }
         let method = self.model.name();
         if method != self.report.method {
@@ -722,5 +733,97 @@ impl Calibration {
             crate::kernels::reciprocal_positive(out);
         }
         Ok(())
+    }
+}
+
+impl Calibration {
+    /// Adds the anchor store for per-frame re-alignment ([`crate::realign`]): the calibration
+    /// frame's RGB `(height, width, 3)`, its ground truth and its prediction (the frame the
+    /// calibration was fitted on, or any frame of the same fixed camera with ground truth); the
+    /// store keeps this calibration's own result on that prediction too.
+    ///
+    /// # Errors
+    /// Size or kind mismatches with the calibration, no valid static ground-truth depth.
+    pub fn with_anchors(
+        self,
+        rgb: ArrayView3<'_, u8>,
+        gt: &MetricDepth,
+        pred: &Prediction,
+    ) -> Result<Self> {
+        let normalised = self.normalise(pred)?;
+        self.with_anchors_normalised(rgb, gt, &normalised)
+    }
+
+    /// [`Calibration::with_anchors`] from the prediction already normalised by
+    /// [`Calibration::normalise`].
+    ///
+    /// # Errors
+    /// As [`Calibration::with_anchors`].
+    pub fn with_anchors_normalised(
+        mut self,
+        rgb: ArrayView3<'_, u8>,
+        gt: &MetricDepth,
+        normalised: &NormalisedMap,
+    ) -> Result<Self> {
+        self.image_size()
+            .expect_eq("anchor ground truth", gt.size())?;
+        let own = self.align_normalised(normalised)?;
+        self.anchors = Some(Arc::new(AnchorStore::new(rgb, gt)?.with_one_shot(&own)?));
+        Ok(self)
+    }
+
+    /// The anchor store, or an error saying how to get one.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] when the calibration holds no anchor store.
+    pub fn anchor_store(&self) -> Result<&AnchorStore> {
+        self.anchors.as_deref().ok_or_else(|| {
+            CoreError::InvalidParameter(
+                "this calibration holds no anchor store, so it cannot re-align on static \
+                 anchors: calibrate again with the calibration frame's RGB \
+                 (`moma calibrate --rgb IMG --anchors`, or `Calibration::with_anchors`)"
+                    .into(),
+            )
+        })
+    }
+
+    /// [`Calibration::align`], then per-frame re-alignment on static anchors found in this
+    /// frame's RGB `(height, width, 3)` ([`crate::realign::realign_in_place`]): metres, and the
+    /// per-frame report (when the correction is rejected or too few anchors remain, the one-shot
+    /// result is returned and the report says why).
+    ///
+    /// # Errors
+    /// No anchor store ([`Calibration::anchor_store`]), the errors of [`Calibration::align`],
+    /// an RGB of another size.
+    pub fn align_realigned(
+        &self,
+        pred: &Prediction,
+        rgb: ArrayView3<'_, u8>,
+        config: &RealignConfig,
+    ) -> Result<(MetricDepth, RealignReport)> {
+        let store = self.anchor_store()?;
+        let mut depth = self.align(pred)?;
+        let report = realign_in_place(
+            store,
+            rgb,
+            self.space(),
+            config,
+            &mut depth.depth_m.view_mut(),
+        )?;
+        Ok((depth, report))
+    }
+
+    /// Re-aligns a result of this calibration in place (as [`Calibration::align_realigned`]
+    /// after [`Calibration::align_normalised_into`]).
+    ///
+    /// # Errors
+    /// As [`Calibration::align_realigned`].
+    pub fn realign_into(
+        &self,
+        rgb: ArrayView3<'_, u8>,
+        config: &RealignConfig,
+        depth_m: &mut ArrayViewMut2<'_, f32>,
+    ) -> Result<RealignReport> {
+        realign_in_place(self.anchor_store()?, rgb, self.space(), config, depth_m)
     }
 }

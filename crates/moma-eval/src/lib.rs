@@ -41,6 +41,7 @@ pub mod figure;
 pub mod grasp_eval;
 pub mod imgproc;
 pub mod protocol;
+pub mod realign;
 pub mod render;
 pub mod report;
 pub mod scene;

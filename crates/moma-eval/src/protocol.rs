@@ -67,6 +67,10 @@ pub struct EvalConfig {
     /// `workspace`. Sampling and scoring are unchanged. Not serialised.
     #[serde(skip)]
     pub workspace: Option<Mask>,
+    /// Per-frame re-alignment on static anchors: when given, every (method, normalisation)
+    /// also gets rows with `variant` `realign-anchors` ([`crate::realign`]).
+    #[serde(default)]
+    pub realign: Option<crate::realign::RealignEval>,
 }
 
 impl Default for EvalConfig {
@@ -82,6 +86,7 @@ impl Default for EvalConfig {
             sampling: SamplingStrategy::Random,
             depth_range_m: None,
             workspace: None,
+            realign: None,
         }
     }
 }
@@ -162,8 +167,9 @@ pub struct EvalResult {
     pub pred_kind: PredictionKind,
     /// Method name.
     pub method: String,
-    /// Calibration variant: `one-shot` (one calibration frame, the paper's protocol) or
-    /// `few-shot-K` (K frames, [`evaluate_few_shot`]).
+    /// Calibration variant: `one-shot` (one calibration frame, the paper's protocol),
+    /// `few-shot-K` (K frames, [`evaluate_few_shot`]) or `realign-anchors` (one-shot plus per-frame
+    /// re-alignment on static anchors; `realign-anchors-bX.XX` with test-frame brightness ×X.XX).
     pub variant: String,
     /// Normalisation name (`none` for RAW).
     pub norm: String,
@@ -187,6 +193,9 @@ pub struct EvalResult {
     pub fit_rms_residual_m: f64,
     /// Per-frame detail.
     pub frames: Vec<FrameResult>,
+    /// Re-alignment statistics (variant `realign-anchors` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub realign: Option<crate::realign::RealignStats>,
 }
 
 /// The `--json` contract: one object per (set, method, norm) with exactly these keys.
@@ -196,7 +205,7 @@ pub struct JsonRow {
     pub set: String,
     /// Method.
     pub method: String,
-    /// Calibration variant (`one-shot`, `few-shot-K`, ...).
+    /// Calibration variant (`one-shot`, `few-shot-K`, `realign-anchors`, ...).
     pub variant: String,
     /// Normalisation.
     pub norm: String,
@@ -337,7 +346,7 @@ pub struct Prepared<'a> {
     pub sample_region: Option<Mask>,
     /// The workspace every normalisation uses, as a calibration owns it.
     pub workspace: Option<Arc<Workspace>>,
-    config: EvalConfig,
+    pub(crate) config: EvalConfig,
 }
 
 fn in_range(z: f32, range: Option<(f64, f64)>) -> bool {
@@ -632,10 +641,26 @@ pub fn evaluate(
     config: &EvalConfig,
 ) -> Result<Vec<EvalResult>> {
     let prep = Prepared::new(set, preds, config)?;
-    jobs(&prep, config)
+    let jobs = jobs(&prep, config);
+    let mut results = jobs
         .iter()
         .map(|(m, norm)| evaluate_one(&prep, m, norm, config.samples))
-        .collect()
+        .collect::<Result<Vec<_>>>()?;
+    if let Some(r) = &config.realign {
+        for (m, norm) in &jobs {
+            for &b in &r.brightness {
+                results.push(crate::realign::evaluate_realign(
+                    &prep,
+                    m,
+                    norm,
+                    config.samples,
+                    r,
+                    b,
+                )?);
+            }
+        }
+    }
+    Ok(results)
 }
 
 /// The distinct (method, effective normalisation) pairs of `config`, in table order.
@@ -871,6 +896,7 @@ pub fn evaluate_variant(
         fit_time_median_s: median,
         fit_rms_residual_m: resid,
         frames,
+        realign: None,
     })
 }
 

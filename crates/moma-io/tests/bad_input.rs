@@ -304,6 +304,7 @@ mod calibration {
                 samples: vec![],
             },
             workspace: None,
+            anchors: None,
         };
         CalibrationFile::new(calibration, None, CreationInfo::now())
     }

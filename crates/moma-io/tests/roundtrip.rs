@@ -317,6 +317,7 @@ pub fn sample_calibration() -> Calibration {
             ],
         },
         workspace: None,
+        anchors: None,
     }
 }
 

@@ -29,6 +29,13 @@ impl From<ColormapArg> for Colormap {
     }
 }
 
+/// `--realign` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum RealignArg {
+    /// Per-frame re-alignment on static anchors (needs a calibration made with --anchors).
+    Anchors,
+}
+
 /// Apply a calibration to predictions (or RGB images through a depth model): metric depth out.
 ///
 /// Writes per input NAME (the file stem, or the frame id for moma-set paths):
@@ -75,6 +82,15 @@ pub struct AlignArgs {
     /// Print a JSON summary on stdout (and no progress bar).
     #[arg(long)]
     pub json: bool,
+    /// Re-align every frame on static anchors (pixels unchanged since calibration, found in the
+    /// frame's RGB): needs a calibration made with `moma calibrate --anchors`; prints a
+    /// per-frame report (anchors, held-out RMSE before/after, accepted or why not).
+    #[arg(long, value_enum, value_name = "MODE")]
+    pub realign: Option<RealignArg>,
+    /// Each frame's RGB for --realign when the inputs are prediction files (one per input, same
+    /// order); with --rgb inputs their own images are used.
+    #[arg(long, num_args = 1.., value_name = "IMG", requires = "realign")]
+    pub realign_rgb: Vec<PathBuf>,
 }
 
 /// What was written for one frame.
@@ -84,6 +100,9 @@ struct FrameSummary {
     input: PathBuf,
     outputs: Vec<PathBuf>,
     valid_pixels: usize,
+    /// Per-frame re-alignment report (with --realign).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    realign: Option<moma_core::realign::RealignReport>,
     /// Normalisation + alignment time, milliseconds (excludes file I/O and the depth model).
     align_ms: f64,
 }
@@ -101,6 +120,20 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             source.len()
         );
     }
+    if !args.realign_rgb.is_empty() && args.realign_rgb.len() != source.len() {
+        bail!(
+            "--realign-rgb needs one image per input ({} given for {} inputs)",
+            args.realign_rgb.len(),
+            source.len()
+        );
+    }
+    if args.realign.is_some() {
+        calib
+            .calibration
+            .anchor_store()
+            .with_context(|| format!("--realign anchors with {}", args.calib.display()))?;
+    }
+    let realign_config = moma_core::realign::RealignConfig::default();
     let size = calib.image_size;
     let intrinsics = match &args.camera {
         Some(p) => Some(moma_io::read_camera(p)?),
@@ -153,10 +186,45 @@ pub fn run(args: &AlignArgs) -> Result<()> {
                 )
             })?;
         let t = Instant::now();
-        let depth = calib
+        let mut depth = calib
             .calibration
             .align(&input.prediction)
             .with_context(|| format!("aligning {}", input.path.display()))?;
+        let realign = match args.realign {
+            None => None,
+            Some(RealignArg::Anchors) => {
+                let img = match args.realign_rgb.get(i) {
+                    Some(p) => moma_io::read_rgb_sized(p, size)?,
+                    None => input.rgb.clone().with_context(|| {
+                        format!(
+                            "--realign anchors needs the RGB of {}: give --realign-rgb IMG... \
+                             (one per input) or align from --rgb",
+                            input.path.display()
+                        )
+                    })?,
+                };
+                let report = calib
+                    .calibration
+                    .realign_into(
+                        super::common::rgb_view(&img)?,
+                        &realign_config,
+                        &mut depth.depth_m.view_mut(),
+                    )
+                    .with_context(|| format!("re-aligning {}", input.path.display()))?;
+                if !args.json {
+                    bar.suspend(|| {
+                        println!(
+                            "{}: {} anchors, {}{}",
+                            input.name,
+                            report.anchors,
+                            if report.accepted { "" } else { "WARNING: " },
+                            report.reason
+                        )
+                    });
+                }
+                Some(report)
+            }
+        };
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
 
         let mut outputs = Vec::new();
@@ -186,6 +254,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             input: input.path,
             outputs,
             valid_pixels: depth.valid_count(),
+            realign,
             align_ms,
         });
         bar.inc(1);

@@ -77,6 +77,14 @@ pub struct CalibrateArgs {
     /// Print the calibration summary as JSON on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Store the anchor store for per-frame re-alignment (`moma align --realign anchors`): the
+    /// calibration frame's grey and ground truth at half resolution (about 384 kB at 640×480,
+    /// base64 in the file). Uses the --rgb image, or --anchors-rgb with --pred.
+    #[arg(long)]
+    pub anchors: bool,
+    /// The calibration frame's RGB for --anchors when calibrating from --pred.
+    #[arg(long, value_name = "IMG", requires = "anchors")]
+    pub anchors_rgb: Option<PathBuf>,
 }
 
 /// The method with the command line's LWLR bandwidth and SSRA intrinsics.
@@ -254,6 +262,27 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             }
         })?;
 
+    // Anchors for per-frame re-alignment come from the first (calibration) frame.
+    let calibration = if args.anchors {
+        let rgb = match (&args.anchors_rgb, &first.rgb) {
+            (Some(p), _) => moma_io::read_rgb_sized(p, size)?,
+            (None, Some(img)) => img.clone(),
+            (None, None) => bail!(
+                "--anchors needs the calibration frame's RGB: calibrate from --rgb IMG, or give \
+                 --anchors-rgb IMG with --pred"
+            ),
+        };
+        calibration
+            .with_anchors(
+                super::common::rgb_view(&rgb)?,
+                &gts[0],
+                &first.prediction,
+            )
+            .with_context(|| format!("building the anchor store from {}", args.gt[0].display()))?
+    } else {
+        calibration
+    };
+
     // One frame: the roles as before; frame i > 0 of several: "<role> (frame i)".
     let role = |r: &str, i: usize| {
         if i == 0 {
@@ -286,6 +315,9 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     }
     if let Some(p) = &args.workspace {
         created = created.with_source("workspace (embedded)", p);
+    }
+    if let Some(p) = &args.anchors_rgb {
+        created = created.with_source("anchors_rgb (embedded)", p);
     }
     let file = CalibrationFile::new(calibration, intrinsics, created);
     moma_io::write_calibration(&args.output, &file)?;

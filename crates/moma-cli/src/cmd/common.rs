@@ -436,3 +436,15 @@ pub fn join_paths(paths: &[PathBuf]) -> String {
         .collect::<Vec<_>>()
         .join(", ")
 }
+
+/// An RGB image as an `(height, width, 3)` view (for re-alignment on static anchors).
+///
+/// # Errors
+/// Never for an `RgbImage` in practice; a shape error is reported rather than unwrapped.
+pub fn rgb_view(img: &image::RgbImage) -> Result<ndarray::ArrayView3<'_, u8>> {
+    ndarray::ArrayView3::from_shape(
+        (img.height() as usize, img.width() as usize, 3),
+        img.as_raw().as_slice(),
+    )
+    .context("RGB image buffer")
+}

@@ -148,6 +148,22 @@ pub struct EvalOptions {
     /// `moma calibrate --workspace`); sampling and scoring are unchanged.
     #[arg(long, value_name = "MASK.png")]
     pub workspace: Option<PathBuf>,
+    /// Also evaluate per-frame re-alignment on static anchors: rows with variant
+    /// `realign-anchors` (the calibration frame's rgb.png and ground truth as anchor store, each
+    /// evaluated frame's rgb.png for its anchors) and a table of frames made worse.
+    #[arg(long, value_enum, value_name = "MODE")]
+    pub realign: Option<super::align::RealignArg>,
+    /// Brightness factors of the evaluated frames' RGB for --realign (one block of rows each;
+    /// variant `realign-anchors-b0.80` for 0.8). SIMULATED: the predictions get a small
+    /// brightness response too (moma_eval::realign documents it).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1",
+        value_name = "FACTORS",
+        requires = "realign"
+    )]
+    pub brightness: Vec<f64>,
 }
 
 impl EvalOptions {
@@ -177,6 +193,13 @@ impl EvalOptions {
             .as_ref()
             .map(|p| moma_io::read_mask(p).context("reading the --workspace mask"))
             .transpose()?;
+        if self.brightness.iter().any(|b| !(b.is_finite() && *b > 0.0)) {
+            bail!("--brightness factors must be positive numbers");
+        }
+        let realign = self.realign.map(|_| moma_eval::realign::RealignEval {
+            brightness: self.brightness.clone(),
+            ..Default::default()
+        });
         Ok(EvalConfig {
             methods,
             norms,
@@ -188,6 +211,7 @@ impl EvalOptions {
             sampling: self.sampling,
             depth_range_m,
             workspace,
+            realign,
         })
     }
 }
@@ -321,7 +345,11 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     }
     create_dir(&args.out)?;
     let files = write_eval_outputs_with_notes(&args.out, "results", &all, &notes)?;
-    let table = eval_table_with_notes(&all, &notes, false).to_text();
+    let mut table = eval_table_with_notes(&all, &notes, false).to_text();
+    if all.iter().any(|r| r.realign.is_some()) {
+        table.push('\n');
+        table.push_str(&moma_eval::realign::realign_table(&all).to_text());
+    }
     if args.json {
         eprintln!("{table}");
         println!("{}", contract_json(&all)?);

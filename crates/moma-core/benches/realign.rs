@@ -1,0 +1,74 @@
+//! Criterion bench of per-frame re-alignment on static anchors at 640×480 (issue 12: anchor
+//! selection + re-alignment ≤ 3 ms per frame, one core).
+//! Run: `cargo bench -p moma-core --bench realign -- --warm-up-time 1 --measurement-time 3`.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use moma_core::MetricDepth;
+use moma_core::normalise::AlignSpace;
+use moma_core::realign::{AnchorStore, RealignConfig, find_anchors, realign_in_place};
+use ndarray::{Array2, Array3};
+use std::hint::black_box;
+
+const W: usize = 640;
+const H: usize = 480;
+
+fn grey(u: usize, v: usize) -> f32 {
+    let (x, y) = (u as f32, v as f32);
+    110.0 + 35.0 * (x / 12.0).sin() * (y / 18.0).cos() + 25.0 * ((x + 2.0 * y) / 26.0).sin()
+}
+
+fn in_object(u: usize, v: usize) -> bool {
+    (200..400).contains(&u) && (160..320).contains(&v)
+}
+
+fn bench(c: &mut Criterion) {
+    let gt = MetricDepth::new(Array2::from_shape_fn((H, W), |(v, _)| {
+        0.8 + 2.5e-4 * v as f32
+    }));
+    let calib_rgb = Array3::from_shape_fn((H, W, 3), |(v, u, _)| grey(u, v) as u8);
+    // the test frame: brightness ×0.9 and an object covering a sixth of the image
+    let frame_rgb = Array3::from_shape_fn((H, W, 3), |(v, u, _)| {
+        if in_object(u, v) {
+            200
+        } else {
+            (0.9 * grey(u, v)) as u8
+        }
+    });
+    let store = AnchorStore::new(calib_rgb.view(), &gt)
+        .unwrap()
+        .with_one_shot(&gt)
+        .unwrap();
+    // one-shot result off by a global scale
+    let one_shot = gt.depth_m.mapv(|z| 1.05 * z);
+    let config = RealignConfig::default();
+    // re-alignment is single-threaded code (no rayon inside): one core
+    {
+        c.bench_function("find_anchors_640x480", |b| {
+            b.iter(|| {
+                find_anchors(&store, black_box(frame_rgb.view()), &config.thresholds).unwrap()
+            })
+        });
+        let mut depth = one_shot.clone();
+        c.bench_function("realign_640x480", |b| {
+            b.iter(|| {
+                depth.assign(&one_shot);
+                let r = realign_in_place(
+                    &store,
+                    black_box(frame_rgb.view()),
+                    AlignSpace::Inverse,
+                    &config,
+                    &mut depth.view_mut(),
+                )
+                .unwrap();
+                assert!(r.accepted);
+            })
+        });
+        let mut depth = one_shot.clone();
+        c.bench_function("copy_only_640x480", |b| {
+            b.iter(|| depth.assign(black_box(&one_shot)))
+        });
+    }
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

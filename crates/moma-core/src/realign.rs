@@ -1,0 +1,998 @@
+//! Per-frame re-alignment on static anchors (issue 12, item 4).
+//!
+//! In a fixed-camera cell the calibration frame's ground truth stays valid wherever the scene
+//! has not changed (table, bin walls). The calibration keeps a compact [`AnchorStore`] — the
+//! calibration RGB reduced to grey at half resolution (u8) and its ground-truth depth at the same
+//! half-resolution pixels (u16 millimetres) — and every new RGB frame yields free metric anchors:
+//! pixels whose appearance is unchanged since calibration.
+//!
+//! # The anchor rule ([`AnchorThresholds`])
+//! Grey g = (R + 2G + B)/4, averaged over 2×2 blocks (half resolution, which also halves sensor
+//! noise). For the frame (g_f) against the calibration (g_c):
+//! 1. **Global gain** k = median of g_f/g_c over pixels with g_c in [20, 235] and g_f in
+//!    [1, 250] (every 7th half-resolution pixel): absorbs a global brightness / exposure change;
+//!    new objects are a minority and do not move the median.
+//! 2. **Pixel match under a displacement** s (one of the 9 half-resolution shifts of a 3×3 set):
+//!    g_f(p) ≤ 250 (not saturated) and |g_f(p) − k·g_c(p + s)| ≤ `abs_grey` + `rel`·k·g_c(p)
+//!    (defaults 6 grey levels and 8 %; the relative term absorbs noise that grows with
+//!    brightness).
+//! 3. **Patch match**: p is unchanged if for some displacement s *every* pixel of its 3×3
+//!    half-resolution patch matches under that same s. The common displacement tolerates one to
+//!    two full-resolution pixels of vibration without letting a textured new object pass by
+//!    matching each pixel to a different neighbour; object borders drop out.
+//!    Rules 2–3 are tested at candidate pixels only, every [`ANCHOR_STRIDE`]-th
+//!    half-resolution pixel in each direction (4 800 candidates at 640×480), the undisplaced
+//!    patch first.
+//! 4. **Valid static depth**: the stored calibration depth at the pixel is valid and within 3 %
+//!    of its 3×3 half-resolution neighbours (no depth edge, where vibration or the model's edge
+//!    smoothing would make the anchor wrong).
+//!
+//! Shadows lower the brightness locally by more than the tolerance and so remove anchors rather
+//! than add wrong ones (conservative). A new object of exactly the background's grey and no
+//! texture would pass the test: the residual trimming and the held-out check below guard against
+//! such anchors.
+//!
+//! # The correction ([`RealignConfig`])
+//! In the calibration's alignment space (target t = z in depth space, 1/z in inverse space), with
+//! y the one-shot result's target at an anchor, y₀ the mean of y over the fitting anchors and
+//! s = y/y₀, the corrected target is t̂ = y + y₀·c·f with
+//! f = [s, 1] (`scale-shift`: a relative scale change and a shift, the form of the per-frame
+//! fluctuation a/z + b of a depth model) or f = [s, 1, s·(u/W − ½), s·(v/H − ½)] (`planar`:
+//! a planar scale field, SSRA's form, and a shift). Ridge towards the identity (c = 0):
+//! minimise Σ((t − y)/y₀ − c·f)² + λ‖c‖², λ = `ridge` (dimensionless, in "anchor
+//! equivalents": well-determined directions, Σf² ≈ number of anchors, are barely shrunk; on a
+//! flat background scale and shift are nearly collinear and the ridge splits the correction
+//! between them instead of extrapolating an ill-determined scale to nearer objects).
+//! One trimming pass drops anchors whose residual is beyond 3 robust standard deviations
+//! (1.4826·MAD) and refits. Up to `max_anchors` anchors are used (a seeded subsample); a seeded
+//! split holds out `holdout_fraction` of them. The correction is **accepted only if it lowers
+//! the held-out error** (RMSE in metres over the held-out anchors, the largest
+//! [`HELD_OUT_TRIM`] of errors left out on each side), and then refitted on all used anchors;
+//! otherwise, and when fewer than max(`min_anchors`, `min_anchor_fraction` × the store's valid
+//! pixels) anchors remain, the one-shot result is kept and the [`RealignReport`] says why. The
+//! report never holds NaN.
+//!
+//! Store size at 640×480: 320×240 half-resolution pixels × (1 byte grey + 2 bytes depth) =
+//! 230 400 bytes, 307 200 characters of base64 in the calibration file.
+
+use ndarray::{Array2, ArrayView3, ArrayViewMut2};
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{CoreError, Result};
+use crate::image::{ImageSize, MetricDepth, is_valid_depth};
+use crate::normalise::AlignSpace;
+
+/// Anchor candidates are every `ANCHOR_STRIDE`-th half-resolution pixel in each direction (a
+/// full-resolution stride of 4 pixels): 4 800 candidates at 640×480, far more than a correction
+/// of at most four parameters needs, at a quarter of the cost.
+pub const ANCHOR_STRIDE: usize = 2;
+
+/// Smallest image an anchor store accepts, pixels per side.
+pub const MIN_ANCHOR_IMAGE_SIDE_PX: usize = 8;
+
+/// The compact calibration-frame record re-alignment needs: grey (u8) and ground-truth depth
+/// (u16 mm, 0 = invalid or on a depth edge) at half resolution.
+///
+/// Half-resolution pixel (i, j) covers full-resolution rows 2i, 2i+1 and columns 2j, 2j+1; its
+/// grey is the block mean, its depth the ground truth at full-resolution pixel (u = 2j, v = 2i).
+/// Serialised with both arrays as base64 (depth little-endian).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "AnchorStoreFile", into = "AnchorStoreFile")]
+pub struct AnchorStore {
+    size: ImageSize,
+    grey: Array2<u8>,
+    depth_mm: Array2<u16>,
+    one_shot_mm: Option<Array2<u16>>,
+}
+
+/// The serialised form of an [`AnchorStore`].
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct AnchorStoreFile {
+    /// Full-resolution width, pixels.
+    width: usize,
+    /// Full-resolution height, pixels.
+    height: usize,
+    /// Grey at half resolution, (height/2)×(width/2) bytes row-major, base64.
+    grey_b64: String,
+    /// Depth in mm at half resolution, u16 little-endian row-major, base64.
+    depth_mm_b64: String,
+    /// The calibration's own one-shot result on the calibration frame at the same pixels, mm,
+    /// u16 little-endian, base64 (absent: only the ground-truth target is available).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    one_shot_mm_b64: Option<String>,
+}
+
+fn half(size: ImageSize) -> (usize, usize) {
+    (size.height / 2, size.width / 2)
+}
+
+/// Checks an RGB view `(height, width, 3)` against `size`.
+fn check_rgb(rgb: &ArrayView3<'_, u8>, size: ImageSize, what: &'static str) -> Result<()> {
+    let (h, w, c) = rgb.dim();
+    if c != 3 {
+        return Err(CoreError::InvalidParameter(format!(
+            "{what} must have 3 channels (RGB), got {c}"
+        )));
+    }
+    size.expect_eq(what, ImageSize::new(w, h))
+}
+
+/// Grey (R + 2G + B)/4 averaged over 2×2 blocks, as f32 in [0, 255], row-major half resolution.
+fn grey_half(rgb: &ArrayView3<'_, u8>, hh: usize, hw: usize, out: &mut Vec<f32>) {
+    out.clear();
+    out.reserve(hh * hw);
+    let w = rgb.dim().1;
+    let owned;
+    let data: &[u8] = match rgb.as_slice() {
+        Some(s) => s,
+        None => {
+            owned = rgb.iter().copied().collect::<Vec<u8>>();
+            &owned
+        }
+    };
+    let stride = 3 * w;
+    for i in 0..hh {
+        let r0 = &data[2 * i * stride..2 * i * stride + 6 * hw];
+        let r1 = &data[(2 * i + 1) * stride..(2 * i + 1) * stride + 6 * hw];
+        out.extend(r0.chunks_exact(6).zip(r1.chunks_exact(6)).map(|(a, b)| {
+            let s = a[0] as u32
+                + 2 * a[1] as u32
+                + a[2] as u32
+                + a[3] as u32
+                + 2 * a[4] as u32
+                + a[5] as u32
+                + b[0] as u32
+                + 2 * b[1] as u32
+                + b[2] as u32
+                + b[3] as u32
+                + 2 * b[4] as u32
+                + b[5] as u32;
+            s as f32 / 16.0
+        }));
+    }
+}
+
+impl AnchorStore {
+    /// Builds the store from the calibration frame's RGB `(height, width, 3)` and ground truth.
+    ///
+    /// # Errors
+    /// Size mismatch between `rgb` and `gt`, an image smaller than 8×8, no channel count of 3,
+    /// no pixel with valid static depth.
+    pub fn new(rgb: ArrayView3<'_, u8>, gt: &MetricDepth) -> Result<Self> {
+        let size = gt.size();
+        check_rgb(&rgb, size, "calibration RGB")?;
+        if size.width < MIN_ANCHOR_IMAGE_SIDE_PX || size.height < MIN_ANCHOR_IMAGE_SIDE_PX {
+            return Err(CoreError::InvalidParameter(format!(
+                "anchor store needs an image of at least {MIN_ANCHOR_IMAGE_SIDE_PX}x{MIN_ANCHOR_IMAGE_SIDE_PX} pixels, got {size}"
+            )));
+        }
+        let (hh, hw) = half(size);
+        let mut g = Vec::new();
+        grey_half(&rgb, hh, hw, &mut g);
+        let grey = Array2::from_shape_vec((hh, hw), g.iter().map(|&x| x.round() as u8).collect())
+            .map_err(|e| CoreError::InvalidParameter(e.to_string()))?;
+        let z = Array2::from_shape_fn((hh, hw), |(i, j)| {
+            let z = gt.depth_m[[2 * i, 2 * j]];
+            if is_valid_depth(z) && z * 1000.0 < u16::MAX as f32 - 0.5 {
+                z
+            } else {
+                f32::NAN
+            }
+        });
+        // valid only away from depth edges: every 3×3 neighbour valid and within 3 %
+        let depth_mm = Array2::from_shape_fn((hh, hw), |(i, j)| {
+            let c = z[[i, j]];
+            if !c.is_finite() {
+                return 0u16;
+            }
+            for di in [-1isize, 0, 1] {
+                for dj in [-1isize, 0, 1] {
+                    let (a, b) = (i as isize + di, j as isize + dj);
+                    if a < 0 || b < 0 || a >= hh as isize || b >= hw as isize {
+                        continue;
+                    }
+                    let n = z[[a as usize, b as usize]];
+                    if !n.is_finite() || (n - c).abs() > 0.03 * c {
+                        return 0;
+                    }
+                }
+            }
+            (c * 1000.0).round().max(1.0) as u16
+        });
+        let store = Self {
+            size,
+            grey,
+            depth_mm,
+            one_shot_mm: None,
+        };
+        if store.valid_depth_px() == 0 {
+            return Err(CoreError::NoValidPixels(
+                "the calibration ground truth holds no valid depth away from depth edges for the anchor store".into(),
+            ));
+        }
+        Ok(store)
+    }
+
+    /// Records the calibration's one-shot result on the calibration frame (metres, full
+    /// resolution) at the store's pixels, for the `calibration-output` target.
+    ///
+    /// # Errors
+    /// Size mismatch.
+    pub fn with_one_shot(mut self, one_shot: &MetricDepth) -> Result<Self> {
+        self.size
+            .expect_eq("calibration one-shot depth", one_shot.size())?;
+        let (hh, hw) = half(self.size);
+        self.one_shot_mm = Some(Array2::from_shape_fn((hh, hw), |(i, j)| {
+            let z = one_shot.depth_m[[2 * i, 2 * j]];
+            if is_valid_depth(z) && z * 1000.0 < u16::MAX as f32 - 0.5 {
+                (z * 1000.0).round().max(1.0) as u16
+            } else {
+                0
+            }
+        }));
+        Ok(self)
+    }
+
+    /// Whether the calibration's one-shot result is stored.
+    pub fn has_one_shot(&self) -> bool {
+        self.one_shot_mm.is_some()
+    }
+
+    /// Full-resolution image size, pixels.
+    pub fn image_size(&self) -> ImageSize {
+        self.size
+    }
+
+    /// Half-resolution pixels holding a valid static depth.
+    pub fn valid_depth_px(&self) -> usize {
+        self.depth_mm.iter().filter(|&&d| d > 0).count()
+    }
+
+    /// Anchor candidates (every [`ANCHOR_STRIDE`]-th interior half-resolution pixel in each
+    /// direction) holding a valid static depth: the most anchors a frame can have.
+    pub fn candidate_px(&self) -> usize {
+        let (hh, hw) = half(self.size);
+        (1..hh.saturating_sub(1))
+            .step_by(ANCHOR_STRIDE)
+            .map(|i| {
+                (1..hw.saturating_sub(1))
+                    .step_by(ANCHOR_STRIDE)
+                    .filter(|&j| self.depth_mm[[i, j]] > 0)
+                    .count()
+            })
+            .sum()
+    }
+
+    /// Size of the stored arrays, bytes (before base64).
+    pub fn stored_bytes(&self) -> usize {
+        self.grey.len()
+            + 2 * self.depth_mm.len()
+            + self.one_shot_mm.as_ref().map_or(0, |a| 2 * a.len())
+    }
+
+    /// Checks internal consistency (array shapes against the image size).
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] naming the problem.
+    pub fn validate(&self) -> Result<()> {
+        let (hh, hw) = half(self.size);
+        if self.size.width < MIN_ANCHOR_IMAGE_SIDE_PX
+            || self.size.height < MIN_ANCHOR_IMAGE_SIDE_PX
+            || self.size.pixels() > crate::image::MAX_IMAGE_PIXELS
+        {
+            return Err(CoreError::InvalidParameter(format!(
+                "anchor store image size {} is too small or too large",
+                self.size
+            )));
+        }
+        if self.grey.dim() != (hh, hw)
+            || self.depth_mm.dim() != (hh, hw)
+            || self
+                .one_shot_mm
+                .as_ref()
+                .is_some_and(|a| a.dim() != (hh, hw))
+        {
+            return Err(CoreError::InvalidParameter(format!(
+                "anchor store arrays are not {hw}x{hh} (half of {})",
+                self.size
+            )));
+        }
+        Ok(())
+    }
+}
+
+impl From<AnchorStore> for AnchorStoreFile {
+    fn from(s: AnchorStore) -> Self {
+        let le = |a: &Array2<u16>| -> Vec<u8> { a.iter().flat_map(|d| d.to_le_bytes()).collect() };
+        let depth = le(&s.depth_mm);
+        Self {
+            width: s.size.width,
+            height: s.size.height,
+            grey_b64: b64_encode(&s.grey.iter().copied().collect::<Vec<u8>>()),
+            depth_mm_b64: b64_encode(&depth),
+            one_shot_mm_b64: s.one_shot_mm.as_ref().map(|a| b64_encode(&le(a))),
+        }
+    }
+}
+
+impl TryFrom<AnchorStoreFile> for AnchorStore {
+    type Error = String;
+    fn try_from(f: AnchorStoreFile) -> std::result::Result<Self, String> {
+        let size = ImageSize::new(f.width, f.height);
+        if f.width < MIN_ANCHOR_IMAGE_SIDE_PX
+            || f.height < MIN_ANCHOR_IMAGE_SIDE_PX
+            || f.width
+                .checked_mul(f.height)
+                .is_none_or(|p| p > crate::image::MAX_IMAGE_PIXELS)
+        {
+            return Err(format!(
+                "anchor store size {size} is too small or too large"
+            ));
+        }
+        let (hh, hw) = half(size);
+        let grey = b64_decode(&f.grey_b64).map_err(|e| format!("anchor store grey_b64: {e}"))?;
+        if grey.len() != hh * hw {
+            return Err(format!(
+                "anchor store grey_b64 holds {} bytes, expected {} ({hw}x{hh})",
+                grey.len(),
+                hh * hw
+            ));
+        }
+        let u16s = |field: &str, text: &str| -> std::result::Result<Array2<u16>, String> {
+            let bytes = b64_decode(text).map_err(|e| format!("anchor store {field}: {e}"))?;
+            if bytes.len() != 2 * hh * hw {
+                return Err(format!(
+                    "anchor store {field} holds {} bytes, expected {} ({hw}x{hh} u16)",
+                    bytes.len(),
+                    2 * hh * hw
+                ));
+            }
+            let v: Vec<u16> = bytes
+                .chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect();
+            Array2::from_shape_vec((hh, hw), v).map_err(|e| e.to_string())
+        };
+        Ok(Self {
+            size,
+            grey: Array2::from_shape_vec((hh, hw), grey).map_err(|e| e.to_string())?,
+            depth_mm: u16s("depth_mm_b64", &f.depth_mm_b64)?,
+            one_shot_mm: f
+                .one_shot_mm_b64
+                .as_deref()
+                .map(|t| u16s("one_shot_mm_b64", t))
+                .transpose()?,
+        })
+    }
+}
+
+const B64: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+
+fn b64_encode(data: &[u8]) -> String {
+    let mut out = String::with_capacity(data.len().div_ceil(3) * 4);
+    for c in data.chunks(3) {
+        let b = [c[0], *c.get(1).unwrap_or(&0), *c.get(2).unwrap_or(&0)];
+        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
+        for k in 0..4 {
+            if k <= c.len() {
+                out.push(B64[(n >> (18 - 6 * k) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+fn b64_decode(s: &str) -> std::result::Result<Vec<u8>, String> {
+    let bytes = s.as_bytes();
+    if !bytes.len().is_multiple_of(4) {
+        return Err(format!("length {} is not a multiple of 4", bytes.len()));
+    }
+    let val = |c: u8, at: usize| -> std::result::Result<u32, String> {
+        match c {
+            b'A'..=b'Z' => Ok((c - b'A') as u32),
+            b'a'..=b'z' => Ok((c - b'a' + 26) as u32),
+            b'0'..=b'9' => Ok((c - b'0' + 52) as u32),
+            b'+' => Ok(62),
+            b'/' => Ok(63),
+            _ => Err(format!("invalid base64 character at offset {at}")),
+        }
+    };
+    let mut out = Vec::with_capacity(bytes.len() / 4 * 3);
+    let chunks = bytes.len() / 4;
+    for (ci, c) in bytes.chunks_exact(4).enumerate() {
+        let pad = c.iter().rev().take_while(|&&x| x == b'=').count();
+        if pad > 2 || (pad > 0 && ci + 1 != chunks) {
+            return Err(format!("misplaced padding in chunk {ci}"));
+        }
+        let mut n = 0u32;
+        for (k, &x) in c.iter().enumerate() {
+            n <<= 6;
+            if k < 4 - pad {
+                n |= val(x, 4 * ci + k)?;
+            }
+        }
+        let b = [(n >> 16) as u8, (n >> 8) as u8, n as u8];
+        out.extend_from_slice(&b[..3 - pad]);
+    }
+    Ok(out)
+}
+
+/// Thresholds of the anchor rule (module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AnchorThresholds {
+    /// Absolute grey tolerance, grey levels (0–255) after the gain (default 6).
+    pub abs_grey: f32,
+    /// Relative grey tolerance, fraction of the gain-corrected calibration grey (default 0.08).
+    pub rel: f32,
+}
+
+impl Default for AnchorThresholds {
+    fn default() -> Self {
+        Self {
+            abs_grey: 6.0,
+            rel: 0.08,
+        }
+    }
+}
+
+/// Form of the correction fitted on the anchors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum CorrectionModel {
+    /// δ = c₀ + c₁·y': scale and shift of the one-shot result in the alignment space.
+    #[default]
+    ScaleShift,
+    /// δ = c₀ + c₁·y' + c₂·u' + c₃·v': plus a planar shift over the image.
+    Planar,
+}
+
+impl std::fmt::Display for CorrectionModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::ScaleShift => "scale-shift",
+            Self::Planar => "planar",
+        })
+    }
+}
+
+impl std::str::FromStr for CorrectionModel {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "scale-shift" => Ok(Self::ScaleShift),
+            "planar" => Ok(Self::Planar),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown re-alignment correction '{other}' (expected scale-shift or planar)"
+            ))),
+        }
+    }
+}
+
+/// What the correction is fitted to at the anchors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum AnchorTarget {
+    /// The calibration frame's ground truth: also corrects the one-shot fit's own error on the
+    /// background (which need not transfer to the objects).
+    GroundTruth,
+    /// The calibration's own one-shot result on the calibration frame: removes only the model's
+    /// change since calibration (the per-frame fluctuation), the fit itself is kept. Needs
+    /// [`AnchorStore::with_one_shot`].
+    #[default]
+    CalibrationOutput,
+}
+
+impl std::fmt::Display for AnchorTarget {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::GroundTruth => "ground-truth",
+            Self::CalibrationOutput => "calibration-output",
+        })
+    }
+}
+
+impl std::str::FromStr for AnchorTarget {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "ground-truth" => Ok(Self::GroundTruth),
+            "calibration-output" => Ok(Self::CalibrationOutput),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown re-alignment target '{other}' (expected calibration-output or ground-truth)"
+            ))),
+        }
+    }
+}
+
+/// Settings of the re-alignment (module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RealignConfig {
+    /// The anchor rule's thresholds.
+    pub thresholds: AnchorThresholds,
+    /// Correction form.
+    pub model: CorrectionModel,
+    /// What the correction is fitted to.
+    pub target: AnchorTarget,
+    /// Ridge λ towards the identity, in anchor equivalents (default 100; with the default 200
+    /// anchors a strong shrinkage, chosen by the ablation in docs/evaluation.md).
+    pub ridge: f64,
+    /// Most anchors used (seeded subsample; default 200).
+    pub max_anchors: usize,
+    /// Fewest anchors (before the split) for a correction to be tried (default 50).
+    pub min_anchors: usize,
+    /// Fewest anchors as a fraction of the store's pixels with valid static depth (default
+    /// 0.05): below it the frame is treated as covered — chance matches of a new surface that
+    /// resembles the background must not decide the correction.
+    pub min_anchor_fraction: f64,
+    /// Fraction of the used anchors held out to accept or reject the correction (default 0.3).
+    pub holdout_fraction: f64,
+    /// Seed of the subsample and the split.
+    pub seed: u64,
+}
+
+impl Default for RealignConfig {
+    fn default() -> Self {
+        Self {
+            thresholds: AnchorThresholds::default(),
+            model: CorrectionModel::ScaleShift,
+            target: AnchorTarget::default(),
+            ridge: 100.0,
+            max_anchors: 200,
+            min_anchors: 50,
+            min_anchor_fraction: 0.05,
+            holdout_fraction: 0.3,
+            seed: 0,
+        }
+    }
+}
+
+impl RealignConfig {
+    /// Checks the ranges.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        let t = &self.thresholds;
+        if !(t.abs_grey.is_finite() && t.abs_grey >= 0.0 && t.rel.is_finite() && t.rel >= 0.0) {
+            return Err(CoreError::InvalidParameter(
+                "anchor thresholds must be finite and >= 0".into(),
+            ));
+        }
+        if !(self.ridge.is_finite() && self.ridge >= 0.0) {
+            return Err(CoreError::InvalidParameter(format!(
+                "re-alignment ridge {} must be finite and >= 0",
+                self.ridge
+            )));
+        }
+        if !(self.holdout_fraction > 0.0 && self.holdout_fraction < 1.0) {
+            return Err(CoreError::InvalidParameter(format!(
+                "re-alignment holdout fraction {} must be in (0, 1)",
+                self.holdout_fraction
+            )));
+        }
+        if !(0.0..1.0).contains(&self.min_anchor_fraction) {
+            return Err(CoreError::InvalidParameter(format!(
+                "re-alignment min_anchor_fraction {} must be in [0, 1)",
+                self.min_anchor_fraction
+            )));
+        }
+        if self.min_anchors < 10 || self.max_anchors < self.min_anchors {
+            return Err(CoreError::InvalidParameter(format!(
+                "re-alignment needs min_anchors >= 10 and max_anchors >= min_anchors (got {} and {})",
+                self.min_anchors, self.max_anchors
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// What re-alignment did to one frame. Never NaN: absent quantities are `None`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RealignReport {
+    /// Anchor pixels found (half resolution, before subsampling).
+    pub anchors: usize,
+    /// Anchors used for fitting and the held-out test (after subsampling and dropping pixels
+    /// without a one-shot depth).
+    pub anchors_used: usize,
+    /// Global brightness gain k of the frame against the calibration (None: no usable pixel).
+    pub brightness_gain: Option<f64>,
+    /// RMSE of the one-shot result on the held-out anchors, metres.
+    pub held_out_rmse_before_m: Option<f64>,
+    /// RMSE of the corrected result on the held-out anchors, metres.
+    pub held_out_rmse_after_m: Option<f64>,
+    /// Whether the correction was applied.
+    pub accepted: bool,
+    /// Why (a warning when not accepted).
+    pub reason: String,
+}
+
+/// Anchors of one frame: full-resolution pixels with their calibration depth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Anchors {
+    /// `(u, v, z_m, one_shot_m)`: column, row (full resolution, pixels), calibration ground
+    /// truth and the calibration's one-shot result there (metres; NaN when not stored).
+    pub pixels: Vec<(u32, u32, f32, f32)>,
+    /// Global brightness gain (None: no usable pixel to estimate it).
+    pub gain: Option<f64>,
+}
+
+fn median_in_place(xs: &mut [f32]) -> Option<f32> {
+    if xs.is_empty() {
+        return None;
+    }
+    let k = xs.len() / 2;
+    let (_, m, _) = xs.select_nth_unstable_by(k, f32::total_cmp);
+    Some(*m)
+}
+
+/// Finds the anchors of a frame with RGB `(height, width, 3)` (module documentation, rule 1–4).
+///
+/// # Errors
+/// Size or channel mismatch with the store.
+pub fn find_anchors(
+    store: &AnchorStore,
+    rgb: ArrayView3<'_, u8>,
+    thresholds: &AnchorThresholds,
+) -> Result<Anchors> {
+    check_rgb(&rgb, store.size, "frame RGB")?;
+    let (hh, hw) = half(store.size);
+    let mut gf = Vec::new();
+    grey_half(&rgb, hh, hw, &mut gf);
+    let gc = store
+        .grey
+        .as_slice()
+        .ok_or_else(|| CoreError::InvalidParameter("anchor store grey is not contiguous".into()))?;
+    let mut ratios: Vec<f32> = gc
+        .iter()
+        .zip(&gf)
+        .step_by(7)
+        .filter(|&(&c, &f)| (20..=235).contains(&c) && (1.0..=250.0).contains(&f))
+        .map(|(&c, &f)| f / c as f32)
+        .collect();
+    let Some(k) = median_in_place(&mut ratios) else {
+        return Ok(Anchors {
+            pixels: Vec::new(),
+            gain: None,
+        });
+    };
+    // rules 2–4 at the candidate pixels (every ANCHOR_STRIDE-th half-resolution pixel in each
+    // direction): for some displacement s, every pixel q of the 3×3 patch around p must match,
+    // |g_f(q) − k·g_c(q + s)| ≤ abs + rel·k·g_c(q); tests stop at the first mismatch.
+    let depth = store.depth_mm.as_slice().ok_or_else(|| {
+        CoreError::InvalidParameter("anchor store depth is not contiguous".into())
+    })?;
+    let one_shot = store.one_shot_mm.as_ref().and_then(|a| a.as_slice());
+    let (abs, rel) = (thresholds.abs_grey, thresholds.rel * k);
+    let mut pixels = Vec::new();
+    for i in (1..hh.saturating_sub(1)).step_by(ANCHOR_STRIDE) {
+        for j in (1..hw.saturating_sub(1)).step_by(ANCHOR_STRIDE) {
+            let d = depth[i * hw + j];
+            if d == 0 {
+                continue;
+            }
+            let matches = |di: isize, dj: isize| {
+                for a in i - 1..=i + 1 {
+                    let sa = (a as isize + di).clamp(0, hh as isize - 1) as usize;
+                    for b in j - 1..=j + 1 {
+                        let sb = (b as isize + dj).clamp(0, hw as isize - 1) as usize;
+                        let f = gf[a * hw + b];
+                        let tol = abs + rel * gc[a * hw + b] as f32;
+                        if f > 250.0 || (f - k * gc[sa * hw + sb] as f32).abs() > tol {
+                            return false;
+                        }
+                    }
+                }
+                true
+            };
+            // the undisplaced patch first (the common case for an unchanged pixel)
+            let unchanged = matches(0, 0)
+                || [
+                    (-1, -1),
+                    (-1, 0),
+                    (-1, 1),
+                    (0, -1),
+                    (0, 1),
+                    (1, -1),
+                    (1, 0),
+                    (1, 1),
+                ]
+                .iter()
+                .any(|&(di, dj)| matches(di, dj));
+            if unchanged {
+                let o = one_shot.map_or(0, |a| a[i * hw + j]);
+                let o = if o > 0 { o as f32 * 1e-3 } else { f32::NAN };
+                pixels.push(((2 * j) as u32, (2 * i) as u32, d as f32 * 1e-3, o));
+            }
+        }
+    }
+    Ok(Anchors {
+        pixels,
+        gain: Some(k as f64),
+    })
+}
+
+/// One anchor ready for fitting: pixel, ground-truth target and one-shot target.
+#[derive(Debug, Clone, Copy)]
+struct Obs {
+    u: f64,
+    v: f64,
+    z_m: f64,
+    t: f64,
+    y: f64,
+}
+
+/// A fitted correction δ = y₀·c·f(y, u, v) in the alignment space (module documentation).
+#[derive(Debug, Clone, Copy)]
+struct Correction {
+    model: CorrectionModel,
+    y0: f64,
+    width: f64,
+    height: f64,
+    c: [f64; 4],
+}
+
+impl Correction {
+    fn features(&self, y: f64, u: f64, v: f64) -> [f64; 4] {
+        let s = y / self.y0;
+        match self.model {
+            CorrectionModel::ScaleShift => [s, 1.0, 0.0, 0.0],
+            CorrectionModel::Planar => [
+                s,
+                1.0,
+                s * (u / self.width - 0.5),
+                s * (v / self.height - 0.5),
+            ],
+        }
+    }
+
+    fn delta(&self, y: f64, u: f64, v: f64) -> f64 {
+        let f = self.features(y, u, v);
+        self.y0 * (self.c[0] * f[0] + self.c[1] * f[1] + self.c[2] * f[2] + self.c[3] * f[3])
+    }
+
+    /// Ridge least squares on `obs`; `None` when the system is singular.
+    fn fit(model: CorrectionModel, size: ImageSize, obs: &[Obs], ridge: f64) -> Option<Self> {
+        let y0 = obs.iter().map(|o| o.y).sum::<f64>() / obs.len().max(1) as f64;
+        if !(y0.is_finite() && y0 > 0.0) {
+            return None;
+        }
+        let mut c = Self {
+            model,
+            y0,
+            width: size.width as f64,
+            height: size.height as f64,
+            c: [0.0; 4],
+        };
+        let mut a = nalgebra::Matrix4::<f64>::zeros();
+        let mut b = nalgebra::Vector4::<f64>::zeros();
+        for o in obs {
+            let f = c.features(o.y, o.u, o.v);
+            let r = (o.t - o.y) / y0;
+            for p in 0..4 {
+                b[p] += f[p] * r;
+                for q in 0..4 {
+                    a[(p, q)] += f[p] * f[q];
+                }
+            }
+        }
+        // unused features: identity rows keep the system regular (their coefficient stays 0)
+        let used = match model {
+            CorrectionModel::ScaleShift => 2,
+            CorrectionModel::Planar => 4,
+        };
+        for p in 0..4 {
+            a[(p, p)] += if p < used { ridge.max(1e-9) } else { 1.0 };
+        }
+        let sol = a.cholesky()?.solve(&b);
+        c.c = [sol[0], sol[1], sol[2], sol[3]];
+        c.c.iter().all(|x| x.is_finite()).then_some(c)
+    }
+
+    /// Fit, one trimming pass (3 robust standard deviations), refit.
+    fn fit_trimmed(
+        model: CorrectionModel,
+        size: ImageSize,
+        obs: &[Obs],
+        ridge: f64,
+    ) -> Option<Self> {
+        let first = Self::fit(model, size, obs, ridge)?;
+        let mut res: Vec<f32> = obs
+            .iter()
+            .map(|o| (o.t - o.y - first.delta(o.y, o.u, o.v)) as f32)
+            .collect();
+        let med = median_in_place(&mut res.clone())?;
+        for r in res.iter_mut() {
+            *r = (*r - med).abs();
+        }
+        let mad = median_in_place(&mut res.clone())? as f64;
+        let thr = (3.0 * 1.4826 * mad).max(1e-12);
+        let kept: Vec<Obs> = obs
+            .iter()
+            .zip(&res)
+            .filter(|&(_, &r)| (r as f64) <= thr)
+            .map(|(o, _)| *o)
+            .collect();
+        if kept.len() == obs.len() || kept.len() < 4 {
+            return Some(first);
+        }
+        Self::fit(model, size, &kept, ridge)
+    }
+}
+
+/// Held-out error, metres: the RMSE over the held-out anchors without the largest
+/// [`HELD_OUT_TRIM`] fraction of their errors (a few false anchors, e.g. on a new object of the
+/// background's grey, must not decide); an anchor without depth counts with its full depth.
+fn rmse_m(obs: &[Obs], space: AlignSpace, corr: Option<&Correction>) -> f64 {
+    let mut e2: Vec<f64> = obs
+        .iter()
+        .map(|o| {
+            let z = match corr {
+                Some(c) => space.depth_from_target(o.y + c.delta(o.y, o.u, o.v)),
+                None => space.depth_from_target(o.y),
+            };
+            let e = if z.is_finite() { z - o.z_m } else { o.z_m };
+            e * e
+        })
+        .collect();
+    e2.sort_by(f64::total_cmp);
+    let keep =
+        ((e2.len() as f64 * (1.0 - HELD_OUT_TRIM)).ceil() as usize).clamp(1, e2.len().max(1));
+    (e2.iter().take(keep).sum::<f64>() / keep as f64).sqrt()
+}
+
+/// Fraction of the largest held-out errors left out of the held-out RMSE.
+pub const HELD_OUT_TRIM: f64 = 0.1;
+
+/// Re-aligns a one-shot result in place on the anchors of the frame with RGB `rgb`
+/// `(height, width, 3)`; `depth_m` holds the one-shot metres (NaN where none) and is changed
+/// only when the correction is accepted. `space` is the calibration's alignment space.
+///
+/// # Errors
+/// Size mismatches with the store, an invalid `config`. Too few anchors or a rejected correction
+/// are not errors: the report says so and `depth_m` is unchanged.
+pub fn realign_in_place(
+    store: &AnchorStore,
+    rgb: ArrayView3<'_, u8>,
+    space: AlignSpace,
+    config: &RealignConfig,
+    depth_m: &mut ArrayViewMut2<'_, f32>,
+) -> Result<RealignReport> {
+    config.validate()?;
+    store
+        .size
+        .expect_eq("one-shot depth", ImageSize::of(&depth_m.view()))?;
+    let anchors = find_anchors(store, rgb, &config.thresholds)?;
+    let mut report = RealignReport {
+        anchors: anchors.pixels.len(),
+        anchors_used: 0,
+        brightness_gain: anchors.gain,
+        held_out_rmse_before_m: None,
+        held_out_rmse_after_m: None,
+        accepted: false,
+        reason: String::new(),
+    };
+    if config.target == AnchorTarget::CalibrationOutput && !store.has_one_shot() {
+        return Err(CoreError::InvalidParameter(
+            "re-alignment target calibration-output needs the calibration's one-shot result in \
+             the anchor store (AnchorStore::with_one_shot); this store holds only ground truth"
+                .into(),
+        ));
+    }
+    let mut obs: Vec<Obs> = anchors
+        .pixels
+        .iter()
+        .filter_map(|&(u, v, gt, cal)| {
+            let z = match config.target {
+                AnchorTarget::GroundTruth => gt,
+                AnchorTarget::CalibrationOutput => cal,
+            };
+            let d = depth_m[[v as usize, u as usize]];
+            let y = space.target_from_depth(d as f64);
+            (is_valid_depth(d) && is_valid_depth(z) && y.is_finite()).then(|| Obs {
+                u: u as f64,
+                v: v as f64,
+                z_m: z as f64,
+                t: space.target_from_depth(z as f64),
+                y,
+            })
+        })
+        .collect();
+    let need = config
+        .min_anchors
+        .max((config.min_anchor_fraction * store.candidate_px() as f64).ceil() as usize);
+    if obs.len() < need {
+        report.anchors_used = obs.len();
+        report.reason = format!(
+            "kept the one-shot result: {} usable anchor(s), need {need} (background covered or changed, camera moved, or lighting changed locally)",
+            obs.len(),
+        );
+        return Ok(report);
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let take = config.max_anchors.min(obs.len());
+    let (chosen, _) = obs.partial_shuffle(&mut rng, take);
+    let obs = chosen.to_vec();
+    report.anchors_used = obs.len();
+    let n_hold =
+        ((obs.len() as f64 * config.holdout_fraction).round() as usize).clamp(1, obs.len() - 4);
+    let (held, train) = obs.split_at(n_hold);
+    let before = rmse_m(held, space, None);
+    report.held_out_rmse_before_m = Some(before);
+    let Some(trial) = Correction::fit_trimmed(config.model, store.size, train, config.ridge) else {
+        report.reason =
+            "kept the one-shot result: the correction is degenerate on these anchors".into();
+        return Ok(report);
+    };
+    let after = rmse_m(held, space, Some(&trial));
+    report.held_out_rmse_after_m = Some(after);
+    if after.partial_cmp(&before) != Some(std::cmp::Ordering::Less) {
+        report.reason = format!(
+            "kept the one-shot result: the correction does not lower the held-out RMSE ({:.2} mm -> {:.2} mm)",
+            before * 1e3,
+            after * 1e3
+        );
+        return Ok(report);
+    }
+    let Some(fin) = Correction::fit_trimmed(config.model, store.size, &obs, config.ridge) else {
+        report.reason =
+            "kept the one-shot result: the correction is degenerate on all anchors".into();
+        return Ok(report);
+    };
+    if fin.model == CorrectionModel::ScaleShift {
+        // t̂ = (1 + c₀)·y + c₁·y₀: one affine map of the target for every pixel
+        let (a, b) = ((1.0 + fin.c[0]) as f32, (fin.c[1] * fin.y0) as f32);
+        match space {
+            AlignSpace::Depth => depth_m.mapv_inplace(|z| {
+                let t = a * z + b;
+                if is_valid_depth(z) && t > 0.0 {
+                    t
+                } else if is_valid_depth(z) {
+                    f32::NAN
+                } else {
+                    z
+                }
+            }),
+            AlignSpace::Inverse => depth_m.mapv_inplace(|z| {
+                let t = a / z + b;
+                if is_valid_depth(z) {
+                    if t > 0.0 { 1.0 / t } else { f32::NAN }
+                } else {
+                    z
+                }
+            }),
+        }
+    }
+    for ((v, u), d) in depth_m.indexed_iter_mut() {
+        if fin.model == CorrectionModel::ScaleShift {
+            break;
+        }
+        let z = *d as f64;
+        if !is_valid_depth(*d) {
+            continue;
+        }
+        let y = space.target_from_depth(z);
+        let t = y + fin.delta(y, u as f64, v as f64);
+        let zc = space.depth_from_target(t);
+        *d = if zc.is_finite() && zc > 0.0 {
+            zc as f32
+        } else {
+            f32::NAN
+        };
+    }
+    report.accepted = true;
+    report.reason = format!(
+        "corrected on {} anchors: held-out RMSE {:.2} mm -> {:.2} mm",
+        obs.len(),
+        before * 1e3,
+        after * 1e3
+    );
+    Ok(report)
+}

@@ -1,0 +1,420 @@
+//! Per-frame re-alignment on static anchors: a synthetic fixed-camera scene whose test frame
+//! adds an object and whose depth model output changes its global scale and shift.
+
+use moma_core::align::Method;
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::realign::{AnchorStore, AnchorTarget, CorrectionModel, RealignConfig, find_anchors};
+use moma_core::sampling::SamplingConfig;
+use moma_core::{
+    Calibration, CalibrationConfig, CoreError, MetricDepth, Prediction, PredictionKind, calibrate,
+};
+use ndarray::{Array2, Array3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const W: usize = 160;
+const H: usize = 120;
+/// The object added in the test frame: columns 50..100, rows 40..80, at 0.6 m.
+fn in_object(u: usize, v: usize) -> bool {
+    (50..100).contains(&u) && (40..80).contains(&v)
+}
+
+fn table_m(v: usize) -> f32 {
+    0.8 + 0.001 * v as f32
+}
+
+fn gt(with_object: bool) -> MetricDepth {
+    MetricDepth::new(Array2::from_shape_fn((H, W), |(v, u)| {
+        if with_object && in_object(u, v) {
+            0.6
+        } else {
+            table_m(v)
+        }
+    }))
+}
+
+/// Background grey: smooth texture in 50–170.
+fn background(u: usize, v: usize) -> f32 {
+    let (x, y) = (u as f32, v as f32);
+    110.0 + 35.0 * (x / 6.0).sin() * (y / 9.0).cos() + 25.0 * ((x + 2.0 * y) / 13.0).sin()
+}
+
+/// RGB of a frame: the background (and the object, a texture of its own in the same grey range),
+/// brightness ×`gain`, white noise σ = 2 grey levels, shifted right by `shift_px` pixels.
+fn rgb(with_object: bool, gain: f32, shift_px: usize, seed: u64) -> Array3<u8> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut img = Array3::<u8>::zeros((H, W, 3));
+    for v in 0..H {
+        for u in 0..W {
+            let us = u.saturating_sub(shift_px);
+            let g = if with_object && in_object(u, v) {
+                110.0 + 50.0 * ((u as f32) / 3.0).cos() * ((v as f32) / 4.0).sin()
+            } else {
+                background(us, v)
+            };
+            for (c, tint) in [0.9f32, 1.0, 1.1].iter().enumerate() {
+                let noise: f32 = (rng.random::<f32>() - 0.5) * 2.0 * 3.46; // σ = 2
+                img[[v, u, c]] = (gain * g * tint + noise).round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+    img
+}
+
+/// Disparity a/z + b of a depth map.
+fn disparity(z: &MetricDepth, a: f32, b: f32) -> Prediction {
+    Prediction::new(z.depth_m.mapv(|z| a / z + b), PredictionKind::InverseDepth)
+}
+
+fn calibration() -> Calibration {
+    let config = CalibrationConfig {
+        method: Method::Gssa,
+        normalisation: NormalisationConfig {
+            method: Normalisation::None,
+            space: AlignSpace::Inverse,
+        },
+        sampling: SamplingConfig {
+            n: 100,
+            seed: 3,
+            ..Default::default()
+        },
+    };
+    let g = gt(false);
+    let pred = disparity(&g, 2.0, 0.0);
+    calibrate(&pred, &g, &config, None, None)
+        .unwrap()
+        .with_anchors(rgb(false, 1.0, 0, 1).view(), &g, &pred)
+        .unwrap()
+}
+
+/// Mean absolute error (metres) over pixels where `region` holds.
+fn mae_m(d: &MetricDepth, truth: &MetricDepth, region: impl Fn(usize, usize) -> bool) -> f64 {
+    let mut s = 0.0;
+    let mut n = 0usize;
+    for ((v, u), &z) in d.depth_m.indexed_iter() {
+        if region(u, v) {
+            s += (z as f64 - truth.depth_m[[v, u]] as f64).abs();
+            n += 1;
+        }
+    }
+    s / n as f64
+}
+
+#[test]
+fn recovers_global_change_on_background_and_improves_the_object() {
+    let cal = calibration();
+    let truth = gt(true);
+    // the depth model's output for the same scene changed: scale ×1.15 and a shift
+    let pred = disparity(&truth, 2.3, 0.2);
+    let one_shot = cal.align(&pred).unwrap();
+    for target in [AnchorTarget::CalibrationOutput, AnchorTarget::GroundTruth] {
+        let config = RealignConfig {
+            ridge: 0.0,
+            target,
+            ..Default::default()
+        };
+        let (re, report) = cal
+            .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &config)
+            .unwrap();
+        assert!(report.accepted, "{report:?}");
+        let before = report.held_out_rmse_before_m.unwrap();
+        let after = report.held_out_rmse_after_m.unwrap();
+        assert!(before > 0.05, "one-shot held-out RMSE {before}");
+        // GT stored in whole millimetres: recovered to the quantisation
+        assert!(after < 0.5e-3, "held-out RMSE after {after}");
+        let bg = |u, v| !in_object(u, v);
+        let obj = |u, v| in_object(u, v);
+        assert!(mae_m(&one_shot, &truth, bg) > 0.05);
+        assert!(
+            mae_m(&re, &truth, bg) < 0.5e-3,
+            "{}",
+            mae_m(&re, &truth, bg)
+        );
+        // the object never served as anchor, yet the correction of the model's global change fixes it
+        let (ob, oa) = (mae_m(&one_shot, &truth, obj), mae_m(&re, &truth, obj));
+        assert!(ob > 0.03 && oa < 0.5e-3, "object MAE {ob} -> {oa}");
+        // the object is not an anchor: anchors cover at most the background
+        // anchor candidates: every 2nd interior half-resolution pixel
+        let background_half_px = (1..H / 2 - 1)
+            .step_by(2)
+            .flat_map(|i| (1..W / 2 - 1).step_by(2).map(move |j| (2 * j, 2 * i)))
+            .filter(|&(u, v)| !in_object(u, v))
+            .count();
+        assert!(report.anchors <= background_half_px, "{}", report.anchors);
+        assert!(
+            report.anchors > background_half_px * 8 / 10,
+            "{}",
+            report.anchors
+        );
+    }
+}
+
+#[test]
+fn default_ridge_shrinks_but_still_improves() {
+    let cal = calibration();
+    let truth = gt(true);
+    let pred = disparity(&truth, 2.3, 0.2);
+    let one_shot = cal.align(&pred).unwrap();
+    let (re, report) = cal
+        .align_realigned(
+            &pred,
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap();
+    assert!(report.accepted);
+    let obj = |u, v| in_object(u, v);
+    // on a flat background scale and shift are nearly collinear: the (strong, default) ridge
+    // shrinks the ill-determined part, so the nearer object is corrected by most, not all, of it
+    let (b, a) = (mae_m(&one_shot, &truth, obj), mae_m(&re, &truth, obj));
+    assert!(a < 0.3 * b, "object MAE {b} -> {a}");
+    // a huge ridge keeps the correction at the identity: rejected (no held-out gain) or tiny
+    let stiff = RealignConfig {
+        ridge: 1e12,
+        ..Default::default()
+    };
+    let (re2, _) = cal
+        .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &stiff)
+        .unwrap();
+    assert!((mae_m(&re2, &truth, obj) - mae_m(&one_shot, &truth, obj)).abs() < 1e-4);
+}
+
+#[test]
+fn planar_correction_recovers_a_tilt() {
+    let cal = calibration();
+    let truth = gt(true);
+    // a change that grows from left to right: disparity × (1 + 0.2·u/W)
+    let pred = Prediction::new(
+        Array2::from_shape_fn((H, W), |(v, u)| {
+            2.0 / truth.depth_m[[v, u]] * (1.0 + 0.2 * u as f32 / W as f32)
+        }),
+        PredictionKind::InverseDepth,
+    );
+    let one_shot = cal.align(&pred).unwrap();
+    let run = |model| {
+        let c = RealignConfig {
+            model,
+            ridge: 10.0,
+            max_anchors: 2000,
+            ..Default::default()
+        };
+        cal.align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &c)
+            .unwrap()
+    };
+    let (ss, _) = run(CorrectionModel::ScaleShift);
+    let (pl, rep) = run(CorrectionModel::Planar);
+    assert!(rep.accepted);
+    let obj = |u, v| in_object(u, v);
+    let (e0, e1, e2) = (
+        mae_m(&one_shot, &truth, obj),
+        mae_m(&ss, &truth, obj),
+        mae_m(&pl, &truth, obj),
+    );
+    assert!(
+        e2 < e1 && e2 < 0.5 * e0,
+        "one-shot {e0}, scale-shift {e1}, planar {e2}"
+    );
+}
+
+#[test]
+fn brightness_and_vibration_keep_the_anchors() {
+    let cal = calibration();
+    let store = cal.anchor_store().unwrap();
+    let base = find_anchors(store, rgb(true, 1.0, 0, 2).view(), &Default::default())
+        .unwrap()
+        .pixels
+        .len();
+    for (gain, shift) in [(0.8f32, 0usize), (1.2, 0), (1.0, 2), (0.8, 1)] {
+        let a = find_anchors(store, rgb(true, gain, shift, 5).view(), &Default::default()).unwrap();
+        assert!(
+            a.pixels.len() * 10 >= base * 8,
+            "gain {gain}, shift {shift}: {} anchors vs {base}",
+            a.pixels.len()
+        );
+        let k = a.gain.unwrap();
+        assert!((k - gain as f64).abs() < 0.03, "gain {k} for {gain}");
+        // and no anchor on the object (up to a shift of the test image)
+        let on_object = a
+            .pixels
+            .iter()
+            .filter(|&&(u, v, _, _)| in_object(u as usize, v as usize))
+            .count();
+        assert!(
+            on_object * 100 <= a.pixels.len(),
+            "{on_object} on the object"
+        );
+    }
+    // the re-alignment itself under brightness 0.8
+    let truth = gt(true);
+    let pred = disparity(&truth, 2.3, 0.2);
+    let (_, report) = cal
+        .align_realigned(
+            &pred,
+            rgb(true, 0.8, 0, 7).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap();
+    assert!(report.accepted, "{report:?}");
+}
+
+#[test]
+fn fully_covered_background_falls_back_cleanly() {
+    let cal = calibration();
+    let truth = gt(true);
+    let pred = disparity(&truth, 2.3, 0.2);
+    let one_shot = cal.align(&pred).unwrap();
+    // a frame whose every pixel changed: another texture everywhere
+    let mut covered = Array3::<u8>::zeros((H, W, 3));
+    for ((v, u, _), x) in covered.indexed_iter_mut() {
+        *x = (110.0 + 50.0 * ((u as f32) / 3.0).cos() * ((v as f32) / 4.0).sin()) as u8;
+    }
+    let (re, report) = cal
+        .align_realigned(&pred, covered.view(), &RealignConfig::default())
+        .unwrap();
+    assert!(!report.accepted);
+    let valid = cal.anchor_store().unwrap().candidate_px();
+    assert!(report.anchors * 20 < valid, "{} of {valid}", report.anchors);
+    assert!(report.reason.contains("anchor"), "{}", report.reason);
+    assert!(report.held_out_rmse_before_m.is_none() && report.held_out_rmse_after_m.is_none());
+    assert_eq!(re, one_shot);
+    // the report serialises without NaN
+    let json = serde_json::to_string(&report).unwrap();
+    assert!(!json.contains("NaN") && json.contains("null"), "{json}");
+    // a black frame: no brightness gain can be estimated, no anchor
+    let black = Array3::<u8>::zeros((H, W, 3));
+    let (_, r) = cal
+        .align_realigned(&pred, black.view(), &RealignConfig::default())
+        .unwrap();
+    assert!(!r.accepted && r.brightness_gain.is_none() && r.anchors == 0);
+}
+
+#[test]
+fn rejected_when_the_correction_does_not_help() {
+    // the prediction did not change: the one-shot result is already right on the anchors; a
+    // correction fitted to millimetre quantisation must not be applied blindly
+    let cal = calibration();
+    let truth = gt(true);
+    let pred = disparity(&truth, 2.0, 0.0);
+    let one_shot = cal.align(&pred).unwrap();
+    let (re, report) = cal
+        .align_realigned(
+            &pred,
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap();
+    let obj = |u, v| in_object(u, v);
+    // accepted or not, it never makes the frame worse by more than the quantisation
+    assert!(mae_m(&re, &truth, obj) <= mae_m(&one_shot, &truth, obj) + 0.5e-3);
+    if !report.accepted {
+        assert!(
+            report.reason.contains("does not lower"),
+            "{}",
+            report.reason
+        );
+        assert_eq!(re, one_shot);
+    }
+}
+
+#[test]
+fn anchor_store_serde_round_trip_and_bad_input() {
+    let cal = calibration();
+    let json = serde_json::to_string(&cal).unwrap();
+    let back: Calibration = serde_json::from_str(&json).unwrap();
+    assert_eq!(back, cal);
+    back.validate().unwrap();
+    let store = cal.anchor_store().unwrap();
+    // grey, ground truth and the calibration's own result: 5 bytes per half-resolution pixel
+    assert_eq!(store.stored_bytes(), (W / 2) * (H / 2) * 5);
+    // at 640×480: 320·240·3 bytes
+    let big = AnchorStore::new(
+        Array3::<u8>::zeros((480, 640, 3)).view(),
+        &MetricDepth::new(Array2::from_elem((480, 640), 1.0)),
+    )
+    .unwrap();
+    assert_eq!(big.stored_bytes(), 230_400);
+    let big_json = serde_json::to_string(&big).unwrap();
+    assert!(big_json.len() < 310_000, "{}", big_json.len());
+    // a calibration without anchors writes no `anchors` key and reads back without one
+    let mut plain = cal.clone();
+    plain.anchors = None;
+    let pj = serde_json::to_string(&plain).unwrap();
+    assert!(!pj.contains("anchors"));
+    assert_eq!(serde_json::from_str::<Calibration>(&pj).unwrap(), plain);
+    // corrupted stores are refused with a message naming the field
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let mut bad = v.clone();
+    bad["anchors"]["grey_b64"] = "AAAA".into();
+    let e = serde_json::from_value::<Calibration>(bad)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("grey_b64"), "{e}");
+    let mut bad = v.clone();
+    bad["anchors"]["depth_mm_b64"] = "A*==".into();
+    let e = serde_json::from_value::<Calibration>(bad)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("depth_mm_b64"), "{e}");
+    let mut bad = v;
+    bad["anchors"]["extra"] = 1.into();
+    assert!(serde_json::from_value::<Calibration>(bad).is_err());
+}
+
+#[test]
+fn no_anchor_store_is_a_clear_error() {
+    let mut cal = calibration();
+    cal.anchors = None;
+    let truth = gt(true);
+    let e = cal
+        .align_realigned(
+            &disparity(&truth, 2.0, 0.0),
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap_err();
+    assert!(matches!(e, CoreError::InvalidParameter(_)));
+    assert!(e.to_string().contains("no anchor store"), "{e}");
+    // wrong RGB size and channel count
+    let cal = calibration();
+    let pred = disparity(&truth, 2.0, 0.0);
+    let small = Array3::<u8>::zeros((H / 2, W, 3));
+    assert!(matches!(
+        cal.align_realigned(&pred, small.view(), &RealignConfig::default()),
+        Err(CoreError::SizeMismatch { .. })
+    ));
+    // a store without the calibration's own result cannot serve the calibration-output target
+    let mut gt_only = cal.clone();
+    gt_only.anchors = Some(std::sync::Arc::new(
+        AnchorStore::new(rgb(false, 1.0, 0, 1).view(), &gt(false)).unwrap(),
+    ));
+    let e = gt_only
+        .align_realigned(
+            &pred,
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap_err();
+    assert!(e.to_string().contains("calibration-output"), "{e}");
+    let gt_target = RealignConfig {
+        target: AnchorTarget::GroundTruth,
+        ..Default::default()
+    };
+    assert!(
+        gt_only
+            .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &gt_target)
+            .is_ok()
+    );
+    let grey = Array3::<u8>::zeros((H, W, 1));
+    assert!(
+        cal.align_realigned(&pred, grey.view(), &RealignConfig::default())
+            .is_err()
+    );
+    let bad = RealignConfig {
+        holdout_fraction: 1.0,
+        ..Default::default()
+    };
+    assert!(
+        cal.align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &bad)
+            .is_err()
+    );
+}

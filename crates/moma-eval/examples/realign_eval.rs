@@ -1,0 +1,161 @@
+//! Re-alignment on static anchors on the shared sets with SIMULATED predictions (issue 12,
+//! item 4): one-shot vs re-aligned MAE per set and method, brightness 1 / 0.8 / 1.2, and the
+//! ablation over the anchor count and the ridge.
+//!
+//! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation]`
+//! (default 10 seeds, simulated kind `inverse-depth`; `depth` for metric-like predictions;
+//! target `calibration-output` or `ground-truth`).
+
+use moma_core::PredictionKind;
+use moma_core::align::Method;
+use moma_core::realign::CorrectionModel;
+use moma_eval::protocol::{EvalConfig, EvalResult, PredictionSet, evaluate};
+use moma_eval::realign::{RealignEval, realign_table};
+use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+
+const SETS: [&str; 4] = [
+    "gqcnn-primesense",
+    "graspnet6dof-table",
+    "m2t2-table",
+    "cleargrasp-transparent",
+];
+
+const ABLATION: [(CorrectionModel, usize, f64); 11] = [
+    (CorrectionModel::ScaleShift, 200, 0.0),
+    (CorrectionModel::ScaleShift, 200, 10.0),
+    (CorrectionModel::ScaleShift, 200, 100.0),
+    (CorrectionModel::ScaleShift, 200, 1000.0),
+    (CorrectionModel::ScaleShift, 2000, 10.0),
+    (CorrectionModel::ScaleShift, 2000, 100.0),
+    (CorrectionModel::ScaleShift, 2000, 1000.0),
+    (CorrectionModel::ScaleShift, 50, 100.0),
+    (CorrectionModel::Planar, 200, 100.0),
+    (CorrectionModel::Planar, 2000, 100.0),
+    (CorrectionModel::Planar, 2000, 1000.0),
+];
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let seeds: usize = std::env::args().nth(1).map_or(Ok(10), |s| s.parse())?;
+    let kind: PredictionKind = std::env::args()
+        .nth(2)
+        .map_or(Ok(PredictionKind::InverseDepth), |s| s.parse())?;
+    let target: moma_core::realign::AnchorTarget = std::env::args()
+        .nth(3)
+        .map_or(Ok(Default::default()), |s| s.parse())?;
+    let ablate = std::env::args().nth(4).is_none_or(|s| s != "no-ablation");
+    let shared = std::env::var("MOMA_SHARED_DIR").unwrap_or_else(|_| "/work/shared".into());
+    let methods: Vec<Method> = ["ssra", "gssa", "lwlr"]
+        .iter()
+        .map(|m| m.parse())
+        .collect::<Result<_, _>>()?;
+    let mut loaded = Vec::new();
+    for name in SETS {
+        let set =
+            moma_eval::data::load_set(&std::path::Path::new(&shared).join("data").join(name))?;
+        let sim = Simulator::new(SimulatorConfig::default(), 0, kind, set.intrinsics)?;
+        let maps = simulate_frames(&set, &sim, TransparencySource::Auto)?;
+        let preds = PredictionSet {
+            label: format!("SIMULATED {kind} (seed 0)"),
+            simulated: true,
+            maps,
+        };
+        loaded.push((set, preds));
+    }
+    let run = |mut realign: RealignEval| -> Result<Vec<EvalResult>, Box<dyn std::error::Error>> {
+        realign.config.target = target;
+        let mut all = Vec::new();
+        for (set, preds) in &loaded {
+            let config = EvalConfig {
+                methods: methods.clone(),
+                seeds,
+                realign: Some(realign.clone()),
+                ..Default::default()
+            };
+            all.extend(evaluate(set, preds, &config)?);
+        }
+        Ok(all)
+    };
+    // main table: brightness 1, 0.8, 1.2
+    let all = run(RealignEval {
+        brightness: vec![1.0, 0.8, 1.2],
+        ..Default::default()
+    })?;
+    println!("{}", realign_table(&all).to_markdown());
+    // the issue's check: per method and variant, the change averaged over sets
+    println!(
+        "\n| method | variant | mean MAE change over sets % | sets made worse | worst frame rise mm | frames worse |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for m in &methods {
+        for v in [
+            "realign-anchors",
+            "realign-anchors-b0.80",
+            "realign-anchors-b1.20",
+        ] {
+            let rows: Vec<&EvalResult> = all
+                .iter()
+                .filter(|r| r.method == m.to_string() && r.variant == v)
+                .collect();
+            let changes: Vec<f64> = rows
+                .iter()
+                .filter_map(|r| {
+                    r.realign
+                        .map(|s| (r.per_image.mae.mean - s.one_shot_mae_m) / s.one_shot_mae_m)
+                })
+                .collect();
+            let worse_sets = changes.iter().filter(|&&c| c > 0.0).count();
+            let max_rise = rows
+                .iter()
+                .filter_map(|r| r.realign.map(|s| s.max_worse_mm))
+                .fold(0.0, f64::max);
+            let (w, n) = rows
+                .iter()
+                .filter_map(|r| r.realign)
+                .fold((0, 0), |(w, n), s| (w + s.worse, n + s.results));
+            println!(
+                "| {} | {v} | {:+.1} | {worse_sets}/{} | {max_rise:.2} | {w}/{n} |",
+                m.to_string().to_uppercase(),
+                100.0 * changes.iter().sum::<f64>() / changes.len() as f64,
+                changes.len()
+            );
+        }
+    }
+    if !ablate {
+        return Ok(());
+    }
+    // ablation: anchors used and ridge, brightness 1, mean change over sets and methods
+    println!(
+        "\n| correction | max anchors | ridge λ | mean MAE change % | frames worse | max worse mm |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for (model, max_anchors, ridge) in ABLATION {
+        {
+            let mut realign = RealignEval::default();
+            realign.config.model = model;
+            realign.config.max_anchors = max_anchors;
+            realign.config.ridge = ridge;
+            let rows = run(realign)?;
+            let stats: Vec<(f64, moma_eval::realign::RealignStats)> = rows
+                .iter()
+                .filter_map(|r| r.realign.map(|s| (r.per_image.mae.mean, s)))
+                .collect();
+            let change = stats
+                .iter()
+                .map(|(re, s)| (re - s.one_shot_mae_m) / s.one_shot_mae_m)
+                .sum::<f64>()
+                / stats.len() as f64;
+            let (w, n) = stats
+                .iter()
+                .fold((0, 0), |(w, n), (_, s)| (w + s.worse, n + s.results));
+            let mx = stats
+                .iter()
+                .map(|(_, s)| s.max_worse_mm)
+                .fold(0.0, f64::max);
+            println!(
+                "| {model} | {max_anchors} | {ridge} | {:+.1} | {w}/{n} | {mx:.2} |",
+                100.0 * change
+            );
+        }
+    }
+    Ok(())
+}
