@@ -477,6 +477,7 @@ impl<'a> Prepared<'a> {
                 n,
                 seed,
             },
+            robust: None,
         };
         calibrate_normalised(
             calib_map,
@@ -585,6 +586,7 @@ pub fn evaluate_one(
         method: method.clone(),
         normalisation: *norm,
         sampling: SamplingConfig::default(),
+        robust: None,
     }
     .check(prep.preds.maps[prep.calib].kind)
     .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;

@@ -168,6 +168,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             n: args.samples,
             seed: args.seed,
         },
+        robust: None,
     };
     config.check(pred.kind).with_context(|| {
         format!(
