@@ -11,6 +11,7 @@
 use std::sync::Arc;
 
 use moma_core::align::Method;
+use moma_core::align::robust::Robust;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise,
@@ -65,6 +66,19 @@ pub struct EvalConfig {
     /// `workspace`. Sampling and scoring are unchanged. Not serialised.
     #[serde(skip)]
     pub workspace: Option<Mask>,
+    /// Robust variants evaluated besides the one-shot least-squares fit: each gives rows with
+    /// variant `robust-<kind>` for the methods that support robust fitting (gssa, ssra and
+    /// their local variants; other methods get no robust row). RANSAC's seed is the sampling
+    /// seed.
+    #[serde(default)]
+    pub robust: Vec<Robust>,
+    /// SIMULATED sensor errors: this fraction of the calibration frame's valid ground-truth pixels
+    /// is replaced by a wrong depth, truth ± U(0.1, 0.5) m (sign at random; `+` where `−` would
+    /// leave less than 0.05 m), seeded per sampling seed ([`corrupt_ground_truth`]). Every variant
+    /// calibrates on the same corrupted frame; scoring uses the true ground truth of the other
+    /// frames. `None`: the ground truth as read.
+    #[serde(default)]
+    pub gt_outliers: Option<f64>,
 }
 
 impl Default for EvalConfig {
@@ -80,6 +94,8 @@ impl Default for EvalConfig {
             sampling: SamplingStrategy::Random,
             depth_range_m: None,
             workspace: None,
+            robust: Vec::new(),
+            gt_outliers: None,
         }
     }
 }
@@ -160,6 +176,8 @@ pub struct EvalResult {
     pub pred_kind: PredictionKind,
     /// Method name.
     pub method: String,
+    /// Calibration variant: `one-shot` (least squares on one frame), `robust-<kind>`, ...
+    pub variant: String,
     /// Normalisation name (`none` for RAW).
     pub norm: String,
     /// Alignment space.
@@ -191,6 +209,8 @@ pub struct JsonRow {
     pub set: String,
     /// Method.
     pub method: String,
+    /// Calibration variant (`one-shot`, `robust-huber`, ...).
+    pub variant: String,
     /// Normalisation.
     pub norm: String,
     /// n.
@@ -209,6 +229,7 @@ impl From<&EvalResult> for JsonRow {
         Self {
             set: r.set.clone(),
             method: r.method.clone(),
+            variant: r.variant.clone(),
             norm: r.norm.clone(),
             samples: r.samples,
             seeds: r.seeds,
@@ -468,6 +489,23 @@ impl<'a> Prepared<'a> {
         n: usize,
         seed: u64,
     ) -> Result<Calibration> {
+        self.calibrate_with(method, norm, calib_map, n, seed, None)
+    }
+
+    /// [`Prepared::calibrate`] with an optional robust fit (RANSAC seeded with `seed`), on the
+    /// calibration frame's ground truth corrupted as [`EvalConfig::gt_outliers`] asks.
+    ///
+    /// # Errors
+    /// As [`Prepared::calibrate`].
+    pub fn calibrate_with(
+        &self,
+        method: &Method,
+        norm: &NormalisationConfig,
+        calib_map: &NormalisedMap,
+        n: usize,
+        seed: u64,
+        robust: Option<&Robust>,
+    ) -> Result<Calibration> {
         let f = &self.set.frames[self.calib];
         let config = CalibrationConfig {
             method: method.clone(),
@@ -477,12 +515,16 @@ impl<'a> Prepared<'a> {
                 n,
                 seed,
             },
-            robust: None,
+            robust: robust.map(|r| r.with_seed(seed)),
         };
+        let corrupted = self
+            .config
+            .gt_outliers
+            .map(|frac| corrupt_ground_truth(&f.gt, frac, seed));
         calibrate_normalised(
             calib_map,
             self.preds.maps[self.calib].kind,
-            &f.gt,
+            corrupted.as_ref().unwrap_or(&f.gt),
             &config,
             self.workspace.clone(),
             self.sample_region.as_ref(),
@@ -564,9 +606,43 @@ pub fn evaluate(
             }
         }
     }
-    jobs.iter()
-        .map(|(m, norm)| evaluate_one(&prep, m, norm, config.samples))
-        .collect()
+    let mut results = Vec::new();
+    for (m, norm) in &jobs {
+        results.push(evaluate_one(&prep, m, norm, config.samples)?);
+        for r in &config.robust {
+            if r.check_method(m).is_ok() {
+                results.push(evaluate_variant(&prep, m, norm, config.samples, Some(r))?);
+            }
+        }
+    }
+    Ok(results)
+}
+
+/// The `variant` of rows fitted with `robust` (`one-shot` without).
+pub fn variant_name(robust: Option<&Robust>) -> String {
+    match robust {
+        None => "one-shot".into(),
+        Some(r) => format!("robust-{}", r.kind),
+    }
+}
+
+/// SIMULATED gross ground-truth errors (sensor edges, glass): a copy of `gt` where each valid
+/// pixel, with probability `fraction`, becomes truth ± U(0.1, 0.5) m (sign at random; `+` where
+/// `−` would leave less than 0.05 m). Seeded: `ChaCha8Rng::seed_from_u64(seed ^ 0x6f75_746c)`.
+pub fn corrupt_ground_truth(gt: &MetricDepth, fraction: f64, seed: u64) -> MetricDepth {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x6f75_746c);
+    MetricDepth::new(gt.depth_m.mapv(|z| {
+        if !is_valid_depth(z) || !rng.random_bool(fraction.clamp(0.0, 1.0)) {
+            return z;
+        }
+        let d: f32 = rng.random_range(0.1..0.5);
+        if rng.random::<bool>() && z - d >= 0.05 {
+            z - d
+        } else {
+            z + d
+        }
+    }))
 }
 
 /// Evaluates one (method, normalisation) with `n` samples over all seeds.
@@ -579,6 +655,20 @@ pub fn evaluate_one(
     norm: &NormalisationConfig,
     n: usize,
 ) -> Result<EvalResult> {
+    evaluate_variant(prep, method, norm, n, None)
+}
+
+/// [`evaluate_one`] with an optional robust fit (row variant `robust-<kind>`).
+///
+/// # Errors
+/// As [`evaluate`], and a method that does not support robust fitting.
+pub fn evaluate_variant(
+    prep: &Prepared<'_>,
+    method: &Method,
+    norm: &NormalisationConfig,
+    n: usize,
+    robust: Option<&Robust>,
+) -> Result<EvalResult> {
     let set = prep.set;
     let config = &prep.config;
     let method = prep.method(method);
@@ -586,7 +676,7 @@ pub fn evaluate_one(
         method: method.clone(),
         normalisation: *norm,
         sampling: SamplingConfig::default(),
-        robust: None,
+        robust: robust.copied(),
     }
     .check(prep.preds.maps[prep.calib].kind)
     .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;
@@ -601,7 +691,7 @@ pub fn evaluate_one(
     let per_seed: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
-            let cal = prep.calibrate(&method, norm, &maps[prep.calib], n, seed)?;
+            let cal = prep.calibrate_with(&method, norm, &maps[prep.calib], n, seed, robust)?;
             let ms = eval_idx
                 .iter()
                 .map(|&i| prep.score(&cal, &maps[i], i).map(|(_, m)| m))
@@ -643,6 +733,7 @@ pub fn evaluate_one(
         simulated: prep.preds.simulated,
         pred_kind: prep.preds.maps[0].kind,
         method: method.to_string(),
+        variant: variant_name(robust),
         norm: norm.method.to_string(),
         space: norm.space,
         samples: n,

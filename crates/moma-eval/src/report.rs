@@ -138,12 +138,17 @@ pub fn headers_with_metrics(keys: &[&str]) -> Vec<String> {
 
 /// The paper-style table of an evaluation (per-image mean, mean ± std over seeds).
 pub fn eval_table(results: &[EvalResult], pooled: bool) -> Table {
-    let mut headers = headers_with_metrics(&["set", "method", "norm"]);
+    let mut headers = headers_with_metrics(&["set", "method", "variant", "norm"]);
     headers.push("fit ms".into());
     let rows = results
         .iter()
         .map(|r| {
-            let mut row = vec![r.set.clone(), r.method.to_uppercase(), r.norm.clone()];
+            let mut row = vec![
+                r.set.clone(),
+                r.method.to_uppercase(),
+                r.variant.clone(),
+                r.norm.clone(),
+            ];
             row.extend(metric_cells(if pooled { &r.pooled } else { &r.per_image }));
             row.push(format!("{:.3}", r.fit_time_median_s * 1e3));
             row
@@ -199,6 +204,7 @@ pub fn eval_csv(results: &[EvalResult]) -> String {
         "simulated",
         "pred_kind",
         "method",
+        "variant",
         "norm",
         "samples",
         "seeds",
@@ -230,6 +236,7 @@ pub fn eval_csv(results: &[EvalResult]) -> String {
                 r.simulated.to_string(),
                 r.pred_kind.to_string(),
                 r.method.clone(),
+                r.variant.clone(),
                 r.norm.clone(),
                 r.samples.to_string(),
                 r.seeds.to_string(),
