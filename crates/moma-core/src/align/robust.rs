@@ -7,15 +7,21 @@
 //! is compared with the ground-truth depth. A fitted disparity ≤ 0 (no depth) counts as an
 //! infinite residual. `threshold_m` (`c` below) is the residual scale:
 //!
-//! - **Huber** (IRLS): weight `1` for `|r| ≤ c`, `c/|r|` beyond. Convex: starts from the least-
-//!   squares fit and converges to the Huber optimum.
+//! - **Huber** (IRLS): weight `1` for `|r| ≤ c`, `c/|r|` beyond. Starts from the RANSAC fit
+//!   below (seeded; least squares where RANSAC finds none): from a least-squares start, IRLS with
+//!   a small `c` and 20 % gross outliers can stop far from the optimum within `max_iterations`.
 //! - **Tukey** biweight (IRLS): weight `(1 − (r/c)²)²` for `|r| < c`, `0` beyond (a sample more
 //!   than `c` from the fit is ignored). Not convex: starts from the Huber fit.
 //!
 //!   IRLS stops when no sample's fitted depth moves by more than [`IRLS_TOLERANCE_M`] between two
 //!   reweightings, or after `max_iterations` reweightings (per phase: Tukey runs up to
 //!   `max_iterations` Huber steps, then up to `max_iterations` Tukey steps). In inverse space the
-//!   weighted least squares is solved on the 1/z target with the metre-based weights.
+//!   weighted least squares is solved on the 1/z target, and the weights use the target
+//!   residual converted to metres to first order at the fitted value (`Δ(1/z)/t_fit²`), so that
+//!   each sample's pull on the fit stays bounded (weights from the exact metre residual let a
+//!   wrong *near* ground truth, whose 1/z is huge, pull the fit away: seen to diverge on
+//!   gqcnn-primesense with 20 % outliers). Inliers, RANSAC's consensus and the report use the
+//!   exact metre residual.
 //! - **RANSAC**: minimal samples of the global model (GSSA 2, SSRA 4 samples), drawn with
 //!   `ChaCha8Rng::seed_from_u64(seed)`; consensus = samples with `|r| < c`; the hypothesis with the
 //!   most inliers wins (ties: the lower sum of squared inlier residuals); then least squares on
@@ -112,7 +118,7 @@ pub struct Robust {
     pub threshold_m: f64,
     /// Most IRLS reweightings per phase, or most RANSAC hypotheses; ≥ 1.
     pub max_iterations: usize,
-    /// Seed of RANSAC's minimal samples (unused by Huber and Tukey).
+    /// Seed of RANSAC's minimal samples (also the start of Huber and Tukey IRLS).
     pub seed: u64,
 }
 
@@ -321,10 +327,19 @@ impl Robust {
         Ok((model, report))
     }
 
-    /// Huber IRLS from least squares; for Tukey, then Tukey IRLS from the Huber fit.
+    /// Huber IRLS from a RANSAC start (least squares where RANSAC finds no fit); for Tukey, then
+    /// Tukey IRLS from the Huber fit.
     fn irls(&self, ctx: &Ctx<'_>, base: Base, tukey: bool) -> Result<(GlobalFit, usize)> {
         let c = self.threshold_m;
-        let mut model = base.fit(ctx.set, None)?;
+        let start = Self {
+            kind: RobustKind::Ransac,
+            max_iterations: DEFAULT_RANSAC_ITERATIONS,
+            ..*self
+        };
+        let mut model = match start.ransac(ctx, base) {
+            Ok((m, _)) => m,
+            Err(_) => base.fit(ctx.set, None)?,
+        };
         let mut iterations = 0;
         let phases: &[bool] = if tukey { &[false, true] } else { &[false] };
         let mut weights = vec![1.0; ctx.samples.len()];
@@ -332,7 +347,9 @@ impl Robust {
             for _ in 0..self.max_iterations {
                 let mut positive = 0;
                 for (w, s) in weights.iter_mut().zip(ctx.samples) {
-                    let r = ctx.residual_m(s, model.predict(s.u, s.v, s.pred)).abs();
+                    let r = ctx
+                        .linearised_residual_m(s, model.predict(s.u, s.v, s.pred))
+                        .abs();
                     *w = if is_tukey {
                         if r < c {
                             (1.0 - (r / c).powi(2)).powi(2)
@@ -476,8 +493,8 @@ pub struct RobustReport {
     pub threshold_m: f64,
     /// Samples whose residual under the final model is below `threshold_m` (in metres).
     pub inliers: usize,
-    /// IRLS reweightings (both phases for Tukey) or RANSAC hypotheses drawn, plus one per
-    /// inlier-set round of a local variant.
+    /// IRLS reweightings (both phases for Tukey; the RANSAC start not counted) or RANSAC
+    /// hypotheses drawn, plus one per inlier-set round of a local variant.
     pub iterations: usize,
     /// RMS residual over the inliers, metres.
     pub inlier_rms_residual_m: f64,
@@ -584,6 +601,21 @@ impl Ctx<'_> {
             z - self.depth_m(s)
         } else {
             f64::INFINITY
+        }
+    }
+
+    /// The target-space residual in metres to first order at the *fitted* value:
+    /// `(fitted − target)·dz/dt` (`−1/fitted²` in inverse space, 1 in depth space; infinite
+    /// where the fitted disparity is ≤ 0). IRLS weighs with it, so that every sample's pull on
+    /// the target-space least squares (`w·Δt`) stays bounded by about `c·t²` at the fit — a
+    /// wrong near ground truth (1/z huge) would otherwise dominate the fit.
+    fn linearised_residual_m(&self, s: &Sample, fitted_target: f64) -> f64 {
+        match self.space {
+            AlignSpace::Depth => fitted_target - s.depth_m,
+            AlignSpace::Inverse if fitted_target > 0.0 && fitted_target.is_finite() => {
+                -(fitted_target - s.depth_m) / (fitted_target * fitted_target)
+            }
+            AlignSpace::Inverse => f64::INFINITY,
         }
     }
 
