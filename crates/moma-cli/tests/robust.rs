@@ -18,14 +18,15 @@ fn calibrate_and_eval_with_robust_fits() {
     let (scene, pred) = demo(tmp.path());
     let frames = scene.join("frames");
     let calib = tmp.path().join("calib.json");
+    let (pred0, gt0) = (pred.join("frame_00.npy"), frames.join("frame_00/depth.png"));
     let base = [
         "calibrate",
         "--pred",
-        s(&pred.join("frame_00.npy")),
+        s(&pred0),
         "--pred-kind",
         "inverse-depth",
         "--gt",
-        s(&frames.join("frame_00/depth.png")),
+        s(&gt0),
         "--method",
         "gssa",
         "--seed",
@@ -83,7 +84,7 @@ fn calibrate_and_eval_with_robust_fits() {
     // bad input: unknown kind, bad threshold, unsupported method, threshold without --robust
     assert!(fails(&with(&["--robust", "lsq"])).contains("huber, tukey, ransac"));
     assert!(
-        fails(&with(&["--robust", "huber", "--robust-threshold-m", "-1"])).contains("threshold")
+        fails(&with(&["--robust", "huber", "--robust-threshold-m", "0"])).contains("threshold")
     );
     let e = fails(
         &base
