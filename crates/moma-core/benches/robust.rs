@@ -23,7 +23,7 @@ fn samples(n: usize, seed: u64) -> SampleSet {
             let pred = rng.random_range(0.3..1.5);
             let mut depth_m =
                 pred * (0.9 + 2e-4 * u - 1e-4 * v) + 0.1 + rng.random_range(-0.003..0.003);
-            if k % 5 == 0 {
+            if k.is_multiple_of(5) {
                 let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
                 depth_m += sign * rng.random_range(0.1..0.5);
             }

@@ -448,7 +448,7 @@ fn pipeline_calibration_with_robust_fit() {
     });
     let pred = Prediction::new(truth.mapv(|z| 2.0 * z - 0.3), PredictionKind::Depth);
     let gt = MetricDepth::new(Array2::from_shape_fn((48, 64), |(v, u)| {
-        if (u * 7 + v * 3) % 5 == 0 {
+        if (u * 7 + v * 3).is_multiple_of(5) {
             truth[[v, u]] + 0.3 // 20 % of pixels wrong by 0.3 m
         } else {
             truth[[v, u]]
@@ -497,7 +497,7 @@ fn pipeline_calibration_with_robust_fit() {
             .samples
             .samples
             .iter()
-            .filter(|s| (s.u as usize * 7 + s.v as usize * 3) % 5 == 0)
+            .filter(|s| (s.u as usize * 7 + s.v as usize * 3).is_multiple_of(5))
             .count();
         assert_eq!(rep.inliers, cal.samples.len() - bad, "{kind}");
     }

@@ -13,7 +13,11 @@ use ndarray::Array2;
 fn calibration(robust: Option<Robust>) -> moma_core::pipeline::Calibration {
     let gt = MetricDepth::new(Array2::from_shape_fn((24, 32), |(v, u)| {
         let z = 0.6 + 0.01 * v as f32;
-        if (u + v) % 5 == 0 { z + 0.2 } else { z }
+        if (u + v).is_multiple_of(5) {
+            z + 0.2
+        } else {
+            z
+        }
     }));
     let pred = Prediction::new(
         Array2::from_shape_fn((24, 32), |(v, _)| 1.0 / (0.6 + 0.01 * v as f32)),
@@ -45,7 +49,7 @@ fn robust_report_round_trips_and_is_checked() {
         .samples
         .samples
         .iter()
-        .filter(|s| (s.u as usize + s.v as usize) % 5 == 0)
+        .filter(|s| (s.u as usize + s.v as usize).is_multiple_of(5))
         .count();
     assert_eq!(rep.inliers, cal.samples.len() - outliers);
     let file = CalibrationFile::new(cal, None, CreationInfo::now());
@@ -70,7 +74,11 @@ fn robust_report_round_trips_and_is_checked() {
     // a plain fit writes no robust block and reads back
     let plain = CalibrationFile::new(calibration(None), None, CreationInfo::now());
     write_calibration(&path, &plain).unwrap();
-    assert!(!std::fs::read_to_string(&path).unwrap().contains("\"robust\""));
+    assert!(
+        !std::fs::read_to_string(&path)
+            .unwrap()
+            .contains("\"robust\"")
+    );
     assert_eq!(
         read_calibration(&path).unwrap().calibration.report.robust,
         None
