@@ -262,6 +262,7 @@ fn bench_align(c: &mut Criterion) {
                     space,
                 },
                 sampling: moma_core::sampling::SamplingConfig::default(),
+                robust: None,
             };
             let cal = moma_core::calibrate(&pred, &gt, &config, None, None).unwrap();
             let id = format!("{name}_{space}_640x480");

@@ -31,6 +31,7 @@
 //!     method: Method::Gssa,
 //!     normalisation: NormalisationConfig::native(Normalisation::Minmax, PredictionKind::InverseDepth),
 //!     sampling: SamplingConfig { n: 100, seed: 0, ..Default::default() },
+//!     robust: None,
 //! };
 //! let calibration = calibrate(&model_output(&gt), &gt, &config, None, None)?;
 //!
@@ -50,6 +51,7 @@ use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::align::robust::Robust;
 use crate::align::{AlignmentModel, FitReport, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
@@ -68,15 +70,23 @@ pub struct CalibrationConfig {
     pub normalisation: NormalisationConfig,
     /// Calibration-pixel sampling.
     pub sampling: SamplingConfig,
+    /// Robust fit (Huber, Tukey, RANSAC; gssa, ssra and their local variants only); `None`:
+    /// least squares.
+    pub robust: Option<Robust>,
 }
 
 impl CalibrationConfig {
-    /// Checks the combination for predictions of `kind`: RAW uses the prediction as metric depth,
+    /// Checks the combination for predictions of `kind`: a robust fit needs valid settings and a
+    /// method that supports it ([`Robust::check_method`]); RAW uses the prediction as metric depth,
     /// so it needs a metric `depth` prediction, `none` normalisation and depth space.
     ///
     /// # Errors
     /// [`CoreError::InvalidParameter`] explaining the conflict.
     pub fn check(&self, kind: PredictionKind) -> Result<()> {
+        if let Some(r) = &self.robust {
+            r.validate()?;
+            r.check_method(&self.method)?;
+        }
         if self.method == Method::Raw {
             if kind != PredictionKind::Depth {
                 return Err(CoreError::InvalidParameter(format!(
@@ -476,8 +486,12 @@ pub fn calibrate_frames_normalised(
         samples.samples.extend(frame_samples.samples);
     }
     let space = config.normalisation.space;
+    let fit = |targets: &SampleSet| match &config.robust {
+        None => config.method.fit(targets),
+        Some(r) => r.fit(&config.method, targets, space),
+    };
     let (model, report) = match space {
-        AlignSpace::Depth => config.method.fit(&samples)?,
+        AlignSpace::Depth => fit(&samples)?,
         AlignSpace::Inverse => {
             let targets = SampleSet {
                 image_size: samples.image_size,
@@ -490,7 +504,7 @@ pub fn calibrate_frames_normalised(
                     })
                     .collect(),
             };
-            let (model, mut report) = config.method.fit(&targets)?;
+            let (model, mut report) = fit(&targets)?;
             report.rms_residual_m = rms_residual_m(&model, space, &samples.samples);
             (model, report)
         }
@@ -570,11 +584,15 @@ impl Calibration {
                 self.report.method
             )));
         }
+        if let Some(r) = &self.report.robust {
+            r.validate(self.report.n_used)?;
+        }
         if matches!(self.model, AlignmentModel::Raw) {
             CalibrationConfig {
                 method: Method::Raw,
                 normalisation: self.normalisation,
                 sampling: SamplingConfig::default(),
+                robust: None,
             }
             .check(self.prediction_kind)?;
         }

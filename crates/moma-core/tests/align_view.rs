@@ -57,6 +57,7 @@ fn calibration(
             seed: 5,
             ..Default::default()
         },
+        robust: None,
     };
     // Some combinations are refused by design (raw needs depth / none); skip those.
     calibrate(&Prediction::new(pred, kind), &gt, &config, workspace, None).ok()
@@ -250,6 +251,7 @@ fn fused_inverse_space_shifted_disparity_is_recovered() {
             seed: 1,
             ..Default::default()
         },
+        robust: None,
     };
     let cal = calibrate(
         &Prediction::new(pred.clone(), PredictionKind::InverseDepth),

@@ -44,6 +44,7 @@ fn config(method: Method, space: AlignSpace, norm: Normalisation, seed: u64) -> 
             seed,
             ..Default::default()
         },
+        robust: None,
     }
 }
 

@@ -494,6 +494,7 @@ fn pipeline_calibrates_validates_and_round_trips_local_and_auto() {
                 seed: 3,
                 ..Default::default()
             },
+            robust: None,
         };
         let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
         assert_eq!(cal.report.method, name);

@@ -40,6 +40,7 @@ fn config(method: Method) -> CalibrationConfig {
             seed: 3,
             ..Default::default()
         },
+        robust: None,
     }
 }
 

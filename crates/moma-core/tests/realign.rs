@@ -78,6 +78,7 @@ fn calibration() -> Calibration {
             seed: 3,
             ..Default::default()
         },
+        robust: None,
     };
     let g = gt(false);
     let pred = disparity(&g, 2.0, 0.0);

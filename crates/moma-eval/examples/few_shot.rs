@@ -13,7 +13,7 @@ use moma_core::PredictionKind;
 use moma_core::align::Method;
 use moma_eval::data::load_set;
 use moma_eval::protocol::{
-    EvalConfig, EvalNote, PredictionSet, Prepared, evaluate_few_shot, evaluate_variant,
+    EvalConfig, EvalNote, PredictionSet, Prepared, Variant, evaluate_few_shot, evaluate_variant,
 };
 use moma_eval::report::eval_table_with_notes;
 use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
@@ -125,8 +125,19 @@ fn single_frame_diagnostic(
         let norm = prep.normalisation_for(&m, config.norms[0]);
         let maes: Vec<f64> = (0..k_max)
             .map(|i| {
-                evaluate_variant(&prep, &m, &norm, config.samples, &[i], &eval_idx, "single")
-                    .map(|r| r.per_image.mae.mean * 1e3)
+                evaluate_variant(
+                    &prep,
+                    &m,
+                    &norm,
+                    config.samples,
+                    Variant {
+                        name: "single",
+                        calib: &[i],
+                        eval_idx: &eval_idx,
+                        robust: None,
+                    },
+                )
+                .map(|r| r.per_image.mae.mean * 1e3)
             })
             .collect::<Result<_, _>>()?;
         let mean = maes.iter().sum::<f64>() / maes.len() as f64;

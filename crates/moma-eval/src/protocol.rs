@@ -11,6 +11,7 @@
 use std::sync::Arc;
 
 use moma_core::align::Method;
+use moma_core::align::robust::Robust;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise,
@@ -71,6 +72,19 @@ pub struct EvalConfig {
     /// also gets rows with `variant` `realign-anchors` ([`crate::realign`]).
     #[serde(default)]
     pub realign: Option<crate::realign::RealignEval>,
+    /// Robust variants evaluated besides the one-shot least-squares fit: each gives rows with
+    /// variant `robust-<kind>` for the methods that support robust fitting (gssa, ssra and
+    /// their local variants; other methods get no robust row). RANSAC's seed is the sampling
+    /// seed.
+    #[serde(default)]
+    pub robust: Vec<Robust>,
+    /// SIMULATED sensor errors: this fraction of the calibration frame's valid ground-truth pixels
+    /// is replaced by a wrong depth, truth ± U(0.1, 0.5) m (sign at random; `+` where `−` would
+    /// leave less than 0.05 m), seeded per sampling seed ([`corrupt_ground_truth`]). Every variant
+    /// calibrates on the same corrupted frame; scoring uses the true ground truth of the other
+    /// frames. `None`: the ground truth as read.
+    #[serde(default)]
+    pub gt_outliers: Option<f64>,
 }
 
 impl Default for EvalConfig {
@@ -87,6 +101,8 @@ impl Default for EvalConfig {
             depth_range_m: None,
             workspace: None,
             realign: None,
+            robust: Vec::new(),
+            gt_outliers: None,
         }
     }
 }
@@ -167,9 +183,10 @@ pub struct EvalResult {
     pub pred_kind: PredictionKind,
     /// Method name.
     pub method: String,
-    /// Calibration variant: `one-shot` (one calibration frame, the paper's protocol),
-    /// `few-shot-K` (K frames, [`evaluate_few_shot`]) or `realign-anchors` (one-shot plus per-frame
-    /// re-alignment on static anchors; `realign-anchors-bX.XX` with test-frame brightness ×X.XX).
+    /// Calibration variant: `one-shot` (one calibration frame, least squares: the paper's
+    /// protocol), `few-shot-K` (K frames, [`evaluate_few_shot`]), `robust-<kind>` (a robust fit,
+    /// [`EvalConfig::robust`]) or `realign-anchors` (one-shot plus per-frame re-alignment on static
+    /// anchors; `realign-anchors-bX.XX` with test-frame brightness ×X.XX).
     pub variant: String,
     /// Normalisation name (`none` for RAW).
     pub norm: String,
@@ -205,7 +222,7 @@ pub struct JsonRow {
     pub set: String,
     /// Method.
     pub method: String,
-    /// Calibration variant (`one-shot`, `few-shot-K`, `realign-anchors`, ...).
+    /// Calibration variant (`one-shot`, `few-shot-K`, `robust-huber`, `realign-anchors`, ...).
     pub variant: String,
     /// Normalisation.
     pub norm: String,
@@ -524,6 +541,7 @@ impl<'a> Prepared<'a> {
             &[(self.calib, calib_map, self.sample_region.as_ref())],
             n,
             seed,
+            None,
         )
     }
 
@@ -538,6 +556,9 @@ impl<'a> Prepared<'a> {
     /// Calibrates `method` on several frames `(index, normalised map, sample region)` with
     /// sampling seed `seed` and `n` samples per frame: [`calibrate_frames_normalised`], the
     /// library path of `moma calibrate` with several frames. One frame is [`Prepared::calibrate`].
+    /// With `robust`, the fit is robust (RANSAC seeded with `seed`); with
+    /// [`EvalConfig::gt_outliers`], each calibration frame's ground truth is corrupted first
+    /// (SIMULATED; frame k of the list with seed `seed + k`).
     ///
     /// # Errors
     /// Sampling or fitting errors, naming the frames.
@@ -548,6 +569,7 @@ impl<'a> Prepared<'a> {
         frames: &[(usize, &NormalisedMap, Option<&Mask>)],
         n: usize,
         seed: u64,
+        robust: Option<&Robust>,
     ) -> Result<Calibration> {
         let config = CalibrationConfig {
             method: method.clone(),
@@ -557,12 +579,23 @@ impl<'a> Prepared<'a> {
                 n,
                 seed,
             },
+            robust: robust.map(|r| r.with_seed(seed)),
         };
+        let corrupted: Vec<Option<MetricDepth>> = frames
+            .iter()
+            .enumerate()
+            .map(|(k, &(i, _, _))| {
+                self.config.gt_outliers.map(|frac| {
+                    corrupt_ground_truth(&self.set.frames[i].gt, frac, seed.wrapping_add(k as u64))
+                })
+            })
+            .collect();
         let inputs: Vec<NormalisedFrame<'_>> = frames
             .iter()
-            .map(|&(i, normalised, sample_region)| NormalisedFrame {
+            .enumerate()
+            .map(|(k, &(i, normalised, sample_region))| NormalisedFrame {
                 normalised,
-                gt: &self.set.frames[i].gt,
+                gt: corrupted[k].as_ref().unwrap_or(&self.set.frames[i].gt),
                 sample_region,
             })
             .collect();
@@ -642,10 +675,26 @@ pub fn evaluate(
 ) -> Result<Vec<EvalResult>> {
     let prep = Prepared::new(set, preds, config)?;
     let jobs = jobs(&prep, config);
-    let mut results = jobs
-        .iter()
-        .map(|(m, norm)| evaluate_one(&prep, m, norm, config.samples))
-        .collect::<Result<Vec<_>>>()?;
+    let mut results = Vec::new();
+    for (m, norm) in &jobs {
+        results.push(evaluate_one(&prep, m, norm, config.samples)?);
+        for r in &config.robust {
+            if r.check_method(m).is_ok() {
+                results.push(evaluate_variant(
+                    &prep,
+                    m,
+                    norm,
+                    config.samples,
+                    Variant {
+                        name: &variant_name(Some(r)),
+                        calib: &[prep.calib],
+                        eval_idx: &prep.eval_indices(),
+                        robust: Some(r),
+                    },
+                )?);
+            }
+        }
+    }
     if let Some(r) = &config.realign {
         for (m, norm) in &jobs {
             for &b in &r.brightness {
@@ -723,9 +772,12 @@ pub fn evaluate_few_shot(
                 m,
                 norm,
                 config.samples,
-                &calib,
-                &eval_idx,
-                &few_shot_variant(k),
+                Variant {
+                    name: &few_shot_variant(k),
+                    calib: &calib,
+                    eval_idx: &eval_idx,
+                    robust: None,
+                },
             )?);
         }
     }
@@ -755,6 +807,33 @@ pub fn check_calib_frame_counts(ks: &[usize]) -> Result<usize> {
     })
 }
 
+/// The `variant` of rows fitted with `robust` (`one-shot` without).
+pub fn variant_name(robust: Option<&Robust>) -> String {
+    match robust {
+        None => "one-shot".into(),
+        Some(r) => format!("robust-{}", r.kind),
+    }
+}
+
+/// SIMULATED gross ground-truth errors (sensor edges, glass): a copy of `gt` where each valid
+/// pixel, with probability `fraction`, becomes truth ± U(0.1, 0.5) m (sign at random; `+` where
+/// `−` would leave less than 0.05 m). Seeded: `ChaCha8Rng::seed_from_u64(seed ^ 0x6f75_746c)`.
+pub fn corrupt_ground_truth(gt: &MetricDepth, fraction: f64, seed: u64) -> MetricDepth {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x6f75_746c);
+    MetricDepth::new(gt.depth_m.mapv(|z| {
+        if !is_valid_depth(z) || !rng.random_bool(fraction.clamp(0.0, 1.0)) {
+            return z;
+        }
+        let d: f32 = rng.random_range(0.1..0.5);
+        if rng.random::<bool>() && z - d >= 0.05 {
+            z - d
+        } else {
+            z + d
+        }
+    }))
+}
+
 /// Evaluates one (method, normalisation) with `n` samples over all seeds.
 ///
 /// # Errors
@@ -770,9 +849,12 @@ pub fn evaluate_one(
         method,
         norm,
         n,
-        &[prep.calib],
-        &prep.eval_indices(),
-        ONE_SHOT,
+        Variant {
+            name: ONE_SHOT,
+            calib: &[prep.calib],
+            eval_idx: &prep.eval_indices(),
+            robust: None,
+        },
     )
 }
 
@@ -788,21 +870,38 @@ pub fn few_shot_variant(k: usize) -> String {
     }
 }
 
+/// What a row of the evaluation varies besides method and normalisation.
+#[derive(Debug, Clone, Copy)]
+pub struct Variant<'a> {
+    /// Row label (`one-shot`, `few-shot-K`, `robust-<kind>`, ...).
+    pub name: &'a str,
+    /// Frames calibrated on (one fit; one frame is the paper's protocol).
+    pub calib: &'a [usize],
+    /// Frames scored.
+    pub eval_idx: &'a [usize],
+    /// Robust fit, if any.
+    pub robust: Option<&'a Robust>,
+}
+
 /// Evaluates one (method, normalisation) with `n` samples per calibration frame over all
-/// seeds: calibrates on the frames `calib` (one fit; one frame is the paper's protocol), scores
-/// the frames `eval_idx`, labels the row `variant`.
+/// seeds: calibrates on the frames `variant.calib`, scores the frames `variant.eval_idx`,
+/// labels the row `variant.name`; with `variant.robust`, the fit is robust.
 ///
 /// # Errors
-/// As [`evaluate`].
+/// As [`evaluate`], and a method that does not support robust fitting.
 pub fn evaluate_variant(
     prep: &Prepared<'_>,
     method: &Method,
     norm: &NormalisationConfig,
     n: usize,
-    calib: &[usize],
-    eval_idx: &[usize],
-    variant: &str,
+    variant: Variant<'_>,
 ) -> Result<EvalResult> {
+    let Variant {
+        name: variant,
+        calib,
+        eval_idx,
+        robust,
+    } = variant;
     let set = prep.set;
     let config = &prep.config;
     let method = prep.method(method);
@@ -810,6 +909,7 @@ pub fn evaluate_variant(
         method: method.clone(),
         normalisation: *norm,
         sampling: SamplingConfig::default(),
+        robust: robust.copied(),
     }
     .check(prep.preds.maps[prep.calib].kind)
     .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;
@@ -838,7 +938,7 @@ pub fn evaluate_variant(
     let per_seed: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
-            let cal = prep.calibrate_on(&method, norm, &calib_inputs, n, seed)?;
+            let cal = prep.calibrate_on(&method, norm, &calib_inputs, n, seed, robust)?;
             let ms = eval_idx
                 .iter()
                 .map(|&i| prep.score(&cal, &maps[i], i).map(|(_, m)| m))

@@ -80,6 +80,7 @@ fn every_k_scores_the_same_frames_with_the_library_calibration() {
                             seed,
                             ..Default::default()
                         },
+                        robust: None,
                     },
                     None,
                 )

@@ -124,6 +124,7 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
                 n: 40,
                 ..Default::default()
             },
+            robust: None,
         };
         let Ok(calibration) = calibrate(&pred, &gt, &config, None, None) else {
             continue;

@@ -298,6 +298,7 @@ mod calibration {
                 n_used: 0,
                 rms_residual_m: 0.0,
                 fit_time_s: 0.0,
+                robust: None,
             },
             samples: SampleSet {
                 image_size: ImageSize::new(8, 6),

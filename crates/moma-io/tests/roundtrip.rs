@@ -298,6 +298,7 @@ pub fn sample_calibration() -> Calibration {
             n_used: 2,
             rms_residual_m: 0.012_345_678_9,
             fit_time_s: 1.5e-6,
+            robust: None,
         },
         samples: SampleSet {
             image_size: ImageSize::new(64, 48),

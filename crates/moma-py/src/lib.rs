@@ -364,6 +364,7 @@ fn calibrate(
             n: samples,
             seed,
         },
+        robust: None,
     };
     let pred_ro = f32_2d(pred, "pred")?;
     let gt_ro = f32_2d(gt_m, "gt_m")?;

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use moma_core::align::robust::{DEFAULT_THRESHOLD_M, Robust, RobustKind};
 use moma_core::align::{Method, lwlr};
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
@@ -71,6 +72,8 @@ pub struct CalibrateArgs {
     /// LWLR bandwidth in pixels (default: 50 px at 640 px width, scaled with the image width).
     #[arg(long, value_name = "PX")]
     pub bandwidth_px: Option<f64>,
+    #[command(flatten)]
+    pub robust: RobustArgs,
     /// Output calibration file (JSON).
     #[arg(short, long, value_name = "FILE")]
     pub output: PathBuf,
@@ -85,6 +88,38 @@ pub struct CalibrateArgs {
     /// The calibration frame's RGB for --anchors when calibrating from --pred.
     #[arg(long, value_name = "IMG", requires = "anchors")]
     pub anchors_rgb: Option<PathBuf>,
+}
+
+/// `--robust` and `--robust-threshold-m` of `moma calibrate`.
+#[derive(Debug, Clone, Args)]
+pub struct RobustArgs {
+    /// Robust fit against wrong ground truth (sensor edges, glass): huber or tukey (iteratively
+    /// reweighted least squares) or ransac (minimal samples seeded with --seed, then least
+    /// squares on the inliers). For gssa, ssra, gssa-local and ssra-local. Default: plain least
+    /// squares.
+    #[arg(long, value_name = "KIND")]
+    pub robust: Option<RobustKind>,
+    /// Residual scale of the robust fit in metres, measured in depth whatever the alignment
+    /// space: Huber's corner, Tukey's cut-off, RANSAC's inlier bound [default: 0.01].
+    #[arg(long, value_name = "M", requires = "robust")]
+    pub robust_threshold_m: Option<f64>,
+}
+
+impl RobustArgs {
+    /// The robust fit asked for (RANSAC seeded with `seed`), checked.
+    ///
+    /// # Errors
+    /// A threshold that is not a positive number of metres.
+    pub fn robust(&self, seed: u64) -> Result<Option<Robust>> {
+        let Some(kind) = self.robust else {
+            return Ok(None);
+        };
+        let r = Robust::new(kind)
+            .with_threshold_m(self.robust_threshold_m.unwrap_or(DEFAULT_THRESHOLD_M))
+            .with_seed(seed);
+        r.validate().context("--robust-threshold-m")?;
+        Ok(Some(r))
+    }
 }
 
 /// The method with the command line's LWLR bandwidth and SSRA intrinsics.
@@ -216,7 +251,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             n: args.samples,
             seed: args.seed,
         },
+        robust: args.robust.robust(args.seed)?,
     };
+    if let Some(r) = &config.robust {
+        r.check_method(&config.method)
+            .with_context(|| format!("--robust {} with --method {}", r.kind, config.method))?;
+    }
     config.check(kind).with_context(|| {
         format!(
             "--method {} with --norm {} on {} predictions ({}): --method raw needs --norm none \
@@ -273,11 +313,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             ),
         };
         calibration
-            .with_anchors(
-                super::common::rgb_view(&rgb)?,
-                &gts[0],
-                &first.prediction,
-            )
+            .with_anchors(super::common::rgb_view(&rgb)?, &gts[0], &first.prediction)
             .with_context(|| format!("building the anchor store from {}", args.gt[0].display()))?
     } else {
         calibration
@@ -325,7 +361,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let report = &file.calibration.report;
     let n_frames = inputs.len();
     if args.json {
-        print_json(&serde_json::json!({
+        let mut summary = serde_json::json!({
             "output": args.output,
             "method": report.method,
             "frames": n_frames,
@@ -333,7 +369,11 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             "rms_residual_m": report.rms_residual_m,
             "fit_time_s": report.fit_time_s,
             "model": file.calibration.model,
-        }))?;
+        });
+        if let (Some(r), Some(obj)) = (&report.robust, summary.as_object_mut()) {
+            obj.insert("robust".into(), serde_json::to_value(r)?);
+        }
+        print_json(&summary)?;
     } else {
         let from = if n_frames == 1 {
             String::new()
@@ -347,6 +387,18 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             report.rms_residual_m * 1e3,
             report.fit_time_s * 1e6
         );
+        if let Some(r) = &report.robust {
+            println!(
+                "robust {} (threshold {:.1} mm): {} of {} samples are inliers (RMS {:.2} mm), \
+                 {} iterations",
+                r.kind,
+                r.threshold_m * 1e3,
+                r.inliers,
+                report.n_used,
+                r.inlier_rms_residual_m * 1e3,
+                r.iterations
+            );
+        }
         println!(
             "parameters: {}",
             serde_json::to_string(&file.calibration.model)?

@@ -44,7 +44,25 @@ impl GssaModel {
 /// # Errors
 /// [`CoreError::TooFewSamples`] below 2 samples; [`CoreError::Degenerate`] when ẑ is constant.
 pub fn fit(samples: &[Sample]) -> Result<GssaModel> {
-    let n = samples.len();
+    fit_with(samples, None)
+}
+
+/// Weighted least squares `min Σ w_k (z_k − (s ẑ_k + t))²` (weighted centred sums; weights
+/// ≥ 0, one per sample, e.g. the IRLS weights of [`super::robust`]). Unit weights give exactly
+/// [`fit`].
+///
+/// # Errors
+/// As [`fit`] (counting samples of positive weight; constant ẑ over them is degenerate), and
+/// [`CoreError::InvalidParameter`] when `weights` has another length than `samples` or holds a
+/// negative or non-finite weight.
+pub fn fit_weighted(samples: &[Sample], weights: &[f64]) -> Result<GssaModel> {
+    super::check_weights(samples.len(), weights)?;
+    fit_with(samples, Some(weights))
+}
+
+fn fit_with(samples: &[Sample], weights: Option<&[f64]>) -> Result<GssaModel> {
+    let w = |k: usize| weights.map_or(1.0, |w| w[k]);
+    let n = (0..samples.len()).filter(|&k| w(k) > 0.0).count();
     if n < MIN_SAMPLES {
         return Err(CoreError::TooFewSamples {
             method: "gssa",
@@ -52,17 +70,21 @@ pub fn fit(samples: &[Sample]) -> Result<GssaModel> {
             need: MIN_SAMPLES,
         });
     }
-    let nf = n as f64;
-    let (sx, sy) = samples
+    let (sw, sx, sy) = samples
         .iter()
-        .fold((0.0, 0.0), |(a, b), s| (a + s.pred, b + s.depth_m));
-    let (mx, my) = (sx / nf, sy / nf);
+        .enumerate()
+        .fold((0.0, 0.0, 0.0), |(a, b, c), (k, s)| {
+            let wk = w(k);
+            (a + wk, b + wk * s.pred, c + wk * s.depth_m)
+        });
+    let (mx, my) = (sx / sw, sy / sw);
     let (mut sxx, mut sxy, mut sxx_raw) = (0.0, 0.0, 0.0);
-    for s in samples {
+    for (k, s) in samples.iter().enumerate() {
+        let wk = w(k);
         let dx = s.pred - mx;
-        sxx += dx * dx;
-        sxy += dx * (s.depth_m - my);
-        sxx_raw += s.pred * s.pred;
+        sxx += wk * dx * dx;
+        sxy += wk * dx * (s.depth_m - my);
+        sxx_raw += wk * s.pred * s.pred;
     }
     if sxx.is_nan() || sxx <= DEGENERATE_REL * sxx_raw {
         return Err(CoreError::Degenerate(format!(

@@ -7,6 +7,7 @@ mod grid;
 pub mod gssa;
 pub mod local;
 pub mod lwlr;
+pub mod robust;
 pub mod ssra;
 
 use std::time::Instant;
@@ -152,6 +153,30 @@ pub struct FitReport {
     pub rms_residual_m: f64,
     /// Wall time of the fit, seconds.
     pub fit_time_s: f64,
+    /// The robust fit's summary (kind, threshold, inliers, iterations); absent for a plain
+    /// least-squares fit (and in files written before robust fits existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robust: Option<robust::RobustReport>,
+}
+
+/// Checks per-sample fit weights: one per sample, each finite and ≥ 0.
+fn check_weights(n: usize, weights: &[f64]) -> Result<()> {
+    if weights.len() != n {
+        return Err(CoreError::InvalidParameter(format!(
+            "{} weights for {n} samples",
+            weights.len()
+        )));
+    }
+    if let Some((k, w)) = weights
+        .iter()
+        .enumerate()
+        .find(|(_, w)| !(w.is_finite() && **w >= 0.0))
+    {
+        return Err(CoreError::InvalidParameter(format!(
+            "weight of sample #{k} is {w}, must be finite and ≥ 0"
+        )));
+    }
+    Ok(())
 }
 
 /// An alignment method with its settings, not yet fitted.
@@ -302,6 +327,7 @@ impl Method {
             n_used: samples.len(),
             rms_residual_m,
             fit_time_s: start.elapsed().as_secs_f64(),
+            robust: None,
         };
         Ok((model, report))
     }

@@ -224,8 +224,33 @@ impl SsraModel {
 /// (nearly) linearly dependent: sample pixels on one line, constant or zero ẑ, ...;
 /// [`CoreError::SizeMismatch`] when `config.intrinsics` is for another image size.
 pub fn fit(samples: &SampleSet, config: &SsraConfig) -> Result<SsraModel> {
+    fit_with(samples, config, None)
+}
+
+/// Weighted least squares `min Σ w_k (z_k − F_k)²` with the features of [`fit`] (pixel
+/// coordinates centred on the weighted means; weights ≥ 0, one per sample, e.g. the IRLS weights
+/// of [`super::robust`]). Unit weights give exactly [`fit`].
+///
+/// # Errors
+/// As [`fit`] (counting samples of positive weight), and [`CoreError::InvalidParameter`] when
+/// `weights` has another length than the samples or holds a negative or non-finite weight.
+pub fn fit_weighted(
+    samples: &SampleSet,
+    config: &SsraConfig,
+    weights: &[f64],
+) -> Result<SsraModel> {
+    super::check_weights(samples.len(), weights)?;
+    fit_with(samples, config, Some(weights))
+}
+
+fn fit_with(
+    samples: &SampleSet,
+    config: &SsraConfig,
+    weights: Option<&[f64]>,
+) -> Result<SsraModel> {
     let s = &samples.samples;
-    let n = s.len();
+    let w = |k: usize| weights.map_or(1.0, |w| w[k]);
+    let n = (0..s.len()).filter(|&k| w(k) > 0.0).count();
     if n < MIN_SAMPLES {
         return Err(CoreError::TooFewSamples {
             method: "ssra",
@@ -239,30 +264,42 @@ pub fn fit(samples: &SampleSet, config: &SsraConfig) -> Result<SsraModel> {
             .image_size
             .expect_eq("SSRA intrinsics image", k.size())?;
     }
-    let nf = n as f64;
-    let (su, sv) = s.iter().fold((0.0, 0.0), |(a, b), p| (a + p.u, b + p.v));
+    let (nf, su, sv) = s
+        .iter()
+        .enumerate()
+        .fold((0.0, 0.0, 0.0), |(c, a, b), (k, p)| {
+            let wk = w(k);
+            (c + wk, a + wk * p.u, b + wk * p.v)
+        });
     let (mu, mv) = (su / nf, sv / nf);
-    // Normal equations, upper triangle: features x = [ẑu', ẑv', ẑ, 1].
+    // Normal equations, upper triangle: features x = [ẑu', ẑv', ẑ, 1]; each row is scaled by
+    // √w_k, so the sums are weighted.
     let mut a = [0.0f64; 10]; // 00 01 02 03 11 12 13 22 23 33
     let mut b = [0.0f64; 4];
-    for p in s {
-        let x0 = p.pred * (p.u - mu);
-        let x1 = p.pred * (p.v - mv);
-        let x2 = p.pred;
-        let z = p.depth_m;
+    for (k, p) in s.iter().enumerate() {
+        let wk = w(k);
+        if wk == 0.0 {
+            continue;
+        }
+        let r = wk.sqrt();
+        let x0 = r * p.pred * (p.u - mu);
+        let x1 = r * p.pred * (p.v - mv);
+        let x2 = r * p.pred;
+        let x3 = r;
+        let z = r * p.depth_m;
         a[0] += x0 * x0;
         a[1] += x0 * x1;
         a[2] += x0 * x2;
-        a[3] += x0;
+        a[3] += x0 * x3;
         a[4] += x1 * x1;
         a[5] += x1 * x2;
-        a[6] += x1;
+        a[6] += x1 * x3;
         a[7] += x2 * x2;
-        a[8] += x2;
+        a[8] += x2 * x3;
         b[0] += x0 * z;
         b[1] += x1 * z;
         b[2] += x2 * z;
-        b[3] += z;
+        b[3] += x3 * z;
     }
     let m = [
         [a[0], a[1], a[2], a[3]],

@@ -1,0 +1,140 @@
+//! `moma calibrate --robust` and `moma eval --robust` end to end on the bundled demo scene
+//! (SIMULATED predictions; no ../shared, no network).
+
+use std::path::{Path, PathBuf};
+
+mod common;
+use common::{fails, ok, s};
+
+fn demo(dir: &Path) -> (PathBuf, PathBuf) {
+    let out = dir.join("demo");
+    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
+    (out.join("scene"), out.join("predictions"))
+}
+
+#[test]
+fn calibrate_and_eval_with_robust_fits() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let frames = scene.join("frames");
+    let calib = tmp.path().join("calib.json");
+    let (pred0, gt0) = (pred.join("frame_00.npy"), frames.join("frame_00/depth.png"));
+    let base = [
+        "calibrate",
+        "--pred",
+        s(&pred0),
+        "--pred-kind",
+        "inverse-depth",
+        "--gt",
+        s(&gt0),
+        "--method",
+        "gssa",
+        "--seed",
+        "3",
+        "-o",
+        s(&calib),
+    ];
+    let with = |extra: &[&'static str]| -> Vec<&str> {
+        base.iter().copied().chain(extra.iter().copied()).collect()
+    };
+    // plain: no robust block in the summary or in the file
+    let plain: serde_json::Value = serde_json::from_str(&ok(&with(&["--json"]))).unwrap();
+    assert!(plain.get("robust").is_none(), "{plain}");
+    assert!(
+        !std::fs::read_to_string(&calib)
+            .unwrap()
+            .contains("\"robust\"")
+    );
+
+    for kind in ["huber", "tukey", "ransac"] {
+        let summary: serde_json::Value = serde_json::from_str(&ok(&with(&[
+            "--robust",
+            kind,
+            "--robust-threshold-m",
+            "0.02",
+            "--json",
+        ])))
+        .unwrap();
+        let r = &summary["robust"];
+        assert_eq!(r["kind"], kind);
+        assert_eq!(r["threshold_m"], 0.02);
+        let inliers = r["inliers"].as_u64().unwrap();
+        assert!(inliers > 0 && inliers <= 100, "{summary}");
+        // the file keeps the report and reads back (align accepts it)
+        let text = std::fs::read_to_string(&calib).unwrap();
+        assert!(text.contains("\"robust\""), "{text}");
+        ok(&[
+            "align",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(&pred.join("frame_01.npy")),
+            "--pred-kind",
+            "inverse-depth",
+            "-o",
+            s(&tmp.path().join("aligned")),
+        ]);
+    }
+    let text = ok(&with(&["--robust", "ransac"]));
+    assert!(
+        text.contains("inliers") && text.contains("threshold 10.0 mm"),
+        "{text}"
+    );
+
+    // bad input: unknown kind, bad threshold, unsupported method, threshold without --robust
+    assert!(fails(&with(&["--robust", "lsq"])).contains("huber, tukey, ransac"));
+    assert!(
+        fails(&with(&["--robust", "huber", "--robust-threshold-m", "0"])).contains("threshold")
+    );
+    let e = fails(
+        &base
+            .iter()
+            .map(|a| if *a == "gssa" { "lwlr" } else { a })
+            .chain(["--robust", "tukey"])
+            .collect::<Vec<_>>(),
+    );
+    assert!(e.contains("lwlr") && e.contains("robust"), "{e}");
+    assert!(fails(&with(&["--robust-threshold-m", "0.02"])).contains("--robust"));
+
+    // eval: one-shot and robust rows, with simulated ground-truth outliers
+    let rows: serde_json::Value = serde_json::from_str(&ok(&[
+        "eval",
+        "--set",
+        s(&scene),
+        "--pred",
+        s(&pred),
+        "--methods",
+        "gssa,lwlr",
+        "--seeds",
+        "2",
+        "--robust",
+        "tukey,ransac",
+        "--gt-outliers",
+        "0.2",
+        "-o",
+        s(&tmp.path().join("eval")),
+        "--json",
+    ]))
+    .unwrap();
+    let got: Vec<(String, String)> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                r["method"].as_str().unwrap().to_string(),
+                r["variant"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    let want: Vec<(String, String)> = [
+        ("gssa", "one-shot"),
+        ("gssa", "robust-tukey"),
+        ("gssa", "robust-ransac"),
+        ("lwlr", "one-shot"),
+    ]
+    .iter()
+    .map(|(a, b)| (a.to_string(), b.to_string()))
+    .collect();
+    assert_eq!(got, want);
+}

@@ -1,0 +1,564 @@
+//! Robust fits (issue 12 item 3): Huber / Tukey IRLS and RANSAC for gssa, ssra, gssa-local and
+//! ssra-local, on synthetic scenes with known answers and injected gross outliers.
+
+use moma_core::align::gssa::{self, GssaModel};
+use moma_core::align::robust::{Robust, RobustKind};
+use moma_core::align::ssra::{self, SsraConfig};
+use moma_core::align::{AlignmentModel, Method, Sample, SampleSet};
+use moma_core::error::CoreError;
+use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::sampling::SamplingConfig;
+use moma_core::{CalibrationConfig, ImageSize, MetricDepth, Prediction, PredictionKind, calibrate};
+use ndarray::Array2;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const W: usize = 320;
+const H: usize = 240;
+const T3_M: f64 = 0.1;
+const KINDS: [RobustKind; 3] = [RobustKind::Huber, RobustKind::Tukey, RobustKind::Ransac];
+
+/// True depth (metres): a tilted table with a ripple, so ẑ varies independently of position.
+fn depth_m(u: f64, v: f64) -> f64 {
+    0.8 + 0.3 * v / H as f64 + 0.05 * (u / 17.0).sin() * (v / 23.0).cos()
+}
+
+/// The prediction's scale field: `field = (tilt, bump)`, planar with slope `tilt` per pixel
+/// (SSRA's family; 0: GSSA's) plus a Gaussian bump of amplitude `bump` (local variants).
+type Field = (f64, f64);
+
+fn scale(u: f64, v: f64, (tilt, bump): Field) -> f64 {
+    1.0 + tilt * (u - v)
+        + bump * (-((u - 200.0).powi(2) + (v - 120.0).powi(2)) / (2.0 * 40.0f64.powi(2))).exp()
+}
+
+/// ẑ with `z = scale·ẑ + T3` exactly.
+fn zhat(u: f64, v: f64, field: Field) -> f64 {
+    (depth_m(u, v) - T3_M) / scale(u, v, field)
+}
+
+/// `(clean, corrupted, outlier flags)`: `n` samples at seeded random pixels with uniform sensor
+/// noise ±`noise_m`; in the corrupted copy a fraction `outlier_frac` of them (chosen at random)
+/// has its ground truth replaced by a wrong depth, truth ± U(0.1, 0.5) m (sensor edges, glass).
+fn scene(
+    n: usize,
+    seed: u64,
+    field: Field,
+    noise_m: f64,
+    outlier_frac: f64,
+) -> (SampleSet, SampleSet, Vec<bool>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let clean: Vec<Sample> = (0..n)
+        .map(|_| {
+            let u = rng.random_range(0..W) as f64;
+            let v = rng.random_range(0..H) as f64;
+            let e = if noise_m > 0.0 {
+                rng.random_range(-noise_m..noise_m)
+            } else {
+                0.0
+            };
+            Sample {
+                u,
+                v,
+                pred: zhat(u, v, field),
+                depth_m: depth_m(u, v) + e,
+            }
+        })
+        .collect();
+    let n_out = (outlier_frac * n as f64).round() as usize;
+    let picked = rand::seq::index::sample(&mut rng, n, n_out);
+    let mut flags = vec![false; n];
+    let mut bad = clean.clone();
+    for k in picked.iter() {
+        flags[k] = true;
+        let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
+        bad[k].depth_m += sign * rng.random_range(0.1..0.5);
+    }
+    let set = |samples| SampleSet {
+        image_size: ImageSize::new(W, H),
+        samples,
+    };
+    (set(clean), set(bad), flags)
+}
+
+/// MAE (metres) of `model` against the true depth on every 4th pixel of the image (held-out:
+/// the truth, not the noisy or corrupted samples).
+fn mae_m(model: &AlignmentModel, field: Field) -> f64 {
+    let (mut sum, mut n) = (0.0, 0);
+    for v in (0..H).step_by(4) {
+        for u in (0..W).step_by(4) {
+            let (u, v) = (u as f64, v as f64);
+            sum += (model.predict_at(u, v, zhat(u, v, field)) - depth_m(u, v)).abs();
+            n += 1;
+        }
+    }
+    sum / n as f64
+}
+
+fn method(name: &str) -> Method {
+    name.parse().unwrap()
+}
+
+/// The issue's check: with 20 % gross outliers the robust fit stays within 1 mm (held-out MAE)
+/// of the least-squares fit on the outlier-free samples, for every method × kind, and the plain
+/// fit on the corrupted samples is clearly worse (> 3 mm), so the check can fail. Local variants:
+/// a bump of 1.2 % in the scale field (≈ 1 cm, the order of the threshold); see the report for
+/// larger local departures.
+#[test]
+fn twenty_percent_outliers_stay_within_1mm_of_the_clean_fit() {
+    let mut failures = Vec::new();
+    for (name, field) in [
+        ("gssa", (0.0, 0.0)),
+        ("ssra", (1e-4, 0.0)),
+        ("gssa-local", (0.0, 0.012)),
+        ("ssra-local", (1e-4, 0.012)),
+    ] {
+        for seed in 0..3 {
+            let (clean, bad, _) = scene(100, seed, field, 0.002, 0.2);
+            let m = method(name);
+            let clean_mae = mae_m(&m.fit(&clean).unwrap().0, field);
+            let plain_mae = mae_m(&m.fit(&bad).unwrap().0, field);
+            eprintln!(
+                "{name:10} seed {seed}: clean {:.3} mm, plain with outliers {:.3} mm",
+                clean_mae * 1e3,
+                plain_mae * 1e3
+            );
+            if plain_mae < clean_mae + 0.003 {
+                failures.push(format!(
+                    "{name} seed {seed}: plain fit with outliers {plain_mae:.4} m is not clearly \
+                     worse than the clean fit {clean_mae:.4} m"
+                ));
+            }
+            for kind in KINDS {
+                let (model, report) = Robust::new(kind).fit(&m, &bad, AlignSpace::Depth).unwrap();
+                let mae = mae_m(&model, field);
+                eprintln!(
+                    "{name:10} seed {seed} {kind:6}: robust {:.3} mm (inliers {})",
+                    mae * 1e3,
+                    report.robust.unwrap().inliers
+                );
+                if (mae - clean_mae).abs() > 0.001 {
+                    failures.push(format!(
+                        "{name} seed {seed} {kind}: robust MAE {:.3} mm vs clean {:.3} mm",
+                        mae * 1e3,
+                        clean_mae * 1e3
+                    ));
+                }
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+/// The same in inverse space: the target is 1/z, residuals (and the threshold) in metres.
+#[test]
+fn inverse_space_residuals_are_in_metres() {
+    // disparity d = a/z + b: exactly GSSA's family in inverse space
+    let (clean, bad, flags) = scene(100, 7, (0.0, 0.0), 0.0, 0.2);
+    let to_inverse = |set: &SampleSet| SampleSet {
+        image_size: set.image_size,
+        samples: set
+            .samples
+            .iter()
+            .map(|s| Sample {
+                pred: 2.0 / depth_m(s.u, s.v) - 0.7,
+                depth_m: 1.0 / s.depth_m,
+                ..*s
+            })
+            .collect(),
+    };
+    let (clean, bad) = (to_inverse(&clean), to_inverse(&bad));
+    let exact = Method::Gssa.fit(&clean).unwrap().0;
+    let AlignmentModel::Gssa(e) = exact else {
+        panic!("gssa model expected")
+    };
+    assert!((e.scale - 0.5).abs() < 1e-9 && (e.shift_m - 0.35).abs() < 1e-9);
+    let plain = Method::Gssa.fit(&bad).unwrap().0;
+    let AlignmentModel::Gssa(p) = plain else {
+        panic!("gssa model expected")
+    };
+    assert!(
+        (p.scale - 0.5).abs() > 1e-3,
+        "outliers must move the plain fit"
+    );
+    for kind in KINDS {
+        let (model, report) = Robust::new(kind)
+            .fit(&Method::Gssa, &bad, AlignSpace::Inverse)
+            .unwrap();
+        let AlignmentModel::Gssa(g) = model else {
+            panic!("gssa model expected")
+        };
+        // Worst depth error over the scene's depth range 0.8–1.15 m, metres.
+        let worst = [0.8f64, 0.95, 1.15]
+            .iter()
+            .map(|z| (1.0 / (g.scale * (2.0 / z - 0.7) + g.shift_m) - z).abs())
+            .fold(0.0, f64::max);
+        // Huber keeps a bounded pull c·sign(r) from each outlier: its depth bias is of the order
+        // n_out/n_in·c = 0.25 c (2.5 mm here; 0.4 c allows for leverage); Tukey and RANSAC
+        // ignore the outliers.
+        let tol = if kind == RobustKind::Huber {
+            0.4 * 0.01
+        } else {
+            1e-9
+        };
+        assert!(worst < tol, "{kind}: depth error {worst} m");
+        let robust = report.robust.unwrap();
+        assert_eq!(
+            robust.inliers,
+            flags.iter().filter(|f| !**f).count(),
+            "{kind}"
+        );
+        // rms over all samples includes the outliers' 0.1–0.5 m
+        assert!(report.rms_residual_m > 0.05, "{kind}");
+        assert!(robust.inlier_rms_residual_m < tol, "{kind}");
+    }
+}
+
+/// Inliers on a known scene: exact data, 17 of 100 samples off by 0.1–0.5 m → 83 inliers for
+/// every kind and method; Tukey and RANSAC then recover the exact model.
+#[test]
+fn inliers_are_counted_on_a_known_scene() {
+    for (name, field) in [
+        ("gssa", (0.0, 0.0)),
+        ("ssra", (1e-4, 0.0)),
+        ("gssa-local", (0.0, 0.0)),
+        ("ssra-local", (1e-4, 0.0)),
+    ] {
+        let (_, bad, flags) = scene(100, 11, field, 0.0, 0.17);
+        let good = flags.iter().filter(|f| !**f).count();
+        assert_eq!(good, 83);
+        for kind in KINDS {
+            let r = Robust::new(kind);
+            let (model, report) = r.fit(&method(name), &bad, AlignSpace::Depth).unwrap();
+            let rep = report.robust.unwrap();
+            assert_eq!(rep.kind, kind);
+            assert_eq!(rep.threshold_m, 0.01);
+            assert_eq!(rep.inliers, good, "{name} {kind}");
+            assert!(rep.iterations >= 1);
+            assert_eq!(report.n_used, 100);
+            assert_eq!(report.method, name);
+            if kind != RobustKind::Huber && !name.ends_with("local") {
+                // exact data in the method's family: the inliers determine the model exactly
+                assert!(mae_m(&model, field) < 1e-9, "{name} {kind}");
+            }
+        }
+    }
+}
+
+#[test]
+fn ransac_with_too_few_points_is_an_error() {
+    let (_, bad, _) = scene(3, 1, (1e-4, 0.0), 0.0, 0.0);
+    let ransac = Robust::new(RobustKind::Ransac);
+    let err = ransac
+        .fit(&method("ssra"), &bad, AlignSpace::Depth)
+        .unwrap_err();
+    assert_eq!(
+        err,
+        CoreError::TooFewSamples {
+            method: "ransac (ssra)",
+            got: 3,
+            need: 4
+        }
+    );
+    assert!(err.to_string().contains("need at least 4"));
+    let one = SampleSet {
+        image_size: bad.image_size,
+        samples: bad.samples[..1].to_vec(),
+    };
+    assert!(matches!(
+        ransac.fit(&Method::Gssa, &one, AlignSpace::Depth),
+        Err(CoreError::TooFewSamples {
+            got: 1,
+            need: 2,
+            ..
+        })
+    ));
+    // enough for SSRA's minimal sample but not for ssra-local (6)
+    let (_, five, _) = scene(5, 1, (1e-4, 0.0), 0.0, 0.0);
+    assert!(matches!(
+        ransac.fit(&method("ssra-local"), &five, AlignSpace::Depth),
+        Err(CoreError::TooFewSamples { need: 6, .. })
+    ));
+}
+
+#[test]
+fn ransac_is_deterministic_for_a_seed() {
+    let (_, bad, _) = scene(100, 5, (1e-4, 0.0), 0.002, 0.2);
+    for seed in [0, 1, 42] {
+        let r = Robust::new(RobustKind::Ransac).with_seed(seed);
+        let a = r.fit(&method("ssra"), &bad, AlignSpace::Depth).unwrap();
+        let b = r.fit(&method("ssra"), &bad, AlignSpace::Depth).unwrap();
+        assert_eq!(a.0, b.0);
+        assert_eq!(a.1.robust, b.1.robust);
+    }
+}
+
+#[test]
+fn lwlr_auto_and_raw_are_refused() {
+    let (_, bad, _) = scene(50, 2, (1e-4, 0.0), 0.0, 0.0);
+    for name in ["lwlr", "lwlr-exact", "lwlr-bare", "auto", "raw"] {
+        for kind in KINDS {
+            let err = Robust::new(kind)
+                .fit(&method(name), &bad, AlignSpace::Depth)
+                .unwrap_err();
+            let msg = err.to_string();
+            assert!(
+                matches!(err, CoreError::InvalidParameter(_)) && msg.contains(name),
+                "{msg}"
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_settings_are_errors() {
+    let (_, bad, _) = scene(50, 2, (1e-4, 0.0), 0.0, 0.0);
+    for t in [0.0, -0.01, f64::NAN, f64::INFINITY] {
+        let r = Robust::new(RobustKind::Huber).with_threshold_m(t);
+        assert!(matches!(
+            r.fit(&Method::Gssa, &bad, AlignSpace::Depth),
+            Err(CoreError::InvalidParameter(_))
+        ));
+    }
+    let mut r = Robust::new(RobustKind::Tukey);
+    r.max_iterations = 0;
+    assert!(r.fit(&Method::Gssa, &bad, AlignSpace::Depth).is_err());
+    // RANSAC where every minimal sample is degenerate (constant ẑ)
+    let flat = SampleSet {
+        image_size: bad.image_size,
+        samples: bad
+            .samples
+            .iter()
+            .map(|p| Sample { pred: 0.5, ..*p })
+            .collect(),
+    };
+    let err = Robust::new(RobustKind::Ransac)
+        .fit(&Method::Gssa, &flat, AlignSpace::Depth)
+        .unwrap_err();
+    assert!(
+        matches!(err, CoreError::Degenerate(_)) && err.to_string().contains("minimal samples"),
+        "{err}"
+    );
+}
+
+#[test]
+fn names_parse_and_display() {
+    for kind in KINDS {
+        let parsed: RobustKind = kind.name().parse().unwrap();
+        assert_eq!(parsed, kind);
+        assert_eq!(kind.to_string(), kind.name());
+        let r: Robust = kind.name().parse().unwrap();
+        assert_eq!(r, Robust::new(kind));
+        assert_eq!(r.threshold_m, 0.01);
+    }
+    let err = "lsq".parse::<Robust>().unwrap_err().to_string();
+    assert!(err.contains("huber, tukey, ransac"), "{err}");
+}
+
+/// Weighted least squares against independent expectations: unit weights are the plain fit,
+/// zero weights drop samples, weight 2 duplicates a sample.
+#[test]
+fn weighted_fits_match_subsets_and_duplicates() {
+    let (clean, _, _) = scene(30, 9, (1e-4, 0.0), 0.003, 0.0);
+    let s = &clean.samples;
+    let n = s.len();
+    let ones = vec![1.0; n];
+    assert_eq!(gssa::fit_weighted(s, &ones).unwrap(), gssa::fit(s).unwrap());
+    let cfg = SsraConfig::default();
+    assert_eq!(
+        ssra::fit_weighted(&clean, &cfg, &ones).unwrap(),
+        ssra::fit(&clean, &cfg).unwrap()
+    );
+    let w: Vec<f64> = (0..n)
+        .map(|k| match k % 3 {
+            0 => 0.0,
+            1 => 1.0,
+            _ => 2.0,
+        })
+        .collect();
+    let expanded = SampleSet {
+        image_size: clean.image_size,
+        samples: s
+            .iter()
+            .zip(&w)
+            .flat_map(|(p, &wk)| std::iter::repeat_n(*p, wk as usize))
+            .collect(),
+    };
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-10 * (1.0 + b.abs());
+    let (g1, g2) = (
+        gssa::fit_weighted(s, &w).unwrap(),
+        gssa::fit(&expanded.samples).unwrap(),
+    );
+    assert!(close(g1.scale, g2.scale) && close(g1.shift_m, g2.shift_m));
+    let (m1, m2) = (
+        ssra::fit_weighted(&clean, &cfg, &w).unwrap(),
+        ssra::fit(&expanded, &cfg).unwrap(),
+    );
+    for (a, b) in [
+        (m1.alpha_m_per_px, m2.alpha_m_per_px),
+        (m1.beta_m_per_px, m2.beta_m_per_px),
+        (m1.gamma_m, m2.gamma_m),
+        (m1.t3_m, m2.t3_m),
+    ] {
+        assert!(close(a, b), "{a} vs {b}");
+    }
+    // bad weights
+    assert!(matches!(
+        gssa::fit_weighted(s, &ones[1..]),
+        Err(CoreError::InvalidParameter(_))
+    ));
+    let mut neg = ones.clone();
+    neg[3] = -1.0;
+    assert!(ssra::fit_weighted(&clean, &cfg, &neg).is_err());
+    neg[3] = f64::NAN;
+    assert!(gssa::fit_weighted(s, &neg).is_err());
+    // a single sample of positive weight cannot determine GSSA
+    let mut one = vec![0.0; n];
+    one[0] = 1.0;
+    assert!(matches!(
+        gssa::fit_weighted(s, &one),
+        Err(CoreError::TooFewSamples { got: 1, .. })
+    ));
+}
+
+/// The report's robust block is skipped in JSON when absent (files written before robust fits
+/// stay valid) and round-trips when present.
+#[test]
+fn report_serialises_robust_only_when_present() {
+    let (clean, bad, _) = scene(40, 4, (0.0, 0.0), 0.0, 0.1);
+    let (_, plain) = Method::Gssa.fit(&clean).unwrap();
+    let json = serde_json::to_string(&plain).unwrap();
+    assert!(!json.contains("robust"), "{json}");
+    let (_, robust) = Robust::new(RobustKind::Ransac)
+        .fit(&Method::Gssa, &bad, AlignSpace::Depth)
+        .unwrap();
+    let json = serde_json::to_string(&robust).unwrap();
+    assert!(json.contains("\"robust\":{\"kind\":\"ransac\""), "{json}");
+    let back: moma_core::align::FitReport = serde_json::from_str(&json).unwrap();
+    assert_eq!(back, robust);
+}
+
+/// Through the pipeline: a depth map whose ground truth is wrong on 20 % of the pixels (a glass
+/// region) calibrates to the true scale with a robust fit; the calibration validates; LWLR with a
+/// robust fit is refused by the configuration check.
+#[test]
+fn pipeline_calibration_with_robust_fit() {
+    let truth = Array2::from_shape_fn((48, 64), |(v, u)| {
+        0.6 + 0.004 * v as f32 + 0.02 * ((u as f32) / 5.0).sin()
+    });
+    let pred = Prediction::new(truth.mapv(|z| 2.0 * z - 0.3), PredictionKind::Depth);
+    let gt = MetricDepth::new(Array2::from_shape_fn((48, 64), |(v, u)| {
+        if (u * 7 + v * 3).is_multiple_of(5) {
+            truth[[v, u]] + 0.3 // 20 % of pixels wrong by 0.3 m
+        } else {
+            truth[[v, u]]
+        }
+    }));
+    let mut config = CalibrationConfig {
+        method: Method::Gssa,
+        normalisation: NormalisationConfig {
+            method: Normalisation::None,
+            space: AlignSpace::Depth,
+        },
+        sampling: SamplingConfig {
+            n: 100,
+            seed: 1,
+            ..Default::default()
+        },
+        robust: None,
+    };
+    let plain = calibrate(&pred, &gt, &config, None, None).unwrap();
+    let AlignmentModel::Gssa(p) = plain.model else {
+        panic!()
+    };
+    assert!(
+        (p.shift_m - 0.15).abs() > 0.02,
+        "outliers move the plain fit"
+    );
+    for kind in KINDS {
+        config.robust = Some(Robust::new(kind));
+        let cal = calibrate(&pred, &gt, &config, None, None).unwrap();
+        cal.validate().unwrap();
+        let AlignmentModel::Gssa(GssaModel { scale, shift_m }) = cal.model else {
+            panic!()
+        };
+        // one-sided outliers: Huber's bias (see above) is of the order 0.25 c in depth
+        let tol = if kind == RobustKind::Huber {
+            0.4 * 0.01
+        } else {
+            1e-5
+        };
+        assert!(
+            (scale * 1.2 + shift_m - 0.75).abs() < tol && (shift_m - 0.15).abs() < tol,
+            "{kind}: scale {scale}, shift {shift_m} m"
+        );
+        let rep = cal.report.robust.unwrap();
+        let bad = cal
+            .samples
+            .samples
+            .iter()
+            .filter(|s| (s.u as usize * 7 + s.v as usize * 3).is_multiple_of(5))
+            .count();
+        assert_eq!(rep.inliers, cal.samples.len() - bad, "{kind}");
+    }
+    config.method = method("lwlr");
+    config.robust = Some(Robust::new(RobustKind::Huber));
+    assert!(matches!(
+        calibrate(&pred, &gt, &config, None, None),
+        Err(CoreError::InvalidParameter(_))
+    ));
+}
+
+/// Regression (seen on gqcnn-primesense): in inverse space a wrong ground truth close to the
+/// camera has a huge 1/z target; IRLS must keep its pull bounded. 20 % of the samples get
+/// z = 0.05–0.15 m; every kind stays within 1 mm (held-out MAE) of the clean inverse-space fit.
+#[test]
+fn near_outliers_in_inverse_space_do_not_pull_irls_away() {
+    let field = (1e-4, 0.0);
+    let (clean, _, _) = scene(100, 21, field, 0.001, 0.0);
+    let mut rng = ChaCha8Rng::seed_from_u64(99);
+    let target = |set: &SampleSet| SampleSet {
+        image_size: set.image_size,
+        samples: set
+            .samples
+            .iter()
+            .map(|s| Sample {
+                depth_m: 1.0 / s.depth_m,
+                ..*s
+            })
+            .collect(),
+    };
+    let mut bad = clean.clone();
+    for s in bad.samples.iter_mut().step_by(5) {
+        s.depth_m = rng.random_range(0.05..0.15);
+    }
+    let (clean, bad) = (target(&clean), target(&bad));
+    // held-out MAE in depth of an inverse-space model on the true scene
+    let mae = |m: &AlignmentModel| {
+        let (mut sum, mut n) = (0.0, 0);
+        for v in (0..H).step_by(4) {
+            for u in (0..W).step_by(4) {
+                let (u, v) = (u as f64, v as f64);
+                sum += (1.0 / m.predict_at(u, v, zhat(u, v, field)) - depth_m(u, v)).abs();
+                n += 1;
+            }
+        }
+        sum / n as f64
+    };
+    let m = method("ssra");
+    let clean_mae = mae(&m.fit(&clean).unwrap().0);
+    let plain_mae = mae(&m.fit(&bad).unwrap().0);
+    assert!(plain_mae > clean_mae + 0.003, "{plain_mae} vs {clean_mae}");
+    for kind in KINDS {
+        let (model, _) = Robust::new(kind)
+            .fit(&m, &bad, AlignSpace::Inverse)
+            .unwrap();
+        let got = mae(&model);
+        assert!(
+            (got - clean_mae).abs() < 0.001,
+            "{kind}: {:.3} mm vs clean {:.3} mm",
+            got * 1e3,
+            clean_mae * 1e3
+        );
+    }
+}
