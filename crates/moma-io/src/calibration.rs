@@ -20,8 +20,10 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// migrating it in memory (never silently: a version it cannot represent is an error that says
 /// why). Version history: 1 — normalisation `{method, inverse_space}`, workspace as a file path;
 /// 2 — normalisation `{method, space}`, the workspace mask embedded (run lengths + SHA-256),
-/// unknown fields refused.
-pub const CALIBRATION_VERSION: u32 = 2;
+/// unknown fields refused; 3 — optional additions: the fit report's `robust` block, the
+/// `anchors` store for per-frame re-alignment, samples from several frames (few-shot), the
+/// local variants' cross-validation settings (a version-2 file reads unchanged).
+pub const CALIBRATION_VERSION: u32 = 3;
 
 /// The oldest calibration-file version this build reads (migrated on reading).
 pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
@@ -227,7 +229,14 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        Some(2) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        Some(3) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        // Version 3 only added optional fields: a version-2 document is a version-3 one.
+        Some(2) => {
+            let mut file: CalibrationFile =
+                serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
+            file.version = CALIBRATION_VERSION;
+            file
+        }
         Some(1) => migrate_v1(path, text)?,
         _ => return Err(version_error()),
     };

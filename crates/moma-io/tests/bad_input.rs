@@ -445,21 +445,37 @@ mod calibration {
     }
 
     #[test]
+    fn version_2_file_reads_as_version_3() {
+        // Version 3 only added optional fields: the same document labelled 2 must read, equal.
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        write_calibration(&p, &file()).unwrap();
+        let written = read_calibration(&p).unwrap();
+        let mut v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        assert_eq!(v["version"], 3);
+        v["version"] = 2.into();
+        std::fs::write(&p, v.to_string()).unwrap();
+        let read = read_calibration(&p).unwrap();
+        assert_eq!(read.calibration, written.calibration);
+    }
+
+    #[test]
     fn unknown_version_or_format() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 3.into();
-        // A v3 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 4.into();
+        // A v4 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 3") && m.contains("versions 1 to 2"),
+            m.contains("calib.json") && m.contains("version 4") && m.contains("versions 1 to 3"),
             "{m}"
         );
 
