@@ -894,14 +894,14 @@ pub fn evaluate_variant(
     method: &Method,
     norm: &NormalisationConfig,
     n: usize,
-    variant: Variant<'_>,
+    spec: Variant<'_>,
 ) -> Result<EvalResult> {
     let Variant {
-        name: variant,
         calib,
         eval_idx,
         robust,
-    } = variant;
+        ..
+    } = spec;
     let set = prep.set;
     let config = &prep.config;
     let method = prep.method(method);
@@ -946,6 +946,31 @@ pub fn evaluate_variant(
             Ok((cal.report, ms))
         })
         .collect::<Result<_>>()?;
+    summarise(prep, &method, norm, n, spec, &per_seed)
+}
+
+/// The row of one (method, normalisation, variant) from its per-seed fit reports and the metrics
+/// of the frames `spec.eval_idx` (per seed, in that order): per-image means and pixel-pooled metrics
+/// over seeds, the median fit time, the mean fit residual, the per-frame results.
+/// `realign` is `None`; re-alignment rows fill it in.
+///
+/// # Errors
+/// Metric aggregation errors, naming the set.
+pub(crate) fn summarise(
+    prep: &Prepared<'_>,
+    method: &Method,
+    norm: &NormalisationConfig,
+    n: usize,
+    spec: Variant<'_>,
+    per_seed: &[(moma_core::align::FitReport, Vec<DepthMetrics>)],
+) -> Result<EvalResult> {
+    let set = prep.set;
+    let Variant {
+        name: variant,
+        calib,
+        eval_idx,
+        ..
+    } = spec;
     let aggregate = |f: fn(&[DepthMetrics]) -> moma_core::Result<DepthMetrics>| {
         per_seed
             .iter()
@@ -984,7 +1009,7 @@ pub fn evaluate_variant(
         norm: norm.method.to_string(),
         space: norm.space,
         samples: n,
-        seeds: seeds.len(),
+        seeds: per_seed.len(),
         calib_frame: calib
             .iter()
             .map(|&i| set.frames[i].id.as_str())

@@ -30,7 +30,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{EvalError, Result};
-use crate::protocol::{EvalResult, FrameResult, MetricSummary, Prepared};
+use crate::protocol::{EvalResult, Prepared};
 use crate::report::Table;
 
 /// What the evaluation of re-alignment runs.
@@ -248,8 +248,6 @@ pub fn evaluate_realign(
             })
             .collect()
     };
-    let re_mean = agg(|p| p.1, DepthMetrics::mean)?;
-    let re_pooled = agg(|p| p.1, DepthMetrics::pooled)?;
     let one_mean = agg(|p| p.0, DepthMetrics::mean)?;
     let mut results = 0usize;
     let mut accepted = 0usize;
@@ -268,46 +266,35 @@ pub fn evaluate_realign(
             }
         }
     }
-    let mut times: Vec<f64> = per_seed.iter().map(|(r, _)| r.fit_time_s).collect();
-    times.sort_by(f64::total_cmp);
-    let frames = eval_idx
+    let realigned: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = per_seed
         .iter()
-        .enumerate()
-        .map(|(k, &i)| FrameResult {
-            frame: set.frames[i].id.clone(),
-            per_seed: per_seed.iter().map(|(_, fr)| fr[k].1).collect(),
-        })
+        .map(|(r, fr)| (r.clone(), fr.iter().map(|p| p.1).collect()))
         .collect();
-    Ok(EvalResult {
-        set: set.name.clone(),
-        source: prep.preds.label.clone(),
-        simulated: prep.preds.simulated,
-        pred_kind: prep.preds.maps[0].kind,
-        method: method.to_string(),
-        variant: variant_name(beta),
-        norm: norm.method.to_string(),
-        space: norm.space,
-        samples: n,
-        seeds: seeds.len(),
-        calib_frame: prep.calib_id().to_string(),
-        eval_frames: eval_idx.len(),
-        per_image: MetricSummary::over_seeds(&re_mean),
-        pooled: MetricSummary::over_seeds(&re_pooled),
-        fit_time_median_s: times[times.len() / 2],
-        fit_rms_residual_m: per_seed.iter().map(|(r, _)| r.rms_residual_m).sum::<f64>()
-            / per_seed.len() as f64,
-        frames,
-        realign: Some(RealignStats {
-            brightness: beta,
-            results,
-            accepted,
-            worse,
-            worse_fraction: worse as f64 / results.max(1) as f64,
-            max_worse_mm: max_worse_m * 1e3,
-            mean_anchors: anchors as f64 / results.max(1) as f64,
-            one_shot_mae_m: one_mean.iter().map(|m| m.mae).sum::<f64>() / one_mean.len() as f64,
-        }),
-    })
+    let name = variant_name(beta);
+    let mut row = crate::protocol::summarise(
+        prep,
+        &method,
+        norm,
+        n,
+        crate::protocol::Variant {
+            name: &name,
+            calib: &[prep.calib],
+            eval_idx: &eval_idx,
+            robust: None,
+        },
+        &realigned,
+    )?;
+    row.realign = Some(RealignStats {
+        brightness: beta,
+        results,
+        accepted,
+        worse,
+        worse_fraction: worse as f64 / results.max(1) as f64,
+        max_worse_mm: max_worse_m * 1e3,
+        mean_anchors: anchors as f64 / results.max(1) as f64,
+        one_shot_mae_m: one_mean.iter().map(|m| m.mae).sum::<f64>() / one_mean.len() as f64,
+    });
+    Ok(row)
 }
 
 /// The re-alignment table: per row with [`RealignStats`], the one-shot and re-aligned MAE (mm,
