@@ -646,7 +646,7 @@ impl Calibration {
         self.align_view(pred.values.view(), pred.kind)
     }
 
-    /// [`Calibration::align_into`] writing metres into `out` (the calibration's image size), for
+    /// [`Calibration::align`] writing metres into `out` (the calibration's image size), for
     /// per-frame use without allocating the output.
     ///
     /// # Errors
@@ -819,15 +819,9 @@ impl Calibration {
         rgb: ArrayView3<'_, u8>,
         config: &RealignConfig,
     ) -> Result<(MetricDepth, RealignReport)> {
-        let store = self.anchor_store()?;
+        self.anchor_store()?; // no store: fail before aligning
         let mut depth = self.align(pred)?;
-        let report = realign_in_place(
-            store,
-            rgb,
-            self.space(),
-            config,
-            &mut depth.depth_m.view_mut(),
-        )?;
+        let report = self.realign_into(rgb, config, &mut depth.depth_m.view_mut())?;
         Ok((depth, report))
     }
 
