@@ -736,8 +736,9 @@ fn jobs(prep: &Prepared<'_>, config: &EvalConfig) -> Vec<(Method, NormalisationC
 ///
 /// # Errors
 /// [`EvalError::TooFewFrames`] when the set has no frame left to score after the largest K
-/// (the caller may note it and go on with other sets); an empty list, K = 0, or
-/// `config.calib_frame` given as well ([`EvalError::InvalidParameter`]); otherwise as
+/// (the caller may note it and go on with other sets); an empty list, K = 0,
+/// `config.calib_frame`, robust variants or re-alignment given as well
+/// ([`EvalError::InvalidParameter`]); otherwise as
 /// [`evaluate`].
 pub fn evaluate_few_shot(
     set: &LoadedSet,
@@ -751,6 +752,13 @@ pub fn evaluate_few_shot(
             "a calibration frame ('{id}') and calibration frame counts cannot both be given: \
              --calib-frames calibrates on the first K frames in sorted order"
         )));
+    }
+    if !config.robust.is_empty() || config.realign.is_some() {
+        return Err(EvalError::InvalidParameter(
+            "few-shot evaluation (calibration frame counts) does not combine with robust or \
+             re-alignment variants: evaluate those one-shot, in a separate run"
+                .into(),
+        ));
     }
     if set.frames.len() <= k_max {
         return Err(EvalError::TooFewFrames {

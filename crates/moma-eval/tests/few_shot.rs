@@ -190,4 +190,20 @@ fn too_few_frames_and_bad_counts() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("cannot both"), "{e}");
+
+    // Robust and re-alignment variants are one-shot only: refused, not silently dropped.
+    let mut c = cfg.clone();
+    c.robust = vec![moma_core::align::robust::Robust::new(
+        moma_core::align::robust::RobustKind::Huber,
+    )];
+    let e = evaluate_few_shot(&set, &preds, &c, &[1])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("does not combine"), "{e}");
+    let mut c = cfg.clone();
+    c.realign = Some(moma_eval::realign::RealignEval::default());
+    let e = evaluate_few_shot(&set, &preds, &c, &[1])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("does not combine"), "{e}");
 }
