@@ -7,18 +7,22 @@ without conversion, anything else is converted to ``float32`` once. Bad arrays o
 """
 
 from os import PathLike
-from typing import Any, Literal, Optional, Tuple, TypedDict, Union, final, overload
+from typing import Any, Literal, Optional, Sequence, Tuple, TypedDict, Union, final, overload
 
 import numpy as np
 import numpy.typing as npt
 
 _Path = Union[str, "PathLike[str]"]
 _Kind = Literal["depth", "inverse-depth"]
-_Method = Literal["ssra", "gssa", "lwlr", "lwlr-exact", "raw"]
+_Method = Literal[
+    "ssra", "gssa", "lwlr", "lwlr-exact", "lwlr-bare", "ssra-local", "gssa-local", "auto", "raw"
+]
+_Robust = Literal["huber", "tukey", "ransac"]
 _Norm = Literal["minmax", "minmax-unit", "median", "none"]
 _Sampling = Literal["random", "grid"]
 _F32 = npt.NDArray[np.float32]
 _Mask = Union[npt.NDArray[np.bool_], npt.NDArray[np.uint8]]
+_Rgb = npt.NDArray[np.uint8]
 
 __all__ = [
     "Calibration",
@@ -39,7 +43,7 @@ __all__ = [
 
 __version__: str
 
-class _Report(TypedDict):
+class _ReportFields(TypedDict):
     """``Calibration.report``: the fields ``moma calibrate --json`` prints."""
 
     method: str
@@ -50,6 +54,29 @@ class _Report(TypedDict):
     """Wall time of the fit, seconds."""
     model: dict[str, Any]
     """The fitted parameters (as in the calibration file)."""
+
+class _Report(_ReportFields, total=False):
+    robust: dict[str, Any]
+    """Robust fits only: the file's robust block (``kind``, ``threshold_m`` (metres),
+    ``inliers``, ``iterations``, ``inlier_rms_residual_m`` (metres), …)."""
+
+class _RealignReport(TypedDict):
+    """``Calibration.align_realigned``: the per-frame report of ``moma align --realign anchors``."""
+
+    anchors: int
+    """Anchor pixels found (half resolution, before subsampling)."""
+    anchors_used: int
+    """Anchors used for the fit and the held-out test."""
+    brightness_gain: Optional[float]
+    """Global brightness gain of the frame against the calibration frame."""
+    held_out_rmse_before_m: Optional[float]
+    """RMSE of the one-shot result on the held-out anchors, metres."""
+    held_out_rmse_after_m: Optional[float]
+    """RMSE of the corrected result on the held-out anchors, metres."""
+    accepted: bool
+    """Whether the correction was applied (else the one-shot result is returned)."""
+    reason: str
+    """Why (a warning when not accepted)."""
 
 class _Metrics(TypedDict):
     """``moma.metrics``: depth accuracy over pixels valid in both maps."""
@@ -116,9 +143,44 @@ class Calibration:
     def align_into(self, pred: npt.ArrayLike, out: _F32) -> None:
         """Like ``align``, writing metres into ``out`` (writable float32, same shape; any
         strides) without allocating."""
+    def align_realigned(
+        self,
+        pred: npt.ArrayLike,
+        rgb: _Rgb,
+        *,
+        correction: Literal["scale-shift", "planar"] = "scale-shift",
+        target: Literal["calibration-output", "ground-truth"] = "calibration-output",
+        ridge: float = 100.0,
+        max_anchors: int = 200,
+        min_anchors: int = 50,
+        min_anchor_fraction: float = 0.05,
+        holdout_fraction: float = 0.3,
+        seed: int = 0,
+        abs_grey: float = 6.0,
+        rel_grey: float = 0.08,
+    ) -> Tuple[_F32, _RealignReport]:
+        """``align``, then per-frame re-alignment on static anchors found in this frame's RGB
+        (uint8 ``H×W×3``), as ``moma align --realign anchors``: ``(depth_m, report)``, float32
+        metres. Needs a calibration with anchors (``has_anchors``; else ``InvalidInputError``).
+        When the correction does not lower the held-out anchors' error, or too few anchors
+        remain (a covered background), the one-shot result is returned and
+        ``report["accepted"]`` is False with ``report["reason"]``. Options (defaults = the CLI's):
+        ``correction`` form, ``target`` of the fit at the anchors, ``ridge`` towards the
+        identity (anchor equivalents), ``max_anchors``, ``min_anchors``,
+        ``min_anchor_fraction`` (of the stored valid pixels), ``holdout_fraction``, ``seed``
+        (subsample and split), ``abs_grey`` (grey levels, 0–255) and ``rel_grey`` (fraction):
+        the anchor rule's tolerances. Releases the GIL."""
+    def align_realigned_into(
+        self, pred: npt.ArrayLike, rgb: _Rgb, out: _F32, **options: Any
+    ) -> _RealignReport:
+        """Like ``align_realigned``, writing metres into ``out`` (writable float32, same shape)
+        without allocating; returns the report. Same options."""
+    @property
+    def has_anchors(self) -> bool:
+        """Whether the calibration holds the anchor store ``align_realigned`` needs."""
     def save(self, path: _Path) -> None:
-        """Writes the CLI's calibration format (``moma-calibration`` v2 JSON, atomic), the
-        workspace mask (if any) embedded: the file is self-contained."""
+        """Writes the CLI's calibration format (``moma-calibration`` v3 JSON, atomic), the
+        workspace mask and anchor store (if any) embedded: the file is self-contained."""
     @staticmethod
     def load(path: _Path) -> "Calibration":
         """Reads a file written by ``moma calibrate`` or ``Calibration.save``."""
@@ -149,8 +211,8 @@ class Calibration:
         """The calibration file's JSON text."""
 
 def calibrate(
-    pred: npt.ArrayLike,
-    gt_m: npt.ArrayLike,
+    pred: Union[npt.ArrayLike, Sequence[npt.ArrayLike]],
+    gt_m: Union[npt.ArrayLike, Sequence[npt.ArrayLike]],
     cam: Optional[Intrinsics] = None,
     *,
     kind: _Kind,
@@ -159,20 +221,34 @@ def calibrate(
     samples: int = 100,
     sampling: _Sampling = "random",
     seed: int = 0,
-    mask: Optional[_Mask] = None,
+    mask: Union[None, _Mask, Sequence[_Mask]] = None,
     workspace: Optional[_Mask] = None,
     space: Optional[Literal["depth", "inverse"]] = None,
     bandwidth_px: Optional[float] = None,
+    robust: Optional[_Robust] = None,
+    robust_threshold_m: Optional[float] = None,
+    anchors_rgb: Union[None, _Rgb, _Path] = None,
 ) -> Calibration:
-    """Fits an alignment on one frame.
+    """Fits an alignment on one frame, or on several frames of one camera (few-shot), as
+    ``moma calibrate`` does.
 
     ``pred``: the model's output (H×W, no NaN); ``gt_m``: ground-truth depth in metres (0/NaN =
-    invalid); ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
-    required, never guessed; ``samples``: number of calibration pixels; ``seed``: of the random
-    sampling; ``mask``: draw samples only inside (bool/uint8 H×W, nonzero = inside);
-    ``workspace``: normalise over this region (embedded in the calibration); ``space``:
-    ``"inverse"`` (disparity predictor, 1/z target) or ``"depth"``, default the prediction's own
-    (inverse-depth → inverse); ``bandwidth_px``: LWLR bandwidth in pixels."""
+    invalid). Few-shot: a list of predictions and a list of ground truths of the same length
+    (one camera: all frames the same size); each frame is normalised on its own, ``samples``
+    are drawn per frame (frame i > 0 with a seed derived from ``seed`` and i), one fit over
+    all. ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
+    required, never guessed; ``samples``: number of calibration pixels (per frame); ``seed``:
+    of the random sampling (and RANSAC); ``mask``: draw samples only inside (bool/uint8 H×W,
+    nonzero = inside; few-shot: one for all frames or a list, one per frame); ``workspace``:
+    normalise over this region (embedded in the calibration); ``space``: ``"inverse"``
+    (disparity predictor, 1/z target) or ``"depth"``, default the prediction's own
+    (inverse-depth → inverse); ``bandwidth_px``: LWLR bandwidth in pixels; ``robust``: robust
+    fit against wrong ground truth (Huber or Tukey IRLS, RANSAC; for ssra, gssa, ssra-local,
+    gssa-local), ``robust_threshold_m`` its residual scale in metres (moma's default when
+    None); ``anchors_rgb``: the (first) calibration frame's RGB (uint8 H×W×3 array or an image
+    path) to store the anchors ``Calibration.align_realigned`` needs (``moma calibrate
+    --anchors``). Bad input (lists of different lengths, frames of different sizes, an unknown
+    robust kind, ...) raises ``InvalidInputError`` (a ``ValueError``) naming the problem."""
 
 def metrics(
     depth_m: npt.ArrayLike, gt_m: npt.ArrayLike, mask: Optional[_Mask] = None

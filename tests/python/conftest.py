@@ -4,6 +4,8 @@ re-implementations of moma's maths written from METHOD.md (independent of the Ru
 import os
 import pathlib
 import shutil
+import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -102,3 +104,37 @@ def moma_bin():
 def shared_dir():
     d = os.environ.get("MOMA_SHARED_DIR")
     return pathlib.Path(d) if d else None
+
+
+def smooth_scene(h=120, w=160):
+    """A smooth static scene (no per-pixel noise, so that the anchor rule's depth-edge test
+    keeps its pixels): depth z = 0.9 + 0.0008·u − 0.001·v + 0.05·sin(u/25)·cos(v/30) metres and
+    an inverse-depth prediction 1.6/z − 0.4 (a disparity with scale and shift)."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = 0.9 + 0.0008 * u - 0.001 * v + 0.05 * np.sin(u / 25.0) * np.cos(v / 30.0)
+    return (1.6 / z - 0.4).astype(np.float32), z.astype(np.float32)
+
+
+def textured_rgb(h=120, w=160, seed=0):
+    """A smooth, strongly textured RGB background (uint8 H×W×3): every 3×3 patch is distinctive
+    at half resolution, mid-grey so that neither end saturates."""
+    rng = np.random.default_rng(seed)
+    coarse = rng.integers(40, 216, size=(h // 4 + 1, w // 4 + 1, 3))
+    img = np.repeat(np.repeat(coarse, 4, axis=0), 4, axis=1)[:h, :w]
+    return np.ascontiguousarray(img.astype(np.uint8))
+
+
+def write_png(path, rgb):
+    """A minimal 8-bit RGB PNG writer (no filter), so that the tests need no imaging package."""
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    h, w, _ = rgb.shape
+    raw = b"".join(b"\x00" + rgb[i].tobytes() for i in range(h))
+
+    def chunk(tag, data):
+        body = tag + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+    with open(path, "wb") as f:
+        f.write(png)

@@ -76,12 +76,13 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
         .map_err(|e| value_err(format!("{what}: {e}")))
 }
 
-/// An `H × W × 3` `uint8` RGB image as an [`image::RgbImage`] (one copy into the image buffer).
+/// An `H × W × 3` `uint8` RGB array, borrowed from NumPy (any strides, not copied): read it with
+/// `.as_array()`.
 ///
 /// # Errors
-/// `moma.InvalidInputError`: not 3-D with 3 channels, or not `uint8`.
-pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage> {
-    let ro: PyReadonlyArray3<'_, u8> = match obj.cast::<PyArray3<u8>>() {
+/// `moma.InvalidInputError`: not 3-D with 3 channels, not `uint8`, or empty.
+pub fn rgb_ro<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyArray3<'py, u8>> {
+    let ro: PyReadonlyArray3<'py, u8> = match obj.cast::<PyArray3<u8>>() {
         Ok(a) => a
             .try_readonly()
             .map_err(|e| value_err(format!("{what}: {e}")))?,
@@ -94,20 +95,30 @@ pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage
             )));
         }
     };
-    let view = ro.as_array();
-    let (h, w, c) = view.dim();
+    let (h, w, c) = ro.as_array().dim();
     if c != 3 {
         return Err(value_err(format!(
             "{what} must be height × width × 3 (RGB), got shape {:?}",
-            view.shape()
+            ro.as_array().shape()
         )));
     }
     if h == 0 || w == 0 {
         return Err(value_err(format!(
             "{what} is empty (shape {:?})",
-            view.shape()
+            ro.as_array().shape()
         )));
     }
+    Ok(ro)
+}
+
+/// An `H × W × 3` `uint8` RGB image as an [`image::RgbImage`] (one copy into the image buffer).
+///
+/// # Errors
+/// `moma.InvalidInputError`: not 3-D with 3 channels, or not `uint8`.
+pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage> {
+    let ro = rgb_ro(obj, what)?;
+    let view = ro.as_array();
+    let (h, w, _) = view.dim();
     let data: Vec<u8> = match view.as_slice() {
         Some(s) => s.to_vec(),
         None => view.iter().copied().collect(),

@@ -15,21 +15,26 @@ mod errors;
 use std::path::PathBuf;
 use std::sync::Mutex;
 
+use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::align::{Method, lwlr};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig};
+use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig, CalibrationFrame};
+use moma_core::realign::{AnchorTarget, CorrectionModel, RealignConfig};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
-use moma_core::{Intrinsics as CoreIntrinsics, MetricDepth, Prediction, PredictionKind};
+use moma_core::{
+    CoreError, ImageSize, Intrinsics as CoreIntrinsics, Mask, MetricDepth, Prediction,
+    PredictionKind,
+};
 use moma_depth::{Backbone, DepthModel as DepthModelTrait, Head, ModelSpec};
 use moma_io::{CalibrationFile, CreationInfo};
 use ndarray::Array2;
 use numpy::{IntoPyArray, PyArray2, PyArrayMethods};
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyDict, PyList, PyTuple};
 
 use crate::arrays::{f32_2d, f32_owned, opt_mask, rgb_image};
-use crate::errors::{Kind, ResultExt, err, value_err};
+use crate::errors::{IntoPyErr, Kind, ResultExt, err, value_err};
 
 // ---------------------------------------------------------------------------------------------
 // names → moma-core enums (each name is defined once, in moma-core, with FromStr / Display)
@@ -67,6 +72,52 @@ fn parse_method(
         }),
         other => other,
     })
+}
+
+/// The re-alignment settings: [`RealignConfig::default`] (what `moma align --realign anchors`
+/// uses) with the given keyword options replacing fields.
+fn realign_config(options: Option<&Bound<'_, PyDict>>) -> PyResult<RealignConfig> {
+    const NAMES: &str = "correction, target, ridge, max_anchors, min_anchors, \
+                         min_anchor_fraction, holdout_fraction, seed, abs_grey, rel_grey";
+    let mut c = RealignConfig::default();
+    let Some(options) = options else {
+        return Ok(c);
+    };
+    for (key, value) in options.iter() {
+        let key: String = key.extract()?;
+        let bad = |e: PyErr| value_err(format!("re-alignment option {key}: {e}"));
+        match key.as_str() {
+            "correction" => {
+                c.model = value
+                    .extract::<String>()
+                    .map_err(bad)?
+                    .parse::<CorrectionModel>()
+                    .py()?;
+            }
+            "target" => {
+                c.target = value
+                    .extract::<String>()
+                    .map_err(bad)?
+                    .parse::<AnchorTarget>()
+                    .py()?;
+            }
+            "ridge" => c.ridge = value.extract().map_err(bad)?,
+            "max_anchors" => c.max_anchors = value.extract().map_err(bad)?,
+            "min_anchors" => c.min_anchors = value.extract().map_err(bad)?,
+            "min_anchor_fraction" => c.min_anchor_fraction = value.extract().map_err(bad)?,
+            "holdout_fraction" => c.holdout_fraction = value.extract().map_err(bad)?,
+            "seed" => c.seed = value.extract().map_err(bad)?,
+            "abs_grey" => c.thresholds.abs_grey = value.extract().map_err(bad)?,
+            "rel_grey" => c.thresholds.rel = value.extract().map_err(bad)?,
+            other => {
+                return Err(value_err(format!(
+                    "unknown re-alignment option '{other}' (expected one of: {NAMES})"
+                )));
+            }
+        }
+    }
+    c.validate().py()?;
+    Ok(c)
 }
 
 /// A serde value as a Python object (through `json.loads`).
@@ -216,7 +267,7 @@ impl Calibration {
             .py()
     }
 
-    /// Writes the calibration in the CLI's file format (`moma-calibration` v2, JSON, atomic),
+    /// Writes the calibration in the CLI's file format (`moma-calibration` v3, JSON, atomic),
     /// the workspace mask (if any) embedded: the file is self-contained.
     fn save(&self, path: PathBuf) -> PyResult<()> {
         moma_io::write_calibration(&path, &self.file()).py()
@@ -235,7 +286,9 @@ impl Calibration {
     }
 
     /// The fit summary, as `moma calibrate --json` prints it: `method`, `n_used`,
-    /// `rms_residual_m` (metres), `fit_time_s` (seconds), `model` (the fitted parameters).
+    /// `rms_residual_m` (metres), `fit_time_s` (seconds), `model` (the fitted parameters) and,
+    /// for a robust fit only, `robust` (`kind`, `threshold_m`, `inliers`, `iterations`,
+    /// `inlier_rms_residual_m`, …: the file's robust block).
     #[getter]
     fn report<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let r = &self.inner.report;
@@ -245,7 +298,87 @@ impl Calibration {
         d.set_item("rms_residual_m", r.rms_residual_m)?;
         d.set_item("fit_time_s", r.fit_time_s)?;
         d.set_item("model", to_py_json(py, &self.inner.model)?)?;
+        if let Some(robust) = &r.robust {
+            d.set_item("robust", to_py_json(py, robust)?)?;
+        }
         Ok(d)
+    }
+
+    /// Whether the calibration holds the anchor store that `align_realigned` needs (made with
+    /// `calibrate(..., anchors_rgb=...)` or `moma calibrate --anchors`).
+    #[getter]
+    fn has_anchors(&self) -> bool {
+        self.inner.anchor_store().is_ok()
+    }
+
+    /// `align`, then per-frame re-alignment on static anchors found in this frame's RGB
+    /// (`moma align --realign anchors`): returns `(depth_m, report)`, float32 metres and the
+    /// per-frame report as `moma align --realign anchors --json` prints it (`anchors`,
+    /// `anchors_used`, `brightness_gain`, `held_out_rmse_before_m`, `held_out_rmse_after_m`
+    /// (metres, None when not measured), `accepted`, `reason`). When the correction is rejected
+    /// or too few anchors remain (a covered background), the one-shot result is returned and
+    /// `report["accepted"]` is False with the reason. `rgb`: uint8 `height × width × 3`, read in
+    /// place. Options (keywords, defaults as the CLI's): `correction` (`"scale-shift"`,
+    /// `"planar"`), `target` (`"calibration-output"`, `"ground-truth"`), `ridge`, `max_anchors`,
+    /// `min_anchors`, `min_anchor_fraction`, `holdout_fraction`, `seed`, `abs_grey` (grey levels
+    /// 0–255), `rel_grey` (fraction). The GIL is released during the computation.
+    #[pyo3(signature = (pred, rgb, **options))]
+    fn align_realigned<'py>(
+        &self,
+        py: Python<'py>,
+        pred: &Bound<'py, PyAny>,
+        rgb: &Bound<'py, PyAny>,
+        options: Option<&Bound<'py, PyDict>>,
+    ) -> PyResult<(Bound<'py, PyArray2<f32>>, Bound<'py, PyAny>)> {
+        let config = realign_config(options)?;
+        self.inner.anchor_store().py()?; // no store: fail before aligning
+        let ro = f32_2d(pred, "pred")?;
+        let rgb_ro = arrays::rgb_ro(rgb, "rgb")?;
+        let (view, rgb_view) = (ro.as_array(), rgb_ro.as_array());
+        let kind = self.inner.prediction_kind;
+        let (depth, report) = py
+            .detach(|| {
+                let mut depth = self.inner.align_view(view, kind)?;
+                let report =
+                    self.inner
+                        .realign_into(rgb_view, &config, &mut depth.depth_m.view_mut())?;
+                Ok::<_, CoreError>((depth, report))
+            })
+            .py()?;
+        Ok((depth.depth_m.into_pyarray(py), to_py_json(py, &report)?))
+    }
+
+    /// Like `align_realigned`, writing metres into `out` (float32, same shape as `pred`,
+    /// writable) instead of allocating; returns the report.
+    #[pyo3(signature = (pred, rgb, out, **options))]
+    fn align_realigned_into<'py>(
+        &self,
+        py: Python<'py>,
+        pred: &Bound<'py, PyAny>,
+        rgb: &Bound<'py, PyAny>,
+        out: &Bound<'py, PyAny>,
+        options: Option<&Bound<'py, PyDict>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let config = realign_config(options)?;
+        self.inner.anchor_store().py()?;
+        let out = out.cast::<PyArray2<f32>>().map_err(|_| {
+            value_err("out must be a writable 2-D float32 NumPy array (height × width)")
+        })?;
+        let mut rw = out
+            .try_readwrite()
+            .map_err(|e| value_err(format!("out: {e}")))?;
+        let ro = f32_2d(pred, "pred")?;
+        let rgb_ro = arrays::rgb_ro(rgb, "rgb")?;
+        let (view, rgb_view) = (ro.as_array(), rgb_ro.as_array());
+        let mut out_view = rw.as_array_mut();
+        let kind = self.inner.prediction_kind;
+        let report = py
+            .detach(|| {
+                self.inner.align_view_into(view, kind, &mut out_view)?;
+                self.inner.realign_into(rgb_view, &config, &mut out_view)
+            })
+            .py()?;
+        to_py_json(py, &report)
     }
 
     /// `"depth"` or `"inverse-depth"`: the prediction kind this calibration accepts.
@@ -326,10 +459,64 @@ impl Calibration {
     }
 }
 
-/// Fits an alignment on one frame (the `moma calibrate` step).
+/// `obj` as a list of frames when it is a list or tuple whose first item is 2-D (few-shot
+/// calibration: one array per frame), else `None` (one frame's array, or a nested list of
+/// numbers). An empty list or tuple is a list of no frames.
+fn frame_list<'py>(
+    obj: &Bound<'py, PyAny>,
+    what: &str,
+) -> PyResult<Option<Vec<Bound<'py, PyAny>>>> {
+    if !(obj.is_instance_of::<PyList>() || obj.is_instance_of::<PyTuple>()) {
+        return Ok(None);
+    }
+    let items = obj.try_iter()?.collect::<PyResult<Vec<_>>>()?;
+    let Some(first) = items.first() else {
+        return Ok(Some(items));
+    };
+    let ndim: usize = obj
+        .py()
+        .import("numpy")?
+        .call_method1("ndim", (first,))
+        .and_then(|n| n.extract())
+        .map_err(|e| value_err(format!("{what}[0]: not an array: {e}")))?;
+    Ok((ndim == 2).then_some(items))
+}
+
+/// The robust fit of `robust=` / `robust_threshold_m=` (RANSAC seeded with `seed`), as
+/// `moma calibrate --robust KIND --robust-threshold-m M` builds it: `Robust`'s own defaults for
+/// what is not given.
+fn robust_from(
+    robust: Option<&str>,
+    threshold_m: Option<f64>,
+    seed: u64,
+    method: &Method,
+) -> PyResult<Option<Robust>> {
+    let Some(kind) = robust else {
+        if let Some(t) = threshold_m {
+            return Err(value_err(format!(
+                "robust_threshold_m={t} needs robust= ('huber', 'tukey' or 'ransac')"
+            )));
+        }
+        return Ok(None);
+    };
+    let kind: RobustKind = kind.parse().py()?;
+    let mut r = Robust::new(kind).with_seed(seed);
+    if let Some(t) = threshold_m {
+        r = r.with_threshold_m(t);
+    }
+    r.validate()
+        .map_err(|e| value_err(format!("robust_threshold_m: {e}")))?;
+    r.check_method(method).py()?;
+    Ok(Some(r))
+}
+
+/// Fits an alignment on one frame, or on several frames of the same camera (few-shot), as
+/// `moma calibrate` does; with `anchors_rgb`, also stores the anchors for per-frame re-alignment
+/// (`moma calibrate --anchors --anchors-rgb`).
 #[pyfunction]
 #[pyo3(signature = (pred, gt_m, cam=None, *, kind, method="ssra", norm="minmax", samples=100,
-    sampling="random", seed=0, mask=None, workspace=None, space=None, bandwidth_px=None))]
+    sampling="random", seed=0, mask=None, workspace=None, space=None, bandwidth_px=None,
+    robust=None, robust_threshold_m=None, anchors_rgb=None))]
 #[allow(clippy::too_many_arguments)]
 fn calibrate(
     py: Python<'_>,
@@ -346,6 +533,9 @@ fn calibrate(
     workspace: Option<&Bound<'_, PyAny>>,
     space: Option<&str>,
     bandwidth_px: Option<f64>,
+    robust: Option<&str>,
+    robust_threshold_m: Option<f64>,
+    anchors_rgb: Option<&Bound<'_, PyAny>>,
 ) -> PyResult<Calibration> {
     let kind = parse_kind(kind)?;
     let intrinsics = cam.map(|c| c.inner);
@@ -353,8 +543,10 @@ fn calibrate(
         Some(s) => s.parse::<AlignSpace>().py()?,
         None => AlignSpace::native(kind),
     };
+    let method = parse_method(method, bandwidth_px, intrinsics)?;
     let config = CalibrationConfig {
-        method: parse_method(method, bandwidth_px, intrinsics)?,
+        robust: robust_from(robust, robust_threshold_m, seed, &method)?,
+        method,
         normalisation: NormalisationConfig {
             method: parse_norm(norm)?,
             space,
@@ -364,35 +556,189 @@ fn calibrate(
             n: samples,
             seed,
         },
-        robust: None,
     };
-    let pred_ro = f32_2d(pred, "pred")?;
-    let gt_ro = f32_2d(gt_m, "gt_m")?;
-    let sample_mask = opt_mask(mask, "mask")?;
+
+    // One frame (arrays) or several (lists of arrays, one per frame).
+    let (pred_items, gt_items, few_shot) = match (
+        frame_list(pred, "pred")?,
+        frame_list(gt_m, "gt_m")?,
+    ) {
+        (None, None) => (vec![pred.clone()], vec![gt_m.clone()], false),
+        (Some(p), Some(g)) => {
+            if p.len() != g.len() {
+                return Err(value_err(format!(
+                    "calibrate takes one ground truth per prediction (the calibration frames, in \
+                     order): got {} predictions and {} ground truths",
+                    p.len(),
+                    g.len()
+                )));
+            }
+            if p.is_empty() {
+                return Err(value_err(
+                    "calibrate needs at least one frame: pred and gt_m are empty lists",
+                ));
+            }
+            (p, g, true)
+        }
+        (p, _) => {
+            let (list, one) = if p.is_some() {
+                ("pred", "gt_m")
+            } else {
+                ("gt_m", "pred")
+            };
+            return Err(value_err(format!(
+                "pred and gt_m must both be arrays (one frame) or both lists of arrays (several \
+                 frames, one ground truth per prediction): {list} is a list, {one} one array"
+            )));
+        }
+    };
+    let n_frames = pred_items.len();
+    let preds_ro = pred_items
+        .iter()
+        .enumerate()
+        .map(|(i, p)| f32_2d(p, &frame_name("pred", i, few_shot)))
+        .collect::<PyResult<Vec<_>>>()?;
+    let gts_ro = gt_items
+        .iter()
+        .enumerate()
+        .map(|(i, g)| f32_2d(g, &frame_name("gt_m", i, few_shot)))
+        .collect::<PyResult<Vec<_>>>()?;
+    // Sample masks: none, one for all frames, or one per frame.
+    let sample_masks: Vec<Mask> = match mask.filter(|m| !m.is_none()) {
+        None => Vec::new(),
+        Some(m) => match frame_list(m, "mask")? {
+            None => vec![arrays::mask(m, "mask")?],
+            Some(list) => {
+                if list.len() != 1 && list.len() != n_frames {
+                    return Err(value_err(format!(
+                        "give one mask for all frames or one per frame: got {} masks for {n_frames} \
+                         frame(s)",
+                        list.len()
+                    )));
+                }
+                list.iter()
+                    .enumerate()
+                    .map(|(i, m)| arrays::mask(m, &format!("mask[{i}]")))
+                    .collect::<PyResult<Vec<_>>>()?
+            }
+        },
+    };
     let workspace = opt_mask(workspace, "workspace")?;
-    let (pred_v, gt_v) = (pred_ro.as_array(), gt_ro.as_array());
+    let anchors = match anchors_rgb.filter(|a| !a.is_none()) {
+        None => None,
+        // A path (str or os.PathLike) is read as `moma calibrate --anchors-rgb` reads it.
+        Some(a) => Some(match a.extract::<PathBuf>() {
+            Ok(path) => AnchorRgb::File(path),
+            Err(_) => AnchorRgb::Array(arrays::rgb_ro(a, "anchors_rgb")?),
+        }),
+    };
+
+    let pred_views: Vec<_> = preds_ro.iter().map(|r| r.as_array()).collect();
+    let gt_views: Vec<_> = gts_ro.iter().map(|r| r.as_array()).collect();
+    let anchor_view = match &anchors {
+        Some(AnchorRgb::Array(ro)) => Some(ro.as_array()),
+        _ => None,
+    };
+    let anchor_path = match &anchors {
+        Some(AnchorRgb::File(p)) => Some(p.as_path()),
+        _ => None,
+    };
     let inner = py
-        .detach(|| {
-            let pred = Prediction::new(pred_v.to_owned(), kind);
+        .detach(|| -> Result<CoreCalibration, PyCalibrateError> {
+            let preds: Vec<Prediction> = pred_views
+                .iter()
+                .map(|v| Prediction::new(v.to_owned(), kind))
+                .collect();
+            let gts: Vec<MetricDepth> = gt_views
+                .iter()
+                .map(|v| MetricDepth::new(v.to_owned()))
+                .collect();
+            let size = preds[0].size();
             if let Some(k) = &intrinsics {
                 k.size()
-                    .expect_eq("prediction (vs camera intrinsics)", pred.size())?;
+                    .expect_eq("prediction (vs camera intrinsics)", size)?;
             }
-            let gt = MetricDepth::new(gt_v.to_owned());
-            moma_core::pipeline::calibrate(
-                &pred,
-                &gt,
-                &config,
-                workspace.as_ref(),
-                sample_mask.as_ref(),
-            )
+            let calibration = if few_shot {
+                let frames: Vec<CalibrationFrame<'_>> = preds
+                    .iter()
+                    .zip(&gts)
+                    .enumerate()
+                    .map(|(i, (pred, gt))| CalibrationFrame {
+                        pred,
+                        gt,
+                        sample_region: sample_masks.get(i).or(sample_masks.first()),
+                    })
+                    .collect();
+                moma_core::pipeline::calibrate_frames(&frames, &config, workspace.as_ref())?
+            } else {
+                moma_core::pipeline::calibrate(
+                    &preds[0],
+                    &gts[0],
+                    &config,
+                    workspace.as_ref(),
+                    sample_masks.first(),
+                )?
+            };
+            // Anchors for per-frame re-alignment come from the first (calibration) frame.
+            Ok(match (anchor_view, anchor_path) {
+                (Some(view), _) => {
+                    ImageSize::new(view.dim().1, view.dim().0).expect_eq("anchors_rgb", size)?;
+                    calibration.with_anchors(view, &gts[0], &preds[0])?
+                }
+                (None, Some(path)) => {
+                    let img = moma_io::read_rgb_sized(path, size)?;
+                    let view = ndarray::ArrayView3::from_shape(
+                        (img.height() as usize, img.width() as usize, 3),
+                        img.as_raw().as_slice(),
+                    )
+                    .map_err(|e| CoreError::InvalidParameter(format!("{}: {e}", path.display())))?;
+                    calibration.with_anchors(view, &gts[0], &preds[0])?
+                }
+                (None, None) => calibration,
+            })
         })
-        .py()?;
+        .map_err(|e| match e {
+            PyCalibrateError::Core(e) => e.into_py_err(),
+            PyCalibrateError::Io(e) => e.into_py_err(),
+        })?;
     Ok(Calibration {
         inner,
         intrinsics,
         created: None,
     })
+}
+
+/// `anchors_rgb=`: a file or an array borrowed from NumPy.
+enum AnchorRgb<'py> {
+    File(PathBuf),
+    Array(numpy::PyReadonlyArray3<'py, u8>),
+}
+
+/// The errors of the calibration step run without the GIL.
+enum PyCalibrateError {
+    Core(CoreError),
+    Io(moma_io::IoError),
+}
+
+impl From<CoreError> for PyCalibrateError {
+    fn from(e: CoreError) -> Self {
+        Self::Core(e)
+    }
+}
+
+impl From<moma_io::IoError> for PyCalibrateError {
+    fn from(e: moma_io::IoError) -> Self {
+        Self::Io(e)
+    }
+}
+
+/// `what` for one frame, `what[i]` for frame `i` of several.
+fn frame_name(what: &str, i: usize, few_shot: bool) -> String {
+    if few_shot {
+        format!("{what}[{i}]")
+    } else {
+        what.to_string()
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
