@@ -36,3 +36,22 @@ def test_thread_pool_calibrate_and_align_into():
         want_model, want_out = job(pg)
         assert model == want_model
         np.testing.assert_array_equal(out, want_out)
+
+
+def test_thread_pool_align_realigned_matches_serial():
+    from conftest import smooth_scene, textured_rgb
+
+    pred, gt = smooth_scene()
+    rgb = textured_rgb()
+    cal = moma.calibrate(pred, gt, kind="inverse-depth", method="gssa", anchors_rgb=rgb)
+    rng = np.random.default_rng(1)
+    frames = [(pred * s + o).astype(np.float32) for s, o in rng.uniform(0.8, 1.2, (16, 2))]
+    rgbs = [rgb if i % 2 == 0 else textured_rgb(seed=i) for i in range(16)]
+    serial = [cal.align_realigned(f, r) for f, r in zip(frames, rgbs)]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        parallel = list(pool.map(cal.align_realigned, frames, rgbs))
+    for (a, ra), (b, rb) in zip(serial, parallel):
+        np.testing.assert_array_equal(a, b)
+        assert ra == rb
+    # both branches ran: unchanged backgrounds corrected, changed ones kept
+    assert {r["accepted"] for _, r in serial} == {True, False}
