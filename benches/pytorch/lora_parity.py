@@ -23,7 +23,7 @@ What it does:
      lora_B (out x r) (scale alpha / r, as the Rust adapter), computes the official SiLogLoss
      (metric_depth/util/loss.py) over valid pixels (finite, min_depth <= gt <= max_depth),
      backward, and ONE torch.optim.AdamW step (betas 0.9/0.999, eps 1e-8, weight decay 0.01,
-     fixed lr, no schedule);
+     fixed lr, no schedule: 1e-2 in case qv, 1e-3 (head 1e-2) in case all);
   4. writes OUT (< 300 kB; the loss in float64, the other values rounded to float32): the ground
      truth, A/B before, the loss, the gradients and A/B after, for two cases:
      `qv`  (r 4, alpha 6, targets q, v; the default recipe) and
@@ -66,12 +66,14 @@ SEED = 20261127
 BETAS = (0.9, 0.999)
 EPS = 1e-8
 WEIGHT_DECAY = 0.01
-LR = 1e-3
 HEAD_LR_MULT = 10.0
 CASES = {
-    "qv": {"rank": 4, "alpha": 6.0, "targets": ["q", "v"], "train_head": False, "clip_grad_norm": 0.0},
+    # lr 1e-2 so that the weight decay's share of the update (lr * wd * w) is well above the tolerance.
+    "qv": {"rank": 4, "alpha": 6.0, "targets": ["q", "v"], "train_head": False, "clip_grad_norm": 0.0,
+           "lr": 1e-2},
     "all": {"rank": 2, "alpha": 3.0, "targets": ["q", "k", "v", "proj", "fc1", "fc2"], "train_head": True,
-            "clip_grad_norm": None},  # None: set to half the measured global norm (so clipping acts)
+            "clip_grad_norm": None,  # None: set to half the measured global norm (so clipping acts)
+            "lr": 1e-3},
 }
 # Head weights whose gradients and updated values are stored in case "all".
 HEAD_KEYS = [
@@ -192,7 +194,7 @@ def main():
     meta = {
         "format": "moma-lora-parity-v1",
         "reference": NAME, "crop": json.dumps(CROP), "min_depth_m": repr(MIN_DEPTH_M),
-        "max_depth_m": repr(max_depth_m), "lr": repr(LR), "head_lr_mult": repr(HEAD_LR_MULT),
+        "max_depth_m": repr(max_depth_m), "head_lr_mult": repr(HEAD_LR_MULT),
         "weight_decay": repr(WEIGHT_DECAY), "eps": repr(EPS), "betas": json.dumps(BETAS),
         "dtype": "computed in float64; the loss stored as float64, every other tensor rounded to float32 "
                  "(relative rounding <= 6e-8, far below the test's tolerances) to keep the file small", "loss": "official SiLogLoss (lambda 0.5)",
@@ -254,10 +256,11 @@ def main():
         if clip > 0:
             total = torch.nn.utils.clip_grad_norm_(params, clip)
             assert abs(float(total) - norm) <= 1e-9 * norm
-        groups = [{"params": list(lora.values()), "lr": LR}]
+        lr = s["lr"]
+        groups = [{"params": list(lora.values()), "lr": lr}]
         if head:
-            groups.append({"params": list(head.values()), "lr": LR * HEAD_LR_MULT})
-        opt = torch.optim.AdamW(groups, lr=LR, betas=BETAS, eps=EPS, weight_decay=WEIGHT_DECAY)
+            groups.append({"params": list(head.values()), "lr": lr * HEAD_LR_MULT})
+        opt = torch.optim.AdamW(groups, lr=lr, betas=BETAS, eps=EPS, weight_decay=WEIGHT_DECAY)
         opt.step()
         print(f"[3] case {case}: r {s['rank']} alpha {s['alpha']} targets {s['targets']} "
               f"train_head {s['train_head']} ({len(head)} head tensors): loss {loss.item():.12f}, "

@@ -181,7 +181,7 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, Worst, Worst) {
 
     let min_depth_m = r.meta_f64("min_depth_m") as f32;
     let max_depth_m = r.meta_f64("max_depth_m") as f32;
-    let lr = r.meta_f64("lr");
+    let lr = settings["lr"].as_f64().unwrap();
 
     // Loss and gradients.
     let x = Tensor::from_vec(input.iter().copied().collect(), (1, 3, h, w), &Device::Cpu).unwrap();
@@ -334,5 +334,30 @@ fn reference_file_is_complete() {
             }
         }
         assert!(flat(r.get(&format!("{case}/loss")))[0] > 0.0);
+    }
+}
+
+/// The f32 training path (what `moma finetune` runs) against the same f64 PyTorch reference:
+/// loss and gradients within the same bounds as the f64 path (1e-5, 1e-4). The AdamW step is not compared in
+/// f32: its first step moves each weight by about `lr · g/(|g| + ε)`, which for gradients of
+/// order ε (1e-8) turns f32 round-off of the gradient into a change of the update itself.
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn f32_training_path_is_close_to_the_f64_reference() {
+    let r = Reference::load();
+    for case in ["qv", "all"] {
+        let (loss_err, grad, after) = run_case(&r, case, DType::F32);
+        eprintln!(
+            "{case} (f32 vs PyTorch+peft f64): loss rel err {loss_err:.3e}; gradients worst {:.3e} \
+             ({}); after one AdamW step worst {:.3e} ({}; not checked)",
+            grad.err, grad.name, after.err, after.name
+        );
+        assert!(loss_err <= LOSS_TOL, "{case}: f32 loss rel err {loss_err}");
+        assert!(
+            grad.err <= GRAD_TOL,
+            "{case}: f32 gradient of {} rel err {}",
+            grad.name,
+            grad.err
+        );
     }
 }
