@@ -92,8 +92,20 @@ def peak_rss_mib():
     return float("nan")
 
 
+def check_ssi():
+    """`ssi_loss` gives the hand-computed values of the Rust unit test
+    `ssi_is_zero_for_an_affine_disparity_and_hand_computed_otherwise` (loss.rs)."""
+    gt = torch.tensor([1.0, 2.0, 4.0, 0.5], dtype=torch.float64)
+    all4 = torch.arange(4)
+    assert abs(float(ssi_loss(3.0 / gt + 2.0, gt, all4))) < 1e-9
+    got = float(ssi_loss(torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64),
+                         torch.tensor([1.0, 1.0, 0.5], dtype=torch.float64), torch.arange(3)))
+    assert abs(got - 2.0 / 9.0) < 1e-9, got
+
+
 def main():
     n = int(sys.argv[2]) if len(sys.argv) > 2 else 5
+    check_ssi()
     torch.set_num_threads(THREADS)
     torch.manual_seed(0)
     model = DepthAnythingV2(encoder="vits", features=64, out_channels=[48, 96, 192, 384])
