@@ -197,7 +197,8 @@ def main():
         "max_depth_m": repr(max_depth_m), "head_lr_mult": repr(HEAD_LR_MULT),
         "weight_decay": repr(WEIGHT_DECAY), "eps": repr(EPS), "betas": json.dumps(BETAS),
         "dtype": "computed in float64; the loss stored as float64, every other tensor rounded to float32 "
-                 "(relative rounding <= 6e-8, far below the test's tolerances) to keep the file small", "loss": "official SiLogLoss (lambda 0.5)",
+                 "(relative rounding <= 6e-8, far below the test's tolerances) to keep the file small",
+        "loss": "official SiLogLoss (lambda 0.5)",
         "torch": torch.__version__, "peft": peft.__version__, "official_reproduction": json.dumps(repro),
         "seed": str(SEED),
     }
