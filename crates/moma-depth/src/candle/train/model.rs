@@ -300,6 +300,8 @@ impl TBlock {
 
 /// `F.interpolate(scale_factor, mode="bicubic", align_corners=False)` along one axis as an
 /// `(out, in)` matrix, with the taps of [`crate::candle::dinov2::interpolate_bicubic_scale_factor`].
+/// The taps are f32 whatever the network's dtype: the official DINOv2 interpolates the position
+/// embeddings in f32 (`self.pos_embed.float()`) also in an f64 model.
 fn bicubic_matrix(in_len: usize, scale: f64) -> (usize, Vec<f64>) {
     let out_len = (in_len as f64 * scale).floor() as usize;
     let inv = (1.0 / scale) as f32;
@@ -318,9 +320,26 @@ fn bicubic_matrix(in_len: usize, scale: f64) -> (usize, Vec<f64>) {
     (out_len, m)
 }
 
-/// Bilinear `align_corners=True` resampling along one axis as an `(out, in)` matrix.
-fn bilinear_ac_matrix(in_len: usize, out_len: usize) -> Vec<f64> {
+/// Bilinear `align_corners=True` resampling along one axis as an `(out, in)` matrix (taps in f32
+/// as PyTorch for f32 tensors; in f64 when `f64_taps`, as PyTorch for f64 tensors).
+fn bilinear_ac_matrix(in_len: usize, out_len: usize, f64_taps: bool) -> Vec<f64> {
     let mut m = vec![0.0f64; out_len * in_len];
+    if f64_taps {
+        let scale = if out_len > 1 {
+            (in_len as f64 - 1.0) / (out_len as f64 - 1.0)
+        } else {
+            0.0
+        };
+        for d in 0..out_len {
+            let src = scale * d as f64;
+            let i0 = (src as usize).min(in_len - 1);
+            let i1 = (i0 + 1).min(in_len - 1);
+            let l1 = src - i0 as f64;
+            m[d * in_len + i0] += 1.0 - l1;
+            m[d * in_len + i1] += l1;
+        }
+        return m;
+    }
     for (d, (i0, i1, w0, w1)) in crate::preprocess::align_corners_taps(in_len, out_len)
         .into_iter()
         .enumerate()
@@ -338,8 +357,9 @@ fn matrix(values: Vec<f64>, rows: usize, cols: usize, like: &Tensor) -> Result<T
 /// Bilinear `align_corners=True` upsampling of `(B, C, h, w)` to `(B, C, oh, ow)`: `Rh · X · Rwᵀ`.
 pub(crate) fn upsample_bilinear_ac(x: &Tensor, oh: usize, ow: usize) -> Result<Tensor> {
     let (b, c, h, w) = x.dims4()?;
-    let rw = matrix(bilinear_ac_matrix(w, ow), ow, w, x)?;
-    let rh = matrix(bilinear_ac_matrix(h, oh), oh, h, x)?;
+    let f64_taps = x.dtype() == DType::F64;
+    let rw = matrix(bilinear_ac_matrix(w, ow, f64_taps), ow, w, x)?;
+    let rh = matrix(bilinear_ac_matrix(h, oh, f64_taps), oh, h, x)?;
     let rw2 = rw.clone();
     let y = frozen(
         &x.reshape((b * c * h, w))?,
