@@ -6,24 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{fails, ok, s};
-
-/// Builds the demo scene (3 frames, simulated inverse-depth predictions) once per test.
-fn demo(dir: &Path) -> (PathBuf, PathBuf) {
-    let out = dir.join("demo");
-    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
-    let scene = out.join("scene");
-    let pred = out.join("predictions");
-    assert!(
-        scene.join("camera.json").is_file(),
-        "demo writes a moma set"
-    );
-    assert!(
-        pred.join("frame_00.npy").is_file(),
-        "demo writes predictions"
-    );
-    (scene, pred)
-}
+use common::{demo, fails, ok, s};
 
 /// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
