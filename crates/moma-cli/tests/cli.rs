@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{demo, fails, ok, s};
+use common::{align_args, demo, fails, ok, s};
 
 /// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
@@ -190,52 +190,33 @@ fn bad_input_is_a_clear_error() {
     ]);
 
     // Kind mismatch between calibration (and predictions.json) and run time.
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&pred.join("frame_01.npy")),
-        "--pred-kind",
-        "depth",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let frame1 = pred.join("frame_01.npy");
+    let a = tmp.path().join("a");
+    let err = fails(&align_args(&calib, &frame1, &a, &["--pred-kind", "depth"]));
     assert!(
         err.contains("inverse-depth") && err.contains("prediction kind mismatch"),
         "{err}"
     );
 
     // --ply without intrinsics.
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&pred.join("frame_01.npy")),
-        "--pred-kind",
-        "inverse-depth",
-        "--ply",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let err = fails(&align_args(
+        &calib,
+        &frame1,
+        &a,
+        &["--pred-kind", "inverse-depth", "--ply"],
+    ));
     assert!(err.contains("intrinsics"), "{err}");
 
     // A truncated calibration file names the file.
     let text = std::fs::read_to_string(&calib).unwrap();
     let broken = tmp.path().join("broken.json");
     std::fs::write(&broken, &text[..text.len() / 2]).unwrap();
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&broken),
-        "--pred",
-        s(&pred.join("frame_01.npy")),
-        "--pred-kind",
-        "inverse-depth",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let err = fails(&align_args(
+        &broken,
+        &frame1,
+        &a,
+        &["--pred-kind", "inverse-depth"],
+    ));
     assert!(err.contains("broken.json") && err.contains("JSON"), "{err}");
 
     // A prediction with NaN: refused, naming the problem.
@@ -247,17 +228,12 @@ fn bad_input_is_a_clear_error() {
     .unwrap();
     p.values[[5, 7]] = f32::NAN;
     moma_io::write_prediction(&nan, &p).unwrap();
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&nan),
-        "--pred-kind",
-        "inverse-depth",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let err = fails(&align_args(
+        &calib,
+        &nan,
+        &a,
+        &["--pred-kind", "inverse-depth"],
+    ));
     assert!(
         err.contains("nan.npy") && err.contains("non-finite"),
         "{err}"

@@ -4,7 +4,9 @@
 use std::path::{Path, PathBuf};
 
 mod common;
-use common::{calibrate_args, demo, demo_frame, eval_args, eval_rows, fails, moma, ok, s};
+use common::{
+    align_args, calibrate_args, demo, demo_frame, eval_args, eval_rows, fails, moma, ok, s,
+};
 
 #[test]
 fn calibrate_with_several_frames() {
@@ -72,15 +74,7 @@ fn calibrate_with_several_frames() {
     let text = run(&[p(0), p(1)], &[g(0), g(1)], &two, false);
     assert!(text.contains("on 200 samples from 2 frames"), "{text}");
     let aligned = tmp.path().join("aligned");
-    ok(&[
-        "align",
-        "--calib",
-        s(&two),
-        "--pred",
-        s(p(2)),
-        "-o",
-        s(&aligned),
-    ]);
+    ok(&align_args(&two, p(2), &aligned, &[]));
     assert!(aligned.join("frame_02.depth.png").is_file());
 }
 

@@ -2,7 +2,9 @@
 //! (SIMULATED predictions; no ../shared, no network).
 
 mod common;
-use common::{calibrate_args, demo, demo_frame, eval_rows, fails, method_variants, ok, s};
+use common::{
+    align_args, calibrate_args, demo, demo_frame, eval_rows, fails, method_variants, ok, s,
+};
 
 #[test]
 fn calibrate_and_eval_with_robust_fits() {
@@ -53,17 +55,12 @@ fn calibrate_and_eval_with_robust_fits() {
         // the file keeps the report and reads back (align accepts it)
         let text = std::fs::read_to_string(&calib).unwrap();
         assert!(text.contains("\"robust\""), "{text}");
-        ok(&[
-            "align",
-            "--calib",
-            s(&calib),
-            "--pred",
-            s(&pred.join("frame_01.npy")),
-            "--pred-kind",
-            "inverse-depth",
-            "-o",
-            s(&tmp.path().join("aligned")),
-        ]);
+        ok(&align_args(
+            &calib,
+            &pred.join("frame_01.npy"),
+            &tmp.path().join("aligned"),
+            &["--pred-kind", "inverse-depth"],
+        ));
     }
     let text = ok(&with(&["--robust", "ransac"]));
     assert!(

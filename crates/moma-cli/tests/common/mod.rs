@@ -112,3 +112,23 @@ pub fn calibrate_args<'a>(preds: &[&'a Path], gts: &[&'a Path], extra: &[&'a str
     args.extend_from_slice(extra);
     args
 }
+
+/// `align --calib CALIB --pred PRED -o OUT` followed by `extra`.
+pub fn align_args<'a>(
+    calib: &'a Path,
+    pred: &'a Path,
+    out: &'a Path,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut args = vec![
+        "align",
+        "--calib",
+        s(calib),
+        "--pred",
+        s(pred),
+        "-o",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    args
+}
