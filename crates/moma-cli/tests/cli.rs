@@ -6,24 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{fails, ok, s};
-
-/// Builds the demo scene (3 frames, simulated inverse-depth predictions) once per test.
-fn demo(dir: &Path) -> (PathBuf, PathBuf) {
-    let out = dir.join("demo");
-    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
-    let scene = out.join("scene");
-    let pred = out.join("predictions");
-    assert!(
-        scene.join("camera.json").is_file(),
-        "demo writes a moma set"
-    );
-    assert!(
-        pred.join("frame_00.npy").is_file(),
-        "demo writes predictions"
-    );
-    (scene, pred)
-}
+use common::{align_args, demo, fails, ok, s};
 
 /// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
@@ -207,52 +190,33 @@ fn bad_input_is_a_clear_error() {
     ]);
 
     // Kind mismatch between calibration (and predictions.json) and run time.
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&pred.join("frame_01.npy")),
-        "--pred-kind",
-        "depth",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let frame1 = pred.join("frame_01.npy");
+    let a = tmp.path().join("a");
+    let err = fails(&align_args(&calib, &frame1, &a, &["--pred-kind", "depth"]));
     assert!(
         err.contains("inverse-depth") && err.contains("prediction kind mismatch"),
         "{err}"
     );
 
     // --ply without intrinsics.
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&pred.join("frame_01.npy")),
-        "--pred-kind",
-        "inverse-depth",
-        "--ply",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let err = fails(&align_args(
+        &calib,
+        &frame1,
+        &a,
+        &["--pred-kind", "inverse-depth", "--ply"],
+    ));
     assert!(err.contains("intrinsics"), "{err}");
 
     // A truncated calibration file names the file.
     let text = std::fs::read_to_string(&calib).unwrap();
     let broken = tmp.path().join("broken.json");
     std::fs::write(&broken, &text[..text.len() / 2]).unwrap();
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&broken),
-        "--pred",
-        s(&pred.join("frame_01.npy")),
-        "--pred-kind",
-        "inverse-depth",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let err = fails(&align_args(
+        &broken,
+        &frame1,
+        &a,
+        &["--pred-kind", "inverse-depth"],
+    ));
     assert!(err.contains("broken.json") && err.contains("JSON"), "{err}");
 
     // A prediction with NaN: refused, naming the problem.
@@ -264,17 +228,12 @@ fn bad_input_is_a_clear_error() {
     .unwrap();
     p.values[[5, 7]] = f32::NAN;
     moma_io::write_prediction(&nan, &p).unwrap();
-    let err = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&nan),
-        "--pred-kind",
-        "inverse-depth",
-        "-o",
-        s(&tmp.path().join("a")),
-    ]);
+    let err = fails(&align_args(
+        &calib,
+        &nan,
+        &a,
+        &["--pred-kind", "inverse-depth"],
+    ));
     assert!(
         err.contains("nan.npy") && err.contains("non-finite"),
         "{err}"

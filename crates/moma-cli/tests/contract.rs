@@ -3,26 +3,8 @@
 //! still aligns after being copied elsewhere, and bad calibration files are refused clearly.
 //! Runs on the bundled demo scene (no ../shared needed).
 
-use std::path::{Path, PathBuf};
-
 mod common;
-use common::{fails, ok, s};
-
-/// The demo scene (3 frames) and its SIMULATED inverse-depth predictions with predictions.json.
-fn demo(dir: &Path) -> (PathBuf, PathBuf) {
-    let out = dir.join("demo");
-    ok(&[
-        "demo",
-        "-o",
-        s(&out),
-        "--frames",
-        "3",
-        "--no-exports",
-        "--seeds",
-        "1",
-    ]);
-    (out.join("scene"), out.join("predictions"))
-}
+use common::{demo, fails, ok, s};
 
 #[test]
 fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {

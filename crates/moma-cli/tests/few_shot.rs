@@ -4,25 +4,16 @@
 use std::path::{Path, PathBuf};
 
 mod common;
-use common::{fails, moma, ok, s};
-
-/// The demo scene (3 frames, SIMULATED inverse-depth predictions).
-fn demo(dir: &Path) -> (PathBuf, PathBuf) {
-    let out = dir.join("demo");
-    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
-    (out.join("scene"), out.join("predictions"))
-}
+use common::{
+    align_args, calibrate_args, demo, demo_frame, eval_args, eval_rows, fails, moma, ok, s,
+};
 
 #[test]
 fn calibrate_with_several_frames() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
-    let ps: Vec<PathBuf> = (0..3)
-        .map(|k| pred.join(format!("frame_0{k}.npy")))
-        .collect();
-    let gs: Vec<PathBuf> = (0..3)
-        .map(|k| scene.join(format!("frames/frame_0{k}/depth.png")))
-        .collect();
+    let (ps, gs): (Vec<PathBuf>, Vec<PathBuf>) =
+        (0..3).map(|k| demo_frame(&scene, &pred, k)).unzip();
     let p = |k: usize| ps[k].as_path();
     let g = |k: usize| gs[k].as_path();
     let (one, two) = (tmp.path().join("one.json"), tmp.path().join("two.json"));
@@ -34,12 +25,17 @@ fn calibrate_with_several_frames() {
         "--seed",
         "4",
     ];
+    let run = |preds: &[&Path], gts: &[&Path], out: &Path, json: bool| -> String {
+        let mut extra: Vec<&str> = base.to_vec();
+        extra.extend(["-o", s(out)]);
+        if json {
+            extra.push("--json");
+        }
+        ok(&calibrate_args(preds, gts, &extra))
+    };
 
     // The one-frame form, unchanged.
-    let mut args = vec!["calibrate", "--pred", s(p(0)), "--gt", s(g(0))];
-    args.extend(base);
-    args.extend(["-o", s(&one), "--json"]);
-    let j1: serde_json::Value = serde_json::from_str(&ok(&args)).unwrap();
+    let j1: serde_json::Value = serde_json::from_str(&run(&[p(0)], &[g(0)], &one, true)).unwrap();
     assert_eq!(j1["frames"], 1);
     assert_eq!(j1["n_used"], 100);
 
@@ -73,30 +69,12 @@ fn calibrate_with_several_frames() {
     let sources = &c2.created.sources;
     assert!(sources.contains_key("prediction") && sources.contains_key("ground_truth (frame 1)"));
 
-    // Text report says how many frames; the calibration aligns later frames.
-    let mut args = vec![
-        "calibrate",
-        "--pred",
-        s(p(0)),
-        s(p(1)),
-        "--gt",
-        s(g(0)),
-        s(g(1)),
-    ];
-    args.extend(base);
-    args.extend(["-o", s(&two)]);
-    let text = ok(&args);
+    // Text report says how many frames (one flag, several values); the calibration aligns
+    // later frames.
+    let text = run(&[p(0), p(1)], &[g(0), g(1)], &two, false);
     assert!(text.contains("on 200 samples from 2 frames"), "{text}");
     let aligned = tmp.path().join("aligned");
-    ok(&[
-        "align",
-        "--calib",
-        s(&two),
-        "--pred",
-        s(p(2)),
-        "-o",
-        s(&aligned),
-    ]);
+    ok(&align_args(&two, p(2), &aligned, &[]));
     assert!(aligned.join("frame_02.depth.png").is_file());
 }
 
@@ -105,65 +83,35 @@ fn calibrate_bad_frame_lists_fail_clearly() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
     let out = tmp.path().join("c.json");
-    let p0 = pred.join("frame_00.npy");
-    let p1 = pred.join("frame_01.npy");
-    let g0 = scene.join("frames/frame_00/depth.png");
+    let (p0, g0) = demo_frame(&scene, &pred, 0);
+    let (p1, g1) = demo_frame(&scene, &pred, 1);
+    let (p2, g2) = demo_frame(&scene, &pred, 2);
     let mask = scene.join("frames/frame_00/mask.png");
+    let to_out = ["-o", s(&out)];
 
     // Two predictions, one ground truth.
-    let err = fails(&[
-        "calibrate",
-        "--pred",
-        s(&p0),
-        s(&p1),
-        "--gt",
-        s(&g0),
-        "-o",
-        s(&out),
-    ]);
+    let err = fails(&calibrate_args(&[&p0, &p1], &[&g0], &to_out));
     assert!(
         err.contains("one --gt per --pred") && err.contains("2 prediction input(s) and 1"),
         "{err}"
     );
 
     // Two masks for three frames.
-    let g1 = scene.join("frames/frame_01/depth.png");
-    let g2 = scene.join("frames/frame_02/depth.png");
-    let p2 = pred.join("frame_02.npy");
-    let err = fails(&[
-        "calibrate",
-        "--pred",
-        s(&p0),
-        s(&p1),
-        s(&p2),
-        "--gt",
-        s(&g0),
-        s(&g1),
-        s(&g2),
-        "--mask",
-        s(&mask),
-        s(&mask),
-        "-o",
-        s(&out),
-    ]);
+    let err = fails(&calibrate_args(
+        &[&p0, &p1, &p2],
+        &[&g0, &g1, &g2],
+        &["--mask", s(&mask), s(&mask), "-o", s(&out)],
+    ));
     assert!(err.contains("2 masks for 3 frames"), "{err}");
 
     // A frame of another size, named.
     let small = tmp.path().join("small.npy");
     moma_io::write_npy_f32(&small, ndarray::Array2::<f32>::ones((10, 12)).view()).unwrap();
-    let err = fails(&[
-        "calibrate",
-        "--pred",
-        s(&p0),
-        s(&small),
-        "--pred-kind",
-        "inverse-depth",
-        "--gt",
-        s(&g0),
-        s(&g1),
-        "-o",
-        s(&out),
-    ]);
+    let err = fails(&calibrate_args(
+        &[&p0, &small],
+        &[&g0, &g1],
+        &["--pred-kind", "inverse-depth", "-o", s(&out)],
+    ));
     assert!(
         err.contains("same size") && err.contains("small.npy"),
         "{err}"
@@ -176,24 +124,19 @@ fn eval_calib_frames_variants_and_too_few_frames() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
     let out = tmp.path().join("eval");
-    let rows: serde_json::Value = serde_json::from_str(&ok(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--methods",
-        "gssa,ssra",
-        "--seeds",
-        "2",
-        "--calib-frames",
-        "1,2",
-        "-o",
-        s(&out),
-        "--json",
-    ]))
-    .unwrap();
-    let rows = rows.as_array().unwrap();
+    let rows = eval_rows(
+        &scene,
+        &pred,
+        &out,
+        &[
+            "--methods",
+            "gssa,ssra",
+            "--seeds",
+            "2",
+            "--calib-frames",
+            "1,2",
+        ],
+    );
     let got: Vec<(&str, &str, &str)> = rows
         .iter()
         .map(|r| {
@@ -220,39 +163,16 @@ fn eval_calib_frames_variants_and_too_few_frames() {
     );
 
     // Without the flag: one-shot rows, all other frames scored.
-    let rows: serde_json::Value = serde_json::from_str(&ok(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--methods",
-        "gssa",
-        "--seeds",
-        "2",
-        "-o",
-        s(&out),
-        "--json",
-    ]))
-    .unwrap();
+    let rows = eval_rows(&scene, &pred, &out, &["--methods", "gssa", "--seeds", "2"]);
     assert_eq!(rows[0]["variant"], "one-shot");
 
     // Too few frames: a row says so, the command succeeds.
-    let o = moma(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--methods",
-        "gssa",
-        "--seeds",
-        "1",
-        "--calib-frames",
-        "1,3",
-        "-o",
-        s(&out),
-    ]);
+    let o = moma(&eval_args(
+        &scene,
+        &pred,
+        &out,
+        &["--methods", "gssa", "--seeds", "1", "--calib-frames", "1,3"],
+    ));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(
@@ -261,30 +181,13 @@ fn eval_calib_frames_variants_and_too_few_frames() {
     );
 
     // With --calib-frame: refused.
-    let err = fails(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--calib-frame",
-        "frame_01",
-        "--calib-frames",
-        "2",
-        "-o",
-        s(&out),
-    ]);
+    let err = fails(&eval_args(
+        &scene,
+        &pred,
+        &out,
+        &["--calib-frame", "frame_01", "--calib-frames", "2"],
+    ));
     assert!(err.contains("--calib-frame"), "{err}");
-    let err = fails(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--calib-frames",
-        "0",
-        "-o",
-        s(&out),
-    ]);
+    let err = fails(&eval_args(&scene, &pred, &out, &["--calib-frames", "0"]));
     assert!(err.contains("at least 1"), "{err}");
 }

@@ -1,39 +1,31 @@
 //! `moma calibrate --robust` and `moma eval --robust` end to end on the bundled demo scene
 //! (SIMULATED predictions; no ../shared, no network).
 
-use std::path::{Path, PathBuf};
-
 mod common;
-use common::{fails, ok, s};
-
-fn demo(dir: &Path) -> (PathBuf, PathBuf) {
-    let out = dir.join("demo");
-    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
-    (out.join("scene"), out.join("predictions"))
-}
+use common::{
+    align_args, calibrate_args, demo, demo_frame, eval_rows, fails, method_variants, ok, s,
+};
 
 #[test]
 fn calibrate_and_eval_with_robust_fits() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
-    let frames = scene.join("frames");
     let calib = tmp.path().join("calib.json");
-    let (pred0, gt0) = (pred.join("frame_00.npy"), frames.join("frame_00/depth.png"));
-    let base = [
-        "calibrate",
-        "--pred",
-        s(&pred0),
-        "--pred-kind",
-        "inverse-depth",
-        "--gt",
-        s(&gt0),
-        "--method",
-        "gssa",
-        "--seed",
-        "3",
-        "-o",
-        s(&calib),
-    ];
+    let (pred0, gt0) = demo_frame(&scene, &pred, 0);
+    let base = calibrate_args(
+        &[&pred0],
+        &[&gt0],
+        &[
+            "--pred-kind",
+            "inverse-depth",
+            "--method",
+            "gssa",
+            "--seed",
+            "3",
+            "-o",
+            s(&calib),
+        ],
+    );
     let with = |extra: &[&'static str]| -> Vec<&str> {
         base.iter().copied().chain(extra.iter().copied()).collect()
     };
@@ -63,17 +55,12 @@ fn calibrate_and_eval_with_robust_fits() {
         // the file keeps the report and reads back (align accepts it)
         let text = std::fs::read_to_string(&calib).unwrap();
         assert!(text.contains("\"robust\""), "{text}");
-        ok(&[
-            "align",
-            "--calib",
-            s(&calib),
-            "--pred",
-            s(&pred.join("frame_01.npy")),
-            "--pred-kind",
-            "inverse-depth",
-            "-o",
-            s(&tmp.path().join("aligned")),
-        ]);
+        ok(&align_args(
+            &calib,
+            &pred.join("frame_01.npy"),
+            &tmp.path().join("aligned"),
+            &["--pred-kind", "inverse-depth"],
+        ));
     }
     let text = ok(&with(&["--robust", "ransac"]));
     assert!(
@@ -97,36 +84,22 @@ fn calibrate_and_eval_with_robust_fits() {
     assert!(fails(&with(&["--robust-threshold-m", "0.02"])).contains("--robust"));
 
     // eval: one-shot and robust rows, with simulated ground-truth outliers
-    let rows: serde_json::Value = serde_json::from_str(&ok(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--methods",
-        "gssa,lwlr",
-        "--seeds",
-        "2",
-        "--robust",
-        "tukey,ransac",
-        "--gt-outliers",
-        "0.2",
-        "-o",
-        s(&tmp.path().join("eval")),
-        "--json",
-    ]))
-    .unwrap();
-    let got: Vec<(String, String)> = rows
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|r| {
-            (
-                r["method"].as_str().unwrap().to_string(),
-                r["variant"].as_str().unwrap().to_string(),
-            )
-        })
-        .collect();
+    let rows = eval_rows(
+        &scene,
+        &pred,
+        &tmp.path().join("eval"),
+        &[
+            "--methods",
+            "gssa,lwlr",
+            "--seeds",
+            "2",
+            "--robust",
+            "tukey,ransac",
+            "--gt-outliers",
+            "0.2",
+        ],
+    );
+    let got = method_variants(&rows);
     let want: Vec<(String, String)> = [
         ("gssa", "one-shot"),
         ("gssa", "robust-tukey"),

@@ -778,15 +778,32 @@ impl Calibration {
     /// # Errors
     /// As [`Calibration::with_anchors`].
     pub fn with_anchors_normalised(
-        mut self,
+        self,
         rgb: ArrayView3<'_, u8>,
         gt: &MetricDepth,
         normalised: &NormalisedMap,
     ) -> Result<Self> {
         self.image_size()
             .expect_eq("anchor ground truth", gt.size())?;
+        self.with_anchor_store(&AnchorStore::new(rgb, gt)?, normalised)
+    }
+
+    /// [`Calibration::with_anchors_normalised`] from a store already built from the calibration
+    /// frame's RGB and ground truth ([`AnchorStore::new`]), e.g. one store shared by several
+    /// calibrations of the same frame: a copy of `store` gets this calibration's own result on
+    /// `normalised` (replacing any it held).
+    ///
+    /// # Errors
+    /// A store of another image size; as [`Calibration::align_normalised`].
+    pub fn with_anchor_store(
+        mut self,
+        store: &AnchorStore,
+        normalised: &NormalisedMap,
+    ) -> Result<Self> {
+        self.image_size()
+            .expect_eq("anchor store", store.image_size())?;
         let own = self.align_normalised(normalised)?;
-        self.anchors = Some(Arc::new(AnchorStore::new(rgb, gt)?.with_one_shot(&own)?));
+        self.anchors = Some(Arc::new(store.clone().with_one_shot(&own)?));
         Ok(self)
     }
 

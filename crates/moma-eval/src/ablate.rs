@@ -1,5 +1,12 @@
 //! Ablations (METHOD.md §4 a–d): number of samples with calibration time, normalisation,
 //! prediction source, transparent objects. Each returns rows and writes a table and a PNG plot.
+//!
+//! Every ablation takes `calib_frames` = K: 1 is the paper's one-shot protocol
+//! ([`crate::protocol::evaluate`]: the calibration frame, every other frame scored); K > 1
+//! calibrates on the first K frames in sorted frame-id order (one fit, `samples` per frame,
+//! [`crate::protocol::evaluate_few_shot`]) and scores the frames after K; the tables' titles say
+//! so. A set with too few frames for K is an [`EvalError::TooFewFrames`] the caller may turn into
+//! an [`EvalNote`], which the `write_*` functions show as a row.
 
 use std::path::{Path, PathBuf};
 
@@ -11,7 +18,8 @@ use serde::{Deserialize, Serialize};
 use crate::data::LoadedSet;
 use crate::error::{EvalError, Result};
 use crate::protocol::{
-    EvalConfig, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, evaluate, evaluate_one,
+    EvalConfig, EvalNote, EvalResult, MetricSummary, PredictionSet, Prepared, Stat, Variant,
+    check_few_shot, evaluate, evaluate_few_shot, evaluate_one, evaluate_variant, few_shot_variant,
 };
 use crate::render::{LinePanel, Series, bar_plot, line_plot, source_caption};
 use crate::report::{Table, headers_with_metrics, metric_cells, write_table};
@@ -38,36 +46,88 @@ fn aligned_methods(config: &EvalConfig) -> Vec<Method> {
         .collect()
 }
 
-/// (a) Accuracy and median calibration (fit) time against the number of samples n.
-/// RAW is skipped (it has nothing to fit).
+/// The frames an ablation calibrates on and scores: `calib_frames` = 1, the calibration frame
+/// and every other frame; K > 1, the first K frames and the frames after K (checked as
+/// [`check_few_shot`]).
+fn frames_for(prep: &Prepared<'_>, calib_frames: usize) -> Result<(Vec<usize>, Vec<usize>)> {
+    if calib_frames == 0 {
+        return Err(EvalError::InvalidParameter(
+            "calibration frame counts must be at least 1, got 0".into(),
+        ));
+    }
+    if calib_frames == 1 {
+        return Ok((vec![prep.calib], prep.eval_indices()));
+    }
+    check_few_shot(prep.set, &prep.config, calib_frames)?;
+    Ok((
+        (0..calib_frames).collect(),
+        (calib_frames..prep.set.frames.len()).collect(),
+    ))
+}
+
+/// [`evaluate`] for `calib_frames` = 1, else [`evaluate_few_shot`] with K = `calib_frames`.
+fn evaluate_k(
+    set: &LoadedSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+    calib_frames: usize,
+) -> Result<Vec<EvalResult>> {
+    if calib_frames == 1 {
+        evaluate(set, preds, config)
+    } else {
+        evaluate_few_shot(set, preds, config, &[calib_frames])
+    }
+}
+
+/// (a) Accuracy and median calibration (fit) time against the number of samples n, calibrated
+/// on `calib_frames` frames (module documentation; n samples per frame). RAW is skipped (it has
+/// nothing to fit).
 ///
 /// # Errors
-/// As [`evaluate`].
+/// As [`evaluate`] (`calib_frames` = 1) or [`evaluate_few_shot`].
 pub fn samples(
     set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
     counts: &[usize],
+    calib_frames: usize,
 ) -> Result<Vec<EvalResult>> {
     let prep = Prepared::new(set, preds, config)?;
+    let (calib, eval_idx) = frames_for(&prep, calib_frames)?;
+    let name = few_shot_variant(calib_frames);
     let mut out = Vec::new();
     for &n in counts {
         for m in aligned_methods(config) {
             let norm = prep.normalisation_for(&m, config.norms[0]);
-            out.push(evaluate_one(&prep, &m, &norm, n)?);
+            out.push(if calib_frames == 1 {
+                evaluate_one(&prep, &m, &norm, n)?
+            } else {
+                let spec = Variant {
+                    name: &name,
+                    calib: &calib,
+                    eval_idx: &eval_idx,
+                    robust: None,
+                };
+                evaluate_variant(&prep, &m, &norm, n, spec)?
+            });
         }
     }
     Ok(out)
 }
 
-/// Table and plot (MAE and fit time against n, one line per method) of [`samples`].
+/// Table and plot (MAE and fit time against n, one line per method) of [`samples`]; `notes`
+/// (sets that could not be evaluated, e.g. too few frames) become rows of the table.
 ///
 /// # Errors
 /// I/O or drawing failure.
-pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
+pub fn write_samples(
+    dir: &Path,
+    rows: &[EvalResult],
+    notes: &[EvalNote],
+) -> Result<AblationOutput> {
     let mut headers = headers_with_metrics(&["set", "method", "n"]);
     headers.push("median fit ms".into());
-    let table = Table {
+    let mut table = Table {
         title: title("ablation (a): number of calibration samples n", rows),
         headers,
         rows: rows
@@ -84,6 +144,7 @@ pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> 
             })
             .collect(),
     };
+    push_notes(&mut table, 3, notes);
     let mut out = AblationOutput {
         tables: write_table(dir, "ablation_samples", &table, rows)?,
         plots: Vec::new(),
@@ -137,21 +198,22 @@ pub fn write_samples(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> 
     Ok(out)
 }
 
-/// (b) Every normalisation × method.
+/// (b) Every normalisation × method, calibrated on `calib_frames` frames (module documentation).
 ///
 /// # Errors
-/// As [`evaluate`].
+/// As [`evaluate`] (`calib_frames` = 1) or [`evaluate_few_shot`].
 pub fn norms(
     set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
     norms: &[Normalisation],
+    calib_frames: usize,
 ) -> Result<Vec<EvalResult>> {
     let cfg = EvalConfig {
         norms: norms.to_vec(),
         ..config.clone()
     };
-    evaluate(set, preds, &cfg)
+    evaluate_k(set, preds, &cfg, calib_frames)
 }
 
 /// Grouped-bar plot of MAE per `group_of(row)` with one bar per method.
@@ -190,14 +252,15 @@ fn bar_by(
     )
 }
 
-/// Table and plot of [`norms`].
+/// Table and plot of [`norms`]; `notes` become rows of the table.
 ///
 /// # Errors
 /// I/O or drawing failure.
-pub fn write_norms(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
+pub fn write_norms(dir: &Path, rows: &[EvalResult], notes: &[EvalNote]) -> Result<AblationOutput> {
     write_grouped(
         dir,
         rows,
+        notes,
         Grouping {
             title: "ablation (b): normalisation × method",
             column: "norm",
@@ -218,8 +281,14 @@ struct Grouping {
 }
 
 /// Writes the table of `rows` and one bar plot per set, grouped by `g.key`.
-fn write_grouped(dir: &Path, rows: &[EvalResult], g: Grouping) -> Result<AblationOutput> {
-    let table = simple_table(title(g.title, rows), g.column, rows, g.key);
+fn write_grouped(
+    dir: &Path,
+    rows: &[EvalResult],
+    notes: &[EvalNote],
+    g: Grouping,
+) -> Result<AblationOutput> {
+    let mut table = simple_table(title(g.title, rows), g.column, rows, g.key);
+    push_notes(&mut table, 3, notes);
     let mut out = AblationOutput {
         tables: write_table(dir, g.file_stem, &table, rows)?,
         plots: Vec::new(),
@@ -233,14 +302,16 @@ fn write_grouped(dir: &Path, rows: &[EvalResult], g: Grouping) -> Result<Ablatio
     Ok(out)
 }
 
-/// (c) Several prediction sources (e.g. simulated depth vs simulated inverse depth, or models).
+/// (c) Several prediction sources (e.g. simulated depth vs simulated inverse depth, or models),
+/// calibrated on `calib_frames` frames (module documentation).
 ///
 /// # Errors
-/// As [`evaluate`].
+/// As [`evaluate`] (`calib_frames` = 1) or [`evaluate_few_shot`].
 pub fn sources(
     set: &LoadedSet,
     sources: &[PredictionSet],
     config: &EvalConfig,
+    calib_frames: usize,
 ) -> Result<Vec<EvalResult>> {
     let mut out = Vec::new();
     for s in sources {
@@ -249,19 +320,24 @@ pub fn sources(
         if s.kind()? != moma_core::PredictionKind::Depth {
             cfg.methods.retain(|m| *m != Method::Raw);
         }
-        out.extend(evaluate(set, s, &cfg)?);
+        out.extend(evaluate_k(set, s, &cfg, calib_frames)?);
     }
     Ok(out)
 }
 
-/// Table and plot of [`sources`].
+/// Table and plot of [`sources`]; `notes` become rows of the table.
 ///
 /// # Errors
 /// I/O or drawing failure.
-pub fn write_sources(dir: &Path, rows: &[EvalResult]) -> Result<AblationOutput> {
+pub fn write_sources(
+    dir: &Path,
+    rows: &[EvalResult],
+    notes: &[EvalNote],
+) -> Result<AblationOutput> {
     write_grouped(
         dir,
         rows,
+        notes,
         Grouping {
             title: "ablation (c): prediction source",
             column: "source",
@@ -299,21 +375,26 @@ pub struct TransparentResult {
     pub sensor: SensorRow,
 }
 
-/// (d) Transparent objects. Needs `raw_depth.png` in the evaluated frames.
+/// (d) Transparent objects, calibrated on `calib_frames` frames (module documentation); the
+/// sensor is scored on the same frames as the methods. Needs `raw_depth.png` in the evaluated
+/// frames.
 ///
 /// # Errors
-/// As [`evaluate`]; a frame without `raw_depth.png` (named).
+/// As [`evaluate`] (`calib_frames` = 1) or [`evaluate_few_shot`]; a frame without
+/// `raw_depth.png` (named).
 pub fn transparent(
     set: &LoadedSet,
     preds: &PredictionSet,
     config: &EvalConfig,
+    calib_frames: usize,
 ) -> Result<TransparentResult> {
-    let methods = evaluate(set, preds, config)?;
     let prep = Prepared::new(set, preds, config)?;
+    let (_, eval_idx) = frames_for(&prep, calib_frames)?;
+    let methods = evaluate_k(set, preds, config, calib_frames)?;
     let mut per_frame = Vec::new();
     let mut frames = Vec::new();
     let (mut covered, mut total) = (0usize, 0usize);
-    for i in prep.eval_indices() {
+    for i in eval_idx {
         let f = &set.frames[i];
         let raw = f.raw_depth.as_ref().ok_or_else(|| {
             EvalError::frame(
@@ -357,11 +438,15 @@ pub fn transparent(
     Ok(TransparentResult { methods, sensor })
 }
 
-/// Table and plot of [`transparent`] (possibly several sets).
+/// Table and plot of [`transparent`] (possibly several sets); `notes` become rows of the table.
 ///
 /// # Errors
 /// I/O or drawing failure.
-pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<AblationOutput> {
+pub fn write_transparent(
+    dir: &Path,
+    results: &[TransparentResult],
+    notes: &[EvalNote],
+) -> Result<AblationOutput> {
     let headers = headers_with_metrics(&["set", "method", "coverage"]);
     let mut rows = Vec::new();
     let all: Vec<EvalResult> = results.iter().flat_map(|r| r.methods.clone()).collect();
@@ -393,7 +478,7 @@ pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<Ab
         row.extend(metric_cells(&ms));
         rows.push(row);
     }
-    let table = Table {
+    let mut table = Table {
         title: format!(
             "{}; SENSOR = raw_depth.png (what the depth camera saw through glass), scored where it measured (coverage = fraction of mask pixels with a measurement)",
             title(
@@ -404,6 +489,7 @@ pub fn write_transparent(dir: &Path, results: &[TransparentResult]) -> Result<Ab
         headers,
         rows,
     };
+    push_notes(&mut table, 3, notes);
     let mut out = AblationOutput {
         tables: write_table(dir, "ablation_transparent", &table, results)?,
         plots: Vec::new(),
@@ -464,15 +550,45 @@ fn title(what: &str, rows: &[EvalResult]) -> String {
     let sim = rows.iter().any(|r| r.simulated);
     match rows.first() {
         Some(r) => format!(
-            "{}{what} — {} seeds, per-image mean (mean ± std over seeds), RMSE/MAE in mm",
+            "{}{what}{} — {} seeds, per-image mean (mean ± std over seeds), RMSE/MAE in mm",
             if sim {
                 "SIMULATED predictions — "
             } else {
                 ""
             },
+            few_shot_clause(r),
             r.seeds
         ),
         None => what.to_string(),
+    }
+}
+
+/// `""` for one-shot rows (the paper's protocol, the titles as before); for few-shot rows what
+/// they were calibrated on and scored.
+fn few_shot_clause(r: &EvalResult) -> String {
+    match r
+        .variant
+        .strip_prefix("few-shot-")
+        .and_then(|k| k.parse::<usize>().ok())
+    {
+        Some(k) => format!(
+            ", few-shot: calibrated on the first {k} frames in sorted order (one fit, n samples \
+             per frame), scored on the frames after the first {k}"
+        ),
+        None => String::new(),
+    }
+}
+
+/// Appends one row per note: the set, `—` in the other `keys - 1` key columns, then the
+/// variant and the note, `—` in the remaining columns.
+fn push_notes(table: &mut Table, keys: usize, notes: &[EvalNote]) {
+    let width = table.headers.len();
+    for n in notes {
+        let mut row = vec![n.set.clone()];
+        row.resize(keys, "—".to_string());
+        row.push(format!("{}: {}", n.variant, n.note));
+        row.resize(width, "—".to_string());
+        table.rows.push(row);
     }
 }
 

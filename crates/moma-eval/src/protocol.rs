@@ -8,7 +8,7 @@
 //! over all evaluated pixels; both as mean ± standard deviation over seeds (population standard
 //! deviation, ddof = 0).
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use moma_core::align::Method;
 use moma_core::align::robust::Robust;
@@ -364,7 +364,14 @@ pub struct Prepared<'a> {
     /// The workspace every normalisation uses, as a calibration owns it.
     pub workspace: Option<Arc<Workspace>>,
     pub(crate) config: EvalConfig,
+    /// Every frame's normalised prediction, one copy per (normalisation, space, brightness
+    /// factor), shared by every method, variant and seed of the set ([`Prepared::cached_maps`]).
+    maps_cache: Mutex<Vec<MapsEntry>>,
 }
+
+/// One entry of [`Prepared`]'s cache: the key (normalisation with its space, brightness factor
+/// as bits) and the maps of every frame.
+type MapsEntry = (NormalisationConfig, u64, Arc<Vec<NormalisedMap>>);
 
 fn in_range(z: f32, range: Option<(f64, f64)>) -> bool {
     is_valid_depth(z)
@@ -484,6 +491,7 @@ impl<'a> Prepared<'a> {
             sample_region,
             workspace,
             config: config.clone(),
+            maps_cache: Mutex::new(Vec::new()),
         })
     }
 
@@ -519,6 +527,49 @@ impl<'a> Prepared<'a> {
                 e,
             )
         })
+    }
+
+    /// Every frame's prediction normalised with `norm` ([`Prepared::normalised`]), in frame
+    /// order: computed once per (normalisation, space) and shared by every method, variant and
+    /// seed evaluated on this set.
+    ///
+    /// # Errors
+    /// As [`Prepared::normalised`].
+    pub fn normalised_all(&self, norm: &NormalisationConfig) -> Result<Arc<Vec<NormalisedMap>>> {
+        self.cached_maps(norm, 1.0, |i| self.normalised(i, norm))
+    }
+
+    /// The maps of every frame under the key (`norm`, `brightness`), made by `make(frame index)`
+    /// (in parallel) on the first request and shared afterwards. Brightness 1 is
+    /// [`Prepared::normalised_all`]; re-alignment rows with another factor use their own key.
+    pub(crate) fn cached_maps(
+        &self,
+        norm: &NormalisationConfig,
+        brightness: f64,
+        make: impl Fn(usize) -> Result<NormalisedMap> + Sync + Send,
+    ) -> Result<Arc<Vec<NormalisedMap>>> {
+        let key = brightness.to_bits();
+        let lookup = || {
+            self.maps_cache
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .iter()
+                .find(|(n, b, _)| n == norm && *b == key)
+                .map(|(_, _, maps)| Arc::clone(maps))
+        };
+        if let Some(maps) = lookup() {
+            return Ok(maps);
+        }
+        let maps: Vec<NormalisedMap> = (0..self.set.frames.len())
+            .into_par_iter()
+            .map(make)
+            .collect::<Result<_>>()?;
+        let maps = Arc::new(maps);
+        self.maps_cache
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push((*norm, key, Arc::clone(&maps)));
+        Ok(maps)
     }
 
     /// Calibrates `method` on the calibration frame (normalised as `calib_map`) with sampling
@@ -747,27 +798,7 @@ pub fn evaluate_few_shot(
     ks: &[usize],
 ) -> Result<Vec<EvalResult>> {
     let k_max = check_calib_frame_counts(ks)?;
-    if let Some(id) = &config.calib_frame {
-        return Err(EvalError::InvalidParameter(format!(
-            "a calibration frame ('{id}') and calibration frame counts cannot both be given: \
-             --calib-frames calibrates on the first K frames in sorted order"
-        )));
-    }
-    if !config.robust.is_empty() || config.realign.is_some() {
-        return Err(EvalError::InvalidParameter(
-            "few-shot evaluation (calibration frame counts) does not combine with robust or \
-             re-alignment variants: evaluate those one-shot, in a separate run"
-                .into(),
-        ));
-    }
-    if set.frames.len() <= k_max {
-        return Err(EvalError::TooFewFrames {
-            set: set.name.clone(),
-            frames: set.frames.len(),
-            needed: k_max + 1,
-            why: format!("{k_max} to calibrate on and at least 1 to score"),
-        });
-    }
+    check_few_shot(set, config, k_max)?;
     let prep = Prepared::new(set, preds, config)?;
     let eval_idx: Vec<usize> = (k_max..set.frames.len()).collect();
     let jobs = jobs(&prep, config);
@@ -790,6 +821,37 @@ pub fn evaluate_few_shot(
         }
     }
     Ok(out)
+}
+
+/// Checks that few-shot evaluation on the first `k_max` frames can run on `set` with `config`
+/// (the checks of [`evaluate_few_shot`]).
+///
+/// # Errors
+/// `config.calib_frame`, robust variants or re-alignment given ([`EvalError::InvalidParameter`]);
+/// no frame left to score after the first `k_max` ([`EvalError::TooFewFrames`]).
+pub fn check_few_shot(set: &LoadedSet, config: &EvalConfig, k_max: usize) -> Result<()> {
+    if let Some(id) = &config.calib_frame {
+        return Err(EvalError::InvalidParameter(format!(
+            "a calibration frame ('{id}') and calibration frame counts cannot both be given: \
+             --calib-frames calibrates on the first K frames in sorted order"
+        )));
+    }
+    if !config.robust.is_empty() || config.realign.is_some() {
+        return Err(EvalError::InvalidParameter(
+            "few-shot evaluation (calibration frame counts) does not combine with robust or \
+             re-alignment variants: evaluate those one-shot, in a separate run"
+                .into(),
+        ));
+    }
+    if set.frames.len() <= k_max {
+        return Err(EvalError::TooFewFrames {
+            set: set.name.clone(),
+            frames: set.frames.len(),
+            needed: k_max + 1,
+            why: format!("{k_max} to calibrate on and at least 1 to score"),
+        });
+    }
+    Ok(())
 }
 
 /// Checks the K values of `--calib-frames` (at least one, each ≥ 1, no repeats); returns the
@@ -921,10 +983,7 @@ pub fn evaluate_variant(
     }
     .check(prep.preds.maps[prep.calib].kind)
     .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;
-    let maps: Vec<NormalisedMap> = (0..set.frames.len())
-        .into_par_iter()
-        .map(|i| prep.normalised(i, norm))
-        .collect::<Result<_>>()?;
+    let maps = prep.normalised_all(norm)?;
     let regions: Vec<Option<Mask>> = calib
         .iter()
         .map(|&i| {

@@ -22,7 +22,7 @@
 
 use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
-use moma_core::normalise::{NormalisationConfig, NormalisedMap};
+use moma_core::normalise::NormalisationConfig;
 use moma_core::realign::RealignConfig;
 use moma_core::{Prediction, PredictionKind};
 use ndarray::{Array3, ArrayView3};
@@ -167,22 +167,24 @@ pub fn evaluate_realign(
     let eval_idx = prep.eval_indices();
     let ctx = |i: usize| format!("set '{}', frame '{}'", set.name, set.frames[i].id);
     // normalised maps (the evaluated frames with the brightness response) and scaled RGB
-    let maps: Vec<NormalisedMap> = (0..set.frames.len())
-        .into_par_iter()
-        .map(|i| {
-            if i == prep.calib || beta == 1.0 {
-                prep.normalised(i, norm)
-            } else {
-                let p = brightness_response(&prep.preds.maps[i], beta, realign.brightness_response);
-                moma_core::normalise::normalise(
-                    &p,
-                    norm,
-                    prep.workspace.as_deref().map(moma_core::Workspace::mask),
-                )
-                .map_err(|e| EvalError::core(ctx(i), e))
+    // (shared with the other rows of the set: one copy per normalisation and brightness)
+    let plain = prep.normalised_all(norm)?;
+    let maps = if beta == 1.0 {
+        plain
+    } else {
+        prep.cached_maps(norm, beta, |i| {
+            if i == prep.calib {
+                return Ok(plain[i].clone());
             }
-        })
-        .collect::<Result<_>>()?;
+            let p = brightness_response(&prep.preds.maps[i], beta, realign.brightness_response);
+            moma_core::normalise::normalise(
+                &p,
+                norm,
+                prep.workspace.as_deref().map(moma_core::Workspace::mask),
+            )
+            .map_err(|e| EvalError::core(ctx(i), e))
+        })?
+    };
     let rgbs: Vec<Option<Array3<u8>>> = (0..set.frames.len())
         .map(|i| -> Result<_> {
             if i == prep.calib {
@@ -193,6 +195,9 @@ pub fn evaluate_realign(
         .collect::<Result<_>>()?;
     let calib_rgb = rgb_view(prep, prep.calib)?;
     let calib_gt = &set.frames[prep.calib].gt;
+    // the seed-independent part of the anchor store, built once (each seed adds its one-shot)
+    let store = moma_core::realign::AnchorStore::new(calib_rgb, calib_gt)
+        .map_err(|e| EvalError::core(format!("{}: anchor store", ctx(prep.calib)), e))?;
     let seeds: Vec<u64> = (0..prep.config.seeds as u64)
         .map(|s| prep.config.seed_base + s)
         .collect();
@@ -206,7 +211,7 @@ pub fn evaluate_realign(
         .map(|&seed| -> Result<_> {
             let cal = prep
                 .calibrate(&method, norm, &maps[prep.calib], n, seed)?
-                .with_anchors_normalised(calib_rgb, calib_gt, &maps[prep.calib])
+                .with_anchor_store(&store, &maps[prep.calib])
                 .map_err(|e| EvalError::core(format!("{}: anchor store", ctx(prep.calib)), e))?;
             let config = RealignConfig {
                 seed: realign.config.seed.wrapping_add(seed),

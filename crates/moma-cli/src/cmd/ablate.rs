@@ -8,7 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use moma_core::PredictionKind;
 use moma_eval::ablate::{self, AblationOutput, SAMPLE_COUNTS};
-use moma_eval::protocol::PredictionSet;
+use moma_eval::protocol::{EvalNote, PredictionSet, check_calib_frame_counts, few_shot_variant};
 use moma_eval::simulate::{Simulator, simulate_frames};
 
 use super::common::create_dir;
@@ -24,6 +24,7 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 ///   moma ablate source --set data/gqcnn-primesense --source "sim depth:depth:preds/d" --source "sim inv:inverse-depth:preds/i"
 ///   moma ablate source --set data/gqcnn-primesense      # simulated depth vs simulated inverse depth
 ///   moma ablate transparent --set data/cleargrasp-transparent --simulate
+///   moma ablate norm --set data/gqcnn-primesense --simulate --calib-frames 3   # few-shot
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct AblateArgs {
@@ -85,6 +86,34 @@ pub struct AblateCommon {
     /// Output folder.
     #[arg(short, long, value_name = "DIR", default_value = "moma-ablate-out")]
     pub out: PathBuf,
+    /// Few-shot calibration: every ablation calibrates on the first K frames in sorted frame-id
+    /// order (one fit, --samples per frame) and scores the frames after K; the tables say so.
+    /// 1 (default): the one-shot protocol (--calib-frame, every other frame scored). A set with
+    /// fewer than K + 1 frames gets a row saying so.
+    #[arg(long, value_name = "K", default_value_t = 1)]
+    pub calib_frames: usize,
+}
+
+impl AblateCommon {
+    /// `rows` of one set, or the note of a set with too few frames for --calib-frames (pushed to
+    /// `notes`, no rows); any other error stops the ablation.
+    fn noted<T>(
+        &self,
+        notes: &mut Vec<EvalNote>,
+        rows: moma_eval::Result<Vec<T>>,
+    ) -> Result<Vec<T>> {
+        match rows {
+            Ok(r) => Ok(r),
+            Err(e) => match EvalNote::from_error(&e, &few_shot_variant(self.calib_frames)) {
+                Some(note) => {
+                    eprintln!("note: {e}; skipped");
+                    notes.push(note);
+                    Ok(Vec::new())
+                }
+                None => Err(e.into()),
+            },
+        }
+    }
 }
 
 fn report(out: &AblationOutput, table_md: &std::path::Path, t0: Instant) -> Result<()> {
@@ -119,6 +148,9 @@ pub fn run(args: &AblateArgs) -> Result<()> {
         | AblateCommand::Source { common, .. }
         | AblateCommand::Transparent { common } => common,
     };
+    check_calib_frame_counts(&[common.calib_frames]).context("--calib-frames")?;
+    let k = common.calib_frames;
+    let mut notes = Vec::new();
     create_dir(&common.out)?;
     let n = common.set.len();
     match &args.which {
@@ -128,9 +160,10 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
                 let config = common.eval.config(preds.kind()?)?;
-                rows.extend(ablate::samples(&set, &preds, &config, counts)?);
+                let r = ablate::samples(&set, &preds, &config, counts, k);
+                rows.extend(common.noted(&mut notes, r)?);
             }
-            let out = ablate::write_samples(&common.out, &rows)?;
+            let out = ablate::write_samples(&common.out, &rows, &notes)?;
             report(&out, &out.tables[0], t0)
         }
         AblateCommand::Norm { norms, .. } => {
@@ -139,9 +172,10 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
                 let config = common.eval.config(preds.kind()?)?;
-                rows.extend(ablate::norms(&set, &preds, &config, norms)?);
+                let r = ablate::norms(&set, &preds, &config, norms, k);
+                rows.extend(common.noted(&mut notes, r)?);
             }
-            let out = ablate::write_norms(&common.out, &rows)?;
+            let out = ablate::write_norms(&common.out, &rows, &notes)?;
             report(&out, &out.tables[0], t0)
         }
         AblateCommand::Source { source, .. } => {
@@ -175,9 +209,10 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 // RAW only for the metric (depth) sources: the default method list of a depth
                 // prediction, filtered per source by the library.
                 let config = common.eval.config(PredictionKind::Depth)?;
-                rows.extend(ablate::sources(&set, &sources, &config)?);
+                let r = ablate::sources(&set, &sources, &config, k);
+                rows.extend(common.noted(&mut notes, r)?);
             }
-            let out = ablate::write_sources(&common.out, &rows)?;
+            let out = ablate::write_sources(&common.out, &rows, &notes)?;
             report(&out, &out.tables[0], t0)
         }
         AblateCommand::Transparent { .. } => {
@@ -186,9 +221,10 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let set = load_set(dir)?;
                 let preds = common.pred.predictions(&set, i, n)?;
                 let config = common.eval.config(preds.kind()?)?;
-                results.push(ablate::transparent(&set, &preds, &config)?);
+                let r = ablate::transparent(&set, &preds, &config, k).map(|r| vec![r]);
+                results.extend(common.noted(&mut notes, r)?);
             }
-            let out = ablate::write_transparent(&common.out, &results)?;
+            let out = ablate::write_transparent(&common.out, &results, &notes)?;
             report(&out, &out.tables[0], t0)
         }
     }

@@ -1,7 +1,7 @@
 //! Helpers shared by the CLI tests: run the `moma` binary and check how it ended.
 #![allow(dead_code)] // each test file uses its own subset
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// Runs `moma ARGS`.
@@ -33,4 +33,102 @@ pub fn fails(args: &[&str]) -> String {
 /// A path as `&str` for an argument list.
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
+}
+
+/// Writes the bundled demo scene under `dir` (`moma demo --frames 3 --no-exports --seeds 1`:
+/// 3 frames, SIMULATED inverse-depth predictions with predictions.json) and checks that it did;
+/// returns (the moma set folder, the predictions folder).
+pub fn demo(dir: &Path) -> (PathBuf, PathBuf) {
+    let out = dir.join("demo");
+    ok(&[
+        "demo",
+        "-o",
+        s(&out),
+        "--frames",
+        "3",
+        "--no-exports",
+        "--seeds",
+        "1",
+    ]);
+    let (scene, pred) = (out.join("scene"), out.join("predictions"));
+    assert!(
+        scene.join("camera.json").is_file(),
+        "demo writes a moma set"
+    );
+    assert!(
+        pred.join("frame_00.npy").is_file(),
+        "demo writes predictions"
+    );
+    (scene, pred)
+}
+
+/// Frame `k`'s files of the demo scene: (prediction `.npy`, ground truth `depth.png`).
+pub fn demo_frame(scene: &Path, pred: &Path, k: usize) -> (PathBuf, PathBuf) {
+    (
+        pred.join(format!("frame_{k:02}.npy")),
+        scene.join(format!("frames/frame_{k:02}/depth.png")),
+    )
+}
+
+/// `eval --set SCENE --pred PRED -o OUT` followed by `extra`.
+pub fn eval_args<'a>(
+    scene: &'a Path,
+    pred: &'a Path,
+    out: &'a Path,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut args = vec!["eval", "--set", s(scene), "--pred", s(pred), "-o", s(out)];
+    args.extend_from_slice(extra);
+    args
+}
+
+/// Runs [`eval_args`] with `--json`, asserts success, returns the rows of the JSON contract.
+pub fn eval_rows(scene: &Path, pred: &Path, out: &Path, extra: &[&str]) -> Vec<serde_json::Value> {
+    let mut args = eval_args(scene, pred, out, extra);
+    args.push("--json");
+    let rows: serde_json::Value = serde_json::from_str(&ok(&args)).expect("--json prints JSON");
+    rows.as_array().expect("--json prints an array").clone()
+}
+
+/// The `(method, variant)` of each JSON row, in order.
+pub fn method_variants(rows: &[serde_json::Value]) -> Vec<(String, String)> {
+    rows.iter()
+        .map(|r| {
+            (
+                r["method"].as_str().expect("method").to_string(),
+                r["variant"].as_str().expect("variant").to_string(),
+            )
+        })
+        .collect()
+}
+
+/// `calibrate --pred P... --gt G...` followed by `extra` (one --pred and one --gt flag, each with
+/// every path).
+pub fn calibrate_args<'a>(preds: &[&'a Path], gts: &[&'a Path], extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["calibrate", "--pred"];
+    args.extend(preds.iter().map(|p| s(p)));
+    args.push("--gt");
+    args.extend(gts.iter().map(|g| s(g)));
+    args.extend_from_slice(extra);
+    args
+}
+
+/// `align --calib CALIB --pred PRED -o OUT` followed by `extra`.
+pub fn align_args<'a>(
+    calib: &'a Path,
+    pred: &'a Path,
+    out: &'a Path,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut args = vec![
+        "align",
+        "--calib",
+        s(calib),
+        "--pred",
+        s(pred),
+        "-o",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    args
 }
