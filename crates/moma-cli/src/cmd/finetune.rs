@@ -157,7 +157,10 @@ struct Summary {
     val_loss_before: Option<f64>,
     val_loss_after: Option<f64>,
     adapter: PathBuf,
-    /// Mean wall time of one optimiser step, seconds.
+    /// Median wall time of one optimiser step (its samples' loading and augmentation
+    /// included; validation and adapter saves excluded), seconds. The median keeps the first
+    /// step's one-off warm-up (allocations, page faults) out of the figure once 3 or more steps
+    /// ran.
     step_time_s: f64,
     loss: LossKind,
     train_frames: usize,
@@ -529,11 +532,12 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     // Every draw of a step comes from (seed, step) or (seed, epoch): a resumed run draws what
     // the uninterrupted run would have.
     let mut order: (Option<u64>, Vec<usize>) = (None, vec![]);
-    let t0 = Instant::now();
+    let mut step_times_s = Vec::with_capacity(steps);
     let end = args
         .stop_after
         .map_or(steps, |k| (start_step + k).min(steps));
     for step in start_step..end {
+        let t_step = Instant::now();
         let mut rng =
             ChaCha8Rng::seed_from_u64(derive_seed(args.seed, seed_tag::AUGMENT, step as u64));
         let mut micro = Vec::with_capacity(args.accumulate);
@@ -565,6 +569,7 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         let l = trainer
             .step(&refs)
             .with_context(|| format!("training step {}", step + 1))?;
+        step_times_s.push(t_step.elapsed().as_secs_f64());
         losses.push(l);
         bar.set_message(format!(
             "fine-tuning, loss {l:.4} (random-weight models: not meaningful)"
@@ -583,11 +588,7 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     }
     bar.finish_and_clear();
     let ran = losses.len();
-    let step_time_s = if ran > 0 {
-        t0.elapsed().as_secs_f64() / ran as f64
-    } else {
-        0.0
-    };
+    let step_time_s = median_s(&mut step_times_s);
     save(&trainer, &args.output)?;
     let val_after = if val.is_empty() {
         None
@@ -630,4 +631,30 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Median of wall times in seconds (0 for none).
+fn median_s(times_s: &mut [f64]) -> f64 {
+    if times_s.is_empty() {
+        return 0.0;
+    }
+    times_s.sort_by(f64::total_cmp);
+    let n = times_s.len();
+    if n % 2 == 1 {
+        times_s[n / 2]
+    } else {
+        0.5 * (times_s[n / 2 - 1] + times_s[n / 2])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::median_s;
+
+    #[test]
+    fn median_of_step_times() {
+        assert_eq!(median_s(&mut []), 0.0);
+        assert_eq!(median_s(&mut [9.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median_s(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+    }
 }
