@@ -36,10 +36,11 @@ sys.path.insert(0, OFFICIAL)
 import numpy as np  # noqa: E402
 import peft  # noqa: E402
 import torch  # noqa: E402
-from torch import nn  # noqa: E402
 from safetensors.torch import load_file  # noqa: E402
 
 from depth_anything_v2.dpt import DepthAnythingV2  # noqa: E402
+
+from torch_common import peak_rss_mib, split_qkv  # noqa: E402  (this folder)
 
 REF = sys.argv[3] if len(sys.argv) > 3 else os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "shared", "reference", "dav2")
@@ -48,24 +49,6 @@ RANK = 16
 LR = 5e-4  # the Rust default peak learning rate (the schedule does not change the step's cost)
 CLIP = 1.0  # the Rust default --clip-grad-norm
 MIN_DEPTH_M = 0.001  # the Rust default --min-depth; relative heads: no upper bound
-
-
-class SplitQKV(nn.Module):
-    """`attn.qkv` as three Linear layers q, k, v (row slices; the forward concatenates): the same
-    function, so that peft can adapt q and v (as in lora_parity.py)."""
-
-    def __init__(self, qkv: nn.Linear):
-        super().__init__()
-        d = qkv.in_features
-        self.q, self.k, self.v = (nn.Linear(d, d, bias=qkv.bias is not None) for _ in range(3))
-        with torch.no_grad():
-            for i, lin in enumerate((self.q, self.k, self.v)):
-                lin.weight.copy_(qkv.weight[i * d:(i + 1) * d])
-                if qkv.bias is not None:
-                    lin.bias.copy_(qkv.bias[i * d:(i + 1) * d])
-
-    def forward(self, x):
-        return torch.cat([self.q(x), self.k(x), self.v(x)], dim=-1)
 
 
 def ssi_loss(pred, gt_m, valid):
@@ -82,14 +65,6 @@ def ssi_loss(pred, gt_m, valid):
     s = cov / (var_p + 1e-12)
     fitted = pc * s + my
     return (fitted - y).abs().mean()
-
-
-def peak_rss_mib():
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def check_ssi():
@@ -111,8 +86,7 @@ def main():
     model = DepthAnythingV2(encoder="vits", features=64, out_channels=[48, 96, 192, 384])
     sd = {k: v.float() for k, v in load_file(os.path.join(REF, "vits-rel.safetensors")).items()}
     model.load_state_dict(sd, strict=True)
-    for blk in model.pretrained.blocks:
-        blk.attn.qkv = SplitQKV(blk.attn.qkv)
+    split_qkv(model.pretrained)
     cfg = peft.LoraConfig(r=RANK, lora_alpha=RANK, lora_dropout=0.0, bias="none",
                           target_modules=r"pretrained\.blocks\.\d+\.attn\.qkv\.(q|v)")
     model = peft.get_peft_model(model, cfg)

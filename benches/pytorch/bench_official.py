@@ -27,17 +27,11 @@ from safetensors.torch import load_file
 
 from depth_anything_v2.dpt import DepthAnythingV2
 
+from torch_common import peak_rss_mib  # this folder
+
 REF = sys.argv[3] if len(sys.argv) > 3 else os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "shared", "reference", "dav2")
 THREADS = 2
-
-
-def peak_rss_mib():
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def main():

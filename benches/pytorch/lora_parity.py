@@ -49,13 +49,14 @@ from functools import partial  # noqa: E402
 import numpy as np  # noqa: E402
 import peft  # noqa: E402
 import torch  # noqa: E402
-from torch import nn  # noqa: E402
 from safetensors.torch import load_file, save_file  # noqa: E402
 
 from depth_anything_v2.dpt import DepthAnythingV2, DPTHead  # noqa: E402
 from depth_anything_v2.dinov2 import DinoVisionTransformer  # noqa: E402
 from depth_anything_v2.dinov2_layers import MemEffAttention, NestedTensorBlock as Block  # noqa: E402
 from util.loss import SiLogLoss  # noqa: E402  (official metric_depth/util/loss.py)
+
+from torch_common import split_qkv  # noqa: E402  (this folder)
 
 NAME = "tiny-metric"
 # The crop of NAME.input.npy the training case uses (rows, cols; multiples of 14: a 9x12 patch
@@ -107,30 +108,6 @@ def tiny_model(cfg):
     return model
 
 
-class SplitQKV(nn.Module):
-    """`attn.qkv` as three Linear layers q, k, v (row slices of the fused weight); the forward
-    concatenates them: the same function as the fused Linear."""
-
-    def __init__(self, qkv: nn.Linear):
-        super().__init__()
-        d = qkv.in_features
-        assert qkv.out_features == 3 * d
-        self.q, self.k, self.v = (nn.Linear(d, d, bias=qkv.bias is not None) for _ in range(3))
-        with torch.no_grad():
-            for i, lin in enumerate((self.q, self.k, self.v)):
-                lin.weight.copy_(qkv.weight[i * d:(i + 1) * d])
-                if qkv.bias is not None:
-                    lin.bias.copy_(qkv.bias[i * d:(i + 1) * d])
-
-    def forward(self, x):
-        return torch.cat([self.q(x), self.k(x), self.v(x)], dim=-1)
-
-
-def split_qkv(model):
-    for blk in model.pretrained.blocks:
-        blk.attn.qkv = SplitQKV(blk.attn.qkv)
-
-
 def load_base(cfg, sd):
     model = tiny_model(cfg)
     res = model.load_state_dict(sd, strict=True)
@@ -165,7 +142,7 @@ def main():
     repro = {"max_abs_err": err, "rel": rel}
 
     # 2. Split qkv: the same function.
-    split_qkv(model)
+    split_qkv(model.pretrained)
     with torch.inference_mode():
         out2 = model(torch.from_numpy(x_full)[None]).squeeze(0).numpy()
     err2, _, rel2 = rel_to_range(out2, out)
@@ -204,7 +181,7 @@ def main():
     }
     for case, s in CASES.items():
         base = load_base(cfg, sd)
-        split_qkv(base)
+        split_qkv(base.pretrained)
         base = base.double()
         paths = "|".join(re.escape(TARGET_PATH[t]) for t in s["targets"])
         lcfg = peft.LoraConfig(r=s["rank"], lora_alpha=s["alpha"], lora_dropout=0.0, bias="none",

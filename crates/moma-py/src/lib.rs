@@ -629,7 +629,20 @@ fn calibrate(
         // A path (str or os.PathLike) is read as `moma calibrate --anchors-rgb` reads it.
         Some(a) => Some(match a.extract::<PathBuf>() {
             Ok(path) => AnchorRgb::File(path),
-            Err(_) => AnchorRgb::Array(arrays::rgb_ro(a, "anchors_rgb")?),
+            Err(_)
+                if a.cast::<numpy::PyUntypedArray>().is_ok()
+                    || a.is_instance_of::<PyList>()
+                    || a.is_instance_of::<PyTuple>() =>
+            {
+                AnchorRgb::Array(arrays::rgb_ro(a, "anchors_rgb")?)
+            }
+            Err(_) => {
+                return Err(value_err(format!(
+                    "anchors_rgb must be an image path (str or os.PathLike) or a uint8 \
+                     height × width × 3 array, got {}",
+                    a.get_type().name()?
+                )));
+            }
         }),
     };
 
