@@ -58,7 +58,10 @@ fn calibrate_and_eval_with_robust_fits() {
         let r = &summary["robust"];
         assert_eq!(r["kind"], kind);
         assert_eq!(r["threshold_m"], 0.02);
-        assert!(r.get("auto").is_none(), "a fixed threshold has no auto block: {summary}");
+        assert!(
+            r.get("auto").is_none(),
+            "a fixed threshold has no auto block: {summary}"
+        );
         let inliers = r["inliers"].as_u64().unwrap();
         assert!(inliers > 0 && inliers <= 100, "{summary}");
         // the file keeps the report and reads back (align accepts it)
@@ -76,7 +79,12 @@ fn calibrate_and_eval_with_robust_fits() {
             s(&tmp.path().join("aligned")),
         ]);
     }
-    let text = ok(&with(&["--robust", "ransac", "--robust-threshold-m", "0.01"]));
+    let text = ok(&with(&[
+        "--robust",
+        "ransac",
+        "--robust-threshold-m",
+        "0.01",
+    ]));
     assert!(
         text.contains("inliers") && text.contains("threshold 10.0 mm"),
         "{text}"
@@ -91,8 +99,7 @@ fn calibrate_and_eval_with_robust_fits() {
             if explicit {
                 extra.extend(["--robust-threshold-m", "auto"]);
             }
-            let summary: serde_json::Value =
-                serde_json::from_str(&ok(&with(&extra))).unwrap();
+            let summary: serde_json::Value = serde_json::from_str(&ok(&with(&extra))).unwrap();
             let r = &summary["robust"];
             let auto = &r["auto"];
             let scale = auto["scale_m"].as_f64().unwrap();

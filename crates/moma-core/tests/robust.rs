@@ -242,7 +242,8 @@ fn inliers_are_counted_on_a_known_scene() {
                 // exact data: the estimated scale is 0, floored
                 let a = rep.auto.unwrap();
                 assert_eq!(a.scale_m, SCALE_FLOOR_M, "{name} {kind}");
-                let k = [HUBER_K, TUKEY_K, RANSAC_K][KINDS.iter().position(|x| *x == kind).unwrap()];
+                let k =
+                    [HUBER_K, TUKEY_K, RANSAC_K][KINDS.iter().position(|x| *x == kind).unwrap()];
                 assert_eq!(a.factor, k);
                 assert!((rep.threshold_m - k * SCALE_FLOOR_M).abs() < 1e-15);
                 assert!((a.inlier_bound_m - OUTLIER_K * SCALE_FLOOR_M).abs() < 1e-15);
@@ -620,7 +621,11 @@ fn robust_scale_has_known_answers() {
         .map(|z| {
             if rng.random_range(0.0..1.0) < 0.2 {
                 let m: f64 = rng.random_range(0.1..0.5);
-                if rng.random_range(0.0..1.0) < 0.5 { m } else { -m }
+                if rng.random_range(0.0..1.0) < 0.5 {
+                    m
+                } else {
+                    -m
+                }
             } else {
                 sigma * z
             }
@@ -676,7 +681,11 @@ fn auto_threshold_on_a_noisy_line_with_outliers() {
         let mut b = s;
         if rng.random_range(0.0..1.0) < 0.2 {
             let m: f64 = rng.random_range(0.1..0.5);
-            b.depth_m += if rng.random_range(0.0..1.0) < 0.5 { m } else { -m };
+            b.depth_m += if rng.random_range(0.0..1.0) < 0.5 {
+                m
+            } else {
+                -m
+            };
         }
         bad.push(b);
     }
@@ -697,25 +706,38 @@ fn auto_threshold_on_a_noisy_line_with_outliers() {
         let ss: f64 = clean
             .samples
             .iter()
-            .map(|s| (m.predict_at(s.u, s.v, s.pred) - reference.predict_at(s.u, s.v, s.pred)).powi(2))
+            .map(|s| {
+                (m.predict_at(s.u, s.v, s.pred) - reference.predict_at(s.u, s.v, s.pred)).powi(2)
+            })
             .sum();
         (ss / n as f64).sqrt()
     };
     let (plain, _) = Method::Gssa.fit(&bad).unwrap();
-    assert!(rms_to_reference(&plain) > 0.01, "{}", rms_to_reference(&plain));
+    assert!(
+        rms_to_reference(&plain) > 0.01,
+        "{}",
+        rms_to_reference(&plain)
+    );
     for kind in KINDS {
         let (model, report) = Robust::new(kind)
             .fit(&Method::Gssa, &bad, AlignSpace::Depth)
             .unwrap();
         let rep = report.robust.unwrap();
         let a = rep.auto.unwrap();
-        assert!((a.scale_m / sigma - 1.0).abs() < 0.1, "{kind}: σ̂ = {}", a.scale_m);
+        assert!(
+            (a.scale_m / sigma - 1.0).abs() < 0.1,
+            "{kind}: σ̂ = {}",
+            a.scale_m
+        );
         assert!((rep.threshold_m - a.factor * a.scale_m).abs() < 1e-15);
         let d = rms_to_reference(&model);
         assert!(d < 0.0005, "{kind}: {:.3} mm from the clean fit", d * 1e3);
         // the inliers are the clean samples within 4.685 σ̂: nearly all good ones, no gross one
-        assert!(rep.inliers > (0.75 * n as f64) as usize && rep.inliers < (0.85 * n as f64) as usize,
-            "{kind}: {} inliers", rep.inliers);
+        assert!(
+            rep.inliers > (0.75 * n as f64) as usize && rep.inliers < (0.85 * n as f64) as usize,
+            "{kind}: {} inliers",
+            rep.inliers
+        );
     }
 }
 

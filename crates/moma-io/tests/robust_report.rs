@@ -76,7 +76,9 @@ fn robust_report_round_trips_and_is_checked() {
 
     // a report without the `auto` block (a fixed threshold, or a version-3 file written before
     // the block existed) reads back; a bad scale is refused naming the field
-    let text = std::fs::read_to_string(&path).unwrap().replace("\"inliers\": 1000", &needle);
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("\"inliers\": 1000", &needle);
     let key = text.find("\"auto\"").unwrap();
     let start = text[..key].rfind(',').unwrap();
     let end = key + text[key..].find('}').unwrap() + 1;
@@ -85,7 +87,13 @@ fn robust_report_round_trips_and_is_checked() {
     assert!(!without.contains("scale_m"), "{without}");
     std::fs::write(&path, &without).unwrap();
     assert_eq!(
-        read_calibration(&path).unwrap().calibration.report.robust.unwrap().auto,
+        read_calibration(&path)
+            .unwrap()
+            .calibration
+            .report
+            .robust
+            .unwrap()
+            .auto,
         None
     );
     let scale = format!("\"scale_m\": {}", auto.scale_m);

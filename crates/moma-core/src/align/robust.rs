@@ -543,7 +543,9 @@ impl Robust {
         let mut weights = vec![0.0; ctx.samples.len()];
         let mut positive = 0;
         for (w, s) in weights.iter_mut().zip(ctx.samples) {
-            let r = ctx.linearised_residual_m(s, model.predict(s.u, s.v, s.pred)).abs();
+            let r = ctx
+                .linearised_residual_m(s, model.predict(s.u, s.v, s.pred))
+                .abs();
             *w = if is_tukey {
                 if r < c {
                     (1.0 - (r / c).powi(2)).powi(2)
