@@ -110,7 +110,7 @@ fn calibrate_and_eval_with_robust_fits() {
                 _ => 2.5,
             };
             assert_eq!(factor, want, "{summary}");
-            assert!(scale >= 1e-4 && scale < 0.1, "{summary}");
+            assert!((1e-4..0.1).contains(&scale), "{summary}");
             let t = r["threshold_m"].as_f64().unwrap();
             assert!((t - factor * scale).abs() < 1e-12, "{summary}");
             assert!(
