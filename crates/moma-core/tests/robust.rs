@@ -103,9 +103,9 @@ fn method(name: &str) -> Method {
 
 /// The check: with 20 % gross outliers the robust fit stays within 1 mm (held-out MAE)
 /// of the least-squares fit on the outlier-free samples, for every method × kind, and the plain
-/// fit on the corrupted samples is clearly worse (> 3 mm), so the check can fail. Local variants:
-/// a bump of 1.2 % in the scale field (≈ 1 cm, the order of the threshold); see the report for
-/// larger local departures.
+/// fit on the corrupted samples is clearly worse (> 3 mm), so the check can fail; with the default
+/// `auto` threshold. Local variants: a bump of 1.2 % in the scale field (≈ 1 cm); see the report
+/// for larger local departures.
 #[test]
 fn twenty_percent_outliers_stay_within_1mm_of_the_clean_fit() {
     let mut failures = Vec::new();
