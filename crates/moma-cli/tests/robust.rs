@@ -50,6 +50,10 @@ fn calibrate_and_eval_with_robust_fits() {
         let r = &summary["robust"];
         assert_eq!(r["kind"], kind);
         assert_eq!(r["threshold_m"], 0.02);
+        assert!(
+            r.get("auto").is_none(),
+            "a fixed threshold has no auto block: {summary}"
+        );
         let inliers = r["inliers"].as_u64().unwrap();
         assert!(inliers > 0 && inliers <= 100, "{summary}");
         // the file keeps the report and reads back (align accepts it)
@@ -62,10 +66,52 @@ fn calibrate_and_eval_with_robust_fits() {
             &["--pred-kind", "inverse-depth"],
         ));
     }
-    let text = ok(&with(&["--robust", "ransac"]));
+    let text = ok(&with(&[
+        "--robust",
+        "ransac",
+        "--robust-threshold-m",
+        "0.01",
+    ]));
     assert!(
         text.contains("inliers") && text.contains("threshold 10.0 mm"),
         "{text}"
+    );
+
+    // the default threshold is `auto`: the summary and the file record the scale it estimated
+    let text = ok(&with(&["--robust", "ransac"]));
+    assert!(text.contains("threshold auto: 2.5 × scale"), "{text}");
+    for kind in ["huber", "tukey", "ransac"] {
+        for explicit in [false, true] {
+            let mut extra = vec!["--robust", kind, "--json"];
+            if explicit {
+                extra.extend(["--robust-threshold-m", "auto"]);
+            }
+            let summary: serde_json::Value = serde_json::from_str(&ok(&with(&extra))).unwrap();
+            let r = &summary["robust"];
+            let auto = &r["auto"];
+            let scale = auto["scale_m"].as_f64().unwrap();
+            let factor = auto["factor"].as_f64().unwrap();
+            let want = match kind {
+                "huber" => 1.345,
+                "tukey" => 4.685,
+                _ => 2.5,
+            };
+            assert_eq!(factor, want, "{summary}");
+            assert!((1e-4..0.1).contains(&scale), "{summary}");
+            let t = r["threshold_m"].as_f64().unwrap();
+            assert!((t - factor * scale).abs() < 1e-12, "{summary}");
+            assert!(
+                (auto["inlier_bound_m"].as_f64().unwrap() - 4.685 * scale).abs() < 1e-12,
+                "{summary}"
+            );
+            let file: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+            assert_eq!(file["calibration"]["report"]["robust"]["auto"], *auto);
+        }
+    }
+    assert!(
+        fails(&with(&["--robust", "huber", "--robust-threshold-m", "abc"]))
+            .contains("neither 'auto' nor a number")
     );
 
     // bad input: unknown kind, bad threshold, unsupported method, threshold without --robust

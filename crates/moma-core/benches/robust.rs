@@ -1,10 +1,11 @@
 //! Criterion benches of the robust fits (issue 12 item 3) at n = 100 samples, 640×480, 20 %
-//! gross outliers, on ONE thread, next to the plain least-squares fit of the same method.
+//! gross outliers, on ONE thread, next to the plain least-squares fit of the same method; each
+//! kind with the default `auto` threshold and with the former fixed 0.01 m (`<kind>-fixed`).
 //! Run: `cargo bench -p moma-core --bench robust -- --warm-up-time 1 --measurement-time 3`.
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use moma_core::ImageSize;
-use moma_core::align::robust::{Robust, RobustKind};
+use moma_core::align::robust::{DEFAULT_THRESHOLD_M, Robust, RobustKind};
 use moma_core::align::{Method, Sample, SampleSet};
 use moma_core::normalise::AlignSpace;
 use rand::{Rng, SeedableRng};
@@ -53,9 +54,20 @@ fn bench_robust(c: &mut Criterion) {
         g.bench_with_input(BenchmarkId::new(name, "plain"), &set, |b, s| {
             p1.install(|| b.iter(|| method.fit(black_box(s)).expect("fit")))
         });
-        for kind in [RobustKind::Huber, RobustKind::Tukey, RobustKind::Ransac] {
-            let r = Robust::new(kind);
-            g.bench_with_input(BenchmarkId::new(name, kind.name()), &set, |b, s| {
+        // the default `auto` threshold, and the former fixed 0.01 m for comparison
+        let runs = [RobustKind::Huber, RobustKind::Tukey, RobustKind::Ransac]
+            .into_iter()
+            .flat_map(|k| {
+                [
+                    (k.name().to_string(), Robust::new(k)),
+                    (
+                        format!("{}-fixed", k.name()),
+                        Robust::new(k).with_threshold_m(DEFAULT_THRESHOLD_M),
+                    ),
+                ]
+            });
+        for (label, r) in runs {
+            g.bench_with_input(BenchmarkId::new(name, label), &set, |b, s| {
                 p1.install(|| {
                     b.iter(|| {
                         r.fit(&method, black_box(s), AlignSpace::Depth)

@@ -20,7 +20,8 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// migrating it in memory (never silently: a version it cannot represent is an error that says
 /// why). Version history: 1 — normalisation `{method, inverse_space}`, workspace as a file path;
 /// 2 — normalisation `{method, space}`, the workspace mask embedded (run lengths + SHA-256),
-/// unknown fields refused; 3 — optional additions: the fit report's `robust` block, the
+/// unknown fields refused; 3 — optional additions: the fit report's `robust` block (with its
+/// optional `auto` scale record, added within version 3: files without it read unchanged), the
 /// `anchors` store for per-frame re-alignment, samples from several frames (few-shot), the
 /// local variants' cross-validation settings (a version-2 file reads unchanged).
 pub const CALIBRATION_VERSION: u32 = 3;

@@ -52,6 +52,9 @@ fn robust_report_round_trips_and_is_checked() {
         .filter(|s| (s.u as usize + s.v as usize).is_multiple_of(5))
         .count();
     assert_eq!(rep.inliers, cal.samples.len() - outliers);
+    // the default threshold is `auto`: the report records the scale (exact data: the floor)
+    let auto = rep.auto.unwrap();
+    assert_eq!(auto.scale_m, moma_core::align::robust::SCALE_FLOOR_M);
     let file = CalibrationFile::new(cal, None, CreationInfo::now());
     write_calibration(&path, &file).unwrap();
     let back = read_calibration(&path).unwrap();
@@ -70,6 +73,40 @@ fn robust_report_round_trips_and_is_checked() {
         source = e.source();
     }
     assert!(chain.contains("1000 inliers"), "{chain}");
+
+    // a report without the `auto` block (a fixed threshold, or a version-3 file written before
+    // the block existed) reads back; a bad scale is refused naming the field
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("\"inliers\": 1000", &needle);
+    let key = text.find("\"auto\"").unwrap();
+    let start = text[..key].rfind(',').unwrap();
+    let end = key + text[key..].find('}').unwrap() + 1;
+    let mut without = text.clone();
+    without.replace_range(start..end, "");
+    assert!(!without.contains("scale_m"), "{without}");
+    std::fs::write(&path, &without).unwrap();
+    assert_eq!(
+        read_calibration(&path)
+            .unwrap()
+            .calibration
+            .report
+            .robust
+            .unwrap()
+            .auto,
+        None
+    );
+    let scale = format!("\"scale_m\": {}", auto.scale_m);
+    assert!(text.contains(&scale), "{text}");
+    std::fs::write(&path, text.replace(&scale, "\"scale_m\": -1.0")).unwrap();
+    let err = read_calibration(&path).unwrap_err();
+    let mut chain = err.to_string();
+    let mut source = std::error::Error::source(&err);
+    while let Some(e) = source {
+        chain.push_str(&format!(": {e}"));
+        source = e.source();
+    }
+    assert!(chain.contains("auto.scale_m"), "{chain}");
 
     // a plain fit writes no robust block and reads back
     let plain = CalibrationFile::new(calibration(None), None, CreationInfo::now());

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use moma_core::align::robust::{DEFAULT_THRESHOLD_M, Robust, RobustKind};
+use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::align::{Method, lwlr};
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
@@ -99,10 +99,39 @@ pub struct RobustArgs {
     /// squares.
     #[arg(long, value_name = "KIND")]
     pub robust: Option<RobustKind>,
-    /// Residual scale of the robust fit in metres, measured in depth whatever the alignment
-    /// space: Huber's corner, Tukey's cut-off, RANSAC's inlier bound [default: 0.01].
-    #[arg(long, value_name = "M", requires = "robust")]
-    pub robust_threshold_m: Option<f64>,
+    /// Residual scale of the robust fit: `auto` (the default: from the data, σ̂ a robust
+    /// standard deviation of the residuals; Huber 1.345·σ̂, Tukey 4.685·σ̂, RANSAC 2.5·σ̂) or a
+    /// fixed number of metres, measured in depth whatever the alignment space: Huber's corner,
+    /// Tukey's cut-off, RANSAC's inlier bound.
+    #[arg(long, value_name = "M|auto", requires = "robust")]
+    pub robust_threshold_m: Option<ThresholdArg>,
+}
+
+/// `--robust-threshold-m`: `auto` (`None`) or a fixed number of metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ThresholdArg(pub Option<f64>);
+
+impl std::str::FromStr for ThresholdArg {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        if s.trim().eq_ignore_ascii_case("auto") {
+            return Ok(Self(None));
+        }
+        s.trim()
+            .parse::<f64>()
+            .map(|m| Self(Some(m)))
+            .map_err(|_| format!("'{s}' is neither 'auto' nor a number of metres"))
+    }
+}
+
+impl ThresholdArg {
+    /// `kind` with this threshold (`auto` when none was given).
+    pub fn robust(arg: Option<Self>, kind: RobustKind) -> Robust {
+        match arg.and_then(|t| t.0) {
+            Some(m) => Robust::new(kind).with_threshold_m(m),
+            None => Robust::new(kind),
+        }
+    }
 }
 
 impl RobustArgs {
@@ -114,9 +143,7 @@ impl RobustArgs {
         let Some(kind) = self.robust else {
             return Ok(None);
         };
-        let r = Robust::new(kind)
-            .with_threshold_m(self.robust_threshold_m.unwrap_or(DEFAULT_THRESHOLD_M))
-            .with_seed(seed);
+        let r = ThresholdArg::robust(self.robust_threshold_m, kind).with_seed(seed);
         r.validate().context("--robust-threshold-m")?;
         Ok(Some(r))
     }
@@ -388,11 +415,20 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             report.fit_time_s * 1e6
         );
         if let Some(r) = &report.robust {
+            let threshold = match &r.auto {
+                None => format!("threshold {:.1} mm", r.threshold_m * 1e3),
+                Some(a) => format!(
+                    "threshold auto: {} × scale {:.2} mm = {:.1} mm, inlier bound {:.1} mm",
+                    a.factor,
+                    a.scale_m * 1e3,
+                    r.threshold_m * 1e3,
+                    a.inlier_bound_m * 1e3
+                ),
+            };
             println!(
-                "robust {} (threshold {:.1} mm): {} of {} samples are inliers (RMS {:.2} mm), \
+                "robust {} ({threshold}): {} of {} samples are inliers (RMS {:.2} mm), \
                  {} iterations",
                 r.kind,
-                r.threshold_m * 1e3,
                 r.inliers,
                 report.n_used,
                 r.inlier_rms_residual_m * 1e3,

@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_core::PredictionKind;
 use moma_core::align::Method;
-use moma_core::align::robust::{DEFAULT_THRESHOLD_M, Robust, RobustKind};
+use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::sampling::SamplingStrategy;
 use moma_eval::data::LoadedSet;
@@ -170,9 +170,10 @@ pub struct EvalOptions {
     /// ssra-local only; RANSAC is seeded with each sampling seed).
     #[arg(long, value_delimiter = ',', value_name = "KINDS")]
     pub robust: Vec<RobustKind>,
-    /// Residual scale of the robust fits in metres (depth, whatever the space) [default: 0.01].
-    #[arg(long, value_name = "M", requires = "robust")]
-    pub robust_threshold_m: Option<f64>,
+    /// Residual scale of the robust fits: `auto` (the default: from the data; Huber 1.345·σ̂,
+    /// Tukey 4.685·σ̂, RANSAC 2.5·σ̂) or a fixed number of metres (depth, whatever the space).
+    #[arg(long, value_name = "M|auto", requires = "robust")]
+    pub robust_threshold_m: Option<super::calibrate::ThresholdArg>,
     /// SIMULATED sensor errors: replace this fraction (0–1) of the calibration frame's valid
     /// ground-truth pixels by wrong depths, truth ± U(0.1, 0.5) m, seeded per sampling seed.
     /// Every variant calibrates on the same corrupted frame; scoring uses the true ground truth.
@@ -214,11 +215,10 @@ impl EvalOptions {
             brightness: self.brightness.clone(),
             ..Default::default()
         });
-        let threshold_m = self.robust_threshold_m.unwrap_or(DEFAULT_THRESHOLD_M);
         let robust: Vec<Robust> = self
             .robust
             .iter()
-            .map(|&k| Robust::new(k).with_threshold_m(threshold_m))
+            .map(|&k| super::calibrate::ThresholdArg::robust(self.robust_threshold_m, k))
             .collect();
         for r in &robust {
             r.validate().context("--robust-threshold-m")?;

@@ -5,11 +5,46 @@
 //! Residuals are always measured in **metres**, whatever the alignment space: in inverse space the
 //! fit's target is 1/z, so the fitted value is turned back into depth (its reciprocal) before it
 //! is compared with the ground-truth depth. A fitted disparity ≤ 0 (no depth) counts as an
-//! infinite residual. `threshold_m` (`c` below) is the residual scale:
+//! infinite residual.
 //!
-//! - **Huber** (IRLS): weight `1` for `|r| ≤ c`, `c/|r|` beyond. Starts from the RANSAC fit
-//!   below (seeded; least squares where RANSAC finds none): from a least-squares start, IRLS with
-//!   a small `c` and 20 % gross outliers can stop far from the optimum within `max_iterations`.
+//! ## The threshold: `auto` (default) or fixed
+//!
+//! `threshold_m` (`c` below) is the residual scale. Given (`Some(m)`), it is a fixed number of
+//! metres: Huber's corner, Tukey's cut-off and RANSAC's inlier bound alike. By default (`None`,
+//! `auto`) it comes from the data, the standard practice of robust regression: `c = k·σ̂` with
+//! σ̂ a robust standard deviation of the residuals and k = [`HUBER_K`] (1.345) for Huber,
+//! [`TUKEY_K`] (4.685) for Tukey (both 95 % efficient at the normal), [`RANSAC_K`] (2.5) for
+//! RANSAC. σ̂ is [`robust_scale_m`]: `σ₀ = 1.4826·(1 + 5/(n − p))·median|r|` (the
+//! least-median-of-squares scale of Rousseeuw & Leroy, p the minimal sample size), then the
+//! RMS of the residuals within `2.5·σ₀` over their count minus p. The median alone would
+//! overestimate σ by ≈ 30 % with 20 % gross outliers (it is then the 62.5 % quantile of the good
+//! residuals); the reweighted estimate does not. σ̂ is floored at [`SCALE_FLOOR_M`] (0.1 mm) so
+//! that exact data (σ̂ = 0) keep a working threshold.
+//!
+//! Under `auto` every kind starts from a least-median-of-squares fit: seeded minimal samples
+//! (GSSA 2, SSRA 4; `log(1 − p)/log(1 − 0.5ᵐ)` of them, p = 0.999: enough for half the samples
+//! being outliers), the one with the smallest median absolute residual; then least squares on
+//! its samples within `2.5·σ̂` (σ̂ re-estimated on that fit), until they stop changing.
+//! - **Huber / Tukey**: IRLS from that fit with σ̂ kept fixed, as MM-estimation does (a
+//!   high-breakdown start and scale, then an efficient M-step; R's `lmrob`). statsmodels' `RLM`
+//!   and MATLAB's `robustfit` instead start from least squares and re-estimate the MAD scale at
+//!   every step: from least squares, 20 % gross outliers can keep SSRA's IRLS away from the
+//!   optimum (measured), and re-estimating σ̂ per step (tried) moved single evaluation rows by
+//!   up to 0.6 mm either way, passed the same number of checks, and let σ̂ drift upwards on
+//!   scenes the model does not fit exactly. Tukey runs the Huber phase first
+//!   (c = 1.345·σ̂), then the biweight (c = 4.685·σ̂).
+//! - **RANSAC**: the standard consensus below with the threshold `2.5·σ̂` of the start.
+//!
+//! The inlier bound under `auto` (inliers reported, the local variants' inlier sets) is
+//! [`OUTLIER_K`]`·σ̂` (4.685·σ̂, Tukey's cut-off) for every kind. The report's
+//! [`RobustReport::auto`] records σ̂, k and that bound.
+//!
+//! ## The fits
+//!
+//! - **Huber** (IRLS): weight `1` for `|r| ≤ c`, `c/|r|` beyond. With a fixed threshold, starts
+//!   from the RANSAC fit below (seeded; least squares where RANSAC finds none): from a
+//!   least-squares start, IRLS with a small `c` and 20 % gross outliers can stop far from the
+//!   optimum within `max_iterations`.
 //! - **Tukey** biweight (IRLS): weight `(1 − (r/c)²)²` for `|r| < c`, `0` beyond (a sample more
 //!   than `c` from the fit is ignored). Not convex: starts from the Huber fit.
 //!
@@ -20,8 +55,8 @@
 //!   residual converted to metres to first order at the fitted value (`Δ(1/z)/t_fit²`), so that
 //!   each sample's pull on the fit stays bounded (weights from the exact metre residual let a
 //!   wrong *near* ground truth, whose 1/z is huge, pull the fit away: seen to diverge on
-//!   gqcnn-primesense with 20 % outliers). Inliers, RANSAC's consensus and the report use the
-//!   exact metre residual.
+//!   gqcnn-primesense with 20 % outliers). Inliers, RANSAC's consensus, the scale and the report
+//!   use the exact metre residual.
 //! - **RANSAC**: minimal samples of the global model (GSSA 2, SSRA 4 samples), drawn with
 //!   `ChaCha8Rng::seed_from_u64(seed)`; consensus = samples with `|r| < c`; the hypothesis with the
 //!   most inliers wins (ties: the lower sum of squared inlier residuals); then least squares on
@@ -30,14 +65,14 @@
 //!   best inlier fraction so far, m the minimal sample size) is reached.
 //!
 //! Local variants (`ssra-local`, `gssa-local`): the robust fit of the global part (as above) gives
-//! the inliers (`|r| < c`); the whole local model (global least squares, cross-validated
+//! the inliers (`|r|` below the inlier bound: `c` for a fixed threshold, 4.685·σ̂ under `auto`); the whole local model (global least squares, cross-validated
 //! correction, fallback guard: [`super::local::fit`]) is fitted on the inliers only; its residuals
 //! on all samples give the next inlier set, and this repeats until the set stops changing (at most
 //! [`LOCAL_ROUNDS`] rounds). Outliers therefore never reach the local correction, which would
 //! otherwise bend towards them.
 //!
-//! Inliers reported: samples with `|r| < c` under the final model, for every kind (for Huber: the
-//! samples in its quadratic zone). LWLR, `auto` and `raw` are refused with a clear error: LWLR has
+//! Inliers reported: samples with `|r|` below the inlier bound under the final model, for every
+//! kind (with a fixed threshold, for Huber: the samples in its quadratic zone). LWLR, `auto` and `raw` are refused with a clear error: LWLR has
 //! no global model to reweight (its per-pixel fits would need their own robust weights) and `auto`
 //! chooses by cross-validation on all samples.
 
@@ -53,9 +88,27 @@ use super::{AlignmentModel, FitReport, Method, Sample, SampleSet, gssa, ssra};
 use crate::error::{CoreError, Result};
 use crate::normalise::AlignSpace;
 
-/// Default residual scale, metres (1 cm: well above a good depth sensor's noise at grasping
-/// range, well below the errors at edges and on glass).
+/// The former fixed default residual scale, metres (1 cm). The default is now [`Robust::new`]'s
+/// `auto` rule (a scale estimated from the data); this value is kept for comparisons.
 pub const DEFAULT_THRESHOLD_M: f64 = 0.01;
+/// Huber's tuning constant in robust standard deviations (95 % efficiency at the normal).
+pub const HUBER_K: f64 = 1.345;
+/// Tukey biweight's tuning constant in robust standard deviations (95 % efficiency at the
+/// normal).
+pub const TUKEY_K: f64 = 4.685;
+/// RANSAC's inlier bound under `auto`, in robust standard deviations (Rousseeuw & Leroy's
+/// reweighting rule; also the cut-off of [`robust_scale_m`]'s reweighted estimate).
+pub const RANSAC_K: f64 = 2.5;
+/// The inlier bound under `auto` for every kind (the inliers reported, the local variants'
+/// inlier sets), in robust standard deviations: Tukey's cut-off, beyond which the biweight gives
+/// a sample no weight. Wider than [`RANSAC_K`]: real scenes' good residuals are heavier-tailed
+/// than the normal (measured on m2t2-table), and the local model should lose none of them.
+pub const OUTLIER_K: f64 = TUKEY_K;
+/// 1/Φ⁻¹(3/4): turns a median absolute residual into a standard deviation at the normal.
+pub const MAD_TO_SIGMA: f64 = 1.4826;
+/// Floor of the estimated scale, metres (0.1 mm: far below any depth sensor's noise, so real data
+/// never reach it; it keeps exact data, whose scale estimate is 0, working).
+pub const SCALE_FLOOR_M: f64 = 1e-4;
 /// Default reweightings of Huber/Tukey IRLS (per phase).
 pub const DEFAULT_IRLS_ITERATIONS: usize = 50;
 /// Default most RANSAC hypotheses.
@@ -114,8 +167,9 @@ impl std::str::FromStr for RobustKind {
 pub struct Robust {
     /// Huber, Tukey or RANSAC.
     pub kind: RobustKind,
-    /// Residual scale c, metres (Huber's corner, Tukey's cut-off, RANSAC's inlier bound); > 0.
-    pub threshold_m: f64,
+    /// Fixed residual scale c, metres (Huber's corner, Tukey's cut-off, RANSAC's inlier bound),
+    /// > 0; `None` (the default, `auto`): c from a scale estimated on the data (module docs).
+    pub threshold_m: Option<f64>,
     /// Most IRLS reweightings per phase, or most RANSAC hypotheses; ≥ 1.
     pub max_iterations: usize,
     /// Seed of RANSAC's minimal samples (also the start of Huber and Tukey IRLS).
@@ -123,12 +177,12 @@ pub struct Robust {
 }
 
 impl Robust {
-    /// `kind` with the defaults: [`DEFAULT_THRESHOLD_M`], [`DEFAULT_IRLS_ITERATIONS`] or
-    /// [`DEFAULT_RANSAC_ITERATIONS`], seed 0.
+    /// `kind` with the defaults: threshold `auto` (from the data), [`DEFAULT_IRLS_ITERATIONS`]
+    /// or [`DEFAULT_RANSAC_ITERATIONS`], seed 0.
     pub const fn new(kind: RobustKind) -> Self {
         Self {
             kind,
-            threshold_m: DEFAULT_THRESHOLD_M,
+            threshold_m: None,
             max_iterations: match kind {
                 RobustKind::Ransac => DEFAULT_RANSAC_ITERATIONS,
                 RobustKind::Huber | RobustKind::Tukey => DEFAULT_IRLS_ITERATIONS,
@@ -137,10 +191,18 @@ impl Robust {
         }
     }
 
-    /// The same settings with residual scale `threshold_m` (metres).
+    /// The same settings with the fixed residual scale `threshold_m` (metres).
     pub const fn with_threshold_m(self, threshold_m: f64) -> Self {
         Self {
-            threshold_m,
+            threshold_m: Some(threshold_m),
+            ..self
+        }
+    }
+
+    /// The same settings with the threshold estimated from the data (`auto`, the default).
+    pub const fn with_auto_threshold(self) -> Self {
+        Self {
+            threshold_m: None,
             ..self
         }
     }
@@ -150,15 +212,16 @@ impl Robust {
         Self { seed, ..self }
     }
 
-    /// Checks the settings: `threshold_m` finite and > 0, `max_iterations` ≥ 1.
+    /// Checks the settings: `threshold_m` auto or finite and > 0, `max_iterations` ≥ 1.
     ///
     /// # Errors
     /// [`CoreError::InvalidParameter`] naming the bad value.
     pub fn validate(&self) -> Result<()> {
-        if !(self.threshold_m.is_finite() && self.threshold_m > 0.0) {
+        if let Some(t) = self.threshold_m
+            && !(t.is_finite() && t > 0.0)
+        {
             return Err(CoreError::InvalidParameter(format!(
-                "robust threshold must be a finite number of metres > 0, got {}",
-                self.threshold_m
+                "robust threshold must be 'auto' or a finite number of metres > 0, got {t}"
             )));
         }
         if self.max_iterations == 0 {
@@ -227,7 +290,6 @@ impl Robust {
             samples: &targets.samples,
             set: targets,
             space,
-            c: self.threshold_m,
         };
         if self.kind == RobustKind::Ransac && ctx.samples.len() < base.minimal() {
             return Err(CoreError::TooFewSamples {
@@ -237,21 +299,68 @@ impl Robust {
             });
         }
         targets.require(method.name(), method.min_samples())?;
-        let (global, mut iterations) = match self.kind {
-            RobustKind::Huber => self.irls(&ctx, base, false)?,
-            RobustKind::Tukey => self.irls(&ctx, base, true)?,
-            RobustKind::Ransac => self.ransac(&ctx, base)?,
+        // (global fit, iterations, the kind's constant c, inlier bound, auto block)
+        let (global, mut iterations, c, bound, auto) = match self.threshold_m {
+            Some(c) => {
+                let (g, it) = match self.kind {
+                    RobustKind::Huber | RobustKind::Tukey => {
+                        let ransac = Self {
+                            kind: RobustKind::Ransac,
+                            max_iterations: DEFAULT_RANSAC_ITERATIONS,
+                            ..*self
+                        };
+                        let start = match ransac.ransac(&ctx, base, c) {
+                            Ok((m, _)) => m,
+                            Err(_) => base.fit(ctx.set, None)?,
+                        };
+                        let phases: &[(bool, f64)] = if self.kind == RobustKind::Tukey {
+                            &[(false, 1.0), (true, 1.0)]
+                        } else {
+                            &[(false, 1.0)]
+                        };
+                        self.irls(&ctx, base, start, c, phases)?
+                    }
+                    RobustKind::Ransac => self.ransac(&ctx, base, c)?,
+                };
+                (g, it, c, c, None)
+            }
+            None => {
+                let (start, sigma_start, drawn) = self.auto_start(&ctx, base)?;
+                let (g, it, factor, sigma) = match self.kind {
+                    RobustKind::Huber => {
+                        let (g, it) =
+                            self.irls(&ctx, base, start, sigma_start, &[(false, HUBER_K)])?;
+                        (g, it, HUBER_K, sigma_start)
+                    }
+                    RobustKind::Tukey => {
+                        let phases = [(false, HUBER_K), (true, TUKEY_K)];
+                        let (g, it) = self.irls(&ctx, base, start, sigma_start, &phases)?;
+                        (g, it, TUKEY_K, sigma_start)
+                    }
+                    RobustKind::Ransac => {
+                        let (g, d) = self.ransac(&ctx, base, RANSAC_K * sigma_start)?;
+                        (g, d + drawn, RANSAC_K, sigma_start)
+                    }
+                };
+                let bound = OUTLIER_K * sigma;
+                let auto = AutoThreshold {
+                    scale_m: sigma,
+                    factor,
+                    inlier_bound_m: bound,
+                };
+                (g, it, factor * sigma, bound, Some(auto))
+            }
         };
         let model = match local_cfg {
             None => global_model(global),
             Some((lbase, cfg)) => {
                 // Start: inliers of the robust global fit, joined by those of the plain local
                 // fit on all samples (where the scene departs from the global model by more than
-                // c, only a local model can tell its samples from outliers).
-                let mut inliers = ctx.inliers(|s| global.predict(s.u, s.v, s.pred));
+                // the bound, only a local model can tell its samples from outliers).
+                let mut inliers = ctx.inliers(bound, |s| global.predict(s.u, s.v, s.pred));
                 if let Ok(plain) = local::fit(targets, lbase, cfg) {
                     let plain = AlignmentModel::Local(Box::new(plain));
-                    let more = ctx.inliers(|s| plain.predict_at(s.u, s.v, s.pred));
+                    let more = ctx.inliers(bound, |s| plain.predict_at(s.u, s.v, s.pred));
                     for (i, m) in inliers.iter_mut().zip(more) {
                         *i |= m;
                     }
@@ -277,7 +386,7 @@ impl Robust {
                     }
                     let m = AlignmentModel::Local(Box::new(local::fit(&subset, lbase, cfg)?));
                     iterations += 1;
-                    let next = ctx.inliers(|s| m.predict_at(s.u, s.v, s.pred));
+                    let next = ctx.inliers(bound, |s| m.predict_at(s.u, s.v, s.pred));
                     model = Some(m);
                     if next == inliers {
                         break;
@@ -296,8 +405,9 @@ impl Robust {
             .collect();
         let in_r: Vec<f64> = residuals
             .iter()
-            .copied()
-            .filter(|r| r.abs() < self.threshold_m)
+            .zip(ctx.inliers(bound, predict))
+            .filter(|(_, i)| *i)
+            .map(|(r, _)| *r)
             .collect();
         let rms = |rs: &[f64], fallback: &[f64]| {
             if rs.is_empty() {
@@ -318,78 +428,99 @@ impl Robust {
             fit_time_s: start.elapsed().as_secs_f64(),
             robust: Some(RobustReport {
                 kind: self.kind,
-                threshold_m: self.threshold_m,
+                threshold_m: c,
                 inliers: in_r.len(),
                 iterations,
                 inlier_rms_residual_m: rms(&in_r, &in_r),
+                auto,
             }),
         };
         Ok((model, report))
     }
 
-    /// Huber IRLS from a RANSAC start (least squares where RANSAC finds no fit); for Tukey, then
-    /// Tukey IRLS from the Huber fit.
-    fn irls(&self, ctx: &Ctx<'_>, base: Base, tukey: bool) -> Result<(GlobalFit, usize)> {
-        let c = self.threshold_m;
-        let start = Self {
-            kind: RobustKind::Ransac,
-            max_iterations: DEFAULT_RANSAC_ITERATIONS,
-            ..*self
+    /// The `auto` rule's start and scale: least median of squares over seeded minimal samples
+    /// ([`Self::lmeds`]); least squares on its samples within [`RANSAC_K`]`·σ̂₀` (σ̂₀ the
+    /// [`robust_scale_m`] of its residuals); σ̂ again from that fit's residuals; least squares on
+    /// the samples within [`RANSAC_K`]`·σ̂` until they stop changing. Scales are floored at
+    /// [`SCALE_FLOOR_M`]. Returns (fit, σ̂ in metres, minimal samples drawn).
+    fn auto_start(&self, ctx: &Ctx<'_>, base: Base) -> Result<(GlobalFit, f64, usize)> {
+        let most = match self.kind {
+            RobustKind::Ransac => self.max_iterations,
+            RobustKind::Huber | RobustKind::Tukey => DEFAULT_RANSAC_ITERATIONS,
         };
-        let mut model = match start.ransac(ctx, base) {
-            Ok((m, _)) => m,
-            Err(_) => base.fit(ctx.set, None)?,
+        let (hyp, drawn) = self.lmeds(ctx, base, most)?;
+        let sigma_h = ctx.scale_m(&hyp, base.minimal());
+        let first = consensus_refit(ctx, base, hyp, RANSAC_K * sigma_h);
+        let sigma = ctx.scale_m(&first, base.minimal());
+        let fit = consensus_refit(ctx, base, first, RANSAC_K * sigma);
+        Ok((fit, sigma, drawn))
+    }
+
+    /// Least median of squares over minimal samples (metre residuals): the hypothesis with the
+    /// smallest median absolute residual wins. Hypotheses: the standard bound for half the
+    /// samples being outliers (`log(1 − p)/log(1 − 0.5ᵐ)`: 24 for GSSA, 107 for SSRA, the
+    /// median's breakdown point), at most `most`.
+    fn lmeds(&self, ctx: &Ctx<'_>, base: Base, most: usize) -> Result<(GlobalFit, usize)> {
+        let n = ctx.samples.len();
+        let m = base.minimal();
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
+        let mut best: Option<(f64, GlobalFit)> = None;
+        // half the samples good: εᵐ = 0.5ᵐ
+        let needed = adaptive_bound(n.div_ceil(2), n, m, 0, most).max(1);
+        let mut drawn = 0;
+        let mut subset = SampleSet {
+            image_size: ctx.set.image_size,
+            samples: Vec::with_capacity(m),
         };
-        let mut iterations = 0;
-        let phases: &[bool] = if tukey { &[false, true] } else { &[false] };
-        let mut weights = vec![1.0; ctx.samples.len()];
-        for &is_tukey in phases {
-            for _ in 0..self.max_iterations {
-                let mut positive = 0;
-                for (w, s) in weights.iter_mut().zip(ctx.samples) {
-                    let r = ctx
-                        .linearised_residual_m(s, model.predict(s.u, s.v, s.pred))
-                        .abs();
-                    *w = if is_tukey {
-                        if r < c {
-                            (1.0 - (r / c).powi(2)).powi(2)
-                        } else {
-                            0.0
-                        }
-                    } else if r <= c {
-                        1.0
-                    } else {
-                        c / r // 0 for an infinite residual
-                    };
-                    if *w > 0.0 {
-                        positive += 1;
-                    }
-                }
-                if positive < base.minimal() {
-                    return Err(CoreError::Degenerate(format!(
-                        "{}: only {positive} of {} samples lie within {c} m of the fit; the \
-                         threshold is too small for these data",
-                        self.kind,
-                        ctx.samples.len()
-                    )));
-                }
-                iterations += 1;
-                let next = base.fit(ctx.set, Some(&weights))?;
-                let moved = ctx
-                    .samples
+        let mut abs_r = Vec::with_capacity(n);
+        while drawn < needed {
+            drawn += 1;
+            subset.samples.clear();
+            subset.samples.extend(
+                rand::seq::index::sample(&mut rng, n, m)
                     .iter()
-                    .map(|s| {
-                        let a = ctx.space.depth_from_target(model.predict(s.u, s.v, s.pred));
-                        let b = ctx.space.depth_from_target(next.predict(s.u, s.v, s.pred));
-                        if a.is_finite() && b.is_finite() {
-                            (a - b).abs()
-                        } else if a.is_finite() == b.is_finite() {
-                            0.0
-                        } else {
-                            f64::INFINITY
-                        }
-                    })
-                    .fold(0.0, f64::max);
+                    .map(|k| ctx.samples[k]),
+            );
+            let Ok(hyp) = base.fit(&subset, None) else {
+                continue; // degenerate minimal sample (equal ẑ, collinear pixels)
+            };
+            abs_r.clear();
+            abs_r.extend(
+                ctx.samples
+                    .iter()
+                    .map(|s| abs_or_inf(ctx.residual_m(s, hyp.predict(s.u, s.v, s.pred)))),
+            );
+            let med = median(&mut abs_r);
+            if best.as_ref().is_none_or(|(b, _)| med < *b) {
+                best = Some((med, hyp));
+            }
+        }
+        let (_, model) = best.ok_or_else(|| {
+            CoreError::Degenerate(format!(
+                "robust fit: none of {drawn} minimal samples of {m} gave a {} fit (constant ẑ \
+                 or collinear pixels)",
+                base.name()
+            ))
+        })?;
+        Ok((model, drawn))
+    }
+
+    /// Huber IRLS (then Tukey IRLS) from `start` in `phases` of (is Tukey, factor k): constant
+    /// `c = k·scale_m` (a fixed threshold: k = 1). Returns (fit, reweightings).
+    fn irls(
+        &self,
+        ctx: &Ctx<'_>,
+        base: Base,
+        start: GlobalFit,
+        scale_m: f64,
+        phases: &[(bool, f64)],
+    ) -> Result<(GlobalFit, usize)> {
+        let mut model = start;
+        let mut iterations = 0;
+        for &(is_tukey, k) in phases {
+            for _ in 0..self.max_iterations {
+                let (next, moved) = self.reweight(ctx, base, &model, is_tukey, k * scale_m)?;
+                iterations += 1;
                 model = next;
                 if moved <= IRLS_TOLERANCE_M {
                     break;
@@ -399,8 +530,67 @@ impl Robust {
         Ok((model, iterations))
     }
 
-    /// RANSAC on the global model, then least squares on the consensus set.
-    fn ransac(&self, ctx: &Ctx<'_>, base: Base) -> Result<(GlobalFit, usize)> {
+    /// One IRLS step with constant `c` (metres): the weighted fit and the largest move of a
+    /// fitted depth.
+    fn reweight(
+        &self,
+        ctx: &Ctx<'_>,
+        base: Base,
+        model: &GlobalFit,
+        is_tukey: bool,
+        c: f64,
+    ) -> Result<(GlobalFit, f64)> {
+        let mut weights = vec![0.0; ctx.samples.len()];
+        let mut positive = 0;
+        for (w, s) in weights.iter_mut().zip(ctx.samples) {
+            let r = ctx
+                .linearised_residual_m(s, model.predict(s.u, s.v, s.pred))
+                .abs();
+            *w = if is_tukey {
+                if r < c {
+                    (1.0 - (r / c).powi(2)).powi(2)
+                } else {
+                    0.0
+                }
+            } else if r <= c {
+                1.0
+            } else {
+                c / r // 0 for an infinite residual
+            };
+            if *w > 0.0 {
+                positive += 1;
+            }
+        }
+        if positive < base.minimal() {
+            return Err(CoreError::Degenerate(format!(
+                "{}: only {positive} of {} samples lie within {c} m of the fit; the threshold is \
+                 too small for these data",
+                self.kind,
+                ctx.samples.len()
+            )));
+        }
+        let next = base.fit(ctx.set, Some(&weights))?;
+        let moved = ctx
+            .samples
+            .iter()
+            .map(|s| {
+                let a = ctx.space.depth_from_target(model.predict(s.u, s.v, s.pred));
+                let b = ctx.space.depth_from_target(next.predict(s.u, s.v, s.pred));
+                if a.is_finite() && b.is_finite() {
+                    (a - b).abs()
+                } else if a.is_finite() == b.is_finite() {
+                    0.0
+                } else {
+                    f64::INFINITY
+                }
+            })
+            .fold(0.0, f64::max);
+        Ok((next, moved))
+    }
+
+    /// RANSAC on the global model with inlier bound `c` (metres), then least squares on the
+    /// consensus set.
+    fn ransac(&self, ctx: &Ctx<'_>, base: Base, c: f64) -> Result<(GlobalFit, usize)> {
         let n = ctx.samples.len();
         let m = base.minimal();
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
@@ -422,51 +612,110 @@ impl Robust {
             let Ok(hyp) = base.fit(&subset, None) else {
                 continue; // degenerate minimal sample (equal ẑ, collinear pixels)
             };
-            let (count, ss) = ctx.consensus(&hyp);
+            let (count, ss) = ctx.consensus(&hyp, c);
             if best
                 .as_ref()
                 .is_none_or(|(bc, bss, _)| count > *bc || (count == *bc && ss < *bss))
             {
                 best = Some((count, ss, hyp));
-                let eps = count as f64 / n as f64;
-                let p_good = eps.powi(m as i32);
-                needed = if p_good >= 1.0 {
-                    drawn
-                } else if p_good <= 0.0 {
-                    self.max_iterations
-                } else {
-                    let k = ((1.0 - RANSAC_CONFIDENCE).ln() / (1.0 - p_good).ln()).ceil();
-                    (k.max(1.0) as usize).min(self.max_iterations)
-                };
+                needed = adaptive_bound(count, n, m, drawn, self.max_iterations);
             }
         }
-        let (mut count, _, mut model) = best.ok_or_else(|| {
+        let (_, _, model) = best.ok_or_else(|| {
             CoreError::Degenerate(format!(
                 "ransac: none of {drawn} minimal samples of {m} gave a {} fit (constant ẑ or \
                  collinear pixels)",
                 base.name()
             ))
         })?;
-        let mut inliers = ctx.inliers(|s| model.predict(s.u, s.v, s.pred));
-        for _ in 0..RANSAC_REFITS {
-            let weights: Vec<f64> = inliers.iter().map(|&i| f64::from(u8::from(i))).collect();
-            let Ok(refit) = base.fit(ctx.set, Some(&weights)) else {
-                break;
-            };
-            let next = ctx.inliers(|s| refit.predict(s.u, s.v, s.pred));
-            let next_count = next.iter().filter(|&&i| i).count();
-            if next_count < count {
-                break;
-            }
-            model = refit;
-            count = next_count;
-            if next == inliers {
-                break;
-            }
-            inliers = next;
-        }
-        Ok((model, drawn))
+        Ok((consensus_refit(ctx, base, model, c), drawn))
     }
+}
+
+/// Robust standard deviation of the residuals (metres) of a fit with `params` parameters
+/// (Rousseeuw & Leroy 1987): the preliminary `σ₀ = 1.4826·(1 + 5/(n − params))·median|r|`,
+/// then the root mean square of the residuals within [`RANSAC_K`]`·σ₀`, over their count minus
+/// `params`. With 20 % gross outliers the median alone overestimates σ by about 30 % (it is then
+/// the 62.5 % quantile of the good residuals); the reweighted estimate does not. Returns 0 for no
+/// residuals or exact data (the fit floors it at [`SCALE_FLOOR_M`]); a non-finite residual
+/// counts as an outlier.
+pub fn robust_scale_m(residuals_m: &[f64], params: usize) -> f64 {
+    let n = residuals_m.len();
+    if n == 0 {
+        return 0.0;
+    }
+    let mut abs_r: Vec<f64> = residuals_m.iter().map(|r| abs_or_inf(*r)).collect();
+    let sigma0 =
+        MAD_TO_SIGMA * (1.0 + 5.0 / n.saturating_sub(params).max(1) as f64) * median(&mut abs_r);
+    let (ss, count) = abs_r
+        .iter()
+        .filter(|r| **r <= RANSAC_K * sigma0)
+        .fold((0.0, 0usize), |(ss, k), r| (ss + r * r, k + 1));
+    match count.checked_sub(params) {
+        Some(dof) if dof > 0 => (ss / dof as f64).sqrt(),
+        _ => sigma0,
+    }
+}
+
+/// `|r|`, infinite for NaN.
+fn abs_or_inf(r: f64) -> f64 {
+    if r.is_nan() { f64::INFINITY } else { r.abs() }
+}
+
+/// Median of `v` (mean of the middle two for an even count); reorders `v`; 0 when empty.
+fn median(v: &mut [f64]) -> f64 {
+    let n = v.len();
+    if n == 0 {
+        return 0.0;
+    }
+    let (lo, mid, _) = v.select_nth_unstable_by(n / 2, f64::total_cmp);
+    let mid = *mid;
+    if n % 2 == 1 {
+        mid
+    } else {
+        let below = lo.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        0.5 * (below + mid)
+    }
+}
+
+/// Hypotheses needed for [`RANSAC_CONFIDENCE`] with `count` of `n` inliers and minimal sample
+/// `m` (`log(1 − p)/log(1 − εᵐ)`), at least `drawn`, at most `most`.
+fn adaptive_bound(count: usize, n: usize, m: usize, drawn: usize, most: usize) -> usize {
+    let eps = count as f64 / n as f64;
+    let p_good = eps.powi(m as i32);
+    if p_good >= 1.0 {
+        drawn
+    } else if p_good <= 0.0 {
+        most
+    } else {
+        let k = ((1.0 - RANSAC_CONFIDENCE).ln() / (1.0 - p_good).ln()).ceil();
+        (k.max(1.0) as usize).min(most)
+    }
+}
+
+/// Least squares on the samples within `c` (metres) of `model`, repeated while the set changes
+/// and does not shrink (at most [`RANSAC_REFITS`] times).
+fn consensus_refit(ctx: &Ctx<'_>, base: Base, mut model: GlobalFit, c: f64) -> GlobalFit {
+    let mut inliers = ctx.inliers(c, |s| model.predict(s.u, s.v, s.pred));
+    let mut count = inliers.iter().filter(|&&i| i).count();
+    for _ in 0..RANSAC_REFITS {
+        let weights: Vec<f64> = inliers.iter().map(|&i| f64::from(u8::from(i))).collect();
+        let Ok(refit) = base.fit(ctx.set, Some(&weights)) else {
+            break;
+        };
+        let next = ctx.inliers(c, |s| refit.predict(s.u, s.v, s.pred));
+        let next_count = next.iter().filter(|&&i| i).count();
+        if next_count < count {
+            break;
+        }
+        model = refit;
+        count = next_count;
+        if next == inliers {
+            break;
+        }
+        inliers = next;
+    }
+    model
 }
 
 impl std::fmt::Display for Robust {
@@ -489,15 +738,35 @@ impl std::str::FromStr for Robust {
 pub struct RobustReport {
     /// Huber, Tukey or RANSAC.
     pub kind: RobustKind,
-    /// Residual scale, metres.
+    /// Residual scale used, metres: Huber's corner, Tukey's cut-off (its final phase), RANSAC's
+    /// inlier bound; under `auto`, `factor · scale_m`.
     pub threshold_m: f64,
-    /// Samples whose residual under the final model is below `threshold_m` (in metres).
+    /// Samples whose residual under the final model is below the inlier bound (in metres):
+    /// `threshold_m` for a fixed threshold, `auto.inlier_bound_m` under `auto`.
     pub inliers: usize,
     /// IRLS reweightings (both phases for Tukey; the RANSAC start not counted) or RANSAC
     /// hypotheses drawn, plus one per inlier-set round of a local variant.
     pub iterations: usize,
     /// RMS residual over the inliers, metres.
     pub inlier_rms_residual_m: f64,
+    /// The `auto` rule's estimate; absent for a fixed threshold (and in files written before
+    /// the rule existed, which all used a fixed threshold).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto: Option<AutoThreshold>,
+}
+
+/// The scale the `auto` threshold rule estimated (inside [`RobustReport::auto`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AutoThreshold {
+    /// Robust standard deviation σ̂ of the good residuals, metres ([`robust_scale_m`], floored
+    /// at [`SCALE_FLOOR_M`]).
+    pub scale_m: f64,
+    /// `threshold_m / scale_m`: [`HUBER_K`], [`TUKEY_K`] or [`RANSAC_K`].
+    pub factor: f64,
+    /// [`OUTLIER_K`]` · scale_m`, metres: the inlier bound (inliers reported, local variants'
+    /// inlier sets).
+    pub inlier_bound_m: f64,
 }
 
 impl RobustReport {
@@ -509,6 +778,19 @@ impl RobustReport {
         Robust::new(self.kind)
             .with_threshold_m(self.threshold_m)
             .validate()?;
+        if let Some(a) = &self.auto {
+            for (name, v) in [
+                ("scale_m", a.scale_m),
+                ("factor", a.factor),
+                ("inlier_bound_m", a.inlier_bound_m),
+            ] {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(CoreError::InvalidParameter(format!(
+                        "robust report auto.{name} must be a finite number > 0, got {v}"
+                    )));
+                }
+            }
+        }
         if self.inliers > n_used {
             return Err(CoreError::InvalidParameter(format!(
                 "robust report counts {} inliers among {n_used} samples",
@@ -580,12 +862,11 @@ fn global_model(g: GlobalFit) -> AlignmentModel {
     }
 }
 
-/// The samples, their space and the threshold.
+/// The samples and their space.
 struct Ctx<'a> {
     samples: &'a [Sample],
     set: &'a SampleSet,
     space: AlignSpace,
-    c: f64,
 }
 
 impl Ctx<'_> {
@@ -619,21 +900,31 @@ impl Ctx<'_> {
         }
     }
 
-    /// `|r| < c` per sample under `predict` (fitted target value).
-    fn inliers(&self, predict: impl Fn(&Sample) -> f64) -> Vec<bool> {
+    /// `|r| < c` per sample under `predict` (fitted target value), `r` in metres.
+    fn inliers(&self, c: f64, predict: impl Fn(&Sample) -> f64) -> Vec<bool> {
         self.samples
             .iter()
-            .map(|s| self.residual_m(s, predict(s)).abs() < self.c)
+            .map(|s| self.residual_m(s, predict(s)).abs() < c)
             .collect()
     }
 
+    /// [`robust_scale_m`] of the metre residuals of `g`, floored at [`SCALE_FLOOR_M`].
+    fn scale_m(&self, g: &GlobalFit, params: usize) -> f64 {
+        let r: Vec<f64> = self
+            .samples
+            .iter()
+            .map(|s| self.residual_m(s, g.predict(s.u, s.v, s.pred)))
+            .collect();
+        robust_scale_m(&r, params).max(SCALE_FLOOR_M)
+    }
+
     /// Inlier count and sum of squared inlier residuals (m²) of a hypothesis.
-    fn consensus(&self, g: &GlobalFit) -> (usize, f64) {
+    fn consensus(&self, g: &GlobalFit, c: f64) -> (usize, f64) {
         let mut count = 0;
         let mut ss = 0.0;
         for s in self.samples {
             let r = self.residual_m(s, g.predict(s.u, s.v, s.pred));
-            if r.abs() < self.c {
+            if r.abs() < c {
                 count += 1;
                 ss += r * r;
             }
