@@ -58,7 +58,8 @@ class _ReportFields(TypedDict):
 class _Report(_ReportFields, total=False):
     robust: dict[str, Any]
     """Robust fits only: the file's robust block (``kind``, ``threshold_m`` (metres),
-    ``inliers``, ``iterations``, ``inlier_rms_residual_m`` (metres), …)."""
+    ``inliers``, ``iterations``, ``inlier_rms_residual_m`` (metres), ``auto`` with
+    ``scale_m`` when the threshold came from the data, …)."""
 
 class _RealignReport(TypedDict):
     """``Calibration.align_realigned``: the per-frame report of ``moma align --realign anchors``."""
@@ -244,8 +245,8 @@ def calibrate(
     (disparity predictor, 1/z target) or ``"depth"``, default the prediction's own
     (inverse-depth → inverse); ``bandwidth_px``: LWLR bandwidth in pixels; ``robust``: robust
     fit against wrong ground truth (Huber or Tukey IRLS, RANSAC; for ssra, gssa, ssra-local,
-    gssa-local), ``robust_threshold_m`` its residual scale in metres (moma's default when
-    None); ``anchors_rgb``: the (first) calibration frame's RGB (uint8 H×W×3 array or an image
+    gssa-local), ``robust_threshold_m`` its residual scale in metres (None: the data-driven
+    ``auto`` threshold, the CLI's default); ``anchors_rgb``: the (first) calibration frame's RGB (uint8 H×W×3 array or an image
     path) to store the anchors ``Calibration.align_realigned`` needs (``moma calibrate
     --anchors``). Bad input (lists of different lengths, frames of different sizes, an unknown
     robust kind, ...) raises ``InvalidInputError`` (a ``ValueError``) naming the problem."""
