@@ -128,7 +128,8 @@ fn calibrate_align_and_eval_with_realignment() {
         e.contains("--realign-form") && e.contains("prediction-affine"),
         "{e}"
     );
-    assert!(bad(&["--realign-ridge", "-1"]).contains("ridge"));
+    let e = bad(&["--realign-ridge=-1"]);
+    assert!(e.contains("ridge") && e.contains(">= 0"), "{e}");
     assert!(bad(&["--realign-max-anchors", "5"]).contains("max_anchors"));
     let e = bad(&["--realign-target", "truth"]);
     assert!(
@@ -190,7 +191,19 @@ fn calibrate_align_and_eval_with_realignment() {
         ["one-shot", "realign-anchors", "realign-anchors-b0.80"],
         "{rows:?}"
     );
-    for r in &rows[1..] {
+    // the full results (written to -o) carry the re-alignment statistics
+    let full: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("eval/results.json")).unwrap(),
+    )
+    .unwrap();
+    let full: Vec<&serde_json::Value> = full
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["variant"].as_str().unwrap().starts_with("realign"))
+        .collect();
+    assert_eq!(full.len(), 2);
+    for r in full {
         assert_eq!(r["method"], "gssa");
         let st = &r["realign"];
         assert_eq!(st["results"], 4, "2 seeds × 2 evaluated frames: {st}");
