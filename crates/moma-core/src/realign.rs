@@ -2,16 +2,20 @@
 //!
 //! In a fixed-camera cell the calibration frame's ground truth stays valid wherever the scene
 //! has not changed (table, bin walls). The calibration keeps a compact [`AnchorStore`] — the
-//! calibration RGB reduced to grey at half resolution (u8) and its ground-truth depth at the same
-//! half-resolution pixels (u16 millimetres) — and every new RGB frame yields free metric anchors:
-//! pixels whose appearance is unchanged since calibration.
+//! calibration RGB reduced to grey at half resolution (u8), its ground-truth depth at the same
+//! half-resolution pixels (u16 millimetres), the calibration's own one-shot result there (u16 mm)
+//! and the calibration's normalised prediction there (f32) — and every new RGB frame yields free
+//! metric anchors: pixels whose appearance is unchanged since calibration.
 //!
 //! # The anchor rule ([`AnchorThresholds`])
 //! Grey g = (R + 2G + B)/4, averaged over 2×2 blocks (half resolution, which also halves sensor
 //! noise). For the frame (g_f) against the calibration (g_c):
 //! 1. **Global gain** k = median of g_f/g_c over pixels with g_c in [20, 235] and g_f in
 //!    [1, 250] (every 7th half-resolution pixel): absorbs a global brightness / exposure change;
-//!    new objects are a minority and do not move the median.
+//!    new objects are a minority and do not move the median. A gain outside
+//!    [[`MIN_GAIN`], [`MAX_GAIN`]] = [0.25, 4] (lens covered, lights off) gives no anchors: it
+//!    would squeeze the calibration's texture below the grey tolerance, so that a uniform frame
+//!    matched everywhere.
 //! 2. **Pixel match under a displacement** s (one of the 9 half-resolution shifts of a 3×3 set):
 //!    g_f(p) ≤ 250 (not saturated) and |g_f(p) − k·g_c(p + s)| ≤ `abs_grey` + `rel`·k·g_c(p)
 //!    (defaults 6 grey levels and 8 %; the relative term absorbs noise that grows with
@@ -32,8 +36,24 @@
 //! texture would pass the test: the residual trimming and the held-out check below guard against
 //! such anchors.
 //!
-//! # The correction ([`RealignConfig`])
-//! In the calibration's alignment space (target t = z in depth space, 1/z in inverse space), with
+//! # The corrections ([`RealignConfig`], [`CorrectionModel`])
+//! **`prediction-affine`** works on the frame's *normalised prediction* ẑ (the map the
+//! calibration's model is applied to). Per-frame min-max statistics (new objects change the
+//! map's minimum and maximum) and a depth model's per-frame scale and shift in its own output
+//! space both change the prediction of the unchanged background by an affine map, for every
+//! method. With ẑ_c the calibration frame's normalised prediction stored at the anchor, ẑ the
+//! frame's, m and σ the mean and standard deviation of ẑ over the fitting anchors and R the range
+//! of the stored ẑ_c (the unit of the correction), the corrected map is
+//! ẑ' = ẑ + R·(c₀·(ẑ − m)/σ + c₁), c minimising Σ((ẑ_c − ẑ)/R − c₀·(ẑ − m)/σ − c₁)² + λ‖c‖²
+//! (centred and standardised: slope and shift are not collinear and each feature has Σf² = n,
+//! so λ counts anchor equivalents for both, as for the other forms). The
+//! calibration's model is applied to ẑ' = a·ẑ + b: exact for that change whatever the method
+//! (SSRA, LWLR and the local variants included), and it leaves the calibration's fit as it was
+//! (target `calibration-output` only). Held-out errors are measured in metres through the
+//! model: |model(ẑ') − model(ẑ_c)| at each held-out anchor (`AlignmentModel::predict_at`).
+//!
+//! **`scale-shift`** and **`planar`** correct the one-shot metres instead. In the calibration's
+//! alignment space (target t = z in depth space, 1/z in inverse space), with
 //! y the one-shot result's target at an anchor, y₀ the mean of y over the fitting anchors and
 //! s = y/y₀, the corrected target is t̂ = y + y₀·c·f with
 //! f = [s, 1] (`scale-shift`: a relative scale change and a shift, the form of the per-frame
@@ -44,16 +64,33 @@
 //! flat background scale and shift are nearly collinear and the ridge splits the correction
 //! between them instead of extrapolating an ill-determined scale to nearer objects).
 //! One trimming pass drops anchors whose residual is beyond 3 robust standard deviations
-//! (1.4826·MAD) and refits. Up to `max_anchors` anchors are used (a seeded subsample); a seeded
-//! split holds out `holdout_fraction` of them. The correction is **accepted only if it lowers
-//! the held-out error** (RMSE in metres over the held-out anchors, the largest
-//! [`HELD_OUT_TRIM`] of errors left out on each side), and then refitted on all used anchors;
-//! otherwise, and when fewer than max(`min_anchors`, `min_anchor_fraction` × the store's valid
-//! pixels) anchors remain, the one-shot result is kept and the [`RealignReport`] says why. The
-//! report never holds NaN.
+//! (1.4826·MAD) and refits (every form). Up to `max_anchors` anchors are used (a seeded
+//! subsample); a seeded split holds out `holdout_fraction` of them.
 //!
-//! Store size at 640×480: 320×240 half-resolution pixels × (1 byte grey + 2 bytes depth) =
-//! 230 400 bytes, 307 200 characters of base64 in the calibration file.
+//! # Acceptance
+//! The correction is **accepted only if it lowers the error on the held-out anchors by more
+//! than `acceptance_se` standard errors** (default 1): with e_b, e_a the absolute held-out errors
+//! (metres) before and after the correction, the paired gains d = e_b − e_a of the held-out
+//! anchors without the [`HELD_OUT_TRIM`] fraction with the largest error before or after (false
+//! anchors), accepted iff mean(d) > 0 and mean(d) > `acceptance_se`·sd(d)/√n. A correction that
+//! only fits noise gains nothing on average on held-out anchors and then passes one standard
+//! error about one time in six, not one time in two. Accepted corrections are refitted on all
+//! used anchors. Otherwise, and when fewer than max(`min_anchors`, `min_anchor_fraction` × the
+//! store's candidates) anchors remain, the one-shot result is kept and the [`RealignReport`]
+//! says why (with the trimmed held-out RMSE before/after, the mean gain and its standard error).
+//! The report never holds NaN.
+//!
+//! # What it cannot correct
+//! Re-alignment on the calibration's own output restores the calibration frame's state; the
+//! calibration's own error on objects (a depth model flattening objects towards the table,
+//! seeing through glass) stays. Where a frame's change happened to offset that error, removing
+//! the change makes that frame worse on its objects while its background improves (measured on
+//! SIMULATED predictions in docs/evaluation.md, example `realign_diag`).
+//!
+//! Store size at 640×480: 320×240 half-resolution pixels × (1 byte grey + 2 bytes depth + 2 bytes
+//! one-shot + 4 bytes normalised prediction) = 691 200 bytes, 921 600 characters of base64 in the
+//! calibration file (230 400 bytes for a store of grey and depth only). Stores written without
+//! the normalised prediction read unchanged and serve `scale-shift` and `planar`.
 
 use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
 use rand::SeedableRng;
@@ -1210,33 +1247,40 @@ struct PredObs {
     z_m: f64,
 }
 
-/// ẑ' = ẑ + c₀·(ẑ − m) + R·c₁ (module documentation).
+/// ẑ' = ẑ + c₀·R·(ẑ − m)/σ + R·c₁ (module documentation).
 #[derive(Debug, Clone, Copy)]
 struct PredAffine {
     m: f64,
+    sd: f64,
     r: f64,
     c: [f64; 2],
 }
 
 impl PredAffine {
     fn apply(&self, x: f64) -> f64 {
-        x + self.c[0] * (x - self.m) + self.r * self.c[1]
+        x + self.r * (self.c[0] * (x - self.m) / self.sd + self.c[1])
     }
 
     /// `(a, b)` of ẑ' = a·ẑ + b.
     fn ab(&self) -> (f64, f64) {
-        (1.0 + self.c[0], self.r * self.c[1] - self.c[0] * self.m)
+        let k = self.r * self.c[0] / self.sd;
+        (1.0 + k, self.r * self.c[1] - k * self.m)
     }
 
-    /// Ridge least squares of (x_cal − x_new)/R on [(x_new − m)/R, 1].
+    /// Ridge least squares of (x_cal − x_new)/R on [(x_new − m)/σ, 1].
     fn fit(obs: &[PredObs], r: f64, ridge: f64) -> Option<Self> {
-        if obs.is_empty() {
+        if obs.len() < 2 {
             return None;
         }
-        let m = obs.iter().map(|o| o.x_new).sum::<f64>() / obs.len() as f64;
+        let n = obs.len() as f64;
+        let m = obs.iter().map(|o| o.x_new).sum::<f64>() / n;
+        let sd = (obs.iter().map(|o| (o.x_new - m).powi(2)).sum::<f64>() / n).sqrt();
+        if !(sd.is_finite() && sd > 0.0) {
+            return None;
+        }
         let (mut a00, mut a01, mut a11, mut b0, mut b1) = (0.0, 0.0, 0.0, 0.0, 0.0);
         for o in obs {
-            let f = (o.x_new - m) / r;
+            let f = (o.x_new - m) / sd;
             let y = (o.x_cal - o.x_new) / r;
             a00 += f * f;
             a01 += f;
@@ -1251,7 +1295,7 @@ impl PredAffine {
             return None;
         }
         let c = [(a11 * b0 - a01 * b1) / det, (a00 * b1 - a01 * b0) / det];
-        (m.is_finite() && c.iter().all(|x| x.is_finite())).then_some(Self { m, r, c })
+        (m.is_finite() && c.iter().all(|x| x.is_finite())).then_some(Self { m, sd, r, c })
     }
 
     /// Fit, one trimming pass (3 robust standard deviations), refit.
