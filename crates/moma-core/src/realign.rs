@@ -641,7 +641,8 @@ pub struct RealignConfig {
     /// What the correction is fitted to.
     pub target: AnchorTarget,
     /// Ridge λ towards the identity, in anchor equivalents (default 100; with the default 200
-    /// anchors a strong shrinkage, chosen by the ablation in docs/evaluation.md).
+    /// anchors a strong shrinkage, chosen for `scale-shift` by the ablation in
+    /// docs/evaluation.md; the `prediction-affine` tables there use λ = 1 and 2000 anchors).
     pub ridge: f64,
     /// Most anchors used (seeded subsample; default 200).
     pub max_anchors: usize,
