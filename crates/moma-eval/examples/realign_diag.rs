@@ -35,13 +35,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let norm: NormalisationConfig =
         prep.normalisation_for(&method, moma_core::normalise::Normalisation::Minmax);
     let method = prep.method(&method);
-    let rgb = |i: usize| -> ArrayView3<'_, u8> {
-        let img = set.frames[i].rgb.as_ref().expect("rgb");
-        ArrayView3::from_shape(
+    let rgb = |i: usize| -> Result<ArrayView3<'_, u8>, Box<dyn std::error::Error>> {
+        let f = &set.frames[i];
+        let img = f
+            .rgb
+            .as_ref()
+            .ok_or_else(|| format!("frame '{}' has no rgb.png", f.id))?;
+        Ok(ArrayView3::from_shape(
             (img.height() as usize, img.width() as usize, 3),
             img.as_raw(),
-        )
-        .expect("rgb shape")
+        )?)
     };
     let cmap = prep.normalised(prep.calib, &norm)?;
     println!(
@@ -55,7 +58,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for seed in 0..seeds {
         let cal = prep
             .calibrate(&method, &norm, &cmap, 100, seed)?
-            .with_anchors_normalised(rgb(prep.calib), &set.frames[prep.calib].gt, &cmap)?;
+            .with_anchors_normalised(rgb(prep.calib)?, &set.frames[prep.calib].gt, &cmap)?;
         for i in prep.eval_indices() {
             let map = prep.normalised(i, &norm)?;
             let one = cal.align_normalised(&map)?;
@@ -66,9 +69,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 ..Default::default()
             };
             let rep =
-                cal.realign_normalised_into(rgb(i), &rc, &map, &mut re.depth_m.view_mut(), true)?;
+                cal.realign_normalised_into(rgb(i)?, &rc, &map, &mut re.depth_m.view_mut(), true)?;
             let anchors =
-                moma_core::realign::find_anchors(cal.anchor_store()?, rgb(i), &rc.thresholds)?;
+                moma_core::realign::find_anchors(cal.anchor_store()?, rgb(i)?, &rc.thresholds)?;
             let objm = &prep.eval_masks[i];
             let on_obj = anchors
                 .pixels
