@@ -108,9 +108,8 @@ def test_few_shot_averages_a_per_frame_fluctuation():
     [
         # 3 σ of the 1 mm sensor noise, for every kind
         ("huber", 0.003), ("tukey", 0.003), ("ransac", 0.003),
-        # moma's default threshold (Huber's default is left out: with a fixed 1 cm corner its
-        # bias from 20 % outliers is about 1 mm here, the limit itself)
-        ("tukey", None), ("ransac", None),
+        # moma's default threshold: `auto`, from a robust estimate of the residual scale
+        ("huber", None), ("tukey", None), ("ransac", None),
     ],
 )
 @pytest.mark.parametrize("method", ["ssra", "gssa"])
@@ -136,6 +135,9 @@ def test_robust_fit_with_20_percent_gross_outliers_stays_close_to_the_clean_fit(
     assert r["kind"] == robust
     if threshold_m is not None:
         assert r["threshold_m"] == threshold_m
+    else:
+        # the scale is estimated from the 1 mm noise, not from the 0.1-0.5 m outliers
+        assert 0.0005 < r["auto"]["scale_m"] < 0.002
     # about 80 % of the 100 samples are inliers (the outliers are 0.2 m or more away)
     assert 65 <= r["inliers"] <= 95
     assert r["inlier_rms_residual_m"] < 0.005

@@ -63,6 +63,68 @@ fn bench(c: &mut Criterion) {
                 assert!(r.accepted);
             })
         });
+        // prediction-affine: selection, fit, held-out test through the model, and the model
+        // applied to the corrected normalised map (GSSA, inverse space, min-max)
+        let pred = moma_core::Prediction::new(
+            gt.depth_m.mapv(|z| 2.0 / z),
+            moma_core::PredictionKind::InverseDepth,
+        );
+        let cal = moma_core::calibrate(
+            &pred,
+            &gt,
+            &moma_core::CalibrationConfig {
+                method: moma_core::align::Method::Gssa,
+                normalisation: moma_core::normalise::NormalisationConfig {
+                    method: moma_core::normalise::Normalisation::Minmax,
+                    space: AlignSpace::Inverse,
+                },
+                sampling: Default::default(),
+                robust: None,
+            },
+            None,
+            None,
+        )
+        .unwrap()
+        .with_anchors(calib_rgb.view(), &gt, &pred)
+        .unwrap();
+        // the frame: the background's prediction ×1.1 and shifted, an object nearer
+        let frame_pred = moma_core::Prediction::new(
+            Array2::from_shape_fn((H, W), |(v, u)| {
+                let z = if in_object(u, v) {
+                    0.6
+                } else {
+                    gt.depth_m[[v, u]]
+                };
+                2.2 / z + 0.1
+            }),
+            moma_core::PredictionKind::InverseDepth,
+        );
+        let normalised = cal.normalise(&frame_pred).unwrap();
+        let pa = RealignConfig {
+            model: moma_core::realign::CorrectionModel::PredictionAffine,
+            ..config
+        };
+        let mut depth = cal.align(&frame_pred).unwrap().depth_m;
+        c.bench_function("realign_prediction_affine_640x480", |b| {
+            b.iter(|| {
+                let r = cal
+                    .realign_normalised_into(
+                        black_box(frame_rgb.view()),
+                        &pa,
+                        &normalised,
+                        &mut depth.view_mut(),
+                        true,
+                    )
+                    .unwrap();
+                assert!(r.accepted, "{r:?}");
+            })
+        });
+        c.bench_function("one_shot_align_normalised_640x480", |b| {
+            b.iter(|| {
+                cal.align_normalised_into(black_box(&normalised), &mut depth.view_mut())
+                    .unwrap()
+            })
+        });
         let mut depth = one_shot.clone();
         c.bench_function("copy_only_640x480", |b| {
             b.iter(|| depth.assign(black_box(&one_shot)))

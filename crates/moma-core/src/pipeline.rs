@@ -58,7 +58,10 @@ use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use crate::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise, normalise_view,
 };
-use crate::realign::{AnchorStore, RealignConfig, RealignReport, realign_in_place};
+use crate::realign::{
+    AnchorStore, CorrectionModel, RealignConfig, RealignReport, realign_in_place,
+    realign_prediction_affine,
+};
 use crate::sampling::{SamplingConfig, sample_pixels};
 
 /// Everything a calibration decides.
@@ -803,7 +806,12 @@ impl Calibration {
         self.image_size()
             .expect_eq("anchor store", store.image_size())?;
         let own = self.align_normalised(normalised)?;
-        self.anchors = Some(Arc::new(store.clone().with_one_shot(&own)?));
+        self.anchors = Some(Arc::new(
+            store
+                .clone()
+                .with_one_shot(&own)?
+                .with_normalised(normalised.values.view())?,
+        ));
         Ok(self)
     }
 
@@ -837,9 +845,71 @@ impl Calibration {
         config: &RealignConfig,
     ) -> Result<(MetricDepth, RealignReport)> {
         self.anchor_store()?; // no store: fail before aligning
+        if config.model == CorrectionModel::PredictionAffine {
+            let normalised = self.normalise(pred)?;
+            let mut depth = Array2::<f32>::zeros(normalised.values.raw_dim());
+            let report = self.realign_normalised_into(
+                rgb,
+                config,
+                &normalised,
+                &mut depth.view_mut(),
+                false,
+            )?;
+            return Ok((MetricDepth::new(depth), report));
+        }
         let mut depth = self.align(pred)?;
         let report = self.realign_into(rgb, config, &mut depth.depth_m.view_mut())?;
         Ok((depth, report))
+    }
+
+    /// Per-frame re-alignment from the frame's normalised prediction (as
+    /// [`Calibration::normalise`] gives it), for every correction form: writes the re-aligned
+    /// metres into `depth_m`. With `holds_one_shot` the caller promises that `depth_m` already
+    /// holds this calibration's one-shot result of `normalised` (then it is only changed when
+    /// a correction is accepted); otherwise the one-shot result is computed into it first.
+    /// `prediction-affine` applies the model to the corrected normalised map; `scale-shift` and
+    /// `planar` correct the one-shot metres.
+    ///
+    /// # Errors
+    /// As [`Calibration::align_realigned`]; a store without the normalised calibration
+    /// prediction for `prediction-affine`.
+    pub fn realign_normalised_into(
+        &self,
+        rgb: ArrayView3<'_, u8>,
+        config: &RealignConfig,
+        normalised: &NormalisedMap,
+        depth_m: &mut ArrayViewMut2<'_, f32>,
+        holds_one_shot: bool,
+    ) -> Result<RealignReport> {
+        let store = self.anchor_store()?;
+        if config.model != CorrectionModel::PredictionAffine {
+            if !holds_one_shot {
+                self.align_normalised_into(normalised, depth_m)?;
+            }
+            return self.realign_into(rgb, config, depth_m);
+        }
+        self.image_size()
+            .expect_eq("re-aligned depth", ImageSize::of(&depth_m.view()))?;
+        let (report, ab) = realign_prediction_affine(
+            store,
+            rgb,
+            &self.model,
+            self.space(),
+            config,
+            normalised.values.view(),
+        )?;
+        match ab {
+            Some((a, b)) => {
+                let corrected = NormalisedMap {
+                    values: normalised.values.mapv(|x| a * x + b),
+                    stats: normalised.stats,
+                };
+                self.align_normalised_into(&corrected, depth_m)?;
+            }
+            None if !holds_one_shot => self.align_normalised_into(normalised, depth_m)?,
+            None => {}
+        }
+        Ok(report)
     }
 
     /// Re-aligns a result of this calibration in place (as [`Calibration::align_realigned`]

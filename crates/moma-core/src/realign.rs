@@ -2,16 +2,20 @@
 //!
 //! In a fixed-camera cell the calibration frame's ground truth stays valid wherever the scene
 //! has not changed (table, bin walls). The calibration keeps a compact [`AnchorStore`] — the
-//! calibration RGB reduced to grey at half resolution (u8) and its ground-truth depth at the same
-//! half-resolution pixels (u16 millimetres) — and every new RGB frame yields free metric anchors:
-//! pixels whose appearance is unchanged since calibration.
+//! calibration RGB reduced to grey at half resolution (u8), its ground-truth depth at the same
+//! half-resolution pixels (u16 millimetres), the calibration's own one-shot result there (u16 mm)
+//! and the calibration's normalised prediction there (f32) — and every new RGB frame yields free
+//! metric anchors: pixels whose appearance is unchanged since calibration.
 //!
 //! # The anchor rule ([`AnchorThresholds`])
 //! Grey g = (R + 2G + B)/4, averaged over 2×2 blocks (half resolution, which also halves sensor
 //! noise). For the frame (g_f) against the calibration (g_c):
 //! 1. **Global gain** k = median of g_f/g_c over pixels with g_c in [20, 235] and g_f in
 //!    [1, 250] (every 7th half-resolution pixel): absorbs a global brightness / exposure change;
-//!    new objects are a minority and do not move the median.
+//!    new objects are a minority and do not move the median. A gain outside
+//!    [[`MIN_GAIN`], [`MAX_GAIN`]] = [0.25, 4] (lens covered, lights off) gives no anchors: it
+//!    would squeeze the calibration's texture below the grey tolerance, so that a uniform frame
+//!    matched everywhere.
 //! 2. **Pixel match under a displacement** s (one of the 9 half-resolution shifts of a 3×3 set):
 //!    g_f(p) ≤ 250 (not saturated) and |g_f(p) − k·g_c(p + s)| ≤ `abs_grey` + `rel`·k·g_c(p)
 //!    (defaults 6 grey levels and 8 %; the relative term absorbs noise that grows with
@@ -32,8 +36,24 @@
 //! texture would pass the test: the residual trimming and the held-out check below guard against
 //! such anchors.
 //!
-//! # The correction ([`RealignConfig`])
-//! In the calibration's alignment space (target t = z in depth space, 1/z in inverse space), with
+//! # The corrections ([`RealignConfig`], [`CorrectionModel`])
+//! **`prediction-affine`** works on the frame's *normalised prediction* ẑ (the map the
+//! calibration's model is applied to). Per-frame min-max statistics (new objects change the
+//! map's minimum and maximum) and a depth model's per-frame scale and shift in its own output
+//! space both change the prediction of the unchanged background by an affine map, for every
+//! method. With ẑ_c the calibration frame's normalised prediction stored at the anchor, ẑ the
+//! frame's, m and σ the mean and standard deviation of ẑ over the fitting anchors and R the range
+//! of the stored ẑ_c (the unit of the correction), the corrected map is
+//! ẑ' = ẑ + R·(c₀·(ẑ − m)/σ + c₁), c minimising Σ((ẑ_c − ẑ)/R − c₀·(ẑ − m)/σ − c₁)² + λ‖c‖²
+//! (centred and standardised: slope and shift are not collinear and each feature has Σf² = n,
+//! so λ counts anchor equivalents for both, as for the other forms). The
+//! calibration's model is applied to ẑ' = a·ẑ + b: exact for that change whatever the method
+//! (SSRA, LWLR and the local variants included), and it leaves the calibration's fit as it was
+//! (target `calibration-output` only). Held-out errors are measured in metres through the
+//! model: |model(ẑ') − model(ẑ_c)| at each held-out anchor (`AlignmentModel::predict_at`).
+//!
+//! **`scale-shift`** and **`planar`** correct the one-shot metres instead. In the calibration's
+//! alignment space (target t = z in depth space, 1/z in inverse space), with
 //! y the one-shot result's target at an anchor, y₀ the mean of y over the fitting anchors and
 //! s = y/y₀, the corrected target is t̂ = y + y₀·c·f with
 //! f = [s, 1] (`scale-shift`: a relative scale change and a shift, the form of the per-frame
@@ -44,23 +64,41 @@
 //! flat background scale and shift are nearly collinear and the ridge splits the correction
 //! between them instead of extrapolating an ill-determined scale to nearer objects).
 //! One trimming pass drops anchors whose residual is beyond 3 robust standard deviations
-//! (1.4826·MAD) and refits. Up to `max_anchors` anchors are used (a seeded subsample); a seeded
-//! split holds out `holdout_fraction` of them. The correction is **accepted only if it lowers
-//! the held-out error** (RMSE in metres over the held-out anchors, the largest
-//! [`HELD_OUT_TRIM`] of errors left out on each side), and then refitted on all used anchors;
-//! otherwise, and when fewer than max(`min_anchors`, `min_anchor_fraction` × the store's valid
-//! pixels) anchors remain, the one-shot result is kept and the [`RealignReport`] says why. The
-//! report never holds NaN.
+//! (1.4826·MAD) and refits (every form). Up to `max_anchors` anchors are used (a seeded
+//! subsample); a seeded split holds out `holdout_fraction` of them.
 //!
-//! Store size at 640×480: 320×240 half-resolution pixels × (1 byte grey + 2 bytes depth) =
-//! 230 400 bytes, 307 200 characters of base64 in the calibration file.
+//! # Acceptance
+//! The correction is **accepted only if it lowers the error on the held-out anchors by more
+//! than `acceptance_se` standard errors** (default 1): with e_b, e_a the absolute held-out errors
+//! (metres) before and after the correction, the paired gains d = e_b − e_a of the held-out
+//! anchors without the [`HELD_OUT_TRIM`] fraction with the largest error before or after (false
+//! anchors), accepted iff mean(d) > 0 and mean(d) > `acceptance_se`·sd(d)/√n. A correction that
+//! only fits noise gains nothing on average on held-out anchors and then passes one standard
+//! error about one time in six, not one time in two. Accepted corrections are refitted on all
+//! used anchors. Otherwise, and when fewer than max(`min_anchors`, `min_anchor_fraction` × the
+//! store's candidates) anchors remain, the one-shot result is kept and the [`RealignReport`]
+//! says why (with the trimmed held-out RMSE before/after, the mean gain and its standard error).
+//! The report never holds NaN.
+//!
+//! # What it cannot correct
+//! Re-alignment on the calibration's own output restores the calibration frame's state; the
+//! calibration's own error on objects (a depth model flattening objects towards the table,
+//! seeing through glass) stays. Where a frame's change happened to offset that error, removing
+//! the change makes that frame worse on its objects while its background improves (measured on
+//! SIMULATED predictions in docs/evaluation.md, example `realign_diag`).
+//!
+//! Store size at 640×480: 320×240 half-resolution pixels × (1 byte grey + 2 bytes depth + 2 bytes
+//! one-shot + 4 bytes normalised prediction) = 691 200 bytes, 921 600 characters of base64 in the
+//! calibration file (230 400 bytes for a store of grey and depth only). Stores written without
+//! the normalised prediction read unchanged and serve `scale-shift` and `planar`.
 
-use ndarray::{Array2, ArrayView3, ArrayViewMut2};
+use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::align::AlignmentModel;
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, MetricDepth, is_valid_depth};
 use crate::normalise::AlignSpace;
@@ -69,6 +107,12 @@ use crate::normalise::AlignSpace;
 /// full-resolution stride of 4 pixels): 4 800 candidates at 640×480, far more than a correction
 /// of at most four parameters needs, at a quarter of the cost.
 pub const ANCHOR_STRIDE: usize = 2;
+
+/// Plausible range of the global brightness gain k (rule 1): outside it the frame has no
+/// anchors (a gain of 1/4 or less squeezes the calibration's texture below the grey tolerance).
+pub const MIN_GAIN: f32 = 0.25;
+/// Upper end of the plausible gain range (see [`MIN_GAIN`]).
+pub const MAX_GAIN: f32 = 4.0;
 
 /// Smallest image an anchor store accepts, pixels per side.
 pub const MIN_ANCHOR_IMAGE_SIDE_PX: usize = 8;
@@ -86,6 +130,7 @@ pub struct AnchorStore {
     grey: Array2<u8>,
     depth_mm: Array2<u16>,
     one_shot_mm: Option<Array2<u16>>,
+    normalised: Option<Array2<f32>>,
 }
 
 /// The serialised form of an [`AnchorStore`].
@@ -104,6 +149,11 @@ struct AnchorStoreFile {
     /// u16 little-endian, base64 (absent: only the ground-truth target is available).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     one_shot_mm_b64: Option<String>,
+    /// The calibration's normalised prediction ẑ on the calibration frame at the same pixels,
+    /// f32 little-endian, base64 (NaN where none; absent in stores written before the
+    /// `prediction-affine` correction).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    normalised_b64: Option<String>,
 }
 
 fn half(size: ImageSize) -> (usize, usize) {
@@ -208,6 +258,7 @@ impl AnchorStore {
             grey,
             depth_mm,
             one_shot_mm: None,
+            normalised: None,
         };
         if store.valid_depth_px() == 0 {
             return Err(CoreError::NoValidPixels(
@@ -235,6 +286,31 @@ impl AnchorStore {
             }
         }));
         Ok(self)
+    }
+
+    /// Records the calibration's normalised prediction ẑ of the calibration frame (full
+    /// resolution, the map the calibration was fitted on) at the store's pixels, for the
+    /// `prediction-affine` correction.
+    ///
+    /// # Errors
+    /// Size mismatch.
+    pub fn with_normalised(mut self, normalised: ArrayView2<'_, f32>) -> Result<Self> {
+        self.size.expect_eq(
+            "calibration normalised prediction",
+            ImageSize::of(&normalised),
+        )?;
+        let (hh, hw) = half(self.size);
+        self.normalised = Some(Array2::from_shape_fn((hh, hw), |(i, j)| {
+            let x = normalised[[2 * i, 2 * j]];
+            if x.is_finite() { x } else { f32::NAN }
+        }));
+        Ok(self)
+    }
+
+    /// Whether the calibration's normalised prediction is stored (needed by
+    /// [`CorrectionModel::PredictionAffine`]).
+    pub fn has_normalised(&self) -> bool {
+        self.normalised.is_some()
     }
 
     /// Whether the calibration's one-shot result is stored.
@@ -272,6 +348,7 @@ impl AnchorStore {
         self.grey.len()
             + 2 * self.depth_mm.len()
             + self.one_shot_mm.as_ref().map_or(0, |a| 2 * a.len())
+            + self.normalised.as_ref().map_or(0, |a| 4 * a.len())
     }
 
     /// Checks internal consistency (array shapes against the image size).
@@ -295,6 +372,10 @@ impl AnchorStore {
                 .one_shot_mm
                 .as_ref()
                 .is_some_and(|a| a.dim() != (hh, hw))
+            || self
+                .normalised
+                .as_ref()
+                .is_some_and(|a| a.dim() != (hh, hw))
         {
             return Err(CoreError::InvalidParameter(format!(
                 "anchor store arrays are not {hw}x{hh} (half of {})",
@@ -315,6 +396,10 @@ impl From<AnchorStore> for AnchorStoreFile {
             grey_b64: b64_encode(&s.grey.iter().copied().collect::<Vec<u8>>()),
             depth_mm_b64: b64_encode(&depth),
             one_shot_mm_b64: s.one_shot_mm.as_ref().map(|a| b64_encode(&le(a))),
+            normalised_b64: s
+                .normalised
+                .as_ref()
+                .map(|a| b64_encode(&a.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>())),
         }
     }
 }
@@ -365,6 +450,29 @@ impl TryFrom<AnchorStoreFile> for AnchorStore {
                 .one_shot_mm_b64
                 .as_deref()
                 .map(|t| u16s("one_shot_mm_b64", t))
+                .transpose()?,
+            normalised: f
+                .normalised_b64
+                .as_deref()
+                .map(|t| -> std::result::Result<Array2<f32>, String> {
+                    let bytes =
+                        b64_decode(t).map_err(|e| format!("anchor store normalised_b64: {e}"))?;
+                    if bytes.len() != 4 * hh * hw {
+                        return Err(format!(
+                            "anchor store normalised_b64 holds {} bytes, expected {} ({hw}x{hh} f32)",
+                            bytes.len(),
+                            4 * hh * hw
+                        ));
+                    }
+                    let v: Vec<f32> = bytes
+                        .chunks_exact(4)
+                        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                        .collect();
+                    if v.iter().any(|x| x.is_infinite()) {
+                        return Err("anchor store normalised_b64 holds an infinite value".into());
+                    }
+                    Array2::from_shape_vec((hh, hw), v).map_err(|e| e.to_string())
+                })
                 .transpose()?,
         })
     }
@@ -451,6 +559,14 @@ pub enum CorrectionModel {
     ScaleShift,
     /// δ = c₀ + c₁·y' + c₂·u' + c₃·v': plus a planar shift over the image.
     Planar,
+    /// An affine map ẑ' = a·ẑ + b of the frame's *normalised prediction*, fitted at the anchors
+    /// to reproduce the calibration frame's normalised prediction there, then the calibration's
+    /// model applied: exact for every method when the background's prediction changed by an
+    /// affine map (per-frame min-max statistics, a depth model's per-frame scale and shift in
+    /// its own output space). Needs the frame's normalised map
+    /// ([`crate::Calibration::realign_normalised_into`]) and a store with
+    /// [`AnchorStore::with_normalised`]; target `calibration-output` only.
+    PredictionAffine,
 }
 
 impl std::fmt::Display for CorrectionModel {
@@ -458,6 +574,7 @@ impl std::fmt::Display for CorrectionModel {
         f.write_str(match self {
             Self::ScaleShift => "scale-shift",
             Self::Planar => "planar",
+            Self::PredictionAffine => "prediction-affine",
         })
     }
 }
@@ -468,8 +585,10 @@ impl std::str::FromStr for CorrectionModel {
         match s {
             "scale-shift" => Ok(Self::ScaleShift),
             "planar" => Ok(Self::Planar),
+            "prediction-affine" => Ok(Self::PredictionAffine),
             other => Err(CoreError::InvalidParameter(format!(
-                "unknown re-alignment correction '{other}' (expected scale-shift or planar)"
+                "unknown re-alignment correction '{other}' (expected prediction-affine, \
+                 scale-shift or planar)"
             ))),
         }
     }
@@ -522,7 +641,8 @@ pub struct RealignConfig {
     /// What the correction is fitted to.
     pub target: AnchorTarget,
     /// Ridge λ towards the identity, in anchor equivalents (default 100; with the default 200
-    /// anchors a strong shrinkage, chosen by the ablation in docs/evaluation.md).
+    /// anchors a strong shrinkage, chosen for `scale-shift` by the ablation in
+    /// docs/evaluation.md; the `prediction-affine` tables there use λ = 1 and 2000 anchors).
     pub ridge: f64,
     /// Most anchors used (seeded subsample; default 200).
     pub max_anchors: usize,
@@ -534,6 +654,11 @@ pub struct RealignConfig {
     pub min_anchor_fraction: f64,
     /// Fraction of the used anchors held out to accept or reject the correction (default 0.3).
     pub holdout_fraction: f64,
+    /// Acceptance margin: the mean paired held-out gain (|error before| − |error after|, metres,
+    /// [`HELD_OUT_TRIM`] trimmed) must exceed this many of its standard errors (default 1; 0
+    /// accepts any gain). A correction that only fits noise gains nothing on held-out anchors
+    /// on average and is rejected most of the time.
+    pub acceptance_se: f64,
     /// Seed of the subsample and the split.
     pub seed: u64,
 }
@@ -549,6 +674,7 @@ impl Default for RealignConfig {
             min_anchors: 50,
             min_anchor_fraction: 0.05,
             holdout_fraction: 0.3,
+            acceptance_se: 1.0,
             seed: 0,
         }
     }
@@ -570,6 +696,12 @@ impl RealignConfig {
             return Err(CoreError::InvalidParameter(format!(
                 "re-alignment ridge {} must be finite and >= 0",
                 self.ridge
+            )));
+        }
+        if !(self.acceptance_se.is_finite() && self.acceptance_se >= 0.0) {
+            return Err(CoreError::InvalidParameter(format!(
+                "re-alignment acceptance_se {} must be finite and >= 0",
+                self.acceptance_se
             )));
         }
         if !(self.holdout_fraction > 0.0 && self.holdout_fraction < 1.0) {
@@ -608,6 +740,19 @@ pub struct RealignReport {
     pub held_out_rmse_before_m: Option<f64>,
     /// RMSE of the corrected result on the held-out anchors, metres.
     pub held_out_rmse_after_m: Option<f64>,
+    /// Mean paired held-out gain |error before| − |error after|, metres ([`HELD_OUT_TRIM`]
+    /// trimmed; positive: the correction helps), and its standard error.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_gain_m: Option<f64>,
+    /// Standard error of [`RealignReport::held_out_gain_m`], metres.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_gain_se_m: Option<f64>,
+    /// The correction form that was tried.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub correction: Option<CorrectionModel>,
+    /// The accepted `prediction-affine` map ẑ' = a·ẑ + b as `[a, b]` (absent otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prediction_affine: Option<[f64; 2]>,
     /// Whether the correction was applied.
     pub accepted: bool,
     /// Why (a warning when not accepted).
@@ -663,6 +808,14 @@ pub fn find_anchors(
             gain: None,
         });
     };
+    if !(MIN_GAIN..=MAX_GAIN).contains(&k) {
+        // an implausible exposure change (lens covered, lights off): a gain this far from 1
+        // compresses the calibration's texture below the tolerance, so no pixel is trusted
+        return Ok(Anchors {
+            pixels: Vec::new(),
+            gain: Some(k as f64),
+        });
+    }
     // rules 2–4 at the candidate pixels (every ANCHOR_STRIDE-th half-resolution pixel in each
     // direction): for some displacement s, every pixel q of the 3×3 patch around p must match,
     // |g_f(q) − k·g_c(q + s)| ≤ abs + rel·k·g_c(q); tests stop at the first mismatch.
@@ -743,7 +896,7 @@ impl Correction {
     fn features(&self, y: f64, u: f64, v: f64) -> [f64; 4] {
         let s = y / self.y0;
         match self.model {
-            CorrectionModel::ScaleShift => [s, 1.0, 0.0, 0.0],
+            CorrectionModel::ScaleShift | CorrectionModel::PredictionAffine => [s, 1.0, 0.0, 0.0],
             CorrectionModel::Planar => [
                 s,
                 1.0,
@@ -785,7 +938,7 @@ impl Correction {
         }
         // unused features: identity rows keep the system regular (their coefficient stays 0)
         let used = match model {
-            CorrectionModel::ScaleShift => 2,
+            CorrectionModel::ScaleShift | CorrectionModel::PredictionAffine => 2,
             CorrectionModel::Planar => 4,
         };
         for p in 0..4 {
@@ -827,37 +980,138 @@ impl Correction {
     }
 }
 
-/// Held-out error, metres: the RMSE over the held-out anchors without the largest
-/// [`HELD_OUT_TRIM`] fraction of their errors (a few false anchors, e.g. on a new object of the
-/// background's grey, must not decide); an anchor without depth counts with its full depth.
-fn rmse_m(obs: &[Obs], space: AlignSpace, corr: Option<&Correction>) -> f64 {
-    let mut e2: Vec<f64> = obs
-        .iter()
+/// Absolute error of a depth against its reference, metres; an invalid depth counts with the
+/// full reference depth.
+fn abs_err_m(z: f64, z_ref: f64) -> f64 {
+    if z.is_finite() && z > 0.0 {
+        (z - z_ref).abs()
+    } else {
+        z_ref
+    }
+}
+
+/// Held-out absolute errors, metres, of the one-shot result (`corr` None) or the corrected one.
+fn errors_m(obs: &[Obs], space: AlignSpace, corr: Option<&Correction>) -> Vec<f64> {
+    obs.iter()
         .map(|o| {
-            let z = match corr {
-                Some(c) => space.depth_from_target(o.y + c.delta(o.y, o.u, o.v)),
-                None => space.depth_from_target(o.y),
+            let t = match corr {
+                Some(c) => o.y + c.delta(o.y, o.u, o.v),
+                None => o.y,
             };
-            let e = if z.is_finite() { z - o.z_m } else { o.z_m };
-            e * e
+            abs_err_m(space.depth_from_target(t), o.z_m)
         })
-        .collect();
+        .collect()
+}
+
+/// The RMSE of absolute errors without the largest [`HELD_OUT_TRIM`] fraction of them (a few
+/// false anchors, e.g. on a new object of the background's grey, must not decide).
+fn trimmed_rmse(errors: &[f64]) -> f64 {
+    let mut e2: Vec<f64> = errors.iter().map(|e| e * e).collect();
     e2.sort_by(f64::total_cmp);
     let keep =
         ((e2.len() as f64 * (1.0 - HELD_OUT_TRIM)).ceil() as usize).clamp(1, e2.len().max(1));
     (e2.iter().take(keep).sum::<f64>() / keep as f64).sqrt()
 }
 
-/// Fraction of the largest held-out errors left out of the held-out RMSE.
+/// Mean paired gain `before − after` of absolute held-out errors and its standard error, over
+/// the held-out anchors without the [`HELD_OUT_TRIM`] fraction with the largest error before or
+/// after.
+fn paired_gain(before: &[f64], after: &[f64]) -> (f64, f64) {
+    let n = before.len().min(after.len());
+    if n == 0 {
+        return (0.0, 0.0);
+    }
+    let mut idx: Vec<usize> = (0..n).collect();
+    idx.sort_by(|&a, &b| before[a].max(after[a]).total_cmp(&before[b].max(after[b])));
+    let keep = ((n as f64 * (1.0 - HELD_OUT_TRIM)).ceil() as usize).clamp(1, n);
+    let d: Vec<f64> = idx[..keep].iter().map(|&i| before[i] - after[i]).collect();
+    let k = d.len() as f64;
+    let mean = d.iter().sum::<f64>() / k;
+    if d.len() < 2 {
+        return (mean, 0.0);
+    }
+    let var = d.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (k - 1.0);
+    (mean, (var / k).sqrt())
+}
+
+/// Fills the held-out part of the report and decides acceptance (module documentation).
+fn decide(report: &mut RealignReport, before: &[f64], after: &[f64], acceptance_se: f64) -> bool {
+    let (rb, ra) = (trimmed_rmse(before), trimmed_rmse(after));
+    let (gain, se) = paired_gain(before, after);
+    report.held_out_rmse_before_m = Some(rb);
+    report.held_out_rmse_after_m = Some(ra);
+    report.held_out_gain_m = Some(gain);
+    report.held_out_gain_se_m = Some(se);
+    let ok = gain > 0.0 && gain > acceptance_se * se;
+    if !ok {
+        report.reason = format!(
+            "kept the one-shot result: the correction does not lower the held-out error enough \
+             (RMSE {:.2} mm -> {:.2} mm; mean gain {:.3} mm, standard error {:.3} mm, needs > {} \
+             standard error(s))",
+            rb * 1e3,
+            ra * 1e3,
+            gain * 1e3,
+            se * 1e3,
+            acceptance_se
+        );
+    }
+    ok
+}
+
+/// Fraction of the largest held-out errors left out of the held-out RMSE and of the paired
+/// gain.
 pub const HELD_OUT_TRIM: f64 = 0.1;
 
+/// The fewest anchors a frame needs (module documentation).
+fn anchors_needed(store: &AnchorStore, config: &RealignConfig) -> usize {
+    config
+        .min_anchors
+        .max((config.min_anchor_fraction * store.candidate_px() as f64).ceil() as usize)
+}
+
+fn too_few_reason(have: usize, need: usize) -> String {
+    format!(
+        "kept the one-shot result: {have} usable anchor(s), need {need} (background covered or \
+         changed, camera moved, or lighting changed locally)",
+    )
+}
+
+/// The seeded subsample of at most `max_anchors` and the number held out (the first ones).
+fn subsample<T: Copy>(mut obs: Vec<T>, config: &RealignConfig) -> (Vec<T>, usize) {
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let take = config.max_anchors.min(obs.len());
+    let (chosen, _) = obs.partial_shuffle(&mut rng, take);
+    let obs = chosen.to_vec();
+    let n_hold = ((obs.len() as f64 * config.holdout_fraction).round() as usize)
+        .clamp(1, obs.len().saturating_sub(4).max(1));
+    (obs, n_hold)
+}
+
+fn empty_report(anchors: &Anchors, model: CorrectionModel) -> RealignReport {
+    RealignReport {
+        anchors: anchors.pixels.len(),
+        anchors_used: 0,
+        brightness_gain: anchors.gain,
+        held_out_rmse_before_m: None,
+        held_out_rmse_after_m: None,
+        held_out_gain_m: None,
+        held_out_gain_se_m: None,
+        correction: Some(model),
+        prediction_affine: None,
+        accepted: false,
+        reason: String::new(),
+    }
+}
+
 /// Re-aligns a one-shot result in place on the anchors of the frame with RGB `rgb`
-/// `(height, width, 3)`; `depth_m` holds the one-shot metres (NaN where none) and is changed
-/// only when the correction is accepted. `space` is the calibration's alignment space.
+/// `(height, width, 3)` with an output-space correction (`scale-shift`, `planar`); `depth_m`
+/// holds the one-shot metres (NaN where none) and is changed only when the correction is
+/// accepted. `space` is the calibration's alignment space.
 ///
 /// # Errors
-/// Size mismatches with the store, an invalid `config`. Too few anchors or a rejected correction
-/// are not errors: the report says so and `depth_m` is unchanged.
+/// Size mismatches with the store, an invalid `config`, the `prediction-affine` form (it needs
+/// the frame's normalised prediction: [`realign_prediction_affine`]). Too few anchors or a
+/// rejected correction are not errors: the report says so and `depth_m` is unchanged.
 pub fn realign_in_place(
     store: &AnchorStore,
     rgb: ArrayView3<'_, u8>,
@@ -866,19 +1120,16 @@ pub fn realign_in_place(
     depth_m: &mut ArrayViewMut2<'_, f32>,
 ) -> Result<RealignReport> {
     config.validate()?;
+    if config.model == CorrectionModel::PredictionAffine {
+        return Err(CoreError::InvalidParameter(
+            "the prediction-affine re-alignment needs the frame's normalised prediction: use \
+             Calibration::align_realigned or Calibration::realign_normalised_into"
+                .into(),
+        ));
+    }
     store
         .size
         .expect_eq("one-shot depth", ImageSize::of(&depth_m.view()))?;
-    let anchors = find_anchors(store, rgb, &config.thresholds)?;
-    let mut report = RealignReport {
-        anchors: anchors.pixels.len(),
-        anchors_used: 0,
-        brightness_gain: anchors.gain,
-        held_out_rmse_before_m: None,
-        held_out_rmse_after_m: None,
-        accepted: false,
-        reason: String::new(),
-    };
     if config.target == AnchorTarget::CalibrationOutput && !store.has_one_shot() {
         return Err(CoreError::InvalidParameter(
             "re-alignment target calibration-output needs the calibration's one-shot result in \
@@ -886,7 +1137,9 @@ pub fn realign_in_place(
                 .into(),
         ));
     }
-    let mut obs: Vec<Obs> = anchors
+    let anchors = find_anchors(store, rgb, &config.thresholds)?;
+    let mut report = empty_report(&anchors, config.model);
+    let obs: Vec<Obs> = anchors
         .pixels
         .iter()
         .filter_map(|&(u, v, gt, cal)| {
@@ -905,40 +1158,23 @@ pub fn realign_in_place(
             })
         })
         .collect();
-    let need = config
-        .min_anchors
-        .max((config.min_anchor_fraction * store.candidate_px() as f64).ceil() as usize);
+    let need = anchors_needed(store, config);
     if obs.len() < need {
         report.anchors_used = obs.len();
-        report.reason = format!(
-            "kept the one-shot result: {} usable anchor(s), need {need} (background covered or changed, camera moved, or lighting changed locally)",
-            obs.len(),
-        );
+        report.reason = too_few_reason(obs.len(), need);
         return Ok(report);
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    let take = config.max_anchors.min(obs.len());
-    let (chosen, _) = obs.partial_shuffle(&mut rng, take);
-    let obs = chosen.to_vec();
+    let (obs, n_hold) = subsample(obs, config);
     report.anchors_used = obs.len();
-    let n_hold =
-        ((obs.len() as f64 * config.holdout_fraction).round() as usize).clamp(1, obs.len() - 4);
     let (held, train) = obs.split_at(n_hold);
-    let before = rmse_m(held, space, None);
-    report.held_out_rmse_before_m = Some(before);
     let Some(trial) = Correction::fit_trimmed(config.model, store.size, train, config.ridge) else {
         report.reason =
             "kept the one-shot result: the correction is degenerate on these anchors".into();
         return Ok(report);
     };
-    let after = rmse_m(held, space, Some(&trial));
-    report.held_out_rmse_after_m = Some(after);
-    if after.partial_cmp(&before) != Some(std::cmp::Ordering::Less) {
-        report.reason = format!(
-            "kept the one-shot result: the correction does not lower the held-out RMSE ({:.2} mm -> {:.2} mm)",
-            before * 1e3,
-            after * 1e3
-        );
+    let before = errors_m(held, space, None);
+    let after = errors_m(held, space, Some(&trial));
+    if !decide(&mut report, &before, &after, config.acceptance_se) {
         return Ok(report);
     }
     let Some(fin) = Correction::fit_trimmed(config.model, store.size, &obs, config.ridge) else {
@@ -969,30 +1205,233 @@ pub fn realign_in_place(
                 }
             }),
         }
-    }
-    for ((v, u), d) in depth_m.indexed_iter_mut() {
-        if fin.model == CorrectionModel::ScaleShift {
-            break;
+    } else {
+        for ((v, u), d) in depth_m.indexed_iter_mut() {
+            let z = *d as f64;
+            if !is_valid_depth(*d) {
+                continue;
+            }
+            let y = space.target_from_depth(z);
+            let t = y + fin.delta(y, u as f64, v as f64);
+            let zc = space.depth_from_target(t);
+            *d = if zc.is_finite() && zc > 0.0 {
+                zc as f32
+            } else {
+                f32::NAN
+            };
         }
-        let z = *d as f64;
-        if !is_valid_depth(*d) {
-            continue;
-        }
-        let y = space.target_from_depth(z);
-        let t = y + fin.delta(y, u as f64, v as f64);
-        let zc = space.depth_from_target(t);
-        *d = if zc.is_finite() && zc > 0.0 {
-            zc as f32
-        } else {
-            f32::NAN
-        };
     }
     report.accepted = true;
-    report.reason = format!(
-        "corrected on {} anchors: held-out RMSE {:.2} mm -> {:.2} mm",
-        obs.len(),
-        before * 1e3,
-        after * 1e3
-    );
+    report.reason = accepted_reason(&report, obs.len());
     Ok(report)
+}
+
+fn accepted_reason(report: &RealignReport, n: usize) -> String {
+    format!(
+        "corrected on {n} anchors: held-out RMSE {:.2} mm -> {:.2} mm (mean gain {:.3} mm, \
+         standard error {:.3} mm)",
+        report.held_out_rmse_before_m.unwrap_or(0.0) * 1e3,
+        report.held_out_rmse_after_m.unwrap_or(0.0) * 1e3,
+        report.held_out_gain_m.unwrap_or(0.0) * 1e3,
+        report.held_out_gain_se_m.unwrap_or(0.0) * 1e3,
+    )
+}
+
+/// One anchor of the `prediction-affine` fit: pixel, the frame's and the calibration frame's
+/// normalised prediction, and the calibration's result there (metres).
+#[derive(Debug, Clone, Copy)]
+struct PredObs {
+    u: f64,
+    v: f64,
+    x_new: f64,
+    x_cal: f64,
+    z_m: f64,
+}
+
+/// ẑ' = ẑ + c₀·R·(ẑ − m)/σ + R·c₁ (module documentation).
+#[derive(Debug, Clone, Copy)]
+struct PredAffine {
+    m: f64,
+    sd: f64,
+    r: f64,
+    c: [f64; 2],
+}
+
+impl PredAffine {
+    fn apply(&self, x: f64) -> f64 {
+        x + self.r * (self.c[0] * (x - self.m) / self.sd + self.c[1])
+    }
+
+    /// `(a, b)` of ẑ' = a·ẑ + b.
+    fn ab(&self) -> (f64, f64) {
+        let k = self.r * self.c[0] / self.sd;
+        (1.0 + k, self.r * self.c[1] - k * self.m)
+    }
+
+    /// Ridge least squares of (x_cal − x_new)/R on [(x_new − m)/σ, 1].
+    fn fit(obs: &[PredObs], r: f64, ridge: f64) -> Option<Self> {
+        if obs.len() < 2 {
+            return None;
+        }
+        let n = obs.len() as f64;
+        let m = obs.iter().map(|o| o.x_new).sum::<f64>() / n;
+        let sd = (obs.iter().map(|o| (o.x_new - m).powi(2)).sum::<f64>() / n).sqrt();
+        if !(sd.is_finite() && sd > 0.0) {
+            return None;
+        }
+        let (mut a00, mut a01, mut a11, mut b0, mut b1) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for o in obs {
+            let f = (o.x_new - m) / sd;
+            let y = (o.x_cal - o.x_new) / r;
+            a00 += f * f;
+            a01 += f;
+            a11 += 1.0;
+            b0 += f * y;
+            b1 += y;
+        }
+        a00 += ridge.max(1e-9);
+        a11 += ridge.max(1e-9);
+        let det = a00 * a11 - a01 * a01;
+        if !(det.is_finite() && det > 0.0) {
+            return None;
+        }
+        let c = [(a11 * b0 - a01 * b1) / det, (a00 * b1 - a01 * b0) / det];
+        (m.is_finite() && c.iter().all(|x| x.is_finite())).then_some(Self { m, sd, r, c })
+    }
+
+    /// Fit, one trimming pass (3 robust standard deviations), refit.
+    fn fit_trimmed(obs: &[PredObs], r: f64, ridge: f64) -> Option<Self> {
+        let first = Self::fit(obs, r, ridge)?;
+        let mut res: Vec<f32> = obs
+            .iter()
+            .map(|o| (o.x_cal - first.apply(o.x_new)) as f32)
+            .collect();
+        let med = median_in_place(&mut res.clone())?;
+        for x in res.iter_mut() {
+            *x = (*x - med).abs();
+        }
+        let mad = median_in_place(&mut res.clone())? as f64;
+        let thr = (3.0 * 1.4826 * mad).max(1e-12);
+        let kept: Vec<PredObs> = obs
+            .iter()
+            .zip(&res)
+            .filter(|&(_, &x)| (x as f64) <= thr)
+            .map(|(o, _)| *o)
+            .collect();
+        if kept.len() == obs.len() || kept.len() < 4 {
+            return Some(first);
+        }
+        Self::fit(&kept, r, ridge)
+    }
+}
+
+/// The `prediction-affine` re-alignment of a frame (module documentation): finds the anchors of
+/// the frame with RGB `rgb` `(height, width, 3)`, fits ẑ' = a·ẑ + b of the frame's normalised
+/// prediction `normalised` so that it reproduces the calibration frame's normalised prediction
+/// at the anchors, and decides on held-out anchors, measured in metres through `model` (the
+/// calibration's alignment model, in `space`). Returns the report and `(a, b)` when accepted;
+/// the caller applies the model to a·ẑ + b.
+///
+/// # Errors
+/// Size mismatches with the store, an invalid `config`, a store without the calibration's
+/// normalised prediction ([`AnchorStore::with_normalised`]), target `ground-truth`.
+pub fn realign_prediction_affine(
+    store: &AnchorStore,
+    rgb: ArrayView3<'_, u8>,
+    model: &AlignmentModel,
+    space: AlignSpace,
+    config: &RealignConfig,
+    normalised: ArrayView2<'_, f32>,
+) -> Result<(RealignReport, Option<(f32, f32)>)> {
+    config.validate()?;
+    store
+        .size
+        .expect_eq("normalised prediction", ImageSize::of(&normalised))?;
+    if config.target != AnchorTarget::CalibrationOutput {
+        return Err(CoreError::InvalidParameter(format!(
+            "the prediction-affine re-alignment reproduces the calibration frame's own \
+             prediction (target calibration-output); target {} needs the scale-shift or planar \
+             correction",
+            config.target
+        )));
+    }
+    let stored = store.normalised.as_ref().ok_or_else(|| {
+        CoreError::InvalidParameter(
+            "the anchor store holds no normalised calibration prediction (written before the \
+             prediction-affine correction existed): calibrate again with --anchors, or choose \
+             the scale-shift correction"
+                .into(),
+        )
+    })?;
+    let anchors = find_anchors(store, rgb, &config.thresholds)?;
+    let mut report = empty_report(&anchors, CorrectionModel::PredictionAffine);
+    // R: the range of the calibration's normalised prediction, the scale over which the
+    // correction is extrapolated from the anchors to the rest of the image
+    let (lo, hi) = stored
+        .iter()
+        .filter(|x| x.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
+            (lo.min(x as f64), hi.max(x as f64))
+        });
+    let r = hi - lo;
+    let obs: Vec<PredObs> = anchors
+        .pixels
+        .iter()
+        .filter_map(|&(u, v, _, _)| {
+            let x_new = normalised[[v as usize, u as usize]] as f64;
+            let x_cal = stored[[v as usize / 2, u as usize / 2]] as f64;
+            let (uf, vf) = (u as f64, v as f64);
+            let z = space.depth_from_target(model.predict_at(uf, vf, x_cal));
+            (x_new.is_finite() && x_cal.is_finite() && z.is_finite() && z > 0.0).then_some(
+                PredObs {
+                    u: uf,
+                    v: vf,
+                    x_new,
+                    x_cal,
+                    z_m: z,
+                },
+            )
+        })
+        .collect();
+    let need = anchors_needed(store, config);
+    if obs.len() < need {
+        report.anchors_used = obs.len();
+        report.reason = too_few_reason(obs.len(), need);
+        return Ok((report, None));
+    }
+    let (obs, n_hold) = subsample(obs, config);
+    report.anchors_used = obs.len();
+    let (held, train) = obs.split_at(n_hold);
+    let trial = if r.is_finite() && r > 0.0 {
+        PredAffine::fit_trimmed(train, r, config.ridge)
+    } else {
+        None
+    };
+    let Some(trial) = trial else {
+        report.reason =
+            "kept the one-shot result: the correction is degenerate on these anchors".into();
+        return Ok((report, None));
+    };
+    let depth_at = |o: &PredObs, x: f64| space.depth_from_target(model.predict_at(o.u, o.v, x));
+    let before: Vec<f64> = held
+        .iter()
+        .map(|o| abs_err_m(depth_at(o, o.x_new), o.z_m))
+        .collect();
+    let after: Vec<f64> = held
+        .iter()
+        .map(|o| abs_err_m(depth_at(o, trial.apply(o.x_new)), o.z_m))
+        .collect();
+    if !decide(&mut report, &before, &after, config.acceptance_se) {
+        return Ok((report, None));
+    }
+    let Some(fin) = PredAffine::fit_trimmed(&obs, r, config.ridge) else {
+        report.reason =
+            "kept the one-shot result: the correction is degenerate on all anchors".into();
+        return Ok((report, None));
+    };
+    let (a, b) = fin.ab();
+    report.accepted = true;
+    report.prediction_affine = Some([a, b]);
+    report.reason = accepted_reason(&report, obs.len());
+    Ok((report, Some((a as f32, b as f32))))
 }

@@ -67,8 +67,27 @@ fn disparity(z: &MetricDepth, a: f32, b: f32) -> Prediction {
 }
 
 fn calibration() -> Calibration {
+    calibration_with(Method::Gssa)
+}
+
+fn calibration_with(method: Method) -> Calibration {
+    calibration_on(method, &gt(false))
+}
+
+/// A table tilted along both image axes (SSRA's features need depth varying with u and v).
+fn gt_tilted(with_object: bool) -> MetricDepth {
+    MetricDepth::new(Array2::from_shape_fn((H, W), |(v, u)| {
+        if with_object && in_object(u, v) {
+            0.6
+        } else {
+            table_m(v) + 0.0015 * u as f32
+        }
+    }))
+}
+
+fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
     let config = CalibrationConfig {
-        method: Method::Gssa,
+        method,
         normalisation: NormalisationConfig {
             method: Normalisation::None,
             space: AlignSpace::Inverse,
@@ -80,11 +99,10 @@ fn calibration() -> Calibration {
         },
         robust: None,
     };
-    let g = gt(false);
-    let pred = disparity(&g, 2.0, 0.0);
-    calibrate(&pred, &g, &config, None, None)
+    let pred = disparity(g, 2.0, 0.0);
+    calibrate(&pred, g, &config, None, None)
         .unwrap()
-        .with_anchors(rgb(false, 1.0, 0, 1).view(), &g, &pred)
+        .with_anchors(rgb(false, 1.0, 0, 1).view(), g, &pred)
         .unwrap()
 }
 
@@ -281,6 +299,15 @@ fn fully_covered_background_falls_back_cleanly() {
     // the report serialises without NaN
     let json = serde_json::to_string(&report).unwrap();
     assert!(!json.contains("NaN") && json.contains("null"), "{json}");
+    // a uniform dark frame (lens covered, lights off): the gain k = 0.06 is implausible, so no
+    // pixel may match the gain-compressed background
+    let dark = Array3::<u8>::from_elem((H, W, 3), 7);
+    let (re, r) = cal
+        .align_realigned(&pred, dark.view(), &RealignConfig::default())
+        .unwrap();
+    assert!(!r.accepted && r.anchors == 0, "{r:?}");
+    assert!(r.brightness_gain.unwrap() < 0.1);
+    assert_eq!(re, one_shot);
     // a black frame: no brightness gain can be estimated, no anchor
     let black = Array3::<u8>::zeros((H, W, 3));
     let (_, r) = cal
@@ -325,8 +352,10 @@ fn anchor_store_serde_round_trip_and_bad_input() {
     assert_eq!(back, cal);
     back.validate().unwrap();
     let store = cal.anchor_store().unwrap();
-    // grey, ground truth and the calibration's own result: 5 bytes per half-resolution pixel
-    assert_eq!(store.stored_bytes(), (W / 2) * (H / 2) * 5);
+    // grey, ground truth, the calibration's own result and its normalised prediction: 9 bytes
+    // per half-resolution pixel
+    assert!(store.has_normalised());
+    assert_eq!(store.stored_bytes(), (W / 2) * (H / 2) * 9);
     // at 640×480: 320·240·3 bytes
     let big = AnchorStore::new(
         Array3::<u8>::zeros((480, 640, 3)).view(),
@@ -418,4 +447,171 @@ fn no_anchor_store_is_a_clear_error() {
         cal.align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &bad)
             .is_err()
     );
+}
+
+/// The prediction-affine correction is exact for every method when the prediction of the
+/// whole scene changed by an affine map in its own space: the result is the calibration's model
+/// applied to the prediction as it would have been without the change (an independent
+/// expectation), on the background and on the object that never served as anchor.
+#[test]
+fn prediction_affine_is_exact_for_every_method() {
+    let truth = gt_tilted(true);
+    let changed = disparity(&truth, 2.3, 0.2);
+    let unchanged = disparity(&truth, 2.0, 0.0);
+    let config = RealignConfig {
+        model: CorrectionModel::PredictionAffine,
+        ridge: 0.0,
+        max_anchors: 2000,
+        ..Default::default()
+    };
+    // LWLR and the local variant vary over the image: an output-space scale/shift is not exact
+    // for them, the prediction-space map is
+    for method in ["gssa", "lwlr", "gssa-local"] {
+        let cal = calibration_on(method.parse().unwrap(), &gt_tilted(false));
+        let expected = cal.align(&unchanged).unwrap();
+        let one_shot = cal.align(&changed).unwrap();
+        let (re, report) = cal
+            .align_realigned(&changed, rgb(true, 1.0, 0, 2).view(), &config)
+            .unwrap();
+        assert!(report.accepted, "{method}: {report:?}");
+        assert_eq!(report.correction, Some(CorrectionModel::PredictionAffine));
+        // ẑ_new = 1.15·ẑ_cal + 0.2 (no normalisation): the map back is a = 1/1.15, b = −0.2/1.15
+        let [a, b] = report.prediction_affine.unwrap();
+        assert!((a - 1.0 / 1.15).abs() < 1e-4, "{method}: a = {a}");
+        assert!((b + 0.2 / 1.15).abs() < 1e-4, "{method}: b = {b}");
+        let mut worst = 0.0f32;
+        for (z, e) in re.depth_m.iter().zip(expected.depth_m.iter()) {
+            if e.is_finite() {
+                worst = worst.max((z - e).abs());
+            }
+        }
+        assert!(worst < 1e-4, "{method}: largest difference {worst} m");
+        let obj = |u, v| in_object(u, v);
+        assert!(
+            mae_m(&one_shot, &truth, obj) > 0.03,
+            "{method}: the change must matter"
+        );
+    }
+    // the same through realign_normalised_into with the one-shot result already in the buffer
+    let cal = calibration_on("lwlr".parse().unwrap(), &gt_tilted(false));
+    let normalised = cal.normalise(&changed).unwrap();
+    let mut buf = cal.align(&changed).unwrap();
+    let r = cal
+        .realign_normalised_into(
+            rgb(true, 1.0, 0, 2).view(),
+            &config,
+            &normalised,
+            &mut buf.depth_m.view_mut(),
+            true,
+        )
+        .unwrap();
+    assert!(r.accepted);
+    let expected = cal.align(&unchanged).unwrap();
+    let d = buf
+        .depth_m
+        .iter()
+        .zip(expected.depth_m.iter())
+        .filter(|(_, e)| e.is_finite())
+        .map(|(z, e)| (z - e).abs())
+        .fold(0.0f32, f32::max);
+    assert!(d < 1e-4, "{d}");
+}
+
+#[test]
+fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
+    let cal = calibration();
+    let truth = gt(true);
+    let pred = disparity(&truth, 2.3, 0.2);
+    let pa = RealignConfig {
+        model: CorrectionModel::PredictionAffine,
+        ..Default::default()
+    };
+    // an output-space entry point cannot run it
+    let mut d = cal.align(&pred).unwrap();
+    let e = cal
+        .realign_into(rgb(true, 1.0, 0, 2).view(), &pa, &mut d.depth_m.view_mut())
+        .unwrap_err();
+    assert!(e.to_string().contains("normalised prediction"), "{e}");
+    // a store written before the prediction-affine correction (no normalised_b64) still reads,
+    // serves scale-shift, and refuses prediction-affine with a clear message
+    let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
+    assert!(v["anchors"]["normalised_b64"].is_string());
+    v["anchors"]
+        .as_object_mut()
+        .unwrap()
+        .remove("normalised_b64");
+    let old: Calibration = serde_json::from_value(v).unwrap();
+    assert!(!old.anchor_store().unwrap().has_normalised());
+    let e = old
+        .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &pa)
+        .unwrap_err();
+    assert!(e.to_string().contains("calibrate again"), "{e}");
+    let (_, r) = old
+        .align_realigned(
+            &pred,
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap();
+    assert!(r.accepted, "{r:?}");
+    // target ground-truth is refused for prediction-affine
+    let e = cal
+        .align_realigned(
+            &pred,
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig {
+                target: AnchorTarget::GroundTruth,
+                ..pa
+            },
+        )
+        .unwrap_err();
+    assert!(e.to_string().contains("ground-truth"), "{e}");
+    // a corrupted normalised_b64 is refused naming the field
+    let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
+    v["anchors"]["normalised_b64"] = "AAAA".into();
+    let e = serde_json::from_value::<Calibration>(v)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("normalised_b64"), "{e}");
+    // a fully covered background falls back with the reason, depth = one-shot
+    let covered = Array3::from_shape_fn((H, W, 3), |(v, u, _)| {
+        (110.0 + 50.0 * ((u as f32) / 3.0).cos() * ((v as f32) / 4.0).sin()) as u8
+    });
+    let (re, r) = cal.align_realigned(&pred, covered.view(), &pa).unwrap();
+    assert!(!r.accepted && r.reason.contains("anchor"), "{r:?}");
+    assert_eq!(re, cal.align(&pred).unwrap());
+}
+
+/// The acceptance margin: a correction whose held-out gain is not beyond its standard error is
+/// rejected; with an unreachable margin nothing is accepted.
+#[test]
+fn acceptance_margin_rejects_with_the_gain_in_the_report() {
+    let cal = calibration();
+    let truth = gt(true);
+    let pred = disparity(&truth, 2.3, 0.2);
+    let one_shot = cal.align(&pred).unwrap();
+    let (_, ok) = cal
+        .align_realigned(
+            &pred,
+            rgb(true, 1.0, 0, 2).view(),
+            &RealignConfig::default(),
+        )
+        .unwrap();
+    assert!(ok.accepted);
+    let (g, se) = (ok.held_out_gain_m.unwrap(), ok.held_out_gain_se_m.unwrap());
+    assert!(g > se && g > 0.0, "gain {g}, se {se}");
+    let strict = RealignConfig {
+        acceptance_se: 1e9,
+        ..Default::default()
+    };
+    let (re, r) = cal
+        .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &strict)
+        .unwrap();
+    assert!(!r.accepted && r.reason.contains("does not lower"), "{r:?}");
+    assert_eq!(re, one_shot);
+    let bad = RealignConfig {
+        acceptance_se: -1.0,
+        ..Default::default()
+    };
+    assert!(bad.validate().is_err());
 }

@@ -2,9 +2,10 @@
 //! item 4): one-shot vs re-aligned MAE per set and method, brightness 1 / 0.8 / 1.2, and the
 //! ablation over the anchor count and the ridge.
 //!
-//! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation]`
+//! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation] [form=F] [ridge=λ] [max-anchors=N] [acceptance-se=K]`
 //! (default 10 seeds, simulated kind `inverse-depth`; `depth` for metric-like predictions;
-//! target `calibration-output` or `ground-truth`).
+//! target `calibration-output` or `ground-truth`; the main table uses the library's
+//! `RealignConfig` defaults unless `key=value` arguments override them).
 
 use moma_core::PredictionKind;
 use moma_core::align::Method;
@@ -20,18 +21,27 @@ const SETS: [&str; 4] = [
     "cleargrasp-transparent",
 ];
 
-const ABLATION: [(CorrectionModel, usize, f64); 11] = [
-    (CorrectionModel::ScaleShift, 200, 0.0),
-    (CorrectionModel::ScaleShift, 200, 10.0),
-    (CorrectionModel::ScaleShift, 200, 100.0),
-    (CorrectionModel::ScaleShift, 200, 1000.0),
-    (CorrectionModel::ScaleShift, 2000, 10.0),
-    (CorrectionModel::ScaleShift, 2000, 100.0),
-    (CorrectionModel::ScaleShift, 2000, 1000.0),
-    (CorrectionModel::ScaleShift, 50, 100.0),
-    (CorrectionModel::Planar, 200, 100.0),
-    (CorrectionModel::Planar, 2000, 100.0),
-    (CorrectionModel::Planar, 2000, 1000.0),
+/// (correction, max anchors, ridge λ, acceptance margin in standard errors)
+const ABLATION: [(CorrectionModel, usize, f64, f64); 19] = [
+    (CorrectionModel::ScaleShift, 200, 0.0, 0.0),
+    (CorrectionModel::ScaleShift, 200, 10.0, 0.0),
+    (CorrectionModel::ScaleShift, 200, 100.0, 0.0),
+    (CorrectionModel::ScaleShift, 200, 1000.0, 0.0),
+    (CorrectionModel::ScaleShift, 2000, 10.0, 0.0),
+    (CorrectionModel::ScaleShift, 2000, 100.0, 0.0),
+    (CorrectionModel::ScaleShift, 2000, 1000.0, 0.0),
+    (CorrectionModel::ScaleShift, 50, 100.0, 0.0),
+    (CorrectionModel::ScaleShift, 200, 100.0, 1.0),
+    (CorrectionModel::Planar, 200, 100.0, 0.0),
+    (CorrectionModel::Planar, 2000, 100.0, 0.0),
+    (CorrectionModel::Planar, 2000, 1000.0, 0.0),
+    (CorrectionModel::PredictionAffine, 200, 1.0, 1.0),
+    (CorrectionModel::PredictionAffine, 2000, 0.0, 1.0),
+    (CorrectionModel::PredictionAffine, 2000, 1.0, 0.0),
+    (CorrectionModel::PredictionAffine, 2000, 1.0, 1.0),
+    (CorrectionModel::PredictionAffine, 2000, 1.0, 2.0),
+    (CorrectionModel::PredictionAffine, 2000, 10.0, 1.0),
+    (CorrectionModel::PredictionAffine, 2000, 100.0, 1.0),
 ];
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -42,7 +52,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let target: moma_core::realign::AnchorTarget = std::env::args()
         .nth(3)
         .map_or(Ok(Default::default()), |s| s.parse())?;
-    let ablate = std::env::args().nth(4).is_none_or(|s| s != "no-ablation");
+    let mut ablate = true;
+    let mut base = RealignEval::default();
+    for a in std::env::args().skip(4) {
+        match a.split_once('=') {
+            None if a == "no-ablation" => ablate = false,
+            Some(("form", v)) => base.config.model = v.parse()?,
+            Some(("ridge", v)) => base.config.ridge = v.parse()?,
+            Some(("max-anchors", v)) => base.config.max_anchors = v.parse()?,
+            Some(("acceptance-se", v)) => base.config.acceptance_se = v.parse()?,
+            _ => return Err(format!("unknown argument '{a}'").into()),
+        }
+    }
     let shared = std::env::var("MOMA_SHARED_DIR").unwrap_or_else(|_| "/work/shared".into());
     let methods: Vec<Method> = ["ssra", "gssa", "lwlr"]
         .iter()
@@ -76,9 +97,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Ok(all)
     };
     // main table: brightness 1, 0.8, 1.2
+    println!(
+        "main table: correction {}, max anchors {}, ridge {}, acceptance {} standard error(s)",
+        base.config.model, base.config.max_anchors, base.config.ridge, base.config.acceptance_se
+    );
     let all = run(RealignEval {
         brightness: vec![1.0, 0.8, 1.2],
-        ..Default::default()
+        ..base.clone()
     })?;
     println!("{}", realign_table(&all).to_markdown());
     // the check: per method and variant, the change averaged over sets
@@ -125,15 +150,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     // ablation: anchors used and ridge, brightness 1, mean change over sets and methods
     println!(
-        "\n| correction | max anchors | ridge λ | mean MAE change % | frames worse | max worse mm |"
+        "\n| correction | max anchors | ridge λ | acceptance SE | mean MAE change % | frames worse | max worse mm |"
     );
-    println!("|---|---|---|---|---|---|");
-    for (model, max_anchors, ridge) in ABLATION {
+    println!("|---|---|---|---|---|---|---|");
+    for (model, max_anchors, ridge, se) in ABLATION {
         {
             let mut realign = RealignEval::default();
             realign.config.model = model;
             realign.config.max_anchors = max_anchors;
             realign.config.ridge = ridge;
+            realign.config.acceptance_se = se;
             let rows = run(realign)?;
             let stats: Vec<(f64, moma_eval::realign::RealignStats)> = rows
                 .iter()
@@ -152,7 +178,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .map(|(_, s)| s.max_worse_mm)
                 .fold(0.0, f64::max);
             println!(
-                "| {model} | {max_anchors} | {ridge} | {:+.1} | {w}/{n} | {mx:.2} |",
+                "| {model} | {max_anchors} | {ridge} | {se} | {:+.1} | {w}/{n} | {mx:.2} |",
                 100.0 * change
             );
         }

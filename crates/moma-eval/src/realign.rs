@@ -226,7 +226,13 @@ pub fn evaluate_realign(
                         .map(|a| a.view())
                         .ok_or_else(|| EvalError::frame(&set.name, &set.frames[i].id, "no RGB"))?;
                     let report = cal
-                        .realign_into(rgb, &config, &mut aligned.depth_m.view_mut())
+                        .realign_normalised_into(
+                            rgb,
+                            &config,
+                            &maps[i],
+                            &mut aligned.depth_m.view_mut(),
+                            true,
+                        )
                         .map_err(|e| EvalError::core(ctx(i), e))?;
                     let re = DepthMetrics::compute(
                         &aligned,

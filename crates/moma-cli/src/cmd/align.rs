@@ -6,6 +6,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use moma_core::MetricDepth;
+use moma_core::realign::{AnchorTarget, CorrectionModel, RealignConfig};
 use moma_io::{Colormap, DepthRange, PlyFormat};
 use serde::Serialize;
 
@@ -34,6 +35,55 @@ impl From<ColormapArg> for Colormap {
 pub enum RealignArg {
     /// Per-frame re-alignment on static anchors (needs a calibration made with --anchors).
     Anchors,
+}
+
+/// Settings of per-frame re-alignment on static anchors (`--realign anchors`), shared by
+/// `moma align` and `moma eval`; defaults are the library's (`moma_core::realign::RealignConfig`).
+#[derive(Debug, Clone, Args)]
+pub struct RealignFlags {
+    /// Re-alignment correction: prediction-affine (an affine map of the frame's normalised
+    /// prediction that reproduces the calibration frame's prediction at the anchors, then the
+    /// calibration's model), scale-shift or planar (corrections of the one-shot metres).
+    #[arg(long, value_name = "FORM", default_value_t = RealignConfig::default().model, requires = "realign")]
+    pub realign_form: CorrectionModel,
+    /// Ridge λ of the re-alignment towards the identity, in anchor equivalents (>= 0).
+    #[arg(long, value_name = "LAMBDA", default_value_t = RealignConfig::default().ridge, requires = "realign")]
+    pub realign_ridge: f64,
+    /// Most anchors used per frame (a seeded subsample; >= the minimum of 50).
+    #[arg(long, value_name = "N", default_value_t = RealignConfig::default().max_anchors, requires = "realign")]
+    pub realign_max_anchors: usize,
+    /// What the re-alignment reproduces at the anchors: calibration-output (the calibration's
+    /// own result on its frame) or ground-truth (scale-shift and planar only).
+    #[arg(long, value_name = "TARGET", default_value_t = RealignConfig::default().target, requires = "realign")]
+    pub realign_target: AnchorTarget,
+}
+
+impl RealignFlags {
+    /// The library configuration these flags give, checked.
+    ///
+    /// # Errors
+    /// A value out of range, named by its flag.
+    pub fn config(&self) -> Result<RealignConfig> {
+        let config = RealignConfig {
+            model: self.realign_form,
+            ridge: self.realign_ridge,
+            max_anchors: self.realign_max_anchors,
+            target: self.realign_target,
+            ..Default::default()
+        };
+        config
+            .validate()
+            .context("--realign-ridge / --realign-max-anchors")?;
+        if config.model == CorrectionModel::PredictionAffine
+            && config.target != AnchorTarget::CalibrationOutput
+        {
+            bail!(
+                "--realign-target {} needs --realign-form scale-shift or planar                  (prediction-affine reproduces the calibration frame's own prediction)",
+                config.target
+            );
+        }
+        Ok(config)
+    }
 }
 
 /// Apply a calibration to predictions (or RGB images through a depth model): metric depth out.
@@ -91,6 +141,8 @@ pub struct AlignArgs {
     /// order); with --rgb inputs their own images are used.
     #[arg(long, num_args = 1.., value_name = "IMG", requires = "realign")]
     pub realign_rgb: Vec<PathBuf>,
+    #[command(flatten)]
+    pub realign_flags: RealignFlags,
 }
 
 /// What was written for one frame.
@@ -133,7 +185,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             .anchor_store()
             .with_context(|| format!("--realign anchors with {}", args.calib.display()))?;
     }
-    let realign_config = moma_core::realign::RealignConfig::default();
+    let realign_config = args.realign_flags.config()?;
     let size = calib.image_size;
     let intrinsics = match &args.camera {
         Some(p) => Some(moma_io::read_camera(p)?),
@@ -186,12 +238,14 @@ pub fn run(args: &AlignArgs) -> Result<()> {
                 )
             })?;
         let t = Instant::now();
-        let mut depth = calib
-            .calibration
-            .align(&input.prediction)
-            .with_context(|| format!("aligning {}", input.path.display()))?;
-        let realign = match args.realign {
-            None => None,
+        let (depth, realign) = match args.realign {
+            None => (
+                calib
+                    .calibration
+                    .align(&input.prediction)
+                    .with_context(|| format!("aligning {}", input.path.display()))?,
+                None,
+            ),
             Some(RealignArg::Anchors) => {
                 let img = match args.realign_rgb.get(i) {
                     Some(p) => moma_io::read_rgb_sized(p, size)?,
@@ -203,14 +257,16 @@ pub fn run(args: &AlignArgs) -> Result<()> {
                         )
                     })?,
                 };
-                let report = calib
+                let (depth, report) = calib
                     .calibration
-                    .realign_into(
+                    .align_realigned(
+                        &input.prediction,
                         super::common::rgb_view(&img)?,
                         &realign_config,
-                        &mut depth.depth_m.view_mut(),
                     )
-                    .with_context(|| format!("re-aligning {}", input.path.display()))?;
+                    .with_context(|| {
+                        format!("aligning and re-aligning {}", input.path.display())
+                    })?;
                 if !args.json {
                     bar.suspend(|| {
                         println!(
@@ -222,7 +278,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
                         )
                     });
                 }
-                Some(report)
+                (depth, Some(report))
             }
         };
         let align_ms = t.elapsed().as_secs_f64() * 1e3;

@@ -165,6 +165,8 @@ pub struct EvalOptions {
         requires = "realign"
     )]
     pub brightness: Vec<f64>,
+    #[command(flatten)]
+    pub realign_flags: super::align::RealignFlags,
     /// Robust variants to evaluate besides the one-shot least-squares fit, comma-separated:
     /// huber, tukey, ransac (rows with variant robust-<kind>, for gssa, ssra, gssa-local and
     /// ssra-local only; RANSAC is seeded with each sampling seed).
@@ -211,10 +213,14 @@ impl EvalOptions {
         if self.brightness.iter().any(|b| !(b.is_finite() && *b > 0.0)) {
             bail!("--brightness factors must be positive numbers");
         }
-        let realign = self.realign.map(|_| moma_eval::realign::RealignEval {
-            brightness: self.brightness.clone(),
-            ..Default::default()
-        });
+        let realign = match self.realign {
+            Some(_) => Some(moma_eval::realign::RealignEval {
+                config: self.realign_flags.config()?,
+                brightness: self.brightness.clone(),
+                ..Default::default()
+            }),
+            None => None,
+        };
         let robust: Vec<Robust> = self
             .robust
             .iter()
