@@ -7,7 +7,9 @@ without conversion, anything else is converted to ``float32`` once. Bad arrays o
 """
 
 from os import PathLike
-from typing import Any, Literal, Optional, Sequence, Tuple, TypedDict, Union, final, overload
+from typing import (
+    Any, Literal, NotRequired, Optional, Sequence, Tuple, TypedDict, Union, final, overload,
+)
 
 import numpy as np
 import numpy.typing as npt
@@ -74,6 +76,14 @@ class _RealignReport(TypedDict):
     """RMSE of the one-shot result on the held-out anchors, metres."""
     held_out_rmse_after_m: Optional[float]
     """RMSE of the corrected result on the held-out anchors, metres."""
+    held_out_gain_m: NotRequired[float]
+    """Mean paired held-out gain (error before − after), metres; positive: the correction helps."""
+    held_out_gain_se_m: NotRequired[float]
+    """Standard error of ``held_out_gain_m``, metres."""
+    correction: NotRequired[str]
+    """The correction form that was tried."""
+    prediction_affine: NotRequired[list[float]]
+    """The accepted ``prediction-affine`` map ``[a, b]`` (absent otherwise)."""
     accepted: bool
     """Whether the correction was applied (else the one-shot result is returned)."""
     reason: str
@@ -149,13 +159,14 @@ class Calibration:
         pred: npt.ArrayLike,
         rgb: _Rgb,
         *,
-        correction: Literal["scale-shift", "planar"] = "scale-shift",
+        correction: Literal["scale-shift", "planar", "prediction-affine"] = "scale-shift",
         target: Literal["calibration-output", "ground-truth"] = "calibration-output",
         ridge: float = 100.0,
         max_anchors: int = 200,
         min_anchors: int = 50,
         min_anchor_fraction: float = 0.05,
         holdout_fraction: float = 0.3,
+        acceptance_se: float = 1.0,
         seed: int = 0,
         abs_grey: float = 6.0,
         rel_grey: float = 0.08,
@@ -168,7 +179,8 @@ class Calibration:
         ``report["accepted"]`` is False with ``report["reason"]``. Options (defaults = the CLI's):
         ``correction`` form, ``target`` of the fit at the anchors, ``ridge`` towards the
         identity (anchor equivalents), ``max_anchors``, ``min_anchors``,
-        ``min_anchor_fraction`` (of the stored valid pixels), ``holdout_fraction``, ``seed``
+        ``min_anchor_fraction`` (of the stored valid pixels), ``holdout_fraction``,
+        ``acceptance_se`` (the held-out gain must exceed this many standard errors), ``seed``
         (subsample and split), ``abs_grey`` (grey levels, 0–255) and ``rel_grey`` (fraction):
         the anchor rule's tolerances. Releases the GIL."""
     def align_realigned_into(

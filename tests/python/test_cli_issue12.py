@@ -114,7 +114,8 @@ def test_calibrate_matches_cli(files, cam, py_kw, cli_args):
 @needs_cli
 @pytest.mark.parametrize("frame_rgb", ["rgb0.png", "rgb_cov.png"])
 @pytest.mark.parametrize("anchors_from", ["array", "path"])
-def test_realigned_calibration_matches_cli(files, cam, frame_rgb, anchors_from):
+@pytest.mark.parametrize("form", ["scale-shift", "prediction-affine"])
+def test_realigned_calibration_matches_cli(files, cam, frame_rgb, anchors_from, form):
     d, preds, gts, test, rgb0, rgb_cov = files
     summary = json.loads(run("calibrate", "--pred", d / "pred0.npy", "--gt", d / "gt0.npy",
                              "--pred-kind", "inverse-depth", "--camera", d / "camera.json",
@@ -125,23 +126,28 @@ def test_realigned_calibration_matches_cli(files, cam, frame_rgb, anchors_from):
                          anchors_rgb=anchors)
     assert cal.report["model"] == summary["model"] and cal.has_anchors
     cli_depth, frames = cli_align(d, d / "cli.json", "out", "--realign", "anchors",
-                                  "--realign-rgb", d / frame_rgb)
+                                  "--realign-rgb", d / frame_rgb, "--realign-form", form)
     cli_report = frames[0]["realign"]
     rgb = moma.read_rgb(d / frame_rgb)
-    depth, report = cal.align_realigned(test, rgb)
+    depth, report = cal.align_realigned(test, rgb, correction=form)
     assert report == cli_report
     np.testing.assert_array_equal(depth, cli_depth)
     # the CLI's calibration file re-aligns identically in Python
-    depth2, report2 = moma.Calibration.load(d / "cli.json").align_realigned(test, rgb)
+    depth2, report2 = moma.Calibration.load(d / "cli.json").align_realigned(
+        test, rgb, correction=form)
     assert report2 == cli_report
     np.testing.assert_array_equal(depth2, cli_depth)
     # and the Python calibration's file re-aligns identically with the CLI
     cal.save(d / "py.json")
     py_depth, py_frames = cli_align(d, d / "py.json", "out_py", "--realign", "anchors",
-                                    "--realign-rgb", d / frame_rgb)
+                                    "--realign-rgb", d / frame_rgb, "--realign-form", form)
     assert py_frames[0]["realign"] == cli_report
     np.testing.assert_array_equal(py_depth, cli_depth)
+    # into a caller's array: the same
+    out = np.full_like(depth, np.nan)
+    assert cal.align_realigned_into(test, rgb, out, correction=form) == cli_report
+    np.testing.assert_array_equal(out, cli_depth)
     if frame_rgb == "rgb_cov.png":
         assert report["accepted"] is False and report["reason"]
-    else:
+    elif form == "scale-shift":
         assert report["accepted"] is True

@@ -216,8 +216,11 @@ def test_realign_on_the_unchanged_background_corrects_a_fluctuation(anchored):
     drifted = (pred * 1.15 + 0.1).astype(np.float32)
     depth, report = cal.align_realigned(drifted, rgb)
     assert set(report) == {"anchors", "anchors_used", "brightness_gain",
-                           "held_out_rmse_before_m", "held_out_rmse_after_m", "accepted",
+                           "held_out_rmse_before_m", "held_out_rmse_after_m",
+                           "held_out_gain_m", "held_out_gain_se_m", "correction", "accepted",
                            "reason"}
+    assert report["correction"] == "scale-shift"
+    assert report["held_out_gain_m"] > report["held_out_gain_se_m"] > 0
     assert report["anchors"] >= 50 and report["anchors_used"] > 0
     assert report["brightness_gain"] == pytest.approx(1.0)
     assert report["accepted"] is True, report["reason"]

@@ -74,11 +74,32 @@ fn parse_method(
     })
 }
 
+/// One frame's re-alignment into `out` for every correction form (as the CLI's
+/// `Calibration::align_realigned`): `prediction-affine` corrects the normalised prediction
+/// before the model, `scale-shift`/`planar` the one-shot metres (the zero-copy view path).
+fn realign_view_into(
+    cal: &CoreCalibration,
+    pred: ndarray::ArrayView2<'_, f32>,
+    kind: moma_core::PredictionKind,
+    rgb: ndarray::ArrayView3<'_, u8>,
+    config: &RealignConfig,
+    mut out: ndarray::ArrayViewMut2<'_, f32>,
+) -> Result<moma_core::realign::RealignReport, CoreError> {
+    if config.model == CorrectionModel::PredictionAffine {
+        let normalised = cal.normalise_view(pred, kind)?;
+        cal.realign_normalised_into(rgb, config, &normalised, &mut out, false)
+    } else {
+        cal.align_view_into(pred, kind, &mut out)?;
+        cal.realign_into(rgb, config, &mut out)
+    }
+}
+
 /// The re-alignment settings: [`RealignConfig::default`] (what `moma align --realign anchors`
 /// uses) with the given keyword options replacing fields.
 fn realign_config(options: Option<&Bound<'_, PyDict>>) -> PyResult<RealignConfig> {
     const NAMES: &str = "correction, target, ridge, max_anchors, min_anchors, \
-                         min_anchor_fraction, holdout_fraction, seed, abs_grey, rel_grey";
+                         min_anchor_fraction, holdout_fraction, acceptance_se, seed, abs_grey, \
+                         rel_grey";
     let mut c = RealignConfig::default();
     let Some(options) = options else {
         return Ok(c);
@@ -106,6 +127,7 @@ fn realign_config(options: Option<&Bound<'_, PyDict>>) -> PyResult<RealignConfig
             "min_anchors" => c.min_anchors = value.extract().map_err(bad)?,
             "min_anchor_fraction" => c.min_anchor_fraction = value.extract().map_err(bad)?,
             "holdout_fraction" => c.holdout_fraction = value.extract().map_err(bad)?,
+            "acceptance_se" => c.acceptance_se = value.extract().map_err(bad)?,
             "seed" => c.seed = value.extract().map_err(bad)?,
             "abs_grey" => c.thresholds.abs_grey = value.extract().map_err(bad)?,
             "rel_grey" => c.thresholds.rel = value.extract().map_err(bad)?,
@@ -338,14 +360,20 @@ impl Calibration {
         let kind = self.inner.prediction_kind;
         let (depth, report) = py
             .detach(|| {
-                let mut depth = self.inner.align_view(view, kind)?;
-                let report =
-                    self.inner
-                        .realign_into(rgb_view, &config, &mut depth.depth_m.view_mut())?;
+                let (h, w) = view.dim();
+                let mut depth = Array2::<f32>::zeros((h, w));
+                let report = realign_view_into(
+                    &self.inner,
+                    view,
+                    kind,
+                    rgb_view,
+                    &config,
+                    depth.view_mut(),
+                )?;
                 Ok::<_, CoreError>((depth, report))
             })
             .py()?;
-        Ok((depth.depth_m.into_pyarray(py), to_py_json(py, &report)?))
+        Ok((depth.into_pyarray(py), to_py_json(py, &report)?))
     }
 
     /// Like `align_realigned`, writing metres into `out` (float32, same shape as `pred`,
@@ -374,8 +402,14 @@ impl Calibration {
         let kind = self.inner.prediction_kind;
         let report = py
             .detach(|| {
-                self.inner.align_view_into(view, kind, &mut out_view)?;
-                self.inner.realign_into(rgb_view, &config, &mut out_view)
+                realign_view_into(
+                    &self.inner,
+                    view,
+                    kind,
+                    rgb_view,
+                    &config,
+                    out_view.view_mut(),
+                )
             })
             .py()?;
         to_py_json(py, &report)
