@@ -225,6 +225,19 @@ simd_dispatch! {
     }
 }
 
+/// Row-wise `softmax(scale · row)` in place on the length-`n` rows of `s` ([`exp_rows`], then
+/// each row times its `1 / Σ`): the probabilities the training attention's backward recomputes.
+pub(crate) fn softmax_rows_in_place(s: &mut [f32], n: usize, scale: f32) {
+    let rows = s.len() / n.max(1);
+    let mut inv = vec![0f32; rows];
+    exp_rows(s, n, scale, &mut inv);
+    for (row, f) in s.chunks_exact_mut(n).zip(inv) {
+        for v in row {
+            *v *= f;
+        }
+    }
+}
+
 simd_dispatch! {
     /// In-place exact GELU, `0.5·x·(1 + erf(x/√2))`.
     fn gelu_in_place(d: &mut [f32]) {
