@@ -11,6 +11,7 @@ mod frozen;
 mod lora;
 pub mod loss;
 mod model;
+mod norm;
 mod resample;
 
 pub use adapter::{Adapter, fingerprint, merge_adapter, write_merged};

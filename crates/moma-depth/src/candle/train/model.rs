@@ -118,8 +118,27 @@ impl TLinear {
 
     fn forward(&self, x: &Tensor, dropout: &mut Dropout) -> Result<Tensor> {
         let out_dim = self.w.dim(0)?;
-        let mut y = if self.w.is_variable() {
-            x.broadcast_matmul(&self.w.t()?)?
+        let mut y = if !self.w.track_op() && !self.b.track_op() && x.rank() == 3 {
+            // Frozen weight and bias: one gemm accumulating into the bias rows (the inference
+            // path's `linear`), input-only backward.
+            let (w_t, b, w2) = (self.w.t()?.contiguous()?, self.b.clone(), self.w.clone());
+            frozen(
+                x,
+                move |x| {
+                    let (n, t, k) = x.dims3()?;
+                    let y = crate::candle::ops::linear(
+                        &x.reshape((n * t, k))?,
+                        &w_t,
+                        &b,
+                        None,
+                        crate::candle::ops::Activation::None,
+                    )?;
+                    y.reshape((n, t, out_dim))
+                },
+                move |g| g.broadcast_matmul(&w2),
+            )?
+        } else if self.w.is_variable() {
+            x.broadcast_matmul(&self.w.t()?)?.broadcast_add(&self.b)?
         } else {
             let (w1, w2) = (self.w.clone(), self.w.clone());
             frozen(
@@ -127,8 +146,8 @@ impl TLinear {
                 move |x| x.broadcast_matmul(&w1.t()?),
                 move |g| g.broadcast_matmul(&w2),
             )?
-        }
-        .broadcast_add(&self.b)?;
+            .broadcast_add(&self.b)?
+        };
         if !self.lora.is_empty() {
             let xd = dropout.apply(x)?;
             for p in &self.lora {
@@ -216,6 +235,9 @@ impl Ln {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if super::norm::supported(x, &self.w, &self.b) {
+            return super::norm::layer_norm(x, &self.w, &self.b, self.eps);
+        }
         layer_norm(x, &self.w, &self.b, self.eps)
     }
 }
