@@ -248,6 +248,30 @@ simd_dispatch! {
     }
 }
 
+simd_dispatch! {
+    /// `g ← g · GELU'(x)`, `GELU'(x) = Φ(x) + x·φ(x)` with the erf and exp of [`gelu_in_place`].
+    fn gelu_grad_in_place(x: &[f32], g: &mut [f32]) {
+        const INV_SQRT_2PI: f32 = 0.398_942_3;
+        for (o, &v) in g.iter_mut().zip(x) {
+            let cdf = 0.5 * (1.0 + erf_f32(v * std::f32::consts::FRAC_1_SQRT_2));
+            let pdf = INV_SQRT_2PI * exp_f32(-0.5 * v * v);
+            *o *= cdf + v * pdf;
+        }
+    }
+}
+
+/// In-place exact GELU on `f32` values, parallel over chunks (the training network's GELU).
+pub(crate) fn gelu_f32_in_place(d: &mut [f32]) {
+    d.par_chunks_mut(16 * 1024).for_each(gelu_in_place);
+}
+
+/// `g ← g · GELU'(x)` on `f32` values, parallel over chunks (the training GELU's backward).
+pub(crate) fn gelu_grad_f32_in_place(x: &[f32], g: &mut [f32]) {
+    g.par_chunks_mut(16 * 1024)
+        .zip(x.par_chunks(16 * 1024))
+        .for_each(|(g, x)| gelu_grad_in_place(x, g));
+}
+
 /// Activation applied in place to the output of [`linear`].
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 pub(crate) enum Activation {

@@ -8,6 +8,7 @@ pub mod adapter;
 mod attention;
 pub mod finetune;
 mod frozen;
+mod gelu;
 mod lora;
 pub mod loss;
 mod model;

@@ -302,10 +302,8 @@ impl TBlock {
         };
         let a = self.proj.forward(&o, dropout)?.broadcast_mul(&self.ls1)?;
         let x = (x + a)?;
-        let m = self
-            .fc1
-            .forward(&self.norm2.forward(&x)?, dropout)?
-            .gelu_erf()?;
+        let m = self.fc1.forward(&self.norm2.forward(&x)?, dropout)?;
+        let m = super::gelu::gelu_erf(&m)?;
         let m = self.fc2.forward(&m, dropout)?.broadcast_mul(&self.ls2)?;
         x + m
     }
@@ -428,6 +426,10 @@ impl TConv {
             };
             y.reshape((b, c_out, h, w))?
         } else if self.stride == 1 {
+            if let Some(b) = self.b.as_ref().filter(|b| !b.track_op()) {
+                // Frozen bias: added inside the convolution kernel (a constant, no gradient).
+                return self.conv_stride1_bias(x, Some(b));
+            }
             self.conv_stride1(x)?
         } else {
             // candle 0.11's conv2d backward gets the input gradient's width wrong for strided
@@ -452,12 +454,24 @@ impl TConv {
     /// Stride-1 convolution; a frozen kernel gets no gradient (its input does: the transposed
     /// convolution, as candle's backward computes it).
     fn conv_stride1(&self, x: &Tensor) -> Result<Tensor> {
+        self.conv_stride1_bias(x, None)
+    }
+
+    /// [`Self::conv_stride1`] plus a frozen `bias` (`(c_out)`, no gradient).
+    fn conv_stride1_bias(&self, x: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
         let p = self.padding;
+        let add = |y: Tensor| -> Result<Tensor> {
+            match bias {
+                Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
+                None => Ok(y),
+            }
+        };
         if self.w.is_variable() {
-            return x.conv2d(&self.w, p, 1, 1, 1);
+            return add(x.conv2d(&self.w, p, 1, 1, 1)?);
         }
         let (_, _, kh, kw) = self.w.dims4()?;
         if (kh, kw, p) == (3, 3, 1) {
+            let b1 = bias.cloned();
             // The inference path's im2col + gemm kernel for both directions: the adjoint of a
             // stride-1, padding-1 3×3 convolution is the same convolution with the kernel's
             // input and output channels swapped and both spatial axes reversed.
@@ -465,16 +479,16 @@ impl TConv {
             let w2 = flipped_transposed_kernel(&self.w)?;
             return frozen(
                 x,
-                move |x| conv3x3_same(x, &w1),
-                move |g| conv3x3_same(g, &w2),
+                move |x| conv3x3_same(x, &w1, b1.as_ref()),
+                move |g| conv3x3_same(g, &w2, None),
             );
         }
         let (w1, w2) = (self.w.clone(), self.w.clone());
-        frozen(
+        add(frozen(
             x,
             move |x| x.conv2d(&w1, p, 1, 1, 1),
             move |g| g.conv_transpose2d(&w2, p, 0, 1, 1),
-        )
+        )?)
     }
 }
 
@@ -490,17 +504,17 @@ fn flipped_transposed_kernel(w: &Tensor) -> Result<Tensor> {
         .contiguous()
 }
 
-/// Stride-1, padding-1 3×3 convolution without bias on `(B, C, H, W)` with the inference
+/// Stride-1, padding-1 3×3 convolution with an optional (constant) bias on `(B, C, H, W)` with the inference
 /// kernel ([`crate::candle::ops::conv3x3`]: im2col + gemm on CPU f32, candle's `conv2d`
 /// elsewhere), one image at a time.
-fn conv3x3_same(x: &Tensor, w: &Tensor) -> Result<Tensor> {
+fn conv3x3_same(x: &Tensor, w: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
     let fused = crate::candle::ops::ConvFusion::default();
     let b = x.dim(0)?;
     if b == 1 {
-        return crate::candle::ops::conv3x3(x, w, None, 1, fused);
+        return crate::candle::ops::conv3x3(x, w, bias, 1, fused);
     }
     let ys = (0..b)
-        .map(|i| crate::candle::ops::conv3x3(&x.narrow(0, i, 1)?, w, None, 1, fused))
+        .map(|i| crate::candle::ops::conv3x3(&x.narrow(0, i, 1)?, w, bias, 1, fused))
         .collect::<Result<Vec<_>>>()?;
     Tensor::cat(&ys, 0)
 }
