@@ -225,6 +225,19 @@ simd_dispatch! {
     }
 }
 
+/// Row-wise `softmax(scale · row)` in place on the length-`n` rows of `s` ([`exp_rows`], then
+/// each row times its `1 / Σ`): the probabilities the training attention's backward recomputes.
+pub(crate) fn softmax_rows_in_place(s: &mut [f32], n: usize, scale: f32) {
+    let rows = s.len() / n.max(1);
+    let mut inv = vec![0f32; rows];
+    exp_rows(s, n, scale, &mut inv);
+    for (row, f) in s.chunks_exact_mut(n).zip(inv) {
+        for v in row {
+            *v *= f;
+        }
+    }
+}
+
 simd_dispatch! {
     /// In-place exact GELU, `0.5·x·(1 + erf(x/√2))`.
     fn gelu_in_place(d: &mut [f32]) {
@@ -233,6 +246,30 @@ simd_dispatch! {
             *o = 0.5 * v * (1.0 + erf_f32(v * std::f32::consts::FRAC_1_SQRT_2));
         }
     }
+}
+
+simd_dispatch! {
+    /// `g ← g · GELU'(x)`, `GELU'(x) = Φ(x) + x·φ(x)` with the erf and exp of [`gelu_in_place`].
+    fn gelu_grad_in_place(x: &[f32], g: &mut [f32]) {
+        const INV_SQRT_2PI: f32 = 0.398_942_3;
+        for (o, &v) in g.iter_mut().zip(x) {
+            let cdf = 0.5 * (1.0 + erf_f32(v * std::f32::consts::FRAC_1_SQRT_2));
+            let pdf = INV_SQRT_2PI * exp_f32(-0.5 * v * v);
+            *o *= cdf + v * pdf;
+        }
+    }
+}
+
+/// In-place exact GELU on `f32` values, parallel over chunks (the training network's GELU).
+pub(crate) fn gelu_f32_in_place(d: &mut [f32]) {
+    d.par_chunks_mut(16 * 1024).for_each(gelu_in_place);
+}
+
+/// `g ← g · GELU'(x)` on `f32` values, parallel over chunks (the training GELU's backward).
+pub(crate) fn gelu_grad_f32_in_place(x: &[f32], g: &mut [f32]) {
+    g.par_chunks_mut(16 * 1024)
+        .zip(x.par_chunks(16 * 1024))
+        .for_each(|(g, x)| gelu_grad_in_place(x, g));
 }
 
 /// Activation applied in place to the output of [`linear`].

@@ -8,9 +8,12 @@ pub mod adapter;
 mod attention;
 pub mod finetune;
 mod frozen;
+mod gelu;
 mod lora;
 pub mod loss;
 mod model;
+mod norm;
+mod resample;
 
 pub use adapter::{Adapter, fingerprint, merge_adapter, write_merged};
 pub use finetune::{

@@ -118,8 +118,27 @@ impl TLinear {
 
     fn forward(&self, x: &Tensor, dropout: &mut Dropout) -> Result<Tensor> {
         let out_dim = self.w.dim(0)?;
-        let mut y = if self.w.is_variable() {
-            x.broadcast_matmul(&self.w.t()?)?
+        let mut y = if !self.w.track_op() && !self.b.track_op() && x.rank() == 3 {
+            // Frozen weight and bias: one gemm accumulating into the bias rows (the inference
+            // path's `linear`), input-only backward.
+            let (w_t, b, w2) = (self.w.t()?.contiguous()?, self.b.clone(), self.w.clone());
+            frozen(
+                x,
+                move |x| {
+                    let (n, t, k) = x.dims3()?;
+                    let y = crate::candle::ops::linear(
+                        &x.reshape((n * t, k))?,
+                        &w_t,
+                        &b,
+                        None,
+                        crate::candle::ops::Activation::None,
+                    )?;
+                    y.reshape((n, t, out_dim))
+                },
+                move |g| g.broadcast_matmul(&w2),
+            )?
+        } else if self.w.is_variable() {
+            x.broadcast_matmul(&self.w.t()?)?.broadcast_add(&self.b)?
         } else {
             let (w1, w2) = (self.w.clone(), self.w.clone());
             frozen(
@@ -127,8 +146,8 @@ impl TLinear {
                 move |x| x.broadcast_matmul(&w1.t()?),
                 move |g| g.broadcast_matmul(&w2),
             )?
-        }
-        .broadcast_add(&self.b)?;
+            .broadcast_add(&self.b)?
+        };
         if !self.lora.is_empty() {
             let xd = dropout.apply(x)?;
             for p in &self.lora {
@@ -216,6 +235,9 @@ impl Ln {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if super::norm::supported(x, &self.w, &self.b) {
+            return super::norm::layer_norm(x, &self.w, &self.b, self.eps);
+        }
         layer_norm(x, &self.w, &self.b, self.eps)
     }
 }
@@ -280,10 +302,8 @@ impl TBlock {
         };
         let a = self.proj.forward(&o, dropout)?.broadcast_mul(&self.ls1)?;
         let x = (x + a)?;
-        let m = self
-            .fc1
-            .forward(&self.norm2.forward(&x)?, dropout)?
-            .gelu_erf()?;
+        let m = self.fc1.forward(&self.norm2.forward(&x)?, dropout)?;
+        let m = super::gelu::gelu_erf(&m)?;
         let m = self.fc2.forward(&m, dropout)?.broadcast_mul(&self.ls2)?;
         x + m
     }
@@ -355,7 +375,11 @@ fn matrix(values: Vec<f64>, rows: usize, cols: usize, like: &Tensor) -> Result<T
 }
 
 /// Bilinear `align_corners=True` upsampling of `(B, C, h, w)` to `(B, C, oh, ow)`: `Rh · X · Rwᵀ`.
+/// CPU f32/f64: the two-tap kernel of [`super::resample`]; elsewhere the matrix products.
 pub(crate) fn upsample_bilinear_ac(x: &Tensor, oh: usize, ow: usize) -> Result<Tensor> {
+    if super::resample::supported(x) {
+        return super::resample::upsample(x, oh, ow);
+    }
     let (b, c, h, w) = x.dims4()?;
     let f64_taps = x.dtype() == DType::F64;
     let rw = matrix(bilinear_ac_matrix(w, ow, f64_taps), ow, w, x)?;
@@ -422,6 +446,10 @@ impl TConv {
             };
             y.reshape((b, c_out, h, w))?
         } else if self.stride == 1 {
+            if let Some(b) = self.b.as_ref().filter(|b| !b.track_op()) {
+                // Frozen bias: added inside the convolution kernel (a constant, no gradient).
+                return self.conv_stride1_bias(x, Some(b));
+            }
             self.conv_stride1(x)?
         } else {
             // candle 0.11's conv2d backward gets the input gradient's width wrong for strided
@@ -446,17 +474,69 @@ impl TConv {
     /// Stride-1 convolution; a frozen kernel gets no gradient (its input does: the transposed
     /// convolution, as candle's backward computes it).
     fn conv_stride1(&self, x: &Tensor) -> Result<Tensor> {
+        self.conv_stride1_bias(x, None)
+    }
+
+    /// [`Self::conv_stride1`] plus a frozen `bias` (`(c_out)`, no gradient).
+    fn conv_stride1_bias(&self, x: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
         let p = self.padding;
+        let add = |y: Tensor| -> Result<Tensor> {
+            match bias {
+                Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
+                None => Ok(y),
+            }
+        };
         if self.w.is_variable() {
-            return x.conv2d(&self.w, p, 1, 1, 1);
+            return add(x.conv2d(&self.w, p, 1, 1, 1)?);
+        }
+        let (_, _, kh, kw) = self.w.dims4()?;
+        if (kh, kw, p) == (3, 3, 1) {
+            let b1 = bias.cloned();
+            // The inference path's im2col + gemm kernel for both directions: the adjoint of a
+            // stride-1, padding-1 3×3 convolution is the same convolution with the kernel's
+            // input and output channels swapped and both spatial axes reversed.
+            let w1 = self.w.clone();
+            let w2 = flipped_transposed_kernel(&self.w)?;
+            return frozen(
+                x,
+                move |x| conv3x3_same(x, &w1, b1.as_ref()),
+                move |g| conv3x3_same(g, &w2, None),
+            );
         }
         let (w1, w2) = (self.w.clone(), self.w.clone());
-        frozen(
+        add(frozen(
             x,
             move |x| x.conv2d(&w1, p, 1, 1, 1),
             move |g| g.conv_transpose2d(&w2, p, 0, 1, 1),
-        )
+        )?)
     }
+}
+
+/// `w'[i, o, 2 − y, 2 − x] = w[o, i, y, x]` for a `(c_out, c_in, 3, 3)` kernel `w`: the kernel
+/// of the adjoint (transposed) stride-1, padding-1 convolution.
+fn flipped_transposed_kernel(w: &Tensor) -> Result<Tensor> {
+    let (_, _, kh, kw) = w.dims4()?;
+    let rev = |n: usize| Tensor::from_vec((0..n as u32).rev().collect::<Vec<_>>(), n, w.device());
+    w.transpose(0, 1)?
+        .contiguous()?
+        .index_select(&rev(kh)?, 2)?
+        .index_select(&rev(kw)?, 3)?
+        .contiguous()
+}
+
+/// Stride-1, padding-1 3×3 convolution with an optional (constant) bias on `(B, C, H, W)` with the inference
+/// kernel ([`crate::candle::ops::conv3x3`]: im2col + gemm on CPU f32, candle's `conv2d`
+/// elsewhere), one image at a time.
+fn conv3x3_same(x: &Tensor, w: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    let fused = crate::candle::ops::ConvFusion::default();
+    let b = x.dim(0)?;
+    if b == 1 {
+        return crate::candle::ops::conv3x3(x, w, bias, 1, fused);
+    }
+    let ys = (0..b)
+        .map(|i| crate::candle::ops::conv3x3(&x.narrow(0, i, 1)?, w, bias, 1, fused))
+        .collect::<Result<Vec<_>>>()?;
+    Tensor::cat(&ys, 0)
 }
 
 /// `ConvTranspose2d(c, c, k, stride=k)`: one matmul and a reshuffle.
@@ -921,5 +1001,123 @@ impl TrainNet {
     /// Dtype of the weights.
     pub fn dtype(&self) -> DType {
         self.patch_w.dtype()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random(shape: &[usize], seed: u64, dtype: DType) -> Tensor {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let n: usize = shape.iter().product();
+        let v: Vec<f64> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        Tensor::from_vec(v, shape, &Device::Cpu)
+            .and_then(|t| t.to_dtype(dtype))
+            .unwrap()
+    }
+
+    fn max_rel(a: &Tensor, b: &Tensor) -> f64 {
+        let a: Vec<f64> = a
+            .flatten_all()
+            .unwrap()
+            .to_dtype(DType::F64)
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let b: Vec<f64> = b
+            .flatten_all()
+            .unwrap()
+            .to_dtype(DType::F64)
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        a.iter()
+            .zip(&b)
+            .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+            / scale
+    }
+
+    /// A frozen 3×3 convolution on the im2col kernel (f32, batch 2, odd sizes): forward equals
+    /// candle's `conv2d`, the input gradient equals candle's `conv_transpose2d` of the output
+    /// gradient (the adjoint), and the frozen kernel gets no gradient.
+    #[test]
+    fn frozen_conv3x3_matches_candle_forward_and_transposed_backward() {
+        let w = random(&[4, 5, 3, 3], 1, DType::F32);
+        let conv = TConv {
+            w: w.clone(),
+            b: None,
+            stride: 1,
+            padding: 1,
+        };
+        let x = Var::from_tensor(&random(&[2, 5, 7, 9], 2, DType::F32)).unwrap();
+        let r = random(&[2, 4, 7, 9], 3, DType::F32);
+        let y = conv.forward(x.as_tensor()).unwrap();
+        let want = x.as_tensor().conv2d(&w, 1, 1, 1, 1).unwrap();
+        assert!(max_rel(&y, &want) < 1e-6, "forward {}", max_rel(&y, &want));
+        let grads = (y * &r).unwrap().sum_all().unwrap().backward().unwrap();
+        let gx = grads.get(x.as_tensor()).unwrap();
+        let want = r.conv_transpose2d(&w, 1, 0, 1, 1).unwrap();
+        assert!(max_rel(gx, &want) < 1e-6, "backward {}", max_rel(gx, &want));
+        assert!(grads.get(&w).is_none());
+    }
+
+    /// The same frozen convolution in f64: its input gradient equals central finite differences
+    /// of `Σ conv(x) ⊙ r` (every input entry of one image).
+    #[test]
+    fn frozen_conv3x3_input_gradient_matches_finite_differences_in_f64() {
+        let w = random(&[3, 2, 3, 3], 4, DType::F64);
+        let conv = TConv {
+            w,
+            b: None,
+            stride: 1,
+            padding: 1,
+        };
+        let shape = [1, 2, 4, 5];
+        let x0: Vec<f64> = random(&shape, 5, DType::F64)
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let r = random(&[1, 3, 4, 5], 6, DType::F64);
+        let f = |v: &[f64]| -> f64 {
+            let x = Tensor::from_slice(v, &shape, &Device::Cpu).unwrap();
+            let y = conv.forward(&x).unwrap();
+            (y * &r)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
+        };
+        let x = Var::from_tensor(&Tensor::from_slice(&x0, &shape, &Device::Cpu).unwrap()).unwrap();
+        let l = (conv.forward(x.as_tensor()).unwrap() * &r)
+            .unwrap()
+            .sum_all()
+            .unwrap();
+        let g: Vec<f64> = l
+            .backward()
+            .unwrap()
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let eps = 1e-6;
+        for i in 0..x0.len() {
+            let (mut p, mut m) = (x0.clone(), x0.clone());
+            p[i] += eps;
+            m[i] -= eps;
+            let fd = (f(&p) - f(&m)) / (2.0 * eps);
+            let rel = (fd - g[i]).abs() / fd.abs().max(g[i].abs()).max(1e-8);
+            assert!(
+                rel < 1e-6,
+                "x[{i}]: autograd {} vs finite difference {fd}",
+                g[i]
+            );
+        }
     }
 }

@@ -1,0 +1,292 @@
+//! LayerNorm over the last dimension with frozen weight and bias as one op (CPU f32 and f64)
+//! with an exact input-only backward: the composed LayerNorm (mean, centring, variance, square
+//! root, division, scale, shift) makes eight full-size temporaries in the forward and more in its
+//! backward. Rows in parallel; two-pass variance, accumulated in f64.
+//!
+//! Backward, with `x̂ = (x − μ)·r`, `r = 1/√(var + ε)` and `ĝ = g ⊙ w`:
+//! `dx = r · (ĝ − mean(ĝ) − x̂ · mean(ĝ ⊙ x̂))`.
+
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
+
+/// Element types of the LayerNorm kernels.
+trait Elem: Copy + Send + Sync + Default {
+    fn f(self) -> f64;
+    fn of(v: f64) -> Self;
+}
+impl Elem for f32 {
+    fn f(self) -> f64 {
+        f64::from(self)
+    }
+    fn of(v: f64) -> Self {
+        v as f32
+    }
+}
+impl Elem for f64 {
+    fn f(self) -> f64 {
+        self
+    }
+    fn of(v: f64) -> Self {
+        v
+    }
+}
+
+/// Mean and `1/√(var + ε)` of one row (two-pass variance).
+fn stats<T: Elem>(row: &[T], eps: f64) -> (f64, f64) {
+    let n = row.len() as f64;
+    let mean = row.iter().map(|v| v.f()).sum::<f64>() / n;
+    let var = row.iter().map(|v| (v.f() - mean).powi(2)).sum::<f64>() / n;
+    (mean, 1.0 / (var + eps).sqrt())
+}
+
+struct LayerNorm {
+    w: Vec<f64>,
+    b: Vec<f64>,
+    eps: f64,
+}
+
+impl LayerNorm {
+    fn forward<T: Elem>(&self, x: &[T]) -> Vec<T> {
+        let d = self.w.len();
+        let mut y = vec![T::default(); x.len()];
+        y.par_chunks_mut(d).zip(x.par_chunks(d)).for_each(|(y, x)| {
+            let (mean, r) = stats(x, self.eps);
+            for (((o, v), w), b) in y.iter_mut().zip(x).zip(&self.w).zip(&self.b) {
+                *o = T::of((v.f() - mean) * r * w + b);
+            }
+        });
+        y
+    }
+
+    fn backward<T: Elem>(&self, x: &[T], g: &[T]) -> Vec<T> {
+        let d = self.w.len();
+        let n = d as f64;
+        let mut dx = vec![T::default(); x.len()];
+        dx.par_chunks_mut(d)
+            .zip(x.par_chunks(d).zip(g.par_chunks(d)))
+            .for_each(|(dx, (x, g))| {
+                let (mean, r) = stats(x, self.eps);
+                let (mut sg, mut sgx) = (0.0, 0.0);
+                for ((v, gv), w) in x.iter().zip(g).zip(&self.w) {
+                    let gh = gv.f() * w;
+                    sg += gh;
+                    sgx += gh * (v.f() - mean) * r;
+                }
+                let (mg, mgx) = (sg / n, sgx / n);
+                for (((o, v), gv), w) in dx.iter_mut().zip(x).zip(g).zip(&self.w) {
+                    let xh = (v.f() - mean) * r;
+                    *o = T::of(r * (gv.f() * w - mg - xh * mgx));
+                }
+            });
+        dx
+    }
+
+    fn check(&self, layout: &Layout) -> Result<(usize, usize)> {
+        let d = self.w.len();
+        if layout.dims().last() != Some(&d) {
+            candle_core::bail!("layer norm: input {:?}, weight ({d})", layout.dims());
+        }
+        match layout.contiguous_offsets() {
+            Some(r) => Ok(r),
+            None => candle_core::bail!("layer norm: input must be contiguous"),
+        }
+    }
+}
+
+impl CustomOp1 for LayerNorm {
+    fn name(&self) -> &'static str {
+        "layer-norm-frozen-affine"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let (o0, o1) = self.check(layout)?;
+        let y = match storage {
+            CpuStorage::F32(v) => CpuStorage::F32(self.forward(&v[o0..o1])),
+            CpuStorage::F64(v) => CpuStorage::F64(self.forward(&v[o0..o1])),
+            _ => candle_core::bail!("layer norm: f32 or f64 only"),
+        };
+        Ok((y, layout.shape().clone()))
+    }
+
+    fn bwd(&self, arg: &Tensor, _res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        let op = LayerNormBackward(LayerNorm {
+            w: self.w.clone(),
+            b: self.b.clone(),
+            eps: self.eps,
+        });
+        let dx = arg
+            .detach()
+            .contiguous()?
+            .apply_op2_no_bwd(&grad_res.contiguous()?, &op)?;
+        Ok(Some(dx))
+    }
+}
+
+/// `(x, dy) → dx` of [`LayerNorm`].
+struct LayerNormBackward(LayerNorm);
+
+impl CustomOp2 for LayerNormBackward {
+    fn name(&self) -> &'static str {
+        "layer-norm-frozen-affine-backward"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (a0, a1) = self.0.check(l1)?;
+        let (b0, b1) = self.0.check(l2)?;
+        if l1.dims() != l2.dims() {
+            candle_core::bail!(
+                "layer norm backward: input {:?}, gradient {:?}",
+                l1.dims(),
+                l2.dims()
+            );
+        }
+        let dx = match (s1, s2) {
+            (CpuStorage::F32(x), CpuStorage::F32(g)) => {
+                CpuStorage::F32(self.0.backward(&x[a0..a1], &g[b0..b1]))
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(g)) => {
+                CpuStorage::F64(self.0.backward(&x[a0..a1], &g[b0..b1]))
+            }
+            _ => candle_core::bail!("layer norm backward: f32 or f64 operands of one dtype"),
+        };
+        Ok((dx, l1.shape().clone()))
+    }
+}
+
+/// Whether [`layer_norm`] applies: CPU f32/f64 input, and a weight and bias that carry no
+/// gradient (trained ones take the composed path).
+pub(crate) fn supported(x: &Tensor, w: &Tensor, b: &Tensor) -> bool {
+    x.device().is_cpu()
+        && matches!(x.dtype(), DType::F32 | DType::F64)
+        && !w.track_op()
+        && !b.track_op()
+}
+
+/// `(x − mean) / √(var + eps) · w + b` over the last dimension, differentiable in `x`.
+///
+/// # Errors
+/// Shape errors, an unsupported device or dtype (see [`supported`]).
+pub(crate) fn layer_norm(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
+    let op = LayerNorm {
+        w: w.to_dtype(DType::F64)?.to_vec1()?,
+        b: b.to_dtype(DType::F64)?.to_vec1()?,
+        eps,
+    };
+    x.contiguous()?.apply_op1(op)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{D, Device, Var};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn random(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<f64> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..n).map(|_| rng.random_range(lo..hi)).collect()
+    }
+
+    fn composed(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Tensor {
+        let mean = x.mean_keepdim(D::Minus1).unwrap();
+        let xc = x.broadcast_sub(&mean).unwrap();
+        let var = xc.sqr().unwrap().mean_keepdim(D::Minus1).unwrap();
+        xc.broadcast_div(&(var + eps).unwrap().sqrt().unwrap())
+            .unwrap()
+            .broadcast_mul(w)
+            .unwrap()
+            .broadcast_add(b)
+            .unwrap()
+    }
+
+    /// Forward equals the composed LayerNorm; the input gradient of `Σ LN(x) ⊙ r` equals central
+    /// finite differences (every entry) and the composed op's gradient, in f64.
+    #[test]
+    fn layer_norm_matches_composed_and_central_finite_differences_in_f64() {
+        let (rows, d, eps) = (3, 7, 1e-6);
+        let dev = Device::Cpu;
+        let w = Tensor::from_vec(random(d, 1, 0.5, 1.5), d, &dev).unwrap();
+        let b = Tensor::from_vec(random(d, 2, -1.0, 1.0), d, &dev).unwrap();
+        let r = Tensor::from_vec(random(rows * d, 3, -1.0, 1.0), (1, rows, d), &dev).unwrap();
+        // Rows offset by large values (DINOv2's large-norm tokens).
+        let x0: Vec<f64> = random(rows * d, 4, -2.0, 2.0)
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v + 30.0 * (i / d) as f64)
+            .collect();
+        let x = Var::from_tensor(&Tensor::from_slice(&x0, (1, rows, d), &dev).unwrap()).unwrap();
+        assert!(supported(x.as_tensor(), &w, &b));
+        let y = layer_norm(x.as_tensor(), &w, &b, eps).unwrap();
+        let yc = composed(x.as_tensor(), &w, &b, eps);
+        let diff = (&y - &yc)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap();
+        assert!(
+            diff < 1e-12,
+            "forward differs from the composed LayerNorm by {diff}"
+        );
+        let g: Vec<f64> = (y * &r)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap()
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let gc: Vec<f64> = (yc * &r)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap()
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let f = |v: &[f64]| -> f64 {
+            let x = Tensor::from_slice(v, (1, rows, d), &dev).unwrap();
+            (layer_norm(&x, &w, &b, eps).unwrap() * &r)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap()
+        };
+        let h = 1e-6;
+        for i in 0..x0.len() {
+            let (mut p, mut m) = (x0.clone(), x0.clone());
+            p[i] += h;
+            m[i] -= h;
+            let fd = (f(&p) - f(&m)) / (2.0 * h);
+            let rel = (fd - g[i]).abs() / fd.abs().max(g[i].abs()).max(1e-8);
+            assert!(
+                rel < 1e-6,
+                "x[{i}]: autograd {} vs finite difference {fd}",
+                g[i]
+            );
+            assert!(
+                (g[i] - gc[i]).abs() < 1e-10,
+                "x[{i}]: {} vs composed {}",
+                g[i],
+                gc[i]
+            );
+        }
+    }
+}
