@@ -29,6 +29,14 @@ use ndarray::{Array2, s};
 
 const LOSS_TOL: f64 = 1e-5;
 const GRAD_TOL: f64 = 1e-4;
+/// Bound for the DPT head's weight gradients in the f32 run against the f64 reference. The head
+/// is a ReLU network and, on this random-weight reference, a pre-activation of the
+/// highest-resolution branch lies within f32 round-off of a kink: which side f32 lands on
+/// decides a few pixels' contribution to `projects.0`, `resize_layers.0` and `layer1_rn`
+/// (measured: 8.3e-4 with the LayerNorm op, 1.7e-6 with the composed LayerNorm, and 8.3e-4
+/// again for the composed LayerNorm when the input is scaled by 1 ± 6e-6, i.e. a round-off
+/// effect, not an op error). The f64 run, which has no such ambiguity, meets 1e-4.
+const F32_HEAD_GRAD_TOL: f64 = 2e-3;
 const WEIGHT_TOL: f64 = 1e-5;
 
 fn reference_file() -> PathBuf {
@@ -116,8 +124,15 @@ impl Worst {
     }
 }
 
+/// Worst gradient errors: over all compared tensors, the LoRA ones and the head's.
+struct GradWorst {
+    all: Worst,
+    lora: Worst,
+    head: Worst,
+}
+
 /// Runs one reference case; returns (loss rel err, worst grad, worst updated weight).
-fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, Worst, Worst) {
+fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, GradWorst, Worst) {
     let dir = reference_dir();
     let name = r.meta["reference"].clone();
     let config = tiny_config(&dir, &name);
@@ -195,6 +210,7 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, Worst, Worst) {
     let loss_err = (got_loss - want_loss).abs() / want_loss.abs();
 
     let mut grad_worst = Worst::default();
+    let (mut grad_lora, mut grad_head) = (Worst::default(), Worst::default());
     for (k, v) in lora_vars.iter().chain(&head_vars) {
         let key = format!("{case}/grad/{k}");
         let Some(want) = r.tensors.get(&key) else {
@@ -203,7 +219,16 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, Worst, Worst) {
         let got = grads
             .get(v.as_tensor())
             .unwrap_or_else(|| panic!("{case}: no gradient for {k}"));
-        grad_worst.add(k, rel_max(got, want));
+        let e = rel_max(got, want);
+        if std::env::var_os("LORA_PARITY_VERBOSE").is_some() {
+            eprintln!("{case} {dtype:?} grad {k}: {e:.3e}");
+        }
+        grad_worst.add(k, e);
+        if k.starts_with("depth_head.") {
+            grad_head.add(k, e);
+        } else {
+            grad_lora.add(k, e);
+        }
     }
     let head_stored = r
         .tensors
@@ -271,7 +296,12 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, Worst, Worst) {
         after_worst.add(k, rel_max(v.as_tensor(), want));
     }
     assert_eq!(after_worst.count, grad_worst.count);
-    (loss_err, grad_worst, after_worst)
+    let grad = GradWorst {
+        all: grad_worst,
+        lora: grad_lora,
+        head: grad_head,
+    };
+    (loss_err, grad, after_worst)
 }
 
 fn check(case: &str) {
@@ -280,14 +310,14 @@ fn check(case: &str) {
     eprintln!(
         "{case} (f64 vs PyTorch+peft f64): loss rel err {loss_err:.3e}; gradients worst {:.3e} \
          ({}, {} tensors); after one AdamW step worst {:.3e} ({}, {} tensors)",
-        grad.err, grad.name, grad.count, after.err, after.name, after.count
+        grad.all.err, grad.all.name, grad.all.count, after.err, after.name, after.count
     );
     assert!(loss_err <= LOSS_TOL, "{case}: loss rel err {loss_err}");
     assert!(
-        grad.err <= GRAD_TOL,
+        grad.all.err <= GRAD_TOL,
         "{case}: gradient of {} rel err {}",
-        grad.name,
-        grad.err
+        grad.all.name,
+        grad.all.err
     );
     assert!(
         after.err <= WEIGHT_TOL,
@@ -345,7 +375,8 @@ fn reference_file_is_complete() {
 }
 
 /// The f32 training path (what `moma finetune` runs) against the same f64 PyTorch reference:
-/// loss and gradients within the same bounds as the f64 path (1e-5, 1e-4). The AdamW step is not compared in
+/// loss and LoRA gradients within the same bounds as the f64 path (1e-5, 1e-4); the trained
+/// head's gradients within [`F32_HEAD_GRAD_TOL`]. The AdamW step is not compared in
 /// f32: its first step moves each weight by about `lr · g/(|g| + ε)`, which for gradients of
 /// order ε (1e-8) turns f32 round-off of the gradient into a change of the update itself.
 #[test]
@@ -355,16 +386,23 @@ fn f32_training_path_is_close_to_the_f64_reference() {
     for case in ["qv", "all"] {
         let (loss_err, grad, after) = run_case(&r, case, DType::F32);
         eprintln!(
-            "{case} (f32 vs PyTorch+peft f64): loss rel err {loss_err:.3e}; gradients worst {:.3e} \
-             ({}); after one AdamW step worst {:.3e} ({}; not checked)",
-            grad.err, grad.name, after.err, after.name
+            "{case} (f32 vs PyTorch+peft f64): loss rel err {loss_err:.3e}; LoRA gradients worst \
+             {:.3e} ({}); head gradients worst {:.3e} ({}); after one AdamW step worst {:.3e} \
+             ({}; not checked)",
+            grad.lora.err, grad.lora.name, grad.head.err, grad.head.name, after.err, after.name
         );
         assert!(loss_err <= LOSS_TOL, "{case}: f32 loss rel err {loss_err}");
         assert!(
-            grad.err <= GRAD_TOL,
+            grad.lora.err <= GRAD_TOL,
             "{case}: f32 gradient of {} rel err {}",
-            grad.name,
-            grad.err
+            grad.lora.name,
+            grad.lora.err
+        );
+        assert!(
+            grad.head.err <= F32_HEAD_GRAD_TOL,
+            "{case}: f32 gradient of {} rel err {}",
+            grad.head.name,
+            grad.head.err
         );
     }
 }

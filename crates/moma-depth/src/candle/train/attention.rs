@@ -452,7 +452,7 @@ impl candle_core::CustomOp3 for AttentionBackward {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{DType, Device, Var};
+    use candle_core::{DType, Device};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -480,46 +480,20 @@ mod tests {
         let (b, t, h, hd) = DIMS;
         let c3 = 3 * h * hd;
         let (x0, r, scale) = setup();
-        let f = |v: &[f64]| -> f64 {
-            let x = Tensor::from_slice(v, (b, t, c3), &Device::Cpu).unwrap();
-            (attention(&x, h, scale).unwrap() * &r)
-                .unwrap()
-                .sum_all()
-                .unwrap()
-                .to_scalar::<f64>()
-                .unwrap()
-        };
-        let x =
-            Var::from_tensor(&Tensor::from_slice(&x0, (b, t, c3), &Device::Cpu).unwrap()).unwrap();
-        let l = (attention(x.as_tensor(), h, scale).unwrap() * &r)
-            .unwrap()
-            .sum_all()
-            .unwrap();
-        let g: Vec<f64> = l
-            .backward()
-            .unwrap()
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        let eps = 1e-6;
-        let mut checked = 0;
-        for i in (0..x0.len()).step_by(37) {
-            let (mut p, mut m) = (x0.clone(), x0.clone());
-            p[i] += eps;
-            m[i] -= eps;
-            let fd = (f(&p) - f(&m)) / (2.0 * eps);
-            let rel = (fd - g[i]).abs() / fd.abs().max(g[i].abs()).max(1e-6);
-            assert!(
-                rel < 1e-5,
-                "qkv[{i}]: autograd {} vs finite difference {fd} (rel {rel:.2e})",
-                g[i]
-            );
-            checked += 1;
-        }
-        assert!(checked > 100);
+        let shape = [b, t, c3];
+        let g = crate::candle::train::testing::check_input_gradient(
+            "fused attention qkv",
+            |x| attention(x, h, scale).unwrap(),
+            &x0,
+            &shape,
+            &r,
+            crate::candle::train::testing::FdCheck {
+                stride: 37,
+                floor: 1e-6,
+                tol: 1e-5,
+            },
+        );
+        assert!(x0.len() / 37 > 100);
         assert!(g.iter().any(|v| v.abs() > 1e-3));
     }
 

@@ -14,6 +14,8 @@ pub mod loss;
 mod model;
 mod norm;
 mod resample;
+#[cfg(test)]
+mod testing;
 
 pub use adapter::{Adapter, fingerprint, merge_adapter, write_merged};
 pub use finetune::{

@@ -344,28 +344,12 @@ fn bicubic_matrix(in_len: usize, scale: f64) -> (usize, Vec<f64>) {
 /// as PyTorch for f32 tensors; in f64 when `f64_taps`, as PyTorch for f64 tensors).
 fn bilinear_ac_matrix(in_len: usize, out_len: usize, f64_taps: bool) -> Vec<f64> {
     let mut m = vec![0.0f64; out_len * in_len];
-    if f64_taps {
-        let scale = if out_len > 1 {
-            (in_len as f64 - 1.0) / (out_len as f64 - 1.0)
-        } else {
-            0.0
-        };
-        for d in 0..out_len {
-            let src = scale * d as f64;
-            let i0 = (src as usize).min(in_len - 1);
-            let i1 = (i0 + 1).min(in_len - 1);
-            let l1 = src - i0 as f64;
-            m[d * in_len + i0] += 1.0 - l1;
-            m[d * in_len + i1] += l1;
-        }
-        return m;
-    }
-    for (d, (i0, i1, w0, w1)) in crate::preprocess::align_corners_taps(in_len, out_len)
+    for (d, (i0, i1, w0, w1)) in super::resample::taps(in_len, out_len, f64_taps)
         .into_iter()
         .enumerate()
     {
-        m[d * in_len + i0] += f64::from(w0);
-        m[d * in_len + i1] += f64::from(w1);
+        m[d * in_len + i0] += w0;
+        m[d * in_len + i1] += w1;
     }
     m
 }
@@ -1082,42 +1066,17 @@ mod tests {
             .to_vec1()
             .unwrap();
         let r = random(&[1, 3, 4, 5], 6, DType::F64);
-        let f = |v: &[f64]| -> f64 {
-            let x = Tensor::from_slice(v, &shape, &Device::Cpu).unwrap();
-            let y = conv.forward(&x).unwrap();
-            (y * &r)
-                .unwrap()
-                .sum_all()
-                .unwrap()
-                .to_scalar::<f64>()
-                .unwrap()
-        };
-        let x = Var::from_tensor(&Tensor::from_slice(&x0, &shape, &Device::Cpu).unwrap()).unwrap();
-        let l = (conv.forward(x.as_tensor()).unwrap() * &r)
-            .unwrap()
-            .sum_all()
-            .unwrap();
-        let g: Vec<f64> = l
-            .backward()
-            .unwrap()
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        let eps = 1e-6;
-        for i in 0..x0.len() {
-            let (mut p, mut m) = (x0.clone(), x0.clone());
-            p[i] += eps;
-            m[i] -= eps;
-            let fd = (f(&p) - f(&m)) / (2.0 * eps);
-            let rel = (fd - g[i]).abs() / fd.abs().max(g[i].abs()).max(1e-8);
-            assert!(
-                rel < 1e-6,
-                "x[{i}]: autograd {} vs finite difference {fd}",
-                g[i]
-            );
-        }
+        crate::candle::train::testing::check_input_gradient(
+            "frozen conv3x3",
+            |x| conv.forward(x).unwrap(),
+            &x0,
+            &shape,
+            &r,
+            crate::candle::train::testing::FdCheck {
+                stride: 1,
+                floor: 1e-8,
+                tol: 1e-6,
+            },
+        );
     }
 }
