@@ -9,7 +9,7 @@ use moma_core::Mask;
 use ndarray::Array2;
 use numpy::{
     PyArray2, PyArray3, PyArrayDescrMethods, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3,
-    PyUntypedArray, PyUntypedArrayMethods,
+    PyReadwriteArray2, PyUntypedArray, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 
@@ -74,6 +74,20 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
         .map_err(|_| value_err(format!("{what}: cannot convert to a float32 2-D array")))?;
     conv.try_readonly()
         .map_err(|e| value_err(format!("{what}: {e}")))
+}
+
+/// A caller's output array `out`: a writable 2-D `float32` NumPy array (any strides), borrowed
+/// mutably (written in place, never converted: a conversion would write into a copy).
+///
+/// # Errors
+/// `moma.InvalidInputError`: not a 2-D float32 array, read-only, or already borrowed (e.g. the
+/// same array passed as input and output).
+pub fn f32_2d_out<'py>(out: &Bound<'py, PyAny>) -> PyResult<PyReadwriteArray2<'py, f32>> {
+    let out = out.cast::<PyArray2<f32>>().map_err(|_| {
+        value_err("out must be a writable 2-D float32 NumPy array (height × width)")
+    })?;
+    out.try_readwrite()
+        .map_err(|e| value_err(format!("out: {e}")))
 }
 
 /// An `H × W × 3` `uint8` RGB array, borrowed from NumPy (any strides, not copied): read it with

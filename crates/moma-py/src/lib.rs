@@ -29,7 +29,7 @@ use moma_core::{
 use moma_depth::{Backbone, DepthModel as DepthModelTrait, Head, ModelSpec};
 use moma_io::{CalibrationFile, CreationInfo};
 use ndarray::Array2;
-use numpy::{IntoPyArray, PyArray2, PyArrayMethods};
+use numpy::{IntoPyArray, PyArray2};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 
@@ -275,12 +275,7 @@ impl Calibration {
         pred: &Bound<'_, PyAny>,
         out: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
-        let out = out.cast::<PyArray2<f32>>().map_err(|_| {
-            value_err("out must be a writable 2-D float32 NumPy array (height × width)")
-        })?;
-        let mut rw = out
-            .try_readwrite()
-            .map_err(|e| value_err(format!("out: {e}")))?;
+        let mut rw = arrays::f32_2d_out(out)?;
         let ro = f32_2d(pred, "pred")?;
         let view = ro.as_array();
         let mut out_view = rw.as_array_mut();
@@ -389,12 +384,7 @@ impl Calibration {
     ) -> PyResult<Bound<'py, PyAny>> {
         let config = realign_config(options)?;
         self.inner.anchor_store().py()?;
-        let out = out.cast::<PyArray2<f32>>().map_err(|_| {
-            value_err("out must be a writable 2-D float32 NumPy array (height × width)")
-        })?;
-        let mut rw = out
-            .try_readwrite()
-            .map_err(|e| value_err(format!("out: {e}")))?;
+        let mut rw = arrays::f32_2d_out(out)?;
         let ro = f32_2d(pred, "pred")?;
         let rgb_ro = arrays::rgb_ro(rgb, "rgb")?;
         let (view, rgb_view) = (ro.as_array(), rgb_ro.as_array());
