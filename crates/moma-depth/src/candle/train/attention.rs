@@ -9,6 +9,8 @@
 
 use candle_core::{CpuStorage, CustomOp1, D, Layout, Result, Shape, Tensor};
 
+use super::elem::Elem;
+
 /// `softmax(scale · q kᵀ) v` per head on `qkv (B, T, 3C)` (PyTorch layout: `reshape(B, T, 3,
 /// heads, C / heads)`) → `(B, T, C)`, differentiable in `qkv`.
 ///
@@ -172,27 +174,13 @@ struct AttentionBackward {
     scale: f64,
 }
 
-/// Element types of [`AttentionBackward`].
-trait BwdElem:
-    Copy
-    + Send
-    + Sync
-    + 'static
-    + std::ops::Mul<Output = Self>
-    + std::ops::Sub<Output = Self>
-    + std::ops::AddAssign
-{
-    const ZERO: Self;
-    fn of(v: f64) -> Self;
+/// Element types of [`AttentionBackward`]: the kernels' [`Elem`] plus the forward's softmax.
+trait BwdElem: Elem {
     /// `softmax(scale · row)` in place on the length-`n` rows of `s`.
     fn softmax_rows(s: &mut [Self], n: usize, scale: f64);
 }
 
 impl BwdElem for f32 {
-    const ZERO: Self = 0.0;
-    fn of(v: f64) -> Self {
-        v as f32
-    }
     fn softmax_rows(s: &mut [Self], n: usize, scale: f64) {
         // The exponential of the forward kernel (`exp_rows`), so P is the forward's.
         crate::candle::ops::softmax_rows_in_place(s, n, scale as f32);
@@ -200,10 +188,6 @@ impl BwdElem for f32 {
 }
 
 impl BwdElem for f64 {
-    const ZERO: Self = 0.0;
-    fn of(v: f64) -> Self {
-        v
-    }
     fn softmax_rows(s: &mut [Self], n: usize, scale: f64) {
         for row in s.chunks_exact_mut(n) {
             let max = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);

@@ -6,6 +6,7 @@
 
 pub mod adapter;
 mod attention;
+mod elem;
 pub mod finetune;
 mod frozen;
 mod gelu;

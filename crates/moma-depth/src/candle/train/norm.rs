@@ -9,27 +9,7 @@
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-/// Element types of the LayerNorm kernels.
-trait Elem: Copy + Send + Sync + Default {
-    fn f(self) -> f64;
-    fn of(v: f64) -> Self;
-}
-impl Elem for f32 {
-    fn f(self) -> f64 {
-        f64::from(self)
-    }
-    fn of(v: f64) -> Self {
-        v as f32
-    }
-}
-impl Elem for f64 {
-    fn f(self) -> f64 {
-        self
-    }
-    fn of(v: f64) -> Self {
-        v
-    }
-}
+use super::elem::Elem;
 
 /// Mean and `1/√(var + ε)` of one row (two-pass variance).
 fn stats<T: Elem>(row: &[T], eps: f64) -> (f64, f64) {

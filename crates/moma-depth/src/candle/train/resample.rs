@@ -6,6 +6,8 @@
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
+use super::elem::Elem;
+
 /// Taps `(i0, i1, w0, w1)` of one output index along one axis.
 type Taps = Vec<(usize, usize, f64, f64)>;
 
@@ -43,29 +45,6 @@ pub(crate) fn taps(in_len: usize, out_len: usize, f64_taps: bool) -> Taps {
             (i0, i1, 1.0 - l1, l1)
         })
         .collect()
-}
-
-/// Element types of [`Bilinear`].
-trait Elem:
-    Copy
-    + Send
-    + Sync
-    + Default
-    + std::ops::Mul<Output = Self>
-    + std::ops::Add<Output = Self>
-    + std::ops::AddAssign
-{
-    fn of(v: f64) -> Self;
-}
-impl Elem for f32 {
-    fn of(v: f64) -> Self {
-        v as f32
-    }
-}
-impl Elem for f64 {
-    fn of(v: f64) -> Self {
-        v
-    }
 }
 
 impl Bilinear {
