@@ -40,7 +40,7 @@ from safetensors.torch import load_file  # noqa: E402
 
 from depth_anything_v2.dpt import DepthAnythingV2  # noqa: E402
 
-from torch_common import peak_rss_mib, split_qkv  # noqa: E402  (this folder)
+from torch_common import peak_rss_mib, split_qkv, ssi_loss  # noqa: E402  (this folder)
 
 REF = sys.argv[3] if len(sys.argv) > 3 else os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "shared", "reference", "dav2")
@@ -49,22 +49,6 @@ RANK = 16
 LR = 5e-4  # the Rust default peak learning rate (the schedule does not change the step's cost)
 CLIP = 1.0  # the Rust default --clip-grad-norm
 MIN_DEPTH_M = 0.001  # the Rust default --min-depth; relative heads: no upper bound
-
-
-def ssi_loss(pred, gt_m, valid):
-    """`LossKind::Ssi` of the Rust trainer: least-squares scale and shift of the prediction onto the
-    ground-truth disparity 1/gt over valid pixels (closed form, differentiable), then the mean
-    absolute residual."""
-    p = pred.flatten()[valid]
-    y = 1.0 / gt_m.flatten()[valid]
-    n = p.numel()
-    mp, my = p.mean(), y.mean()
-    pc, yc = p - mp, y - my
-    var_p = (pc * pc).sum() / n
-    cov = (pc * yc).sum() / n
-    s = cov / (var_p + 1e-12)
-    fitted = pc * s + my
-    return (fitted - y).abs().mean()
 
 
 def check_ssi():

@@ -1,6 +1,7 @@
 """Helpers shared by the PyTorch scripts of this folder (imported from the script's own
 directory, which Python puts first on sys.path): peft's LoRA on the q and v parts of DINOv2's
-fused `attn.qkv`, and the peak memory of the process."""
+fused `attn.qkv`, the Rust trainer's scale-and-shift-invariant loss, and the peak memory of the
+process."""
 import torch
 from torch import nn
 
@@ -41,3 +42,19 @@ def peak_rss_mib():
     except OSError:
         pass
     return float("nan")
+
+
+def ssi_loss(pred, gt_m, valid):
+    """`LossKind::Ssi` of the Rust trainer: least-squares scale and shift of the prediction onto the
+    ground-truth disparity 1/gt over valid pixels (closed form, differentiable), then the mean
+    absolute residual."""
+    p = pred.flatten()[valid]
+    y = 1.0 / gt_m.flatten()[valid]
+    n = p.numel()
+    mp, my = p.mean(), y.mean()
+    pc, yc = p - mp, y - my
+    var_p = (pc * pc).sum() / n
+    cov = (pc * yc).sum() / n
+    s = cov / (var_p + 1e-12)
+    fitted = pc * s + my
+    return (fitted - y).abs().mean()
