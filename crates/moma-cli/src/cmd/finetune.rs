@@ -138,6 +138,11 @@ pub struct FinetuneArgs {
     /// composed softmax) instead of recomputing them there; more memory, for comparisons.
     #[arg(long, hide = true)]
     pub keep_attention: bool,
+    /// Diagnostics: run the operations a GPU runs (candle operations with attached backwards)
+    /// on the CPU too, instead of the CPU kernels: to test that path and measure its memory
+    /// where no GPU is at hand.
+    #[arg(long, hide = true)]
+    pub portable_ops: bool,
     /// Output adapter file (.safetensors).
     #[arg(short, long, value_name = "ADAPTER")]
     pub output: PathBuf,
@@ -431,6 +436,7 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     });
     let mut net = TrainNet::new(&config, src)?;
     net.set_recompute_attention(!args.keep_attention);
+    net.set_portable_ops(args.portable_ops);
     net.add_lora(&lora)?;
     let mut resumed: Option<(PathBuf, u64)> = None;
     if let Some(resume) = &args.resume {

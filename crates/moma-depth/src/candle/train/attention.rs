@@ -23,7 +23,7 @@ pub(crate) fn attention(qkv: &Tensor, num_heads: usize, scale: f64) -> Result<Te
 
 /// Whether [`attention`] has a kernel for `t`'s device and dtype.
 pub(crate) fn supported(t: &Tensor) -> bool {
-    t.device().is_cpu() && matches!(t.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+    super::cpu_kernels(t)
 }
 
 struct RecomputedAttention {
@@ -135,31 +135,76 @@ impl CustomOp1 for RecomputedAttention {
             )?;
             return Ok(Some(d));
         }
-        let (b, t, c3) = arg.dims3()?;
-        let h = self.num_heads;
-        let hd = c3 / 3 / h;
-        let qkv = arg
-            .detach()
-            .reshape((b, t, 3, h, hd))?
-            .permute((2, 0, 3, 1, 4))?;
-        let q = qkv.get(0)?.contiguous()?;
-        let k = qkv.get(1)?.contiguous()?;
-        let v = qkv.get(2)?.contiguous()?;
-        let heads = |x: &Tensor| -> Result<Tensor> {
-            x.reshape((b, t, h, hd))?.transpose(1, 2)?.contiguous()
-        };
-        let go = heads(grad_res)?;
-        let o = heads(&res.detach())?;
-        let p = candle_nn::ops::softmax_last_dim(&(q.matmul(&k.t()?)? * self.scale)?)?;
-        let dv = p.t()?.matmul(&go)?;
-        let dp = go.matmul(&v.t()?)?;
-        let delta = (&go * &o)?.sum_keepdim(D::Minus1)?;
-        let ds = (p * dp.broadcast_sub(&delta)?)?;
-        let dq = (ds.matmul(&k)? * self.scale)?;
-        let dk = (ds.t()?.matmul(&q)? * self.scale)?;
-        let d = Tensor::stack(&[dq, dk, dv], 0)?; // (3, B, H, T, hd)
-        Ok(Some(d.permute((1, 3, 0, 2, 4))?.reshape((b, t, c3))?))
+        composed_backward(
+            &arg.detach(),
+            &res.detach(),
+            grad_res,
+            self.num_heads,
+            self.scale,
+        )
+        .map(Some)
     }
+}
+
+/// q, k, v of `qkv (B, T, 3C)` as contiguous `(B, H, T, C / H)` tensors.
+fn split_heads(qkv: &Tensor, h: usize) -> Result<(Tensor, Tensor, Tensor)> {
+    let (b, t, c3) = qkv.dims3()?;
+    let qkv = qkv
+        .reshape((b, t, 3, h, c3 / 3 / h))?
+        .permute((2, 0, 3, 1, 4))?;
+    Ok((
+        qkv.get(0)?.contiguous()?,
+        qkv.get(1)?.contiguous()?,
+        qkv.get(2)?.contiguous()?,
+    ))
+}
+
+/// The attention forward from candle operations (any device), outside the graph: its `(B, H, T,
+/// T)` scores and probabilities are freed on return.
+fn composed_forward(qkv: &Tensor, h: usize, scale: f64) -> Result<Tensor> {
+    let (b, t, c3) = qkv.dims3()?;
+    let (q, k, v) = split_heads(qkv, h)?;
+    let p = candle_nn::ops::softmax_last_dim(&(q.matmul(&k.t()?)? * scale)?)?;
+    p.matmul(&v)?.transpose(1, 2)?.reshape((b, t, c3 / 3))
+}
+
+/// The attention backward from candle operations (any device), `P` recomputed: see
+/// [`RecomputedAttention`]'s `bwd`. `o` is the forward's output, `go` its gradient.
+fn composed_backward(
+    qkv: &Tensor,
+    o: &Tensor,
+    go: &Tensor,
+    h: usize,
+    scale: f64,
+) -> Result<Tensor> {
+    let (b, t, c3) = qkv.dims3()?;
+    let hd = c3 / 3 / h;
+    let (q, k, v) = split_heads(qkv, h)?;
+    let heads =
+        |x: &Tensor| -> Result<Tensor> { x.reshape((b, t, h, hd))?.transpose(1, 2)?.contiguous() };
+    let go = heads(go)?;
+    let o = heads(o)?;
+    let p = candle_nn::ops::softmax_last_dim(&(q.matmul(&k.t()?)? * scale)?)?;
+    let dv = p.t()?.matmul(&go)?;
+    let dp = go.matmul(&v.t()?)?;
+    let delta = (&go * &o)?.sum_keepdim(D::Minus1)?;
+    let ds = (p * dp.broadcast_sub(&delta)?)?;
+    let dq = (ds.matmul(&k)? * scale)?;
+    let dk = (ds.t()?.matmul(&q)? * scale)?;
+    let d = Tensor::stack(&[dq, dk, dv], 0)?; // (3, B, H, T, hd)
+    d.permute((1, 3, 0, 2, 4))?.reshape((b, t, c3))
+}
+
+/// [`attention`] on any device and dtype from candle operations: the same memory-light graph
+/// (the forward's probabilities are not kept; the backward recomputes them), what a GPU runs.
+///
+/// # Errors
+/// Shape errors.
+pub(crate) fn attention_portable(qkv: &Tensor, num_heads: usize, scale: f64) -> Result<Tensor> {
+    let o = composed_forward(&qkv.detach(), num_heads, scale)?;
+    super::frozen::attach(qkv, o, move |qkv, o, go| {
+        composed_backward(qkv, o, go, num_heads, scale)
+    })
 }
 
 /// Query rows per block of [`AttentionBackward`] (two `rows × T` scratch blocks per task).
@@ -481,10 +526,44 @@ mod tests {
         assert!(g.iter().any(|v| v.abs() > 1e-3));
     }
 
-    /// The fused f32 backward equals the composed backward (candle ops on the full `T × T`
-    /// probabilities) of the same op.
+    /// The portable attention (candle operations, what a GPU runs): forward equal to the
+    /// kernel's, gradient against central finite differences in f64.
     #[test]
-    fn fused_f32_backward_equals_the_composed_backward() {
+    fn portable_attention_matches_the_kernel_and_central_finite_differences_in_f64() {
+        let (b, t, h, hd) = DIMS;
+        let c3 = 3 * h * hd;
+        let (x0, r, scale) = setup();
+        let x = Tensor::from_slice(&x0, (b, t, c3), &Device::Cpu).unwrap();
+        let o_kernel = attention(&x, h, scale).unwrap();
+        let o_portable = attention_portable(&x, h, scale).unwrap();
+        let diff = (o_kernel - o_portable)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap();
+        assert!(diff < 1e-12, "forward differs by {diff}");
+        let g = crate::candle::train::testing::check_input_gradient(
+            "portable attention qkv",
+            |x| attention_portable(x, h, scale).unwrap(),
+            &x0,
+            &[b, t, c3],
+            &r,
+            crate::candle::train::testing::FdCheck {
+                stride: 37,
+                floor: 1e-6,
+                tol: 1e-5,
+            },
+        );
+        assert!(g.iter().any(|v| v.abs() > 1e-3));
+    }
+
+    /// The fused f32 backward equals the portable backward (candle operations on the full
+    /// `T × T` probabilities: what a GPU runs) of the same op.
+    #[test]
+    fn fused_f32_backward_equals_the_portable_backward() {
         let (b, t, h, hd) = DIMS;
         let c3 = 3 * h * hd;
         let (x0, r, scale) = setup();
@@ -499,42 +578,7 @@ mod tests {
         };
         let o = x.apply_op1_no_bwd(&op).unwrap();
         let fused = op.bwd(&x, &o, &r).unwrap().unwrap();
-        // The composed branch: a device-independent check of the same formulas.
-        let qkv = x
-            .reshape((b, t, 3, h, hd))
-            .unwrap()
-            .permute((2, 0, 3, 1, 4))
-            .unwrap();
-        let (q, k, v) = (
-            qkv.get(0).unwrap().contiguous().unwrap(),
-            qkv.get(1).unwrap().contiguous().unwrap(),
-            qkv.get(2).unwrap().contiguous().unwrap(),
-        );
-        let heads = |x: &Tensor| {
-            x.reshape((b, t, h, hd))
-                .unwrap()
-                .transpose(1, 2)
-                .unwrap()
-                .contiguous()
-                .unwrap()
-        };
-        let (go, oh) = (heads(&r), heads(&o));
-        let p = candle_nn::ops::softmax_last_dim(
-            &(q.matmul(&k.t().unwrap()).unwrap() * scale).unwrap(),
-        )
-        .unwrap();
-        let dv = p.t().unwrap().matmul(&go).unwrap();
-        let dp = go.matmul(&v.t().unwrap()).unwrap();
-        let delta = (&go * &oh).unwrap().sum_keepdim(D::Minus1).unwrap();
-        let ds = (p * dp.broadcast_sub(&delta).unwrap()).unwrap();
-        let dq = (ds.matmul(&k).unwrap() * scale).unwrap();
-        let dk = (ds.t().unwrap().matmul(&q).unwrap() * scale).unwrap();
-        let want = Tensor::stack(&[dq, dk, dv], 0)
-            .unwrap()
-            .permute((1, 3, 0, 2, 4))
-            .unwrap()
-            .reshape((b, t, c3))
-            .unwrap();
+        let want = composed_backward(&x, &o, &r, h, scale).unwrap();
         let a: Vec<f32> = fused.flatten_all().unwrap().to_vec1().unwrap();
         let w: Vec<f32> = want.flatten_all().unwrap().to_vec1().unwrap();
         let scale_w = w.iter().fold(0f32, |m, v| m.max(v.abs()));

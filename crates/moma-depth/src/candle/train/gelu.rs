@@ -3,7 +3,7 @@
 //! libm's scalar `erff` in the forward and again, with further temporaries, in its backward);
 //! f64 with libm's `erf`/`exp`.
 
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
 
 const INV_SQRT_2PI: f64 = 0.398_942_280_401_432_7;
 
@@ -97,7 +97,7 @@ impl CustomOp2 for GeluBackward {
 /// # Errors
 /// Shape errors.
 pub(crate) fn gelu_erf(x: &Tensor) -> Result<Tensor> {
-    if x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) {
+    if super::cpu_kernels(x) {
         x.contiguous()?.apply_op1(Gelu)
     } else {
         x.gelu_erf()
@@ -107,7 +107,7 @@ pub(crate) fn gelu_erf(x: &Tensor) -> Result<Tensor> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{Device, Var};
+    use candle_core::{DType, Device, Var};
 
     fn grad(x: &Var, r: &Tensor, f: impl Fn(&Tensor) -> Tensor) -> Vec<f64> {
         let l = (f(x.as_tensor()) * r).unwrap().sum_all().unwrap();

@@ -26,3 +26,34 @@ pub use finetune::{
 pub use lora::{LoraConfig, LoraTarget};
 pub use loss::{LossKind, loss, valid_indices};
 pub use model::{LoraPart, ParamSource, TrainNet};
+
+use std::cell::Cell;
+
+thread_local! {
+    /// Set while a [`TrainNet`] with portable operations forced runs its forward on this thread.
+    static PORTABLE: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Whether this module's CPU kernels may run on `t`: a CPU tensor in f32 or f64, outside a
+/// forward that forces the portable operations (what a GPU runs; see
+/// [`TrainNet::set_portable_ops`]). Decided during the forward: each op's backward follows it.
+pub(crate) fn cpu_kernels(t: &candle_core::Tensor) -> bool {
+    t.device().is_cpu()
+        && matches!(t.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+        && !PORTABLE.with(Cell::get)
+}
+
+/// Forces (or not) the portable operations on this thread until dropped.
+pub(crate) struct PortableScope(bool);
+
+impl PortableScope {
+    pub(crate) fn enter(on: bool) -> Self {
+        Self(PORTABLE.with(|p| p.replace(on)))
+    }
+}
+
+impl Drop for PortableScope {
+    fn drop(&mut self) {
+        PORTABLE.with(|p| p.set(self.0));
+    }
+}

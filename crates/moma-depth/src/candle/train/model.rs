@@ -200,12 +200,11 @@ impl Dropout {
     }
 }
 
-/// LayerNorm over the last dimension from differentiable operations (two-pass variance).
+/// LayerNorm over the last dimension from differentiable operations (two-pass variance), for a
+/// trained weight or bias.
 fn layer_norm(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
-    let mean = x.mean_keepdim(D::Minus1)?;
-    let xc = x.broadcast_sub(&mean)?;
-    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
-    xc.broadcast_div(&(var + eps)?.sqrt()?)?
+    super::norm::standardise(x, eps)?
+        .0
         .broadcast_mul(w)?
         .broadcast_add(b)
 }
@@ -238,6 +237,9 @@ impl Ln {
         if super::norm::supported(x, &self.w, &self.b) {
             return super::norm::layer_norm(x, &self.w, &self.b, self.eps);
         }
+        if !self.w.track_op() && !self.b.track_op() {
+            return super::norm::layer_norm_portable(x, &self.w, &self.b, self.eps);
+        }
         layer_norm(x, &self.w, &self.b, self.eps)
     }
 }
@@ -253,7 +255,8 @@ struct TBlock {
     fc2: TLinear,
     ls2: Tensor,
     num_heads: usize,
-    /// Attention that keeps no probabilities and recomputes them in the backward (CPU).
+    /// Attention that keeps no probabilities and recomputes them in the backward (a kernel on
+    /// the CPU, candle operations elsewhere).
     recompute_attention: bool,
 }
 
@@ -291,6 +294,8 @@ impl TBlock {
         let scale = 1.0 / (hd as f64).sqrt();
         let o = if self.recompute_attention && super::attention::supported(&qkv) {
             super::attention::attention(&qkv, h, scale)?
+        } else if self.recompute_attention {
+            super::attention::attention_portable(&qkv, h, scale)?
         } else {
             let qkv = qkv.reshape((b, t, 3, h, hd))?.permute((2, 0, 3, 1, 4))?;
             let q = qkv.get(0)?.contiguous()?;
@@ -616,6 +621,8 @@ pub struct TrainNet {
     lora_vars: BTreeMap<String, Var>,
     lora_config: Option<LoraConfig>,
     dropout: Dropout,
+    /// Forces the operations a GPU runs, also on the CPU ([`Self::set_portable_ops`]).
+    portable_ops: bool,
 }
 
 impl TrainNet {
@@ -714,6 +721,7 @@ impl TrainNet {
             lora_vars: BTreeMap::new(),
             lora_config: None,
             dropout: Dropout::new(0.0, 0),
+            portable_ops: false,
         })
     }
 
@@ -753,12 +761,20 @@ impl TrainNet {
     }
 
     /// Attention that keeps no `T × T` probabilities for the backward and recomputes them
-    /// there (default on; CPU f32/f64, other devices always use composed operations). Off: the
+    /// there (default on; a kernel on CPU f32/f64, candle operations elsewhere). Off: the
     /// composed softmax, whose graph keeps scores, exponentials and probabilities per block.
     pub fn set_recompute_attention(&mut self, on: bool) {
         for b in &mut self.blocks {
             b.recompute_attention = on;
         }
+    }
+
+    /// Runs the operations a GPU runs (candle operations with attached backwards: the
+    /// recomputed attention, the LayerNorm, the exact GELU and the resampling) also on the CPU,
+    /// instead of this crate's CPU kernels: for tests of that path and to measure its memory
+    /// where no GPU is at hand. Off by default; no effect on other devices.
+    pub fn set_portable_ops(&mut self, on: bool) {
+        self.portable_ops = on;
     }
 
     /// The attached adapters' settings.
@@ -906,6 +922,7 @@ impl TrainNet {
     /// # Errors
     /// Shape errors.
     pub fn forward(&mut self, x: &Tensor) -> Result<Tensor> {
+        let _portable = super::PortableScope::enter(self.portable_ops);
         let x = x.to_dtype(self.patch_w.dtype())?;
         let (b, c, h, w) = x.dims4()?;
         let p = PATCH_SIZE;

@@ -6,7 +6,7 @@
 //! Backward, with `x̂ = (x − μ)·r`, `r = 1/√(var + ε)` and `ĝ = g ⊙ w`:
 //! `dx = r · (ĝ − mean(ĝ) − x̂ · mean(ĝ ⊙ x̂))`.
 
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, D, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 use super::elem::Elem;
@@ -142,10 +142,7 @@ impl CustomOp2 for LayerNormBackward {
 /// Whether [`layer_norm`] applies: CPU f32/f64 input, and a weight and bias that carry no
 /// gradient (trained ones take the composed path).
 pub(crate) fn supported(x: &Tensor, w: &Tensor, b: &Tensor) -> bool {
-    x.device().is_cpu()
-        && matches!(x.dtype(), DType::F32 | DType::F64)
-        && !w.track_op()
-        && !b.track_op()
+    super::cpu_kernels(x) && !w.track_op() && !b.track_op()
 }
 
 /// `(x − mean) / √(var + eps) · w + b` over the last dimension, differentiable in `x`.
@@ -159,6 +156,36 @@ pub(crate) fn layer_norm(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result
         eps,
     };
     x.contiguous()?.apply_op1(op)
+}
+
+/// `((x − mean) / σ, σ)` over the last dimension, σ = √(var + eps) with the two-pass (biased)
+/// variance; differentiable.
+pub(crate) fn standardise(x: &Tensor, eps: f64) -> Result<(Tensor, Tensor)> {
+    let mean = x.mean_keepdim(D::Minus1)?;
+    let xc = x.broadcast_sub(&mean)?;
+    let sigma = (xc.sqr()?.mean_keepdim(D::Minus1)? + eps)?.sqrt()?;
+    Ok((xc.broadcast_div(&sigma)?, sigma))
+}
+
+/// [`layer_norm`] from candle operations on any device and dtype (frozen `w` and `b`): the
+/// forward off the graph, the backward `dx = (g·w − mean(g·w) − x̂·mean(g·w·x̂)) / σ` recomputed
+/// from `x`, so that the graph keeps only `x` and the output (what a GPU runs).
+///
+/// # Errors
+/// Shape errors.
+pub(crate) fn layer_norm_portable(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
+    let y = standardise(&x.detach(), eps)?
+        .0
+        .broadcast_mul(w)?
+        .broadcast_add(b)?;
+    let w = w.detach();
+    super::frozen::attach(x, y, move |x, _, g| {
+        let (xhat, sigma) = standardise(x, eps)?;
+        let gy = g.broadcast_mul(&w)?;
+        let m1 = gy.mean_keepdim(D::Minus1)?;
+        let m2 = (&gy * &xhat)?.mean_keepdim(D::Minus1)?;
+        (gy.broadcast_sub(&m1)? - xhat.broadcast_mul(&m2)?)?.broadcast_div(&sigma)
+    })
 }
 
 #[cfg(test)]
@@ -246,6 +273,66 @@ mod tests {
                 "x[{i}]: {} vs composed {}",
                 g[i],
                 gc[i]
+            );
+        }
+    }
+
+    /// The portable LayerNorm (candle operations with an attached backward, what a GPU runs):
+    /// forward and input gradient equal to the kernel's, the gradient also against central
+    /// finite differences, in f64 (large-offset rows as above).
+    #[test]
+    fn portable_layer_norm_matches_the_kernel_and_central_finite_differences_in_f64() {
+        let (rows, d, eps) = (3, 7, 1e-6);
+        let dev = Device::Cpu;
+        let w = Tensor::from_vec(random(d, 1, 0.5, 1.5), d, &dev).unwrap();
+        let b = Tensor::from_vec(random(d, 2, -1.0, 1.0), d, &dev).unwrap();
+        let r = Tensor::from_vec(random(rows * d, 3, -1.0, 1.0), (1, rows, d), &dev).unwrap();
+        let x0: Vec<f64> = random(rows * d, 4, -2.0, 2.0)
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v + 30.0 * (i / d) as f64)
+            .collect();
+        let fd = crate::candle::train::testing::FdCheck {
+            stride: 1,
+            floor: 1e-8,
+            tol: 1e-6,
+        };
+        let g_portable = crate::candle::train::testing::check_input_gradient(
+            "portable layer norm",
+            |x| layer_norm_portable(x, &w, &b, eps).unwrap(),
+            &x0,
+            &[1, rows, d],
+            &r,
+            fd,
+        );
+        let x = Var::from_tensor(&Tensor::from_slice(&x0, (1, rows, d), &dev).unwrap()).unwrap();
+        let y_kernel = layer_norm(x.as_tensor(), &w, &b, eps).unwrap();
+        let y_portable = layer_norm_portable(x.as_tensor(), &w, &b, eps).unwrap();
+        let diff = (&y_kernel - &y_portable)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap();
+        assert!(diff < 1e-12, "forward differs from the kernel by {diff}");
+        let g_kernel: Vec<f64> = (y_kernel * &r)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap()
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        for (i, (p, k)) in g_portable.iter().zip(&g_kernel).enumerate() {
+            assert!(
+                (p - k).abs() < 1e-9 * k.abs().max(1.0),
+                "x[{i}]: {p} vs kernel {k}"
             );
         }
     }

@@ -153,7 +153,7 @@ impl CustomOp1 for Bilinear {
 
 /// Whether [`upsample`] has a kernel for `t`.
 pub(crate) fn supported(t: &Tensor) -> bool {
-    t.device().is_cpu() && matches!(t.dtype(), candle_core::DType::F32 | candle_core::DType::F64)
+    super::cpu_kernels(t)
 }
 
 /// Bilinear `align_corners=True` resampling of `(B, C, h, w)` to `(B, C, oh, ow)` (CPU f32/f64),
