@@ -21,6 +21,7 @@
 
 use moma_core::ImageSize;
 use ndarray::{Array2, Array3, ArrayView2};
+use rayon::prelude::*;
 
 use crate::error::{DepthError, Result};
 
@@ -102,17 +103,11 @@ pub fn network_input_size(image: ImageSize, input_size: usize) -> Result<ImageSi
 pub fn preprocess(rgb: &image::RgbImage, input_size: usize) -> Result<Array3<f32>> {
     let src_size = ImageSize::new(rgb.width() as usize, rgb.height() as usize);
     let dst_size = network_input_size(src_size, input_size)?;
-    let hwc: Vec<f64> = rgb.as_raw().iter().map(|&v| f64::from(v) / 255.0).collect();
-    let resized = resize_cubic_opencv_hwc3(&hwc, src_size, dst_size);
     let (h, w) = dst_size.shape();
-    let mut out = Array3::<f32>::zeros((3, h, w));
-    for (c, mut plane) in out.outer_iter_mut().enumerate() {
-        let (mean, std) = (IMAGENET_MEAN[c], IMAGENET_STD[c]);
-        for ((y, x), v) in plane.indexed_iter_mut() {
-            *v = ((resized[(y * w + x) * 3 + c] - mean) / std) as f32;
-        }
-    }
-    Ok(out)
+    let mut out = vec![0.0f32; 3 * h * w];
+    resize_cubic_opencv_normalise(rgb.as_raw(), src_size, dst_size, &mut out);
+    Array3::from_shape_vec((3, h, w), out)
+        .map_err(|e| DepthError::Shape(format!("pre-processed image: {e}")))
 }
 
 /// OpenCV `interpolateCubic` (imgproc/src/resize.cpp): the four Keys weights, computed in `f32`,
@@ -144,39 +139,60 @@ fn opencv_cubic_taps(src_len: usize, dst_len: usize) -> Vec<([usize; 4], [f32; 4
         .collect()
 }
 
-/// OpenCV `cv2.resize(img, (dst.width, dst.height), interpolation=cv2.INTER_CUBIC)` of a 3-channel
-/// `f64` image stored row-major HWC: horizontal pass then vertical pass, `f32` weights, `f64` sums.
-fn resize_cubic_opencv_hwc3(src: &[f64], src_size: ImageSize, dst_size: ImageSize) -> Vec<f64> {
+/// OpenCV `cv2.resize(img, (dst.width, dst.height), interpolation=cv2.INTER_CUBIC)` of the 8-bit
+/// RGB image `src` (row-major HWC) taken as `f64` in `[0, 1]` (`v / 255`, as the official code's
+/// `image / 255.0`), then `(v − mean) / std` per channel, into `out` as `(3, H, W)` `f32`:
+/// horizontal pass then vertical pass, `f32` weights, `f64` sums in OpenCV's order (bit-exact
+/// against the reference input). Rows run in parallel; every value is computed exactly as in a
+/// serial loop.
+fn resize_cubic_opencv_normalise(
+    src: &[u8],
+    src_size: ImageSize,
+    dst_size: ImageSize,
+    out: &mut [f32],
+) {
     let (sh, sw) = src_size.shape();
     let (dh, dw) = dst_size.shape();
     let xt = opencv_cubic_taps(sw, dw);
     let yt = opencv_cubic_taps(sh, dh);
+    // `v / 255` for every byte value, the same f64 as computing it in place.
+    let unit: [f64; 256] = std::array::from_fn(|v| v as f64 / 255.0);
     // Horizontal pass over every source row: (sh, dw, 3).
     let mut tmp = vec![0.0f64; sh * dw * 3];
-    for y in 0..sh {
+    tmp.par_chunks_mut(dw * 3).enumerate().for_each(|(y, out)| {
         let row = &src[y * sw * 3..(y + 1) * sw * 3];
-        let out = &mut tmp[y * dw * 3..(y + 1) * dw * 3];
-        for (x, (idx, wt)) in xt.iter().enumerate() {
-            for c in 0..3 {
+        for ((idx, wt), o) in xt.iter().zip(out.chunks_exact_mut(3)) {
+            for (c, o) in o.iter_mut().enumerate() {
                 let mut v = 0.0f64;
                 for k in 0..4 {
-                    v += row[idx[k] * 3 + c] * f64::from(wt[k]);
+                    v += unit[usize::from(row[idx[k] * 3 + c])] * f64::from(wt[k]);
                 }
-                out[x * 3 + c] = v;
+                *o = v;
             }
         }
-    }
-    // Vertical pass.
-    let mut dst = vec![0.0f64; dh * dw * 3];
-    for (y, (idx, wt)) in yt.iter().enumerate() {
-        let rows = idx.map(|i| &tmp[i * dw * 3..(i + 1) * dw * 3]);
-        let b = wt.map(f64::from);
-        let out = &mut dst[y * dw * 3..(y + 1) * dw * 3];
-        for (i, o) in out.iter_mut().enumerate() {
-            *o = rows[0][i] * b[0] + rows[1][i] * b[1] + rows[2][i] * b[2] + rows[3][i] * b[3];
-        }
-    }
-    dst
+    });
+    // Vertical pass and normalisation, one output row of the three planes per task.
+    let (p0, rest) = out.split_at_mut(dh * dw);
+    let (p1, p2) = rest.split_at_mut(dh * dw);
+    p0.par_chunks_mut(dw)
+        .zip(p1.par_chunks_mut(dw))
+        .zip(p2.par_chunks_mut(dw))
+        .zip(yt.par_iter())
+        .for_each(|(((r0, r1), r2), (idx, wt))| {
+            let rows = idx.map(|i| &tmp[i * dw * 3..(i + 1) * dw * 3]);
+            let b = wt.map(f64::from);
+            let mut planes = [r0, r1, r2];
+            for x in 0..dw {
+                for (c, plane) in planes.iter_mut().enumerate() {
+                    let i = x * 3 + c;
+                    let v = rows[0][i] * b[0]
+                        + rows[1][i] * b[1]
+                        + rows[2][i] * b[2]
+                        + rows[3][i] * b[3];
+                    plane[x] = ((v - IMAGENET_MEAN[c]) / IMAGENET_STD[c]) as f32;
+                }
+            }
+        });
 }
 
 /// Source index pair and weights of PyTorch's `align_corners = true` linear interpolation along one
@@ -221,12 +237,17 @@ pub fn resize_bilinear_align_corners(
     }
     let yt = align_corners_taps(ih, out_h);
     let xt = align_corners_taps(iw, out_w);
-    Array2::from_shape_fn((out_h, out_w), |(y, x)| {
-        let (y0, y1, hy0, hy1) = yt[y];
-        let (x0, x1, wx0, wx1) = xt[x];
-        hy0 * (wx0 * src[(y0, x0)] + wx1 * src[(y0, x1)])
-            + hy1 * (wx0 * src[(y1, x0)] + wx1 * src[(y1, x1)])
-    })
+    let mut out = Array2::zeros((out_h, out_w));
+    out.axis_iter_mut(ndarray::Axis(0))
+        .into_par_iter()
+        .zip(yt.par_iter())
+        .for_each(|(mut row, &(y0, y1, hy0, hy1))| {
+            for (o, &(x0, x1, wx0, wx1)) in row.iter_mut().zip(&xt) {
+                *o = hy0 * (wx0 * src[(y0, x0)] + wx1 * src[(y0, x1)])
+                    + hy1 * (wx0 * src[(y1, x0)] + wx1 * src[(y1, x1)]);
+            }
+        });
+    out
 }
 
 #[cfg(test)]
@@ -276,17 +297,29 @@ mod tests {
         // scale 0.5, fx = -0.25, 0.25, 0.75, 1.25; w(0.75) = (-0.03515625, 0.26171875, 0.87890625,
         // -0.10546875), w(0.25) its reverse; replicated borders: taps (0,0,0,1), (0,0,1,1), (0,0,1,1),
         // (0,1,1,1).
-        let src: Vec<f64> = [0.0, 1.0].iter().flat_map(|&v| [v, v, v]).collect();
-        let out = resize_cubic_opencv_hwc3(&src, ImageSize::new(2, 1), ImageSize::new(4, 1));
-        let got: Vec<f64> = out.chunks(3).map(|p| p[0]).collect();
+        // Bytes 0 and 255 are 0.0 and 1.0; the output is normalised per channel.
+        let src: Vec<u8> = [0u8, 255].iter().flat_map(|&v| [v, v, v]).collect();
+        let mut out = vec![0.0f32; 3 * 4];
+        resize_cubic_opencv_normalise(&src, ImageSize::new(2, 1), ImageSize::new(4, 1), &mut out);
         let expect = [-0.10546875, 0.2265625, 0.7734375, 1.10546875];
-        for (g, e) in got.iter().zip(expect) {
-            assert!((g - e).abs() < 1e-7, "{got:?}");
+        for c in 0..3 {
+            for (x, e) in expect.iter().enumerate() {
+                let want = ((e - IMAGENET_MEAN[c]) / IMAGENET_STD[c]) as f32;
+                assert!((out[c * 4 + x] - want).abs() < 1e-6, "{out:?}");
+            }
         }
         // Constant images stay constant (weights sum to one).
-        let src = vec![0.25f64; 5 * 7 * 3];
-        let out = resize_cubic_opencv_hwc3(&src, ImageSize::new(7, 5), ImageSize::new(11, 9));
-        assert!(out.iter().all(|v| (v - 0.25).abs() < 1e-7));
+        let mut out = vec![0.0f32; 3 * 9 * 11];
+        resize_cubic_opencv_normalise(
+            &[64u8; 5 * 7 * 3],
+            ImageSize::new(7, 5),
+            ImageSize::new(11, 9),
+            &mut out,
+        );
+        for (c, plane) in out.chunks(9 * 11).enumerate() {
+            let want = ((64.0 / 255.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c]) as f32;
+            assert!(plane.iter().all(|v| (v - want).abs() < 1e-6), "{plane:?}");
+        }
     }
 
     #[test]
