@@ -286,7 +286,7 @@ def torch_lora_step_time(enc, w, steps):
     import torch
     from safetensors.torch import load_file
     from depth_anything_v2.dpt import DepthAnythingV2
-    from torch_common import split_qkv, ssi_loss
+    from torch_common import lora_step, split_qkv
     torch.manual_seed(0)
     model = DepthAnythingV2(**CONFIGS[enc])
     model.load_state_dict(load_file(w), strict=True)
@@ -303,12 +303,7 @@ def torch_lora_step_time(enc, w, steps):
     valid = torch.nonzero((gt >= 0.001).flatten()).squeeze(1)
 
     def step():
-        opt.zero_grad(set_to_none=True)
-        loss = ssi_loss(model(x), gt, valid)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, CLIP)
-        opt.step()
-        return loss.item()
+        return lora_step(model, params, opt, x, gt, valid, CLIP)
 
     if torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()

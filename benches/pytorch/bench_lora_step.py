@@ -40,7 +40,7 @@ from safetensors.torch import load_file  # noqa: E402
 
 from depth_anything_v2.dpt import DepthAnythingV2  # noqa: E402
 
-from torch_common import peak_rss_mib, split_qkv, ssi_loss  # noqa: E402  (this folder)
+from torch_common import lora_step, peak_rss_mib, split_qkv, ssi_loss  # noqa: E402  (this folder)
 
 REF = sys.argv[3] if len(sys.argv) > 3 else os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "shared", "reference", "dav2")
@@ -91,12 +91,7 @@ def main():
           f"threads {torch.get_num_threads()}")
 
     def step():
-        opt.zero_grad(set_to_none=True)
-        loss = ssi_loss(model(x), gt, valid)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, CLIP)
-        opt.step()
-        return loss.item()
+        return lora_step(model, params, opt, x, gt, valid, CLIP)
 
     t0 = time.perf_counter()
     loss = step()

@@ -58,3 +58,14 @@ def ssi_loss(pred, gt_m, valid):
     s = cov / (var_p + 1e-12)
     fitted = pc * s + my
     return (fitted - y).abs().mean()
+
+
+def lora_step(model, params, opt, x, gt_m, valid, clip):
+    """One training step as the Rust trainer takes it: the SSI loss, backward, gradient-norm
+    clipping to `clip`, the optimiser's step; returns the loss."""
+    opt.zero_grad(set_to_none=True)
+    loss = ssi_loss(model(x), gt_m, valid)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, clip)
+    opt.step()
+    return loss.item()

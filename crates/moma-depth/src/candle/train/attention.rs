@@ -536,14 +536,7 @@ mod tests {
         let x = Tensor::from_slice(&x0, (b, t, c3), &Device::Cpu).unwrap();
         let o_kernel = attention(&x, h, scale).unwrap();
         let o_portable = attention_portable(&x, h, scale).unwrap();
-        let diff = (o_kernel - o_portable)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f64>()
-            .unwrap();
+        let diff = crate::candle::train::testing::max_abs_diff(&o_kernel, &o_portable);
         assert!(diff < 1e-12, "forward differs by {diff}");
         let g = crate::candle::train::testing::check_input_gradient(
             "portable attention qkv",

@@ -191,7 +191,10 @@ pub(crate) fn layer_norm_portable(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{D, Device, Var};
+    use crate::candle::train::testing::{
+        FdCheck, check_input_gradient, input_gradient, max_abs_diff,
+    };
+    use candle_core::{D, Device};
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -212,123 +215,104 @@ mod tests {
             .unwrap()
     }
 
+    /// A LayerNorm case: 3 rows of 7, weight, bias, the output weights `r` of `Σ LN(x) ⊙ r`, and
+    /// an input whose rows are offset by large values (DINOv2's large-norm tokens).
+    struct Case {
+        eps: f64,
+        w: Tensor,
+        b: Tensor,
+        r: Tensor,
+        x0: Vec<f64>,
+        shape: [usize; 3],
+    }
+
+    fn case() -> Case {
+        let (rows, d) = (3, 7);
+        let dev = Device::Cpu;
+        Case {
+            eps: 1e-6,
+            w: Tensor::from_vec(random(d, 1, 0.5, 1.5), d, &dev).unwrap(),
+            b: Tensor::from_vec(random(d, 2, -1.0, 1.0), d, &dev).unwrap(),
+            r: Tensor::from_vec(random(rows * d, 3, -1.0, 1.0), (1, rows, d), &dev).unwrap(),
+            x0: random(rows * d, 4, -2.0, 2.0)
+                .iter()
+                .enumerate()
+                .map(|(i, v)| v + 30.0 * (i / d) as f64)
+                .collect(),
+            shape: [1, rows, d],
+        }
+    }
+
+    const FD: FdCheck = FdCheck {
+        stride: 1,
+        floor: 1e-8,
+        tol: 1e-6,
+    };
+
     /// Forward equals the composed LayerNorm; the input gradient of `Σ LN(x) ⊙ r` equals central
     /// finite differences (every entry) and the composed op's gradient, in f64.
     #[test]
     fn layer_norm_matches_composed_and_central_finite_differences_in_f64() {
-        let (rows, d, eps) = (3, 7, 1e-6);
-        let dev = Device::Cpu;
-        let w = Tensor::from_vec(random(d, 1, 0.5, 1.5), d, &dev).unwrap();
-        let b = Tensor::from_vec(random(d, 2, -1.0, 1.0), d, &dev).unwrap();
-        let r = Tensor::from_vec(random(rows * d, 3, -1.0, 1.0), (1, rows, d), &dev).unwrap();
-        // Rows offset by large values (DINOv2's large-norm tokens).
-        let x0: Vec<f64> = random(rows * d, 4, -2.0, 2.0)
-            .iter()
-            .enumerate()
-            .map(|(i, v)| v + 30.0 * (i / d) as f64)
-            .collect();
-        let x = Var::from_tensor(&Tensor::from_slice(&x0, (1, rows, d), &dev).unwrap()).unwrap();
-        assert!(supported(x.as_tensor(), &w, &b));
-        let y = layer_norm(x.as_tensor(), &w, &b, eps).unwrap();
-        let yc = composed(x.as_tensor(), &w, &b, eps);
-        let diff = (&y - &yc)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f64>()
-            .unwrap();
+        let Case {
+            eps,
+            w,
+            b,
+            r,
+            x0,
+            shape,
+        } = case();
+        let x = Tensor::from_slice(&x0, &shape[..], &Device::Cpu).unwrap();
+        assert!(supported(&x, &w, &b));
+        let diff = max_abs_diff(
+            &layer_norm(&x, &w, &b, eps).unwrap(),
+            &composed(&x, &w, &b, eps),
+        );
         assert!(
             diff < 1e-12,
             "forward differs from the composed LayerNorm by {diff}"
         );
-        let gc: Vec<f64> = (yc * &r)
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap()
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        let g = crate::candle::train::testing::check_input_gradient(
+        let gc = input_gradient(|x| composed(x, &w, &b, eps), &x0, &shape, &r);
+        let g = check_input_gradient(
             "layer norm",
             |x| layer_norm(x, &w, &b, eps).unwrap(),
             &x0,
-            &[1, rows, d],
+            &shape,
             &r,
-            crate::candle::train::testing::FdCheck {
-                stride: 1,
-                floor: 1e-8,
-                tol: 1e-6,
-            },
+            FD,
         );
-        for i in 0..x0.len() {
-            assert!(
-                (g[i] - gc[i]).abs() < 1e-10,
-                "x[{i}]: {} vs composed {}",
-                g[i],
-                gc[i]
-            );
+        for (i, (g, gc)) in g.iter().zip(&gc).enumerate() {
+            assert!((g - gc).abs() < 1e-10, "x[{i}]: {g} vs composed {gc}");
         }
     }
 
     /// The portable LayerNorm (candle operations with an attached backward, what a GPU runs):
     /// forward and input gradient equal to the kernel's, the gradient also against central
-    /// finite differences, in f64 (large-offset rows as above).
+    /// finite differences, in f64.
     #[test]
     fn portable_layer_norm_matches_the_kernel_and_central_finite_differences_in_f64() {
-        let (rows, d, eps) = (3, 7, 1e-6);
-        let dev = Device::Cpu;
-        let w = Tensor::from_vec(random(d, 1, 0.5, 1.5), d, &dev).unwrap();
-        let b = Tensor::from_vec(random(d, 2, -1.0, 1.0), d, &dev).unwrap();
-        let r = Tensor::from_vec(random(rows * d, 3, -1.0, 1.0), (1, rows, d), &dev).unwrap();
-        let x0: Vec<f64> = random(rows * d, 4, -2.0, 2.0)
-            .iter()
-            .enumerate()
-            .map(|(i, v)| v + 30.0 * (i / d) as f64)
-            .collect();
-        let fd = crate::candle::train::testing::FdCheck {
-            stride: 1,
-            floor: 1e-8,
-            tol: 1e-6,
-        };
-        let g_portable = crate::candle::train::testing::check_input_gradient(
+        let Case {
+            eps,
+            w,
+            b,
+            r,
+            x0,
+            shape,
+        } = case();
+        let x = Tensor::from_slice(&x0, &shape[..], &Device::Cpu).unwrap();
+        let diff = max_abs_diff(
+            &layer_norm(&x, &w, &b, eps).unwrap(),
+            &layer_norm_portable(&x, &w, &b, eps).unwrap(),
+        );
+        assert!(diff < 1e-12, "forward differs from the kernel by {diff}");
+        let g_portable = check_input_gradient(
             "portable layer norm",
             |x| layer_norm_portable(x, &w, &b, eps).unwrap(),
             &x0,
-            &[1, rows, d],
+            &shape,
             &r,
-            fd,
+            FD,
         );
-        let x = Var::from_tensor(&Tensor::from_slice(&x0, (1, rows, d), &dev).unwrap()).unwrap();
-        let y_kernel = layer_norm(x.as_tensor(), &w, &b, eps).unwrap();
-        let y_portable = layer_norm_portable(x.as_tensor(), &w, &b, eps).unwrap();
-        let diff = (&y_kernel - &y_portable)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f64>()
-            .unwrap();
-        assert!(diff < 1e-12, "forward differs from the kernel by {diff}");
-        let g_kernel: Vec<f64> = (y_kernel * &r)
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap()
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
+        let g_kernel = input_gradient(|x| layer_norm(x, &w, &b, eps).unwrap(), &x0, &shape, &r);
         for (i, (p, k)) in g_portable.iter().zip(&g_kernel).enumerate() {
             assert!(
                 (p - k).abs() < 1e-9 * k.abs().max(1.0),

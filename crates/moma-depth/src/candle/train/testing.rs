@@ -33,19 +33,7 @@ pub(crate) fn check_input_gradient(
             .to_scalar::<f64>()
             .unwrap()
     };
-    let x = Var::from_tensor(&Tensor::from_slice(x0, shape, &Device::Cpu).unwrap()).unwrap();
-    let g: Vec<f64> = (op(x.as_tensor()) * r)
-        .unwrap()
-        .sum_all()
-        .unwrap()
-        .backward()
-        .unwrap()
-        .get(x.as_tensor())
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+    let g = input_gradient(&op, x0, shape, r);
     let eps = 1e-6;
     for i in (0..x0.len()).step_by(stride) {
         let (mut p, mut m) = (x0.to_vec(), x0.to_vec());
@@ -60,4 +48,38 @@ pub(crate) fn check_input_gradient(
         );
     }
     g
+}
+
+/// The input gradient of `Σ op(x) ⊙ r` at `x0` (f64, shape `shape`) by autograd, row-major.
+pub(crate) fn input_gradient(
+    op: impl Fn(&Tensor) -> Tensor,
+    x0: &[f64],
+    shape: &[usize],
+    r: &Tensor,
+) -> Vec<f64> {
+    let x = Var::from_tensor(&Tensor::from_slice(x0, shape, &Device::Cpu).unwrap()).unwrap();
+    (op(x.as_tensor()) * r)
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap()
+        .get(x.as_tensor())
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// `max |a − b|` of two f64 tensors of one shape.
+pub(crate) fn max_abs_diff(a: &Tensor, b: &Tensor) -> f64 {
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f64>()
+        .unwrap()
 }
