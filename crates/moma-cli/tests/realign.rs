@@ -1,16 +1,13 @@
 //! `moma calibrate --anchors`, `moma align --realign anchors` and `moma eval --realign anchors`
 //! end to end on the bundled demo scene (SIMULATED predictions; no ../shared, no network).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 mod common;
-use common::{fails, ok, s};
-
-fn demo(dir: &Path) -> (PathBuf, PathBuf) {
-    let out = dir.join("demo");
-    ok(&["demo", "-o", s(&out), "--frames", "3", "--no-exports"]);
-    (out.join("scene"), out.join("predictions"))
-}
+use common::{
+    align_args, calibrate_args, demo, demo_frame, eval_args, eval_rows, fails, method_variants, ok,
+    s,
+};
 
 #[test]
 fn calibrate_align_and_eval_with_realignment() {
@@ -18,50 +15,45 @@ fn calibrate_align_and_eval_with_realignment() {
     let (scene, pred) = demo(tmp.path());
     let frames = scene.join("frames");
     let calib = tmp.path().join("calib.json");
-    ok(&[
-        "calibrate",
-        "--pred",
-        s(&pred.join("frame_00.npy")),
-        "--pred-kind",
-        "inverse-depth",
-        "--gt",
-        s(&frames.join("frame_00/depth.png")),
-        "--method",
-        "ssra",
-        "--anchors",
-        "--anchors-rgb",
-        s(&frames.join("frame_00/rgb.png")),
-        "-o",
-        s(&calib),
-    ]);
+    let (pred0, gt0) = demo_frame(&scene, &pred, 0);
+    let rgb0 = frames.join("frame_00/rgb.png");
+    ok(&calibrate_args(
+        &[&pred0],
+        &[&gt0],
+        &[
+            "--pred-kind",
+            "inverse-depth",
+            "--method",
+            "ssra",
+            "--anchors",
+            "--anchors-rgb",
+            s(&rgb0),
+            "-o",
+            s(&calib),
+        ],
+    ));
     let text = std::fs::read_to_string(&calib).unwrap();
     assert!(
         text.contains("\"grey_b64\"") && text.contains("\"normalised_b64\""),
         "the anchor store and the normalised calibration prediction are in the file"
     );
     let out = tmp.path().join("aligned");
-    let pred1 = pred.join("frame_01.npy");
+    let (pred1, _) = demo_frame(&scene, &pred, 1);
     let rgb1 = frames.join("frame_01/rgb.png");
     let align = |extra: &[&str], rgb: &Path| -> Vec<String> {
-        [
-            "align",
-            "--calib",
-            s(&calib),
-            "--pred",
-            s(&pred1),
+        let mut a = vec![
             "--pred-kind",
             "inverse-depth",
-            "-o",
-            s(&out),
             "--realign",
             "anchors",
             "--realign-rgb",
             s(rgb),
-        ]
-        .iter()
-        .map(|a| a.to_string())
-        .chain(extra.iter().map(|a| a.to_string()))
-        .collect()
+        ];
+        a.extend_from_slice(extra);
+        align_args(&calib, &pred1, &out, &a)
+            .iter()
+            .map(|a| a.to_string())
+            .collect()
     };
     let run = |args: Vec<String>| -> serde_json::Value {
         let a: Vec<&str> = args.iter().map(|x| x.as_str()).collect();
@@ -144,48 +136,33 @@ fn calibrate_align_and_eval_with_realignment() {
     ]);
     assert!(e.contains("scale-shift"), "{e}");
     // the flags need --realign
-    let e = fails(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&pred1),
-        "--pred-kind",
-        "inverse-depth",
-        "-o",
-        s(&out),
-        "--realign-ridge",
-        "3",
-    ]);
+    let e = fails(&align_args(
+        &calib,
+        &pred1,
+        &out,
+        &["--pred-kind", "inverse-depth", "--realign-ridge", "3"],
+    ));
     assert!(e.contains("--realign"), "{e}");
 
     // eval: one-shot rows and one block of re-alignment rows per brightness factor
-    let rows: serde_json::Value = serde_json::from_str(&ok(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--methods",
-        "gssa",
-        "--seeds",
-        "2",
-        "--realign",
-        "anchors",
-        "--brightness",
-        "1,0.8",
-        "--realign-form",
-        "prediction-affine",
-        "-o",
-        s(&tmp.path().join("eval")),
-        "--json",
-    ]))
-    .unwrap();
-    let rows = rows.as_array().unwrap();
-    let variants: Vec<&str> = rows
-        .iter()
-        .map(|r| r["variant"].as_str().unwrap())
-        .collect();
+    let rows = eval_rows(
+        &scene,
+        &pred,
+        &tmp.path().join("eval"),
+        &[
+            "--methods",
+            "gssa",
+            "--seeds",
+            "2",
+            "--realign",
+            "anchors",
+            "--brightness",
+            "1,0.8",
+            "--realign-form",
+            "prediction-affine",
+        ],
+    );
+    let variants: Vec<String> = method_variants(&rows).into_iter().map(|(_, v)| v).collect();
     assert_eq!(
         variants,
         ["one-shot", "realign-anchors", "realign-anchors-b0.80"],
@@ -210,19 +187,12 @@ fn calibrate_align_and_eval_with_realignment() {
         assert!(st["worse_fraction"].as_f64().unwrap() <= 1.0);
     }
     assert!(
-        fails(&[
-            "eval",
-            "--set",
-            s(&scene),
-            "--pred",
-            s(&pred),
-            "--realign",
-            "anchors",
-            "--realign-ridge",
-            "nan",
-            "-o",
-            s(&tmp.path().join("eval2")),
-        ])
+        fails(&eval_args(
+            &scene,
+            &pred,
+            &tmp.path().join("eval2"),
+            &["--realign", "anchors", "--realign-ridge", "nan"],
+        ))
         .contains("ridge")
     );
 }

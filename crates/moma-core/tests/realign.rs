@@ -3,7 +3,9 @@
 
 use moma_core::align::Method;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-use moma_core::realign::{AnchorStore, AnchorTarget, CorrectionModel, RealignConfig, find_anchors};
+use moma_core::realign::{
+    AnchorStore, AnchorTarget, CorrectionModel, RealignConfig, RealignReport, find_anchors,
+};
 use moma_core::sampling::SamplingConfig;
 use moma_core::{
     Calibration, CalibrationConfig, CoreError, MetricDepth, Prediction, PredictionKind, calibrate,
@@ -106,6 +108,44 @@ fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
         .unwrap()
 }
 
+/// The test frame's RGB: the object added, brightness and position unchanged.
+fn test_rgb() -> Array3<u8> {
+    rgb(true, 1.0, 0, 2)
+}
+
+/// The GSSA calibration on the flat table, the test frame's truth (the object added), the depth
+/// model's output for it with scale `a` and shift `b` (2 and 0 at calibration), and the one-shot
+/// result.
+struct TestFrame {
+    cal: Calibration,
+    truth: MetricDepth,
+    pred: Prediction,
+    one_shot: MetricDepth,
+}
+
+fn test_frame(a: f32, b: f32) -> TestFrame {
+    let cal = calibration();
+    let truth = gt(true);
+    let pred = disparity(&truth, a, b);
+    let one_shot = cal.align(&pred).unwrap();
+    TestFrame {
+        cal,
+        truth,
+        pred,
+        one_shot,
+    }
+}
+
+/// Re-alignment of `pred` with the test frame's RGB ([`test_rgb`]).
+fn realigned(
+    cal: &Calibration,
+    pred: &Prediction,
+    config: &RealignConfig,
+) -> (MetricDepth, RealignReport) {
+    cal.align_realigned(pred, test_rgb().view(), config)
+        .unwrap()
+}
+
 /// Mean absolute error (metres) over pixels where `region` holds.
 fn mae_m(d: &MetricDepth, truth: &MetricDepth, region: impl Fn(usize, usize) -> bool) -> f64 {
     let mut s = 0.0;
@@ -121,20 +161,20 @@ fn mae_m(d: &MetricDepth, truth: &MetricDepth, region: impl Fn(usize, usize) -> 
 
 #[test]
 fn recovers_global_change_on_background_and_improves_the_object() {
-    let cal = calibration();
-    let truth = gt(true);
     // the depth model's output for the same scene changed: scale ×1.15 and a shift
-    let pred = disparity(&truth, 2.3, 0.2);
-    let one_shot = cal.align(&pred).unwrap();
+    let TestFrame {
+        cal,
+        truth,
+        pred,
+        one_shot,
+    } = test_frame(2.3, 0.2);
     for target in [AnchorTarget::CalibrationOutput, AnchorTarget::GroundTruth] {
         let config = RealignConfig {
             ridge: 0.0,
             target,
             ..Default::default()
         };
-        let (re, report) = cal
-            .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &config)
-            .unwrap();
+        let (re, report) = realigned(&cal, &pred, &config);
         assert!(report.accepted, "{report:?}");
         let before = report.held_out_rmse_before_m.unwrap();
         let after = report.held_out_rmse_after_m.unwrap();
@@ -170,17 +210,13 @@ fn recovers_global_change_on_background_and_improves_the_object() {
 
 #[test]
 fn default_ridge_shrinks_but_still_improves() {
-    let cal = calibration();
-    let truth = gt(true);
-    let pred = disparity(&truth, 2.3, 0.2);
-    let one_shot = cal.align(&pred).unwrap();
-    let (re, report) = cal
-        .align_realigned(
-            &pred,
-            rgb(true, 1.0, 0, 2).view(),
-            &RealignConfig::default(),
-        )
-        .unwrap();
+    let TestFrame {
+        cal,
+        truth,
+        pred,
+        one_shot,
+    } = test_frame(2.3, 0.2);
+    let (re, report) = realigned(&cal, &pred, &RealignConfig::default());
     assert!(report.accepted);
     let obj = |u, v| in_object(u, v);
     // on a flat background scale and shift are nearly collinear: the (strong, default) ridge
@@ -192,9 +228,7 @@ fn default_ridge_shrinks_but_still_improves() {
         ridge: 1e12,
         ..Default::default()
     };
-    let (re2, _) = cal
-        .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &stiff)
-        .unwrap();
+    let (re2, _) = realigned(&cal, &pred, &stiff);
     assert!((mae_m(&re2, &truth, obj) - mae_m(&one_shot, &truth, obj)).abs() < 1e-4);
 }
 
@@ -217,8 +251,7 @@ fn planar_correction_recovers_a_tilt() {
             max_anchors: 2000,
             ..Default::default()
         };
-        cal.align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &c)
-            .unwrap()
+        realigned(&cal, &pred, &c)
     };
     let (ss, _) = run(CorrectionModel::ScaleShift);
     let (pl, rep) = run(CorrectionModel::Planar);
@@ -239,7 +272,7 @@ fn planar_correction_recovers_a_tilt() {
 fn brightness_and_vibration_keep_the_anchors() {
     let cal = calibration();
     let store = cal.anchor_store().unwrap();
-    let base = find_anchors(store, rgb(true, 1.0, 0, 2).view(), &Default::default())
+    let base = find_anchors(store, test_rgb().view(), &Default::default())
         .unwrap()
         .pixels
         .len();
@@ -278,10 +311,12 @@ fn brightness_and_vibration_keep_the_anchors() {
 
 #[test]
 fn fully_covered_background_falls_back_cleanly() {
-    let cal = calibration();
-    let truth = gt(true);
-    let pred = disparity(&truth, 2.3, 0.2);
-    let one_shot = cal.align(&pred).unwrap();
+    let TestFrame {
+        cal,
+        truth: _,
+        pred,
+        one_shot,
+    } = test_frame(2.3, 0.2);
     // a frame whose every pixel changed: another texture everywhere
     let mut covered = Array3::<u8>::zeros((H, W, 3));
     for ((v, u, _), x) in covered.indexed_iter_mut() {
@@ -320,17 +355,13 @@ fn fully_covered_background_falls_back_cleanly() {
 fn rejected_when_the_correction_does_not_help() {
     // the prediction did not change: the one-shot result is already right on the anchors; a
     // correction fitted to millimetre quantisation must not be applied blindly
-    let cal = calibration();
-    let truth = gt(true);
-    let pred = disparity(&truth, 2.0, 0.0);
-    let one_shot = cal.align(&pred).unwrap();
-    let (re, report) = cal
-        .align_realigned(
-            &pred,
-            rgb(true, 1.0, 0, 2).view(),
-            &RealignConfig::default(),
-        )
-        .unwrap();
+    let TestFrame {
+        cal,
+        truth,
+        pred,
+        one_shot,
+    } = test_frame(2.0, 0.0);
+    let (re, report) = realigned(&cal, &pred, &RealignConfig::default());
     let obj = |u, v| in_object(u, v);
     // accepted or not, it never makes the frame worse by more than the quantisation
     assert!(mae_m(&re, &truth, obj) <= mae_m(&one_shot, &truth, obj) + 0.5e-3);
@@ -398,7 +429,7 @@ fn no_anchor_store_is_a_clear_error() {
     let e = cal
         .align_realigned(
             &disparity(&truth, 2.0, 0.0),
-            rgb(true, 1.0, 0, 2).view(),
+            test_rgb().view(),
             &RealignConfig::default(),
         )
         .unwrap_err();
@@ -418,11 +449,7 @@ fn no_anchor_store_is_a_clear_error() {
         AnchorStore::new(rgb(false, 1.0, 0, 1).view(), &gt(false)).unwrap(),
     ));
     let e = gt_only
-        .align_realigned(
-            &pred,
-            rgb(true, 1.0, 0, 2).view(),
-            &RealignConfig::default(),
-        )
+        .align_realigned(&pred, test_rgb().view(), &RealignConfig::default())
         .unwrap_err();
     assert!(e.to_string().contains("calibration-output"), "{e}");
     let gt_target = RealignConfig {
@@ -431,7 +458,7 @@ fn no_anchor_store_is_a_clear_error() {
     };
     assert!(
         gt_only
-            .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &gt_target)
+            .align_realigned(&pred, test_rgb().view(), &gt_target)
             .is_ok()
     );
     let grey = Array3::<u8>::zeros((H, W, 1));
@@ -443,10 +470,7 @@ fn no_anchor_store_is_a_clear_error() {
         holdout_fraction: 1.0,
         ..Default::default()
     };
-    assert!(
-        cal.align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &bad)
-            .is_err()
-    );
+    assert!(cal.align_realigned(&pred, test_rgb().view(), &bad).is_err());
 }
 
 /// The prediction-affine correction is exact for every method when the prediction of the
@@ -470,9 +494,7 @@ fn prediction_affine_is_exact_for_every_method() {
         let cal = calibration_on(method.parse().unwrap(), &gt_tilted(false));
         let expected = cal.align(&unchanged).unwrap();
         let one_shot = cal.align(&changed).unwrap();
-        let (re, report) = cal
-            .align_realigned(&changed, rgb(true, 1.0, 0, 2).view(), &config)
-            .unwrap();
+        let (re, report) = realigned(&cal, &changed, &config);
         assert!(report.accepted, "{method}: {report:?}");
         assert_eq!(report.correction, Some(CorrectionModel::PredictionAffine));
         // ẑ_new = 1.15·ẑ_cal + 0.2 (no normalisation): the map back is a = 1/1.15, b = −0.2/1.15
@@ -498,7 +520,7 @@ fn prediction_affine_is_exact_for_every_method() {
     let mut buf = cal.align(&changed).unwrap();
     let r = cal
         .realign_normalised_into(
-            rgb(true, 1.0, 0, 2).view(),
+            test_rgb().view(),
             &config,
             &normalised,
             &mut buf.depth_m.view_mut(),
@@ -529,7 +551,7 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
     // an output-space entry point cannot run it
     let mut d = cal.align(&pred).unwrap();
     let e = cal
-        .realign_into(rgb(true, 1.0, 0, 2).view(), &pa, &mut d.depth_m.view_mut())
+        .realign_into(test_rgb().view(), &pa, &mut d.depth_m.view_mut())
         .unwrap_err();
     assert!(e.to_string().contains("normalised prediction"), "{e}");
     // a store written before the prediction-affine correction (no normalised_b64) still reads,
@@ -543,22 +565,18 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
     let old: Calibration = serde_json::from_value(v).unwrap();
     assert!(!old.anchor_store().unwrap().has_normalised());
     let e = old
-        .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &pa)
+        .align_realigned(&pred, test_rgb().view(), &pa)
         .unwrap_err();
     assert!(e.to_string().contains("calibrate again"), "{e}");
     let (_, r) = old
-        .align_realigned(
-            &pred,
-            rgb(true, 1.0, 0, 2).view(),
-            &RealignConfig::default(),
-        )
+        .align_realigned(&pred, test_rgb().view(), &RealignConfig::default())
         .unwrap();
     assert!(r.accepted, "{r:?}");
     // target ground-truth is refused for prediction-affine
     let e = cal
         .align_realigned(
             &pred,
-            rgb(true, 1.0, 0, 2).view(),
+            test_rgb().view(),
             &RealignConfig {
                 target: AnchorTarget::GroundTruth,
                 ..pa
@@ -586,17 +604,13 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
 /// rejected; with an unreachable margin nothing is accepted.
 #[test]
 fn acceptance_margin_rejects_with_the_gain_in_the_report() {
-    let cal = calibration();
-    let truth = gt(true);
-    let pred = disparity(&truth, 2.3, 0.2);
-    let one_shot = cal.align(&pred).unwrap();
-    let (_, ok) = cal
-        .align_realigned(
-            &pred,
-            rgb(true, 1.0, 0, 2).view(),
-            &RealignConfig::default(),
-        )
-        .unwrap();
+    let TestFrame {
+        cal,
+        truth: _,
+        pred,
+        one_shot,
+    } = test_frame(2.3, 0.2);
+    let (_, ok) = realigned(&cal, &pred, &RealignConfig::default());
     assert!(ok.accepted);
     let (g, se) = (ok.held_out_gain_m.unwrap(), ok.held_out_gain_se_m.unwrap());
     assert!(g > se && g > 0.0, "gain {g}, se {se}");
@@ -604,9 +618,7 @@ fn acceptance_margin_rejects_with_the_gain_in_the_report() {
         acceptance_se: 1e9,
         ..Default::default()
     };
-    let (re, r) = cal
-        .align_realigned(&pred, rgb(true, 1.0, 0, 2).view(), &strict)
-        .unwrap();
+    let (re, r) = realigned(&cal, &pred, &strict);
     assert!(!r.accepted && r.reason.contains("does not lower"), "{r:?}");
     assert_eq!(re, one_shot);
     let bad = RealignConfig {
