@@ -13,15 +13,8 @@
 # Compute capability: CUDA_COMPUTE_CAP (default 90: H100/H200).
 set -euo pipefail
 work=${1:-/tmp/moma-cuda}
-cu=13.0
-mkdir -p "$work/whl" "$work/stubs"
-if [ ! -x "$work/x/nvidia/cu13/bin/nvcc" ]; then
-    python3 -m pip download -q --no-deps -d "$work/whl" nvidia-cuda-nvcc==13.0.88 nvidia-cuda-runtime==13.0.96 \
-        nvidia-cuda-crt==13.0.88 nvidia-cuda-cccl==13.0.85 nvidia-nvvm==13.0.88
-    for w in "$work"/whl/*.whl; do python3 -m zipfile -e "$w" "$work/x"; done
-    chmod +x "$work"/x/nvidia/cu13/bin/* "$work"/x/nvidia/cu13/nvvm/bin/*
-fi
-cuda=$work/x/nvidia/cu13
+mkdir -p "$work/stubs"
+cuda=$(bash "$(dirname "$0")/cuda_toolkit.sh" "$work")
 cargo fetch -q
 cudarc=$(cargo metadata --format-version 1 | python3 -c 'import json,sys; print(next(p["manifest_path"] for p in json.load(sys.stdin)["packages"] if p["name"]=="cudarc"))')
 src=$(dirname "$cudarc")/src
@@ -39,7 +32,7 @@ stub cublasLt libcublasLt.so.13 "$src"/cublaslt/sys/*.rs
 ln -sf "$cuda/lib/libcudart.so.13" "$work/stubs/libcudart.so"
 export PATH=$cuda/bin:$PATH CUDA_HOME=$cuda CUDA_COMPUTE_CAP=${CUDA_COMPUTE_CAP:-90}
 export CARGO_TARGET_DIR=$work/target RUSTFLAGS="-L $work/stubs"
-echo "nvcc $cu from PyPI; building (about 20 min on 2 cores, most of it candle's CUDA kernels)" >&2
+echo "building with nvcc 13.0 from PyPI (about 8 min on 2 cores, half of it candle's CUDA kernels)" >&2
 cargo build --release -p moma-cli --features cuda
 bin=$work/target/release/moma
 if [ "${2:-}" = "--bundle" ]; then
