@@ -237,14 +237,19 @@ pub fn resize_bilinear_align_corners(
     }
     let yt = align_corners_taps(ih, out_h);
     let xt = align_corners_taps(iw, out_w);
+    // Row-major source rows as slices (a copy only for a non-standard layout).
+    let flat: std::borrow::Cow<'_, [f32]> = match src.as_slice() {
+        Some(s) => s.into(),
+        None => src.iter().copied().collect::<Vec<_>>().into(),
+    };
     let mut out = Array2::zeros((out_h, out_w));
     out.axis_iter_mut(ndarray::Axis(0))
         .into_par_iter()
         .zip(yt.par_iter())
         .for_each(|(mut row, &(y0, y1, hy0, hy1))| {
+            let (r0, r1) = (&flat[y0 * iw..(y0 + 1) * iw], &flat[y1 * iw..(y1 + 1) * iw]);
             for (o, &(x0, x1, wx0, wx1)) in row.iter_mut().zip(&xt) {
-                *o = hy0 * (wx0 * src[(y0, x0)] + wx1 * src[(y0, x1)])
-                    + hy1 * (wx0 * src[(y1, x0)] + wx1 * src[(y1, x1)]);
+                *o = hy0 * (wx0 * r0[x0] + wx1 * r0[x1]) + hy1 * (wx0 * r1[x0] + wx1 * r1[x1]);
             }
         });
     out
@@ -336,5 +341,16 @@ mod tests {
         // Identity.
         let b = resize_bilinear_align_corners(&a.view(), 1, 5);
         assert_eq!(b, a);
+        // A non-contiguous view: resizing the transpose is the transpose of the resized map
+        // (separable weights; up to the order of the two sums).
+        let m = ndarray::Array2::from_shape_fn((4, 3), |(y, x)| ((y * 3 + x) as f32 * 0.7).sin());
+        let t = m.t();
+        assert!(t.as_slice().is_none());
+        let want = resize_bilinear_align_corners(&m.view(), 6, 5).reversed_axes();
+        let got = resize_bilinear_align_corners(&t, 5, 6);
+        assert!(
+            got.iter().zip(&want).all(|(g, w)| (g - w).abs() < 1e-6),
+            "{got} vs {want}"
+        );
     }
 }
