@@ -251,8 +251,8 @@ fn resume_continues_bit_for_bit_and_crops_are_checked() {
         serde_json::from_str(&ok(&a)).unwrap()
     };
     let straight = tmp.path().join("straight.safetensors");
-    let j = run(&["-o", s(&straight)]);
-    assert_eq!(j["steps"], 4);
+    let j_straight = run(&["-o", s(&straight)]);
+    assert_eq!(j_straight["steps"], 4);
     assert!(tmp.path().join("straight.optim.safetensors").is_file());
     let half = tmp.path().join("half.safetensors");
     let j = run(&["--stop-after", "2", "-o", s(&half)]);
@@ -269,6 +269,33 @@ fn resume_continues_bit_for_bit_and_crops_are_checked() {
             "{ka}: 2 + resume + 2 steps differ from 4 steps"
         );
     }
+    // The GPU's operations on the CPU (hidden `--portable-ops`): the same 4 steps to f32
+    // round-off (their gradients agree to ~1e-6; AdamW's first steps move each weight by about
+    // lr · sign(g), so a weight whose gradient is near zero may move differently: compared to
+    // the largest weight).
+    let portable = tmp.path().join("portable.safetensors");
+    let jp = run(&["--portable-ops", "-o", s(&portable)]);
+    let (l, lp) = (
+        j_straight["train_loss_last"].as_f64().unwrap(),
+        jp["train_loss_last"].as_f64().unwrap(),
+    );
+    assert!(((l - lp) / l).abs() < 1e-4, "train loss {lp} vs {l}");
+    let mut worst = 0f32;
+    for ((ka, va), (_, vp)) in a.iter().zip(&adapter_values(&portable)) {
+        let scale = va.iter().fold(0f32, |m, v| m.max(v.abs()));
+        let diff = va
+            .iter()
+            .zip(vp)
+            .fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+        worst = worst.max(diff / scale);
+        assert!(
+            diff <= 1e-3 * scale,
+            "{ka}: portable ops differ by {diff} (max {scale})"
+        );
+    }
+    eprintln!(
+        "--portable-ops: train loss {lp} vs {l}; adapters differ by at most {worst:.1e} of their largest value"
+    );
     // Resume with other settings: refused, naming the setting.
     let (x_out, y_out) = (
         tmp.path().join("x.safetensors"),
