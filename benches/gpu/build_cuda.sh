@@ -16,7 +16,7 @@ work=${1:-/tmp/moma-cuda}
 mkdir -p "$work/stubs"
 cuda=$(bash "$(dirname "$0")/cuda_toolkit.sh" "$work")
 cargo fetch -q
-cudarc=$(cargo metadata --format-version 1 | python3 -c 'import json,sys; print(next(p["manifest_path"] for p in json.load(sys.stdin)["packages"] if p["name"]=="cudarc"))')
+cudarc=$(cargo metadata --format-version 1 --features moma-depth/cuda | python3 -c 'import json,sys; print(next(p["manifest_path"] for p in json.load(sys.stdin)["packages"] if p["name"]=="cudarc"))')
 src=$(dirname "$cudarc")/src
 stub() { # name soname binding-files...: every function cudarc declares, as an empty symbol
     local name=$1 soname=$2
