@@ -494,6 +494,14 @@ mod tests {
     /// blocks of query rows, the last partial).
     const DIMS: (usize, usize, usize, usize) = (2, 150, 2, 3);
 
+    /// Every 37th entry of qkv (over 100 of them), relative error below 1e-5.
+    const SAMPLED: crate::candle::train::testing::FdCheck =
+        crate::candle::train::testing::FdCheck {
+            stride: 37,
+            floor: 1e-6,
+            tol: 1e-5,
+        };
+
     fn setup() -> (Vec<f64>, Tensor, f64) {
         let (b, t, h, hd) = DIMS;
         let c = h * hd;
@@ -516,11 +524,7 @@ mod tests {
             &x0,
             &shape,
             &r,
-            crate::candle::train::testing::FdCheck {
-                stride: 37,
-                floor: 1e-6,
-                tol: 1e-5,
-            },
+            SAMPLED,
         );
         assert!(x0.len() / 37 > 100);
         assert!(g.iter().any(|v| v.abs() > 1e-3));
@@ -544,11 +548,7 @@ mod tests {
             &x0,
             &[b, t, c3],
             &r,
-            crate::candle::train::testing::FdCheck {
-                stride: 37,
-                floor: 1e-6,
-                tol: 1e-5,
-            },
+            SAMPLED,
         );
         assert!(g.iter().any(|v| v.abs() > 1e-3));
     }

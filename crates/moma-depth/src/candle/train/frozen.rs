@@ -164,9 +164,8 @@ mod tests {
             &[rows, cols],
             &r,
             crate::candle::train::testing::FdCheck {
-                stride: 1,
-                floor: 1e-8,
                 tol: 1e-7,
+                ..crate::candle::train::testing::FdCheck::EVERY_ENTRY
             },
         );
         let want: Vec<f64> = (0..rows * cols)

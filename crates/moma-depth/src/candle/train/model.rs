@@ -200,15 +200,6 @@ impl Dropout {
     }
 }
 
-/// LayerNorm over the last dimension from differentiable operations (two-pass variance), for a
-/// trained weight or bias.
-fn layer_norm(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
-    super::norm::standardise(x, eps)?
-        .0
-        .broadcast_mul(w)?
-        .broadcast_add(b)
-}
-
 /// Softmax over the last dimension; the maximum is detached (softmax is shift-invariant, so the
 /// gradient is exact).
 fn softmax_last(x: &Tensor) -> Result<Tensor> {
@@ -240,7 +231,7 @@ impl Ln {
         if !self.w.track_op() && !self.b.track_op() {
             return super::norm::layer_norm_portable(x, &self.w, &self.b, self.eps);
         }
-        layer_norm(x, &self.w, &self.b, self.eps)
+        super::norm::layer_norm_composed(x, &self.w, &self.b, self.eps)
     }
 }
 
@@ -1089,11 +1080,7 @@ mod tests {
             &x0,
             &shape,
             &r,
-            crate::candle::train::testing::FdCheck {
-                stride: 1,
-                floor: 1e-8,
-                tol: 1e-6,
-            },
+            crate::candle::train::testing::FdCheck::EVERY_ENTRY,
         );
     }
 }

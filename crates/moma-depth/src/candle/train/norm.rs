@@ -167,6 +167,15 @@ pub(crate) fn standardise(x: &Tensor, eps: f64) -> Result<(Tensor, Tensor)> {
     Ok((xc.broadcast_div(&sigma)?, sigma))
 }
 
+/// LayerNorm over the last dimension from differentiable candle operations (two-pass
+/// variance): differentiable in `x`, `w` and `b` alike (a trained weight or bias takes this path).
+///
+/// # Errors
+/// Shape errors.
+pub(crate) fn layer_norm_composed(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
+    standardise(x, eps)?.0.broadcast_mul(w)?.broadcast_add(b)
+}
+
 /// [`layer_norm`] from candle operations on any device and dtype (frozen `w` and `b`): the
 /// forward off the graph, the backward `dx = (g·w − mean(g·w) − x̂·mean(g·w·x̂)) / σ` recomputed
 /// from `x`, so that the graph keeps only `x` and the output (what a GPU runs).
@@ -174,10 +183,7 @@ pub(crate) fn standardise(x: &Tensor, eps: f64) -> Result<(Tensor, Tensor)> {
 /// # Errors
 /// Shape errors.
 pub(crate) fn layer_norm_portable(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
-    let y = standardise(&x.detach(), eps)?
-        .0
-        .broadcast_mul(w)?
-        .broadcast_add(b)?;
+    let y = layer_norm_composed(&x.detach(), w, b, eps)?;
     let w = w.detach();
     super::frozen::attach(x, y, move |x, _, g| {
         let (xhat, sigma) = standardise(x, eps)?;
@@ -243,12 +249,6 @@ mod tests {
         }
     }
 
-    const FD: FdCheck = FdCheck {
-        stride: 1,
-        floor: 1e-8,
-        tol: 1e-6,
-    };
-
     /// Forward equals the composed LayerNorm; the input gradient of `Σ LN(x) ⊙ r` equals central
     /// finite differences (every entry) and the composed op's gradient, in f64.
     #[test]
@@ -278,7 +278,7 @@ mod tests {
             &x0,
             &shape,
             &r,
-            FD,
+            FdCheck::EVERY_ENTRY,
         );
         for (i, (g, gc)) in g.iter().zip(&gc).enumerate() {
             assert!((g - gc).abs() < 1e-10, "x[{i}]: {g} vs composed {gc}");
@@ -310,7 +310,7 @@ mod tests {
             &x0,
             &shape,
             &r,
-            FD,
+            FdCheck::EVERY_ENTRY,
         );
         let g_kernel = input_gradient(|x| layer_norm(x, &w, &b, eps).unwrap(), &x0, &shape, &r);
         for (i, (p, k)) in g_portable.iter().zip(&g_kernel).enumerate() {

@@ -260,11 +260,7 @@ mod tests {
                 &x0,
                 &shape,
                 &r,
-                crate::candle::train::testing::FdCheck {
-                    stride: 1,
-                    floor: 1e-8,
-                    tol: 1e-6,
-                },
+                crate::candle::train::testing::FdCheck::EVERY_ENTRY,
             );
         }
     }

@@ -12,6 +12,15 @@ pub(crate) struct FdCheck {
     pub tol: f64,
 }
 
+impl FdCheck {
+    /// Every entry, relative error below 1e-6 (denominator floor 1e-8): the small ops' check.
+    pub const EVERY_ENTRY: Self = Self {
+        stride: 1,
+        floor: 1e-8,
+        tol: 1e-6,
+    };
+}
+
 /// The input gradient of `Σ op(x) ⊙ r` at `x0` (f64, shape `shape`) by autograd, checked
 /// against central finite differences (step 1e-6) as `check` says, else a panic naming `what`
 /// and the entry. Returns the autograd gradient (row-major) for further checks.
