@@ -2,10 +2,13 @@
 //! item 4): one-shot vs re-aligned MAE per set and method, brightness 1 / 0.8 / 1.2, and the
 //! ablation over the anchor count and the ridge.
 //!
-//! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation] [form=F] [ridge=λ] [max-anchors=N] [acceptance-se=K]`
+//! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation] [form=F] [ridge=λ] [max-anchors=N] [acceptance-se=K] [sim-seeds=S]`
 //! (default 10 seeds, simulated kind `inverse-depth`; `depth` for metric-like predictions;
 //! target `calibration-output` or `ground-truth`; the main table uses the library's
-//! `RealignConfig` defaults unless `key=value` arguments override them).
+//! `RealignConfig` defaults unless `key=value` arguments override them). `sim-seeds=S` repeats
+//! everything for simulator seeds 0..S (each a new draw of the per-set distortions and of the
+//! per-frame fluctuation) and averages the MAEs per set and method over them: with one
+//! simulator seed, the frame-to-frame change re-alignment corrects is a single random draw.
 
 use moma_core::PredictionKind;
 use moma_core::align::Method;
@@ -53,6 +56,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .nth(3)
         .map_or(Ok(Default::default()), |s| s.parse())?;
     let mut ablate = true;
+    let mut sim_seeds = 1u64;
     let mut base = RealignEval::default();
     for a in std::env::args().skip(4) {
         match a.split_once('=') {
@@ -61,6 +65,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             Some(("ridge", v)) => base.config.ridge = v.parse()?,
             Some(("max-anchors", v)) => base.config.max_anchors = v.parse()?,
             Some(("acceptance-se", v)) => base.config.acceptance_se = v.parse()?,
+            Some(("sim-seeds", v)) => sim_seeds = v.parse()?,
             _ => return Err(format!("unknown argument '{a}'").into()),
         }
     }
@@ -69,23 +74,28 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .iter()
         .map(|m| m.parse())
         .collect::<Result<_, _>>()?;
+    let mut sets = Vec::new();
     let mut loaded = Vec::new();
     for name in SETS {
         let set =
             moma_eval::data::load_set(&std::path::Path::new(&shared).join("data").join(name))?;
-        let sim = Simulator::new(SimulatorConfig::default(), 0, kind, set.intrinsics)?;
-        let maps = simulate_frames(&set, &sim, TransparencySource::Auto)?;
-        let preds = PredictionSet {
-            label: format!("SIMULATED {kind} (seed 0)"),
-            simulated: true,
-            maps,
-        };
-        loaded.push((set, preds));
+        for sim_seed in 0..sim_seeds {
+            let sim = Simulator::new(SimulatorConfig::default(), sim_seed, kind, set.intrinsics)?;
+            let maps = simulate_frames(&set, &sim, TransparencySource::Auto)?;
+            let preds = PredictionSet {
+                label: format!("SIMULATED {kind} (seed {sim_seed})"),
+                simulated: true,
+                maps,
+            };
+            loaded.push((sets.len(), preds));
+        }
+        sets.push(set);
     }
     let run = |mut realign: RealignEval| -> Result<Vec<EvalResult>, Box<dyn std::error::Error>> {
         realign.config.target = target;
         let mut all = Vec::new();
         for (set, preds) in &loaded {
+            let set = &sets[*set];
             let config = EvalConfig {
                 methods: methods.clone(),
                 seeds,
@@ -94,7 +104,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             };
             all.extend(evaluate(set, preds, &config)?);
         }
-        Ok(all)
+        Ok(average_over_sim_seeds(all))
     };
     // main table: brightness 1, 0.8, 1.2
     println!(
@@ -184,4 +194,33 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     Ok(())
+}
+
+/// Rows of the same set, method and variant from several simulator seeds merged into one: the
+/// MAE and the one-shot MAE averaged, the frame counts summed, the largest rise kept.
+fn average_over_sim_seeds(rows: Vec<EvalResult>) -> Vec<EvalResult> {
+    let mut merged: Vec<(EvalResult, usize)> = Vec::new();
+    for r in rows {
+        let same = merged
+            .iter_mut()
+            .find(|(m, _)| m.set == r.set && m.method == r.method && m.variant == r.variant);
+        match same {
+            None => merged.push((r, 1)),
+            Some((m, k)) => {
+                *k += 1;
+                let w = 1.0 / *k as f64;
+                m.per_image.mae.mean += w * (r.per_image.mae.mean - m.per_image.mae.mean);
+                if let (Some(a), Some(b)) = (m.realign.as_mut(), r.realign) {
+                    a.one_shot_mae_m += w * (b.one_shot_mae_m - a.one_shot_mae_m);
+                    a.accepted += b.accepted;
+                    a.worse += b.worse;
+                    a.results += b.results;
+                    a.max_worse_mm = a.max_worse_mm.max(b.max_worse_mm);
+                    a.mean_anchors += w * (b.mean_anchors - a.mean_anchors);
+                    a.worse_fraction = a.worse as f64 / a.results as f64;
+                }
+            }
+        }
+    }
+    merged.into_iter().map(|(m, _)| m).collect()
 }

@@ -2,26 +2,13 @@
 //! graspnet6dof-table, calibrated and aligned on the library path, the top-1 grasp per object
 //! planned on the aligned depth and executed on the ground truth (PROXY scores, not robot trials).
 
+mod common;
+
+use common::shared_set;
 use moma_core::align::Method;
 use moma_eval::grasp_eval::{GraspEvalConfig, GripperKind, grasp_evaluate, grasp_table};
 use moma_eval::protocol::{EvalConfig, PredictionSet};
 use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
-use moma_io::LoadedSet;
-
-fn shared_set(name: &str) -> LoadedSet {
-    let base = std::env::var_os("MOMA_SHARED_DIR")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| {
-            std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared")
-        });
-    let dir = base.join("data").join(name);
-    assert!(
-        dir.is_dir(),
-        "this test needs the shared data, not found at {} (set MOMA_SHARED_DIR)",
-        dir.display()
-    );
-    LoadedSet::open(&dir).expect("the shared set loads")
-}
 
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]

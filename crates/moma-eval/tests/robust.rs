@@ -115,3 +115,52 @@ fn corruption_is_seeded_and_hits_the_asked_fraction() {
     let frac = changed as f64 / valid as f64;
     assert!((frac - 0.2).abs() < 0.02, "{frac} of {valid}");
 }
+
+/// Regression (found by the check over simulator seeds): on gqcnn-primesense, simulator seed 8,
+/// sampling seed 3, 20 % outliers, the robust local fit's second start (the robust inliers joined
+/// by the plain local fit's) let 4 outliers into the global least squares; its inlier set
+/// collapsed (82 → 33) and the masked MAE was 196 mm against 23 mm for robust GSSA. The kept
+/// model is now the one with the largest consensus over both starts' rounds.
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn robust_local_fit_keeps_the_larger_consensus() {
+    use moma_eval::protocol::PredictionSet;
+    use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+    let set = shared_set("gqcnn-primesense");
+    let sim = Simulator::new(
+        SimulatorConfig::default(),
+        8,
+        moma_core::PredictionKind::InverseDepth,
+        set.intrinsics,
+    )
+    .unwrap();
+    let preds = PredictionSet {
+        label: "SIMULATED inverse-depth (seed 8)".into(),
+        simulated: true,
+        maps: simulate_frames(&set, &sim, TransparencySource::Auto).unwrap(),
+    };
+    let config = EvalConfig {
+        methods: vec!["gssa".parse().unwrap(), "gssa-local".parse().unwrap()],
+        seeds: 1,
+        seed_base: 3,
+        robust: vec![Robust::new(RobustKind::Huber)],
+        gt_outliers: Some(0.2),
+        ..Default::default()
+    };
+    let res = evaluate(&set, &preds, &config).unwrap();
+    let mae = |m: &str| {
+        res.iter()
+            .find(|r| r.method == m && r.variant == "robust-huber")
+            .unwrap()
+            .per_image
+            .mae
+            .mean
+    };
+    // measured after the fix: gssa 22.6 mm, gssa-local 21.8 mm
+    assert!(
+        mae("gssa-local") < mae("gssa") + 0.002,
+        "robust gssa-local {} m vs robust gssa {} m",
+        mae("gssa-local"),
+        mae("gssa")
+    );
+}

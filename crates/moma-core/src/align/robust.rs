@@ -69,7 +69,14 @@
 //! correction, fallback guard: [`super::local::fit`]) is fitted on the inliers only; its residuals
 //! on all samples give the next inlier set, and this repeats until the set stops changing (at most
 //! [`LOCAL_ROUNDS`] rounds). Outliers therefore never reach the local correction, which would
-//! otherwise bend towards them.
+//! otherwise bend towards them. The rounds run from two starts: the robust global fit's inliers,
+//! and those joined by the inliers of the plain local fit on all samples (where the scene departs
+//! from the global model by more than the bound, only a local model can tell its samples from
+//! outliers). Of every round's model, the one with the largest consensus (inliers within the
+//! bound, then the lower sum of their squared residuals) is kept: the plain local fit saw the
+//! outliers too, and a few of them joined to the start can drag the global least squares of the
+//! next round away, after which the inlier set collapses (seen: gqcnn-primesense, simulator seed
+//! 8, 20 % outliers: 82 → 33 inliers and 196 mm MAE, against 22 mm from the robust start alone).
 //!
 //! Inliers reported: samples with `|r|` below the inlier bound under the final model, for every
 //! kind (with a fixed threshold, for Huber: the samples in its quadratic zone). LWLR, `auto` and `raw` are refused with a clear error: LWLR has
@@ -354,46 +361,65 @@ impl Robust {
         let model = match local_cfg {
             None => global_model(global),
             Some((lbase, cfg)) => {
-                // Start: inliers of the robust global fit, joined by those of the plain local
-                // fit on all samples (where the scene departs from the global model by more than
-                // the bound, only a local model can tell its samples from outliers).
-                let mut inliers = ctx.inliers(bound, |s| global.predict(s.u, s.v, s.pred));
+                // Two starts: the inliers of the robust global fit, and those joined by the
+                // inliers of the plain local fit on all samples (where the scene departs from
+                // the global model by more than the bound, only a local model can tell its
+                // samples from outliers; but that fit saw the outliers too, and may have bent
+                // towards some). From each, rounds of (local fit on the inliers → its inliers);
+                // of every round's model the one with the largest consensus is kept.
+                let robust_start = ctx.inliers(bound, |s| global.predict(s.u, s.v, s.pred));
+                let mut starts = vec![robust_start.clone()];
                 if let Ok(plain) = local::fit(targets, lbase, cfg) {
                     let plain = AlignmentModel::Local(Box::new(plain));
                     let more = ctx.inliers(bound, |s| plain.predict_at(s.u, s.v, s.pred));
-                    for (i, m) in inliers.iter_mut().zip(more) {
-                        *i |= m;
+                    let joined: Vec<bool> = robust_start
+                        .iter()
+                        .zip(more)
+                        .map(|(a, b)| *a || b)
+                        .collect();
+                    if joined != robust_start {
+                        starts.push(joined);
                     }
                 }
-                let mut model = None;
-                for _ in 0..LOCAL_ROUNDS {
-                    let subset = SampleSet {
-                        image_size: targets.image_size,
-                        samples: ctx
-                            .samples
-                            .iter()
-                            .zip(&inliers)
-                            .filter(|(_, i)| **i)
-                            .map(|(s, _)| *s)
-                            .collect(),
-                    };
-                    if subset.len() < method.min_samples() {
-                        return Err(CoreError::TooFewSamples {
-                            method: local_name(lbase),
-                            got: subset.len(),
-                            need: method.min_samples(),
-                        });
+                let mut best: Option<(AlignmentModel, (usize, f64))> = None;
+                for mut inliers in starts {
+                    for _ in 0..LOCAL_ROUNDS {
+                        let subset = SampleSet {
+                            image_size: targets.image_size,
+                            samples: ctx
+                                .samples
+                                .iter()
+                                .zip(&inliers)
+                                .filter(|(_, i)| **i)
+                                .map(|(s, _)| *s)
+                                .collect(),
+                        };
+                        if subset.len() < method.min_samples() {
+                            if best.is_some() {
+                                break;
+                            }
+                            return Err(CoreError::TooFewSamples {
+                                method: local_name(lbase),
+                                got: subset.len(),
+                                need: method.min_samples(),
+                            });
+                        }
+                        let m = AlignmentModel::Local(Box::new(local::fit(&subset, lbase, cfg)?));
+                        iterations += 1;
+                        let predict = |s: &Sample| m.predict_at(s.u, s.v, s.pred);
+                        let next = ctx.inliers(bound, predict);
+                        let score = ctx.consensus_of(bound, predict);
+                        let stable = next == inliers;
+                        if best.as_ref().is_none_or(|(_, b)| better(score, *b)) {
+                            best = Some((m, score));
+                        }
+                        if stable {
+                            break;
+                        }
+                        inliers = next;
                     }
-                    let m = AlignmentModel::Local(Box::new(local::fit(&subset, lbase, cfg)?));
-                    iterations += 1;
-                    let next = ctx.inliers(bound, |s| m.predict_at(s.u, s.v, s.pred));
-                    model = Some(m);
-                    if next == inliers {
-                        break;
-                    }
-                    inliers = next;
                 }
-                model
+                best.map(|(m, _)| m)
                     .ok_or_else(|| CoreError::Degenerate("robust local fit made no round".into()))?
             }
         };
@@ -594,7 +620,7 @@ impl Robust {
         let n = ctx.samples.len();
         let m = base.minimal();
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
-        let mut best: Option<(usize, f64, GlobalFit)> = None;
+        let mut best: Option<((usize, f64), GlobalFit)> = None;
         let mut needed = self.max_iterations;
         let mut drawn = 0;
         let mut subset = SampleSet {
@@ -612,16 +638,13 @@ impl Robust {
             let Ok(hyp) = base.fit(&subset, None) else {
                 continue; // degenerate minimal sample (equal ẑ, collinear pixels)
             };
-            let (count, ss) = ctx.consensus(&hyp, c);
-            if best
-                .as_ref()
-                .is_none_or(|(bc, bss, _)| count > *bc || (count == *bc && ss < *bss))
-            {
-                best = Some((count, ss, hyp));
-                needed = adaptive_bound(count, n, m, drawn, self.max_iterations);
+            let score = ctx.consensus(&hyp, c);
+            if best.as_ref().is_none_or(|(b, _)| better(score, *b)) {
+                best = Some((score, hyp));
+                needed = adaptive_bound(score.0, n, m, drawn, self.max_iterations);
             }
         }
-        let (_, _, model) = best.ok_or_else(|| {
+        let (_, model) = best.ok_or_else(|| {
             CoreError::Degenerate(format!(
                 "ransac: none of {drawn} minimal samples of {m} gave a {} fit (constant ẑ or \
                  collinear pixels)",
@@ -658,6 +681,11 @@ pub fn robust_scale_m(residuals_m: &[f64], params: usize) -> f64 {
 }
 
 /// `|r|`, infinite for NaN.
+/// Consensus order: more inliers, then (same count) the lower sum of squared inlier residuals.
+fn better(a: (usize, f64), b: (usize, f64)) -> bool {
+    a.0 > b.0 || (a.0 == b.0 && a.1 < b.1)
+}
+
 fn abs_or_inf(r: f64) -> f64 {
     if r.is_nan() { f64::INFINITY } else { r.abs() }
 }
@@ -920,10 +948,15 @@ impl Ctx<'_> {
 
     /// Inlier count and sum of squared inlier residuals (m²) of a hypothesis.
     fn consensus(&self, g: &GlobalFit, c: f64) -> (usize, f64) {
+        self.consensus_of(c, |s| g.predict(s.u, s.v, s.pred))
+    }
+
+    /// Inlier count and sum of squared inlier residuals (m²) under `predict` (fitted target).
+    fn consensus_of(&self, c: f64, predict: impl Fn(&Sample) -> f64) -> (usize, f64) {
         let mut count = 0;
         let mut ss = 0.0;
         for s in self.samples {
-            let r = self.residual_m(s, g.predict(s.u, s.v, s.pred));
+            let r = self.residual_m(s, predict(s));
             if r.abs() < c {
                 count += 1;
                 ss += r * r;

@@ -108,3 +108,20 @@ pub fn reference_metrics(p: &Array2<f32>, g: &Array2<f32>, m: &Array2<bool>) -> 
         acc[5] / n,
     ]
 }
+
+/// A set of the shared data (`$MOMA_SHARED_DIR/data/<name>`, default `../shared` beside the
+/// repository); panics naming the path when it is absent (the tests calling it are `#[ignore]`d).
+pub fn shared_set(name: &str) -> LoadedSet {
+    let base = std::env::var_os("MOMA_SHARED_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared")
+        });
+    let dir = base.join("data").join(name);
+    assert!(
+        dir.is_dir(),
+        "this test needs the shared data, not found at {} (set MOMA_SHARED_DIR)",
+        dir.display()
+    );
+    LoadedSet::open(&dir).expect("the shared set loads")
+}
