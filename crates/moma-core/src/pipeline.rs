@@ -496,18 +496,7 @@ pub fn calibrate_frames_normalised(
     let (model, report) = match space {
         AlignSpace::Depth => fit(&samples)?,
         AlignSpace::Inverse => {
-            let targets = SampleSet {
-                image_size: samples.image_size,
-                samples: samples
-                    .samples
-                    .iter()
-                    .map(|s| Sample {
-                        depth_m: space.target_from_depth(s.depth_m),
-                        ..*s
-                    })
-                    .collect(),
-            };
-            let (model, mut report) = fit(&targets)?;
+            let (model, mut report) = fit(&samples.in_space(space))?;
             report.rms_residual_m = rms_residual_m(&model, space, &samples.samples);
             (model, report)
         }

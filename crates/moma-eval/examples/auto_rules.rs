@@ -7,8 +7,8 @@
 //! `MOMA_SHARED_DIR=../shared cargo run --release -p moma-eval --example auto_rules -- [SIM_SEEDS] [SEEDS]`
 
 use moma_core::PredictionKind;
+use moma_core::align::Method;
 use moma_core::align::local::{AUTO_CANDIDATES, loo_predictions};
-use moma_core::align::{Method, Sample, SampleSet};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::Normalisation;
 use moma_eval::protocol::{EvalConfig, PredictionSet, Prepared};
@@ -67,18 +67,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     // the calibration frame itself, densely: inside its masks, and every valid pixel
                     let (aligned, at_calib) = prep.score(&cal, &map, prep.calib)?;
                     let whole = DepthMetrics::compute(&aligned, &set.frames[prep.calib].gt, None)?;
-                    let target = SampleSet {
-                        image_size: cal.samples.image_size,
-                        samples: cal
-                            .samples
-                            .samples
-                            .iter()
-                            .map(|s| Sample {
-                                depth_m: norm.space.target_from_depth(s.depth_m),
-                                ..*s
-                            })
-                            .collect(),
-                    };
+                    let target = cal.samples.in_space(norm.space);
                     let loo = loo_predictions(&target, &m.to_string())?;
                     let sq: Vec<f64> = target
                         .samples

@@ -9,7 +9,7 @@
 use std::path::PathBuf;
 
 use moma_core::align::local::{AUTO_CANDIDATES, loo_predictions, one_standard_error_choice};
-use moma_core::align::{AlignmentModel, Method, Sample, SampleSet};
+use moma_core::align::{AlignmentModel, Method};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::Normalisation;
 use moma_eval::data::load_set;
@@ -133,17 +133,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let map = prep.normalised(prep.calib, &norm)?;
                 let cal = prep.calibrate(&m, &norm, &map, 100, seed)?;
                 let depth = &cal.samples;
-                let target = SampleSet {
-                    image_size: depth.image_size,
-                    samples: depth
-                        .samples
-                        .iter()
-                        .map(|s| Sample {
-                            depth_m: norm.space.target_from_depth(s.depth_m),
-                            ..*s
-                        })
-                        .collect(),
-                };
+                let target = depth.in_space(norm.space);
                 let mut sq_t = Vec::new();
                 let mut sq_m = Vec::new();
                 let mut abs_m = Vec::new();

@@ -4,28 +4,16 @@
 
 mod common;
 
-use common::shared_set;
+use common::{shared_set, simulated_inverse_depth};
 use moma_core::align::Method;
 use moma_eval::grasp_eval::{GraspEvalConfig, GripperKind, grasp_evaluate, grasp_table};
-use moma_eval::protocol::{EvalConfig, PredictionSet};
-use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+use moma_eval::protocol::EvalConfig;
 
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
     let set = shared_set("graspnet6dof-table");
-    let sim = Simulator::new(
-        SimulatorConfig::default(),
-        0,
-        moma_core::PredictionKind::InverseDepth,
-        set.intrinsics,
-    )
-    .unwrap();
-    let preds = PredictionSet {
-        label: "SIMULATED inverse-depth".into(),
-        simulated: true,
-        maps: simulate_frames(&set, &sim, TransparencySource::Auto).unwrap(),
-    };
+    let preds = simulated_inverse_depth(&set, 0);
     let config = GraspEvalConfig {
         eval: EvalConfig {
             methods: vec![Method::Ssra(Default::default())],

@@ -124,21 +124,8 @@ fn corruption_is_seeded_and_hits_the_asked_fraction() {
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn robust_local_fit_keeps_the_larger_consensus() {
-    use moma_eval::protocol::PredictionSet;
-    use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
     let set = shared_set("gqcnn-primesense");
-    let sim = Simulator::new(
-        SimulatorConfig::default(),
-        8,
-        moma_core::PredictionKind::InverseDepth,
-        set.intrinsics,
-    )
-    .unwrap();
-    let preds = PredictionSet {
-        label: "SIMULATED inverse-depth (seed 8)".into(),
-        simulated: true,
-        maps: simulate_frames(&set, &sim, TransparencySource::Auto).unwrap(),
-    };
+    let preds = simulated_inverse_depth(&set, 8);
     let config = EvalConfig {
         methods: vec!["gssa".parse().unwrap(), "gssa-local".parse().unwrap()],
         seeds: 1,

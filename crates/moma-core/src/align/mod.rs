@@ -45,6 +45,22 @@ pub struct SampleSet {
 }
 
 impl SampleSet {
+    /// The same samples with their ground truth as the fit's target in `space`: depth (metres)
+    /// unchanged in depth space, 1/z (1/m) in inverse space.
+    pub fn in_space(&self, space: crate::normalise::AlignSpace) -> Self {
+        Self {
+            image_size: self.image_size,
+            samples: self
+                .samples
+                .iter()
+                .map(|s| Sample {
+                    depth_m: space.target_from_depth(s.depth_m),
+                    ..*s
+                })
+                .collect(),
+        }
+    }
+
     /// Reads ẑ and ground truth at `pixels`; pixels whose ẑ or ground truth is invalid are skipped.
     ///
     /// # Errors

@@ -125,3 +125,20 @@ pub fn shared_set(name: &str) -> LoadedSet {
     );
     LoadedSet::open(&dir).expect("the shared set loads")
 }
+
+/// SIMULATED inverse-depth predictions of `set` (default simulator, seed `sim_seed`).
+pub fn simulated_inverse_depth(set: &LoadedSet, sim_seed: u64) -> PredictionSet {
+    use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+    let sim = Simulator::new(
+        SimulatorConfig::default(),
+        sim_seed,
+        PredictionKind::InverseDepth,
+        set.intrinsics,
+    )
+    .unwrap();
+    PredictionSet {
+        label: format!("SIMULATED inverse-depth (seed {sim_seed})"),
+        simulated: true,
+        maps: simulate_frames(set, &sim, TransparencySource::Auto).unwrap(),
+    }
+}
