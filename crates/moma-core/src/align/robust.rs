@@ -404,7 +404,12 @@ impl Robust {
                                 need: method.min_samples(),
                             });
                         }
-                        let m = AlignmentModel::Local(Box::new(local::fit(&subset, lbase, cfg)?));
+                        let m = match local::fit(&subset, lbase, cfg) {
+                            Ok(m) => AlignmentModel::Local(Box::new(m)),
+                            // the other start already gave a model: keep it
+                            Err(_) if best.is_some() => break,
+                            Err(e) => return Err(e),
+                        };
                         iterations += 1;
                         let predict = |s: &Sample| m.predict_at(s.u, s.v, s.pred);
                         let next = ctx.inliers(bound, predict);
