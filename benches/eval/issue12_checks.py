@@ -8,10 +8,15 @@ calibration points.  This script repeats each check for simulator seeds 0..S-1 (
 averages each (set, method, variant) MAE over them and prints the checks with the per-seed
 counts, so that a check decided by one lucky or unlucky draw shows as such.
 
-All predictions are SIMULATED (METHOD.md §6); these tables test the machinery, not a depth model.
+With the simulator, all predictions are SIMULATED (METHOD.md §6): the tables test the machinery,
+not a depth model; the first line of the output says which predictions were scored.
 
     python3 benches/eval/issue12_checks.py --moma target/release/moma --shared ../shared \
         --sim-seeds 10 --out /tmp/issue12 [--only main,few-shot,realign,robust]
+
+With `--pred ROOT` (one prediction folder per set name under ROOT, as `moma predict` or
+`moma simulate` write them) the same checks run once on those predictions instead of the
+simulator; the header says whether they are simulated (from each folder's predictions.json).
 
 Standard library only.  The `moma eval -o` folders (results.json with the per-frame results)
 stay under --out/<check>/sim<seed>/; a re-run reuses the ones already there.
@@ -20,6 +25,7 @@ stay under --out/<check>/sim<seed>/; a re-run reuses the ones already there.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import statistics
 import subprocess
@@ -47,14 +53,28 @@ def run_eval(args, check: str, sim_seed: int) -> list[dict]:
         cmd = [str(args.moma), "eval"]
         for s in SETS:
             cmd += ["--set", str(args.shared / "data" / s)]
-        cmd += ["--simulate", "--sim-seed", str(sim_seed), "--seeds", str(args.seeds)]
+        if args.pred is None:
+            cmd += ["--simulate", "--sim-seed", str(sim_seed)]
+        else:
+            cmd += ["--pred", str(args.pred)]
+        cmd += ["--seeds", str(args.seeds)]
         cmd += CHECKS[check] + ["-o", str(out)]
         print("+", " ".join(cmd), file=sys.stderr)
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     rows = json.loads(results.read_text())
     for r in rows:
-        assert r["simulated"], "these checks are for simulated predictions only"
+        SOURCES.add((r["source"], r["simulated"]))
     return rows
+
+
+SOURCES: set[tuple[str, bool]] = set()  # (prediction label, simulated) of every row read
+
+
+def over(args) -> str:
+    """What the table's MAEs are averaged over."""
+    if args.pred is not None:
+        return f"mean over {args.seeds} sampling seeds"
+    return f"mean over {args.sim_seeds} simulator seeds × {args.seeds} sampling seeds"
 
 
 def mae_mm(r: dict) -> float:
@@ -108,7 +128,7 @@ def check_main(args) -> None:
                 f"{100 * (m['auto'] / m[best] - 1):+.1f} % vs {best} ({auto_ok}/{len(per_seed)})",
             ]
         )
-    print(f"\n### Local correction and `auto` (MAE mm, mean over {len(per_seed)} simulator seeds)\n")
+    print(f"\n### Local correction and `auto` (MAE mm, {over(args)})\n")
     print(
         table(
             ["set"] + [x.upper() for x in methods]
@@ -132,8 +152,7 @@ def check_few_shot(args) -> None:
             changes.setdefault(meth, []).append(b / a - 1)
             rows.append([s, meth.upper(), f"{a:.2f}", f"{b:.2f} ({100 * (b / a - 1):+.1f} %)",
                          f"{ok}/{len(per_seed)}"])
-    print(f"\n### Few-shot: K = 3 vs K = 1 on the same scored frames (MAE mm, mean over "
-          f"{len(per_seed)} simulator seeds)\n")
+    print(f"\n### Few-shot: K = 3 vs K = 1 on the same scored frames (MAE mm, {over(args)})\n")
     print(table(["set", "method", "K = 1", "K = 3", "seeds where K = 3 ≤ K = 1"], rows))
     print()
     print(table(["method", "mean change over sets"],
@@ -166,9 +185,8 @@ def check_realign(args) -> None:
             summary.append([meth.upper(), v, f"{100 * statistics.fmean(changes):+.1f}",
                             f"{worse_sets}/{len(SETS)}", f"{max_rise:.2f}",
                             f"{frames_worse}/{frames} ({100 * frames_worse / frames:.1f} %)"])
-    n = len(per_seed)
-    print(f"\n### Re-alignment on static anchors (MAE mm, mean over {n} simulator seeds; "
-          "frame counts over frames × sampling seeds × simulator seeds)\n")
+    print(f"\n### Re-alignment on static anchors (MAE mm, {over(args)}; frame counts over "
+          "frames × sampling seeds" + (" × simulator seeds" if args.pred is None else "") + ")\n")
     print(table(["set", "method", "variant", "one-shot", "re-aligned", "change %", "accepted",
                  "frames worse", "max rise mm"], rows))
     print()
@@ -178,7 +196,6 @@ def check_realign(args) -> None:
 
 def check_robust(args) -> None:
     clean, dirty = collect(args, "robust"), collect(args, "robust-outliers")
-    n = len(clean)
     rows, passed, passed_self, total = [], 0, 0, 0
     for meth in ["ssra", "gssa", "ssra-local", "gssa-local"]:
         for v in ["robust-huber", "robust-tukey", "robust-ransac"]:
@@ -192,9 +209,9 @@ def check_robust(args) -> None:
                 passed_self += abs(out - same) <= 1.0
                 cells.append(f"{out:.2f} ({out - plain:+.2f} / {out - same:+.2f})")
             rows.append([meth, v] + cells)
-    print(f"\n### Robust fits with 20 % ground-truth outliers (MAE mm, mean over {n} simulator "
-          "seeds; difference to the PLAIN fit on clean ground truth / to the same robust "
-          "variant on clean ground truth)\n")
+    print(f"\n### Robust fits with 20 % ground-truth outliers (MAE mm, {over(args)}; difference "
+          "to the PLAIN fit on clean ground truth / to the same robust variant on clean ground "
+          "truth)\n")
     print(table(["method", "variant"] + SETS, rows))
     print(f"\nwithin +1 mm of the plain clean fit: {passed}/{total}; within 1 mm of the same "
           f"variant on clean ground truth: {passed_self}/{total}")
@@ -208,13 +225,29 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=10, help="sampling seeds per simulator seed")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--only", default="main,few-shot,realign,robust")
+    p.add_argument("--pred", type=Path, help="prediction root (a folder per set) instead of "
+                   "the simulator; the checks then run once (--sim-seeds is ignored)")
     args = p.parse_args()
-    print(f"SIMULATED predictions (inverse-depth, minmax, inverse space, n = 100): simulator "
-          f"seeds 0..{args.sim_seeds - 1}, {args.seeds} sampling seeds each")
+    if args.pred is not None:
+        args.sim_seeds = 1
     todo = {"main": check_main, "few-shot": check_few_shot, "realign": check_realign,
             "robust": check_robust}
-    for name in args.only.split(","):
-        todo[name](args)
+    out = sys.stdout
+    sys.stdout = body = io.StringIO()  # the header needs the sources the runs report
+    try:
+        for name in args.only.split(","):
+            todo[name](args)
+    finally:
+        sys.stdout = out
+    simulated = {sim for _, sim in SOURCES}
+    kind = ("SIMULATED" if simulated == {True} else "REAL (not simulated)"
+            if simulated == {False} else "MIXED simulated and real")
+    what = (f"simulator seeds 0..{args.sim_seeds - 1}" if args.pred is None
+            else f"predictions from {args.pred}")
+    print(f"{kind} predictions (minmax, the predictions' own space, n = 100): {what}, "
+          f"{args.seeds} sampling seeds each; sources: "
+          + "; ".join(sorted({src for src, _ in SOURCES})))
+    print(body.getvalue(), end="")
 
 
 if __name__ == "__main__":

@@ -66,3 +66,37 @@ def test_k_standard_error_rule_prefers_the_simpler_model_within_k_se():
     # a consistent gain (every sample 0.1 lower: SE 0) always wins
     cands = [{"cv_sq": simple}, {"cv_sq": [x - 0.1 for x in simple]}]
     assert rule(1.0)(cands) == 1
+
+
+@pytest.mark.skipif(
+    BIN is None or SHARED is None or not (SHARED / "data" / "m2t2-table").is_dir(),
+    reason="needs the moma CLI (MOMA_BIN) and the shared data (MOMA_SHARED_DIR)",
+)
+def test_issue12_checks_on_prediction_folders_match_the_simulator_path(tmp_path):
+    """`--pred ROOT` (folders written by `moma simulate --seed 0`) scores exactly what
+    `--simulate --sim-seed 0` scores: the same tables, only the header differs."""
+    sets = []
+    for s in ["gqcnn-primesense", "graspnet6dof-table", "m2t2-table", "cleargrasp-transparent"]:
+        sets += ["--set", str(SHARED / "data" / s)]
+    subprocess.run([BIN, "simulate", *sets, "--seed", "0", "-o", str(tmp_path / "preds")],
+                   check=True, capture_output=True)
+
+    def checks(*extra):
+        r = subprocess.run(
+            [sys.executable, str(SCRIPTS / "issue12_checks.py"), "--moma", BIN, "--shared",
+             str(SHARED), "--seeds", "1", "--only", "main,few-shot", *extra],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    from_sim = checks("--sim-seeds", "1", "--out", str(tmp_path / "sim"))
+    from_files = checks("--pred", str(tmp_path / "preds"), "--out", str(tmp_path / "files"))
+    assert from_files.splitlines()[0].startswith("SIMULATED predictions (")
+    assert "predictions from" in from_files.splitlines()[0]
+
+    def tables(out):
+        return [l for l in out.splitlines() if l.startswith("| ")]
+
+    assert len(tables(from_sim)) > 10
+    assert tables(from_files) == tables(from_sim)
