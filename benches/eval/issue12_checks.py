@@ -19,7 +19,7 @@ With `--pred ROOT` (one prediction folder per set name under ROOT, as `moma pred
 simulator; the header says whether they are simulated (from each folder's predictions.json).
 
 Standard library only.  The `moma eval -o` folders (results.json with the per-frame results)
-stay under --out/<check>/sim<seed>/; a re-run reuses the ones already there.
+stay under --out/<check>/sim<seed>/; a re-run reuses those written by the same command.
 """
 
 from __future__ import annotations
@@ -46,28 +46,31 @@ CHECKS = {
 }
 
 
+SOURCES: set[tuple[str, bool]] = set()  # (prediction label, simulated) of every row read
+
+
 def run_eval(args, check: str, sim_seed: int) -> list[dict]:
     out = args.out / check / f"sim{sim_seed}"
-    results = out / "results.json"
-    if not results.exists():
-        cmd = [str(args.moma), "eval"]
-        for s in SETS:
-            cmd += ["--set", str(args.shared / "data" / s)]
-        if args.pred is None:
-            cmd += ["--simulate", "--sim-seed", str(sim_seed)]
-        else:
-            cmd += ["--pred", str(args.pred)]
-        cmd += ["--seeds", str(args.seeds)]
-        cmd += CHECKS[check] + ["-o", str(out)]
+    results, done = out / "results.json", out / "command.txt"
+    cmd = [str(args.moma), "eval"]
+    for s in SETS:
+        cmd += ["--set", str(args.shared / "data" / s)]
+    if args.pred is None:
+        cmd += ["--simulate", "--sim-seed", str(sim_seed)]
+    else:
+        cmd += ["--pred", str(args.pred)]
+    cmd += ["--seeds", str(args.seeds)]
+    cmd += CHECKS[check] + ["-o", str(out)]
+    # reused only when written by the same command (other seeds or predictions: run again)
+    if not (results.exists() and done.exists() and done.read_text() == " ".join(cmd)):
         print("+", " ".join(cmd), file=sys.stderr)
+        done.unlink(missing_ok=True)
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        done.write_text(" ".join(cmd))
     rows = json.loads(results.read_text())
     for r in rows:
         SOURCES.add((r["source"], r["simulated"]))
     return rows
-
-
-SOURCES: set[tuple[str, bool]] = set()  # (prediction label, simulated) of every row read
 
 
 def over(args) -> str:
@@ -111,8 +114,7 @@ def check_main(args) -> None:
         m = {meth: mean_mae(per_seed, (s, meth, "one-shot")) for meth in methods}
         best = min(m, key=m.get)
         local_ok = sum(
-            d[(s, "ssra-local", "one-shot")]["per_image"]["mae"]["mean"]
-            <= d[(s, "ssra", "one-shot")]["per_image"]["mae"]["mean"] + 1e-12
+            mae_mm(d[(s, "ssra-local", "one-shot")]) <= mae_mm(d[(s, "ssra", "one-shot")]) + 1e-9
             for d in per_seed
         )
         auto_ok = sum(

@@ -197,7 +197,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 }
 
 /// Rows of the same set, method and variant from several simulator seeds merged into one: the
-/// MAE and the one-shot MAE averaged, the frame counts summed, the largest rise kept.
+/// MAE and the one-shot MAE averaged, the frame counts summed, the largest rise kept. The other
+/// fields (spreads, δ, REL, RMSE, per-frame detail) keep the first seed's values: the tables here
+/// read only the MAE and the re-alignment counts.
 fn average_over_sim_seeds(rows: Vec<EvalResult>) -> Vec<EvalResult> {
     let mut merged: Vec<(EvalResult, usize)> = Vec::new();
     for r in rows {
