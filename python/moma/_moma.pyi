@@ -234,6 +234,7 @@ def calibrate(
     samples: int = 100,
     sampling: _Sampling = "random",
     seed: int = 0,
+    edge_margin_px: int = 0,
     mask: Union[None, _Mask, Sequence[_Mask]] = None,
     workspace: Optional[_Mask] = None,
     space: Optional[Literal["depth", "inverse"]] = None,
@@ -251,7 +252,9 @@ def calibrate(
     are drawn per frame (frame i > 0 with a seed derived from ``seed`` and i), one fit over
     all. ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
     required, never guessed; ``samples``: number of calibration pixels (per frame); ``seed``:
-    of the random sampling (and RANSAC); ``mask``: draw samples only inside (bool/uint8 H×W,
+    of the random sampling (and RANSAC); ``edge_margin_px``: draw samples more than this many
+    pixels away from depth discontinuities of the ground truth (object boundaries, where
+    sensors return flying pixels and depth models blur; 0: anywhere valid); ``mask``: draw samples only inside (bool/uint8 H×W,
     nonzero = inside; few-shot: one for all frames or a list, one per frame); ``workspace``:
     normalise over this region (embedded in the calibration); ``space``: ``"inverse"``
     (disparity predictor, 1/z target) or ``"depth"``, default the prediction's own

@@ -77,6 +77,9 @@ def cli_align(d, calib, name, *extra):
         # three frames, ssra-local, inverse space (the default for inverse-depth)
         (dict(frames=3, method="ssra-local", space="inverse"),
          ["--method", "ssra-local", "--space", "inverse"]),
+        # one frame (the smooth one: the others' ground truth is white noise, all edges),
+        # samples kept more than 2 px away from depth discontinuities and holes
+        (dict(frames=1, edge_margin_px=2), ["--edge-margin-px", "2"]),
     ],
 )
 def test_calibrate_matches_cli(files, cam, py_kw, cli_args):

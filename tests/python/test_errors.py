@@ -37,6 +37,7 @@ def test_kind_is_required():
         (dict(kind="depth", sampling="sobol"), "unknown sampling"),
         (dict(kind="depth", method="lwlr", bandwidth_px=-3.0), "bandwidth"),
         (dict(kind="depth", samples=2), "too few"),
+        (dict(kind="depth", edge_margin_px=500), "edge margin of 500 px"),
     ],
 )
 def test_bad_parameters(kwargs, match):

@@ -24,18 +24,26 @@ def load(name):
     return mod
 
 
-@pytest.mark.skipif(
+needs_cli_and_data = pytest.mark.skipif(
     BIN is None or SHARED is None or not (SHARED / "data" / "m2t2-table").is_dir(),
     reason="needs the moma CLI (MOMA_BIN) and the shared data (MOMA_SHARED_DIR)",
 )
-def test_issue12_checks_run_every_check_on_the_cli(tmp_path):
+
+
+def run_checks(out_dir, *extra):
+    """`issue12_checks.py` on one simulator seed and one sampling seed; its stdout."""
     r = subprocess.run(
         [sys.executable, str(SCRIPTS / "issue12_checks.py"), "--moma", BIN, "--shared",
-         str(SHARED), "--sim-seeds", "1", "--seeds", "1", "--out", str(tmp_path)],
+         str(SHARED), "--sim-seeds", "1", "--seeds", "1", "--out", str(out_dir), *extra],
         capture_output=True, text=True, timeout=600,
     )
     assert r.returncode == 0, r.stderr
-    out = r.stdout
+    return r.stdout
+
+
+@needs_cli_and_data
+def test_issue12_checks_run_every_check_on_the_cli(tmp_path):
+    out = run_checks(tmp_path)
     assert out.startswith("SIMULATED predictions")
     # every set of the local/auto table, with its two verdict columns
     row = next(l for l in out.splitlines() if l.startswith("| gqcnn-primesense | "))
@@ -46,12 +54,20 @@ def test_issue12_checks_run_every_check_on_the_cli(tmp_path):
     # re-alignment: 4 sets × 3 methods × 3 brightness rows, and the 9-row summary
     assert sum(" | realign-anchors" in l and l.startswith("| cleargrasp") for l in
                out.splitlines()) == 9, out
-    assert "worst frame rise mm" in out
+    assert "worst frame rise mm" in out and "worse by > 2 mm" in out
     # robust: 4 methods × 3 kinds, and the two counts over 48 rows
     assert "of the plain clean fit: " in out and "/48" in out, out
     # each check kept its moma eval output (the per-frame results) under --out
     for check in ["main", "few-shot", "realign", "robust", "robust-outliers"]:
         assert (tmp_path / check / "sim0" / "results.json").is_file()
+
+
+@needs_cli_and_data
+def test_issue12_checks_pass_eval_args_to_every_run(tmp_path):
+    out = run_checks(tmp_path, "--only", "main", "--eval-args", "--edge-margin-px 3")
+    assert "moma eval --edge-margin-px 3;" in out.splitlines()[0]
+    command = (tmp_path / "main" / "sim0" / "command.txt").read_text()
+    assert command.split()[-3:-2] == ["3"] and "--edge-margin-px" in command.split()
 
 
 def test_k_standard_error_rule_prefers_the_simpler_model_within_k_se():
@@ -68,10 +84,7 @@ def test_k_standard_error_rule_prefers_the_simpler_model_within_k_se():
     assert rule(1.0)(cands) == 1
 
 
-@pytest.mark.skipif(
-    BIN is None or SHARED is None or not (SHARED / "data" / "m2t2-table").is_dir(),
-    reason="needs the moma CLI (MOMA_BIN) and the shared data (MOMA_SHARED_DIR)",
-)
+@needs_cli_and_data
 def test_issue12_checks_on_prediction_folders_match_the_simulator_path(tmp_path):
     """`--pred ROOT` (folders written by `moma simulate --seed 0`) scores exactly what
     `--simulate --sim-seed 0` scores: the same tables, only the header differs."""

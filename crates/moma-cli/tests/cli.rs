@@ -503,3 +503,97 @@ fn huge_sample_counts_fail_clearly() {
         assert!(!calib.exists());
     }
 }
+
+/// `calibrate --edge-margin-px`: every stored sample lies more than the margin from a depth
+/// discontinuity of the ground truth (checked here with a 5 % jump, stricter than the library's
+/// 3 %); a margin that leaves no pixel fails naming it and writes no file; `eval` takes it too.
+#[test]
+fn edge_margin_keeps_samples_off_object_boundaries() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let gt_png = scene.join("frames/frame_00/depth.png");
+    let gt = moma_io::read_depth(&gt_png).unwrap().depth_m;
+    let (h, w) = (gt.nrows() as i64, gt.ncols() as i64);
+    let z = |v: i64, u: i64| gt[[v as usize, u as usize]];
+    let boundary = |v: i64, u: i64| {
+        [(0, 1), (1, 0)].iter().any(|&(dv, du)| {
+            let (vv, uu) = (v + dv, u + du);
+            vv < h && uu < w && {
+                let (a, b) = (z(v, u), z(vv, uu));
+                a > 0.0 && b > 0.0 && (a - b).abs() > 0.05 * a.min(b)
+            }
+        })
+    };
+    let pred0 = pred.join("frame_00.npy");
+    let calibrate = |margin: &'static str, out: &Path| {
+        let mut args = vec![
+            "calibrate",
+            "--pred",
+            s(&pred0),
+            "--pred-kind",
+            "inverse-depth",
+        ];
+        args.extend([
+            "--gt",
+            s(&gt_png),
+            "--samples",
+            "400",
+            "--edge-margin-px",
+            margin,
+        ]);
+        args.extend(["-o", s(out)]);
+        args.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let samples_of = |margin: &'static str| -> Vec<(i64, i64)> {
+        let calib = tmp.path().join(format!("calib-{margin}.json"));
+        ok(&calibrate(margin, &calib)
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>());
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+        v["calibration"]["samples"]["samples"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| {
+                (
+                    p["v"].as_f64().unwrap() as i64,
+                    p["u"].as_f64().unwrap() as i64,
+                )
+            })
+            .collect()
+    };
+    // within 3 px of a boundary pixel or its lower/right neighbour
+    let near = |(v, u): (i64, i64)| {
+        (v - 4..=v + 3).any(|vv| {
+            (u - 4..=u + 3).any(|uu| vv >= 0 && uu >= 0 && vv < h && uu < w && boundary(vv, uu))
+        })
+    };
+    assert!(
+        samples_of("0").into_iter().any(near),
+        "the demo scene has boundaries"
+    );
+    let kept = samples_of("3");
+    assert_eq!(kept.len(), 400);
+    assert!(!kept.into_iter().any(near));
+
+    let calib = tmp.path().join("none.json");
+    let err = fails(
+        &calibrate("100000", &calib)
+            .iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>(),
+    );
+    assert!(err.contains("edge margin of 100000 px"), "{err}");
+    assert!(!calib.exists());
+
+    let out = tmp.path().join("eval");
+    let rows = common::eval_rows(
+        &scene,
+        &pred,
+        &out,
+        &["--methods", "gssa", "--seeds", "2", "--edge-margin-px", "3"],
+    );
+    assert_eq!(rows.len(), 1, "{rows:?}");
+}

@@ -234,6 +234,7 @@ impl AnchorStore {
             }
         });
         // valid only away from depth edges: every 3×3 neighbour valid and within 3 %
+        // ([`crate::sampling::EDGE_JUMP_REL`], the calibration samples' edge rule)
         let depth_mm = Array2::from_shape_fn((hh, hw), |(i, j)| {
             let c = z[[i, j]];
             if !c.is_finite() {
@@ -246,7 +247,7 @@ impl AnchorStore {
                         continue;
                     }
                     let n = z[[a as usize, b as usize]];
-                    if !n.is_finite() || (n - c).abs() > 0.03 * c {
+                    if !n.is_finite() || (n - c).abs() > crate::sampling::EDGE_JUMP_REL * c {
                         return 0;
                     }
                 }

@@ -214,6 +214,7 @@ fn random_sampling_is_deterministic_valid_distinct() {
         strategy: SamplingStrategy::Random,
         n: 100,
         seed: 7,
+        edge_margin_px: 0,
     };
     let a = sample_pixels(&gt, &c, None).unwrap();
     let b = sample_pixels(&gt, &c, None).unwrap();
@@ -300,6 +301,7 @@ fn grid_sampling_places_nodes_evenly() {
             strategy: SamplingStrategy::Grid,
             n: 100,
             seed: 0,
+            edge_margin_px: 0,
         },
         None,
     )
@@ -321,6 +323,7 @@ fn grid_sampling_places_nodes_evenly() {
             strategy: SamplingStrategy::Grid,
             n: 50,
             seed: 0,
+            edge_margin_px: 0,
         },
         None,
     )
@@ -340,6 +343,7 @@ fn grid_sampling_snaps_to_nearest_valid() {
             strategy: SamplingStrategy::Grid,
             n: 4,
             seed: 0,
+            edge_margin_px: 0,
         },
         None,
     )
@@ -362,6 +366,7 @@ fn grid_sampling_snaps_to_nearest_valid() {
             strategy: SamplingStrategy::Grid,
             n: 16,
             seed: 0,
+            edge_margin_px: 0,
         },
         None,
     )
@@ -416,6 +421,7 @@ fn huge_sample_counts_are_refused_not_overflowed() {
             strategy,
             n: MAX_SAMPLES,
             seed: 0,
+            edge_margin_px: 0,
         };
         assert!(!sample_pixels(&gt, &c, None).unwrap().is_empty());
         // Above it, and at usize::MAX (whose grid k·k would overflow), a clear error.
@@ -427,6 +433,205 @@ fn huge_sample_counts_are_refused_not_overflowed() {
                 e.contains(&n.to_string()) && e.contains("exceeds the limit of 100000"),
                 "{e}"
             );
+        }
+    }
+}
+
+/// A 40 × 30 scene for the edge margin: a table at 1 m rising steeply but continuously to the
+/// right (adjacent pixels differ by 2 %, below the 3 % jump), a box 10 cm nearer, a one-pixel
+/// hole and a 4 % step.
+fn edge_scene() -> MetricDepth {
+    let mut z = Array2::from_shape_fn((30, 40), |(_, u)| {
+        if u < 30 {
+            1.0f32
+        } else {
+            1.02f32.powi(u as i32 - 29)
+        }
+    });
+    for v in 5..12 {
+        for u in 6..14 {
+            z[[v, u]] = 0.9;
+        }
+    }
+    z[[20, 8]] = 0.0;
+    for v in 15..30 {
+        for u in 18..24 {
+            z[[v, u]] = 0.96;
+        }
+    }
+    MetricDepth::new(z)
+}
+
+/// The eligible set by brute force, independently of the library: valid pixels with no
+/// "edge" pixel (invalid, or a 4-neighbour invalid or off by more than 3 % of the nearer depth)
+/// within Chebyshev distance r.
+fn interior_by_brute_force(gt: &MetricDepth, r: i64) -> Vec<Pixel> {
+    let z = &gt.depth_m;
+    let (h, w) = (z.nrows() as i64, z.ncols() as i64);
+    let ok = |v: i64, u: i64| z[[v as usize, u as usize]] > 0.0;
+    let edge = |v: i64, u: i64| {
+        if !ok(v, u) {
+            return true;
+        }
+        let a = z[[v as usize, u as usize]];
+        [(0, 1), (1, 0), (0, -1), (-1, 0)].iter().any(|&(dv, du)| {
+            let (vv, uu) = (v + dv, u + du);
+            (0..h).contains(&vv)
+                && (0..w).contains(&uu)
+                && (!ok(vv, uu)
+                    || (a - z[[vv as usize, uu as usize]]).abs()
+                        > 0.03 * a.min(z[[vv as usize, uu as usize]]))
+        })
+    };
+    let mut out = Vec::new();
+    for v in 0..h {
+        for u in 0..w {
+            let near = (v - r..=v + r).any(|vv| {
+                (u - r..=u + r)
+                    .any(|uu| (0..h).contains(&vv) && (0..w).contains(&uu) && edge(vv, uu))
+            });
+            if ok(v, u) && !near {
+                out.push(Pixel {
+                    u: u as u32,
+                    v: v as u32,
+                });
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn edge_margin_keeps_exactly_the_pixels_away_from_depth_discontinuities() {
+    let gt = edge_scene();
+    let all = |edge_margin_px| SamplingConfig {
+        n: 10_000,
+        edge_margin_px,
+        ..Default::default()
+    };
+    // margin 0 is MOMA's protocol: every valid pixel, and the same draw for a seed
+    assert_eq!(
+        sample_pixels(&gt, &all(0), None).unwrap().len(),
+        30 * 40 - 1
+    );
+    let c100 = SamplingConfig {
+        n: 100,
+        seed: 5,
+        ..Default::default()
+    };
+    assert_eq!(
+        sample_pixels(&gt, &c100, None).unwrap(),
+        sample_pixels(
+            &gt,
+            &SamplingConfig {
+                edge_margin_px: 0,
+                ..c100
+            },
+            None
+        )
+        .unwrap()
+    );
+    for r in [1u32, 2, 3, 6] {
+        let mut got = sample_pixels(&gt, &all(r), None).unwrap();
+        got.sort_by_key(|p| (p.v, p.u));
+        let want = interior_by_brute_force(&gt, i64::from(r));
+        assert_eq!(got, want, "margin {r}");
+        // the continuous 2 %-per-pixel slope is no edge: its interior pixels stay eligible
+        assert!(got.contains(&Pixel { u: 35, v: 3 }), "margin {r}");
+        // the 4 % step (box at 0.96 m) is one
+        assert!(!got.contains(&Pixel { u: 18, v: 25 }), "margin {r}");
+    }
+    // the draw stays seeded, and inside the margin, for both strategies
+    let interior = interior_by_brute_force(&gt, 2);
+    for strategy in [SamplingStrategy::Random, SamplingStrategy::Grid] {
+        let c = SamplingConfig {
+            strategy,
+            n: 49,
+            seed: 7,
+            edge_margin_px: 2,
+        };
+        let px = sample_pixels(&gt, &c, None).unwrap();
+        assert!(
+            px.len() >= 40 && px.iter().all(|p| interior.contains(p)),
+            "{strategy}"
+        );
+        assert_eq!(px, sample_pixels(&gt, &c, None).unwrap());
+    }
+    // with a mask: both restrictions apply
+    let left = Mask::new(Array2::from_shape_fn((30, 40), |(_, u)| u < 20));
+    let px = sample_pixels(&gt, &all(2), Some(&left)).unwrap();
+    assert_eq!(px.len(), interior.iter().filter(|p| p.u < 20).count());
+}
+
+#[test]
+fn an_edge_margin_that_leaves_no_pixel_is_an_error_naming_it() {
+    let gt = edge_scene();
+    for margin in [20u32, u32::MAX] {
+        let e = sample_pixels(
+            &gt,
+            &SamplingConfig {
+                edge_margin_px: margin,
+                ..Default::default()
+            },
+            None,
+        )
+        .unwrap_err();
+        assert!(matches!(e, CoreError::NoValidPixels(_)), "{e:?}");
+        assert!(
+            e.to_string()
+                .contains(&format!("edge margin of {margin} px")),
+            "{e}"
+        );
+    }
+    // an all-invalid map keeps its own error
+    let invalid = MetricDepth::new(Array2::from_elem((6, 8), f32::NAN));
+    let e = sample_pixels(
+        &invalid,
+        &SamplingConfig {
+            edge_margin_px: 2,
+            ..Default::default()
+        },
+        None,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("no valid depth"), "{e}");
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(128))]
+
+    /// Any small map (holes, NaN, steps), any margin (also wider than the image), both
+    /// strategies: no panic; the pixels drawn lie in the brute-force interior; an error only
+    /// when that interior is empty.
+    #[test]
+    fn edge_margin_draws_only_interior_pixels(
+        (h, w, vals) in (1usize..12, 1usize..12).prop_flat_map(|(h, w)| {
+            (Just(h), Just(w), proptest::collection::vec(
+                prop_oneof![Just(0.0f32), Just(f32::NAN), 0.5f32..2.0, Just(1.0f32)], h * w))
+        }),
+        margin in 0u32..8,
+        n in 1usize..60,
+        grid in any::<bool>(),
+    ) {
+        let gt = MetricDepth::new(Array2::from_shape_vec((h, w), vals).unwrap());
+        let strategy = if grid { SamplingStrategy::Grid } else { SamplingStrategy::Random };
+        let c = SamplingConfig { strategy, n, seed: 1, edge_margin_px: margin };
+        // margin 0 is off: every valid pixel
+        let interior = if margin == 0 {
+            gt.depth_m.indexed_iter().filter(|(_, z)| **z > 0.0).map(|((v, u), _)| Pixel { u: u as u32, v: v as u32 }).collect()
+        } else {
+            interior_by_brute_force(&gt, i64::from(margin))
+        };
+        match sample_pixels(&gt, &c, None) {
+            Ok(px) => {
+                prop_assert!(!px.is_empty());
+                prop_assert!(px.iter().all(|p| interior.contains(p)));
+            }
+            Err(e) => {
+                prop_assert!(interior.is_empty(), "{e}");
+                prop_assert!(matches!(e, CoreError::NoValidPixels(_)), "{e:?}");
+            }
         }
     }
 }

@@ -60,6 +60,10 @@ pub struct EvalConfig {
     pub calib_frame: Option<String>,
     /// Sampling strategy.
     pub sampling: SamplingStrategy,
+    /// Calibration samples at least this many pixels from depth discontinuities of the ground
+    /// truth ([`moma_core::sampling::SamplingConfig::edge_margin_px`]); 0: off.
+    #[serde(default)]
+    pub edge_margin_px: u32,
     /// Only ground truth within `[min, max]` metres is sampled and scored.
     pub depth_range_m: Option<(f64, f64)>,
     /// Fixed workspace mask (set size): when given, the normalisation statistics of every
@@ -98,6 +102,7 @@ impl Default for EvalConfig {
             seed_base: 0,
             calib_frame: None,
             sampling: SamplingStrategy::Random,
+            edge_margin_px: 0,
             depth_range_m: None,
             workspace: None,
             realign: None,
@@ -629,6 +634,7 @@ impl<'a> Prepared<'a> {
                 strategy: self.config.sampling,
                 n,
                 seed,
+                edge_margin_px: self.config.edge_margin_px,
             },
             robust: robust.map(|r| r.with_seed(seed)),
         };

@@ -68,6 +68,9 @@ pub struct RealignStats {
     pub worse: usize,
     /// `worse / results`.
     pub worse_fraction: f64,
+    /// Results whose MAE rose by more than [`WORSE_BOUND_MM`] (issue 12's per-frame bound).
+    #[serde(default)]
+    pub worse_beyond_bound: usize,
     /// Largest MAE rise over all results, millimetres (0 when none rose).
     pub max_worse_mm: f64,
     /// Mean anchors found per frame.
@@ -76,6 +79,10 @@ pub struct RealignStats {
     /// seeds): with β ≠ 1 the evaluated predictions carry the brightness response.
     pub one_shot_mae_m: f64,
 }
+
+/// The per-frame rise of the MAE that re-alignment should never exceed, millimetres (issue 12):
+/// [`RealignStats::worse_beyond_bound`] counts the results beyond it.
+pub const WORSE_BOUND_MM: f64 = 2.0;
 
 /// The variant name of a brightness factor.
 pub fn variant_name(brightness: f64) -> String {
@@ -263,6 +270,7 @@ pub fn evaluate_realign(
     let mut results = 0usize;
     let mut accepted = 0usize;
     let mut worse = 0usize;
+    let mut worse_beyond_bound = 0usize;
     let mut max_worse_m = 0.0f64;
     let mut anchors = 0usize;
     for (_, fr) in &per_seed {
@@ -273,6 +281,7 @@ pub fn evaluate_realign(
             let d = re.mae - one.mae;
             if d > 1e-6 {
                 worse += 1;
+                worse_beyond_bound += usize::from(d * 1e3 > WORSE_BOUND_MM);
                 max_worse_m = max_worse_m.max(d);
             }
         }
@@ -301,6 +310,7 @@ pub fn evaluate_realign(
         accepted,
         worse,
         worse_fraction: worse as f64 / results.max(1) as f64,
+        worse_beyond_bound,
         max_worse_mm: max_worse_m * 1e3,
         mean_anchors: anchors as f64 / results.max(1) as f64,
         one_shot_mae_m: one_mean.iter().map(|m| m.mae).sum::<f64>() / one_mean.len() as f64,
@@ -320,6 +330,7 @@ pub fn realign_table(results: &[EvalResult]) -> Table {
         "change %",
         "accepted",
         "frames worse",
+        "worse > 2 mm",
         "max worse mm",
         "anchors/frame",
     ]
@@ -345,6 +356,7 @@ pub fn realign_table(results: &[EvalResult]) -> Table {
                     s.results,
                     100.0 * s.worse_fraction
                 ),
+                s.worse_beyond_bound.to_string(),
                 format!("{:.2}", s.max_worse_mm),
                 format!("{:.0}", s.mean_anchors),
             ]

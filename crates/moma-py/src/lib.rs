@@ -539,7 +539,7 @@ fn robust_from(
 /// (`moma calibrate --anchors --anchors-rgb`).
 #[pyfunction]
 #[pyo3(signature = (pred, gt_m, cam=None, *, kind, method="ssra", norm="minmax", samples=100,
-    sampling="random", seed=0, mask=None, workspace=None, space=None, bandwidth_px=None,
+    sampling="random", seed=0, edge_margin_px=0, mask=None, workspace=None, space=None, bandwidth_px=None,
     robust=None, robust_threshold_m=None, anchors_rgb=None))]
 #[allow(clippy::too_many_arguments)]
 fn calibrate(
@@ -553,6 +553,7 @@ fn calibrate(
     samples: usize,
     sampling: &str,
     seed: u64,
+    edge_margin_px: u32,
     mask: Option<&Bound<'_, PyAny>>,
     workspace: Option<&Bound<'_, PyAny>>,
     space: Option<&str>,
@@ -579,6 +580,7 @@ fn calibrate(
             strategy: parse_sampling(sampling)?,
             n: samples,
             seed,
+            edge_margin_px,
         },
     };
 

@@ -69,6 +69,10 @@ pub struct CalibrateArgs {
     /// Seed of the random sampling (frame i > 0 of several uses a seed derived from it and i).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Draw samples more than this many pixels away from depth discontinuities of the ground
+    /// truth (object boundaries: flying pixels, blurred predictions); 0: anywhere valid (MOMA).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub edge_margin_px: u32,
     /// LWLR bandwidth in pixels (default: 50 px at 640 px width, scaled with the image width).
     #[arg(long, value_name = "PX")]
     pub bandwidth_px: Option<f64>,
@@ -277,6 +281,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             strategy: args.sampling,
             n: args.samples,
             seed: args.seed,
+            edge_margin_px: args.edge_margin_px,
         },
         robust: args.robust.robust(args.seed)?,
     };

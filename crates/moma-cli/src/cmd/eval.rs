@@ -138,6 +138,10 @@ pub struct EvalOptions {
     /// Calibration-pixel sampling: random or grid.
     #[arg(long, default_value = "random", value_name = "SAMPLING")]
     pub sampling: SamplingStrategy,
+    /// Draw calibration samples more than this many pixels away from depth discontinuities of
+    /// the ground truth (as `moma calibrate --edge-margin-px`); 0: anywhere valid (MOMA).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub edge_margin_px: u32,
     /// Only sample and score ground truth at or beyond this depth, metres.
     #[arg(long, value_name = "METRES")]
     pub min_gt_depth: Option<f64>,
@@ -249,6 +253,7 @@ impl EvalOptions {
             seed_base: self.seed_base,
             calib_frame: self.calib_frame.clone(),
             sampling: self.sampling,
+            edge_margin_px: self.edge_margin_px,
             depth_range_m,
             workspace,
             realign,
