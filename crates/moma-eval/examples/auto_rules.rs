@@ -4,7 +4,8 @@
 //! them) and the masked MAE it reaches on the other frames. One JSON object per line on stdout;
 //! `benches/eval/auto_rules.py` scores selection rules on it.
 //!
-//! `MOMA_SHARED_DIR=../shared cargo run --release -p moma-eval --example auto_rules -- [SIM_SEEDS] [SEEDS]`
+//! `MOMA_SHARED_DIR=../shared cargo run --release -p moma-eval --example auto_rules -- [SIM_SEEDS] [SEEDS] [EDGE_MARGIN_PX]`
+//! (the edge margin of the calibration samples, `moma eval --edge-margin-px`; default 0)
 
 use moma_core::PredictionKind;
 use moma_core::align::Method;
@@ -25,6 +26,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let sim_seeds: u64 = args.get(1).map_or(Ok(10), |s| s.parse())?;
     let seeds: u64 = args.get(2).map_or(Ok(10), |s| s.parse())?;
+    let edge_margin_px: u32 = args.get(3).map_or(Ok(0), |s| s.parse())?;
     let shared = std::env::var("MOMA_SHARED_DIR").unwrap_or_else(|_| "../shared".into());
     let methods: Vec<Method> = AUTO_CANDIDATES
         .iter()
@@ -47,6 +49,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             };
             let config = EvalConfig {
                 methods: methods.clone(),
+                edge_margin_px,
                 ..EvalConfig::default()
             };
             let prep = Prepared::new(&set, &preds, &config)?;
