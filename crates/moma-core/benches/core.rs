@@ -296,8 +296,43 @@ fn bench_align(c: &mut Criterion) {
     g.finish();
 }
 
+/// Drawing n = 100 calibration pixels at 640×480 and 1280×720 (the shared sets' sizes): MOMA's
+/// protocol (any valid pixel) against the edge margin of 3 px, which adds the depth-edge map and
+/// its dilation (one pass over the image each).
+fn bench_sampling(c: &mut Criterion) {
+    use moma_core::sampling::{SamplingConfig, sample_pixels};
+    let p1 = pool(1);
+    let mut g = c.benchmark_group("sampling");
+    for size in [ImageSize::new(640, 480), ImageSize::new(1280, 720)] {
+        // a table with a box 10 cm nearer and a few holes
+        let (w, h) = (size.width, size.height);
+        let gt = MetricDepth::new(Array2::from_shape_fn(size.shape(), |(v, u)| {
+            if (u * 31 + v * 17) % 997 == 0 {
+                0.0
+            } else if (w / 4..w / 2).contains(&u) && (h / 3..2 * h / 3).contains(&v) {
+                0.8
+            } else {
+                0.9 + 1e-4 * v as f32
+            }
+        }));
+        g.throughput(Throughput::Elements(size.pixels() as u64));
+        for margin in [0u32, 3] {
+            let cfg = SamplingConfig {
+                n: 100,
+                edge_margin_px: margin,
+                ..Default::default()
+            };
+            g.bench_function(format!("random_n100_margin{margin}_{w}x{h}"), |b| {
+                p1.install(|| b.iter(|| sample_pixels(black_box(&gt), &cfg, None).unwrap()))
+            });
+        }
+    }
+    g.finish();
+}
+
 criterion_group!(
     benches,
+    bench_sampling,
     bench_align,
     bench_fits,
     bench_apply,

@@ -151,10 +151,13 @@ pub fn sample_pixels(
     }
     let mut eligible = eligible_mask(gt, restrict);
     if config.edge_margin_px > 0 && eligible.iter().any(|&b| b) {
-        let near_edge = dilate(&depth_edges(gt), config.edge_margin_px as usize);
-        ndarray::Zip::from(&mut eligible)
-            .and(&near_edge)
-            .for_each(|e, &near| *e &= !near);
+        let (h, w) = eligible.dim();
+        let near_edge = dilate(&depth_edges_flat(gt), h, w, config.edge_margin_px as usize);
+        // `iter_mut` walks in logical row-major order, the order of `near_edge`
+        eligible
+            .iter_mut()
+            .zip(&near_edge)
+            .for_each(|(e, &near)| *e &= !near);
         if !eligible.iter().any(|&b| b) {
             return Err(CoreError::NoValidPixels(format!(
                 "no valid ground-truth pixel (inside the sampling mask, if any) lies more than \
@@ -183,56 +186,94 @@ fn eligible_mask(gt: &MetricDepth, restrict: Option<&Mask>) -> Array2<bool> {
 /// times the nearer depth (both sides of a boundary are marked). The image border is not a
 /// discontinuity.
 pub fn depth_edges(gt: &MetricDepth) -> Array2<bool> {
-    let z = &gt.depth_m;
-    let (h, w) = z.dim();
-    let jump = |a: f32, b: f32| !is_valid_depth(b) || (a - b).abs() > EDGE_JUMP_REL * a.min(b);
-    Array2::from_shape_fn((h, w), |(v, u)| {
-        let a = z[[v, u]];
-        if !is_valid_depth(a) {
-            return true;
-        }
-        (u > 0 && jump(a, z[[v, u - 1]]))
-            || (u + 1 < w && jump(a, z[[v, u + 1]]))
-            || (v > 0 && jump(a, z[[v - 1, u]]))
-            || (v + 1 < h && jump(a, z[[v + 1, u]]))
-    })
+    let (h, w) = gt.depth_m.dim();
+    let edges = depth_edges_flat(gt);
+    Array2::from_shape_fn((h, w), |(v, u)| edges[v * w + u])
 }
 
-/// Binary dilation of `mask` by the `(2r + 1)²` square: separable, one running count per row
-/// and per column, so O(H·W) whatever `r` (a morphology crate would add a dependency for one
-/// box filter).
-fn dilate(mask: &Array2<bool>, r: usize) -> Array2<bool> {
-    fn pass(line: impl Iterator<Item = bool>, len: usize, r: usize, out: &mut [bool]) {
-        let vals: Vec<bool> = line.collect();
-        // window [i - r, i + r] ∩ [0, len): count of set values, updated incrementally
-        let mut count = vals[..r.min(len)].iter().filter(|&&b| b).count();
-        for i in 0..len {
-            if let Some(&add) = vals.get(i + r) {
-                count += usize::from(add);
-            }
-            out[i] = count > 0;
-            if i >= r {
-                count -= usize::from(vals[i - r]);
+/// [`depth_edges`] in row-major order: one pass over horizontal and one over vertical
+/// neighbour pairs, on contiguous rows.
+fn depth_edges_flat(gt: &MetricDepth) -> Vec<bool> {
+    let (h, w) = gt.depth_m.dim();
+    let z = gt.depth_m.as_standard_layout();
+    let copied: Vec<f32>;
+    let zs: &[f32] = match z.as_slice() {
+        Some(s) => s,
+        None => {
+            copied = z.iter().copied().collect();
+            &copied
+        }
+    };
+    let mut edges: Vec<bool> = zs.iter().map(|&a| !is_valid_depth(a)).collect();
+    // a pair differs when exactly one side is valid, or both are and they jump
+    let differ = |a: f32, b: f32| match (is_valid_depth(a), is_valid_depth(b)) {
+        (true, true) => (a - b).abs() > EDGE_JUMP_REL * a.min(b),
+        (va, vb) => va != vb,
+    };
+    for v in 0..h {
+        let row = v * w;
+        for u in 1..w {
+            if differ(zs[row + u - 1], zs[row + u]) {
+                edges[row + u - 1] = true;
+                edges[row + u] = true;
             }
         }
     }
-    let (h, w) = mask.dim();
-    let mut rows = Array2::from_elem((h, w), false);
-    let mut buf = vec![false; w.max(h)];
-    for v in 0..h {
-        pass(mask.row(v).iter().copied(), w, r, &mut buf[..w]);
-        rows.row_mut(v)
-            .iter_mut()
-            .zip(&buf)
-            .for_each(|(o, &b)| *o = b);
+    for v in 1..h {
+        let (above, row) = ((v - 1) * w, v * w);
+        for u in 0..w {
+            if differ(zs[above + u], zs[row + u]) {
+                edges[above + u] = true;
+                edges[row + u] = true;
+            }
+        }
     }
-    let mut out = Array2::from_elem((h, w), false);
-    for u in 0..w {
-        pass(rows.column(u).iter().copied(), h, r, &mut buf[..h]);
-        out.column_mut(u)
-            .iter_mut()
-            .zip(&buf)
-            .for_each(|(o, &b)| *o = b);
+    edges
+}
+
+/// Binary dilation of the row-major `h × w` `mask` by the `(2r + 1)²` square: separable, a
+/// running count along each row, then running per-column counts over a window of rows, so
+/// O(H·W) whatever `r` and on contiguous rows (a morphology crate would add a dependency for
+/// one box filter).
+fn dilate(mask: &[bool], h: usize, w: usize, r: usize) -> Vec<bool> {
+    // rows: window [u - r, u + r] ∩ [0, w) of each row
+    let mut rows = vec![false; h * w];
+    for v in 0..h {
+        let (line, out) = (&mask[v * w..(v + 1) * w], &mut rows[v * w..(v + 1) * w]);
+        let mut count = line[..r.min(w)].iter().filter(|&&b| b).count();
+        for u in 0..w {
+            if let Some(&add) = line.get(u + r) {
+                count += usize::from(add);
+            }
+            out[u] = count > 0;
+            if u >= r {
+                count -= usize::from(line[u - r]);
+            }
+        }
+    }
+    // columns: per-column counts over the rows [v - r, v + r] ∩ [0, h)
+    let mut counts = vec![0u32; w];
+    let add = |counts: &mut [u32], v: usize, sign: bool| {
+        for (c, &b) in counts.iter_mut().zip(&rows[v * w..(v + 1) * w]) {
+            if b {
+                *c = if sign { *c + 1 } else { *c - 1 };
+            }
+        }
+    };
+    for v in 0..r.min(h) {
+        add(&mut counts, v, true);
+    }
+    let mut out = vec![false; h * w];
+    for v in 0..h {
+        if v + r < h {
+            add(&mut counts, v + r, true);
+        }
+        for (o, &c) in out[v * w..(v + 1) * w].iter_mut().zip(&counts) {
+            *o = c > 0;
+        }
+        if v >= r {
+            add(&mut counts, v - r, false);
+        }
     }
     out
 }

@@ -531,6 +531,18 @@ fn edge_margin_keeps_exactly_the_pixels_away_from_depth_discontinuities() {
         )
         .unwrap()
     );
+    // the edge map itself: invalid pixels, and both sides of every jump
+    let edges = moma_core::sampling::depth_edges(&gt);
+    let not_edge: Vec<Pixel> = edges
+        .indexed_iter()
+        .filter(|(_, e)| !**e)
+        .map(|((v, u), _)| Pixel {
+            u: u as u32,
+            v: v as u32,
+        })
+        .collect();
+    assert_eq!(not_edge, interior_by_brute_force(&gt, 0));
+    assert!(edges[[20, 8]] && edges[[20, 9]] && edges[[5, 6]] && edges[[5, 5]]);
     for r in [1u32, 2, 3, 6] {
         let mut got = sample_pixels(&gt, &all(r), None).unwrap();
         got.sort_by_key(|p| (p.v, p.u));
