@@ -596,4 +596,13 @@ fn edge_margin_keeps_samples_off_object_boundaries() {
         &["--methods", "gssa", "--seeds", "2", "--edge-margin-px", "3"],
     );
     assert_eq!(rows.len(), 1, "{rows:?}");
+    // the table says how the samples were drawn, and results.json records it
+    let md = std::fs::read_to_string(out.join("results.md")).unwrap();
+    assert!(
+        md.contains("n = 100 samples (more than 3 px from depth edges)"),
+        "{md}"
+    );
+    let full: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    assert_eq!(full[0]["edge_margin_px"], 3);
 }

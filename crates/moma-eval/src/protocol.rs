@@ -199,6 +199,10 @@ pub struct EvalResult {
     pub space: AlignSpace,
     /// Calibration samples n asked for.
     pub samples: usize,
+    /// Calibration samples were drawn more than this many pixels from depth discontinuities of
+    /// the ground truth ([`EvalConfig::edge_margin_px`]; 0: anywhere valid, MOMA's protocol).
+    #[serde(default)]
+    pub edge_margin_px: u32,
     /// Number of seeds.
     pub seeds: usize,
     /// Calibration frame id (several frames: their ids joined by `+`).
@@ -1082,6 +1086,7 @@ pub(crate) fn summarise(
         norm: norm.method.to_string(),
         space: norm.space,
         samples: n,
+        edge_margin_px: prep.config.edge_margin_px,
         seeds: per_seed.len(),
         calib_frame: calib
             .iter()

@@ -176,7 +176,7 @@ pub fn eval_table_with_notes(results: &[EvalResult], notes: &[EvalNote], pooled:
     let sim = results.iter().any(|r| r.simulated);
     let title = match first {
         Some(r) => format!(
-            "{}{} — n = {} samples, {} seeds, calibration frame(s): {}; {} (mean ± std over seeds{})",
+            "{}{} — n = {} samples{}, {} seeds, calibration frame(s): {}; {} (mean ± std over seeds{})",
             if sim {
                 "SIMULATED predictions — "
             } else {
@@ -184,6 +184,11 @@ pub fn eval_table_with_notes(results: &[EvalResult], notes: &[EvalNote], pooled:
             },
             r.source,
             r.samples,
+            if r.edge_margin_px > 0 {
+                format!(" (more than {} px from depth edges)", r.edge_margin_px)
+            } else {
+                String::new()
+            },
             r.seeds,
             calib_list(results),
             if pooled {
