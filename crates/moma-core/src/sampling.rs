@@ -100,15 +100,13 @@ pub struct Pixel {
 /// Chooses up to `config.n` distinct pixels with valid ground truth (inside `restrict` when given).
 /// Returns fewer only when fewer valid pixels exist (the fit then decides whether that is enough).
 ///
-/// A pixel is *eligible* when its ground truth is valid ([`crate::is_valid_depth`]) and it lies
-/// inside `restrict` (when given).
+/// A pixel is *eligible* when its ground truth is valid ([`crate::is_valid_depth`]), it lies
+/// inside `restrict` (when given) and, with `config.edge_margin_px = r > 0`, no pixel of
+/// [`depth_edges`] lies within Chebyshev distance `r` of it (its `(2r + 1)²` window).
 ///
 /// - [`SamplingStrategy::Random`]: `min(n, eligible)` pixels uniformly without replacement, drawn
 ///   with `ChaCha8Rng::seed_from_u64(seed)` via `rand::seq::index::sample` over the eligible pixels
 ///   in row-major order. Deterministic for a seed; the output is in draw order.
-/// - With `config.edge_margin_px = r > 0`, a pixel is eligible only if no pixel of
-///   [`depth_edges`] lies within Chebyshev distance `r` of it (a `(2r + 1)²` window).
-///
 /// - [`SamplingStrategy::Grid`] (BoostingDepth): `k = ⌊√n⌋` (at least 1) nodes per axis, placed at
 ///   the centres of a `k × k` partition of the image: node `(i, j)` sits at
 ///   `u_i = (i + ½)·W/k − ½`, `v_j = (j + ½)·H/k − ½` (pixels; evenly spread, symmetric about
@@ -236,6 +234,8 @@ fn depth_edges_flat(gt: &MetricDepth) -> Vec<bool> {
 /// O(H·W) whatever `r` and on contiguous rows (a morphology crate would add a dependency for
 /// one box filter).
 fn dilate(mask: &[bool], h: usize, w: usize, r: usize) -> Vec<bool> {
+    // a window wider than the image covers it all: also keeps `u + r` from overflowing
+    let r = r.min(h.max(w));
     // rows: window [u - r, u + r] ∩ [0, w) of each row
     let mut rows = vec![false; h * w];
     for v in 0..h {
