@@ -67,7 +67,12 @@ def run_eval(args, check: str, sim_seed: int) -> list[dict]:
     if not (results.exists() and done.exists() and done.read_text() == " ".join(cmd)):
         print("+", " ".join(cmd), file=sys.stderr)
         done.unlink(missing_ok=True)
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        r = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if r.returncode != 0:
+            # moma's own message (e.g. an edge margin that leaves no pixel of the 20 %-outlier
+            # ground truth of the robust check: run --only main,few-shot,realign with a margin)
+            sys.exit(f"moma eval failed for check '{check}' (simulator seed {sim_seed}):\n"
+                     + r.stderr.strip())
         done.write_text(" ".join(cmd))
     rows = json.loads(results.read_text())
     for r in rows:

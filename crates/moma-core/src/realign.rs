@@ -233,8 +233,9 @@ impl AnchorStore {
                 f32::NAN
             }
         });
-        // valid only away from depth edges: every 3×3 neighbour valid and within 3 %
-        // ([`crate::sampling::EDGE_JUMP_REL`], the calibration samples' edge rule)
+        // valid only away from depth edges: every 3×3 neighbour valid and within 3 % of the
+        // centre ([`crate::sampling::EDGE_JUMP_REL`], the constant of the calibration samples'
+        // edge margin; here on 3×3 half-resolution neighbours)
         let depth_mm = Array2::from_shape_fn((hh, hw), |(i, j)| {
             let c = z[[i, j]];
             if !c.is_finite() {

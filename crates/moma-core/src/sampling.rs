@@ -76,11 +76,13 @@ impl Default for SamplingConfig {
 }
 
 /// Jump in ground-truth depth between 4-adjacent pixels, relative to the nearer of the two,
-/// above which [`depth_edges`] marks a depth discontinuity: 3 %. A continuous surface produces a
-/// jump of about `z·tan θ / f` between adjacent pixels (θ its inclination to the image plane,
-/// `f` the focal length in pixels), so at f ≈ 600 px only surfaces inclined by more than 87°
-/// (seen edge-on) exceed it, while the boundary of a 2 cm high object on a table 0.7 m away
-/// (2.9 %) is close to the limit and anything taller exceeds it.
+/// above which [`depth_edges`] marks a depth discontinuity: 3 %. Between adjacent pixels a
+/// continuous surface changes depth by about `z / (f · tan α)` (α the angle between the viewing
+/// ray and the surface, `f` the focal length in pixels), so at f ≈ 600 px only surfaces seen
+/// within about 3° of grazing exceed it (tan α < 1/18), while the boundary of a 2 cm high object
+/// on a table 0.7 m away (2.9 %) is close to the limit and anything taller exceeds it. The
+/// per-frame re-alignment's anchor store uses the same constant (on its 3×3 half-resolution
+/// neighbours).
 pub const EDGE_JUMP_REL: f32 = 0.03;
 
 /// Largest number of calibration samples accepted (`n`): 100 000, 33 times the largest count of
@@ -97,8 +99,8 @@ pub struct Pixel {
     pub v: u32,
 }
 
-/// Chooses up to `config.n` distinct pixels with valid ground truth (inside `restrict` when given).
-/// Returns fewer only when fewer valid pixels exist (the fit then decides whether that is enough).
+/// Chooses up to `config.n` distinct eligible pixels (below). Returns fewer only when fewer
+/// eligible pixels exist (the fit then decides whether that is enough).
 ///
 /// A pixel is *eligible* when its ground truth is valid ([`crate::is_valid_depth`]), it lies
 /// inside `restrict` (when given) and, with `config.edge_margin_px = r > 0`, no pixel of

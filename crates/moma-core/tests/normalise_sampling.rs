@@ -646,4 +646,33 @@ proptest! {
             }
         }
     }
+
+    /// Piecewise-constant scenes (blocks of a few levels, some 1 % apart: no edge, some 10 %:
+    /// an edge, an occasional hole) up to 40 × 40, so that interiors exist: with n above the
+    /// pixel count the draw is exactly the brute-force interior, whatever the margin.
+    #[test]
+    fn edge_margin_keeps_exactly_the_interior_of_block_scenes(
+        (h, w, bh, bw, levels) in (2usize..40, 2usize..40, 1usize..15, 1usize..15)
+            .prop_flat_map(|(h, w, bh, bw)| {
+                let blocks = h.div_ceil(bh) * w.div_ceil(bw);
+                (Just(h), Just(w), Just(bh), Just(bw), proptest::collection::vec(
+                    prop_oneof![4 => Just(1.0f32), 4 => Just(1.01f32), 2 => Just(1.1f32), 1 => Just(0.0f32)],
+                    blocks))
+            }),
+        margin in 1u32..6,
+    ) {
+        let cols = w.div_ceil(bw);
+        let gt = MetricDepth::new(Array2::from_shape_fn((h, w), |(v, u)| levels[(v / bh) * cols + u / bw]));
+        let interior = interior_by_brute_force(&gt, i64::from(margin));
+        let c = SamplingConfig { n: h * w + 1, edge_margin_px: margin, ..Default::default() };
+        match sample_pixels(&gt, &c, None) {
+            Ok(mut px) => {
+                px.sort_by_key(|p| (p.v, p.u));
+                prop_assert_eq!(px, interior);
+            }
+            Err(e) => {
+                prop_assert!(interior.is_empty(), "{e}");
+            }
+        }
+    }
 }

@@ -550,13 +550,14 @@ fn title(what: &str, rows: &[EvalResult]) -> String {
     let sim = rows.iter().any(|r| r.simulated);
     match rows.first() {
         Some(r) => format!(
-            "{}{what}{} — {} seeds, per-image mean (mean ± std over seeds), RMSE/MAE in mm",
+            "{}{what}{}{} — {} seeds, per-image mean (mean ± std over seeds), RMSE/MAE in mm",
             if sim {
                 "SIMULATED predictions — "
             } else {
                 ""
             },
             few_shot_clause(r),
+            crate::report::edge_margin_clause(r.edge_margin_px),
             r.seeds
         ),
         None => what.to_string(),

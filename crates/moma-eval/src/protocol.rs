@@ -60,7 +60,7 @@ pub struct EvalConfig {
     pub calib_frame: Option<String>,
     /// Sampling strategy.
     pub sampling: SamplingStrategy,
-    /// Calibration samples at least this many pixels from depth discontinuities of the ground
+    /// Calibration samples more than this many pixels from depth discontinuities of the ground
     /// truth ([`moma_core::sampling::SamplingConfig::edge_margin_px`]); 0: off.
     #[serde(default)]
     pub edge_margin_px: u32,

@@ -330,7 +330,7 @@ pub fn realign_table(results: &[EvalResult]) -> Table {
         "change %",
         "accepted",
         "frames worse",
-        "worse > 2 mm",
+        &format!("worse > {WORSE_BOUND_MM} mm"),
         "max worse mm",
         "anchors/frame",
     ]

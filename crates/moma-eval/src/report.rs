@@ -8,6 +8,16 @@ use crate::data::write_text;
 use crate::error::{EvalError, Result};
 use crate::protocol::{EvalNote, EvalResult, JsonRow, MetricSummary, Stat};
 
+/// How the calibration samples were drawn, for table titles: `""` for MOMA's protocol (margin
+/// 0), else " (more than R px from depth edges)" ([`crate::protocol::EvalConfig::edge_margin_px`]).
+pub fn edge_margin_clause(edge_margin_px: u32) -> String {
+    if edge_margin_px > 0 {
+        format!(" (more than {edge_margin_px} px from depth edges)")
+    } else {
+        String::new()
+    }
+}
+
 /// A plain table of strings with a title.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Table {
@@ -184,11 +194,7 @@ pub fn eval_table_with_notes(results: &[EvalResult], notes: &[EvalNote], pooled:
             },
             r.source,
             r.samples,
-            if r.edge_margin_px > 0 {
-                format!(" (more than {} px from depth edges)", r.edge_margin_px)
-            } else {
-                String::new()
-            },
+            edge_margin_clause(r.edge_margin_px),
             r.seeds,
             calib_list(results),
             if pooled {
