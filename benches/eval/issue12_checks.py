@@ -63,17 +63,17 @@ def run_eval(args, check: str, sim_seed: int) -> list[dict]:
         cmd += ["--pred", str(args.pred)]
     cmd += ["--seeds", str(args.seeds)]
     cmd += CHECKS[check] + shlex.split(args.eval_args) + ["-o", str(out)]
+    line = " ".join(cmd)
     # reused only when written by the same command (other seeds or predictions: run again)
-    if not (results.exists() and done.exists() and done.read_text() == " ".join(cmd)):
-        print("+", " ".join(cmd), file=sys.stderr)
+    if not (results.exists() and done.exists() and done.read_text() == line):
+        print("+", line, file=sys.stderr)
         done.unlink(missing_ok=True)
         r = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if r.returncode != 0:
             # moma's own message (e.g. an edge margin that leaves no pixel of the 20 %-outlier
             # ground truth of the robust check: run --only main,few-shot,realign with a margin)
-            sys.exit(f"moma eval failed for check '{check}' (simulator seed {sim_seed}):\n"
-                     + r.stderr.strip())
-        done.write_text(" ".join(cmd))
+            sys.exit(f"moma eval failed for check '{check}' ({line}):\n" + r.stderr.strip())
+        done.write_text(line)
     rows = json.loads(results.read_text())
     for r in rows:
         SOURCES.add((r["source"], r["simulated"]))

@@ -489,9 +489,13 @@ pub fn calibrate_frames_normalised(
         samples.samples.extend(frame_samples.samples);
     }
     let space = config.normalisation.space;
-    let fit = |targets: &SampleSet| match &config.robust {
-        None => config.method.fit(targets),
-        Some(r) => r.fit(&config.method, targets, space),
+    let asked = config.sampling.n.saturating_mul(frames.len());
+    let fit = |targets: &SampleSet| {
+        match &config.robust {
+            None => config.method.fit(targets),
+            Some(r) => r.fit(&config.method, targets, space),
+        }
+        .map_err(|e| explain_edge_margin(e, config.sampling.edge_margin_px, asked))
     };
     let (model, report) = match space {
         AlignSpace::Depth => fit(&samples)?,
@@ -510,6 +514,21 @@ pub fn calibrate_frames_normalised(
         workspace,
         anchors: None,
     })
+}
+
+/// A fit with too few samples, when the edge margin drew fewer than the `asked` ones: says so,
+/// since the margin is what the user can change ([`SamplingConfig::edge_margin_px`]).
+fn explain_edge_margin(e: CoreError, edge_margin_px: u32, asked: usize) -> CoreError {
+    match e {
+        CoreError::TooFewSamples { got, .. } if edge_margin_px > 0 && got < asked => {
+            CoreError::NoValidPixels(format!(
+                "{e}: only {got} ground-truth pixel(s) lie more than the edge margin of \
+                 {edge_margin_px} px from a depth discontinuity ({asked} asked); lower the edge \
+                 margin"
+            ))
+        }
+        e => e,
+    }
 }
 
 /// RMS of (aligned − ground truth) over `samples`, metres; a sample whose fitted disparity is

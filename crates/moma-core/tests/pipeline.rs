@@ -485,3 +485,30 @@ fn an_edge_margin_keeps_blurred_boundaries_out_of_the_fit() {
     let ma = DepthMetrics::compute(&any.align(&pred).unwrap(), &gt, Some(&interior)).unwrap();
     assert!(ma.mae > 100.0 * m.mae.max(1e-7), "{ma:?} vs {m:?}");
 }
+
+/// A margin that leaves fewer pixels than the method needs: the fit's error says the margin did
+/// it (here 1 pixel: the centre of a flat 9 × 9 block in ground truth that jumps 20 % between
+/// every pair of neighbours elsewhere), not only "too few samples".
+#[test]
+fn too_few_samples_left_by_the_edge_margin_are_named() {
+    let gt = MetricDepth::new(Array2::from_shape_fn((20, 20), |(v, u)| {
+        let block = (5..14).contains(&v) && (5..14).contains(&u);
+        if block || (u + v) % 2 == 0 { 1.0 } else { 1.2 }
+    }));
+    let pred = Prediction::new(gt.depth_m.mapv(|z| 1.0 / z), PredictionKind::InverseDepth);
+    let mut cfg = config(Method::Ssra(SsraConfig::default()));
+    cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
+    cfg.sampling.edge_margin_px = 3;
+    let e = calibrate(&pred, &gt, &cfg, None, None).unwrap_err();
+    assert!(matches!(e, CoreError::NoValidPixels(_)), "{e:?}");
+    let msg = e.to_string();
+    assert!(
+        msg.contains("too few valid samples for ssra: 1")
+            && msg.contains("edge margin of 3 px")
+            && msg.contains("100 asked"),
+        "{msg}"
+    );
+    // without the margin the same scene calibrates
+    cfg.sampling.edge_margin_px = 0;
+    assert!(calibrate(&pred, &gt, &cfg, None, None).is_ok());
+}
