@@ -256,11 +256,7 @@ fn fused_row<O: Slot, const INV: bool, const NORM: bool, const RECIP: bool>(
         }
         let mut y = z * (col[j] + r) + t;
         if RECIP {
-            y = if y > 0.0 && y.is_finite() {
-                1.0 / y
-            } else {
-                f32::NAN
-            };
+            y = crate::kernels::depth_of_disparity(y);
         }
         out[j].set(y);
     }

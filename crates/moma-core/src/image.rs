@@ -23,9 +23,10 @@ impl ImageSize {
     pub const fn new(width: usize, height: usize) -> Self {
         Self { width, height }
     }
-    /// Number of pixels, `width * height`.
+    /// Number of pixels, `width * height`, saturating at `usize::MAX` (a size read from a file
+    /// may claim any width and height; a wrapped product could pass a size limit).
     pub const fn pixels(&self) -> usize {
-        self.width * self.height
+        self.width.saturating_mul(self.height)
     }
     /// The size of an `(height, width)` array.
     pub fn of<T>(a: &ArrayView2<'_, T>) -> Self {

@@ -260,14 +260,19 @@ multiversion! {
     }
 }
 
-/// In place: `x ← 1/x` where `x > 0` and finite, else `NaN` (the reciprocal of a fitted
-/// disparity is a depth only where the disparity is positive).
+/// The depth of a fitted disparity `y` (inverse space): `1/y` where `y > 0` and `1/y` is
+/// finite, else `NaN`. A fitted disparity is a depth only where it is positive; a subnormal
+/// one (below about 1.2e-38) has no finite reciprocal in f32 and is invalid too, not `inf`
+/// metres.
+#[inline(always)]
+pub(crate) fn depth_of_disparity(y: f32) -> f32 {
+    let z = 1.0 / y;
+    // `z − z == 0` ⇔ z finite; false for y ≤ 0 only through the first test.
+    #[allow(clippy::eq_op)]
+    if y > 0.0 && z - z == 0.0 { z } else { f32::NAN }
+}
+
+/// In place: [`depth_of_disparity`] of every value.
 pub(crate) fn reciprocal_positive(out: &mut ndarray::ArrayViewMut2<'_, f32>) {
-    out.mapv_inplace(|x| {
-        if x > 0.0 && x.is_finite() {
-            1.0 / x
-        } else {
-            f32::NAN
-        }
-    });
+    out.mapv_inplace(depth_of_disparity);
 }

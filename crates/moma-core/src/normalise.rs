@@ -106,14 +106,15 @@ impl AlignSpace {
     }
 
     /// Metric depth (metres) from a fitted value: itself, or its reciprocal in inverse space
-    /// (NaN where the fitted disparity is ≤ 0 or not finite).
+    /// (NaN where the fitted disparity is ≤ 0 or its reciprocal is not finite).
     #[inline]
     pub fn depth_from_target(self, t: f64) -> f64 {
         match self {
             Self::Depth => t,
             Self::Inverse => {
-                if t > 0.0 && t.is_finite() {
-                    1.0 / t
+                let z = 1.0 / t;
+                if t > 0.0 && z.is_finite() {
+                    z
                 } else {
                     f64::NAN
                 }

@@ -576,11 +576,12 @@ impl Calibration {
                 "calibration image size {size} is empty or too large"
             )));
         }
-        self.model.validate()?;
-        self.samples.validate()?;
+        // Sizes first: a model's own checks build its grid, which a crafted size could make huge.
         if let Some(s) = self.model.image_size() {
             size.expect_eq("alignment model", s)?;
         }
+        self.model.validate()?;
+        self.samples.validate()?;
         if let Some(w) = &self.workspace {
             size.expect_eq("workspace mask", w.mask().size())?;
         }

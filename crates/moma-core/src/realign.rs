@@ -1190,7 +1190,7 @@ pub fn realign_in_place(
         match space {
             AlignSpace::Depth => depth_m.mapv_inplace(|z| {
                 let t = a * z + b;
-                if is_valid_depth(z) && t > 0.0 {
+                if is_valid_depth(z) && is_valid_depth(t) {
                     t
                 } else if is_valid_depth(z) {
                     f32::NAN
@@ -1201,7 +1201,7 @@ pub fn realign_in_place(
             AlignSpace::Inverse => depth_m.mapv_inplace(|z| {
                 let t = a / z + b;
                 if is_valid_depth(z) {
-                    if t > 0.0 { 1.0 / t } else { f32::NAN }
+                    crate::kernels::depth_of_disparity(t)
                 } else {
                     z
                 }

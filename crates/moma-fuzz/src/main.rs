@@ -15,13 +15,14 @@ use moma_fuzz::{CountingAlloc, Harness, TargetReport, fuzz_target, quiet_panics,
 static ALLOC: CountingAlloc = CountingAlloc;
 
 /// Fuzz MOMA's parsers (depth PNG16, npy, PFM, masks, RGB, camera.json, calibration JSON,
-/// safetensors headers) with a seeded byte mutator. Seeds: small files generated in code, plus
+/// safetensors headers), and calibration files past parsing (aligned and re-aligned with), with a
+/// seeded byte mutator. Seeds: small files generated in code, plus
 /// the real files under $MOMA_SHARED_DIR (data/ and reference/dav2/) when it is set.
 #[derive(Debug, Parser)]
 #[command(name = "moma-fuzz", version)]
 struct Args {
     /// Target name, or `all`. Targets: depth-png, npy, pfm, mask, rgb, camera-json,
-    /// calibration-json, safetensors-header.
+    /// calibration-json, calibration-apply, safetensors-header.
     #[arg(long, default_value = "all")]
     target: String,
     /// Seconds per target.

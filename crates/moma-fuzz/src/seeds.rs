@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use moma_core::align::Method;
-use moma_core::pipeline::{CalibrationConfig, calibrate};
+use moma_core::pipeline::CalibrationConfig;
 use moma_core::{Intrinsics, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
 
@@ -99,48 +99,171 @@ fn npy(descr: &str, fortran: bool, shape: &str, data: &[u8]) -> Vec<u8> {
     out
 }
 
-fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
-    let (h, w) = (24, 32);
+/// A small scene for the calibration seeds: a tilted table (metres) with a box standing on it
+/// and a hole, the RGB to match (the box darker), and a prediction of kind `kind` with a smooth
+/// distortion, so that the local variants, `auto` and the robust fits have something to fit.
+fn calibration_scene(
+    h: usize,
+    w: usize,
+    kind: PredictionKind,
+    frame: usize,
+) -> (MetricDepth, Prediction, ndarray::Array3<u8>) {
+    let on_box = |v: usize, u: usize| (8..16).contains(&v) && (10 + frame..20 + frame).contains(&u);
     let gt = MetricDepth::new(Array2::from_shape_fn((h, w), |(v, u)| {
-        0.6 + 0.004 * u as f32 + 0.002 * v as f32
+        if v == 2 && u == 3 {
+            f32::NAN
+        } else if on_box(v, u) {
+            0.55 + 0.001 * u as f32
+        } else {
+            0.6 + 0.004 * u as f32 + 0.002 * v as f32
+        }
     }));
+    let bump = |v: usize, u: usize| 1.0 + 0.02 * ((u as f32 * 0.3).sin() + (v as f32 * 0.2).cos());
     let pred = Prediction::new(
-        gt.depth_m.mapv(|z| 1.0 / z + 0.05),
-        PredictionKind::InverseDepth,
+        Array2::from_shape_fn((h, w), |(v, u)| {
+            let z = if gt.depth_m[[v, u]].is_finite() {
+                gt.depth_m[[v, u]] * bump(v, u)
+            } else {
+                0.7
+            };
+            match kind {
+                PredictionKind::InverseDepth => 1.0 / z - 0.4,
+                _ => 1.1 * z,
+            }
+        }),
+        kind,
     );
+    let rgb = ndarray::Array3::from_shape_fn((h, w, 3), |(v, u, c)| {
+        let base = if on_box(v, u) { 60 } else { 150 };
+        (base + (u * 3 + v * 2 + c * 17) % 40) as u8
+    });
+    (gt, pred, rgb)
+}
+
+/// One calibration seed: a method calibrated on [`calibration_scene`].
+struct SeedCase {
+    /// Seed name (`calib-NAME.json`).
+    name: String,
+    /// Method name ([`Method::NAMES`]).
+    method: &'static str,
+    /// Prediction kind.
+    kind: PredictionKind,
+    /// Robust fit, if any.
+    robust: Option<moma_core::align::robust::RobustKind>,
+    /// Calibration frames (few-shot when > 1).
+    frames: usize,
+    /// Whether the file holds an anchor store.
+    anchors: bool,
+}
+
+fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
+    use moma_core::align::robust::{Robust, RobustKind};
+    use moma_core::pipeline::{CalibrationFrame, calibrate_frames};
+    let (h, w) = (24, 32);
+    let k = Intrinsics {
+        width: w,
+        height: h,
+        fx: 30.0,
+        fy: 30.0,
+        cx: 16.0,
+        cy: 12.0,
+    };
+    let inverse = PredictionKind::InverseDepth;
+    let case = |name: &str, method: &'static str, kind, robust, frames, anchors| SeedCase {
+        name: name.to_string(),
+        method,
+        kind,
+        robust,
+        frames,
+        anchors,
+    };
+    let mut cases: Vec<SeedCase> = Method::NAMES
+        .iter()
+        .filter(|m| **m != "raw")
+        .map(|m| case(m, m, inverse, None, 1, false))
+        .collect();
+    cases.extend([
+        case("gssa-depth", "gssa", PredictionKind::Depth, None, 1, false),
+        case("raw-depth", "raw", PredictionKind::Depth, None, 1, false),
+        case(
+            "ssra-huber",
+            "ssra",
+            inverse,
+            Some(RobustKind::Huber),
+            1,
+            false,
+        ),
+        case(
+            "ssra-local-ransac",
+            "ssra-local",
+            inverse,
+            Some(RobustKind::Ransac),
+            1,
+            false,
+        ),
+        case(
+            "gssa-local-tukey",
+            "gssa-local",
+            inverse,
+            Some(RobustKind::Tukey),
+            1,
+            false,
+        ),
+        case("ssra-3-frames", "ssra", inverse, None, 3, false),
+        case("gssa-anchors", "gssa", inverse, None, 1, true),
+        case("ssra-local-anchors", "ssra-local", inverse, None, 1, true),
+    ]);
     let mut seeds = vec![];
-    for (name, method) in [
-        ("ssra", Method::Ssra(Default::default())),
-        ("gssa", Method::Gssa),
-        ("lwlr", Method::Lwlr(Default::default())),
-    ] {
+    for SeedCase {
+        name,
+        method,
+        kind,
+        robust,
+        frames: n_frames,
+        anchors,
+    } in cases
+    {
+        let method: Method = method
+            .parse()
+            .map_err(|e| anyhow::anyhow!("{method}: {e}"))?;
+        let raw = matches!(method, Method::Raw);
         let config = CalibrationConfig {
-            method,
+            method: method.with_intrinsics(Some(k)),
             normalisation: moma_core::NormalisationConfig::native(
-                moma_core::Normalisation::Minmax,
-                pred.kind,
+                if raw {
+                    moma_core::Normalisation::None
+                } else {
+                    moma_core::Normalisation::Minmax
+                },
+                kind,
             ),
             sampling: moma_core::sampling::SamplingConfig {
-                n: 40,
+                n: 60,
                 ..Default::default()
             },
-            robust: None,
+            robust: robust.map(Robust::new),
         };
-        let Ok(calibration) = calibrate(&pred, &gt, &config, None, None) else {
-            continue;
-        };
-        let file = moma_io::CalibrationFile::new(
-            calibration,
-            Some(Intrinsics {
-                width: w,
-                height: h,
-                fx: 30.0,
-                fy: 30.0,
-                cx: 16.0,
-                cy: 12.0,
-            }),
-            moma_io::CreationInfo::now(),
-        );
+        let scenes: Vec<_> = (0..n_frames)
+            .map(|f| calibration_scene(h, w, kind, f))
+            .collect();
+        let frames: Vec<_> = scenes
+            .iter()
+            .map(|(gt, pred, _)| CalibrationFrame {
+                pred,
+                gt,
+                sample_region: None,
+            })
+            .collect();
+        let mut calibration = calibrate_frames(&frames, &config, None)
+            .map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
+        if anchors {
+            let (gt, pred, rgb) = &scenes[0];
+            calibration = calibration
+                .with_anchors(rgb.view(), gt, pred)
+                .map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
+        }
+        let file =
+            moma_io::CalibrationFile::new(calibration, Some(k), moma_io::CreationInfo::now());
         let p = dir.join(format!("calib-{name}.json"));
         moma_io::write_calibration(&p, &file)?;
         seeds.push(gen_seed(&format!("calib-{name}.json"), &p)?);
@@ -220,7 +343,7 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
             moma_io::write_camera(p("camera.json"), &k)?;
             seeds.push(gen_seed("camera.json", &p("camera.json"))?);
         }
-        Target::Calibration => seeds.extend(calibration_seeds(dir)?),
+        Target::Calibration | Target::CalibrationApply => seeds.extend(calibration_seeds(dir)?),
         Target::Safetensors => {
             let header = r#"{"__metadata__":{"format":"pt"},"a.weight":{"dtype":"F32","shape":[2,2],"data_offsets":[0,16]},"a.bias":{"dtype":"F16","shape":[2],"data_offsets":[16,20]}}"#;
             let file_len = 8 + header.len() as u64 + 20;
@@ -287,7 +410,7 @@ fn shared_seeds(target: Target, root: &Path) -> Vec<Seed> {
         .iter()
         .filter_map(|n| read_seed(dav2.join(n)))
         .collect(),
-        Target::Pfm | Target::Calibration => vec![],
+        Target::Pfm | Target::Calibration | Target::CalibrationApply => vec![],
         Target::Safetensors => ["tiny-metric.safetensors", "tiny-metric-392.safetensors"]
             .iter()
             .filter_map(|n| {

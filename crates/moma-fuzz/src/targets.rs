@@ -19,6 +19,10 @@ pub enum Target {
     Camera,
     /// `moma_io::parse_calibration`: calibration files.
     Calibration,
+    /// A calibration file parsed, then used: a prediction of its size and kind aligned, and,
+    /// when it holds an anchor store, re-aligned with every correction form. A file that parses
+    /// must never make the alignment panic or write infinite metres.
+    CalibrationApply,
     /// `moma_depth::weights_limits::check_safetensors_header`: the input's first 8 bytes are the
     /// claimed file length (u64 little-endian), the rest the start of the file.
     Safetensors,
@@ -26,7 +30,7 @@ pub enum Target {
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 8] = [
+    pub const ALL: [Target; 9] = [
         Target::DepthPng,
         Target::Npy,
         Target::Pfm,
@@ -34,6 +38,7 @@ impl Target {
         Target::Rgb,
         Target::Camera,
         Target::Calibration,
+        Target::CalibrationApply,
         Target::Safetensors,
     ];
 
@@ -47,6 +52,7 @@ impl Target {
             Target::Rgb => "rgb",
             Target::Camera => "camera-json",
             Target::Calibration => "calibration-json",
+            Target::CalibrationApply => "calibration-apply",
             Target::Safetensors => "safetensors-header",
         }
     }
@@ -92,6 +98,7 @@ impl Target {
             Target::Calibration => moma_io::parse_calibration(&name("json"), text()?)
                 .map(drop)
                 .map_err(|e| s(&e)),
+            Target::CalibrationApply => apply_calibration(&name("json"), text()?),
             Target::Safetensors => {
                 let (len, prefix) = data.split_at_checked(8).ok_or("shorter than 8 bytes")?;
                 let mut n = [0u8; 8];
@@ -107,4 +114,59 @@ impl Target {
             }
         }
     }
+}
+
+/// Largest calibration image [`Target::CalibrationApply`] aligns, pixels: a parsed file may
+/// claim up to `MAX_IMAGE_PIXELS`, and aligning that for every input would stall the fuzzer.
+pub const APPLY_MAX_PIXELS: usize = 64 * 64;
+
+/// [`Target::CalibrationApply`]: parse, align a prediction of the calibration's size and kind
+/// (a ramp with one 0), and re-align it when the file holds an anchor store.
+fn apply_calibration(path: &Path, text: &str) -> Result<(), String> {
+    use moma_core::realign::{CorrectionModel, RealignConfig};
+    let s = |e: &dyn std::fmt::Display| e.to_string();
+    let file = moma_io::parse_calibration(path, text).map_err(|e| s(&e))?;
+    let c = &file.calibration;
+    let size = c.image_size();
+    if size.pixels() > APPLY_MAX_PIXELS {
+        return Ok(());
+    }
+    let (h, w) = (size.height, size.width);
+    // A ramp with one 0 (an inverse-depth model's "infinitely far"); non-finite predictions are
+    // refused before any model runs, so they would test nothing here.
+    let values = ndarray::Array2::from_shape_fn((h, w), |(v, u)| {
+        if (u, v) == (1, 0) {
+            0.0
+        } else {
+            0.5 + 0.01 * u as f32 + 0.02 * v as f32
+        }
+    });
+    let pred = moma_core::Prediction::new(values, c.prediction_kind);
+    let no_inf = |d: &moma_core::MetricDepth, what: &str| {
+        if let Some(z) = d.depth_m.iter().find(|z| z.is_infinite()) {
+            panic!("{what} wrote {z} metres");
+        }
+    };
+    let depth = c.align(&pred).map_err(|e| s(&e))?;
+    no_inf(&depth, "align");
+    if c.anchors.is_some() {
+        let rgb = ndarray::Array3::from_shape_fn((h, w, 3), |(v, u, ch)| {
+            (100 + (u * 7 + v * 3 + ch * 11) % 60) as u8
+        });
+        for model in [
+            CorrectionModel::ScaleShift,
+            CorrectionModel::Planar,
+            CorrectionModel::PredictionAffine,
+        ] {
+            let config = RealignConfig {
+                model,
+                ..Default::default()
+            };
+            // A refusal (e.g. a store without the normalised prediction) is fine; a panic is not.
+            if let Ok((depth, _report)) = c.align_realigned(&pred, rgb.view(), &config) {
+                no_inf(&depth, "re-alignment");
+            }
+        }
+    }
+    Ok(())
 }

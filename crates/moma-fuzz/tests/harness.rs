@@ -122,3 +122,34 @@ fn every_target_runs_clean_briefly() {
         assert!(report.accepted > 0, "{report:?}");
     }
 }
+
+#[test]
+fn every_generated_calibration_seed_parses_and_applies() {
+    // The seeds cover every method, the robust fits, few-shot calibration and anchor stores; a
+    // seed the target refuses would leave those fields unfuzzed.
+    use moma_fuzz::targets::Target;
+    for target in [Target::Calibration, Target::CalibrationApply] {
+        let corpus = moma_fuzz::seeds::corpus(target, None).unwrap();
+        let names: Vec<&str> = corpus.generated.iter().map(|s| s.origin.as_str()).collect();
+        for want in [
+            "ssra-local",
+            "gssa-local",
+            "auto",
+            "lwlr-exact",
+            "huber",
+            "3-frames",
+            "anchors",
+        ] {
+            assert!(names.iter().any(|n| n.contains(want)), "{want}: {names:?}");
+        }
+        for seed in &corpus.generated {
+            assert_eq!(
+                target.run(&seed.data),
+                Ok(()),
+                "{} on {}",
+                target.name(),
+                seed.origin
+            );
+        }
+    }
+}

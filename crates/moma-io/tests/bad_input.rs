@@ -511,6 +511,99 @@ mod calibration {
         assert!(!q.exists());
     }
 
+    /// A calibration of `method` (inverse-depth prediction, inverse space) on a small tilted
+    /// table with a box, as the JSON value a file holds.
+    fn fitted_value(method: &str) -> serde_json::Value {
+        let (h, w) = (24, 32);
+        let gt = MetricDepth::new(Array2::from_shape_fn((h, w), |(v, u)| {
+            let table = 0.6 + 0.004 * u as f32 + 0.002 * v as f32;
+            if (8..16).contains(&v) && (10..20).contains(&u) {
+                table - 0.05
+            } else {
+                table
+            }
+        }));
+        let pred = Prediction::new(
+            gt.depth_m.mapv(|z| 1.0 / z - 0.4),
+            PredictionKind::InverseDepth,
+        );
+        let config = moma_core::pipeline::CalibrationConfig {
+            method: method.parse().unwrap(),
+            normalisation: moma_core::NormalisationConfig::native(
+                moma_core::Normalisation::Minmax,
+                PredictionKind::InverseDepth,
+            ),
+            sampling: moma_core::sampling::SamplingConfig {
+                n: 60,
+                ..Default::default()
+            },
+            robust: None,
+        };
+        let c = moma_core::pipeline::calibrate(&pred, &gt, &config, None, None).unwrap();
+        serde_json::to_value(CalibrationFile::new(c, None, CreationInfo::now())).unwrap()
+    }
+
+    #[test]
+    fn a_model_claiming_a_huge_image_is_refused_before_its_grid_is_built() {
+        // 0xAAAA…AB · 3 wraps to 1 in 64 bits: a wrapped pixel count would pass every size
+        // limit. Found by `moma-fuzz --target calibration-apply`: validating the local model
+        // first built its node grid over 2^63 columns and aborted on the allocation.
+        let huge = serde_json::json!({"width": 0xAAAA_AAAA_AAAA_AAABu64, "height": 3});
+        assert_eq!(
+            ImageSize::new(0xAAAA_AAAA_AAAA_AAAB, 3).pixels(),
+            usize::MAX
+        );
+        for method in ["ssra-local", "gssa-local", "lwlr", "ssra"] {
+            // Only the model's size: a mismatch with the calibration's.
+            let mut v = fitted_value(method);
+            v["calibration"]["model"]["image_size"] = huge.clone();
+            let m = read_value(&v);
+            assert!(
+                m.contains("calib.json") && m.contains("alignment model"),
+                "{method}: {m}"
+            );
+            // Every size field: too large.
+            v["image_size"] = huge.clone();
+            v["calibration"]["samples"]["image_size"] = huge.clone();
+            let m = read_value(&v);
+            assert!(
+                m.contains("calib.json") && m.contains("too large"),
+                "{method}: {m}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_disparity_too_small_to_invert_is_invalid_not_infinite_metres() {
+        // Inverse space: GSSA's fitted disparity 0.5·ẑ + 1e-45 m⁻¹ is subnormal where ẑ = 0
+        // (the prediction's minimum under minmax-unit), and 1/1e-45 overflows f32.
+        let mut v = fitted_value("gssa");
+        v["normalisation"]["method"] = serde_json::json!("minmax-unit");
+        v["calibration"]["normalisation"]["method"] = serde_json::json!("minmax-unit");
+        v["calibration"]["model"]["scale"] = serde_json::json!(0.5);
+        v["calibration"]["model"]["shift_m"] = serde_json::json!(1e-45);
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        std::fs::write(&p, v.to_string()).unwrap();
+        let c = read_calibration(&p).unwrap().calibration;
+        let values = Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
+        let depth = c
+            .align(&Prediction::new(values, PredictionKind::InverseDepth))
+            .unwrap()
+            .depth_m;
+        assert!(depth[[0, 0]].is_nan(), "{}", depth[[0, 0]]);
+        assert!(depth.iter().all(|z| !z.is_infinite()));
+        // Every other pixel: 1 / (0.5·ẑ) with ẑ = (x − min) / (max − min).
+        let (lo, hi) = (0.5f64, 0.5 + 0.01 * (31 + 2 * 23) as f64);
+        let x = 0.5 + 0.01 * 5.0;
+        let want = 1.0 / (0.5 * (x - lo) / (hi - lo));
+        assert!(
+            (f64::from(depth[[0, 5]]) - want).abs() < 1e-4 * want,
+            "{} vs {want}",
+            depth[[0, 5]]
+        );
+    }
+
     #[test]
     fn non_finite_numbers_are_not_written() {
         let dir = tempfile::tempdir().unwrap();

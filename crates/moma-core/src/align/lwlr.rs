@@ -148,9 +148,9 @@ impl LwlrConfig {
                 "LWLR grid step must be ≥ 1 px".into(),
             ));
         }
-        if size.pixels() == 0 {
+        if size.pixels() == 0 || size.pixels() > crate::image::MAX_IMAGE_PIXELS {
             return Err(CoreError::InvalidParameter(format!(
-                "LWLR image size {size} is empty"
+                "LWLR image size {size} is empty or too large"
             )));
         }
         Ok(())

@@ -433,10 +433,10 @@ impl AlignmentModel {
             }
         };
         if let Some(size) = self.image_size()
-            && size.pixels() == 0
+            && (size.pixels() == 0 || size.pixels() > crate::image::MAX_IMAGE_PIXELS)
         {
             return Err(CoreError::InvalidParameter(format!(
-                "{} calibration image size {size} is empty",
+                "{} calibration image size {size} is empty or too large",
                 self.name()
             )));
         }
