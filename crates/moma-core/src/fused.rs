@@ -255,9 +255,11 @@ fn fused_row<O: Slot, const INV: bool, const NORM: bool, const RECIP: bool>(
             z = (a * f64::from(z) + b) as f32;
         }
         let mut y = z * (col[j] + r) + t;
-        if RECIP {
-            y = crate::kernels::depth_of_disparity(y);
-        }
+        y = if RECIP {
+            crate::kernels::depth_of_disparity(y)
+        } else {
+            crate::kernels::finite_or_nan(y)
+        };
         out[j].set(y);
     }
 }

@@ -61,7 +61,7 @@ multiversion! {
     /// `out = s·z + t`.
     pub(crate) fn affine(z: &[f32], out: &mut [f32], s: f32, t: f32) {
         for (o, &x) in out.iter_mut().zip(z) {
-            *o = x * s + t;
+            *o = finite_or_nan(x * s + t);
         }
     }
 }
@@ -72,7 +72,7 @@ multiversion! {
         let n = out.len().min(z.len()).min(col.len());
         let (z, out, col) = (&z[..n], &mut out[..n], &col[..n]);
         for j in 0..n {
-            out[j] = z[j] * (col[j] + r) + t;
+            out[j] = finite_or_nan(z[j] * (col[j] + r) + t);
         }
     }
 }
@@ -83,7 +83,7 @@ multiversion! {
         let n = out.len().min(z.len()).min(s.len()).min(t.len());
         let (z, out, s, t) = (&z[..n], &mut out[..n], &s[..n], &t[..n]);
         for j in 0..n {
-            out[j] = z[j] * s[j] + t[j];
+            out[j] = finite_or_nan(z[j] * s[j] + t[j]);
         }
     }
 }
@@ -260,19 +260,91 @@ multiversion! {
     }
 }
 
-/// The depth of a fitted disparity `y` (inverse space): `1/y` where `y > 0` and `1/y` is
+/// `y` where finite, else `NaN`: an alignment whose product overflows f32 (parameters read from
+/// a file can be as large as f64 allows) writes an invalid pixel, never `±inf` metres.
+#[inline(always)]
+pub(crate) fn finite_or_nan(y: f32) -> f32 {
+    // `y − y == 0` ⇔ y finite: a float compare and select, which vectorises.
+    #[allow(clippy::eq_op)]
+    if y - y == 0.0 { y } else { f32::NAN }
+}
+
+/// The depth of a fitted disparity `y` (inverse space): `1/y` where that is positive and
 /// finite, else `NaN`. A fitted disparity is a depth only where it is positive; a subnormal
 /// one (below about 1.2e-38) has no finite reciprocal in f32 and is invalid too, not `inf`
 /// metres.
 #[inline(always)]
 pub(crate) fn depth_of_disparity(y: f32) -> f32 {
     let z = 1.0 / y;
-    // `z − z == 0` ⇔ z finite; false for y ≤ 0 only through the first test.
+    // Valid ⇔ 0 < z < inf: that excludes y ≤ 0 (z ≤ 0, ±inf or NaN), a subnormal y (z = inf),
+    // y = inf (z = 0) and NaN. `z − z == 0` ⇔ z finite.
     #[allow(clippy::eq_op)]
-    if y > 0.0 && z - z == 0.0 { z } else { f32::NAN }
+    if z > 0.0 && z - z == 0.0 { z } else { f32::NAN }
 }
 
 /// In place: [`depth_of_disparity`] of every value.
 pub(crate) fn reciprocal_positive(out: &mut ndarray::ArrayViewMut2<'_, f32>) {
     out.mapv_inplace(depth_of_disparity);
+}
+
+#[cfg(test)]
+mod output_tests {
+    use super::*;
+
+    #[test]
+    fn a_disparity_is_a_depth_only_where_its_reciprocal_is_positive_and_finite() {
+        let cases: [(f32, Option<f32>); 12] = [
+            (2.0, Some(0.5)),
+            (0.5, Some(2.0)),
+            (f32::MAX, Some(1.0 / f32::MAX)),
+            (1.0e-38, Some(1.0 / 1.0e-38)), // normal, reciprocal below f32::MAX
+            (2.0e-39, None),                // subnormal: 1/y overflows
+            (1.0e-45, None),
+            (0.0, None),
+            (-0.0, None),
+            (-1.0, None),
+            (f32::INFINITY, None), // 1/inf = 0 m is no depth
+            (f32::NEG_INFINITY, None),
+            (f32::NAN, None),
+        ];
+        for (y, want) in cases {
+            let got = depth_of_disparity(y);
+            match want {
+                Some(z) => assert_eq!(got, z, "y = {y:e}"),
+                None => assert!(got.is_nan(), "y = {y:e} gave {got}"),
+            }
+        }
+        let mut m = ndarray::array![[2.0f32, 1.0e-45], [f32::INFINITY, -3.0]];
+        reciprocal_positive(&mut m.view_mut());
+        assert_eq!(m[[0, 0]], 0.5);
+        assert!(m[[0, 1]].is_nan() && m[[1, 0]].is_nan() && m[[1, 1]].is_nan());
+    }
+
+    #[test]
+    fn overflowing_alignments_write_nan_not_infinite_metres() {
+        for (y, keep) in [
+            (1.5f32, true),
+            (-2.0, true), // a negative fitted depth stays as it is (invalid by is_valid_depth)
+            (0.0, true),
+            (f32::MAX, true),
+            (f32::INFINITY, false),
+            (f32::NEG_INFINITY, false),
+            (f32::NAN, false),
+        ] {
+            let got = finite_or_nan(y);
+            assert!(if keep { got == y } else { got.is_nan() }, "{y} gave {got}");
+        }
+        let z = [1.0f32, 2.0, 3.0];
+        let mut out = [0.0f32; 3];
+        affine(&z, &mut out, 3.0e38, 0.0);
+        assert_eq!(out[0], 3.0e38);
+        assert!(out[1].is_nan() && out[2].is_nan(), "{out:?}");
+        ssra_row(&z, &mut out, &[0.0, 0.0, 3.0e38], 0.0, 1.0);
+        assert_eq!(&out[..2], &[1.0, 1.0]);
+        assert!(out[2].is_nan());
+        affine_maps(&z, &mut out, &[1.0, f32::MAX, 1.0], &[0.0, 0.0, f32::MAX]);
+        assert_eq!(out[0], 1.0);
+        assert!(out[1].is_nan(), "{out:?}");
+        assert_eq!(out[2], f32::MAX); // 3 + f32::MAX rounds to f32::MAX
+    }
 }

@@ -106,14 +106,14 @@ impl AlignSpace {
     }
 
     /// Metric depth (metres) from a fitted value: itself, or its reciprocal in inverse space
-    /// (NaN where the fitted disparity is ≤ 0 or its reciprocal is not finite).
+    /// (NaN unless the reciprocal of the fitted disparity is positive and finite).
     #[inline]
     pub fn depth_from_target(self, t: f64) -> f64 {
         match self {
             Self::Depth => t,
             Self::Inverse => {
                 let z = 1.0 / t;
-                if t > 0.0 && z.is_finite() {
+                if z > 0.0 && z.is_finite() {
                     z
                 } else {
                     f64::NAN

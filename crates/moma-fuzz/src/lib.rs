@@ -2,6 +2,7 @@
 //!
 //! A seeded byte mutator ([`mutate::Mutator`]: bit flips, byte sets, inserts, deletes, splices
 //! between seeds, interesting integers, header-field rewrites of decimal numbers, truncation;
+//! for JSON documents also structure-aware edits that keep them JSON, [`mutate::Mutator::mutate_json`];
 //! PNG chunk CRCs repaired so mutations reach the decoder) over seed corpora ([`seeds`]: small
 //! files written by moma-io's writers, plus real files from `$MOMA_SHARED_DIR` read at run time).
 //!
@@ -193,6 +194,9 @@ pub struct Harness {
     pub index: u64,
     /// Whether inputs are PNG files (chunk CRCs are repaired after mutation, most of the time).
     pub png: bool,
+    /// Whether inputs are JSON documents (half the inputs get structure-aware edits that keep
+    /// them JSON, [`Mutator::mutate_json`], instead of byte mutations).
+    pub json: bool,
     /// The parser: `Ok` accepted, `Err(message)` refused; a panic is a finding.
     pub parse: Parser,
 }
@@ -204,6 +208,7 @@ impl Harness {
             name: target.name(),
             index: Target::ALL.iter().position(|&t| t == target).unwrap_or(0) as u64,
             png: target.is_png(),
+            json: target.is_json(),
             parse: Arc::new(move |data| target.run(data)),
         }
     }
@@ -228,7 +233,9 @@ pub fn input(harness: &Harness, corpus: &Corpus, seed: u64, iteration: u64) -> V
         n_gen + m.below(corpus.shared.len())
     };
     let mut data = all[pick].to_vec();
-    m.mutate(&mut data, &all);
+    if !(harness.json && m.chance(0.5) && m.mutate_json(&mut data)) {
+        m.mutate(&mut data, &all);
+    }
     if harness.png && m.chance(0.8) {
         fix_png_crcs(&mut data);
     }

@@ -192,6 +192,135 @@ impl Mutator {
     }
 }
 
+/// Numbers for [`Mutator::mutate_json`]: the edges of every check a JSON field meets (signs,
+/// zero, subnormals, overflow to f32 infinity, integers past 2^53 and u64, fractions where
+/// integers are expected).
+const INTERESTING_JSON_NUMBERS: [&str; 18] = [
+    "0",
+    "-0.0",
+    "1",
+    "-1",
+    "0.5",
+    "2",
+    "1e-45",
+    "-1e-45",
+    "1e-320",
+    "3.5e38",
+    "1e308",
+    "-1e308",
+    "9007199254740993",
+    "4294967296",
+    "18446744073709551615",
+    "12297829382473034411",
+    "65535",
+    "100000000",
+];
+
+/// A path to a node of a JSON document: object keys and array indices from the root.
+#[derive(Debug, Clone)]
+enum Step {
+    Key(String),
+    Index(usize),
+}
+
+/// Every node of `v` (the root included), in document order, as paths from the root.
+fn json_paths(v: &serde_json::Value, prefix: &mut Vec<Step>, out: &mut Vec<Vec<Step>>) {
+    out.push(prefix.clone());
+    match v {
+        serde_json::Value::Object(m) => {
+            for (k, child) in m {
+                prefix.push(Step::Key(k.clone()));
+                json_paths(child, prefix, out);
+                prefix.pop();
+            }
+        }
+        serde_json::Value::Array(a) => {
+            for (i, child) in a.iter().enumerate() {
+                prefix.push(Step::Index(i));
+                json_paths(child, prefix, out);
+                prefix.pop();
+            }
+        }
+        _ => {}
+    }
+}
+
+fn json_at<'a>(v: &'a mut serde_json::Value, path: &[Step]) -> Option<&'a mut serde_json::Value> {
+    path.iter().try_fold(v, |node, step| match step {
+        Step::Key(k) => node.get_mut(k.as_str()),
+        Step::Index(i) => node.get_mut(*i),
+    })
+}
+
+impl Mutator {
+    /// Structure-aware mutation of a JSON document (calibration and camera files): 1 to 4 edits
+    /// that keep it valid JSON, so that the schema and the checks behind it are reached. Each
+    /// edit picks a node and replaces a number by an interesting one, deletes an object member,
+    /// shortens, empties or extends an array, copies another node's value over it (type and
+    /// size confusion), or cuts or alters a string (base64 payloads). Returns `false` (and
+    /// leaves `data` alone) when `data` is not JSON.
+    pub fn mutate_json(&mut self, data: &mut Vec<u8>) -> bool {
+        let Ok(mut doc) = serde_json::from_slice::<serde_json::Value>(data) else {
+            return false;
+        };
+        for _ in 0..1 + self.below(4) {
+            let mut paths = vec![];
+            json_paths(&doc, &mut vec![], &mut paths);
+            let path = paths[self.below(paths.len())].clone();
+            let donor = json_at(&mut doc, &paths[self.below(paths.len())].clone()).cloned();
+            let Some(node) = json_at(&mut doc, &path) else {
+                continue;
+            };
+            match (self.below(4), node) {
+                (0 | 1, node @ serde_json::Value::Number(_)) | (0, node) => {
+                    let text = INTERESTING_JSON_NUMBERS[self.below(INTERESTING_JSON_NUMBERS.len())];
+                    if let Ok(n) = serde_json::from_str::<serde_json::Value>(text) {
+                        *node = n;
+                    }
+                }
+                (1, serde_json::Value::Object(m)) if !m.is_empty() => {
+                    let key = m.keys().nth(self.below(m.len())).cloned();
+                    if let Some(key) = key {
+                        m.remove(&key);
+                    }
+                }
+                (1 | 2, serde_json::Value::Array(a)) => match self.below(3) {
+                    0 => a.truncate(self.below(a.len() + 1)),
+                    1 => a.clear(),
+                    _ => {
+                        if let Some(x) = a.first().cloned() {
+                            let n = 1 + self.below(8);
+                            a.extend(std::iter::repeat_n(x, n));
+                        }
+                    }
+                },
+                (1 | 2, serde_json::Value::String(text)) if !text.is_empty() => {
+                    let mut bytes = std::mem::take(text).into_bytes();
+                    let i = self.below(bytes.len());
+                    if self.chance(0.5) {
+                        bytes.truncate(i);
+                    } else {
+                        bytes[i] = b"A/+=-_ 0"[self.below(8)];
+                    }
+                    *text = String::from_utf8_lossy(&bytes).into_owned();
+                }
+                (_, node) => {
+                    if let Some(d) = donor {
+                        *node = d;
+                    }
+                }
+            }
+        }
+        match serde_json::to_vec(&doc) {
+            Ok(bytes) => {
+                *data = bytes;
+                true
+            }
+            Err(_) => false,
+        }
+    }
+}
+
 /// `[start, end)` of every maximal run of ASCII digits (with a leading `-`) in the first 64 KiB.
 fn digit_runs(data: &[u8]) -> Vec<(usize, usize)> {
     let scan = &data[..data.len().min(64 << 10)];
@@ -290,6 +419,31 @@ mod tests {
                 .map(run)
                 .any(|d| d.windows(6).any(|w| w == b"100000"))
         );
+    }
+
+    #[test]
+    fn json_mutations_keep_json_and_reach_every_kind_of_edit() {
+        let seed = br#"{"a":{"n":1.5,"s":"QUJDRA==","v":[1,2,3]},"b":[{"x":0}],"c":true}"#;
+        let mut changed = 0;
+        let (mut numbers, mut shorter_arrays, mut strings) = (false, false, false);
+        for i in 0..300 {
+            let mut d = seed.to_vec();
+            assert!(Mutator::for_input(1, 2, i).mutate_json(&mut d));
+            let v: serde_json::Value = serde_json::from_slice(&d).expect("still JSON");
+            changed += usize::from(d != seed);
+            let text = String::from_utf8(d).unwrap();
+            numbers |= INTERESTING_JSON_NUMBERS[6..]
+                .iter()
+                .any(|n| text.contains(n));
+            shorter_arrays |= v["a"]["v"].as_array().is_some_and(|a| a.len() < 3);
+            strings |= v["a"]["s"].as_str().is_some_and(|s| s != "QUJDRA==");
+        }
+        assert!(changed > 250, "{changed}");
+        assert!(numbers && shorter_arrays && strings);
+        // Not JSON: refused, untouched.
+        let mut d = b"Pf\n".to_vec();
+        assert!(!Mutator::for_input(1, 2, 0).mutate_json(&mut d));
+        assert_eq!(d, b"Pf\n");
     }
 
     #[test]

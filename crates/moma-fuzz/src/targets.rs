@@ -62,6 +62,14 @@ impl Target {
         Self::ALL.into_iter().find(|t| t.name() == name)
     }
 
+    /// Whether inputs are JSON documents (they also get structure-aware mutations).
+    pub fn is_json(self) -> bool {
+        matches!(
+            self,
+            Target::Camera | Target::Calibration | Target::CalibrationApply
+        )
+    }
+
     /// Whether inputs are PNG files (their chunk CRCs are repaired after mutation, most of the time).
     pub fn is_png(self) -> bool {
         matches!(self, Target::DepthPng | Target::Mask | Target::Rgb)

@@ -27,6 +27,7 @@ fn harness(name: &'static str, parse: fn(&[u8]) -> Result<(), String>) -> Harnes
         name,
         index: 0,
         png: false,
+        json: false,
         parse: Arc::new(parse),
     }
 }

@@ -605,6 +605,36 @@ mod calibration {
     }
 
     #[test]
+    fn parameters_that_overflow_f32_give_invalid_pixels_not_infinite_metres() {
+        // Finite in f64 (so the file is valid JSON and passes the finiteness checks), but the
+        // alignment runs in f32: the products overflow.
+        for space in ["depth", "inverse"] {
+            for (scale, shift) in [(1e308, 0.1), (-1e308, 0.1), (0.2, 1e308), (3e38, 0.0)] {
+                let mut v = fitted_value("gssa");
+                v["normalisation"]["space"] = serde_json::json!(space);
+                v["calibration"]["normalisation"]["space"] = serde_json::json!(space);
+                v["calibration"]["model"]["scale"] = serde_json::json!(scale);
+                v["calibration"]["model"]["shift_m"] = serde_json::json!(shift);
+                let dir = tempfile::tempdir().unwrap();
+                let p = dir.path().join("calib.json");
+                std::fs::write(&p, v.to_string()).unwrap();
+                let c = read_calibration(&p).unwrap().calibration;
+                let values =
+                    Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
+                let depth = c
+                    .align(&Prediction::new(values, PredictionKind::InverseDepth))
+                    .unwrap()
+                    .depth_m;
+                let what = format!("{space} space, scale {scale:e}, shift {shift:e}");
+                assert!(depth.iter().all(|z| !z.is_infinite()), "{what}");
+                // In inverse space a huge disparity is a depth of about 0 m: invalid, never 0.
+                assert!(depth.iter().all(|&z| z != 0.0), "{what}");
+                assert!(depth.iter().any(|z| z.is_nan()), "{what}");
+            }
+        }
+    }
+
+    #[test]
     fn non_finite_numbers_are_not_written() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
