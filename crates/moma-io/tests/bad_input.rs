@@ -543,6 +543,19 @@ mod calibration {
         serde_json::to_value(CalibrationFile::new(c, None, CreationInfo::now())).unwrap()
     }
 
+    /// Reads the calibration file `v` and aligns the ramp 0.5 + 0.01·(u + 2v) (inverse depth,
+    /// 32×24) with it.
+    fn read_and_align(v: &serde_json::Value) -> Array2<f32> {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        std::fs::write(&p, v.to_string()).unwrap();
+        let c = read_calibration(&p).unwrap().calibration;
+        let values = Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
+        c.align(&Prediction::new(values, PredictionKind::InverseDepth))
+            .unwrap()
+            .depth_m
+    }
+
     #[test]
     fn a_model_claiming_a_huge_image_is_refused_before_its_grid_is_built() {
         // 0xAAAA…AB · 3 wraps to 1 in 64 bits: a wrapped pixel count would pass every size
@@ -582,15 +595,7 @@ mod calibration {
         v["calibration"]["normalisation"]["method"] = serde_json::json!("minmax-unit");
         v["calibration"]["model"]["scale"] = serde_json::json!(0.5);
         v["calibration"]["model"]["shift_m"] = serde_json::json!(1e-45);
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("calib.json");
-        std::fs::write(&p, v.to_string()).unwrap();
-        let c = read_calibration(&p).unwrap().calibration;
-        let values = Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
-        let depth = c
-            .align(&Prediction::new(values, PredictionKind::InverseDepth))
-            .unwrap()
-            .depth_m;
+        let depth = read_and_align(&v);
         assert!(depth[[0, 0]].is_nan(), "{}", depth[[0, 0]]);
         assert!(depth.iter().all(|z| !z.is_infinite()));
         // Every other pixel: 1 / (0.5·ẑ) with ẑ = (x − min) / (max − min).
@@ -615,16 +620,7 @@ mod calibration {
                 v["calibration"]["normalisation"]["space"] = serde_json::json!(space);
                 v["calibration"]["model"]["scale"] = serde_json::json!(scale);
                 v["calibration"]["model"]["shift_m"] = serde_json::json!(shift);
-                let dir = tempfile::tempdir().unwrap();
-                let p = dir.path().join("calib.json");
-                std::fs::write(&p, v.to_string()).unwrap();
-                let c = read_calibration(&p).unwrap().calibration;
-                let values =
-                    Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
-                let depth = c
-                    .align(&Prediction::new(values, PredictionKind::InverseDepth))
-                    .unwrap()
-                    .depth_m;
+                let depth = read_and_align(&v);
                 let what = format!("{space} space, scale {scale:e}, shift {shift:e}");
                 assert!(depth.iter().all(|z| !z.is_infinite()), "{what}");
                 // In inverse space a huge disparity is a depth of about 0 m: invalid, never 0.
