@@ -113,6 +113,8 @@ def test_bad_model_inputs(tiny_metric):
         moma.DepthModel(REF / "tiny-metric.safetensors", model="vitx")
     with pytest.raises(moma.InvalidInputError, match="multiple of 14"):
         moma.DepthModel(REF / "tiny-metric.safetensors", input_size=500)
+    with pytest.raises(moma.InvalidInputError, match="at most 4200"):
+        moma.DepthModel(REF / "tiny-metric.safetensors", input_size=140_000)
     with pytest.raises(moma.MomaFileError, match="adapter.safetensors"):
         moma.DepthModel(REF / "tiny-metric.safetensors", lora="adapter.safetensors")
 

@@ -305,6 +305,18 @@ fn depth_model_options_fail_clearly() {
     assert!(err.contains("bf16"), "{err}");
     let err = fails_with(predict(&["--weights", s(&weights), "--device", "tpu"]), &[]);
     assert!(err.contains("tpu"), "{err}");
+    // An input size that only exhausts memory (140 000 px aborted, 2^64 − 2 panicked): refused
+    // before the weights are read.
+    for size in ["140000", "18446744073709551614", "4214"] {
+        let err = fails_with(
+            predict(&["--weights", s(&weights), "--input-size", size]),
+            &[],
+        );
+        assert!(
+            err.contains("--input-size") && err.contains(size) && err.contains("at most 4200"),
+            "{err}"
+        );
+    }
     assert!(!out.exists());
 }
 

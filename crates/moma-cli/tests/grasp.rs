@@ -245,6 +245,13 @@ fn bad_inputs_name_the_file() {
         err.contains("jaw.json") && err.contains("stroke_m"),
         "{err}"
     );
+    // A stroke no gripper has: refused, not planned for ever.
+    std::fs::write(&cfg, r#"{"stroke_m": 1e30}"#).unwrap();
+    let err = run(&["--gripper-config", s(&cfg)]);
+    assert!(
+        err.contains("jaw.json") && err.contains("stroke_m") && err.contains("at most 1 m"),
+        "{err}"
+    );
 
     let small = dir.path().join("small.json");
     moma_io::write_camera(

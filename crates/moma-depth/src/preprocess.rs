@@ -50,7 +50,8 @@ pub const CUBIC_A: f32 = -0.75;
 /// falls below `input_size`. 480×640 (h×w) at 518 → 518×686; at 392 → 392×518.
 ///
 /// # Errors
-/// [`DepthError::Shape`] for an empty image or `input_size == 0`.
+/// [`DepthError::Shape`] for an empty image, an `input_size` of 0 or over
+/// [`MAX_INPUT_SIZE_PX`], or a network input over [`MAX_NETWORK_INPUT_PIXELS`].
 ///
 /// ```
 /// use moma_core::ImageSize;
@@ -59,6 +60,13 @@ pub const CUBIC_A: f32 = -0.75;
 /// assert_eq!((s.height, s.width), (518, 686));
 /// ```
 pub fn network_input_size(image: ImageSize, input_size: usize) -> Result<ImageSize> {
+    // Any lower bound, as the official `Resize` (the user-facing options also ask for a multiple
+    // of 14: [`check_input_size`]), but bounded.
+    if input_size > MAX_INPUT_SIZE_PX {
+        return Err(DepthError::Shape(format!(
+            "input size {input_size} px is above the limit of {MAX_INPUT_SIZE_PX} px"
+        )));
+    }
     if image.width == 0 || image.height == 0 || input_size == 0 {
         return Err(DepthError::Shape(format!(
             "cannot resize a {}x{} image to lower bound {input_size}",
@@ -80,10 +88,43 @@ pub fn network_input_size(image: ImageSize, input_size: usize) -> Result<ImageSi
         let y = if y < target { (x / m).ceil() * m } else { y };
         y as usize
     };
-    Ok(ImageSize::new(
+    let size = ImageSize::new(
         constrain(scale_w * image.width as f64),
         constrain(scale_h * image.height as f64),
-    ))
+    );
+    if size.pixels() > MAX_NETWORK_INPUT_PIXELS {
+        return Err(DepthError::Shape(format!(
+            "a {}x{} image at lower bound {input_size} px needs a {size} network input, more than \
+             {MAX_NETWORK_INPUT_PIXELS} pixels: its aspect ratio is too extreme for this input \
+             size (crop the image, or lower --input-size)",
+            image.width, image.height
+        )));
+    }
+    Ok(size)
+}
+
+/// Largest network input lower bound accepted, pixels (300 patches of 14; the released models
+/// use 518). Far larger bounds only exhaust memory: 14 000 px took 12.5 GB with a 4-layer test
+/// network before it was refused.
+pub const MAX_INPUT_SIZE_PX: usize = 4200;
+
+/// Largest network input accepted, pixels (a 2:1 image at [`MAX_INPUT_SIZE_PX`]): bounds the
+/// memory of an image whose aspect ratio makes the long side huge at the given lower bound.
+pub const MAX_NETWORK_INPUT_PIXELS: usize = 2 * MAX_INPUT_SIZE_PX * MAX_INPUT_SIZE_PX;
+
+/// Checks a network input lower bound: a positive multiple of 14 pixels, at most
+/// [`MAX_INPUT_SIZE_PX`].
+///
+/// # Errors
+/// [`DepthError::Shape`] naming the value and the rule.
+pub fn check_input_size(input_size: usize) -> Result<()> {
+    if input_size == 0 || !input_size.is_multiple_of(PATCH_SIZE) || input_size > MAX_INPUT_SIZE_PX {
+        return Err(DepthError::Shape(format!(
+            "input size {input_size} px must be a positive multiple of {PATCH_SIZE} and at most \
+             {MAX_INPUT_SIZE_PX} (the released models use 518)"
+        )));
+    }
+    Ok(())
 }
 
 /// RGB 8-bit → `(3, H, W)` network input: /255, lower-bound aspect-keeping resize to multiples of 14
@@ -284,6 +325,34 @@ mod tests {
         // = 504 < 505 -> ceil -> 37*14 = 518.
         assert_eq!(size_hw(505, 505, 505), (518, 518));
         assert!(network_input_size(ImageSize::new(0, 10), 518).is_err());
+        // Bounds: above the limit (the CLI once aborted on 140 000 px and panicked on 2^64 − 2),
+        // and an aspect ratio that makes the input huge; the options also refuse what is not a
+        // multiple of 14.
+        for bad in [0, MAX_INPUT_SIZE_PX + 14, 140_000, usize::MAX - 1] {
+            let e = network_input_size(ImageSize::new(640, 480), bad).unwrap_err();
+            assert!(e.to_string().contains(&bad.to_string()), "{e}");
+        }
+        assert_eq!(
+            size_hw(480, 640, MAX_INPUT_SIZE_PX),
+            (4200, 5600) // 5600 = 400 × 14
+        );
+        let e = network_input_size(ImageSize::new(16384, 2), 518).unwrap_err();
+        assert!(e.to_string().contains("aspect ratio"), "{e}");
+        for (ok, size) in [
+            (true, 14),
+            (true, 518),
+            (true, MAX_INPUT_SIZE_PX),
+            (false, 0),
+        ] {
+            assert_eq!(check_input_size(size).is_ok(), ok, "{size}");
+        }
+        for bad in [517, MAX_INPUT_SIZE_PX + 14] {
+            let e = check_input_size(bad).unwrap_err().to_string();
+            assert!(
+                e.contains("multiple of 14") && e.contains("at most 4200"),
+                "{e}"
+            );
+        }
     }
 
     #[test]

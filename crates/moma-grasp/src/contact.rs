@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use crate::cloud::Vec3;
 use crate::error::{GraspError, Result, positive};
 use crate::grasp::FailureReason;
-use crate::gripper::{ParallelJaw, SuctionCup};
+use crate::gripper::{MAX_GRIPPER_SIZE_M, ParallelJaw, SuctionCup};
 use crate::scene::Scene;
 
 /// The friction coefficients GraspNet reports against, ascending.
@@ -63,6 +63,10 @@ impl Default for ExecConfig {
     }
 }
 
+/// Smallest march step accepted, metres (0.1 mm: far below depth noise), so that a march over
+/// the largest gripper ([`crate::gripper::MAX_GRIPPER_SIZE_M`]) takes at most 10 000 steps.
+pub const MIN_MARCH_STEP_M: f32 = 1e-4;
+
 impl ExecConfig {
     /// Checks the rules.
     ///
@@ -71,6 +75,14 @@ impl ExecConfig {
     pub fn validate(&self) -> Result<()> {
         let e = GraspError::InvalidConfig;
         positive("march_step_m", self.march_step_m, e)?;
+        if self.march_step_m < MIN_MARCH_STEP_M {
+            return Err(GraspError::InvalidConfig(format!(
+                "march_step_m = {} m is below {MIN_MARCH_STEP_M} m: with grippers up to \
+                 {MAX_GRIPPER_SIZE_M} m a march would take over {} steps",
+                self.march_step_m,
+                (MAX_GRIPPER_SIZE_M / MIN_MARCH_STEP_M) as u32
+            )));
+        }
         positive("occupancy_tol_m", self.occupancy_tol_m, e)?;
         positive("seal_max_gap_m", self.seal_max_gap_m, e)?;
         positive("seal_max_bump_m", self.seal_max_bump_m, e)?;

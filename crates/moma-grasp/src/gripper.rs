@@ -4,6 +4,23 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{GraspError, Result, positive};
 
+/// Largest gripper dimension accepted, metres. Parallel grippers open at most a few decimetres
+/// (Robotiq 2F-140: 0.14 m) and suction tools are shorter than a metre. The planner marches along
+/// the jaws and the cup's axis in millimetre steps, so a size read from a file must be bounded:
+/// a stroke of 1e30 m would never finish.
+pub const MAX_GRIPPER_SIZE_M: f32 = 1.0;
+
+/// A gripper dimension: finite, > 0 and at most [`MAX_GRIPPER_SIZE_M`].
+fn size(name: &str, value: f32) -> Result<()> {
+    positive(name, value, GraspError::InvalidGripper)?;
+    if value > MAX_GRIPPER_SIZE_M {
+        return Err(GraspError::InvalidGripper(format!(
+            "{name} = {value} m is larger than any gripper (at most {MAX_GRIPPER_SIZE_M} m)"
+        )));
+    }
+    Ok(())
+}
+
 /// A parallel-jaw gripper in its grasp frame: origin at the grasp centre (midpoint of the two
 /// contacts), `x` = approach, `y` = closing axis, `z = x × y` ("height" of the fingers).
 ///
@@ -48,7 +65,8 @@ impl Default for ParallelJaw {
 }
 
 impl ParallelJaw {
-    /// Checks every size is finite and positive and the tips lie on the fingers.
+    /// Checks every size is finite, positive and at most [`MAX_GRIPPER_SIZE_M`], and the tips
+    /// lie on the fingers.
     ///
     /// # Errors
     /// [`GraspError::InvalidGripper`] naming the field.
@@ -62,7 +80,7 @@ impl ParallelJaw {
             ("contact_to_tip_m", self.contact_to_tip_m),
             ("opening_clearance_m", self.opening_clearance_m),
         ] {
-            positive(name, v, GraspError::InvalidGripper)?;
+            size(name, v)?;
         }
         if self.contact_to_tip_m >= self.finger_length_m {
             return Err(GraspError::InvalidGripper(format!(
@@ -104,17 +122,9 @@ impl SuctionCup {
     /// # Errors
     /// [`GraspError::InvalidGripper`] naming the field.
     pub fn validate(&self) -> Result<()> {
-        positive("radius_m", self.radius_m, GraspError::InvalidGripper)?;
-        positive(
-            "compliance_m",
-            self.compliance_m,
-            GraspError::InvalidGripper,
-        )?;
-        positive(
-            "tool_length_m",
-            self.tool_length_m,
-            GraspError::InvalidGripper,
-        )
+        size("radius_m", self.radius_m)?;
+        size("compliance_m", self.compliance_m)?;
+        size("tool_length_m", self.tool_length_m)
     }
 }
 

@@ -33,7 +33,8 @@ where
     F: FnMut(usize) -> bool,
     G: Fn(usize, usize) -> bool,
 {
-    let mut kept: Vec<usize> = Vec::with_capacity(top_k);
+    // `top_k` comes from the user (`--top`): never more room than there are items.
+    let mut kept: Vec<usize> = Vec::with_capacity(top_k.min(order.len()));
     for &i in order {
         if kept.len() >= top_k {
             break;

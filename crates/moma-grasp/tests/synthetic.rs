@@ -439,4 +439,59 @@ fn bad_inputs_are_errors() {
     };
     let err = plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap_err();
     assert!(err.to_string().contains("radius_m"), "{err}");
+    // Absurd sizes: the planner marches along the jaws and the cup axis in millimetre steps, so a
+    // stroke or compliance of 1e30 m never finished (found by hand: `moma grasp` hung).
+    for (jaw, field) in [
+        (
+            ParallelJaw {
+                stroke_m: 1e30,
+                ..Default::default()
+            },
+            "stroke_m",
+        ),
+        (
+            ParallelJaw {
+                finger_length_m: 3e38,
+                contact_to_tip_m: 1e38,
+                ..Default::default()
+            },
+            "finger_length_m",
+        ),
+    ] {
+        let err = plan_parallel(&scene, &jaw, &ParallelConfig::default()).unwrap_err();
+        assert!(
+            matches!(err, GraspError::InvalidGripper(_)) && err.to_string().contains(field),
+            "{err}"
+        );
+    }
+    let cup = SuctionCup {
+        compliance_m: 3e38,
+        ..Default::default()
+    };
+    let err = plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap_err();
+    assert!(err.to_string().contains("compliance_m"), "{err}");
+    let config = ParallelConfig {
+        exec: moma_grasp::ExecConfig {
+            march_step_m: 1e-9,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let err = plan_parallel(&scene, &ParallelJaw::default(), &config).unwrap_err();
+    assert!(
+        matches!(err, GraspError::InvalidConfig(_)) && err.to_string().contains("march_step_m"),
+        "{err}"
+    );
+    // The largest accepted sizes plan (and finish).
+    let jaw = ParallelJaw {
+        stroke_m: moma_grasp::gripper::MAX_GRIPPER_SIZE_M,
+        opening_clearance_m: moma_grasp::gripper::MAX_GRIPPER_SIZE_M,
+        ..Default::default()
+    };
+    plan_parallel(&scene, &jaw, &ParallelConfig::default()).unwrap();
+    let cup = SuctionCup {
+        compliance_m: moma_grasp::gripper::MAX_GRIPPER_SIZE_M,
+        ..Default::default()
+    };
+    plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap();
 }

@@ -1180,11 +1180,8 @@ impl DepthModel {
             "auto" => "candle",
             b => b,
         };
-        if input_size == 0 || !input_size.is_multiple_of(14) {
-            return Err(value_err(format!(
-                "input_size {input_size} must be a positive multiple of 14 pixels"
-            )));
-        }
+        moma_depth::preprocess::check_input_size(input_size)
+            .map_err(|e| value_err(format!("input_size: {e}")))?;
         let spec = ModelSpec {
             backbone: parse_backbone(model)?,
             head: parse_head(head, max_depth)?,

@@ -89,7 +89,7 @@ pub struct ModelArgs {
     /// Largest depth of the metric head, metres (20 indoor, 80 outdoor) [default: 20].
     #[arg(long, value_name = "METRES")]
     pub max_depth: Option<f32>,
-    /// Network input lower bound, pixels (multiple of 14).
+    /// Network input lower bound, pixels (multiple of 14, at most 4200).
     #[arg(long, default_value_t = 518, value_name = "PX")]
     pub input_size: usize,
     /// Inference backend.
@@ -123,12 +123,8 @@ impl ModelArgs {
     /// # Errors
     /// Bad `--input-size` or `--max-depth`, an unreadable configuration file, a disagreeing head.
     pub fn spec(&self) -> Result<ModelSpec> {
-        if self.input_size == 0 || !self.input_size.is_multiple_of(14) {
-            bail!(
-                "--input-size {} must be a positive multiple of 14",
-                self.input_size
-            );
-        }
+        moma_depth::preprocess::check_input_size(self.input_size)
+            .map_err(|e| anyhow::anyhow!("--input-size: {e}"))?;
         if let Some(m) = self.max_depth
             && !(m.is_finite() && m > 0.0)
         {
