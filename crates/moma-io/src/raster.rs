@@ -85,11 +85,14 @@ pub fn write_mask(path: impl AsRef<Path>, mask: &Mask) -> Result<()> {
 
 /// Reads an 8-bit RGB image from PNG or JPEG (detected from the content, not the extension).
 ///
-/// Other pixel types are converted: grayscale is replicated to three channels, alpha is dropped
-/// (not composited), 16-bit channels are scaled to 8 bits (`v · 255 / 65535`, rounded).
+/// Other pixel types are converted: 8-bit grayscale is replicated to three channels, alpha is
+/// dropped (not composited), 16-bit colour channels are scaled to 8 bits (`v · 255 / 65535`,
+/// rounded). A 16-bit single-channel image is refused: that is how depth maps are stored, and
+/// passing one where the colour image belongs is a mistake, not a grey frame.
 ///
 /// # Errors
-/// Unreadable ([`IoError::Io`]), not PNG/JPEG, corrupt or truncated ([`IoError::Corrupt`]).
+/// Unreadable ([`IoError::Io`]), not PNG/JPEG, corrupt or truncated ([`IoError::Corrupt`]);
+/// [`IoError::Invalid`] for a 16-bit single-channel image.
 pub fn read_rgb(path: impl AsRef<Path>) -> Result<RgbImage> {
     let path = path.as_ref();
     let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
@@ -102,7 +105,15 @@ pub fn read_rgb(path: impl AsRef<Path>) -> Result<RgbImage> {
 /// As [`read_rgb`]; [`IoError::TooLarge`] when the header claims more than
 /// [`crate::MAX_IMAGE_PIXELS`] pixels (checked before anything is allocated).
 pub fn rgb_from_bytes(path: &Path, bytes: &[u8]) -> Result<RgbImage> {
-    Ok(decode_image_bytes(path, bytes, None)?.to_rgb8())
+    let img = decode_image_bytes(path, bytes, None)?;
+    if matches!(img.color(), image::ColorType::L16 | image::ColorType::La16) {
+        return Err(IoError::invalid(
+            path,
+            "is a 16-bit single-channel image, the format of depth maps in millimetres, where \
+             an RGB image was expected (pass the frame's colour image)",
+        ));
+    }
+    Ok(img.to_rgb8())
 }
 
 /// Reads an RGB image ([`read_rgb`]) and checks it is `expected` pixels in size.

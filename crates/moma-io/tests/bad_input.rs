@@ -95,6 +95,25 @@ fn eight_bit_png_is_not_depth() {
 }
 
 #[test]
+fn a_depth_png_is_not_an_rgb_image() {
+    // Passing the frame's depth.png where its rgb.png belongs (e.g. `--realign-rgb`) used to be
+    // read as a dark grey image and silently gave no anchors.
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("depth.png");
+    write_depth(&p, &MetricDepth::new(array![[0.5f32, 0.7], [0.0, 1.2]])).unwrap();
+    let e = read_rgb(&p).unwrap_err();
+    assert!(matches!(e, IoError::Invalid { .. }), "{e}");
+    assert!(
+        msg(&e).contains("depth.png") && msg(&e).contains("16-bit single-channel"),
+        "{e}"
+    );
+    // 8-bit grey stays a grey frame.
+    let q = dir.path().join("grey.png");
+    write_mask(&q, &Mask::full(ImageSize::new(3, 2))).unwrap();
+    assert_eq!(read_rgb(&q).unwrap().get_pixel(0, 0).0, [255, 255, 255]);
+}
+
+#[test]
 fn corrupt_and_truncated_npy() {
     let dir = tempfile::tempdir().unwrap();
     let good = dir.path().join("good.npy");
