@@ -126,6 +126,41 @@ fn calibrate_align_metrics_end_to_end() {
         .fold(0f32, f32::max);
     assert!(worst <= 0.0005 + 1e-6, "PNG vs npy differ by {worst} m");
 
+    // A fixed colour-map range, written as the help shows it (`0.4,1.2`), is the one recorded
+    // in the colour map (the documented form used to be refused: "2 values required").
+    let fixed = tmp.path().join("fixed");
+    let align_range = |out: &Path, range: &str| {
+        vec![
+            "align".to_string(),
+            "--calib".into(),
+            s(&calib).into(),
+            "--pred".into(),
+            s(&pred.join("frame_01.npy")).into(),
+            "--pred-kind".into(),
+            "inverse-depth".into(),
+            "-o".into(),
+            s(out).into(),
+            "--colormap".into(),
+            format!("--range-m={range}"),
+        ]
+    };
+    let mut args = align_range(&fixed, "");
+    args.pop();
+    args.extend(["--range-m".into(), "0.4,1.2".into()]);
+    ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let scale = moma_io::read_colour_scale(fixed.join("frame_01.color.png"))
+        .unwrap()
+        .expect("a colour scale");
+    assert_eq!((scale.min_m, scale.max_m), (0.4, 1.2));
+    for bad in ["1.2,0.4", "0.4", "nan,1", "-1,2", "0.4,inf"] {
+        let args = align_range(&tmp.path().join("bad"), bad);
+        let err = fails(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        assert!(
+            err.contains("--range-m") && err.contains("MIN,MAX"),
+            "{bad}: {err}"
+        );
+    }
+
     // `moma metrics --json` agrees with the independent implementation.
     let gt = frames.join("frame_01/depth.png");
     let mask = frames.join("frame_01/mask.png");
@@ -617,4 +652,107 @@ fn edge_margin_keeps_samples_off_object_boundaries() {
     let full: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
     assert_eq!(full[0]["edge_margin_px"], 3);
+}
+
+#[test]
+fn a_misspelt_simulator_setting_is_an_error_not_ignored() {
+    // `--sim-config` reads any subset of the simulator's strengths; a misspelt name used to be
+    // dropped silently, so the run used the default the user meant to change.
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, _) = demo(tmp.path());
+    let cfg = tmp.path().join("sim.json");
+    let out = tmp.path().join("pred");
+    std::fs::write(&cfg, r#"{"frame_fluctuaton": 0.1}"#).unwrap();
+    let err = fails(&[
+        "simulate",
+        "--set",
+        s(&scene),
+        "--sim-config",
+        s(&cfg),
+        "-o",
+        s(&out),
+    ]);
+    assert!(
+        err.contains("sim.json") && err.contains("frame_fluctuaton"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    std::fs::write(&cfg, r#"{"frame_fluctuation": 0.1}"#).unwrap();
+    ok(&[
+        "simulate",
+        "--set",
+        s(&scene),
+        "--sim-config",
+        s(&cfg),
+        "-o",
+        s(&out),
+    ]);
+}
+
+#[test]
+fn a_brightness_too_dark_for_the_simulated_response_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, _) = demo(tmp.path());
+    let err = fails(&[
+        "eval",
+        "--set",
+        s(&scene),
+        "--simulate",
+        "--methods",
+        "gssa",
+        "--seeds",
+        "1",
+        "--realign",
+        "anchors",
+        "--brightness",
+        "1e-30",
+    ]);
+    assert!(
+        err.contains("brightness factor") && err.contains("too dark") && err.contains("4.540e-5"),
+        "{err}"
+    );
+}
+
+#[test]
+fn demo_frame_counts_outside_2_to_1000_are_refused() {
+    // 0 and 1 used to become 2 silently; 100 000 rendered for minutes.
+    let tmp = tempfile::tempdir().unwrap();
+    for n in ["0", "1", "100000"] {
+        let err = fails(&["demo", "-o", s(&tmp.path().join("d")), "--frames", n]);
+        assert!(
+            err.contains("--frames") && err.contains("2..=1000"),
+            "{err}"
+        );
+    }
+    assert!(!tmp.path().join("d").exists());
+}
+
+#[test]
+fn grasp_eval_without_any_object_large_enough_is_an_error_not_a_nan_rate() {
+    // Every object region below --min-object-px used to give 0 trials and a "NaN %" success
+    // rate in the tables.
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, _) = demo(tmp.path());
+    let out = tmp.path().join("ge");
+    let err = fails(&[
+        "grasp-eval",
+        "--set",
+        s(&scene),
+        "--simulate",
+        "--methods",
+        "gssa",
+        "--seeds",
+        "1",
+        "--gripper",
+        "parallel",
+        "--min-object-px",
+        "100000000",
+        "-o",
+        s(&out),
+    ]);
+    assert!(
+        err.contains("no object region of at least 100000000 px") && err.contains("'scene'"),
+        "{err}"
+    );
+    assert!(!out.join("grasp_results.json").exists());
 }

@@ -187,6 +187,34 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     let mut head = a.clone();
     head.extend(["--head", "relative"]);
     assert!(fails(&head).contains("disagrees"));
+    // Sizes that used to abort or wrap: a batch reserved up front, batch × accumulate, a number
+    // of steps reserved up front, epochs × frames.
+    for (extra, want) in [
+        (&["--batch", "1000000000000"][..], "at most 4096"),
+        (
+            &["--batch", "4096", "--accumulate", "9223372036854775807"],
+            "at most 4096",
+        ),
+    ] {
+        let mut big = a.clone();
+        big.extend(extra);
+        let e = fails(&big);
+        assert!(e.contains(want), "{extra:?}: {e}");
+    }
+    for (option, want) in [("--steps", "at most 100000000"), ("--epochs", "overflows")] {
+        let mut long: Vec<&str> = vec![
+            "finetune",
+            "--set",
+            s(&set),
+            option,
+            "18446744073709551615",
+            "-o",
+            s(&corrupt),
+        ];
+        long.extend(common);
+        let e = fails(&long);
+        assert!(e.contains(want), "{option}: {e}");
+    }
     // Nothing was written over the corrupt file by the failed runs.
     assert_eq!(std::fs::read(&corrupt).unwrap(), b"not an adapter");
 }

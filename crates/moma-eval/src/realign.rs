@@ -165,6 +165,16 @@ pub fn evaluate_realign(
             "brightness factor {beta} must be finite and > 0"
         )));
     }
+    // The simulated response's scale 1 + κ ln β turns the prediction upside down below
+    // β = e^(−1/κ) (about 2e-9 at κ = 0.05): keep it at least ½.
+    let kappa = realign.brightness_response;
+    if 1.0 + kappa * beta.ln() < 0.5 {
+        return Err(EvalError::InvalidParameter(format!(
+            "brightness factor {beta} is too dark for the simulated brightness response \
+             (κ = {kappa}): it needs 1 + κ·ln β ≥ ½, i.e. β ≥ {:.3e}",
+            (-0.5 / kappa).exp()
+        )));
+    }
     realign
         .config
         .validate()

@@ -48,7 +48,7 @@ use crate::imgproc::{fill_nearest, gaussian_blur};
 /// Strengths of the simulator components (METHOD.md §6). Every field at 0 disables its part.
 /// Pixel sizes are given for a 640-pixel-wide image and scaled with the image width.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SimulatorConfig {
     /// 1. Largest rotation of the model's virtual camera about x and y, degrees (default 3).
     pub view_angle_deg: f64,

@@ -124,8 +124,8 @@ pub struct AlignArgs {
     #[arg(long, value_enum, num_args = 0..=1, default_missing_value = "turbo")]
     pub colormap: Option<ColormapArg>,
     /// Colour-map range in metres, e.g. `0.4,1.2` (default: 2nd–98th percentile per frame).
-    #[arg(long, value_name = "MIN,MAX", value_delimiter = ',', num_args = 2)]
-    pub range_m: Vec<f32>,
+    #[arg(long, value_name = "MIN,MAX", value_parser = parse_range_m)]
+    pub range_m: Option<(f32, f32)>,
     /// Workspace mask for normalisation (overrides the one recorded in the calibration file).
     #[arg(long, value_name = "PNG")]
     pub workspace: Option<PathBuf>,
@@ -215,13 +215,9 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             ),
         }
     }
-    let range = match args.range_m.as_slice() {
-        [] => DepthRange::default(),
-        [min_m, max_m] => DepthRange::Fixed {
-            min_m: *min_m,
-            max_m: *max_m,
-        },
-        _ => bail!("--range-m takes two values: MIN,MAX in metres"),
+    let range = match args.range_m {
+        None => DepthRange::default(),
+        Some((min_m, max_m)) => DepthRange::Fixed { min_m, max_m },
     };
     create_dir(&args.output)?;
 
@@ -356,4 +352,17 @@ fn write_cloud(
     };
     moma_io::write_depth_ply(path, depth, intrinsics, rgb, format)?;
     Ok(())
+}
+
+/// `MIN,MAX` in metres → (MIN, MAX): finite, 0 ≤ MIN < MAX. (A `value_delimiter` with
+/// `num_args = 2` wanted two separate values and refused the documented `0.4,1.2`.)
+fn parse_range_m(s: &str) -> std::result::Result<(f32, f32), String> {
+    let bad = |why: &str| format!("{s:?}: {why}; expected MIN,MAX in metres, e.g. 0.4,1.2");
+    let (lo, hi) = s.split_once(',').ok_or_else(|| bad("no comma"))?;
+    let parse = |x: &str| x.trim().parse::<f32>().map_err(|_| bad("not a number"));
+    let (lo, hi) = (parse(lo)?, parse(hi)?);
+    if !(lo.is_finite() && hi.is_finite() && lo >= 0.0 && hi > lo) {
+        return Err(bad("need 0 <= MIN < MAX, both finite"));
+    }
+    Ok((lo, hi))
 }

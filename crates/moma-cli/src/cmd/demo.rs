@@ -38,9 +38,9 @@ pub struct DemoArgs {
     /// Run on this moma set instead of the bundled scene.
     #[arg(long, value_name = "DIR")]
     pub set: Option<PathBuf>,
-    /// Frames of the bundled scene.
-    #[arg(long, default_value_t = 6)]
-    pub frames: usize,
+    /// Frames of the bundled scene (2 to 1000: one to calibrate on, the others evaluated).
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u16).range(2..=1000))]
+    pub frames: u16,
     /// Skip aligned-depth, colour-map and point-cloud exports (figures and tables only).
     #[arg(long)]
     pub no_exports: bool,
@@ -71,7 +71,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             }
             let demo = DemoScene {
                 scene: SceneConfig {
-                    frames: args.frames.max(2),
+                    frames: usize::from(args.frames),
                     ..Default::default()
                 },
                 simulator: args.pred.sim.config()?,

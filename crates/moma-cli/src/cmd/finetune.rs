@@ -174,6 +174,11 @@ struct Summary {
     note: &'static str,
 }
 
+/// Most frames per micro-batch and most micro-batches per step (`--batch`, `--accumulate`).
+const MAX_BATCH: usize = 4096;
+/// Most optimiser steps of one run (`--steps`, or `--epochs` turned into steps).
+const MAX_STEPS: usize = 100_000_000;
+
 /// `HxW` → (H, W), both positive multiples of 14.
 fn parse_crop(s: &str) -> std::result::Result<(usize, usize), String> {
     let bad = || format!("--crop {s:?}: expected HxW in pixels, e.g. 518x686");
@@ -365,6 +370,15 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     if args.batch == 0 || args.accumulate == 0 {
         bail!("--batch and --accumulate must be at least 1");
     }
+    // Bounds that keep the run's bookkeeping finite (a huge --batch was reserved up front and
+    // aborted; batch × accumulate wrapped): far above what fits on any accelerator.
+    if args.batch > MAX_BATCH || args.accumulate > MAX_BATCH {
+        bail!(
+            "--batch {} / --accumulate {}: at most {MAX_BATCH} each",
+            args.batch,
+            args.accumulate
+        );
+    }
     if !(0.0..1.0).contains(&args.val_frac) {
         bail!("--val-frac {} must be in [0, 1)", args.val_frac);
     }
@@ -418,11 +432,17 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     let per_step = args.batch * args.accumulate;
     let steps = match (args.steps, args.epochs) {
         (Some(s), _) => s,
-        (None, Some(e)) => (e * train.len()).div_ceil(per_step),
+        (None, Some(e)) => e
+            .checked_mul(train.len())
+            .with_context(|| format!("--epochs {e} over {} frames overflows", train.len()))?
+            .div_ceil(per_step),
         (None, None) => bail!("give --steps N or --epochs E"),
     };
     if steps == 0 {
         bail!("nothing to do: 0 steps");
+    }
+    if steps > MAX_STEPS {
+        bail!("{steps} optimiser steps: at most {MAX_STEPS}");
     }
 
     // Model.
@@ -534,11 +554,11 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         Some(trainer.eval_loss(&val)?)
     };
     let bar = progress(steps, "fine-tuning", args.json);
-    let mut losses = Vec::with_capacity(steps);
+    let mut losses = Vec::with_capacity(steps.min(1 << 16));
     // Every draw of a step comes from (seed, step) or (seed, epoch): a resumed run draws what
     // the uninterrupted run would have.
     let mut order: (Option<u64>, Vec<usize>) = (None, vec![]);
-    let mut step_times_s = Vec::with_capacity(steps);
+    let mut step_times_s = Vec::with_capacity(steps.min(1 << 16));
     let end = args
         .stop_after
         .map_or(steps, |k| (start_step + k).min(steps));
