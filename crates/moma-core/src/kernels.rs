@@ -273,14 +273,14 @@ pub(crate) fn finite_or_nan(y: f32) -> f32 {
 }
 
 /// The depth of a fitted disparity `y` (inverse space): `1/y` where that is positive and
-/// finite, else `NaN`. A fitted disparity is a depth only where it is positive; a subnormal
-/// one (below about 1.2e-38) has no finite reciprocal in f32 and is invalid too, not `inf`
+/// finite, else `NaN`. A fitted disparity is a depth only where it is positive; one below
+/// 1/f32::MAX ≈ 2.9e-39 m⁻¹ has no finite reciprocal in f32 and is invalid too, not `inf`
 /// metres.
 #[inline(always)]
 pub(crate) fn depth_of_disparity(y: f32) -> f32 {
     let z = 1.0 / y;
     // Valid ⇔ 0 < z < inf: that excludes y ≤ 0 (z ≤ 0, ±inf or NaN), a subnormal y (z = inf),
-    // y = inf (z = 0) and NaN. `z − z == 0` ⇔ z finite.
+    // y < 1/f32::MAX (z = inf), y = inf (z = 0) and NaN. `z − z == 0` ⇔ z finite.
     #[allow(clippy::eq_op)]
     if z > 0.0 && z - z == 0.0 { z } else { f32::NAN }
 }
@@ -300,8 +300,8 @@ mod output_tests {
             (2.0, Some(0.5)),
             (0.5, Some(2.0)),
             (f32::MAX, Some(1.0 / f32::MAX)),
-            (1.0e-38, Some(1.0 / 1.0e-38)), // normal, reciprocal below f32::MAX
-            (2.0e-39, None),                // subnormal: 1/y overflows
+            (1.0e-38, Some(1.0 / 1.0e-38)), // 1/y = 1e38 < f32::MAX
+            (2.0e-39, None),                // below 1/f32::MAX ≈ 2.9e-39: 1/y overflows
             (1.0e-45, None),
             (0.0, None),
             (-0.0, None),

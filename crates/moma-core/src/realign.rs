@@ -1215,12 +1215,9 @@ pub fn realign_in_place(
             }
             let y = space.target_from_depth(z);
             let t = y + fin.delta(y, u as f64, v as f64);
-            let zc = space.depth_from_target(t);
-            *d = if zc.is_finite() && zc > 0.0 {
-                zc as f32
-            } else {
-                f32::NAN
-            };
+            // Valid in f64 can still overflow f32 (e.g. a disparity of 1e-39 m⁻¹).
+            let zc = space.depth_from_target(t) as f32;
+            *d = if is_valid_depth(zc) { zc } else { f32::NAN };
         }
     }
     report.accepted = true;

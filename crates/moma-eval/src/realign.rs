@@ -84,6 +84,33 @@ pub struct RealignStats {
 /// [`RealignStats::worse_beyond_bound`] counts the results beyond it.
 pub const WORSE_BOUND_MM: f64 = 2.0;
 
+/// Checks a brightness factor β against the simulated response of strength κ (module
+/// documentation): β finite and > 0, κ finite and ≥ 0, and the response's scale 1 + κ·ln β at
+/// least ½ (below β = e^(−1/κ), about 2e-9 at κ = 0.05, it turns the prediction upside down).
+///
+/// # Errors
+/// [`EvalError::InvalidParameter`] naming β (or κ) and the bound.
+pub fn check_brightness(beta: f64, kappa: f64) -> Result<()> {
+    if !(beta.is_finite() && beta > 0.0) {
+        return Err(EvalError::InvalidParameter(format!(
+            "brightness factor {beta} must be finite and > 0"
+        )));
+    }
+    if !(kappa.is_finite() && kappa >= 0.0) {
+        return Err(EvalError::InvalidParameter(format!(
+            "brightness response κ = {kappa} must be finite and ≥ 0"
+        )));
+    }
+    if 1.0 + kappa * beta.ln() < 0.5 {
+        return Err(EvalError::InvalidParameter(format!(
+            "brightness factor {beta} is too dark for the simulated brightness response \
+             (κ = {kappa}): it needs 1 + κ·ln β ≥ ½, i.e. β ≥ {:.3e}",
+            (-0.5 / kappa).exp()
+        )));
+    }
+    Ok(())
+}
+
 /// The variant name of a brightness factor.
 pub fn variant_name(brightness: f64) -> String {
     if brightness == 1.0 {
@@ -160,21 +187,7 @@ pub fn evaluate_realign(
     realign: &RealignEval,
     beta: f64,
 ) -> Result<EvalResult> {
-    if !(beta.is_finite() && beta > 0.0) {
-        return Err(EvalError::InvalidParameter(format!(
-            "brightness factor {beta} must be finite and > 0"
-        )));
-    }
-    // The simulated response's scale 1 + κ ln β turns the prediction upside down below
-    // β = e^(−1/κ) (about 2e-9 at κ = 0.05): keep it at least ½.
-    let kappa = realign.brightness_response;
-    if 1.0 + kappa * beta.ln() < 0.5 {
-        return Err(EvalError::InvalidParameter(format!(
-            "brightness factor {beta} is too dark for the simulated brightness response \
-             (κ = {kappa}): it needs 1 + κ·ln β ≥ ½, i.e. β ≥ {:.3e}",
-            (-0.5 / kappa).exp()
-        )));
-    }
+    check_brightness(beta, realign.brightness_response)?;
     realign
         .config
         .validate()

@@ -63,8 +63,9 @@ impl Default for ExecConfig {
     }
 }
 
-/// Smallest march step accepted, metres (0.1 mm: far below depth noise), so that a march over
-/// the largest gripper ([`crate::gripper::MAX_GRIPPER_SIZE_M`]) takes at most 10 000 steps.
+/// Smallest march step accepted, metres (0.1 mm: far below depth noise), so that the marches
+/// over the largest gripper ([`crate::gripper::MAX_GRIPPER_SIZE_M`]) stay in the tens of
+/// thousands of steps (about 20 000 along the jaws, 40 000 along a suction cup's axis).
 pub const MIN_MARCH_STEP_M: f32 = 1e-4;
 
 impl ExecConfig {

@@ -120,7 +120,8 @@ impl SuctionCup {
     /// Checks every size is finite and positive.
     ///
     /// # Errors
-    /// [`GraspError::InvalidGripper`] naming the field.
+    /// [`GraspError::InvalidGripper`] naming the field (every size finite, > 0 and at most
+    /// [`MAX_GRIPPER_SIZE_M`]).
     pub fn validate(&self) -> Result<()> {
         size("radius_m", self.radius_m)?;
         size("compliance_m", self.compliance_m)?;

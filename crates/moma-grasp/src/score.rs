@@ -75,6 +75,14 @@ pub fn score_parallel(
     config.exec.validate()?;
     positive("mu", config.mu, GraspError::InvalidConfig)?;
     positive("width_m", pose.width_m, GraspError::InvalidGrasp)?;
+    // The fingers march over the width: bounded like every gripper size (no jaw opens wider).
+    if pose.width_m > crate::gripper::MAX_GRIPPER_SIZE_M {
+        return Err(GraspError::InvalidGrasp(format!(
+            "width_m = {} m is wider than any gripper opens (at most {} m)",
+            pose.width_m,
+            crate::gripper::MAX_GRIPPER_SIZE_M
+        )));
+    }
     let a = unit("approach", pose.approach)?;
     let b = unit("closing", pose.closing)?;
     let b = b - a * a.dot(&b);

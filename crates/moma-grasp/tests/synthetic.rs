@@ -194,6 +194,12 @@ fn parallel_scoring_reports_closed_form_friction_and_failures() {
     // Across the long side, 70 mm + fingers: width 0.06 → fingers inside the box top = collision.
     let s = score_parallel(&scene, &pose(v3(long), 0.06, centre), &jaw, &cfg).unwrap();
     assert_eq!(s.failure, Some(FailureReason::Collision));
+    // A width no gripper opens: refused (the fingers would march over it in millimetre steps).
+    let err = score_parallel(&scene, &pose(v3(short), 1e30, centre), &jaw, &cfg).unwrap_err();
+    assert!(
+        matches!(err, GraspError::InvalidGrasp(_)) && err.to_string().contains("width_m"),
+        "{err}"
+    );
 }
 
 #[test]

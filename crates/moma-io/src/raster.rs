@@ -88,7 +88,8 @@ pub fn write_mask(path: impl AsRef<Path>, mask: &Mask) -> Result<()> {
 /// Other pixel types are converted: 8-bit grayscale is replicated to three channels, alpha is
 /// dropped (not composited), 16-bit colour channels are scaled to 8 bits (`v · 255 / 65535`,
 /// rounded). A 16-bit single-channel image is refused: that is how depth maps are stored, and
-/// passing one where the colour image belongs is a mistake, not a grey frame.
+/// passing one where the colour image belongs is a mistake, not a grey frame (a 16-bit mono
+/// camera image must be converted to 8 bits first).
 ///
 /// # Errors
 /// Unreadable ([`IoError::Io`]), not PNG/JPEG, corrupt or truncated ([`IoError::Corrupt`]);
@@ -106,7 +107,7 @@ pub fn read_rgb(path: impl AsRef<Path>) -> Result<RgbImage> {
 /// [`crate::MAX_IMAGE_PIXELS`] pixels (checked before anything is allocated).
 pub fn rgb_from_bytes(path: &Path, bytes: &[u8]) -> Result<RgbImage> {
     let img = decode_image_bytes(path, bytes, None)?;
-    if matches!(img.color(), image::ColorType::L16 | image::ColorType::La16) {
+    if img.color() == image::ColorType::L16 {
         return Err(IoError::invalid(
             path,
             "is a 16-bit single-channel image, the format of depth maps in millimetres, where \

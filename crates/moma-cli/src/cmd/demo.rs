@@ -38,8 +38,9 @@ pub struct DemoArgs {
     /// Run on this moma set instead of the bundled scene.
     #[arg(long, value_name = "DIR")]
     pub set: Option<PathBuf>,
-    /// Frames of the bundled scene (2 to 1000: one to calibrate on, the others evaluated).
-    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u16).range(2..=1000))]
+    /// Frames of the bundled scene (2 to 100: one to calibrate on, the others evaluated; the
+    /// frame ids `frame_00`… sort in frame order up to 100).
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u16).range(2..=100))]
     pub frames: u16,
     /// Skip aligned-depth, colour-map and point-cloud exports (figures and tables only).
     #[arg(long)]

@@ -218,11 +218,19 @@ impl EvalOptions {
             bail!("--brightness factors must be positive numbers");
         }
         let realign = match self.realign {
-            Some(_) => Some(moma_eval::realign::RealignEval {
-                config: self.realign_flags.config()?,
-                brightness: self.brightness.clone(),
-                ..Default::default()
-            }),
+            Some(_) => {
+                let r = moma_eval::realign::RealignEval {
+                    config: self.realign_flags.config()?,
+                    brightness: self.brightness.clone(),
+                    ..Default::default()
+                };
+                // Refused here, before any calibration runs.
+                for &b in &r.brightness {
+                    moma_eval::realign::check_brightness(b, r.brightness_response)
+                        .context("--brightness")?;
+                }
+                Some(r)
+            }
             None => None,
         };
         let robust: Vec<Robust> = self

@@ -561,7 +561,7 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     let mut step_times_s = Vec::with_capacity(steps.min(1 << 16));
     let end = args
         .stop_after
-        .map_or(steps, |k| (start_step + k).min(steps));
+        .map_or(steps, |k| start_step.saturating_add(k).min(steps));
     for step in start_step..end {
         let t_step = Instant::now();
         let mut rng =
