@@ -28,6 +28,12 @@ impl ImageSize {
     pub const fn pixels(&self) -> usize {
         self.width.saturating_mul(self.height)
     }
+    /// Whether the size is non-empty and at most [`MAX_IMAGE_PIXELS`]: the bound every size read
+    /// from a file must meet before anything is allocated for it.
+    pub const fn is_within_limits(&self) -> bool {
+        let p = self.pixels();
+        p > 0 && p <= MAX_IMAGE_PIXELS
+    }
     /// The size of an `(height, width)` array.
     pub fn of<T>(a: &ArrayView2<'_, T>) -> Self {
         Self::new(a.ncols(), a.nrows())

@@ -571,7 +571,7 @@ impl Calibration {
     /// naming the problem.
     pub fn validate(&self) -> Result<()> {
         let size = self.image_size();
-        if size.pixels() == 0 || size.pixels() > crate::image::MAX_IMAGE_PIXELS {
+        if !size.is_within_limits() {
             return Err(CoreError::InvalidParameter(format!(
                 "calibration image size {size} is empty or too large"
             )));

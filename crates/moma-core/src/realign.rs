@@ -361,7 +361,7 @@ impl AnchorStore {
         let (hh, hw) = half(self.size);
         if self.size.width < MIN_ANCHOR_IMAGE_SIDE_PX
             || self.size.height < MIN_ANCHOR_IMAGE_SIDE_PX
-            || self.size.pixels() > crate::image::MAX_IMAGE_PIXELS
+            || !self.size.is_within_limits()
         {
             return Err(CoreError::InvalidParameter(format!(
                 "anchor store image size {} is too small or too large",
@@ -412,9 +412,7 @@ impl TryFrom<AnchorStoreFile> for AnchorStore {
         let size = ImageSize::new(f.width, f.height);
         if f.width < MIN_ANCHOR_IMAGE_SIDE_PX
             || f.height < MIN_ANCHOR_IMAGE_SIDE_PX
-            || f.width
-                .checked_mul(f.height)
-                .is_none_or(|p| p > crate::image::MAX_IMAGE_PIXELS)
+            || !size.is_within_limits()
         {
             return Err(format!(
                 "anchor store size {size} is too small or too large"

@@ -10,11 +10,12 @@ use crate::error::{GraspError, Result, positive};
 /// a stroke of 1e30 m would never finish.
 pub const MAX_GRIPPER_SIZE_M: f32 = 1.0;
 
-/// A gripper dimension: finite, > 0 and at most [`MAX_GRIPPER_SIZE_M`].
-fn size(name: &str, value: f32) -> Result<()> {
-    positive(name, value, GraspError::InvalidGripper)?;
+/// A gripper dimension (or a grasp width): finite, > 0 and at most [`MAX_GRIPPER_SIZE_M`];
+/// `err` builds the error naming it.
+pub(crate) fn gripper_size(name: &str, value: f32, err: fn(String) -> GraspError) -> Result<()> {
+    positive(name, value, err)?;
     if value > MAX_GRIPPER_SIZE_M {
-        return Err(GraspError::InvalidGripper(format!(
+        return Err(err(format!(
             "{name} = {value} m is larger than any gripper (at most {MAX_GRIPPER_SIZE_M} m)"
         )));
     }
@@ -80,7 +81,7 @@ impl ParallelJaw {
             ("contact_to_tip_m", self.contact_to_tip_m),
             ("opening_clearance_m", self.opening_clearance_m),
         ] {
-            size(name, v)?;
+            gripper_size(name, v, GraspError::InvalidGripper)?;
         }
         if self.contact_to_tip_m >= self.finger_length_m {
             return Err(GraspError::InvalidGripper(format!(
@@ -123,9 +124,17 @@ impl SuctionCup {
     /// [`GraspError::InvalidGripper`] naming the field (every size finite, > 0 and at most
     /// [`MAX_GRIPPER_SIZE_M`]).
     pub fn validate(&self) -> Result<()> {
-        size("radius_m", self.radius_m)?;
-        size("compliance_m", self.compliance_m)?;
-        size("tool_length_m", self.tool_length_m)
+        gripper_size("radius_m", self.radius_m, GraspError::InvalidGripper)?;
+        gripper_size(
+            "compliance_m",
+            self.compliance_m,
+            GraspError::InvalidGripper,
+        )?;
+        gripper_size(
+            "tool_length_m",
+            self.tool_length_m,
+            GraspError::InvalidGripper,
+        )
     }
 }
 

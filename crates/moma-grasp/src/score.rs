@@ -74,15 +74,8 @@ pub fn score_parallel(
     jaw.validate()?;
     config.exec.validate()?;
     positive("mu", config.mu, GraspError::InvalidConfig)?;
-    positive("width_m", pose.width_m, GraspError::InvalidGrasp)?;
     // The fingers march over the width: bounded like every gripper size (no jaw opens wider).
-    if pose.width_m > crate::gripper::MAX_GRIPPER_SIZE_M {
-        return Err(GraspError::InvalidGrasp(format!(
-            "width_m = {} m is wider than any gripper opens (at most {} m)",
-            pose.width_m,
-            crate::gripper::MAX_GRIPPER_SIZE_M
-        )));
-    }
+    crate::gripper::gripper_size("width_m", pose.width_m, GraspError::InvalidGrasp)?;
     let a = unit("approach", pose.approach)?;
     let b = unit("closing", pose.closing)?;
     let b = b - a * a.dot(&b);

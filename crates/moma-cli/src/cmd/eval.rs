@@ -214,9 +214,6 @@ impl EvalOptions {
             .as_ref()
             .map(|p| moma_io::read_mask(p).context("reading the --workspace mask"))
             .transpose()?;
-        if self.brightness.iter().any(|b| !(b.is_finite() && *b > 0.0)) {
-            bail!("--brightness factors must be positive numbers");
-        }
         let realign = match self.realign {
             Some(_) => {
                 let r = moma_eval::realign::RealignEval {

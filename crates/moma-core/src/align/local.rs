@@ -70,7 +70,7 @@ use super::lwlr;
 use super::ssra::{self, SsraConfig, SsraModel, solve_spd4};
 use super::{AlignmentModel, Sample, SampleSet};
 use crate::error::{CoreError, Result};
-use crate::image::{ImageSize, MAX_IMAGE_PIXELS};
+use crate::image::ImageSize;
 
 /// Fewest samples `gssa-local` needs (GSSA's 2, plus 2 so that leave-one-out is defined).
 pub const GSSA_LOCAL_MIN_SAMPLES: usize = gssa::MIN_SAMPLES + 2;
@@ -844,7 +844,7 @@ impl LocalModel {
             )))
         };
         self.config.validate()?;
-        if self.image_size.pixels() == 0 || self.image_size.pixels() > MAX_IMAGE_PIXELS {
+        if !self.image_size.is_within_limits() {
             return bad(format!(
                 "image size {} is empty or too large",
                 self.image_size

@@ -148,7 +148,7 @@ impl LwlrConfig {
                 "LWLR grid step must be ≥ 1 px".into(),
             ));
         }
-        if size.pixels() == 0 || size.pixels() > crate::image::MAX_IMAGE_PIXELS {
+        if !size.is_within_limits() {
             return Err(CoreError::InvalidParameter(format!(
                 "LWLR image size {size} is empty or too large"
             )));

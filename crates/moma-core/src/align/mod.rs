@@ -433,7 +433,7 @@ impl AlignmentModel {
             }
         };
         if let Some(size) = self.image_size()
-            && (size.pixels() == 0 || size.pixels() > crate::image::MAX_IMAGE_PIXELS)
+            && !size.is_within_limits()
         {
             return Err(CoreError::InvalidParameter(format!(
                 "{} calibration image size {size} is empty or too large",
