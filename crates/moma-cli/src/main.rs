@@ -22,32 +22,52 @@ struct Cli {
     command: Command,
 }
 
+// `about` (not a doc comment) on each variant: a doc comment would also reset the long help
+// that each command's `Args` struct documents, and `moma <command> --help` would lose it.
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Fit an alignment from one frame's prediction and ground-truth depth; write calib.json.
+    #[command(
+        about = "Fit an alignment from one frame's prediction and ground-truth depth; write calib.json."
+    )]
     Calibrate(cmd::calibrate::CalibrateArgs),
-    /// Apply a calibration to predictions (or RGB images): metric depth, colour maps, point clouds.
+    #[command(
+        about = "Apply a calibration to predictions (or RGB images): metric depth, colour maps, point clouds."
+    )]
     Align(cmd::align::AlignArgs),
-    /// Depth metrics (δ1.05, δ1.10, δ1.25, REL, RMSE, MAE) of a metric depth map against ground truth.
+    #[command(
+        about = "Depth metrics (δ1.05, δ1.10, δ1.25, REL, RMSE, MAE) of a metric depth map against ground truth."
+    )]
     Metrics(cmd::metrics::MetricsArgs),
-    /// Run Depth Anything V2 on RGB images and write the raw predictions.
+    #[command(about = "Run Depth Anything V2 on RGB images and write the raw predictions.")]
     Predict(cmd::predict::PredictArgs),
-    /// Write simulated depth-model predictions for a moma set (labelled "simulated").
+    #[command(
+        about = "Write simulated depth-model predictions for a moma set (labelled \"simulated\")."
+    )]
     Simulate(cmd::simulate::SimulateArgs),
-    /// Evaluate alignment methods on moma sets (calibrate on one frame, score all others).
+    #[command(
+        about = "Evaluate alignment methods on moma sets (calibrate on one frame, score all others)."
+    )]
     Eval(cmd::eval::EvalArgs),
-    /// Ablations: number of samples, normalisation, prediction source, transparent objects.
+    #[command(
+        about = "Ablations: number of samples, normalisation, prediction source, transparent objects."
+    )]
     Ablate(cmd::ablate::AblateArgs),
-    /// Plan parallel-jaw or suction grasps on one frame's metric depth (or calibrated prediction / RGB).
+    #[command(
+        about = "Plan parallel-jaw or suction grasps on one frame's metric depth (or calibrated prediction / RGB)."
+    )]
     Grasp(cmd::grasp::GraspArgs),
-    /// Grasp success rates by PROXY: plan on aligned depth, execute on ground truth (METHOD.md §8).
+    #[command(
+        about = "Grasp success rates by PROXY: plan on aligned depth, execute on ground truth (METHOD.md §8)."
+    )]
     GraspEval(cmd::grasp_eval::GraspEvalArgs),
-    /// The whole idea in one command on a bundled procedural scene (or on a real set).
+    #[command(
+        about = "The whole idea in one command on a bundled procedural scene (or on a real set)."
+    )]
     Demo(cmd::demo::DemoArgs),
-    /// Fine-tune Depth Anything V2 with LoRA on moma sets; write an adapter.
+    #[command(about = "Fine-tune Depth Anything V2 with LoRA on moma sets; write an adapter.")]
     #[cfg(feature = "candle")]
     Finetune(cmd::finetune::FinetuneArgs),
-    /// LoRA adapter utilities (merge into full weights).
+    #[command(about = "LoRA adapter utilities (merge into full weights).")]
     #[cfg(feature = "candle")]
     Lora(cmd::lora::LoraArgs),
 }

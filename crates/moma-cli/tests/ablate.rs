@@ -141,3 +141,24 @@ fn ablate_calibrates_on_the_first_k_frames() {
     let e = fails(&ablate("norm", &scene, &pred, &d3, &framed));
     assert!(e.contains("calibration frame"), "{e}");
 }
+
+/// The ablations run one-shot calibrations: `--realign` and `--robust`, which `ablate` shares with
+/// `eval`, are refused by name before anything is written (they used to be accepted, and their
+/// rows mixed into the ablation tables or skipped).
+#[test]
+fn ablate_refuses_the_variant_options_of_eval() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let out = tmp.path().join("ab");
+    for (extra, named) in [
+        (&["--realign", "anchors"][..], "--realign"),
+        (&["--robust", "huber"][..], "--robust"),
+    ] {
+        let err = fails(&ablate("norm", &scene, &pred, &out, extra));
+        assert!(
+            err.contains(named) && err.contains("not supported by `moma ablate`"),
+            "{err}"
+        );
+        assert!(!out.exists());
+    }
+}

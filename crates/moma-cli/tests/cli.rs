@@ -233,6 +233,28 @@ fn bad_input_is_a_clear_error() {
         "{err}"
     );
 
+    // Two inputs with the same output name: refused, naming both, before anything is written
+    // (the second's files used to replace the first's without a word).
+    let other = tmp.path().join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    let twin = other.join("frame_01.npy");
+    std::fs::copy(pred.join("frame_02.npy"), &twin).unwrap();
+    let err = fails(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&frame1),
+        s(&twin),
+        "-o",
+        s(&a),
+    ]);
+    assert!(
+        err.contains("same output name 'frame_01'") && err.contains(s(&twin)),
+        "{err}"
+    );
+    assert!(!a.exists());
+
     // --ply without intrinsics.
     let err = fails(&align_args(
         &calib,
@@ -753,4 +775,100 @@ fn grasp_eval_without_any_object_large_enough_is_an_error_not_a_nan_rate() {
         "{err}"
     );
     assert!(!out.join("grasp_results.json").exists());
+}
+
+/// `grasp-eval` shares `eval`'s options but plans on one-shot calibrations: the variants it does
+/// not run are refused (they used to be accepted and silently skipped), and ground-truth
+/// outliers, which it does apply, are named in every row's source.
+#[test]
+fn grasp_eval_refuses_variants_it_does_not_run_and_labels_outliers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, _) = demo(tmp.path());
+    let out = tmp.path().join("ge");
+    let base = [
+        "grasp-eval",
+        "--set",
+        s(&scene),
+        "--simulate",
+        "--methods",
+        "gssa",
+        "--seeds",
+        "1",
+        "--gripper",
+        "suction",
+        "-o",
+        s(&out),
+    ];
+    fn with<'a>(base: &[&'a str], extra: &[&'a str]) -> Vec<&'a str> {
+        let mut a = base.to_vec();
+        a.extend_from_slice(extra);
+        a
+    }
+    for (extra, named) in [
+        (&["--realign", "anchors"][..], "--realign"),
+        (&["--realign", "anchors", "--brightness", "0.8"][..], "--realign"),
+        (&["--robust", "huber"][..], "--robust"),
+        (&["--norm", "minmax,median"][..], "more than one normalisation"),
+    ] {
+        let err = fails(&with(&base, extra));
+        assert!(
+            err.contains(named) && err.contains("not supported"),
+            "{extra:?}: {err}"
+        );
+        assert!(!out.join("grasp_results.json").exists());
+    }
+    let rows: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string({
+            ok(&with(&base, &["--gt-outliers", "0.2"]));
+            out.join("grasp_results.json")
+        })
+        .unwrap(),
+    )
+    .unwrap();
+    let rows = rows.as_array().unwrap();
+    let gssa: Vec<&serde_json::Value> = rows.iter().filter(|r| r["method"] == "gssa").collect();
+    assert!(!gssa.is_empty());
+    for r in gssa {
+        let source = r["source"].as_str().unwrap();
+        assert!(
+            source.contains("SIMULATED") && source.contains("20.0 % SIMULATED outliers"),
+            "{source}"
+        );
+    }
+    let md = std::fs::read_to_string(out.join("grasp_results.md")).unwrap();
+    assert!(md.contains("20.0 % SIMULATED outliers"), "{md}");
+}
+
+/// `moma COMMAND --help` prints the command's own documentation (its formats, protocol and
+/// examples), not only the one-line summary of `moma --help`: a doc comment on the subcommand
+/// variant used to replace it, which left "(JSON, see above)" in `grasp --help` pointing at
+/// nothing.
+#[test]
+fn every_command_help_prints_its_long_documentation() {
+    let cases: &[(&[&str], &str)] = &[
+        (&["calibrate"], "each frame is normalised on its own"),
+        (&["align"], "NAME.ply        with --ply"),
+        (&["metrics"], "REL = mean |p−g|/g"),
+        (&["predict"], "NAME.npy"),
+        (&["simulate"], "viewpoint/intrinsics mismatch"),
+        (&["eval"], "Protocol (METHOD.md §4)"),
+        (&["ablate"], "ablation_<name>"),
+        (&["grasp"], "camera_to_base"),
+        (&["grasp-eval"], "8-connected component"),
+        (&["demo"], "ray-cast exact depth"),
+    ];
+    for (cmd, marker) in cases {
+        let mut args = cmd.to_vec();
+        args.push("--help");
+        let long = ok(&args);
+        assert!(
+            long.contains(marker),
+            "`moma {} --help` lacks {marker:?}:\n{long}",
+            cmd.join(" ")
+        );
+    }
+    // the overview keeps its one-line summaries
+    let overview = ok(&["--help"]);
+    assert!(overview.contains("Plan parallel-jaw or suction grasps"));
+    assert!(!overview.contains("camera_to_base"));
 }

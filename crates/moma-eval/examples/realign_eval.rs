@@ -118,9 +118,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("{}", realign_table(&all).to_markdown());
     // the check: per method and variant, the change averaged over sets
     println!(
-        "\n| method | variant | mean MAE change over sets % | sets made worse | worst frame rise mm | frames worse |"
+        "\n| method | variant | mean MAE change over sets % | sets made worse | worst frame rise mm | frames worse | worse > 2 mm | frames worse > 2 mm (mean over seeds) | worst rise of a frame's mean mm |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for m in &methods {
         for v in [
             "realign-anchors",
@@ -147,8 +147,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .iter()
                 .filter_map(|r| r.realign)
                 .fold((0, 0), |(w, n), s| (w + s.worse, n + s.results));
+            let (wb, fb, ff) =
+                rows.iter()
+                    .filter_map(|r| r.realign)
+                    .fold((0, 0, 0.0f64), |(wb, fb, ff), s| {
+                        (
+                            wb + s.worse_beyond_bound,
+                            fb + s.frames_beyond_bound,
+                            ff.max(s.max_frame_worse_mm),
+                        )
+                    });
             println!(
-                "| {} | {v} | {:+.1} | {worse_sets}/{} | {max_rise:.2} | {w}/{n} |",
+                "| {} | {v} | {:+.1} | {worse_sets}/{} | {max_rise:.2} | {w}/{n} | {wb} | {fb} | {ff:.2} |",
                 m.to_string().to_uppercase(),
                 100.0 * changes.iter().sum::<f64>() / changes.len() as f64,
                 changes.len()
@@ -218,6 +228,9 @@ fn average_over_sim_seeds(rows: Vec<EvalResult>) -> Vec<EvalResult> {
                     a.worse += b.worse;
                     a.results += b.results;
                     a.max_worse_mm = a.max_worse_mm.max(b.max_worse_mm);
+                    a.worse_beyond_bound += b.worse_beyond_bound;
+                    a.frames_beyond_bound += b.frames_beyond_bound;
+                    a.max_frame_worse_mm = a.max_frame_worse_mm.max(b.max_frame_worse_mm);
                     a.mean_anchors += w * (b.mean_anchors - a.mean_anchors);
                     a.worse_fraction = a.worse as f64 / a.results as f64;
                 }

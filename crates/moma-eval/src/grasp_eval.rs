@@ -245,9 +245,14 @@ fn gt_scenes(
 }
 
 /// Evaluates one set: rows for every (method, gripper), plus `gt` and (with raw depth) `sensor`.
+/// One-shot calibrations with the first normalisation only: the re-alignment and robust variants
+/// of [`EvalConfig`](crate::protocol::EvalConfig) are refused rather than silently skipped.
+/// With [`EvalConfig::gt_outliers`](crate::protocol::EvalConfig::gt_outliers) the rows' source
+/// says so.
 ///
 /// # Errors
-/// Bad input (see [`Prepared::new`]), alignment errors, an invalid planner configuration.
+/// Bad input (see [`Prepared::new`]), alignment errors, an invalid planner configuration, an
+/// unsupported variant or more than one normalisation.
 pub fn grasp_evaluate(
     set: &LoadedSet,
     preds: &PredictionSet,
@@ -258,6 +263,25 @@ pub fn grasp_evaluate(
             "the smallest object region must be at least 1 pixel".into(),
         ));
     }
+    let unsupported = [
+        (config.eval.realign.is_some(), "re-alignment (--realign)"),
+        (!config.eval.robust.is_empty(), "robust fits (--robust)"),
+        (config.eval.norms.len() > 1, "more than one normalisation"),
+    ];
+    if let Some((_, what)) = unsupported.iter().find(|(given, _)| *given) {
+        return Err(EvalError::InvalidParameter(format!(
+            "the grasp evaluation plans on one-shot calibrations with one normalisation: {what} \
+             is not supported here (use `moma eval` for it)"
+        )));
+    }
+    let source = match config.eval.gt_outliers {
+        Some(f) => format!(
+            "{}; calibrated on ground truth with {:.1} % SIMULATED outliers",
+            preds.label,
+            100.0 * f
+        ),
+        None => preds.label.clone(),
+    };
     let prep = Prepared::new(set, preds, &config.eval)?;
     let eval_idx = prep.eval_indices();
     let mut trials = Vec::new();
@@ -357,7 +381,7 @@ pub fn grasp_evaluate(
                 method.to_string(),
                 g,
                 std::mem::take(&mut per_gripper[k]),
-                &preds.label,
+                &source,
                 preds.simulated,
             ));
         }

@@ -73,6 +73,12 @@ pub struct RealignStats {
     pub worse_beyond_bound: usize,
     /// Largest MAE rise over all results, millimetres (0 when none rose).
     pub max_worse_mm: f64,
+    /// Frames whose MAE, averaged over the seeds, rose by more than [`WORSE_BOUND_MM`].
+    #[serde(default)]
+    pub frames_beyond_bound: usize,
+    /// Largest rise of a frame's MAE averaged over the seeds, millimetres (0 when none rose).
+    #[serde(default)]
+    pub max_frame_worse_mm: f64,
     /// Mean anchors found per frame.
     pub mean_anchors: f64,
     /// Per-image-mean MAE of the one-shot results these were compared with (metres, mean over
@@ -290,25 +296,17 @@ pub fn evaluate_realign(
             .collect()
     };
     let one_mean = agg(|p| p.0, DepthMetrics::mean)?;
-    let mut results = 0usize;
-    let mut accepted = 0usize;
-    let mut worse = 0usize;
-    let mut worse_beyond_bound = 0usize;
-    let mut max_worse_m = 0.0f64;
-    let mut anchors = 0usize;
-    for (_, fr) in &per_seed {
-        for (one, re, rep) in fr {
-            results += 1;
-            accepted += usize::from(rep.accepted);
-            anchors += rep.anchors;
-            let d = re.mae - one.mae;
-            if d > 1e-6 {
-                worse += 1;
-                worse_beyond_bound += usize::from(d * 1e3 > WORSE_BOUND_MM);
-                max_worse_m = max_worse_m.max(d);
-            }
-        }
-    }
+    let rises = Rises::of(
+        &per_seed
+            .iter()
+            .map(|(_, fr)| fr.iter().map(|(one, re, _)| (one.mae, re.mae)).collect())
+            .collect::<Vec<_>>(),
+    );
+    let reports = per_seed.iter().flat_map(|(_, fr)| fr.iter().map(|p| &p.2));
+    let (accepted, anchors) = reports.fold((0usize, 0usize), |(a, n), r| {
+        (a + usize::from(r.accepted), n + r.anchors)
+    });
+    let results = rises.results;
     let realigned: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = per_seed
         .iter()
         .map(|(r, fr)| (r.clone(), fr.iter().map(|p| p.1).collect()))
@@ -331,14 +329,65 @@ pub fn evaluate_realign(
         brightness: beta,
         results,
         accepted,
-        worse,
-        worse_fraction: worse as f64 / results.max(1) as f64,
-        worse_beyond_bound,
-        max_worse_mm: max_worse_m * 1e3,
+        worse: rises.worse,
+        worse_fraction: rises.worse as f64 / results.max(1) as f64,
+        worse_beyond_bound: rises.beyond_bound,
+        max_worse_mm: rises.max_m * 1e3,
+        frames_beyond_bound: rises.frame_means_beyond_bound,
+        max_frame_worse_mm: rises.max_frame_mean_m * 1e3,
         mean_anchors: anchors as f64 / results.max(1) as f64,
         one_shot_mae_m: one_mean.iter().map(|m| m.mae).sum::<f64>() / one_mean.len() as f64,
     });
     Ok(row)
+}
+
+/// How re-alignment raised the MAE, from `(one-shot, re-aligned)` MAEs in metres indexed
+/// `[seed][frame]`: per result (frame × seed), and per frame averaged over the seeds (which draw
+/// only the calibration samples).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Rises {
+    /// Frame × seed results.
+    results: usize,
+    /// Results whose MAE rose by more than 1 µm.
+    worse: usize,
+    /// Results whose MAE rose by more than [`WORSE_BOUND_MM`].
+    beyond_bound: usize,
+    /// Largest rise of a result, metres (0 when none rose).
+    max_m: f64,
+    /// Frames whose rise averaged over the seeds exceeds [`WORSE_BOUND_MM`].
+    frame_means_beyond_bound: usize,
+    /// Largest rise of a frame averaged over the seeds, metres (0 when none rose).
+    max_frame_mean_m: f64,
+}
+
+impl Rises {
+    fn of(maes: &[Vec<(f64, f64)>]) -> Self {
+        let bound_m = WORSE_BOUND_MM * 1e-3;
+        let mut r = Self {
+            results: 0,
+            worse: 0,
+            beyond_bound: 0,
+            max_m: 0.0,
+            frame_means_beyond_bound: 0,
+            max_frame_mean_m: 0.0,
+        };
+        for &(one, re) in maes.iter().flatten() {
+            let d = re - one;
+            r.results += 1;
+            if d > 1e-6 {
+                r.worse += 1;
+                r.beyond_bound += usize::from(d > bound_m);
+                r.max_m = r.max_m.max(d);
+            }
+        }
+        let frames = maes.first().map_or(0, Vec::len);
+        for f in 0..frames {
+            let d = maes.iter().map(|s| s[f].1 - s[f].0).sum::<f64>() / maes.len() as f64;
+            r.frame_means_beyond_bound += usize::from(d > bound_m);
+            r.max_frame_mean_m = r.max_frame_mean_m.max(d);
+        }
+        r
+    }
 }
 
 /// The re-alignment table: per row with [`RealignStats`], the one-shot and re-aligned MAE (mm,
@@ -355,6 +404,7 @@ pub fn realign_table(results: &[EvalResult]) -> Table {
         "frames worse",
         &format!("worse > {WORSE_BOUND_MM} mm"),
         "max worse mm",
+        &format!("frame means > {WORSE_BOUND_MM} mm"),
         "anchors/frame",
     ]
     .iter()
@@ -381,6 +431,10 @@ pub fn realign_table(results: &[EvalResult]) -> Table {
                 ),
                 s.worse_beyond_bound.to_string(),
                 format!("{:.2}", s.max_worse_mm),
+                format!(
+                    "{} (max {:.2})",
+                    s.frames_beyond_bound, s.max_frame_worse_mm
+                ),
                 format!("{:.0}", s.mean_anchors),
             ]
         })
@@ -397,5 +451,32 @@ pub fn realign_table(results: &[EvalResult]) -> Table {
         ),
         headers,
         rows,
+    }
+}
+
+#[cfg(test)]
+mod rises_tests {
+    use super::Rises;
+
+    #[test]
+    fn rises_count_results_and_frame_means_separately() {
+        // two seeds × three frames, (one-shot, re-aligned) MAE in metres
+        let maes = vec![
+            vec![(0.010, 0.0135), (0.020, 0.015), (0.030, 0.030)],
+            vec![(0.012, 0.0120), (0.020, 0.0235), (0.030, 0.0305)],
+        ];
+        let r = Rises::of(&maes);
+        assert_eq!(r.results, 6);
+        // rises: +3.5, −5, 0 | 0, +3.5, +0.5 mm
+        assert_eq!(r.worse, 3);
+        assert_eq!(r.beyond_bound, 2);
+        assert!((r.max_m - 0.0035).abs() < 1e-12);
+        // frame means: +1.75, −0.75, +0.25 mm: none beyond 2 mm
+        assert_eq!(r.frame_means_beyond_bound, 0);
+        assert!((r.max_frame_mean_m - 0.00175).abs() < 1e-12);
+        // one seed alone: its frame means are its results
+        let one = Rises::of(&maes[..1]);
+        assert_eq!((one.beyond_bound, one.frame_means_beyond_bound), (1, 1));
+        assert_eq!(Rises::of(&[]).results, 0);
     }
 }

@@ -149,6 +149,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
         | AblateCommand::Transparent { common } => common,
     };
     check_calib_frame_counts(&[common.calib_frames]).context("--calib-frames")?;
+    common.eval.one_shot_only("ablate")?;
     let k = common.calib_frames;
     let mut notes = Vec::new();
     create_dir(&common.out)?;

@@ -126,7 +126,9 @@ pub struct AlignArgs {
     /// Colour-map range in metres, e.g. `0.4,1.2` (default: 2nd–98th percentile per frame).
     #[arg(long, value_name = "MIN,MAX", value_parser = parse_range_m)]
     pub range_m: Option<(f32, f32)>,
-    /// Workspace mask for normalisation (overrides the one recorded in the calibration file).
+    /// Check only: a workspace mask PNG that must equal the one embedded in the calibration file
+    /// (which always normalises over its own workspace); a different mask, or one given for a
+    /// calibration made without a workspace, is an error.
     #[arg(long, value_name = "PNG")]
     pub workspace: Option<PathBuf>,
     /// Print a JSON summary on stdout (and no progress bar).
@@ -160,6 +162,11 @@ struct FrameSummary {
 }
 
 pub fn run(args: &AlignArgs) -> Result<()> {
+    super::common::check_unique_output_names(if args.source.rgb.is_empty() {
+        &args.source.pred
+    } else {
+        &args.source.rgb
+    })?;
     let calib = moma_io::read_calibration(&args.calib)?;
     let mut source = args
         .source

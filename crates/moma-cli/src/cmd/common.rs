@@ -373,6 +373,23 @@ impl Source {
     }
 }
 
+/// Refuses inputs whose outputs would overwrite each other: two paths with the same
+/// [`frame_name`] (the second's files would silently replace the first's).
+pub fn check_unique_output_names(inputs: &[PathBuf]) -> Result<()> {
+    let mut seen = std::collections::HashMap::new();
+    for p in inputs {
+        if let Some(first) = seen.insert(frame_name(p), p) {
+            bail!(
+                "two inputs map to the same output name '{}' ({} and {}): rename one",
+                frame_name(p),
+                first.display(),
+                p.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// The output name of an input file: its stem, or for a moma-set frame (`frames/ID/rgb.png`) the frame id.
 pub fn frame_name(path: &Path) -> String {
     let stem = path

@@ -188,6 +188,18 @@ pub struct EvalOptions {
 }
 
 impl EvalOptions {
+    /// Refuses the variant options (`--realign`, `--robust`) for `command`, which runs one-shot
+    /// calibrations only and would otherwise skip them silently or mix their rows in.
+    pub fn one_shot_only(&self, command: &str) -> Result<()> {
+        if self.realign.is_some() {
+            bail!("--realign is not supported by `moma {command}` (use `moma eval` for it)");
+        }
+        if !self.robust.is_empty() {
+            bail!("--robust is not supported by `moma {command}` (use `moma eval` for it)");
+        }
+        Ok(())
+    }
+
     /// The library configuration for predictions of `kind` (it decides the default methods).
     pub fn config(&self, kind: PredictionKind) -> Result<EvalConfig> {
         let norms = self.norm.clone();

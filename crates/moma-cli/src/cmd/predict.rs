@@ -61,16 +61,7 @@ struct FrameRecord {
 }
 
 pub fn run(args: &PredictArgs) -> Result<()> {
-    let mut names = std::collections::HashSet::new();
-    for p in &args.images {
-        if !names.insert(frame_name(p)) {
-            bail!(
-                "two inputs map to the same output name '{}' (e.g. {}): rename them",
-                frame_name(p),
-                p.display()
-            );
-        }
-    }
+    super::common::check_unique_output_names(&args.images)?;
     let super::common::LoadedModel { mut model, weights } = args.model.load()?;
     let kind = model.spec().head.prediction_kind();
     create_dir(&args.output)?;
