@@ -872,3 +872,59 @@ fn every_command_help_prints_its_long_documentation() {
     assert!(overview.contains("Plan parallel-jaw or suction grasps"));
     assert!(!overview.contains("camera_to_base"));
 }
+
+/// A depth model's raw output is not metres: `metrics --pred` and `grasp --depth` refuse a `.npy`
+/// that the `predictions.json` beside it lists (they used to score and plan on disparities as
+/// if they were metres), and still take the aligned maps.
+#[test]
+fn raw_predictions_are_refused_where_metres_are_expected() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let frames = scene.join("frames");
+    let raw = pred.join("frame_01.npy");
+    let gt = frames.join("frame_01/depth.png");
+    let err = fails(&["metrics", "--pred", s(&raw), "--gt", s(&gt)]);
+    assert!(
+        err.contains(s(&raw))
+            && err.contains("raw SIMULATED inverse-depth prediction")
+            && err.contains("not metres")
+            && err.contains("moma align"),
+        "{err}"
+    );
+    let err = fails(&[
+        "grasp",
+        "--depth",
+        s(&raw),
+        "--camera",
+        s(&scene.join("camera.json")),
+        "--gripper",
+        "suction",
+    ]);
+    assert!(
+        err.contains("not metres") && err.contains("--calib"),
+        "{err}"
+    );
+    // the same map once aligned is metres: accepted
+    let calib = tmp.path().join("calib.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&frames.join("frame_00/depth.png")),
+        "-o",
+        s(&calib),
+    ]);
+    let aligned = tmp.path().join("aligned");
+    ok(&align_args(&calib, &raw, &aligned, &[]));
+    let m: serde_json::Value = serde_json::from_str(&ok(&[
+        "metrics",
+        "--pred",
+        s(&aligned.join("frame_01.depth.npy")),
+        "--gt",
+        s(&gt),
+        "--json",
+    ]))
+    .unwrap();
+    assert!(m["d125"].as_f64().unwrap() > 0.9, "{m}");
+}

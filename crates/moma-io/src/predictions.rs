@@ -34,6 +34,9 @@ pub struct PredictionIndex {
     pub simulated: bool,
     /// Where the maps come from, for labels (model and weights, or the simulator).
     pub source: String,
+    /// The names of the maps it lists (`<name>.npy` beside it): the `frames` field, as names or
+    /// records with a `name`; empty when absent (legacy indexes).
+    pub frames: Vec<String>,
 }
 
 #[derive(Deserialize)]
@@ -46,6 +49,16 @@ struct IndexHead {
     source: Option<String>,
     #[serde(default)]
     model: Option<serde_json::Value>,
+    #[serde(default)]
+    frames: Vec<FrameEntry>,
+}
+
+/// One entry of `frames`: `moma simulate` lists names, `moma predict` records with a `name`.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum FrameEntry {
+    Name(String),
+    Record { name: String },
 }
 
 #[derive(Deserialize)]
@@ -113,6 +126,13 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
             kind: head.prediction_kind,
             simulated: head.simulated,
             source,
+            frames: head
+                .frames
+                .into_iter()
+                .map(|f| match f {
+                    FrameEntry::Name(n) | FrameEntry::Record { name: n } => n,
+                })
+                .collect(),
         }));
     }
     let legacy = dir.join(LEGACY_SIMULATED_FILE);
@@ -125,6 +145,7 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
             kind: meta.kind,
             simulated: true,
             source: meta.label,
+            frames: Vec::new(),
         }));
     }
     Ok(None)
@@ -140,6 +161,25 @@ pub fn read_prediction_index_for(file: &Path) -> Result<Option<PredictionIndex>>
         _ => Path::new("."),
     };
     read_prediction_index(dir)
+}
+
+/// The index that lists `file` as one of its raw predictions (`<name>.npy` beside a
+/// `predictions.json` whose `frames` name it), else `None`. Commands that take metres use it to
+/// refuse a depth model's raw output, which is not metres.
+///
+/// # Errors
+/// As [`read_prediction_index`].
+pub fn prediction_index_listing(file: &Path) -> Result<Option<PredictionIndex>> {
+    let is_npy = file
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    let Some(stem) = file.file_stem().and_then(|s| s.to_str()) else {
+        return Ok(None);
+    };
+    if !is_npy {
+        return Ok(None);
+    }
+    Ok(read_prediction_index_for(file)?.filter(|i| i.frames.iter().any(|f| f == stem)))
 }
 
 /// The prediction kind from every source that states one, which must agree; at least one must.
@@ -172,4 +212,49 @@ pub fn resolve_prediction_kind(
         }
     }
     Ok(first)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `frames` as `moma simulate` writes it (names) and as `moma predict` does (records); only a
+    /// listed `<name>.npy` is a prediction: the aligned `<name>.depth.npy` beside it is not.
+    #[test]
+    fn listing_finds_only_the_predictions_an_index_names() {
+        let dir = tempfile::tempdir().unwrap();
+        let index = |frames: &str| {
+            std::fs::write(
+                dir.path().join(PREDICTIONS_INDEX_FILE),
+                format!(
+                    r#"{{"format": "moma-predictions", "prediction_kind": "inverse-depth",
+                        "simulated": true, "source": "SIMULATED", "frames": {frames}}}"#
+                ),
+            )
+            .unwrap();
+        };
+        let file = |name: &str| dir.path().join(name);
+        for frames in [r#"["f_01", "f_02"]"#, r#"[{"name": "f_01", "predict_ms": 3.0}]"#] {
+            index(frames);
+            let found = prediction_index_listing(&file("f_01.npy")).unwrap().unwrap();
+            assert_eq!(found.kind, PredictionKind::InverseDepth);
+            assert!(found.simulated && found.frames.contains(&"f_01".to_string()));
+            assert!(prediction_index_listing(&file("f_01.depth.npy")).unwrap().is_none());
+            assert!(prediction_index_listing(&file("f_01.png")).unwrap().is_none());
+            assert!(prediction_index_listing(&file("other.npy")).unwrap().is_none());
+        }
+        // an index without `frames` (older writers) lists nothing
+        index("[]");
+        assert!(prediction_index_listing(&file("f_01.npy")).unwrap().is_none());
+        // a corrupt index is an error, not "no index"
+        std::fs::write(dir.path().join(PREDICTIONS_INDEX_FILE), "{").unwrap();
+        assert!(prediction_index_listing(&file("f_01.npy")).is_err());
+        // no index at all
+        let empty = tempfile::tempdir().unwrap();
+        assert!(
+            prediction_index_listing(&empty.path().join("f_01.npy"))
+                .unwrap()
+                .is_none()
+        );
+    }
 }

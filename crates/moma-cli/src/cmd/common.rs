@@ -373,6 +373,22 @@ impl Source {
     }
 }
 
+/// Reads a metric depth map for `flag`, refusing a depth model's raw output: a `.npy` that the
+/// `predictions.json` beside it lists as a prediction holds disparity or unscaled depth, not
+/// metres (`hint` says what to do instead).
+pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_core::MetricDepth> {
+    if let Some(index) = moma_io::prediction_index_listing(path)? {
+        bail!(
+            "{flag} {}: this is a raw {}{} prediction listed in {}, not metres; {hint}",
+            path.display(),
+            if index.simulated { "SIMULATED " } else { "" },
+            index.kind,
+            index.path.display()
+        );
+    }
+    Ok(moma_io::read_depth(path)?)
+}
+
 /// Refuses inputs whose outputs would overwrite each other: two paths with the same
 /// [`frame_name`] (the second's files would silently replace the first's).
 pub fn check_unique_output_names(inputs: &[PathBuf]) -> Result<()> {

@@ -154,7 +154,11 @@ fn read_gripper(args: &GraspArgs) -> Result<GripperGeometry> {
 /// The frame's metric depth, a name for messages, and its RGB image when known.
 fn load_depth(args: &GraspArgs) -> Result<(MetricDepth, String, Option<RgbImage>)> {
     if let Some(path) = &args.depth {
-        let depth = moma_io::read_depth(path)?;
+        let depth = super::common::read_metric_depth(
+            path,
+            "--depth",
+            "plan on it through its calibration instead (`--calib calib.json --pred FILE`)",
+        )?;
         return Ok((depth, path.display().to_string(), None));
     }
     let Some(calib_path) = &args.calib else {

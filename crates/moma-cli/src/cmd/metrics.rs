@@ -35,7 +35,12 @@ pub struct MetricsArgs {
 }
 
 pub fn run(args: &MetricsArgs) -> Result<()> {
-    let pred = moma_io::read_depth(&args.pred)?;
+    let pred = super::common::read_metric_depth(
+        &args.pred,
+        "--pred",
+        "align it first (`moma align --calib calib.json --pred FILE -o aligned/`) and score the \
+         aligned .depth.npy or .depth.png",
+    )?;
     // The I/O error names the ground-truth file; the context adds which map it is for.
     let gt = moma_io::read_depth_sized(&args.gt, pred.size())
         .with_context(|| format!("reading the ground truth for {}", args.pred.display()))?;
