@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{align_args, demo, fails, ok, s};
+use common::{align_args, demo, fails, moma, ok, s};
 
 /// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
@@ -927,4 +927,69 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
     ]))
     .unwrap();
     assert!(m["d125"].as_f64().unwrap() > 0.9, "{m}");
+}
+
+/// Provenance travels with the calibration: one fitted on SIMULATED predictions records it, and
+/// `align` / `grasp` label what they produce with it; `grasp --calib` takes the intrinsics the
+/// calibration records when no `--camera` is given, and plans exactly the same grasps.
+#[test]
+fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let frames = scene.join("frames");
+    let camera = scene.join("camera.json");
+    let calib = tmp.path().join("calib.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&frames.join("frame_00/depth.png")),
+        "--camera",
+        s(&camera),
+        "-o",
+        s(&calib),
+    ]);
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+    assert_eq!(file["created"]["simulated_predictions"], true);
+
+    // a copy of the prediction without its predictions.json: only the calibration knows
+    let loose = tmp.path().join("loose");
+    std::fs::create_dir_all(&loose).unwrap();
+    let frame1 = loose.join("frame_01.npy");
+    std::fs::copy(pred.join("frame_01.npy"), &frame1).unwrap();
+    let out = moma(&align_args(&calib, &frame1, &tmp.path().join("a"), &["--json"]));
+    assert!(out.status.success());
+    let rows: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(rows[0]["simulated"], true);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("fitted on SIMULATED predictions"));
+
+    let grasp = |extra: &[&str]| {
+        let mut a = vec![
+            "grasp",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(&frame1),
+            "--gripper",
+            "suction",
+            "--top",
+            "3",
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        moma(&a)
+    };
+    let with_camera = grasp(&["--camera", s(&camera)]);
+    let without = grasp(&[]);
+    assert!(with_camera.status.success() && without.status.success());
+    assert_eq!(with_camera.stdout, without.stdout);
+    assert!(!without.stdout.is_empty());
+    assert!(String::from_utf8_lossy(&without.stderr).contains("SIMULATED predictions"));
+
+    // a depth map carries no intrinsics
+    let aligned = tmp.path().join("a").join("frame_01.depth.npy");
+    let err = fails(&["grasp", "--depth", s(&aligned), "--gripper", "suction"]);
+    assert!(err.contains("--camera camera.json is needed"), "{err}");
 }

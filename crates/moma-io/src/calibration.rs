@@ -43,6 +43,11 @@ pub struct CreationInfo {
     /// Input files by role, e.g. `"prediction"`, `"ground_truth"`, `"camera"`, `"mask"`.
     #[serde(default)]
     pub sources: BTreeMap<String, String>,
+    /// `true` when the calibration was fitted on SIMULATED predictions (the `predictions.json`
+    /// beside them said so): its parameters are not a depth model's, and every depth it aligns
+    /// is labelled simulated. Absent (false) otherwise.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub simulated_predictions: bool,
 }
 
 impl CreationInfo {
@@ -56,6 +61,7 @@ impl CreationInfo {
                 .unwrap_or(0),
             command_line: std::env::args().collect(),
             sources: BTreeMap::new(),
+            simulated_predictions: false,
         }
     }
 

@@ -331,6 +331,7 @@ fn calibration_file_roundtrip() {
         created_unix_s: 1_700_000_000,
         command_line: vec!["moma".into(), "calibrate".into()],
         sources: Default::default(),
+        simulated_predictions: true,
     }
     .with_source("prediction", "frames/a/pred.npy");
     let k = Intrinsics::nominal(ImageSize::new(64, 48));

@@ -159,6 +159,9 @@ struct FrameSummary {
     realign: Option<moma_core::realign::RealignReport>,
     /// Normalisation + alignment time, milliseconds (excludes file I/O and the depth model).
     align_ms: f64,
+    /// SIMULATED: the input prediction, or the predictions the calibration was fitted on, came
+    /// from the simulator (not a depth model).
+    simulated: bool,
 }
 
 pub fn run(args: &AlignArgs) -> Result<()> {
@@ -226,6 +229,14 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         None => DepthRange::default(),
         Some((min_m, max_m)) => DepthRange::Fixed { min_m, max_m },
     };
+    if calib.created.simulated_predictions {
+        eprintln!(
+            "note: {} was fitted on SIMULATED predictions: the depth it gives is not a depth \
+             model's",
+            args.calib.display()
+        );
+    }
+    let simulated = source.simulated || calib.created.simulated_predictions;
     create_dir(&args.output)?;
 
     let bar = progress(source.len(), "aligning", args.json);
@@ -315,6 +326,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             valid_pixels: depth.valid_count(),
             realign,
             align_ms,
+            simulated,
         });
         bar.inc(1);
     }
@@ -326,8 +338,9 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let mut times: Vec<f64> = summaries.iter().map(|s| s.align_ms).collect();
         times.sort_by(f64::total_cmp);
         println!(
-            "aligned {} frame(s) with {} into {} (median alignment {:.2} ms per frame)",
+            "aligned {} {}frame(s) with {} into {} (median alignment {:.2} ms per frame)",
             summaries.len(),
+            if simulated { "SIMULATED " } else { "" },
             calib.method,
             args.output.display(),
             times[times.len() / 2]

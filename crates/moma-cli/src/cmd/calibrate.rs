@@ -360,6 +360,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         }
     };
     let mut created = CreationInfo::now();
+    created.simulated_predictions = source.simulated;
     for (i, (input, gt)) in inputs.iter().zip(&args.gt).enumerate() {
         let kind_role = if input.rgb.is_some() {
             "rgb"
@@ -444,6 +445,14 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             "parameters: {}",
             serde_json::to_string(&file.calibration.model)?
         );
+        if file.calibration.normalisation.space == AlignSpace::Inverse {
+            // the file keeps one set of field names for both spaces
+            println!(
+                "units: inverse space (the model maps the normalised disparity to 1/z): its \
+                 metre-named parameters (e.g. t3_m, shift_m) and loo_rms are in 1/m; the RMS \
+                 residuals above are in metres"
+            );
+        }
         println!("wrote {}", args.output.display());
     }
     Ok(())

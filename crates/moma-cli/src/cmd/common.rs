@@ -267,6 +267,8 @@ pub struct Source {
     inputs: Vec<PathBuf>,
     kind: PredictionKind,
     model: Option<Box<dyn DepthModel>>,
+    /// Some input is SIMULATED (its `predictions.json` says so).
+    pub simulated: bool,
 }
 
 impl SourceArgs {
@@ -313,6 +315,7 @@ impl SourceArgs {
                 inputs: self.pred.clone(),
                 kind,
                 model: None,
+                simulated: indexes.iter().any(|i| i.simulated),
             })
         } else {
             let model = self.model.load()?.model;
@@ -329,6 +332,7 @@ impl SourceArgs {
                 inputs: self.rgb.clone(),
                 kind,
                 model: Some(model),
+                simulated: false,
             })
         }
     }

@@ -76,9 +76,10 @@ pub struct GraspArgs {
     pub rgb: Option<PathBuf>,
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Camera intrinsics (camera.json) of the frame.
+    /// Camera intrinsics (camera.json) of the frame. Optional with --calib when the calibration
+    /// file records them (`moma calibrate --camera`).
     #[arg(long, value_name = "FILE")]
-    pub camera: PathBuf,
+    pub camera: Option<PathBuf>,
     /// Object mask (PNG, nonzero = object): grasps only on masked objects.
     #[arg(long, value_name = "PNG")]
     pub mask: Option<PathBuf>,
@@ -151,15 +152,35 @@ fn read_gripper(args: &GraspArgs) -> Result<GripperGeometry> {
     Ok(g)
 }
 
-/// The frame's metric depth, a name for messages, and its RGB image when known.
-fn load_depth(args: &GraspArgs) -> Result<(MetricDepth, String, Option<RgbImage>)> {
+/// The frame to plan on.
+struct LoadedFrame {
+    /// Metric depth.
+    depth: MetricDepth,
+    /// Where it came from, for messages.
+    name: String,
+    /// Its RGB image, when known.
+    rgb: Option<RgbImage>,
+    /// The calibration's intrinsics and file, with --calib.
+    calib_intrinsics: Option<(Intrinsics, PathBuf)>,
+    /// The depth comes from SIMULATED predictions (the input's or the calibration's).
+    simulated: bool,
+}
+
+/// The frame's metric depth: read (--depth), or aligned with --calib.
+fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
     if let Some(path) = &args.depth {
         let depth = super::common::read_metric_depth(
             path,
             "--depth",
             "plan on it through its calibration instead (`--calib calib.json --pred FILE`)",
         )?;
-        return Ok((depth, path.display().to_string(), None));
+        return Ok(LoadedFrame {
+            depth,
+            name: path.display().to_string(),
+            rgb: None,
+            calib_intrinsics: None,
+            simulated: false,
+        });
     }
     let Some(calib_path) = &args.calib else {
         bail!("give --depth FILE, or --calib FILE with --pred FILE or --rgb IMG");
@@ -192,27 +213,58 @@ fn load_depth(args: &GraspArgs) -> Result<(MetricDepth, String, Option<RgbImage>
         .calibration
         .align(&input.prediction)
         .with_context(|| format!("aligning {}", input.path.display()))?;
-    Ok((depth, input.path.display().to_string(), input.rgb))
+    Ok(LoadedFrame {
+        depth,
+        name: input.path.display().to_string(),
+        rgb: input.rgb,
+        calib_intrinsics: calib.intrinsics.map(|k| (k, calib_path.clone())),
+        simulated: opened.simulated || calib.created.simulated_predictions,
+    })
 }
 
 pub fn run(args: &GraspArgs) -> Result<()> {
     if args.top == 0 {
         bail!("--top must be at least 1");
     }
-    let camera = moma_io::read_camera(&args.camera)?;
     let extrinsics = args
         .extrinsics
         .as_deref()
         .map(read_extrinsics)
         .transpose()?;
     let gripper = read_gripper(args)?;
-    let (depth, depth_name, rgb) = load_depth(args)?;
+    let LoadedFrame {
+        depth,
+        name: depth_name,
+        rgb,
+        calib_intrinsics,
+        simulated,
+    } = load_depth(args)?;
+    let (camera, camera_name) = match (&args.camera, calib_intrinsics) {
+        (Some(p), _) => (
+            moma_io::read_camera(p)?,
+            format!("camera file {}", p.display()),
+        ),
+        (None, Some((k, calib))) => (k, format!("the intrinsics of {}", calib.display())),
+        (None, None) => bail!(
+            "--camera camera.json is needed: {}",
+            if args.calib.is_some() {
+                "the calibration file records no intrinsics (calibrate with --camera)"
+            } else {
+                "a depth map carries no intrinsics"
+            }
+        ),
+    };
     if camera.size() != depth.size() {
         bail!(
-            "camera file {} is for {} images but the depth of {depth_name} is {}",
-            args.camera.display(),
+            "{camera_name} is for {} images but the depth of {depth_name} is {}",
             camera.size(),
             depth.size()
+        );
+    }
+    if simulated {
+        eprintln!(
+            "note: the depth of {depth_name} comes from SIMULATED predictions: these grasps are \
+             not planned on a depth model's output"
         );
     }
     let mask = args
@@ -226,9 +278,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
                 (moma_grasp::GraspError::MaskNoValidDepth { .. }, Some(m)) => {
                     format!("mask {} on the depth of {depth_name}", m.display())
                 }
-                (moma_grasp::GraspError::Intrinsics(_), _) => {
-                    format!("camera file {}", args.camera.display())
-                }
+                (moma_grasp::GraspError::Intrinsics(_), _) => camera_name.clone(),
                 _ => format!("depth of {depth_name}"),
             };
             anyhow::Error::new(e).context(about)
