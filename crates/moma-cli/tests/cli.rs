@@ -806,9 +806,15 @@ fn grasp_eval_refuses_variants_it_does_not_run_and_labels_outliers() {
     }
     for (extra, named) in [
         (&["--realign", "anchors"][..], "--realign"),
-        (&["--realign", "anchors", "--brightness", "0.8"][..], "--realign"),
+        (
+            &["--realign", "anchors", "--brightness", "0.8"][..],
+            "--realign",
+        ),
         (&["--robust", "huber"][..], "--robust"),
-        (&["--norm", "minmax,median"][..], "more than one normalisation"),
+        (
+            &["--norm", "minmax,median"][..],
+            "more than one normalisation",
+        ),
     ] {
         let err = fails(&with(&base, extra));
         assert!(
@@ -959,7 +965,12 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     std::fs::create_dir_all(&loose).unwrap();
     let frame1 = loose.join("frame_01.npy");
     std::fs::copy(pred.join("frame_01.npy"), &frame1).unwrap();
-    let out = moma(&align_args(&calib, &frame1, &tmp.path().join("a"), &["--json"]));
+    let out = moma(&align_args(
+        &calib,
+        &frame1,
+        &tmp.path().join("a"),
+        &["--json"],
+    ));
     assert!(out.status.success());
     let rows: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(rows[0]["simulated"], true);

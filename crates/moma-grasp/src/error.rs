@@ -11,7 +11,10 @@ pub enum GraspError {
     #[error("the depth map has no valid depth value (all zero, negative or non-finite)")]
     AllInvalidDepth,
     /// The object mask selects pixels, but none of them has valid depth.
-    #[error("the object mask selects {masked_px} pixel(s) but none of them has valid depth")]
+    #[error(
+        "the object mask selects {masked_px} pixel(s) but none of them has valid depth{}",
+        if *masked_px == 0 { " (the mask is empty)" } else { "" }
+    )]
     MaskNoValidDepth {
         /// Pixels selected by the mask.
         masked_px: usize,

@@ -234,18 +234,39 @@ mod tests {
             .unwrap();
         };
         let file = |name: &str| dir.path().join(name);
-        for frames in [r#"["f_01", "f_02"]"#, r#"[{"name": "f_01", "predict_ms": 3.0}]"#] {
+        for frames in [
+            r#"["f_01", "f_02"]"#,
+            r#"[{"name": "f_01", "predict_ms": 3.0}]"#,
+        ] {
             index(frames);
-            let found = prediction_index_listing(&file("f_01.npy")).unwrap().unwrap();
+            let found = prediction_index_listing(&file("f_01.npy"))
+                .unwrap()
+                .unwrap();
             assert_eq!(found.kind, PredictionKind::InverseDepth);
             assert!(found.simulated && found.frames.contains(&"f_01".to_string()));
-            assert!(prediction_index_listing(&file("f_01.depth.npy")).unwrap().is_none());
-            assert!(prediction_index_listing(&file("f_01.png")).unwrap().is_none());
-            assert!(prediction_index_listing(&file("other.npy")).unwrap().is_none());
+            assert!(
+                prediction_index_listing(&file("f_01.depth.npy"))
+                    .unwrap()
+                    .is_none()
+            );
+            assert!(
+                prediction_index_listing(&file("f_01.png"))
+                    .unwrap()
+                    .is_none()
+            );
+            assert!(
+                prediction_index_listing(&file("other.npy"))
+                    .unwrap()
+                    .is_none()
+            );
         }
         // an index without `frames` (older writers) lists nothing
         index("[]");
-        assert!(prediction_index_listing(&file("f_01.npy")).unwrap().is_none());
+        assert!(
+            prediction_index_listing(&file("f_01.npy"))
+                .unwrap()
+                .is_none()
+        );
         // a corrupt index is an error, not "no index"
         std::fs::write(dir.path().join(PREDICTIONS_INDEX_FILE), "{").unwrap();
         assert!(prediction_index_listing(&file("f_01.npy")).is_err());

@@ -84,7 +84,13 @@ pub struct AblateCommon {
     #[command(flatten)]
     pub eval: EvalOptions,
     /// Output folder.
-    #[arg(short, long, value_name = "DIR", default_value = "moma-ablate-out")]
+    #[arg(
+        short,
+        long,
+        visible_alias = "output",
+        value_name = "DIR",
+        default_value = "moma-ablate-out"
+    )]
     pub out: PathBuf,
     /// Few-shot calibration: every ablation calibrates on the first K frames in sorted frame-id
     /// order (one fit, --samples per frame) and scores the frames after K; the tables say so.

@@ -33,7 +33,8 @@ impl From<ColormapArg> for Colormap {
 /// `--realign` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum RealignArg {
-    /// Per-frame re-alignment on static anchors (needs a calibration made with --anchors).
+    /// Per-frame re-alignment on static anchors: the calibration frame's unchanged background
+    /// (`moma align`: a calibration made with --anchors; `moma eval`: the set's calibration frame).
     Anchors,
 }
 
@@ -106,7 +107,7 @@ pub struct AlignArgs {
     #[command(flatten)]
     pub source: SourceArgs,
     /// Output directory (created if missing).
-    #[arg(short, long, value_name = "DIR")]
+    #[arg(short, long, visible_alias = "out", value_name = "DIR")]
     pub output: PathBuf,
     /// Also write a point cloud (PLY) per frame; needs intrinsics (calibrated with --camera, or --camera here).
     #[arg(long)]
@@ -227,7 +228,15 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     }
     let range = match args.range_m {
         None => DepthRange::default(),
-        Some((min_m, max_m)) => DepthRange::Fixed { min_m, max_m },
+        Some((min_m, max_m)) => {
+            if max_m > SUSPICIOUS_RANGE_M {
+                eprintln!(
+                    "note: --range-m ends at {max_m} m, far beyond an RGB-D sensor's reach: the \
+                     values are metres (0.4,1.2), not millimetres"
+                );
+            }
+            DepthRange::Fixed { min_m, max_m }
+        }
     };
     if calib.created.simulated_predictions {
         eprintln!(
@@ -376,6 +385,9 @@ fn write_cloud(
 
 /// `MIN,MAX` in metres → (MIN, MAX): finite, 0 ≤ MIN < MAX. (A `value_delimiter` with
 /// `num_args = 2` wanted two separate values and refused the documented `0.4,1.2`.)
+/// A colour-map range ending beyond this many metres was most likely typed in millimetres.
+const SUSPICIOUS_RANGE_M: f32 = 50.0;
+
 fn parse_range_m(s: &str) -> std::result::Result<(f32, f32), String> {
     let bad = |why: &str| format!("{s:?}: {why}; expected MIN,MAX in metres, e.g. 0.4,1.2");
     let (lo, hi) = s.split_once(',').ok_or_else(|| bad("no comma"))?;

@@ -79,7 +79,7 @@ pub struct CalibrateArgs {
     #[command(flatten)]
     pub robust: RobustArgs,
     /// Output calibration file (JSON).
-    #[arg(short, long, value_name = "FILE")]
+    #[arg(short, long, visible_alias = "out", value_name = "FILE")]
     pub output: PathBuf,
     /// Print the calibration summary as JSON on stdout.
     #[arg(long)]
@@ -274,6 +274,18 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .transpose()?;
 
     let method = method_from(&args.method, args.bandwidth_px, intrinsics)?;
+    if intrinsics.is_none()
+        && matches!(
+            method,
+            Method::Ssra(_) | Method::SsraLocal(_) | Method::Auto
+        )
+    {
+        eprintln!(
+            "note: no --camera: SSRA's canonical parameters (θ, φ, s) assume a nominal camera \
+             (f = image width, principal point at the centre); the fit and its depth do not \
+             depend on it, but point clouds and `grasp --calib` will need --camera"
+        );
+    }
     let config = CalibrationConfig {
         normalisation: normalisation_from(&method, args.norm, args.space, kind),
         method,

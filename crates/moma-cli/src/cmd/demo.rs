@@ -33,7 +33,13 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 #[command(verbatim_doc_comment)]
 pub struct DemoArgs {
     /// Output folder.
-    #[arg(short, long, value_name = "DIR", default_value = "moma-demo")]
+    #[arg(
+        short,
+        long,
+        visible_alias = "output",
+        value_name = "DIR",
+        default_value = "moma-demo"
+    )]
     pub out: PathBuf,
     /// Run on this moma set instead of the bundled scene.
     #[arg(long, value_name = "DIR")]

@@ -54,9 +54,15 @@ pub struct EvalArgs {
     #[command(flatten)]
     pub eval: EvalOptions,
     /// Output folder for results.{md,csv,json} (and figures/).
-    #[arg(short, long, value_name = "DIR", default_value = "moma-eval-out")]
+    #[arg(
+        short,
+        long,
+        visible_alias = "output",
+        value_name = "DIR",
+        default_value = "moma-eval-out"
+    )]
     pub out: PathBuf,
-    /// Also write a Fig.-6-style figure per frame (first seed) to OUT/figures/<set>/.
+    /// Also write a Fig.-6-style figure per frame (first seed) to OUT/<set>/figures/.
     #[arg(long)]
     pub figures: bool,
     /// Print the JSON contract array to stdout (tables go to stderr).

@@ -144,7 +144,7 @@ pub struct FinetuneArgs {
     #[arg(long, hide = true)]
     pub portable_ops: bool,
     /// Output adapter file (.safetensors).
-    #[arg(short, long, value_name = "ADAPTER")]
+    #[arg(short, long, visible_alias = "out", value_name = "ADAPTER")]
     pub output: PathBuf,
     /// Print one JSON object on stdout (and no progress bar).
     #[arg(long)]

@@ -48,7 +48,13 @@ pub struct GraspEvalArgs {
     #[arg(long, default_value_t = moma_grasp::MIN_TRIAL_COMPONENT_PX, value_name = "PX")]
     pub min_object_px: usize,
     /// Output folder for grasp_results.{md,csv,json}.
-    #[arg(short, long, value_name = "DIR", default_value = "moma-grasp-eval-out")]
+    #[arg(
+        short,
+        long,
+        visible_alias = "output",
+        value_name = "DIR",
+        default_value = "moma-grasp-eval-out"
+    )]
     pub out: PathBuf,
     /// Print the JSON contract array to stdout (the table goes to stderr).
     #[arg(long)]

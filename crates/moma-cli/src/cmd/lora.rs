@@ -33,7 +33,7 @@ pub struct MergeArgs {
     #[command(flatten)]
     pub model: ModelArgs,
     /// Output weights file (.safetensors).
-    #[arg(short, long, value_name = "FILE")]
+    #[arg(short, long, visible_alias = "out", value_name = "FILE")]
     pub output: PathBuf,
 }
 

@@ -31,7 +31,7 @@ pub struct PredictArgs {
     #[arg(required = true, value_name = "IMG")]
     pub images: Vec<PathBuf>,
     /// Output directory (created if missing).
-    #[arg(short, long, value_name = "DIR")]
+    #[arg(short, long, visible_alias = "out", value_name = "DIR")]
     pub output: PathBuf,
     /// Print a JSON summary on stdout (and no progress bar).
     #[arg(long)]

@@ -29,7 +29,7 @@ pub struct SimulateArgs {
     #[arg(long, value_name = "DIR", required = true)]
     pub set: Vec<PathBuf>,
     /// Output prediction folder (with several sets: one sub-folder per set name).
-    #[arg(short, long, value_name = "DIR")]
+    #[arg(short, long, visible_alias = "output", value_name = "DIR")]
     pub out: PathBuf,
     /// Kind of prediction to simulate: inverse-depth (relative, arbitrary scale, like Depth
     /// Anything V2's relative models) or depth (metric-like, global scale error ±25 %).
