@@ -278,11 +278,14 @@ def plan_grasps(
     mask: Optional[_Mask] = None,
     top: int = 10,
     seed: int = 0,
+    keep_border_objects: bool = False,
 ) -> list[dict[str, Any]]:
     """Grasps on metric depth (metres), best first, as ``moma grasp --json`` prints them:
     parallel ``{"kind", "score", "center_m", "approach", "closing", "width_m"}``, suction
     ``{"kind", "score", "point_m", "approach"}``; camera frame x right, y down, z forward,
-    metres. ``mask``: the objects (nonzero = inside). An empty list when nothing is graspable."""
+    metres. ``mask``: the objects (nonzero = inside); without one, regions over 10 mm above the
+    support plane that do not touch the image border (unless ``keep_border_objects``). An
+    empty list when nothing is graspable."""
 
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...

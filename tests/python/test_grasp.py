@@ -78,3 +78,16 @@ def test_same_grasps_as_the_cli(tmp_path):
             for key in a:
                 if key != "kind":
                     np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-6)
+
+
+def test_without_a_mask_regions_touching_the_border_are_not_objects():
+    # the first 12 rows curl 15 mm towards the camera (a sensor's edge band): above the 10 mm
+    # object height, but on the border, so only the box is planned on, unless asked
+    cam, depth, _ = box_scene()
+    depth = depth.copy()
+    depth[:12] -= 0.015
+    rows = lambda gs: [cam.fy * g["point_m"][1] / g["point_m"][2] + cam.cy for g in gs]
+    default = moma.plan_grasps(depth, cam, gripper="suction", top=10)
+    assert default and all(v >= 12 for v in rows(default))
+    kept = moma.plan_grasps(depth, cam, gripper="suction", top=10, keep_border_objects=True)
+    assert any(v < 12 for v in rows(kept))

@@ -22,6 +22,14 @@ pub struct SceneConfig {
     /// pixels. Default 200 (the trial rule of METHOD.md §8). With a mask every masked pixel with
     /// valid depth is an object pixel.
     pub min_object_px: usize,
+    /// Without a mask, keep object regions that touch the image border. Default `false`: they
+    /// are dropped. Such a region is only partly seen (no collision check can see past the
+    /// frame), and it is most often not an object at all: bin walls, or the band along the
+    /// frame's edge where real sensors' depth curls away from the table plane (on the
+    /// gqcnn-primesense frames 9–16 mm above it, flat, and every top suction grasp landed there).
+    /// With a mask the mask decides.
+    #[serde(default)]
+    pub keep_border_objects: bool,
 }
 
 impl Default for SceneConfig {
@@ -31,6 +39,7 @@ impl Default for SceneConfig {
             plane: PlaneConfig::default(),
             min_object_height_m: 0.01,
             min_object_px: MIN_TRIAL_COMPONENT_PX,
+            keep_border_objects: false,
         }
     }
 }
@@ -61,11 +70,34 @@ pub struct Scene {
     masked: bool,
 }
 
+/// Clears every 8-connected region of `object` with a pixel on the image border.
+fn drop_border_regions(object: &mut [bool], size: moma_core::ImageSize) {
+    let (w, h) = (size.width, size.height);
+    if w == 0 || h == 0 {
+        return;
+    }
+    let (labels, counts) = components_8(object, size);
+    let mut touches = vec![false; counts.len() + 1];
+    let border = (0..w)
+        .flat_map(|u| [u, (h - 1) * w + u])
+        .chain((0..h).flat_map(|v| [v * w, v * w + w - 1]));
+    for i in border {
+        touches[labels[i] as usize] = true;
+    }
+    touches[0] = false;
+    for (o, &l) in object.iter_mut().zip(&labels) {
+        if touches[l as usize] {
+            *o = false;
+        }
+    }
+}
+
 impl Scene {
     /// Builds the scene. With `mask`, objects are the masked pixels with valid depth and the plane
     /// is fitted outside the mask (on all valid pixels when fewer than 3 lie outside); without, the
     /// plane is fitted on all valid pixels and objects are regions more than
-    /// `min_object_height_m` above it with at least `min_object_px` pixels.
+    /// `min_object_height_m` above it with at least `min_object_px` pixels that do not touch the
+    /// image border (unless `keep_border_objects`).
     ///
     /// # Errors
     /// Invalid intrinsics/config, intrinsics or mask of another size than `depth`, all-invalid
@@ -117,7 +149,7 @@ impl Scene {
             }
             None => fit_support_plane(&cloud, None, &config.plane)?,
         };
-        let object: Vec<bool> = match (&masked, &plane) {
+        let mut object: Vec<bool> = match (&masked, &plane) {
             (Some(m), _) => (0..m.len()).map(|i| m[i] && cloud.valid[i]).collect(),
             (None, Some(p)) => (0..cloud.valid.len())
                 .map(|i| {
@@ -126,6 +158,9 @@ impl Scene {
                 .collect(),
             (None, None) => vec![false; cloud.valid.len()],
         };
+        if masked.is_none() && !config.keep_border_objects {
+            drop_border_regions(&mut object, size);
+        }
         // Normals and edges only around the objects (the planners and the scorer query no other).
         let (w, h) = (size.width, size.height);
         let (mut u0, mut u1, mut v0, mut v1) = (usize::MAX, 0, usize::MAX, 0);

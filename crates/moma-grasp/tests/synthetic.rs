@@ -501,3 +501,66 @@ fn bad_inputs_are_errors() {
     };
     plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap();
 }
+
+/// Without a mask, a region that touches the image border is not an object (unless asked):
+/// here the first 24 rows curl 12–18 mm towards the camera, flat, as real sensors' depth does
+/// along the frame's edge (gqcnn-primesense). It stands more than 10 mm above the table, so it
+/// was an object the planners offered grasps on (on the real frames, every top suction grasp).
+#[test]
+fn regions_touching_the_border_are_not_objects_without_a_mask() {
+    let b = BoxSpec::standard();
+    let synth = Synth::top_down(DIST_M, Some(b));
+    let mut depth = synth.render();
+    let band_rows = 24;
+    for v in 0..band_rows {
+        let lift_m = 0.018 - 0.006 * v as f32 / band_rows as f32;
+        for z in depth.depth_m.row_mut(v) {
+            *z -= lift_m;
+        }
+    }
+    let band_px = band_rows * depth.size().width;
+    // default: the band is dropped, the box is the one object and takes the top grasp
+    let scene = build(&depth);
+    assert_eq!(scene.components().len(), 1);
+    assert!(scene.components()[0].pixel_count < band_px);
+    assert!((0..band_px).all(|i| !scene.is_object(i)));
+    let g = top_suction(&scene);
+    let [x, y, h] = synth.box_coords(&b, Vec3::from(g.pose.point_m));
+    assert!((h - b.height_m).abs() < 0.002, "height {h}");
+    assert!(x.abs() < b.long_m / 2.0 && y.abs() < b.short_m / 2.0);
+    // kept on request: two objects, the band among them, and the cup goes to the band
+    let keep = Scene::build(
+        &depth,
+        &intrinsics(),
+        None,
+        &SceneConfig {
+            keep_border_objects: true,
+            ..SceneConfig::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(keep.components().len(), 2);
+    assert!((0..band_px).all(|i| keep.is_object(i)));
+    // the image row of each planned suction point
+    let rows = |scene: &Scene| -> Vec<f64> {
+        let out = plan_suction(scene, &SuctionCup::default(), &SuctionConfig::default()).unwrap();
+        let k = intrinsics();
+        out.grasps
+            .iter()
+            .map(|g| match g {
+                Grasp::Suction(s) => k.fy * f64::from(s.pose.point_m[1] / s.pose.point_m[2]) + k.cy,
+                other => panic!("{other:?}"),
+            })
+            .collect()
+    };
+    let (kept, dropped) = (rows(&keep), rows(&scene));
+    assert!(kept.iter().any(|&v| v < band_rows as f64), "{kept:?}");
+    assert!(dropped.iter().all(|&v| v >= band_rows as f64), "{dropped:?}");
+    // a mask decides on its own: the band under a mask is an object again
+    let mask = Mask::new(Array2::from_shape_fn(
+        (depth.size().height, depth.size().width),
+        |(v, _)| v < band_rows,
+    ));
+    let masked = Scene::build(&depth, &intrinsics(), Some(&mask), &SceneConfig::default()).unwrap();
+    assert!((0..band_px).all(|i| masked.is_object(i)));
+}

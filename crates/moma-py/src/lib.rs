@@ -848,10 +848,12 @@ fn depth_to_points<'py>(
 /// `moma grasp --json`, best first. Parallel: `{"kind": "parallel", "score", "center_m",
 /// "approach", "closing", "width_m"}`; suction: `{"kind": "suction", "score", "point_m",
 /// "approach"}`; camera frame (x right, y down, z forward, metres). `mask`: the objects to grasp
-/// (bool/uint8 H×W); without one, whatever stands more than 10 mm above the support plane. No
-/// grasp found is an empty list, not an error. The GIL is released while planning.
+/// (bool/uint8 H×W); without one, whatever stands more than 10 mm above the support plane,
+/// except regions touching the image border (partly seen; sensor edge bands, bin walls) unless
+/// `keep_border_objects`. No grasp found is an empty list, not an error. The GIL is released
+/// while planning.
 #[pyfunction]
-#[pyo3(signature = (depth_m, cam, gripper="parallel", mask=None, top=10, seed=0))]
+#[pyo3(signature = (depth_m, cam, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false))]
 fn plan_grasps<'py>(
     py: Python<'py>,
     depth_m: &Bound<'py, PyAny>,
@@ -860,6 +862,7 @@ fn plan_grasps<'py>(
     mask: Option<&Bound<'py, PyAny>>,
     top: usize,
     seed: u64,
+    keep_border_objects: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     use moma_grasp::{
         ParallelConfig, ParallelJaw, Scene, SceneConfig, SuctionConfig, SuctionCup, plan_parallel,
@@ -879,7 +882,11 @@ fn plan_grasps<'py>(
     let parallel = gripper == "parallel";
     let outcome = py
         .detach(|| -> Result<_, moma_grasp::GraspError> {
-            let scene = Scene::build(&depth, &k, mask.as_ref(), &SceneConfig::default())?;
+            let scene_config = SceneConfig {
+                keep_border_objects,
+                ..SceneConfig::default()
+            };
+            let scene = Scene::build(&depth, &k, mask.as_ref(), &scene_config)?;
             if parallel {
                 plan_parallel(
                     &scene,

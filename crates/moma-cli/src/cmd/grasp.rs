@@ -83,6 +83,11 @@ pub struct GraspArgs {
     /// Object mask (PNG, nonzero = object): grasps only on masked objects.
     #[arg(long, value_name = "PNG")]
     pub mask: Option<PathBuf>,
+    /// Without --mask, also plan on regions that touch the image border (dropped by default:
+    /// partly seen, and most often a bin wall or the band along the frame's edge where sensor
+    /// depth curls away from the table).
+    #[arg(long)]
+    pub keep_border_objects: bool,
     /// Camera→robot-base transform (JSON, see above): adds "base" poses.
     #[arg(long, value_name = "FILE")]
     pub extrinsics: Option<PathBuf>,
@@ -272,17 +277,25 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         .as_ref()
         .map(|p| moma_io::read_mask_sized(p, depth.size()))
         .transpose()?;
-    let scene =
-        Scene::build(&depth, &camera, mask.as_ref(), &SceneConfig::default()).map_err(|e| {
-            let about = match (&e, &args.mask) {
-                (moma_grasp::GraspError::MaskNoValidDepth { .. }, Some(m)) => {
-                    format!("mask {} on the depth of {depth_name}", m.display())
-                }
-                (moma_grasp::GraspError::Intrinsics(_), _) => camera_name.clone(),
-                _ => format!("depth of {depth_name}"),
-            };
-            anyhow::Error::new(e).context(about)
-        })?;
+    let scene = Scene::build(
+        &depth,
+        &camera,
+        mask.as_ref(),
+        &SceneConfig {
+            keep_border_objects: args.keep_border_objects,
+            ..SceneConfig::default()
+        },
+    )
+    .map_err(|e| {
+        let about = match (&e, &args.mask) {
+            (moma_grasp::GraspError::MaskNoValidDepth { .. }, Some(m)) => {
+                format!("mask {} on the depth of {depth_name}", m.display())
+            }
+            (moma_grasp::GraspError::Intrinsics(_), _) => camera_name.clone(),
+            _ => format!("depth of {depth_name}"),
+        };
+        anyhow::Error::new(e).context(about)
+    })?;
     let mut outcome = match &gripper {
         GripperGeometry::Parallel(jaw) => plan_parallel(
             &scene,
