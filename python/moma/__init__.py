@@ -28,6 +28,7 @@ from ._moma import (
     read_depth,
     read_prediction,
     read_rgb,
+    read_mask,
     write_depth,
     write_prediction,
 )
@@ -50,6 +51,7 @@ __all__ = [
     "read_depth",
     "read_prediction",
     "read_rgb",
+    "read_mask",
     "write_depth",
     "write_prediction",
 ]

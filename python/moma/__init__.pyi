@@ -15,6 +15,7 @@ from ._moma import metrics as metrics
 from ._moma import read_depth as read_depth
 from ._moma import read_prediction as read_prediction
 from ._moma import read_rgb as read_rgb
+from ._moma import read_mask as read_mask
 from ._moma import write_depth as write_depth
 from ._moma import write_prediction as write_prediction
 
@@ -36,6 +37,7 @@ __all__ = [
     "read_depth",
     "read_prediction",
     "read_rgb",
+    "read_mask",
     "write_depth",
     "write_prediction",
 ]

@@ -39,6 +39,7 @@ __all__ = [
     "read_depth",
     "read_prediction",
     "read_rgb",
+    "read_mask",
     "write_depth",
     "write_prediction",
 ]
@@ -304,6 +305,9 @@ def read_prediction(path: _Path) -> _F32:
 
 def read_rgb(path: _Path) -> npt.NDArray[np.uint8]:
     """An 8-bit RGB image (PNG / JPEG) as ``height × width × 3`` uint8."""
+
+def read_mask(path: _Path) -> npt.NDArray[np.bool_]:
+    """A mask PNG (8-bit grey, nonzero = inside) as ``height × width`` bool, for ``mask=``."""
 
 def write_prediction(path: _Path, pred: npt.ArrayLike) -> None:
     """Writes a raw prediction to ``.npy`` or ``.pfm`` (atomic)."""

@@ -101,3 +101,32 @@ def test_camera_json_round_trip(tmp_path, cam):
     assert moma.Intrinsics.load(tmp_path / "camera.json") == cam
     with pytest.raises(moma.MomaFileError):
         moma.Intrinsics.load(tmp_path / "none.json")
+
+
+def _grey_png(path, img):
+    """An 8-bit greyscale PNG written with the standard library (no imaging package needed)."""
+    import struct
+    import zlib
+
+    h, w = img.shape
+    raw = b"".join(b"\x00" + img[v].astype(np.uint8).tobytes() for v in range(h))
+
+    def chunk(kind, data):
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw))
+    path.write_bytes(png + chunk(b"IEND", b""))
+
+
+def test_read_mask_is_nonzero_as_bool(tmp_path):
+    img = np.zeros((5, 7), np.uint8)
+    img[1:3, 2:6] = 255
+    img[4, 0] = 7  # any nonzero value is inside
+    _grey_png(tmp_path / "mask.png", img)
+    m = moma.read_mask(tmp_path / "mask.png")
+    assert m.dtype == np.bool_ and m.shape == (5, 7)
+    np.testing.assert_array_equal(m, img != 0)
+    with pytest.raises(OSError, match="missing.png"):
+        moma.read_mask(tmp_path / "missing.png")

@@ -555,7 +555,10 @@ fn regions_touching_the_border_are_not_objects_without_a_mask() {
     };
     let (kept, dropped) = (rows(&keep), rows(&scene));
     assert!(kept.iter().any(|&v| v < band_rows as f64), "{kept:?}");
-    assert!(dropped.iter().all(|&v| v >= band_rows as f64), "{dropped:?}");
+    assert!(
+        dropped.iter().all(|&v| v >= band_rows as f64),
+        "{dropped:?}"
+    );
     // a mask decides on its own: the band under a mask is an object again
     let mask = Mask::new(Array2::from_shape_fn(
         (depth.size().height, depth.size().width),

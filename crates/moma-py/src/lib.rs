@@ -958,6 +958,14 @@ fn read_rgb(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, numpy::PyArray3
     Ok(arr.into_pyarray(py))
 }
 
+/// Reads a mask PNG (8-bit grey, nonzero = inside; a set's `mask.png`) as a `height × width`
+/// bool array: what `mask=` arguments take.
+#[pyfunction]
+fn read_mask(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, numpy::PyArray2<bool>>> {
+    let mask = py.detach(|| moma_io::read_mask(&path)).py()?;
+    Ok(mask.data().clone().into_pyarray(py))
+}
+
 /// Writes a raw prediction (unitless): `.npy` or `.pfm` (atomic).
 #[pyfunction]
 fn write_prediction(py: Python<'_>, path: PathBuf, pred: &Bound<'_, PyAny>) -> PyResult<()> {
@@ -1292,6 +1300,7 @@ fn _moma(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read_prediction, m)?)?;
     m.add_function(wrap_pyfunction!(write_prediction, m)?)?;
     m.add_function(wrap_pyfunction!(read_rgb, m)?)?;
+    m.add_function(wrap_pyfunction!(read_mask, m)?)?;
     m.add_function(wrap_pyfunction!(has_onnx, m)?)?;
     m.add_function(wrap_pyfunction!(lora_fingerprint, m)?)?;
     Ok(())
