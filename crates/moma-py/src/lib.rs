@@ -854,6 +854,7 @@ fn depth_to_points<'py>(
 /// while planning.
 #[pyfunction]
 #[pyo3(signature = (depth_m, cam, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false))]
+#[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
 fn plan_grasps<'py>(
     py: Python<'py>,
     depth_m: &Bound<'py, PyAny>,
