@@ -12,8 +12,8 @@ use moma_core::align::Method;
 use moma_core::align::local::{AUTO_CANDIDATES, loo_predictions};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::Normalisation;
-use moma_eval::protocol::{EvalConfig, PredictionSet, Prepared};
-use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+use moma_eval::protocol::{EvalConfig, Prepared};
+use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
 
 const SETS: [&str; 4] = [
     "gqcnn-primesense",
@@ -36,17 +36,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let set =
             moma_eval::data::load_set(&std::path::Path::new(&shared).join("data").join(name))?;
         for sim_seed in 0..sim_seeds {
-            let sim = Simulator::new(
+            let preds = simulated_predictions(
+                &set,
                 SimulatorConfig::default(),
                 sim_seed,
                 PredictionKind::InverseDepth,
-                set.intrinsics,
+                TransparencySource::Auto,
             )?;
-            let preds = PredictionSet {
-                label: format!("SIMULATED inverse-depth (seed {sim_seed})"),
-                simulated: true,
-                maps: simulate_frames(&set, &sim, TransparencySource::Auto)?,
-            };
             let config = EvalConfig {
                 methods: methods.clone(),
                 edge_margin_px,

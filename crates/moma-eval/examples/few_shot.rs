@@ -16,7 +16,7 @@ use moma_eval::protocol::{
     EvalConfig, EvalNote, PredictionSet, Prepared, Variant, evaluate_few_shot, evaluate_variant,
 };
 use moma_eval::report::eval_table_with_notes;
-use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut dirs = Vec::new();
@@ -56,13 +56,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut all, mut notes) = (Vec::new(), Vec::new());
     for dir in &dirs {
         let set = load_set(dir)?;
-        let sim = Simulator::new(sim_config, 0, PredictionKind::InverseDepth, set.intrinsics)?;
-        let maps = simulate_frames(&set, &sim, TransparencySource::Auto)?;
-        let preds = PredictionSet {
-            label: "SIMULATED inverse-depth (seed 0)".into(),
-            simulated: true,
-            maps,
-        };
+        let preds = simulated_predictions(
+            &set,
+            sim_config,
+            0,
+            PredictionKind::InverseDepth,
+            TransparencySource::Auto,
+        )?;
         match evaluate_few_shot(&set, &preds, &config, &ks) {
             Ok(rows) => {
                 single_frame_diagnostic(&set, &preds, &config, &ks)?;

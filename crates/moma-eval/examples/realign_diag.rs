@@ -9,8 +9,8 @@ use moma_core::PredictionKind;
 use moma_core::align::Method;
 use moma_core::normalise::NormalisationConfig;
 use moma_core::realign::{CorrectionModel, RealignConfig};
-use moma_eval::protocol::{EvalConfig, PredictionSet, Prepared};
-use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+use moma_eval::protocol::{EvalConfig, Prepared};
+use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
 use ndarray::ArrayView3;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -24,12 +24,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let shared = std::env::var("MOMA_SHARED_DIR").unwrap_or_else(|_| "/work/shared".into());
     let set = moma_eval::data::load_set(&std::path::Path::new(&shared).join("data").join(&name))?;
     let kind = PredictionKind::InverseDepth;
-    let sim = Simulator::new(SimulatorConfig::default(), 0, kind, set.intrinsics)?;
-    let preds = PredictionSet {
-        label: "SIMULATED".into(),
-        simulated: true,
-        maps: simulate_frames(&set, &sim, TransparencySource::Auto)?,
-    };
+    let preds = simulated_predictions(
+        &set,
+        SimulatorConfig::default(),
+        0,
+        kind,
+        TransparencySource::Auto,
+    )?;
     let config = EvalConfig::default();
     let prep = Prepared::new(&set, &preds, &config)?;
     let norm: NormalisationConfig =

@@ -13,9 +13,9 @@
 use moma_core::PredictionKind;
 use moma_core::align::Method;
 use moma_core::realign::CorrectionModel;
-use moma_eval::protocol::{EvalConfig, EvalResult, PredictionSet, evaluate};
+use moma_eval::protocol::{EvalConfig, EvalResult, evaluate};
 use moma_eval::realign::{RealignEval, realign_table};
-use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
+use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
 
 const SETS: [&str; 4] = [
     "gqcnn-primesense",
@@ -80,13 +80,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let set =
             moma_eval::data::load_set(&std::path::Path::new(&shared).join("data").join(name))?;
         for sim_seed in 0..sim_seeds {
-            let sim = Simulator::new(SimulatorConfig::default(), sim_seed, kind, set.intrinsics)?;
-            let maps = simulate_frames(&set, &sim, TransparencySource::Auto)?;
-            let preds = PredictionSet {
-                label: format!("SIMULATED {kind} (seed {sim_seed})"),
-                simulated: true,
-                maps,
-            };
+            let preds = simulated_predictions(
+                &set,
+                SimulatorConfig::default(),
+                sim_seed,
+                kind,
+                TransparencySource::Auto,
+            )?;
             loaded.push((sets.len(), preds));
         }
         sets.push(set);

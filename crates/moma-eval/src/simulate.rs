@@ -534,6 +534,26 @@ pub fn simulate_frames(
         .collect()
 }
 
+/// Every frame of `set` simulated as `kind` with `config` and `seed`, labelled as
+/// `moma eval --simulate` labels it: `SIMULATED <kind> (seed <seed>)`.
+///
+/// # Errors
+/// As [`Simulator::new`] and [`simulate_frames`].
+pub fn simulated_predictions(
+    set: &LoadedSet,
+    config: SimulatorConfig,
+    seed: u64,
+    kind: PredictionKind,
+    transparency: TransparencySource,
+) -> Result<crate::protocol::PredictionSet> {
+    let sim = Simulator::new(config, seed, kind, set.intrinsics)?;
+    Ok(crate::protocol::PredictionSet {
+        label: format!("SIMULATED {kind} (seed {seed})"),
+        simulated: true,
+        maps: simulate_frames(set, &sim, transparency)?,
+    })
+}
+
 fn uses_mask(set: &LoadedSet, transparency: TransparencySource) -> bool {
     match transparency {
         TransparencySource::Auto => set.frames.iter().any(|f| f.raw_depth.is_some()),

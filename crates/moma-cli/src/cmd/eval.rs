@@ -15,7 +15,7 @@ use moma_eval::protocol::{
     EvalConfig, EvalNote, PredictionSet, check_calib_frame_counts, evaluate, evaluate_few_shot,
 };
 use moma_eval::report::{contract_json, eval_table_with_notes, write_eval_outputs_with_notes};
-use moma_eval::simulate::{Simulator, simulate_frames};
+use moma_eval::simulate::simulated_predictions;
 
 use super::common::{ModelArgs, create_dir, join_paths};
 use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
@@ -308,18 +308,13 @@ impl PredArgs {
                     "give predictions with --pred DIR, --simulate (simulated predictions) or --weights FILE (a real model)"
                 );
             }
-            let sim = Simulator::new(
+            return Ok(simulated_predictions(
+                set,
                 self.sim.config()?,
                 self.sim_seed,
                 self.sim_kind,
-                set.intrinsics,
-            )?;
-            let maps = simulate_frames(set, &sim, self.sim_transparency.into())?;
-            return Ok(PredictionSet {
-                label: format!("SIMULATED {} (seed {})", self.sim_kind, self.sim_seed),
-                simulated: true,
-                maps,
-            });
+                self.sim_transparency.into(),
+            )?);
         }
         let dir = if self.pred.len() == n_sets {
             self.pred[index].clone()

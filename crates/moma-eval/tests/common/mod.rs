@@ -128,17 +128,13 @@ pub fn shared_set(name: &str) -> LoadedSet {
 
 /// SIMULATED inverse-depth predictions of `set` (default simulator, seed `sim_seed`).
 pub fn simulated_inverse_depth(set: &LoadedSet, sim_seed: u64) -> PredictionSet {
-    use moma_eval::simulate::{Simulator, SimulatorConfig, TransparencySource, simulate_frames};
-    let sim = Simulator::new(
+    use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
+    simulated_predictions(
+        set,
         SimulatorConfig::default(),
         sim_seed,
         PredictionKind::InverseDepth,
-        set.intrinsics,
+        TransparencySource::Auto,
     )
-    .unwrap();
-    PredictionSet {
-        label: format!("SIMULATED inverse-depth (seed {sim_seed})"),
-        simulated: true,
-        maps: simulate_frames(set, &sim, TransparencySource::Auto).unwrap(),
-    }
+    .unwrap()
 }
