@@ -775,23 +775,27 @@ fn grasp_eval_refuses_what_it_cannot_score_and_labels_outliers() {
         a.extend_from_slice(extra);
         a
     }
-    for (extra, named) in [
-        (&["--realign", "anchors"][..], "--realign"),
+    for (extra, expected) in [
+        (
+            &["--realign", "anchors"][..],
+            ["--realign", "not supported"],
+        ),
         (
             &["--realign", "anchors", "--brightness", "0.8"][..],
-            "--realign",
+            ["--realign", "not supported"],
         ),
-        (&["--robust", "huber"][..], "--robust"),
+        (&["--robust", "huber"][..], ["--robust", "not supported"]),
         (
             &["--norm", "minmax,median"][..],
-            "more than one normalisation",
+            ["--norm", "one normalisation"],
+        ),
+        (
+            &["--min-object-px", "100000000"][..],
+            ["no object region of at least 100000000 px", "'scene'"],
         ),
     ] {
         let err = fails(&with(&base, extra));
-        assert!(
-            err.contains(named) && (err.contains("not supported") || err.contains("'scene'")),
-            "{extra:?}: {err}"
-        );
+        assert!(expected.iter().all(|e| err.contains(e)), "{extra:?}: {err}");
         assert!(!out.join("grasp_results.json").exists());
     }
     let rows: serde_json::Value = serde_json::from_str(
@@ -881,6 +885,36 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
         err.contains("not metres") && err.contains("--calib"),
         "{err}"
     );
+    // a metric head's raw output (kind depth) is nominally metres: read, with a note
+    let metric = tmp.path().join("metric");
+    std::fs::create_dir_all(&metric).unwrap();
+    let depth = moma_io::read_depth(&gt).unwrap();
+    moma_io::write_prediction(
+        metric.join("f_01.npy"),
+        &moma_core::Prediction::new(depth.depth_m, moma_core::PredictionKind::Depth),
+    )
+    .unwrap();
+    std::fs::write(
+        metric.join("predictions.json"),
+        r#"{"format": "moma-predictions", "prediction_kind": "depth", "frames": ["f_01"]}"#,
+    )
+    .unwrap();
+    let out = moma(&[
+        "metrics",
+        "--pred",
+        s(&metric.join("f_01.npy")),
+        "--gt",
+        s(&gt),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stderr).contains("used as metres without calibration"));
+    let m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(m["mae"].as_f64().unwrap() < 1e-6, "{m}");
     // the same map once aligned is metres: accepted
     let calib = tmp.path().join("calib.json");
     ok(&[
@@ -967,7 +1001,8 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     let without = grasp(&[]);
     assert!(with_camera.status.success() && without.status.success());
     assert_eq!(with_camera.stdout, without.stdout);
-    assert!(!without.stdout.is_empty());
+    let grasps: serde_json::Value = serde_json::from_slice(&without.stdout).unwrap();
+    assert!(!grasps.as_array().unwrap().is_empty(), "{grasps}");
     assert!(String::from_utf8_lossy(&without.stderr).contains("SIMULATED predictions"));
 
     // a depth map carries no intrinsics

@@ -266,7 +266,10 @@ pub fn grasp_evaluate(
     let unsupported = [
         (config.eval.realign.is_some(), "re-alignment (--realign)"),
         (!config.eval.robust.is_empty(), "robust fits (--robust)"),
-        (config.eval.norms.len() > 1, "more than one normalisation"),
+        (
+            config.eval.norms.len() > 1,
+            "more than one normalisation (--norm)",
+        ),
     ];
     if let Some((_, what)) = unsupported.iter().find(|(given, _)| *given) {
         return Err(EvalError::InvalidParameter(format!(

@@ -13,7 +13,8 @@
 //!   the camera. The base frame is `p_base = R p_cam + t` from a checked rigid [`Extrinsics`].
 //! - **Objects.** With a mask: masked pixels with valid depth. Without: pixels more than
 //!   [`SceneConfig::min_object_height_m`] (10 mm) above the plane in 8-connected regions of at
-//!   least [`SceneConfig::min_object_px`] (200) pixels. A grasp is never planned on the bare table.
+//!   least [`SceneConfig::min_object_px`] (200) pixels that do not touch the image border (unless
+//!   [`SceneConfig::keep_border_objects`]). A grasp is never planned on the bare table.
 //! - **Scene volume (2.5-D).** A 3-D point is inside the scene when it lies at or behind the
 //!   observed surface at its pixel (tolerance [`ExecConfig::occupancy_tol_m`], 2 mm); holes in the
 //!   depth and rays leaving the image are free space.

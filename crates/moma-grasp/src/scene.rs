@@ -68,13 +68,15 @@ pub struct Scene {
     labels: Vec<u32>,
     components: Vec<ObjectComponent>,
     masked: bool,
+    border_regions_dropped: usize,
 }
 
-/// Clears every 8-connected region of `object` with a pixel on the image border.
-fn drop_border_regions(object: &mut [bool], size: moma_core::ImageSize) {
+/// Clears every 8-connected region of `object` with a pixel on the image border; returns how
+/// many of them had at least `min_px` pixels (would have been objects).
+fn drop_border_regions(object: &mut [bool], size: moma_core::ImageSize, min_px: usize) -> usize {
     let (w, h) = (size.width, size.height);
     if w == 0 || h == 0 {
-        return;
+        return 0;
     }
     let (labels, counts) = components_8(object, size);
     let mut touches = vec![false; counts.len() + 1];
@@ -90,6 +92,9 @@ fn drop_border_regions(object: &mut [bool], size: moma_core::ImageSize) {
             *o = false;
         }
     }
+    (1..touches.len())
+        .filter(|&l| touches[l] && counts[l - 1] >= min_px)
+        .count()
 }
 
 impl Scene {
@@ -158,9 +163,11 @@ impl Scene {
                 .collect(),
             (None, None) => vec![false; cloud.valid.len()],
         };
-        if masked.is_none() && !config.keep_border_objects {
-            drop_border_regions(&mut object, size);
-        }
+        let border_regions_dropped = if masked.is_none() && !config.keep_border_objects {
+            drop_border_regions(&mut object, size, config.min_object_px)
+        } else {
+            0
+        };
         // Normals and edges only around the objects (the planners and the scorer query no other).
         let (w, h) = (size.width, size.height);
         let (mut u0, mut u1, mut v0, mut v1) = (usize::MAX, 0, usize::MAX, 0);
@@ -222,6 +229,7 @@ impl Scene {
             labels,
             components,
             masked: mask.is_some(),
+            border_regions_dropped,
         })
     }
 
@@ -245,6 +253,13 @@ impl Scene {
     /// Whether objects came from a mask.
     pub fn is_masked(&self) -> bool {
         self.masked
+    }
+
+    /// Regions of at least [`SceneConfig::min_object_px`] pixels above the support plane that
+    /// were not made objects because they touch the image border (0 with a mask or with
+    /// [`SceneConfig::keep_border_objects`]).
+    pub fn border_regions_dropped(&self) -> usize {
+        self.border_regions_dropped
     }
 
     /// "Up": the support plane's normal, or the direction towards the camera (`-z`) without a

@@ -522,6 +522,7 @@ fn regions_touching_the_border_are_not_objects_without_a_mask() {
     // default: the band is dropped, the box is the one object and takes the top grasp
     let scene = build(&depth);
     assert_eq!(scene.components().len(), 1);
+    assert_eq!(scene.border_regions_dropped(), 1);
     assert!(scene.components()[0].pixel_count < band_px);
     assert!((0..band_px).all(|i| !scene.is_object(i)));
     let g = top_suction(&scene);
@@ -540,6 +541,7 @@ fn regions_touching_the_border_are_not_objects_without_a_mask() {
     )
     .unwrap();
     assert_eq!(keep.components().len(), 2);
+    assert_eq!(keep.border_regions_dropped(), 0);
     assert!((0..band_px).all(|i| keep.is_object(i)));
     // the image row of each planned suction point
     let rows = |scene: &Scene| -> Vec<f64> {

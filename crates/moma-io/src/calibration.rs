@@ -23,7 +23,9 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// unknown fields refused; 3 — optional additions: the fit report's `robust` block (with its
 /// optional `auto` scale record, added within version 3: files without it read unchanged), the
 /// `anchors` store for per-frame re-alignment, samples from several frames (few-shot), the
-/// local variants' cross-validation settings (a version-2 file reads unchanged).
+/// local variants' cross-validation settings (a version-2 file reads unchanged); within version 3,
+/// `created.simulated_predictions` (written only when true: builds older than it refuse such a
+/// file as an unknown field).
 pub const CALIBRATION_VERSION: u32 = 3;
 
 /// The oldest calibration-file version this build reads (migrated on reading).

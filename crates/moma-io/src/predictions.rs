@@ -49,16 +49,11 @@ struct IndexHead {
     source: Option<String>,
     #[serde(default)]
     model: Option<serde_json::Value>,
+    /// The writer's own list: `moma simulate` writes names, `moma predict` records with a
+    /// `name`; read leniently (other entries are skipped, another type lists nothing), since
+    /// third-party indexes may hold anything here.
     #[serde(default)]
-    frames: Vec<FrameEntry>,
-}
-
-/// One entry of `frames`: `moma simulate` lists names, `moma predict` records with a `name`.
-#[derive(Deserialize)]
-#[serde(untagged)]
-enum FrameEntry {
-    Name(String),
-    Record { name: String },
+    frames: serde_json::Value,
 }
 
 #[derive(Deserialize)]
@@ -128,11 +123,15 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
             source,
             frames: head
                 .frames
-                .into_iter()
-                .map(|f| match f {
-                    FrameEntry::Name(n) | FrameEntry::Record { name: n } => n,
+                .as_array()
+                .map(|entries| {
+                    entries
+                        .iter()
+                        .filter_map(|f| f.as_str().or_else(|| f["name"].as_str()))
+                        .map(str::to_string)
+                        .collect()
                 })
-                .collect(),
+                .unwrap_or_default(),
         }));
     }
     let legacy = dir.join(LEGACY_SIMULATED_FILE);
@@ -260,12 +259,31 @@ mod tests {
                     .is_none()
             );
         }
-        // an index without `frames` (older writers) lists nothing
-        index("[]");
+        // an index without `frames` (older writers), or with entries of another form, lists
+        // nothing and still reads
+        std::fs::write(
+            dir.path().join(PREDICTIONS_INDEX_FILE),
+            r#"{"format": "moma-predictions", "prediction_kind": "depth"}"#,
+        )
+        .unwrap();
         assert!(
             prediction_index_listing(&file("f_01.npy"))
                 .unwrap()
                 .is_none()
+        );
+        for odd in ["[]", r#"[{"file": "f_01.npy"}, 3]"#, r#"{"f_01": 1}"#] {
+            index(odd);
+            assert!(
+                prediction_index_listing(&file("f_01.npy"))
+                    .unwrap()
+                    .is_none()
+            );
+        }
+        index(r#"[{"file": "x"}, "f_01"]"#);
+        assert!(
+            prediction_index_listing(&file("f_01.npy"))
+                .unwrap()
+                .is_some()
         );
         // a corrupt index is an error, not "no index"
         std::fs::write(dir.path().join(PREDICTIONS_INDEX_FILE), "{").unwrap();

@@ -79,7 +79,8 @@ impl RealignFlags {
             && config.target != AnchorTarget::CalibrationOutput
         {
             bail!(
-                "--realign-target {} needs --realign-form scale-shift or planar                  (prediction-affine reproduces the calibration frame's own prediction)",
+                "--realign-target {} needs --realign-form scale-shift or planar (prediction-affine \
+                 reproduces the calibration frame's own prediction)",
                 config.target
             );
         }
@@ -383,11 +384,11 @@ fn write_cloud(
     Ok(())
 }
 
-/// `MIN,MAX` in metres → (MIN, MAX): finite, 0 ≤ MIN < MAX. (A `value_delimiter` with
-/// `num_args = 2` wanted two separate values and refused the documented `0.4,1.2`.)
 /// A colour-map range ending beyond this many metres was most likely typed in millimetres.
 const SUSPICIOUS_RANGE_M: f32 = 50.0;
 
+/// `MIN,MAX` in metres → (MIN, MAX): finite, 0 ≤ MIN < MAX. (A `value_delimiter` with
+/// `num_args = 2` wanted two separate values and refused the documented `0.4,1.2`.)
 fn parse_range_m(s: &str) -> std::result::Result<(f32, f32), String> {
     let bad = |why: &str| format!("{s:?}: {why}; expected MIN,MAX in metres, e.g. 0.4,1.2");
     let (lo, hi) = s.split_once(',').ok_or_else(|| bad("no comma"))?;

@@ -377,16 +377,25 @@ impl Source {
     }
 }
 
-/// Reads a metric depth map for `flag`, refusing a depth model's raw output: a `.npy` that the
-/// `predictions.json` beside it lists as a prediction holds disparity or unscaled depth, not
-/// metres (`hint` says what to do instead).
+/// Reads a metric depth map for `flag`, refusing a relative model's raw output: a `.npy` that
+/// the `predictions.json` beside it lists as an `inverse-depth` prediction holds disparity with
+/// an unknown scale and shift, not metres (`hint` says what to do instead). A raw `depth`
+/// prediction (a metric head's output, nominally metres) is read with a note: uncalibrated.
 pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_core::MetricDepth> {
     if let Some(index) = moma_io::prediction_index_listing(path)? {
-        bail!(
-            "{flag} {}: this is a raw {}{} prediction listed in {}, not metres; {hint}",
+        let simulated = if index.simulated { "SIMULATED " } else { "" };
+        if index.kind == PredictionKind::InverseDepth {
+            bail!(
+                "{flag} {}: this is a raw {simulated}inverse-depth prediction listed in {}: \
+                 disparity, not metres; {hint}",
+                path.display(),
+                index.path.display()
+            );
+        }
+        eprintln!(
+            "note: {flag} {}: a raw {simulated}depth prediction listed in {}, used as metres \
+             without calibration (its scale is the model's own)",
             path.display(),
-            if index.simulated { "SIMULATED " } else { "" },
-            index.kind,
             index.path.display()
         );
     }

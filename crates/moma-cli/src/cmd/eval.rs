@@ -195,7 +195,8 @@ pub struct EvalOptions {
 
 impl EvalOptions {
     /// Refuses the variant options (`--realign`, `--robust`) for `command`, which runs one-shot
-    /// calibrations only and would otherwise skip them silently or mix their rows in.
+    /// calibrations only and would otherwise skip them silently or mix their rows in; before
+    /// anything is loaded.
     pub fn one_shot_only(&self, command: &str) -> Result<()> {
         if self.realign.is_some() {
             bail!("--realign is not supported by `moma {command}` (use `moma eval` for it)");

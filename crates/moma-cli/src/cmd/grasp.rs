@@ -48,7 +48,8 @@ pub enum GripperArg {
 ///     colour-mapped depth; best = green, then yellow to red) and scene.ply (the scene points plus
 ///     finger/palm or cup boxes of the grasps; binary PLY, opens in MeshLab / Open3D).
 ///
-/// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane.
+/// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane
+/// and does not touch the image border (--keep-border-objects keeps such regions).
 /// "No grasp found" is not an error: an empty list, and the reason on stderr.
 ///
 /// Examples:
@@ -86,7 +87,7 @@ pub struct GraspArgs {
     /// Without --mask, also plan on regions that touch the image border (dropped by default:
     /// partly seen, and most often a bin wall or the band along the frame's edge where sensor
     /// depth curls away from the table).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "mask")]
     pub keep_border_objects: bool,
     /// Camera→robot-base transform (JSON, see above): adds "base" poses.
     #[arg(long, value_name = "FILE")]
@@ -296,6 +297,13 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         };
         anyhow::Error::new(e).context(about)
     })?;
+    if scene.border_regions_dropped() > 0 {
+        eprintln!(
+            "note: {} region(s) above the support plane touch the image border and are not \
+             planned on (partly seen; --keep-border-objects keeps them, --mask chooses objects)",
+            scene.border_regions_dropped()
+        );
+    }
     let mut outcome = match &gripper {
         GripperGeometry::Parallel(jaw) => plan_parallel(
             &scene,

@@ -65,6 +65,13 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
     if args.gripper.is_empty() {
         bail!("--gripper needs at least one of parallel, suction");
     }
+    // refused before any set is loaded or any depth model runs
+    args.eval.one_shot_only("grasp-eval")?;
+    if args.eval.norm.len() > 1 {
+        bail!(
+            "--norm: `moma grasp-eval` plans with one normalisation (use `moma eval` to compare several)"
+        );
+    }
     let t0 = Instant::now();
     let mut rows: Vec<GraspRow> = Vec::new();
     for (i, dir) in args.set.iter().enumerate() {
