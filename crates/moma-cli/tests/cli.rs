@@ -1010,3 +1010,89 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     let err = fails(&["grasp", "--depth", s(&aligned), "--gripper", "suction"]);
     assert!(err.contains("--camera camera.json is needed"), "{err}");
 }
+
+/// With several sets, one without any object region is noted (on stderr and in the table's
+/// title) and skipped; the others are scored. It used to stop the whole run after the earlier
+/// sets were done. With no set left, it is an error naming each.
+#[test]
+fn grasp_eval_skips_a_set_without_objects_among_several() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, _) = demo(tmp.path());
+    // a copy of the scene whose masks select a 5 × 5 speck: below the 200 px of a trial
+    let bare = tmp.path().join("bare");
+    for entry in walk(&scene) {
+        let rel = entry.strip_prefix(&scene).unwrap();
+        let to = bare.join(rel);
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        if to.file_name().unwrap() == "mask.png" {
+            let m = moma_io::read_mask(&entry).unwrap();
+            let speck = moma_core::Mask::new(ndarray::Array2::from_shape_fn(
+                m.data().dim(),
+                |(v, u)| (100..105).contains(&v) && (100..105).contains(&u),
+            ));
+            moma_io::write_mask(&to, &speck).unwrap();
+        } else {
+            std::fs::copy(&entry, &to).unwrap();
+        }
+    }
+    let out = tmp.path().join("ge");
+    let run = |sets: &[&Path]| {
+        let mut a = vec!["grasp-eval"];
+        for set in sets {
+            a.extend(["--set", s(set)]);
+        }
+        a.extend([
+            "--simulate",
+            "--methods",
+            "gssa",
+            "--seeds",
+            "1",
+            "--gripper",
+            "suction",
+            "-o",
+            s(&out),
+            "--json",
+        ]);
+        moma(&a)
+    };
+    let both = run(&[&scene, &bare]);
+    let err = String::from_utf8_lossy(&both.stderr);
+    assert!(both.status.success(), "{err}");
+    assert!(
+        err.contains("set 'bare': no object region") && err.contains("skipped"),
+        "{err}"
+    );
+    let rows: serde_json::Value = serde_json::from_slice(&both.stdout).unwrap();
+    let sets: Vec<&str> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["set"].as_str().unwrap())
+        .collect();
+    assert!(
+        !sets.is_empty() && sets.iter().all(|&s| s == "scene"),
+        "{sets:?}"
+    );
+    let md = std::fs::read_to_string(out.join("grasp_results.md")).unwrap();
+    assert!(md.contains("skipped: set 'bare'"), "{md}");
+    // nothing left: an error naming the set, and no table written
+    std::fs::remove_dir_all(&out).unwrap();
+    let none = run(&[&bare, &bare]);
+    assert!(!none.status.success());
+    assert!(String::from_utf8_lossy(&none.stderr).contains("no set has anything to grasp"));
+    assert!(!out.exists());
+}
+
+/// Every file under `dir`, recursively.
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            files.extend(walk(&p));
+        } else {
+            files.push(p);
+        }
+    }
+    files
+}

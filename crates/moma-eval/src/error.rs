@@ -45,6 +45,20 @@ pub enum EvalError {
         /// What is wrong.
         message: String,
     },
+    /// The grasp evaluation found no object region large enough to be a trial in the set's
+    /// evaluated frames; an evaluation of several sets notes it and goes on.
+    #[error(
+        "set '{set}': no object region of at least {min_object_px} px in the {frames} evaluated \
+         frame(s): nothing to grasp (lower --min-object-px)"
+    )]
+    NoGraspTrials {
+        /// Set name.
+        set: String,
+        /// The smallest object region that counts, pixels.
+        min_object_px: usize,
+        /// Evaluated frames.
+        frames: usize,
+    },
     /// The set has too few frames for what was asked (e.g. few-shot calibration on K frames
     /// needs K + 1); an evaluation of several sets notes it and goes on.
     #[error("set '{set}': too few frames: {frames}, needs at least {needed} ({why})")]

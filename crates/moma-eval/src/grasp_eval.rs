@@ -303,13 +303,11 @@ pub fn grasp_evaluate(
         }
     }
     if trials.is_empty() {
-        return Err(EvalError::InvalidParameter(format!(
-            "set '{}': no object region of at least {} px in the {} evaluated frame(s): nothing \
-             to grasp (lower --min-object-px)",
-            set.name,
-            config.min_object_px,
-            eval_idx.len()
-        )));
+        return Err(EvalError::NoGraspTrials {
+            set: set.name.clone(),
+            min_object_px: config.min_object_px,
+            frames: eval_idx.len(),
+        });
     }
     let gt = gt_scenes(set, &trials, config)?;
     let norm0 = config.eval.norms.first().copied().unwrap_or_default();

@@ -74,6 +74,8 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
     }
     let t0 = Instant::now();
     let mut rows: Vec<GraspRow> = Vec::new();
+    // sets without any trial, noted and skipped when other sets have trials
+    let mut skipped: Vec<String> = Vec::new();
     for (i, dir) in args.set.iter().enumerate() {
         let set = load_set(dir)?;
         let preds = args.pred.predictions(&set, i, args.set.len())?;
@@ -83,7 +85,14 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
             min_object_px: args.min_object_px,
             ..Default::default()
         };
-        let r = grasp_evaluate(&set, &preds, &config)?;
+        let r = match grasp_evaluate(&set, &preds, &config) {
+            Err(e @ moma_eval::EvalError::NoGraspTrials { .. }) if args.set.len() > 1 => {
+                eprintln!("note: {e}; skipped");
+                skipped.push(e.to_string());
+                continue;
+            }
+            r => r?,
+        };
         eprintln!(
             "{}: {} rows ({:.1} s)",
             set.name,
@@ -92,8 +101,14 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
         );
         rows.extend(r);
     }
+    if rows.is_empty() {
+        bail!("no set has anything to grasp:\n  {}", skipped.join("\n  "));
+    }
     create_dir(&args.out)?;
-    let table = grasp_table(&rows);
+    let mut table = grasp_table(&rows);
+    for s in &skipped {
+        table.title.push_str(&format!(" — skipped: {s}"));
+    }
     let files = write_table(&args.out, "grasp_results", &table, &rows)?;
     if args.json {
         eprintln!("{}", table.to_text());
