@@ -1026,10 +1026,10 @@ fn grasp_eval_skips_a_set_without_objects_among_several() {
         std::fs::create_dir_all(to.parent().unwrap()).unwrap();
         if to.file_name().unwrap() == "mask.png" {
             let m = moma_io::read_mask(&entry).unwrap();
-            let speck = moma_core::Mask::new(ndarray::Array2::from_shape_fn(
-                m.data().dim(),
-                |(v, u)| (100..105).contains(&v) && (100..105).contains(&u),
-            ));
+            let speck =
+                moma_core::Mask::new(ndarray::Array2::from_shape_fn(m.data().dim(), |(v, u)| {
+                    (100..105).contains(&v) && (100..105).contains(&u)
+                }));
             moma_io::write_mask(&to, &speck).unwrap();
         } else {
             std::fs::copy(&entry, &to).unwrap();
