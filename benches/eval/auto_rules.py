@@ -69,35 +69,28 @@ def main():
     sims = sorted({r["sim_seed"] for r in rows})
     print(f"SIMULATED predictions; {len(sims)} simulator seeds; MAE mm (change vs the best single "
           "method on the set)\n")
-    print("| rule | " + " | ".join(SETS) + f" | cells within 3 % (of {len(SETS) * len(sims)}) |")
-    print("|---|" + "---|" * (len(SETS) + 1))
-    for name, rule in RULES.items():
-        cells, ok = [], 0
-        for s in SETS:
-            picked, per_method = [], []
-            for sim in sims:
-                lines = [r["candidates"] for r in rows if r["set"] == s and r["sim_seed"] == sim]
-                p = mean(c[rule(c)]["mae_m"] for c in lines)
-                m = [mean(c[j]["mae_m"] for c in lines) for j in range(len(ORDER))]
-                ok += p <= 1.03 * min(m)
-                picked.append(p)
-                per_method.append(m)
-            a = mean(picked)
-            b = min(mean(m[j] for m in per_method) for j in range(len(ORDER)))
-            cells.append(f"{1e3 * a:.2f} ({100 * (a / b - 1):+.1f} %)")
-        print(f"| {name} | " + " | ".join(cells) + f" | {ok} |")
+    table(rows, sims, "rule", {name: (lambda rule: lambda r: r["candidates"][rule(r["candidates"])]["mae_m"])(rule)
+                               for name, rule in RULES.items()})
     if "blends" not in rows[0]:
         return
     print("\nBlends instead of a choice (same cells):\n")
-    print("| blend | " + " | ".join(SETS) + f" | cells within 3 % (of {len(SETS) * len(sims)}) |")
+    table(rows, sims, "blend", {name: (lambda name: lambda r: r["blends"][name]["mae_m"])(name)
+                                for name in rows[0]["blends"]})
+
+
+def table(rows, sims, what, pickers):
+    """One markdown row per picker (line -> masked MAE, metres): the MAE per set (mean over
+    simulator and sampling seeds) against the best single method's, and the (set, simulator
+    seed) cells within 3 % of that cell's best method."""
+    print(f"| {what} | " + " | ".join(SETS) + f" | cells within 3 % (of {len(SETS) * len(sims)}) |")
     print("|---|" + "---|" * (len(SETS) + 1))
-    for name in rows[0]["blends"]:
+    for name, pick in pickers.items():
         cells, ok = [], 0
         for s in SETS:
             got, per_method = [], []
             for sim in sims:
                 lines = [r for r in rows if r["set"] == s and r["sim_seed"] == sim]
-                p = mean(r["blends"][name]["mae_m"] for r in lines)
+                p = mean(pick(r) for r in lines)
                 m = [mean(r["candidates"][j]["mae_m"] for r in lines) for j in range(len(ORDER))]
                 ok += p <= 1.03 * min(m)
                 got.append(p)
@@ -106,7 +99,6 @@ def main():
             b = min(mean(m[j] for m in per_method) for j in range(len(ORDER)))
             cells.append(f"{1e3 * a:.2f} ({100 * (a / b - 1):+.1f} %)")
         print(f"| {name} | " + " | ".join(cells) + f" | {ok} |")
-
 
 if __name__ == "__main__":
     main()
