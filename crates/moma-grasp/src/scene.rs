@@ -71,14 +71,20 @@ pub struct Scene {
     border_regions_dropped: usize,
 }
 
-/// Clears every 8-connected region of `object` with a pixel on the image border; returns how
-/// many of them had at least `min_px` pixels (would have been objects).
-fn drop_border_regions(object: &mut [bool], size: moma_core::ImageSize, min_px: usize) -> usize {
+/// Removes every 8-connected region (`labels`, `counts` from [`components_8`] of `object`) with
+/// a pixel on the image border: its pixels leave `object` and get label 0, its count becomes 0.
+/// Returns how many of them had at least `min_px` pixels (would have been objects).
+fn drop_border_regions(
+    object: &mut [bool],
+    labels: &mut [u32],
+    counts: &mut [usize],
+    size: moma_core::ImageSize,
+    min_px: usize,
+) -> usize {
     let (w, h) = (size.width, size.height);
     if w == 0 || h == 0 {
         return 0;
     }
-    let (labels, counts) = components_8(object, size);
     let mut touches = vec![false; counts.len() + 1];
     let border = (0..w)
         .flat_map(|u| [u, (h - 1) * w + u])
@@ -87,14 +93,18 @@ fn drop_border_regions(object: &mut [bool], size: moma_core::ImageSize, min_px: 
         touches[labels[i] as usize] = true;
     }
     touches[0] = false;
-    for (o, &l) in object.iter_mut().zip(&labels) {
-        if touches[l as usize] {
+    for (o, l) in object.iter_mut().zip(labels.iter_mut()) {
+        if touches[*l as usize] {
             *o = false;
+            *l = 0;
         }
     }
-    (1..touches.len())
-        .filter(|&l| touches[l] && counts[l - 1] >= min_px)
-        .count()
+    let mut dropped = 0;
+    for (c, _) in counts.iter_mut().zip(&touches[1..]).filter(|(_, t)| **t) {
+        dropped += usize::from(*c >= min_px);
+        *c = 0;
+    }
+    dropped
 }
 
 impl Scene {
@@ -163,8 +173,16 @@ impl Scene {
                 .collect(),
             (None, None) => vec![false; cloud.valid.len()],
         };
+        // One labelling serves the border rule and the components below.
+        let (mut labels, mut counts) = components_8(&object, size);
         let border_regions_dropped = if masked.is_none() && !config.keep_border_objects {
-            drop_border_regions(&mut object, size, config.min_object_px)
+            drop_border_regions(
+                &mut object,
+                &mut labels,
+                &mut counts,
+                size,
+                config.min_object_px,
+            )
         } else {
             0
         };
@@ -188,7 +206,6 @@ impl Scene {
                 &config.cloud,
             );
         }
-        let (mut labels, counts) = components_8(&object, size);
         let min_px = if masked.is_some() {
             1
         } else {
@@ -198,7 +215,8 @@ impl Scene {
         let mut remap = vec![0u32; counts.len() + 1];
         let mut sums = Vec::new();
         for (k, &c) in counts.iter().enumerate() {
-            if c >= min_px {
+            // c = 0: a region the border rule dropped (components_8 counts are at least 1)
+            if c > 0 && c >= min_px {
                 sums.push((Vec3::zeros(), 0usize));
                 remap[k + 1] = sums.len() as u32;
             }
