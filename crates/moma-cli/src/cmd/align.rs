@@ -167,11 +167,7 @@ struct FrameSummary {
 }
 
 pub fn run(args: &AlignArgs) -> Result<()> {
-    super::common::check_unique_output_names(if args.source.rgb.is_empty() {
-        &args.source.pred
-    } else {
-        &args.source.rgb
-    })?;
+    super::common::check_unique_output_names(args.source.inputs())?;
     let calib = moma_io::read_calibration(&args.calib)?;
     let mut source = args
         .source

@@ -272,6 +272,15 @@ pub struct Source {
 }
 
 impl SourceArgs {
+    /// The input files: the RGB images with --rgb, else the prediction files.
+    pub fn inputs(&self) -> &[PathBuf] {
+        if self.rgb.is_empty() {
+            &self.pred
+        } else {
+            &self.rgb
+        }
+    }
+
     /// Opens the source (loads the model once when `--rgb` is used). The prediction kind comes
     /// from `--pred-kind`, the `predictions.json` beside each prediction file, the model's head
     /// (`--rgb`) and `calibration_kind` (the calibration file's, in `align`); at least one must
@@ -312,7 +321,7 @@ impl SourceArgs {
                 );
             }
             Ok(Source {
-                inputs: self.pred.clone(),
+                inputs: self.inputs().to_vec(),
                 kind,
                 model: None,
                 simulated: indexes.iter().any(|i| i.simulated),
@@ -329,7 +338,7 @@ impl SourceArgs {
             ])
             .map_err(anyhow::Error::msg)?;
             Ok(Source {
-                inputs: self.rgb.clone(),
+                inputs: self.inputs().to_vec(),
                 kind,
                 model: Some(model),
                 simulated: false,
