@@ -756,25 +756,6 @@ fn grasp_eval_refuses_what_it_cannot_score_and_labels_outliers() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, _) = demo(tmp.path());
     let out = tmp.path().join("ge");
-    let base = [
-        "grasp-eval",
-        "--set",
-        s(&scene),
-        "--simulate",
-        "--methods",
-        "gssa",
-        "--seeds",
-        "1",
-        "--gripper",
-        "suction",
-        "-o",
-        s(&out),
-    ];
-    fn with<'a>(base: &[&'a str], extra: &[&'a str]) -> Vec<&'a str> {
-        let mut a = base.to_vec();
-        a.extend_from_slice(extra);
-        a
-    }
     for (extra, expected) in [
         (
             &["--realign", "anchors"][..],
@@ -794,13 +775,13 @@ fn grasp_eval_refuses_what_it_cannot_score_and_labels_outliers() {
             ["no object region of at least 100000000 px", "'scene'"],
         ),
     ] {
-        let err = fails(&with(&base, extra));
+        let err = fails(&grasp_eval_args(&[&scene], &out, extra));
         assert!(expected.iter().all(|e| err.contains(e)), "{extra:?}: {err}");
         assert!(!out.join("grasp_results.json").exists());
     }
     let rows: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string({
-            ok(&with(&base, &["--gt-outliers", "0.2"]));
+            ok(&grasp_eval_args(&[&scene], &out, &["--gt-outliers", "0.2"]));
             out.join("grasp_results.json")
         })
         .unwrap(),
@@ -1036,25 +1017,7 @@ fn grasp_eval_skips_a_set_without_objects_among_several() {
         }
     }
     let out = tmp.path().join("ge");
-    let run = |sets: &[&Path]| {
-        let mut a = vec!["grasp-eval"];
-        for set in sets {
-            a.extend(["--set", s(set)]);
-        }
-        a.extend([
-            "--simulate",
-            "--methods",
-            "gssa",
-            "--seeds",
-            "1",
-            "--gripper",
-            "suction",
-            "-o",
-            s(&out),
-            "--json",
-        ]);
-        moma(&a)
-    };
+    let run = |sets: &[&Path]| moma(&grasp_eval_args(sets, &out, &["--json"]));
     let both = run(&[&scene, &bare]);
     let err = String::from_utf8_lossy(&both.stderr);
     assert!(both.status.success(), "{err}");
@@ -1081,6 +1044,28 @@ fn grasp_eval_skips_a_set_without_objects_among_several() {
     assert!(!none.status.success());
     assert!(String::from_utf8_lossy(&none.stderr).contains("no set has anything to grasp"));
     assert!(!out.exists());
+}
+
+/// `grasp-eval` on `sets` with SIMULATED predictions, GSSA, one seed, the suction cup, into
+/// `out`, followed by `extra`.
+fn grasp_eval_args<'a>(sets: &[&'a Path], out: &'a Path, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut a = vec!["grasp-eval"];
+    for set in sets {
+        a.extend(["--set", s(set)]);
+    }
+    a.extend([
+        "--simulate",
+        "--methods",
+        "gssa",
+        "--seeds",
+        "1",
+        "--gripper",
+        "suction",
+        "-o",
+        s(out),
+    ]);
+    a.extend_from_slice(extra);
+    a
 }
 
 /// Every file under `dir`, recursively.
