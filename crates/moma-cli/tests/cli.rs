@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{align_args, demo, fails, moma, ok, s};
+use common::{align_args, calibrate_frame_00, demo, fails, moma, ok, s};
 
 /// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
@@ -212,17 +212,7 @@ fn bad_input_is_a_clear_error() {
     assert!(err.contains(s(&rgb)) && err.contains("16-bit"), "{err}");
     assert!(!calib.exists());
 
-    ok(&[
-        "calibrate",
-        "--pred",
-        s(&pred.join("frame_00.npy")),
-        "--pred-kind",
-        "inverse-depth",
-        "--gt",
-        s(&frames.join("frame_00/depth.png")),
-        "-o",
-        s(&calib),
-    ]);
+    calibrate_frame_00(&scene, &pred, &calib, &["--pred-kind", "inverse-depth"]);
 
     // Kind mismatch between calibration (and predictions.json) and run time.
     let frame1 = pred.join("frame_01.npy");
@@ -898,15 +888,7 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
     assert!(m["mae"].as_f64().unwrap() < 1e-6, "{m}");
     // the same map once aligned is metres: accepted
     let calib = tmp.path().join("calib.json");
-    ok(&[
-        "calibrate",
-        "--pred",
-        s(&pred.join("frame_00.npy")),
-        "--gt",
-        s(&frames.join("frame_00/depth.png")),
-        "-o",
-        s(&calib),
-    ]);
+    calibrate_frame_00(&scene, &pred, &calib, &[]);
     let aligned = tmp.path().join("aligned");
     ok(&align_args(&calib, &raw, &aligned, &[]));
     let m: serde_json::Value = serde_json::from_str(&ok(&[
@@ -928,20 +910,9 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
 fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
-    let frames = scene.join("frames");
     let camera = scene.join("camera.json");
     let calib = tmp.path().join("calib.json");
-    ok(&[
-        "calibrate",
-        "--pred",
-        s(&pred.join("frame_00.npy")),
-        "--gt",
-        s(&frames.join("frame_00/depth.png")),
-        "--camera",
-        s(&camera),
-        "-o",
-        s(&calib),
-    ]);
+    calibrate_frame_00(&scene, &pred, &calib, &["--camera", s(&camera)]);
     let file: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
     assert_eq!(file["created"]["simulated_predictions"], true);

@@ -30,6 +30,19 @@ pub fn fails(args: &[&str]) -> String {
     String::from_utf8(out.stderr).expect("utf-8 stderr")
 }
 
+/// Runs `moma calibrate` on the demo scene's first frame (`PRED/frame_00.npy` against
+/// `SCENE/frames/frame_00/depth.png`) into `out`, with `extra` arguments; asserts success,
+/// returns stdout.
+pub fn calibrate_frame_00(scene: &Path, pred: &Path, out: &Path, extra: &[&str]) -> String {
+    let (p, gt) = (
+        pred.join("frame_00.npy"),
+        scene.join("frames/frame_00/depth.png"),
+    );
+    let mut args = vec!["calibrate", "--pred", s(&p), "--gt", s(&gt), "-o", s(out)];
+    args.extend_from_slice(extra);
+    ok(&args)
+}
+
 /// A path as `&str` for an argument list.
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
