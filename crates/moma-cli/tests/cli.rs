@@ -674,8 +674,7 @@ fn a_misspelt_simulator_setting_is_an_error_not_ignored() {
     let (scene, _) = demo(tmp.path());
     let cfg = tmp.path().join("sim.json");
     let out = tmp.path().join("pred");
-    std::fs::write(&cfg, r#"{"frame_fluctuaton": 0.1}"#).unwrap();
-    let err = fails(&[
+    let args = [
         "simulate",
         "--set",
         s(&scene),
@@ -683,22 +682,16 @@ fn a_misspelt_simulator_setting_is_an_error_not_ignored() {
         s(&cfg),
         "-o",
         s(&out),
-    ]);
+    ];
+    std::fs::write(&cfg, r#"{"frame_fluctuaton": 0.1}"#).unwrap();
+    let err = fails(&args);
     assert!(
         err.contains("sim.json") && err.contains("frame_fluctuaton"),
         "{err}"
     );
     assert!(!out.exists());
     std::fs::write(&cfg, r#"{"frame_fluctuation": 0.1}"#).unwrap();
-    ok(&[
-        "simulate",
-        "--set",
-        s(&scene),
-        "--sim-config",
-        s(&cfg),
-        "-o",
-        s(&out),
-    ]);
+    ok(&args);
 }
 
 #[test]
