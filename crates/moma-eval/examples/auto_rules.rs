@@ -94,25 +94,16 @@ fn blend_weights(
     ]
 }
 
-/// `maps` blended with `w` in `space` (disparity averaged in inverse space); NaN where any is.
+/// `maps` blended with `w` in `space` (disparity averaged in inverse space, through
+/// [`AlignSpace`]'s own conversions); NaN where any is.
 fn blend(maps: &[&MetricDepth], w: &[f64], space: AlignSpace) -> MetricDepth {
-    let inverse = space == AlignSpace::Inverse;
-    let mut acc = ndarray::Array2::<f32>::zeros(maps[0].depth_m.dim());
+    let mut acc = ndarray::Array2::<f64>::zeros(maps[0].depth_m.dim());
     for (m, &wc) in maps.iter().zip(w) {
         acc.zip_mut_with(&m.depth_m, |a, &z| {
-            *a += wc as f32 * if inverse { 1.0 / z } else { z };
+            *a += wc * space.target_from_depth(f64::from(z));
         });
     }
-    if inverse {
-        acc.mapv_inplace(|d| {
-            if d > 0.0 && d.is_finite() {
-                1.0 / d
-            } else {
-                f32::NAN
-            }
-        });
-    }
-    MetricDepth::new(acc)
+    MetricDepth::new(acc.mapv(|t| space.depth_from_target(t) as f32))
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
