@@ -30,33 +30,47 @@ What it does:
      `all` (r 2, alpha 3, targets q, k, v, proj, fc1, fc2, and the DPT head trained fully with
             10x the learning rate, gradient-norm clipping as torch.nn.utils.clip_grad_norm_;
             gradients and updated values of a few head weights are stored).
-The Rust test crates/moma-depth/tests/lora_parity.rs reads OUT.
+The Rust test crates/moma-depth/tests/lora_parity.rs reads OUT. The pieces (import_official,
+load_reference, check_official, training_sample, lora_model, train_whole_head, write_safetensors)
+are importable: lora_parity_steps.py builds its multi-step reference from them.
 """
 import json
 import os
 import re
 import sys
+from functools import partial
+from types import SimpleNamespace
 
-OFFICIAL = os.path.abspath(sys.argv[1]) if len(sys.argv) > 1 else sys.exit(__doc__)
+import numpy as np
+import peft
+import torch
+from safetensors.torch import load_file, save_file
+
+from torch_common import split_qkv  # this folder
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-REF = sys.argv[2] if len(sys.argv) > 2 else os.path.join(HERE, "..", "..", "..", "shared", "reference", "dav2")
-OUT = sys.argv[3] if len(sys.argv) > 3 else os.path.join(
-    HERE, "..", "..", "crates", "moma-depth", "tests", "data", "lora_parity_tiny_metric.safetensors")
-sys.path.insert(0, os.path.join(OFFICIAL, "metric_depth"))
+DEFAULT_REF = os.path.join(HERE, "..", "..", "..", "shared", "reference", "dav2")
+DEFAULT_OUT = os.path.join(HERE, "..", "..", "crates", "moma-depth", "tests", "data",
+                           "lora_parity_tiny_metric.safetensors")
 
-from functools import partial  # noqa: E402
+# The official classes, set by import_official (the checkout is not vendored: its path is an argument).
+OFFICIAL = None
 
-import numpy as np  # noqa: E402
-import peft  # noqa: E402
-import torch  # noqa: E402
-from safetensors.torch import load_file, save_file  # noqa: E402
 
-from depth_anything_v2.dpt import DepthAnythingV2, DPTHead  # noqa: E402
-from depth_anything_v2.dinov2 import DinoVisionTransformer  # noqa: E402
-from depth_anything_v2.dinov2_layers import MemEffAttention, NestedTensorBlock as Block  # noqa: E402
-from util.loss import SiLogLoss  # noqa: E402  (official metric_depth/util/loss.py)
+def import_official(official_dir):
+    """Puts `metric_depth` of the official checkout first on sys.path and imports the official
+    classes and `SiLogLoss` (metric_depth/util/loss.py); returns them (also kept in OFFICIAL)."""
+    global OFFICIAL
+    sys.path.insert(0, os.path.join(os.path.abspath(official_dir), "metric_depth"))
+    from depth_anything_v2.dpt import DepthAnythingV2, DPTHead
+    from depth_anything_v2.dinov2 import DinoVisionTransformer
+    from depth_anything_v2.dinov2_layers import MemEffAttention, NestedTensorBlock as Block
+    from util.loss import SiLogLoss
+    OFFICIAL = SimpleNamespace(DepthAnythingV2=DepthAnythingV2, DPTHead=DPTHead,
+                               DinoVisionTransformer=DinoVisionTransformer,
+                               MemEffAttention=MemEffAttention, Block=Block, SiLogLoss=SiLogLoss)
+    return OFFICIAL
 
-from torch_common import split_qkv  # noqa: E402  (this folder)
 
 NAME = "tiny-metric"
 # The crop of NAME.input.npy the training case uses (rows, cols; multiples of 14: a 9x12 patch
@@ -93,15 +107,17 @@ TARGET_PATH = {"q": "attn.qkv.q", "k": "attn.qkv.k", "v": "attn.qkv.v", "proj": 
 
 def tiny_model(cfg):
     """The official DepthAnythingV2 (metric) with the tiny DINOv2 of the reference README."""
-    model = DepthAnythingV2(encoder="vits", features=cfg["features"], out_channels=cfg["out_channels"],
+    o = OFFICIAL
+    assert o is not None, "call import_official(OFFICIAL_DIR) first"
+    model = o.DepthAnythingV2(encoder="vits", features=cfg["features"], out_channels=cfg["out_channels"],
                             max_depth=cfg["max_depth"])
     # As DINOv2(model_name) in the official dinov2.py, with the tiny sizes.
-    model.pretrained = DinoVisionTransformer(
+    model.pretrained = o.DinoVisionTransformer(
         img_size=518, patch_size=14, embed_dim=cfg["embed_dim"], depth=cfg["depth"],
-        num_heads=cfg["num_heads"], mlp_ratio=4, block_fn=partial(Block, attn_class=MemEffAttention),
+        num_heads=cfg["num_heads"], mlp_ratio=4, block_fn=partial(o.Block, attn_class=o.MemEffAttention),
         init_values=1.0, ffn_layer="mlp", block_chunks=0, num_register_tokens=0,
         interpolate_antialias=False, interpolate_offset=0.1)
-    model.depth_head = DPTHead(cfg["embed_dim"], cfg["features"], False, out_channels=cfg["out_channels"],
+    model.depth_head = o.DPTHead(cfg["embed_dim"], cfg["features"], False, out_channels=cfg["out_channels"],
                                use_clstoken=False)
     model.intermediate_layer_idx["tiny"] = cfg["intermediate_layers"]
     model.encoder = "tiny"
@@ -121,17 +137,21 @@ def rel_to_range(got, want):
     return err, rng, err / rng
 
 
-def main():
-    torch.manual_seed(SEED)
-    cfg_ref = json.load(open(os.path.join(REF, f"{NAME}.json")))
+def load_reference(ref_dir):
+    """The tiny metric configuration, its state dict, the full reference input and output."""
+    cfg_ref = json.load(open(os.path.join(ref_dir, f"{NAME}.json")))
     cfg = {"embed_dim": 64, "depth": 4, "num_heads": 2, "intermediate_layers": [0, 1, 2, 3], "features": 16,
            "out_channels": [8, 16, 32, 64], "max_depth": float(cfg_ref["max_depth"])}
     assert cfg_ref["head"] == "metric"
-    sd = load_file(os.path.join(REF, f"{NAME}.safetensors"))
-    x_full = np.load(os.path.join(REF, f"{NAME}.input.npy")).astype(np.float32)
-    want = np.load(os.path.join(REF, f"{NAME}.output_net.npy")).astype(np.float32)
+    sd = load_file(os.path.join(ref_dir, f"{NAME}.safetensors"))
+    x_full = np.load(os.path.join(ref_dir, f"{NAME}.input.npy")).astype(np.float32)
+    want = np.load(os.path.join(ref_dir, f"{NAME}.output_net.npy")).astype(np.float32)
+    return cfg, sd, x_full, want
 
-    # 1. The official network reproduces the reference output.
+
+def check_official(cfg, sd, x_full, want):
+    """Steps 1 and 2: the official network reproduces the reference output, and splitting qkv
+    keeps the function (both asserted). Returns the reproduction errors."""
     model = load_base(cfg, sd)
     with torch.inference_mode():
         out = model(torch.from_numpy(x_full)[None]).squeeze(0).numpy()
@@ -139,17 +159,20 @@ def main():
     print(f"[1] official network vs {NAME}.output_net.npy: max abs err {err:.3e}, range {rng:.4f}, "
           f"rel {rel:.3e} -> {'OK' if rel < 1e-4 else 'FAIL'}")
     assert rel < 1e-4, "not the official network"
-    repro = {"max_abs_err": err, "rel": rel}
 
-    # 2. Split qkv: the same function.
     split_qkv(model.pretrained)
     with torch.inference_mode():
         out2 = model(torch.from_numpy(x_full)[None]).squeeze(0).numpy()
     err2, _, rel2 = rel_to_range(out2, out)
     print(f"[2] split qkv vs fused: max abs err {err2:.3e}, rel {rel2:.3e}")
     assert rel2 < 1e-6, "split qkv changed the output"
+    return {"max_abs_err": err, "rel": rel}
 
-    # 3. Training cases in float64.
+
+def training_sample(x_full, max_depth_m):
+    """The CROP of the reference input (float64, (1, 3, h, w)), the seeded ground truth (float32
+    numpy (h, w): 5 % zeros, 2 % beyond max depth, 1 % NaN), as a float64 tensor (1, h, w), and
+    its valid mask (finite, MIN_DEPTH_M <= gt <= max_depth_m)."""
     c = CROP
     x = torch.from_numpy(x_full[:, c["y0"]:c["y0"] + c["h"], c["x0"]:c["x0"] + c["w"]].copy())[None].double()
     rng_np = np.random.default_rng(SEED)
@@ -162,10 +185,71 @@ def main():
     gt[(u >= 0.07) & (u < 0.08)] = np.nan    # not finite
     gt = gt.astype(np.float32)
     gt_t = torch.from_numpy(gt).double()[None]
-    max_depth_m = cfg["max_depth"]
     valid = torch.isfinite(gt_t) & (gt_t >= MIN_DEPTH_M) & (gt_t <= max_depth_m)
     print(f"[3] crop {c}, ground truth {h}x{w}, valid pixels {int(valid.sum())} of {h * w}")
-    criterion = SiLogLoss()
+    return x, gt, gt_t, valid
+
+
+def lora_model(cfg, sd, rank, alpha, targets, gen):
+    """The official network with split qkv in float64 under peft LoRA (r, alpha, `targets` of
+    TARGET_PATH, dropout 0), in train mode, with seeded NON-ZERO A (uniform, +-1/sqrt(in)) and B
+    (uniform, +-0.2) drawn from `gen` in module order. Returns (peft model, {Rust name: parameter})."""
+    base = load_base(cfg, sd)
+    split_qkv(base.pretrained)
+    base = base.double()
+    paths = "|".join(re.escape(TARGET_PATH[t]) for t in targets)
+    lcfg = peft.LoraConfig(r=rank, lora_alpha=alpha, lora_dropout=0.0, bias="none",
+                           target_modules=rf"pretrained\.blocks\.\d+\.({paths})")
+    pm = peft.get_peft_model(base, lcfg)
+    pm.train()  # dropout is 0 everywhere (the official code has no dropout; LoRA dropout 0)
+    lora = {}  # Rust name -> (peft parameter)
+    for name, mod in pm.named_modules():
+        if not isinstance(mod, peft.tuners.lora.LoraLayer):
+            continue
+        m = re.search(r"pretrained\.blocks\.(\d+)\.(.+)$", name)
+        key = f"blocks.{m.group(1)}.{m.group(2)}"
+        a, b = mod.lora_A["default"].weight, mod.lora_B["default"].weight  # (r, in), (out, r)
+        assert mod.scaling["default"] == alpha / rank, mod.scaling
+        with torch.no_grad():
+            bound = 1.0 / np.sqrt(a.shape[1])
+            a.copy_((torch.rand(a.shape, generator=gen, dtype=torch.float32) * 2 - 1) * bound)
+            b.copy_((torch.rand(b.shape, generator=gen, dtype=torch.float32) * 2 - 1) * 0.2)
+        lora[f"{key}.lora_A"] = a
+        lora[f"{key}.lora_B"] = b
+    expect = {f"blocks.{i}.{TARGET_PATH[t]}.lora_{ab}" for i in range(cfg["depth"]) for t in targets
+              for ab in "AB"}
+    assert set(lora) == expect, sorted(set(lora) ^ expect)
+    return pm, lora
+
+
+def train_whole_head(pm):
+    """Makes every `depth_head.*` parameter trainable; returns {official name: parameter}."""
+    head = {}
+    for name, p in pm.named_parameters():
+        k = name.removeprefix("base_model.model.")
+        if k.startswith("depth_head."):
+            p.requires_grad_(True)
+            head[k] = p
+    assert all(k in head for k in HEAD_KEYS)
+    return head
+
+
+def main():
+    if len(sys.argv) < 2:
+        sys.exit(__doc__)
+    import_official(sys.argv[1])
+    ref_dir = sys.argv[2] if len(sys.argv) > 2 else DEFAULT_REF
+    out_path = sys.argv[3] if len(sys.argv) > 3 else DEFAULT_OUT
+    torch.manual_seed(SEED)
+    cfg, sd, x_full, want = load_reference(ref_dir)
+
+    # 1. The official network reproduces the reference output; 2. split qkv: the same function.
+    repro = check_official(cfg, sd, x_full, want)
+
+    # 3. Training cases in float64.
+    max_depth_m = cfg["max_depth"]
+    x, gt, gt_t, valid = training_sample(x_full, max_depth_m)
+    criterion = OFFICIAL.SiLogLoss()
 
     tensors = {"gt_m": torch.from_numpy(gt)}
     meta = {
@@ -180,40 +264,9 @@ def main():
         "seed": str(SEED),
     }
     for case, s in CASES.items():
-        base = load_base(cfg, sd)
-        split_qkv(base.pretrained)
-        base = base.double()
-        paths = "|".join(re.escape(TARGET_PATH[t]) for t in s["targets"])
-        lcfg = peft.LoraConfig(r=s["rank"], lora_alpha=s["alpha"], lora_dropout=0.0, bias="none",
-                               target_modules=rf"pretrained\.blocks\.\d+\.({paths})")
-        pm = peft.get_peft_model(base, lcfg)
-        pm.train()  # dropout is 0 everywhere (the official code has no dropout; LoRA dropout 0)
         gen = torch.Generator().manual_seed(SEED + len(case))
-        lora = {}  # Rust name -> (peft parameter)
-        for name, mod in pm.named_modules():
-            if not isinstance(mod, peft.tuners.lora.LoraLayer):
-                continue
-            m = re.search(r"pretrained\.blocks\.(\d+)\.(.+)$", name)
-            key = f"blocks.{m.group(1)}.{m.group(2)}"
-            a, b = mod.lora_A["default"].weight, mod.lora_B["default"].weight  # (r, in), (out, r)
-            assert mod.scaling["default"] == s["alpha"] / s["rank"], mod.scaling
-            with torch.no_grad():
-                bound = 1.0 / np.sqrt(a.shape[1])
-                a.copy_((torch.rand(a.shape, generator=gen, dtype=torch.float32) * 2 - 1) * bound)
-                b.copy_((torch.rand(b.shape, generator=gen, dtype=torch.float32) * 2 - 1) * 0.2)
-            lora[f"{key}.lora_A"] = a
-            lora[f"{key}.lora_B"] = b
-        expect = {f"blocks.{i}.{TARGET_PATH[t]}.lora_{ab}" for i in range(cfg["depth"]) for t in s["targets"]
-                  for ab in "AB"}
-        assert set(lora) == expect, sorted(set(lora) ^ expect)
-        head = {}
-        if s["train_head"]:
-            for name, p in pm.named_parameters():
-                k = name.removeprefix("base_model.model.")
-                if k.startswith("depth_head."):
-                    p.requires_grad_(True)
-                    head[k] = p
-            assert all(k in head for k in HEAD_KEYS)
+        pm, lora = lora_model(cfg, sd, s["rank"], s["alpha"], s["targets"], gen)
+        head = train_whole_head(pm) if s["train_head"] else {}
         trainable = {n for n, p in pm.named_parameters() if p.requires_grad}
         assert len(trainable) == len(lora) + len(head), (len(trainable), len(lora), len(head))
         for k, p in lora.items():
@@ -253,13 +306,18 @@ def main():
         meta[f"{case}/settings"] = json.dumps({**s, "clip_grad_norm": clip, "grad_norm": norm,
                                                "head_without_grad": no_grad})
 
+    write_safetensors(tensors, meta, out_path)
+
+
+def write_safetensors(tensors, meta, out_path):
+    """Writes atomically (a .tmp beside it, then os.replace), mode 644."""
     tensors = {k: v.contiguous() for k, v in tensors.items()}
-    os.makedirs(os.path.dirname(os.path.abspath(OUT)), exist_ok=True)
-    tmp = OUT + ".tmp"
+    os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
+    tmp = out_path + ".tmp"
     save_file(tensors, tmp, metadata=meta)
     os.chmod(tmp, 0o644)
-    os.replace(tmp, OUT)
-    print(f"wrote {OUT}: {len(tensors)} tensors, {os.path.getsize(OUT) / 1024:.0f} kB")
+    os.replace(tmp, out_path)
+    print(f"wrote {out_path}: {len(tensors)} tensors, {os.path.getsize(out_path) / 1024:.0f} kB")
 
 
 if __name__ == "__main__":

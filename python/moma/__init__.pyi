@@ -8,6 +8,7 @@ from ._moma import Intrinsics as Intrinsics
 from ._moma import __version__ as __version__
 from ._moma import calibrate as calibrate
 from ._moma import depth_to_points as depth_to_points
+from ._moma import finetune as finetune
 from ._moma import plan_grasps as plan_grasps
 from ._moma import has_onnx as has_onnx
 from ._moma import lora_fingerprint as lora_fingerprint
@@ -30,6 +31,7 @@ __all__ = [
     "__version__",
     "calibrate",
     "depth_to_points",
+    "finetune",
     "plan_grasps",
     "has_onnx",
     "lora_fingerprint",

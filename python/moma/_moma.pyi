@@ -327,6 +327,56 @@ def lora_fingerprint(
     elsewhere and written in moma's ``moma-lora-v1`` layout. Raises ``MomaFileError`` for
     unreadable weights or ones that do not fit the architecture."""
 
+def finetune(
+    sets: Sequence[_Path],
+    weights: _Path,
+    output: _Path,
+    model: Literal["vits", "vitb", "vitl"] = "vits",
+    head: Literal["relative", "metric"] = "relative",
+    *,
+    max_depth: float = 20.0,
+    input_size: int = 518,
+    config: Optional[dict[str, Any]] = None,
+    device: str = "cpu",
+    lora_rank: int = 16,
+    lora_alpha: Optional[float] = None,
+    lora_targets: Sequence[Literal["q", "k", "v", "proj", "fc1", "fc2"]] = ("q", "v"),
+    lora_dropout: float = 0.0,
+    train_head: bool = False,
+    head_lr_mult: float = 1.0,
+    loss: Optional[Literal["silog", "silog-moma", "ssi"]] = None,
+    steps: Optional[int] = None,
+    epochs: Optional[int] = None,
+    batch: int = 1,
+    accumulate: int = 1,
+    lr: float = 5e-4,
+    weight_decay: float = 0.01,
+    schedule: Literal["one-cycle", "poly"] = "one-cycle",
+    warmup_frac: float = 0.05,
+    val_frac: float = 0.2,
+    save_every: int = 0,
+    min_depth: float = 0.001,
+    mask_loss: bool = False,
+    augment: bool = True,
+    seed: int = 0,
+    resume: Optional[_Path] = None,
+    stop_after: Optional[int] = None,
+    clip_grad_norm: float = 1.0,
+    crop: Optional[tuple[int, int]] = None,
+) -> dict[str, Any]:
+    """LoRA fine-tuning of Depth Anything V2 on moma sets, as ``moma finetune`` (the same options
+    under the same names, the same defaults, the same run) and returns the dict that
+    ``moma finetune --json`` prints: ``steps``, ``train_loss_first``, ``train_loss_last``,
+    ``val_loss_before``, ``val_loss_after``, ``val_loss_after_reload`` (the validation loss of
+    the written adapter loaded through the inference path, as ``DepthModel(lora=output)`` loads
+    it), ``adapter``, ``step_time_s``, ``loss``, ``train_frames``, ``val_frames``, ``note``.
+    Writes ``output`` (the adapter, with the trained head when ``train_head``) and its optimiser
+    state ``output`` with ``.optim.safetensors``. ``config``: a custom architecture (as
+    ``DepthModel``). Give ``steps`` or ``epochs``. Releases the GIL while training. Bad options or
+    data raise ``InvalidInputError``, unreadable files ``MomaFileError``, a step with a
+    non-finite loss or gradient ``BackendError`` naming the step, frames and tensor. Random-weight
+    models learn nothing meaningful: their losses only show that training runs."""
+
 @final
 class DepthModel:
     """Depth Anything V2. Thread-safe (one inference at a time per object); releases the GIL."""
@@ -349,7 +399,8 @@ class DepthModel:
         ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
         largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14);
         ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields);
-        ``lora``: a LoRA adapter file (``moma finetune`` output, ``moma-lora-v1`` safetensors)
+        ``lora``: a LoRA adapter file (``moma finetune`` output, ``moma-lora-v2`` safetensors with any
+        trained head tensors; ``moma-lora-v1`` files still load)
         merged into the weights at load (candle backend; no per-frame cost). An adapter made for
         other base weights or another architecture raises ``MomaFileError``; with
         ``backend="onnx"``, ``BackendError``."""

@@ -219,13 +219,153 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     assert_eq!(std::fs::read(&corrupt).unwrap(), b"not an adapter");
 }
 
-/// Tensors of an adapter file, by name, as f32 values.
+/// Tensors of an adapter file (LoRA matrices and trained head tensors), by name, as f32 values.
 fn adapter_values(p: &Path) -> Vec<(String, Vec<f32>)> {
     let a = moma_depth::candle::train::Adapter::load(p).unwrap();
     a.tensors
         .iter()
+        .chain(&a.base)
         .map(|(k, t)| (k.clone(), t.flatten_all().unwrap().to_vec1().unwrap()))
         .collect()
+}
+
+/// SILog (official Depth Anything V2: `sqrt(mean d² − 0.5 mean² d)`, `d = ln gt − ln pred`) of
+/// a prediction (metres, `moma predict`'s `.npy` at image resolution) against a ground-truth
+/// PNG (uint16 mm, 0 = none), over pixels with ground truth in (0, 20] m; computed here in f64,
+/// independently of moma's loss code. A prediction ≤ 0 at such a pixel fails the test.
+fn silog_vs_png(pred: &ndarray::Array2<f32>, gt_png: &Path) -> f64 {
+    let gt = image::open(gt_png).unwrap().to_luma16();
+    assert_eq!(
+        (gt.height() as usize, gt.width() as usize),
+        pred.dim(),
+        "{}",
+        gt_png.display()
+    );
+    let (mut n, mut s1, mut s2) = (0.0f64, 0.0f64, 0.0f64);
+    for ((y, x), &p) in pred.indexed_iter() {
+        let g = f64::from(gt.get_pixel(x as u32, y as u32)[0]) / 1000.0;
+        if g <= 0.0 || g > 20.0 {
+            continue;
+        }
+        assert!(p > 0.0 && p.is_finite(), "prediction {p} at ({y}, {x})");
+        let d = g.ln() - f64::from(p).ln();
+        n += 1.0;
+        s1 += d;
+        s2 += d * d;
+    }
+    assert!(n > 0.0);
+    (s2 / n - 0.5 * (s1 / n).powi(2)).sqrt()
+}
+
+/// Issue 23: the run that lost its trained head and the run that turned NaN at `--lr 1e-3`,
+/// both with the default head multiplier. Every step finishes, the loss falls, the validation
+/// loss recomputed from the written adapter through the inference path equals the trainer's to
+/// 1e-5, and the SILog of `moma predict --lora` on the set's frames (computed here, outside moma)
+/// falls from the base model's, with and without `--train-head`; with it, much further.
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn trained_head_reaches_inference_and_lr_1e3_trains_without_nan() {
+    let Some(shared) = shared() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let config = tmp.path().join("tiny-metric.json");
+    std::fs::write(&config, TINY).unwrap();
+    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let set = shared.join("data/graspnet6dof-table");
+    let model: Vec<&str> = vec![
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "266",
+        "--device",
+        "cpu",
+    ];
+    let mut frames: Vec<PathBuf> = std::fs::read_dir(set.join("frames"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    frames.sort();
+    // Mean SILog over the set's frames of `moma predict` (with `extra`, e.g. `--lora A`).
+    let predicted_silog = |extra: &[&str], tag: &str| -> f64 {
+        let mut sum = 0.0;
+        for (i, f) in frames.iter().enumerate() {
+            let out = tmp.path().join(format!("{tag}-{i}"));
+            let rgb = f.join("rgb.png");
+            let mut a: Vec<&str> = vec!["predict"];
+            a.extend(&model);
+            a.extend(extra);
+            a.extend(["-o", s(&out), s(&rgb)]);
+            ok(&a);
+            let npy = std::fs::read_dir(&out)
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .find(|p| p.extension().is_some_and(|e| e == "npy"))
+                .unwrap();
+            let pred: ndarray::Array2<f32> = ndarray_npy::read_npy(npy).unwrap();
+            sum += silog_vs_png(&pred, &f.join("depth.png"));
+        }
+        sum / frames.len() as f64
+    };
+    let base = predicted_silog(&[], "base");
+    let mut adapted = vec![];
+    for train_head in [true, false] {
+        let adapter = tmp.path().join(format!("head-{train_head}.safetensors"));
+        let mut a: Vec<&str> = vec!["finetune", "--set", s(&set)];
+        a.extend(&model);
+        a.extend([
+            "--lora-rank",
+            "8",
+            "--steps",
+            "60",
+            "--seed",
+            "1",
+            "--lr",
+            "1e-3",
+            "-o",
+            s(&adapter),
+            "--json",
+        ]);
+        if train_head {
+            a.push("--train-head");
+        }
+        let j: serde_json::Value = serde_json::from_str(&ok(&a)).unwrap();
+        eprintln!("--train-head {train_head}: {j:#}");
+        assert_eq!(j["steps"], 60);
+        let f = |k: &str| {
+            j[k].as_f64()
+                .unwrap_or_else(|| panic!("{k} missing in {j}"))
+        };
+        assert!(
+            f("train_loss_last") < f("train_loss_first"),
+            "training loss did not fall"
+        );
+        assert!(
+            f("val_loss_after") < f("val_loss_before"),
+            "validation loss did not fall"
+        );
+        let (after, reload) = (f("val_loss_after"), f("val_loss_after_reload"));
+        assert!(
+            (after - reload).abs() <= 1e-5,
+            "val_loss_after {after} vs val_loss_after_reload {reload}"
+        );
+        // The trained head is in the adapter (and only with --train-head).
+        let loaded = moma_depth::candle::train::Adapter::load(&adapter).unwrap();
+        assert_eq!(loaded.base.is_empty(), !train_head);
+        let silog = predicted_silog(&["--lora", s(&adapter)], &format!("lora-{train_head}"));
+        eprintln!(
+            "SILog of moma predict on the set: base {base:.4}, adapter (--train-head {train_head}) {silog:.4}"
+        );
+        assert!(silog < base, "predict --lora SILog {silog} vs base {base}");
+        adapted.push(silog);
+    }
+    // The head's training reaches inference: it lowers the SILog well below LoRA alone.
+    assert!(
+        adapted[0] < 0.5 * adapted[1],
+        "with the head {} vs LoRA alone {}",
+        adapted[0],
+        adapted[1]
+    );
 }
 
 #[test]
@@ -308,6 +448,10 @@ fn resume_continues_bit_for_bit_and_crops_are_checked() {
         jp["train_loss_last"].as_f64().unwrap(),
     );
     assert!(((l - lp) / l).abs() < 1e-4, "train loss {lp} vs {l}");
+    // The trained head (in the adapter since format v2) gets a wider bound: its ReLU
+    // pre-activations lie within f32 round-off of a kink on this random-weight model, so a few
+    // pixels' gradients differ between the two op sets (see F32_HEAD_GRAD_TOL in
+    // moma-depth/tests/lora_parity.rs), and Adam turns a small gradient's sign into a whole step.
     let mut worst = 0f32;
     for ((ka, va), (_, vp)) in a.iter().zip(&adapter_values(&portable)) {
         let scale = va.iter().fold(0f32, |m, v| m.max(v.abs()));
@@ -315,9 +459,14 @@ fn resume_continues_bit_for_bit_and_crops_are_checked() {
             .iter()
             .zip(vp)
             .fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+        let bound = if ka.starts_with("depth_head.") {
+            3e-3
+        } else {
+            1e-3
+        };
         worst = worst.max(diff / scale);
         assert!(
-            diff <= 1e-3 * scale,
+            diff <= bound * scale,
             "{ka}: portable ops differ by {diff} (max {scale})"
         );
     }

@@ -5,6 +5,7 @@
 //! | [`CoreError`] (bad arrays, parameters, degenerate fits) and array checks of this crate | `moma.InvalidInputError` (`MomaError`, `ValueError`) |
 //! | [`IoError`] (every file problem: missing, unreadable, malformed) | `moma.MomaFileError` (`MomaError`, `OSError`) |
 //! | [`DepthError`]: `Shape` → invalid input, `Weights` → file, `Backend`/`Unavailable` | `moma.BackendError` (`MomaError`, `RuntimeError`) |
+//! | `moma_train::TrainError`: bad options or data → invalid input, files → file, a failed step (non-finite loss) → backend | as the row of its kind |
 //!
 //! The Python message is moma's own `Display` text, which already names the file and the problem.
 
@@ -85,6 +86,18 @@ impl IntoPyErr for DepthError {
             _ => Kind::Backend,
         };
         err(kind, chain(&self))
+    }
+}
+
+impl IntoPyErr for moma_train::TrainError {
+    fn into_py_err(self) -> PyErr {
+        use moma_train::TrainError;
+        match self {
+            TrainError::Invalid(m) | TrainError::Data(m) => err(Kind::Value, m),
+            TrainError::Io(e) => e.into_py_err(),
+            TrainError::Depth(e) => (*e).into_py_err(),
+            e @ TrainError::Training { .. } => err(Kind::Backend, chain(&e)),
+        }
     }
 }
 

@@ -1167,6 +1167,132 @@ fn lora_fingerprint(
     .py()
 }
 
+/// LoRA fine-tuning on moma sets: the options of `moma finetune` (same names, same defaults),
+/// the same run (`moma_train::finetune`), the same report as `moma finetune --json` (a dict).
+#[pyfunction]
+#[pyo3(signature = (sets, weights, output, model="vits", head="relative", *, max_depth=20.0,
+    input_size=518, config=None, device="cpu", lora_rank=16, lora_alpha=None,
+    lora_targets=vec!["q".to_string(), "v".to_string()], lora_dropout=0.0, train_head=false,
+    head_lr_mult=1.0, loss=None, steps=None, epochs=None, batch=1, accumulate=1, lr=5e-4,
+    weight_decay=0.01, schedule="one-cycle", warmup_frac=0.05, val_frac=0.2, save_every=0,
+    min_depth=0.001, mask_loss=false, augment=true, seed=0, resume=None, stop_after=None,
+    clip_grad_norm=1.0, crop=None))]
+#[allow(clippy::too_many_arguments)]
+fn finetune(
+    py: Python<'_>,
+    sets: Vec<PathBuf>,
+    weights: PathBuf,
+    output: PathBuf,
+    model: &str,
+    head: &str,
+    max_depth: f32,
+    input_size: usize,
+    config: Option<&Bound<'_, PyDict>>,
+    device: &str,
+    lora_rank: usize,
+    lora_alpha: Option<f64>,
+    lora_targets: Vec<String>,
+    lora_dropout: f32,
+    train_head: bool,
+    head_lr_mult: f64,
+    loss: Option<&str>,
+    steps: Option<usize>,
+    epochs: Option<usize>,
+    batch: usize,
+    accumulate: usize,
+    lr: f64,
+    weight_decay: f64,
+    schedule: &str,
+    warmup_frac: f64,
+    val_frac: f64,
+    save_every: usize,
+    min_depth: f32,
+    mask_loss: bool,
+    augment: bool,
+    seed: u64,
+    resume: Option<PathBuf>,
+    stop_after: Option<usize>,
+    clip_grad_norm: f64,
+    crop: Option<(usize, usize)>,
+) -> PyResult<Py<PyAny>> {
+    if sets.is_empty() {
+        return Err(value_err("sets: give at least one moma set"));
+    }
+    moma_depth::preprocess::check_input_size(input_size)
+        .map_err(|e| value_err(format!("input_size: {e}")))?;
+    let spec = match parse_config(py, config)? {
+        // Training builds its network from the spec: a custom architecture travels as
+        // `Backbone::Custom` (as `moma finetune --model PATH.json`), and must be one.
+        Some(c) => {
+            let arch = moma_depth::CustomArch {
+                embed_dim: c.embed_dim,
+                depth: c.depth,
+                num_heads: c.num_heads,
+                intermediate_layers: c.intermediate_layers,
+                features: c.features,
+                out_channels: c.out_channels,
+            };
+            let spec = ModelSpec {
+                backbone: Backbone::Custom(arch),
+                head: c.head,
+                input_size,
+            };
+            let rebuilt = moma_depth::candle::DepthAnythingConfig {
+                backbone: c.backbone,
+                input_size: c.input_size,
+                ..moma_depth::candle::DepthAnythingConfig::from_spec(&spec)
+            };
+            if rebuilt != c {
+                return Err(value_err(
+                    "config: fine-tuning takes the sizes of a `--model PATH.json` file (mlp_hidden_dim = 4 × embed_dim, the standard position grid and LayerNorm epsilon)",
+                ));
+            }
+            spec
+        }
+        None => ModelSpec {
+            backbone: parse_backbone(model)?,
+            head: parse_head(head, max_depth)?,
+            input_size,
+        },
+    };
+    let mut opts = moma_train::FinetuneOptions::new(sets, weights, spec, output);
+    opts.device = device.parse().map_err(value_err)?;
+    opts.lora_rank = lora_rank;
+    opts.lora_alpha = lora_alpha;
+    opts.lora_targets = lora_targets
+        .iter()
+        .map(|t| t.parse())
+        .collect::<Result<_, String>>()
+        .map_err(value_err)?;
+    opts.lora_dropout = lora_dropout;
+    opts.train_head = train_head;
+    opts.head_lr_mult = head_lr_mult;
+    opts.loss = loss.map(str::parse).transpose().map_err(value_err)?;
+    opts.steps = steps;
+    opts.epochs = epochs;
+    opts.batch = batch;
+    opts.accumulate = accumulate;
+    opts.lr = lr;
+    opts.weight_decay = weight_decay;
+    opts.schedule = schedule.parse().map_err(value_err)?;
+    opts.warmup_frac = warmup_frac;
+    opts.val_frac = val_frac;
+    opts.save_every = save_every;
+    opts.min_depth_m = min_depth;
+    opts.mask_loss = mask_loss;
+    opts.augment = augment;
+    opts.seed = seed;
+    opts.resume = resume;
+    opts.stop_after = stop_after;
+    opts.clip_grad_norm = clip_grad_norm;
+    opts.crop = crop;
+    let report = py
+        .detach(|| moma_train::finetune(&opts, &mut |_| {}))
+        .py()?;
+    let text = serde_json::to_string(&report).map_err(|e| value_err(format!("report: {e}")))?;
+    Ok(py.import("json")?.call_method1("loads", (text,))?.unbind())
+}
+
 #[pymethods]
 impl DepthModel {
     #[new]
@@ -1293,6 +1419,7 @@ fn _moma(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Calibration>()?;
     m.add_class::<DepthModel>()?;
     m.add_function(wrap_pyfunction!(calibrate, m)?)?;
+    m.add_function(wrap_pyfunction!(finetune, m)?)?;
     m.add_function(wrap_pyfunction!(metrics, m)?)?;
     m.add_function(wrap_pyfunction!(depth_to_points, m)?)?;
     m.add_function(wrap_pyfunction!(plan_grasps, m)?)?;

@@ -15,7 +15,7 @@ use ndarray::{Array2, Array3};
 use serde::{Deserialize, Serialize};
 
 use super::adapter::{F32View, aerr, write_atomic};
-use super::{LossKind, TrainNet, loss, valid_indices};
+use super::{LossKind, TrainNet, loss_of, valid_indices};
 
 /// Learning-rate schedule after a linear warm-up.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -316,8 +316,8 @@ impl Trainer {
         let dev = self.net.device().clone();
         let x = Tensor::from_vec(x, (batch.len(), c, h, w), &dev)?;
         let gt = Tensor::from_vec(gt, (batch.len(), h, w), &dev)?;
-        let y = self.net.forward(&x)?;
-        loss(self.settings.loss, &y, &gt, &valid)
+        let y = self.net.forward_output(&x)?;
+        loss_of(self.settings.loss, &y, &gt, &valid)
     }
 
     /// One optimiser step over `micro` micro-batches (gradients accumulated, loss averaged,
@@ -348,8 +348,9 @@ impl Trainer {
             let v = l.to_dtype(DType::F64)?.to_scalar::<f64>()?;
             if !v.is_finite() {
                 self.net.set_training(false);
+                let what = self.output_diagnosis(batch);
                 candle_core::bail!(
-                    "loss is {} at step {}: stopping (the last saved adapter is kept; a lower learning rate may help)",
+                    "loss is {} at step {}: {what}; stopping (the last saved adapter is kept)",
                     v * n,
                     self.step + 1
                 );
@@ -378,9 +379,25 @@ impl Trainer {
         let norm = clip_grad_norm(&mut grads, &vars, self.settings.clip_grad_norm)?;
         self.last_grad_norm = norm;
         if !norm.is_finite() {
+            let names: Vec<&String> = self.groups.iter().flat_map(|g| &g.names).collect();
+            let mut bad = vec![];
+            for (name, var) in names.iter().zip(&vars) {
+                if let Some(g) = grads.get(var.as_tensor()) {
+                    let sum = g
+                        .to_dtype(DType::F64)?
+                        .abs()?
+                        .sum_all()?
+                        .to_scalar::<f64>()?;
+                    if !sum.is_finite() {
+                        bad.push(name.as_str());
+                    }
+                }
+            }
             candle_core::bail!(
-                "gradient norm is {norm} at step {}: stopping (the last saved adapter is kept; a lower learning rate may help)",
-                self.step + 1
+                "gradient norm is {norm} at step {}: non-finite gradient of {} ({} tensor(s)); stopping (the last saved adapter is kept)",
+                self.step + 1,
+                bad.first().copied().unwrap_or("?"),
+                bad.len()
             );
         }
         let s = &self.settings;
@@ -390,6 +407,45 @@ impl Trainer {
         }
         self.step += 1;
         Ok(total)
+    }
+
+    /// What the network output of `batch` looks like where the loss is computed: counts of
+    /// non-finite values and of values ≤ 0 (depth under a logarithm) over the valid pixels.
+    fn output_diagnosis(&mut self, batch: &[&Sample]) -> String {
+        let run = |me: &mut Self| -> Result<String> {
+            let mut parts = vec![];
+            for (k, s) in batch.iter().enumerate() {
+                let (c, h, w) = s.input.dim();
+                let x = Tensor::from_vec(
+                    s.input.iter().copied().collect::<Vec<f32>>(),
+                    (1, c, h, w),
+                    me.net.device(),
+                )?;
+                let y: Vec<f64> = me
+                    .net
+                    .forward(&x)?
+                    .to_dtype(DType::F64)?
+                    .flatten_all()?
+                    .to_vec1()?;
+                let g: Vec<f32> = s.gt_m.iter().copied().collect();
+                let m: Option<Vec<bool>> = s.mask.as_ref().map(|m| m.iter().copied().collect());
+                let valid = valid_indices(
+                    &g,
+                    m.as_deref(),
+                    me.settings.min_depth_m,
+                    me.settings.max_depth_m,
+                );
+                let vals = valid.iter().map(|&i| y[i as usize]);
+                let non_finite = vals.clone().filter(|v| !v.is_finite()).count();
+                let non_positive = vals.filter(|v| *v <= 0.0).count();
+                parts.push(format!(
+                    "sample {k} of the batch: network output has {non_finite} non-finite and {non_positive} non-positive value(s) over {} valid pixel(s)",
+                    valid.len()
+                ));
+            }
+            Ok(parts.join("; "))
+        };
+        run(self).unwrap_or_else(|e| format!("(output not inspectable: {e})"))
     }
 
     /// Mean loss over `samples` (one at a time, no dropout, no update).

@@ -6,6 +6,8 @@ use std::str::FromStr;
 use candle_core::{Result, Tensor};
 use serde::{Deserialize, Serialize};
 
+use super::model::NetOutput;
+
 /// Which loss.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -73,6 +75,26 @@ pub fn valid_indices(
 /// # Errors
 /// No valid pixel; shape errors.
 pub fn loss(kind: LossKind, pred: &Tensor, gt_m: &Tensor, valid: &[u32]) -> Result<Tensor> {
+    loss_with_log(kind, pred, None, gt_m, valid)
+}
+
+/// [`loss`] of a training forward's output: the log losses take the stably computed logarithm
+/// of a metric head's depth ([`NetOutput::log_pred`]) instead of `ln pred`, which is −∞ where
+/// the sigmoid underflows to 0 (the same value wherever `pred > 0`).
+///
+/// # Errors
+/// As [`loss`].
+pub fn loss_of(kind: LossKind, out: &NetOutput, gt_m: &Tensor, valid: &[u32]) -> Result<Tensor> {
+    loss_with_log(kind, &out.pred, out.log_pred.as_ref(), gt_m, valid)
+}
+
+fn loss_with_log(
+    kind: LossKind,
+    pred: &Tensor,
+    log_pred: Option<&Tensor>,
+    gt_m: &Tensor,
+    valid: &[u32],
+) -> Result<Tensor> {
     if valid.is_empty() {
         candle_core::bail!("no valid ground-truth pixel for the loss");
     }
@@ -82,15 +104,22 @@ pub fn loss(kind: LossKind, pred: &Tensor, gt_m: &Tensor, valid: &[u32]) -> Resu
         .flatten_all()?
         .to_dtype(pred.dtype())?
         .index_select(&idx, 0)?;
+    // ln pred over the valid pixels: from the logits where the network gives it.
+    let log_p = || -> Result<Tensor> {
+        match log_pred {
+            Some(lp) => lp.flatten_all()?.index_select(&idx, 0),
+            None => p.log(),
+        }
+    };
     match kind {
         LossKind::Silog => {
-            let d = (g.log()? - p.log()?)?;
+            let d = (g.log()? - log_p()?)?;
             let m2 = d.sqr()?.mean_all()?;
             let m = d.mean_all()?;
             (m2 - (m.sqr()? * 0.5)?)?.sqrt()
         }
         LossKind::SilogMoma => {
-            let d = (p.log()? - g.log()?)?;
+            let d = (log_p()? - g.log()?)?;
             let m = d.mean_all()?;
             let var = d.broadcast_sub(&m)?.sqr()?.mean_all()?;
             (var + (m.sqr()? * 0.15)?)?.sqrt()? * 10.0
@@ -115,6 +144,7 @@ pub fn loss(kind: LossKind, pred: &Tensor, gt_m: &Tensor, valid: &[u32]) -> Resu
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::candle::train::metric_output;
     use candle_core::Device;
 
     fn t(v: &[f64]) -> Tensor {
@@ -193,6 +223,123 @@ mod tests {
             .unwrap(),
         );
         assert!((l - 2.0 / 9.0).abs() < 1e-9, "{l}");
+    }
+
+    /// A seeded uniform draw in `[lo, hi)` (splitmix64).
+    fn draws(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<f64> {
+        let mut z = seed;
+        (0..n)
+            .map(|_| {
+                z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+                let mut x = z;
+                x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+                x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+                x ^= x >> 31;
+                lo + (hi - lo) * (x >> 11) as f64 / (1u64 << 53) as f64
+            })
+            .collect()
+    }
+
+    /// Worst relative error of the autograd gradient of `f` at `x0` against central
+    /// differences (f64, step h).
+    fn fd_check(x0: &[f64], f: &dyn Fn(&Tensor) -> Tensor) -> f64 {
+        let dev = Device::Cpu;
+        let var = candle_core::Var::from_slice(x0, x0.len(), &dev).unwrap();
+        let l = f(var.as_tensor());
+        let g: Vec<f64> = l
+            .backward()
+            .unwrap()
+            .get(var.as_tensor())
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let h = 1e-6;
+        let scale = g.iter().map(|v| v.abs()).fold(0.0, f64::max);
+        assert!(scale > 0.0);
+        let mut worst = 0.0f64;
+        for i in 0..x0.len() {
+            let at = |d: f64| {
+                let mut x = x0.to_vec();
+                x[i] += d;
+                scalar(f(&t(&x)))
+            };
+            let fd = (at(h) - at(-h)) / (2.0 * h);
+            worst = worst.max((fd - g[i]).abs() / scale);
+        }
+        worst
+    }
+
+    #[test]
+    fn ssi_gradient_matches_finite_differences() {
+        // Disparity predictions and depths with no exact fit (residuals away from |r| = 0,
+        // where the mean absolute residual has a kink).
+        let n = 40;
+        let gt = draws(n, 1, 0.4, 3.0);
+        let pred = draws(n, 2, 0.1, 2.5);
+        let valid: Vec<u32> = (0..n as u32).collect();
+        let gt_t = t(&gt);
+        let worst = fd_check(&pred, &|p| loss(LossKind::Ssi, p, &gt_t, &valid).unwrap());
+        assert!(
+            worst < 1e-6,
+            "SSI gradient vs central differences: {worst:.3e}"
+        );
+    }
+
+    #[test]
+    fn log_losses_from_logits_have_the_right_gradient() {
+        // Metric-head logits, SILog and the MOMA variant through the log-sigmoid: gradients
+        // with respect to the logits against central differences.
+        let n = 30;
+        let gt = draws(n, 3, 0.5, 15.0);
+        let z = draws(n, 4, -4.0, 4.0);
+        let valid: Vec<u32> = (0..n as u32).collect();
+        let gt_t = t(&gt);
+        for kind in [LossKind::Silog, LossKind::SilogMoma] {
+            let f = |z: &Tensor| {
+                loss_of(kind, &metric_output(z, 20.0).unwrap(), &gt_t, &valid).unwrap()
+            };
+            let worst = fd_check(&z, &f);
+            assert!(
+                worst < 1e-6,
+                "{kind} gradient vs central differences: {worst:.3e}"
+            );
+            // The same value as the loss of the depth itself where the sigmoid is well inside
+            // (0, 1).
+            let depth = metric_output(&t(&z), 20.0).unwrap().pred;
+            let direct = scalar(loss(kind, &depth, &gt_t, &valid).unwrap());
+            assert!((scalar(f(&t(&z))) - direct).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn saturated_metric_logits_keep_the_loss_and_gradient_finite() {
+        // In f32 the sigmoid of −120 is exactly 0: ln(σ·max) = −∞ and the SILog is NaN. This is
+        // how the NaN of a too-high head learning rate started (issue 23). From the logits it is
+        // finite, with a gradient that pulls the saturated logit back up.
+        let dev = Device::Cpu;
+        let z = candle_core::Var::from_slice(&[-120.0f32, 0.5, 1.0, -0.5], 4, &dev).unwrap();
+        let gt = Tensor::from_slice(&[2.0f32, 8.0, 9.0, 7.0], 4, &dev).unwrap();
+        let valid = [0, 1, 2, 3];
+        let out = metric_output(z.as_tensor(), 20.0).unwrap();
+        let pred: Vec<f32> = out.pred.to_vec1().unwrap();
+        assert_eq!(pred[0], 0.0, "f32 sigmoid underflows");
+        let naive: f32 = loss(LossKind::Silog, &out.pred, &gt, &valid)
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+        assert!(!naive.is_finite(), "the depth's log gives {naive}");
+        let l = loss_of(LossKind::Silog, &out, &gt, &valid).unwrap();
+        let v: f32 = l.to_scalar().unwrap();
+        assert!(v.is_finite() && v > 1.0, "{v}");
+        let g: Vec<f32> = l
+            .backward()
+            .unwrap()
+            .get(z.as_tensor())
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert!(g.iter().all(|x| x.is_finite()), "{g:?}");
+        assert!(g[0] < 0.0, "descent raises the saturated logit: {g:?}");
     }
 
     #[test]

@@ -18,14 +18,16 @@ mod resample;
 #[cfg(test)]
 mod testing;
 
-pub use adapter::{Adapter, fingerprint, merge_adapter, write_merged};
+pub use adapter::{
+    ADAPTER_FORMAT, ADAPTER_FORMAT_V1, Adapter, fingerprint, merge_adapter, write_merged,
+};
 pub use finetune::{
     OPTIM_STATE_FORMAT, OptimSettings, Sample, Schedule, Trainer, clip_grad_norm, derive_seed,
     lr_factor, optim_state_path, seed_tag,
 };
 pub use lora::{LoraConfig, LoraTarget};
-pub use loss::{LossKind, loss, valid_indices};
-pub use model::{LoraPart, ParamSource, TrainNet};
+pub use loss::{LossKind, loss, loss_of, valid_indices};
+pub use model::{LoraPart, NetOutput, ParamSource, TrainNet, metric_output};
 
 use std::cell::Cell;
 

@@ -591,6 +591,32 @@ impl TFusion {
     }
 }
 
+/// A training forward's output: the prediction and, for a metric head, its natural logarithm
+/// computed stably from the logits ([`TrainNet::forward_output`]).
+#[derive(Debug, Clone)]
+pub struct NetOutput {
+    /// `(B, H, W)`: metres (metric head) or disparity (relative head).
+    pub pred: Tensor,
+    /// `ln pred` from the logits (metric head), `None` for a relative head.
+    pub log_pred: Option<Tensor>,
+}
+
+/// A metric head's output from its logits `z`: depth `σ(z)·max_depth_m` and its logarithm
+/// `ln max_depth_m + ln σ(z)` with `ln σ(z) = −relu(−z) − ln(1 + e^{−|z|})` (finite for every
+/// finite `z`, gradient `σ(−z)`).
+///
+/// # Errors
+/// Tensor errors.
+pub fn metric_output(logits: &Tensor, max_depth_m: f64) -> Result<NetOutput> {
+    let pred = (candle_nn::ops::sigmoid(logits)? * max_depth_m)?;
+    let log_sigmoid =
+        (logits.neg()?.relu()?.neg()? - ((logits.abs()?.neg()?.exp()? + 1.0)?.log()?))?;
+    Ok(NetOutput {
+        pred,
+        log_pred: Some((log_sigmoid + max_depth_m.ln())?),
+    })
+}
+
 /// The training network. Build with [`TrainNet::new`], add adapters with [`TrainNet::add_lora`].
 #[derive(Debug)]
 pub struct TrainNet {
@@ -818,7 +844,9 @@ impl TrainNet {
         Ok(())
     }
 
-    /// The attached adapters as an [`Adapter`] (values copied to f32 on the CPU).
+    /// The attached adapters and every trained base tensor (the head with `--train-head`) as an
+    /// [`Adapter`] (values copied to f32 on the CPU): everything training changed reaches
+    /// inference through it.
     ///
     /// # Errors
     /// No adapters attached.
@@ -828,6 +856,18 @@ impl TrainNet {
         };
         let tensors = self
             .lora_vars
+            .iter()
+            .map(|(k, v)| {
+                let t = v
+                    .as_tensor()
+                    .detach()
+                    .to_dtype(DType::F32)?
+                    .to_device(&Device::Cpu)?;
+                Ok((k.clone(), t))
+            })
+            .collect::<Result<BTreeMap<_, _>>>()?;
+        let base = self
+            .base_vars
             .iter()
             .map(|(k, v)| {
                 let t = v
@@ -848,6 +888,8 @@ impl TrainNet {
             base_fingerprint: base_fingerprint.to_string(),
             settings,
             tensors,
+            base,
+            head: Some(self.config.head),
         })
     }
 
@@ -913,6 +955,19 @@ impl TrainNet {
     /// # Errors
     /// Shape errors.
     pub fn forward(&mut self, x: &Tensor) -> Result<Tensor> {
+        Ok(self.forward_output(x)?.pred)
+    }
+
+    /// As [`Self::forward`], with the logarithm of a metric head's depth computed from its
+    /// logits `z`: `ln d = ln max_depth + ln σ(z)`, where `ln σ(z) = −relu(−z) − ln(1 + e^{−|z|})`
+    /// is finite for every finite `z`. In f32, `σ(z)` is exactly 0 below `z ≈ −104` (and
+    /// subnormal below −87), so `ln(σ(z)·max)` of the depth is −∞ there and a log loss turns NaN
+    /// with an infinite gradient; the log-sigmoid keeps both finite (its gradient is
+    /// `σ(−z) ≤ 1`). This is what the training losses take (see [`super::loss::loss_of`]).
+    ///
+    /// # Errors
+    /// Shape errors.
+    pub fn forward_output(&mut self, x: &Tensor) -> Result<NetOutput> {
         let _portable = super::PortableScope::enter(self.portable_ops);
         let x = x.to_dtype(self.patch_w.dtype())?;
         let (b, c, h, w) = x.dims4()?;
@@ -973,13 +1028,14 @@ impl TrainNet {
         let out = upsample_bilinear_ac(&out, h, w)?;
         let out = self.output_conv2_0.forward(&out)?.relu()?;
         let out = self.output_conv2_2.forward(&out)?;
-        let out = match self.config.head {
-            Head::Relative => out.relu()?,
-            Head::Metric { max_depth_m } => {
-                (candle_nn::ops::sigmoid(&out)? * f64::from(max_depth_m))?
-            }
-        };
-        out.squeeze(1)
+        let out = out.squeeze(1)?;
+        Ok(match self.config.head {
+            Head::Relative => NetOutput {
+                pred: out.relu()?,
+                log_pred: None,
+            },
+            Head::Metric { max_depth_m } => metric_output(&out, f64::from(max_depth_m))?,
+        })
     }
 }
 
