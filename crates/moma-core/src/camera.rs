@@ -69,6 +69,19 @@ impl Intrinsics {
         Ok(())
     }
 
+    /// Projects a camera-frame point (metres) to the image: `(u, v)` in pixels (f32), `None`
+    /// when the point is not in front of the camera (z ≤ 1 µm).
+    #[inline]
+    pub fn project(&self, p_m: [f32; 3]) -> Option<(f32, f32)> {
+        let [x, y, z] = p_m;
+        (z > 1e-6).then(|| {
+            (
+                (self.fx as f32) * x / z + self.cx as f32,
+                (self.fy as f32) * y / z + self.cy as f32,
+            )
+        })
+    }
+
     /// Back-projects pixel `(u, v)` (pixels) at depth `z_m` (metres) to a camera-frame point
     /// `[x, y, z]` in metres (x right, y down, z forward).
     #[inline]

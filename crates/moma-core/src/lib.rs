@@ -22,6 +22,7 @@ pub mod normalise;
 pub mod pipeline;
 pub mod realign;
 pub mod sampling;
+pub mod shapes;
 
 pub use camera::{CameraPoint, Intrinsics, depth_to_points};
 pub use error::{CoreError, Result};

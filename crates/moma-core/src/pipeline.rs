@@ -766,6 +766,32 @@ impl Calibration {
     }
 }
 
+/// Why a workspace mask given at run time is not the calibration's own
+/// ([`Calibration::check_workspace`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WorkspaceMismatch {
+    /// The calibration embeds another workspace (SHA-256 of the mask differs).
+    Differs,
+    /// The calibration was fitted without a workspace.
+    NoneRecorded,
+}
+
+impl Calibration {
+    /// Checks that `given` is the workspace this calibration was fitted with (the calibration
+    /// always normalises over its own embedded workspace; a different one at run time means
+    /// the user expects something else).
+    ///
+    /// # Errors
+    /// [`WorkspaceMismatch`] saying how they differ.
+    pub fn check_workspace(&self, given: &Workspace) -> std::result::Result<(), WorkspaceMismatch> {
+        match self.workspace.as_deref() {
+            Some(own) if own.sha256() == given.sha256() => Ok(()),
+            Some(_) => Err(WorkspaceMismatch::Differs),
+            None => Err(WorkspaceMismatch::NoneRecorded),
+        }
+    }
+}
+
 impl Calibration {
     /// Adds the anchor store for per-frame re-alignment ([`crate::realign`]): the calibration
     /// frame's RGB `(height, width, 3)`, its ground truth and its prediction (the frame the

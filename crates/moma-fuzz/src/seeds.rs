@@ -344,6 +344,22 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
             seeds.push(gen_seed("camera.json", &p("camera.json"))?);
         }
         Target::Calibration | Target::CalibrationApply => seeds.extend(calibration_seeds(dir)?),
+        Target::Extrinsics => {
+            let m = [
+                [0.0, -1.0, 0.0, 0.4],
+                [-1.0, 0.0, 0.0, 0.1],
+                [0.0, 0.0, -1.0, 0.9],
+                [0.0, 0.0, 0.0, 1.0],
+            ];
+            moma_io::write_extrinsics(p("extrinsics.json"), &m)?;
+            seeds.push(gen_seed("extrinsics.json", &p("extrinsics.json"))?);
+        }
+        Target::Gripper => {
+            moma_io::write_json(p("parallel.json"), &moma_grasp::ParallelJaw::default())?;
+            seeds.push(gen_seed("parallel.json", &p("parallel.json"))?);
+            moma_io::write_json(p("suction.json"), &moma_grasp::SuctionCup::default())?;
+            seeds.push(gen_seed("suction.json", &p("suction.json"))?);
+        }
         Target::Safetensors => {
             let header = r#"{"__metadata__":{"format":"pt"},"a.weight":{"dtype":"F32","shape":[2,2],"data_offsets":[0,16]},"a.bias":{"dtype":"F16","shape":[2],"data_offsets":[16,20]}}"#;
             let file_len = 8 + header.len() as u64 + 20;
@@ -410,7 +426,11 @@ fn shared_seeds(target: Target, root: &Path) -> Vec<Seed> {
         .iter()
         .filter_map(|n| read_seed(dav2.join(n)))
         .collect(),
-        Target::Pfm | Target::Calibration | Target::CalibrationApply => vec![],
+        Target::Pfm
+        | Target::Calibration
+        | Target::CalibrationApply
+        | Target::Extrinsics
+        | Target::Gripper => vec![],
         Target::Safetensors => ["tiny-metric.safetensors", "tiny-metric-392.safetensors"]
             .iter()
             .filter_map(|n| {

@@ -26,11 +26,17 @@ pub enum Target {
     /// `moma_depth::weights_limits::check_safetensors_header`: the input's first 8 bytes are the
     /// claimed file length (u64 little-endian), the rest the start of the file.
     Safetensors,
+    /// `moma_io::parse_json::<ExtrinsicsFile>` then `moma_grasp::Extrinsics::new` (rigidity):
+    /// `moma grasp --extrinsics`.
+    Extrinsics,
+    /// `moma_io::parse_json` of a parallel-jaw and of a suction-cup configuration, then their
+    /// validation: `moma grasp --gripper-config`.
+    Gripper,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 9] = [
+    pub const ALL: [Target; 11] = [
         Target::DepthPng,
         Target::Npy,
         Target::Pfm,
@@ -40,6 +46,8 @@ impl Target {
         Target::Calibration,
         Target::CalibrationApply,
         Target::Safetensors,
+        Target::Extrinsics,
+        Target::Gripper,
     ];
 
     /// The target's name on the command line and in findings.
@@ -54,6 +62,8 @@ impl Target {
             Target::Calibration => "calibration-json",
             Target::CalibrationApply => "calibration-apply",
             Target::Safetensors => "safetensors-header",
+            Target::Extrinsics => "extrinsics-json",
+            Target::Gripper => "gripper-json",
         }
     }
 
@@ -66,7 +76,11 @@ impl Target {
     pub fn is_json(self) -> bool {
         matches!(
             self,
-            Target::Camera | Target::Calibration | Target::CalibrationApply
+            Target::Camera
+                | Target::Calibration
+                | Target::CalibrationApply
+                | Target::Extrinsics
+                | Target::Gripper
         )
     }
 
@@ -107,6 +121,23 @@ impl Target {
                 .map(drop)
                 .map_err(|e| s(&e)),
             Target::CalibrationApply => apply_calibration(&name("json"), text()?),
+            Target::Extrinsics => {
+                let f: moma_io::ExtrinsicsFile =
+                    moma_io::parse_json(&name("json"), text()?).map_err(|e| s(&e))?;
+                moma_grasp::Extrinsics::new(f.camera_to_base)
+                    .map(drop)
+                    .map_err(|e| s(&e))
+            }
+            Target::Gripper => {
+                let t = text()?;
+                let jaw = moma_io::parse_json::<moma_grasp::ParallelJaw>(&name("json"), t)
+                    .map_err(|e| s(&e))
+                    .and_then(|j| j.validate().map_err(|e| s(&e)));
+                let cup = moma_io::parse_json::<moma_grasp::SuctionCup>(&name("json"), t)
+                    .map_err(|e| s(&e))
+                    .and_then(|c| c.validate().map_err(|e| s(&e)));
+                jaw.or(cup)
+            }
             Target::Safetensors => {
                 let (len, prefix) = data.split_at_checked(8).ok_or("shorter than 8 bytes")?;
                 let mut n = [0u8; 8];

@@ -67,6 +67,7 @@ pub mod nms;
 pub mod objects;
 pub mod parallel;
 pub mod plane;
+pub mod render;
 pub mod scene;
 pub mod score;
 pub mod suction;

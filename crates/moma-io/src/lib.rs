@@ -48,7 +48,9 @@ mod calibration;
 mod camera;
 mod colormap;
 mod depth;
+mod draw;
 mod error;
+mod json_files;
 mod limits;
 mod ply;
 mod png_util;
@@ -73,9 +75,14 @@ pub use depth::{
     read_depth_sized, read_npy_f32, read_pfm, read_png16, read_prediction, write_depth,
     write_npy_f32, write_pfm, write_prediction,
 };
+pub use draw::draw_segments;
 pub use error::{IoError, Result};
+pub use json_files::{
+    ExtrinsicsFile, MAX_SETTINGS_JSON_BYTES, parse_json, read_extrinsics, read_json,
+    write_extrinsics, write_json,
+};
 pub use limits::{DEFLATE_MAX_RATIO, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, check_image_size};
-pub use ply::{PlyFormat, ply_header, write_depth_ply, write_ply};
+pub use ply::{PlyFormat, ply_header, write_depth_ply, write_ply, write_scene_ply};
 pub use predictions::{
     PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PredictionIndex, PredictionIndexHead,
     prediction_index_listing, read_prediction_index, read_prediction_index_for,

@@ -131,3 +131,76 @@ pub fn write_depth_ply(
     }
     write_ply(path, &points, rgb, format)
 }
+
+/// The header of a [`write_scene_ply`] file.
+fn scene_header(n_vertices: usize, n_faces: usize, comment: &str) -> String {
+    format!(
+        "ply\nformat binary_little_endian 1.0\ncomment {comment}\n\
+         element vertex {n_vertices}\nproperty float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\n\
+         element face {n_faces}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+}
+
+/// Writes a scene atomically as binary PLY: the valid pixels of `depth` back-projected with
+/// `intrinsics` (camera frame, metres), coloured from `colours`, then each box of `boxes` as 8
+/// coloured vertices and 12 triangles ([`moma_core::shapes::BOX_TRIANGLES`]); `comment` is one
+/// header comment line. Opens in MeshLab / Open3D. Returns `(vertices, faces)`.
+///
+/// # Errors
+/// [`IoError::Core`] when `depth` does not match the intrinsics; [`IoError::Invalid`] when
+/// `colours` does not, or `comment` holds a line break; destination not writable.
+pub fn write_scene_ply(
+    path: impl AsRef<Path>,
+    depth: &MetricDepth,
+    intrinsics: &Intrinsics,
+    colours: &RgbImage,
+    boxes: &[moma_core::shapes::BoxMesh],
+    comment: &str,
+) -> Result<(usize, usize)> {
+    let path = path.as_ref();
+    if comment.contains(['\n', '\r']) {
+        return Err(IoError::invalid(path, "a PLY comment must be one line"));
+    }
+    let points = depth_to_points(depth, intrinsics).map_err(|e| IoError::core(path, e))?;
+    if rgb_size(colours) != intrinsics.size() {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "colour image is {} but the depth map and camera are {}",
+                rgb_size(colours),
+                intrinsics.size()
+            ),
+        ));
+    }
+    let n_vertices = points.len() + 8 * boxes.len();
+    let n_faces = 12 * boxes.len();
+    let header = scene_header(n_vertices, n_faces, comment);
+    let mut bytes = Vec::with_capacity(header.len() + n_vertices * 15 + n_faces * 13);
+    bytes.extend_from_slice(header.as_bytes());
+    let mut vertex = |p: [f32; 3], c: [u8; 3]| {
+        for x in p {
+            bytes.extend_from_slice(&x.to_le_bytes());
+        }
+        bytes.extend_from_slice(&c);
+    };
+    for p in &points {
+        vertex(p.xyz_m, colours.get_pixel(p.u, p.v).0);
+    }
+    for b in boxes {
+        for c in b.corners() {
+            vertex(c, b.colour);
+        }
+    }
+    for (k, _) in boxes.iter().enumerate() {
+        let base = (points.len() + 8 * k) as u32;
+        for t in moma_core::shapes::BOX_TRIANGLES {
+            bytes.push(3);
+            for i in t {
+                bytes.extend_from_slice(&((base + i) as i32).to_le_bytes());
+            }
+        }
+    }
+    atomic_write(path, |w| w.write_all(&bytes).map_err(write_err(path)))?;
+    Ok((n_vertices, n_faces))
+}

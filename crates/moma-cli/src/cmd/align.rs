@@ -207,15 +207,15 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     if let Some(p) = &args.workspace {
         let given = moma_core::Workspace::new(moma_io::read_mask_sized(p, size)?)
             .with_context(|| format!("workspace mask {}", p.display()))?;
-        match calib.calibration.workspace.as_deref() {
-            Some(own) if own.sha256() == given.sha256() => {}
-            Some(_) => bail!(
+        match calib.calibration.check_workspace(&given) {
+            Ok(()) => {}
+            Err(moma_core::pipeline::WorkspaceMismatch::Differs) => bail!(
                 "workspace mismatch: {} differs from the workspace embedded in {} (the \
                  calibration aligns with its own workspace; drop --workspace)",
                 p.display(),
                 args.calib.display()
             ),
-            None => bail!(
+            Err(moma_core::pipeline::WorkspaceMismatch::NoneRecorded) => bail!(
                 "workspace mismatch: {} was calibrated without a workspace, but --workspace {} \
                  was given",
                 args.calib.display(),

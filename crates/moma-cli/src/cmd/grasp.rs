@@ -1,18 +1,16 @@
 //! `moma grasp`: grasps for a parallel jaw or a suction cup from one frame's metric depth, from a
 //! calibrated prediction, or from an RGB image through the depth model and a calibration.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use image::{Rgb, RgbImage};
+use image::RgbImage;
 use moma_core::{Intrinsics, MetricDepth, PredictionKind};
 use moma_grasp::{
-    Extrinsics, Grasp, ParallelConfig, ParallelJaw, PlanOutcome, Scene, SceneConfig, SuctionConfig,
-    SuctionCup, Vec3, plan_parallel, plan_suction,
+    Extrinsics, Grasp, Gripper, ParallelConfig, ParallelJaw, PlanOutcome, Scene, SceneConfig,
+    SuctionConfig, SuctionCup, plan_parallel, plan_suction,
 };
-use serde::Deserialize;
 
 use super::common::{ModelArgs, SourceArgs, create_dir, print_json};
 
@@ -112,43 +110,21 @@ pub struct GraspArgs {
     pub output: Option<PathBuf>,
 }
 
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ExtrinsicsFile {
-    camera_to_base: [[f64; 4]; 4],
-}
-
-fn read_json<T: for<'de> Deserialize<'de>>(path: &Path, what: &str) -> Result<T> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read {what} {}", path.display()))?;
-    serde_json::from_str(&text).with_context(|| format!("{what} {} is not valid", path.display()))
-}
-
 fn read_extrinsics(path: &Path) -> Result<Extrinsics> {
-    let file: ExtrinsicsFile = read_json(path, "extrinsics file")?;
-    Extrinsics::new(file.camera_to_base)
+    Extrinsics::new(moma_io::read_extrinsics(path)?)
         .with_context(|| format!("extrinsics file {}", path.display()))
 }
 
 /// The gripper geometry (validated), from `--gripper-config` or the defaults.
-enum GripperGeometry {
-    Parallel(ParallelJaw),
-    Suction(SuctionCup),
-}
-
-fn read_gripper(args: &GraspArgs) -> Result<GripperGeometry> {
+fn read_gripper(args: &GraspArgs) -> Result<Gripper> {
     let what = "gripper config";
     let g = match (args.gripper, &args.gripper_config) {
-        (GripperArg::Parallel, None) => GripperGeometry::Parallel(ParallelJaw::default()),
-        (GripperArg::Suction, None) => GripperGeometry::Suction(SuctionCup::default()),
-        (GripperArg::Parallel, Some(p)) => GripperGeometry::Parallel(read_json(p, what)?),
-        (GripperArg::Suction, Some(p)) => GripperGeometry::Suction(read_json(p, what)?),
+        (GripperArg::Parallel, None) => Gripper::Parallel(ParallelJaw::default()),
+        (GripperArg::Suction, None) => Gripper::Suction(SuctionCup::default()),
+        (GripperArg::Parallel, Some(p)) => Gripper::Parallel(moma_io::read_json(p, what)?),
+        (GripperArg::Suction, Some(p)) => Gripper::Suction(moma_io::read_json(p, what)?),
     };
-    let checked = match &g {
-        GripperGeometry::Parallel(j) => j.validate(),
-        GripperGeometry::Suction(c) => c.validate(),
-    };
-    if let Err(e) = checked {
+    if let Err(e) = g.validate() {
         let origin = args.gripper_config.as_ref().map_or_else(
             || "default gripper".to_string(),
             |p| p.display().to_string(),
@@ -305,7 +281,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         );
     }
     let mut outcome = match &gripper {
-        GripperGeometry::Parallel(jaw) => plan_parallel(
+        Gripper::Parallel(jaw) => plan_parallel(
             &scene,
             jaw,
             &ParallelConfig {
@@ -314,7 +290,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
                 ..ParallelConfig::default()
             },
         )?,
-        GripperGeometry::Suction(cup) => plan_suction(
+        Gripper::Suction(cup) => plan_suction(
             &scene,
             cup,
             &SuctionConfig {
@@ -377,258 +353,19 @@ fn print_summary(outcome: &PlanOutcome) {
     }
 }
 
-/// Colour of rank `k` of `n`: best green, then yellow to red.
-fn rank_colour(k: usize, n: usize) -> [u8; 3] {
-    if k == 0 {
-        return [0, 230, 0];
-    }
-    let t = if n > 2 {
-        (k - 1) as f32 / (n - 2) as f32
-    } else {
-        0.0
-    };
-    [255, (220.0 * (1.0 - t)) as u8, 0]
-}
-
-fn project(k: &Intrinsics, p: &Vec3) -> Option<(f32, f32)> {
-    (p.z > 1e-6).then(|| {
-        (
-            (k.fx as f32) * p.x / p.z + k.cx as f32,
-            (k.fy as f32) * p.y / p.z + k.cy as f32,
-        )
-    })
-}
-
-fn put(img: &mut RgbImage, x: i64, y: i64, c: [u8; 3]) {
-    if x >= 0 && y >= 0 && (x as u32) < img.width() && (y as u32) < img.height() {
-        img.put_pixel(x as u32, y as u32, Rgb(c));
-    }
-}
-
-fn line(img: &mut RgbImage, a: (f32, f32), b: (f32, f32), c: [u8; 3], thick: i64) {
-    let n = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).clamp(1, 4096);
-    for i in 0..=n {
-        let t = i as f32 / n as f32;
-        let (x, y) = (a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t);
-        for dy in -thick..=thick {
-            for dx in -thick..=thick {
-                put(img, x.round() as i64 + dx, y.round() as i64 + dy, c);
-            }
-        }
-    }
-}
-
-fn segment(img: &mut RgbImage, k: &Intrinsics, a: &Vec3, b: &Vec3, c: [u8; 3], thick: i64) {
-    if let (Some(pa), Some(pb)) = (project(k, a), project(k, b)) {
-        line(img, pa, pb, c, thick);
-    }
-}
-
-/// Draws the grasps, worst first so that the best is on top.
-fn draw_overlay(
-    img: &mut RgbImage,
-    outcome: &PlanOutcome,
-    k: &Intrinsics,
-    geometry: &GripperGeometry,
-) {
-    let n = outcome.grasps.len();
-    for (rank, g) in outcome.grasps.iter().enumerate().rev() {
-        let c = rank_colour(rank, n);
-        let thick = if rank == 0 { 1 } else { 0 };
-        match (g, geometry) {
-            (Grasp::Parallel(p), GripperGeometry::Parallel(jaw)) => {
-                let (centre, a, b) = (
-                    Vec3::from(p.pose.center_m),
-                    Vec3::from(p.pose.approach),
-                    Vec3::from(p.pose.closing),
-                );
-                let h = a.cross(&b) * (jaw.finger_height_m / 2.0);
-                let half = p.pose.width_m / 2.0;
-                let (f1, f2) = (centre - b * half, centre + b * half);
-                segment(img, k, &f1, &f2, c, thick);
-                for f in [f1, f2] {
-                    segment(img, k, &(f - h), &(f + h), c, thick + 1);
-                }
-            }
-            (Grasp::Suction(s), GripperGeometry::Suction(cup)) => {
-                let (p, a) = (Vec3::from(s.pose.point_m), Vec3::from(s.pose.approach));
-                let helper = if a.x.abs() < 0.9 {
-                    Vec3::x()
-                } else {
-                    Vec3::y()
-                };
-                let e1 = a.cross(&helper).normalize();
-                let e2 = a.cross(&e1);
-                let ring = |i: usize| {
-                    let t = std::f32::consts::TAU * i as f32 / 36.0;
-                    p + (e1 * t.cos() + e2 * t.sin()) * cup.radius_m
-                };
-                for i in 0..36 {
-                    segment(img, k, &ring(i), &ring(i + 1), c, thick);
-                }
-                segment(img, k, &p, &(p - a * 0.03), c, thick);
-            }
-            _ => {}
-        }
-    }
-}
-
-/// A box mesh: centre, three unit axes, half sizes (metres).
-struct BoxMesh {
-    centre: Vec3,
-    axes: [Vec3; 3],
-    half: [f32; 3],
-    colour: [u8; 3],
-}
-
-fn gripper_boxes(outcome: &PlanOutcome, geometry: &GripperGeometry) -> Vec<BoxMesh> {
-    let n = outcome.grasps.len();
-    let mut boxes = Vec::new();
-    for (rank, g) in outcome.grasps.iter().enumerate() {
-        let colour = rank_colour(rank, n);
-        match (g, geometry) {
-            (Grasp::Parallel(p), GripperGeometry::Parallel(jaw)) => {
-                let (c, a, b) = (
-                    Vec3::from(p.pose.center_m),
-                    Vec3::from(p.pose.approach),
-                    Vec3::from(p.pose.closing),
-                );
-                let h = a.cross(&b);
-                let (tip, len, palm) =
-                    (jaw.contact_to_tip_m, jaw.finger_length_m, jaw.palm_depth_m);
-                let half_w = p.pose.width_m / 2.0;
-                let t = jaw.finger_thickness_m;
-                let fx = tip - len / 2.0;
-                for s in [-1.0f32, 1.0] {
-                    boxes.push(BoxMesh {
-                        centre: c + a * fx + b * (s * (half_w + t / 2.0)),
-                        axes: [a, b, h],
-                        half: [len / 2.0, t / 2.0, jaw.finger_height_m / 2.0],
-                        colour,
-                    });
-                }
-                boxes.push(BoxMesh {
-                    centre: c + a * (tip - len - palm / 2.0),
-                    axes: [a, b, h],
-                    half: [palm / 2.0, half_w + t, jaw.finger_height_m / 2.0],
-                    colour,
-                });
-            }
-            (Grasp::Suction(s), GripperGeometry::Suction(cup)) => {
-                let (p, a) = (Vec3::from(s.pose.point_m), Vec3::from(s.pose.approach));
-                let helper = if a.x.abs() < 0.9 {
-                    Vec3::x()
-                } else {
-                    Vec3::y()
-                };
-                let e1 = a.cross(&helper).normalize();
-                let e2 = a.cross(&e1);
-                boxes.push(BoxMesh {
-                    centre: p - a * (cup.tool_length_m / 2.0),
-                    axes: [a, e1, e2],
-                    half: [cup.tool_length_m / 2.0, cup.radius_m, cup.radius_m],
-                    colour,
-                });
-            }
-            _ => {}
-        }
-    }
-    boxes
-}
-
-/// Binary little-endian PLY: the valid scene points coloured from `colours`, then the boxes as
-/// coloured triangle meshes.
-fn write_scene_ply(
-    path: &Path,
-    depth: &MetricDepth,
-    k: &Intrinsics,
-    colours: &RgbImage,
-    boxes: &[BoxMesh],
-) -> Result<()> {
-    let mut verts: Vec<([f32; 3], [u8; 3])> = Vec::new();
-    for ((v, u), &z) in depth.depth_m.indexed_iter() {
-        if moma_core::is_valid_depth(z) {
-            let x = (u as f64 - k.cx) / k.fx * z as f64;
-            let y = (v as f64 - k.cy) / k.fy * z as f64;
-            verts.push((
-                [x as f32, y as f32, z],
-                colours.get_pixel(u as u32, v as u32).0,
-            ));
-        }
-    }
-    const QUADS: [[u32; 4]; 6] = [
-        [0, 2, 6, 4],
-        [1, 5, 7, 3],
-        [0, 4, 5, 1],
-        [2, 3, 7, 6],
-        [0, 1, 3, 2],
-        [4, 6, 7, 5],
-    ];
-    let mut faces: Vec<[u32; 3]> = Vec::new();
-    for b in boxes {
-        let base = verts.len() as u32;
-        for i in 0..8u32 {
-            let s = |bit: u32| if i & bit != 0 { 1.0f32 } else { -1.0 };
-            let p = b.centre
-                + b.axes[0] * (s(1) * b.half[0])
-                + b.axes[1] * (s(2) * b.half[1])
-                + b.axes[2] * (s(4) * b.half[2]);
-            verts.push(([p.x, p.y, p.z], b.colour));
-        }
-        for q in QUADS {
-            faces.push([base + q[0], base + q[1], base + q[2]]);
-            faces.push([base + q[0], base + q[2], base + q[3]]);
-        }
-    }
-    let header = format!(
-        "ply\nformat binary_little_endian 1.0\ncomment moma grasp: scene points (camera frame, metres) and gripper boxes of the grasps\n\
-         element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
-         property uchar red\nproperty uchar green\nproperty uchar blue\n\
-         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
-        verts.len(),
-        faces.len()
-    );
-    let mut bytes = Vec::with_capacity(header.len() + verts.len() * 15 + faces.len() * 13);
-    bytes.extend_from_slice(header.as_bytes());
-    for (p, c) in &verts {
-        for x in p {
-            bytes.extend_from_slice(&x.to_le_bytes());
-        }
-        bytes.extend_from_slice(c);
-    }
-    for f in &faces {
-        bytes.push(3);
-        for i in f {
-            bytes.extend_from_slice(&(*i as i32).to_le_bytes());
-        }
-    }
-    write_bytes(path, &bytes)
-}
-
-fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
-    moma_io::atomic_write(path, |w: &mut dyn Write| {
-        w.write_all(bytes).map_err(|e| moma_io::IoError::Io {
-            path: path.to_path_buf(),
-            action: "write",
-            source: e,
-        })
-    })?;
-    Ok(())
-}
-
+/// Writes grasps.json (the `--json` array), scene.ply (scene points and gripper boxes) and
+/// overlay.png (grasps drawn on the RGB image, or on the colour-mapped depth) into `dir`.
 fn write_outputs(
     dir: &Path,
     outcome: &PlanOutcome,
-    geometry: &GripperGeometry,
+    gripper: &Gripper,
     depth: &MetricDepth,
     k: &Intrinsics,
     rgb: Option<RgbImage>,
 ) -> Result<Vec<PathBuf>> {
     create_dir(dir)?;
     let json_path = dir.join("grasps.json");
-    let mut json = serde_json::to_vec_pretty(&outcome.grasps)?;
-    json.push(b'\n');
-    write_bytes(&json_path, &json)?;
+    moma_io::write_json(&json_path, &outcome.grasps)?;
     let background = match rgb {
         Some(img) => img,
         None => {
@@ -642,15 +379,20 @@ fn write_outputs(
         }
     };
     let ply_path = dir.join("scene.ply");
-    write_scene_ply(
+    moma_io::write_scene_ply(
         &ply_path,
         depth,
         k,
         &background,
-        &gripper_boxes(outcome, geometry),
+        &moma_grasp::render::gripper_boxes(outcome, gripper),
+        "moma grasp: scene points (camera frame, metres) and gripper boxes of the grasps",
     )?;
     let mut overlay = background;
-    draw_overlay(&mut overlay, outcome, k, geometry);
+    moma_io::draw_segments(
+        &mut overlay,
+        k,
+        &moma_grasp::render::overlay_segments(outcome, gripper),
+    );
     let overlay_path = dir.join("overlay.png");
     moma_io::write_rgb(&overlay_path, &overlay)?;
     Ok(vec![json_path, overlay_path, ply_path])
