@@ -62,9 +62,12 @@ impl std::fmt::Display for ImageSize {
     }
 }
 
-/// Largest image accepted anywhere in moma, pixels (2^28 ≈ 268 M, e.g. 16384 × 16384): decoders
-/// and file readers refuse larger sizes before allocating.
-pub const MAX_IMAGE_PIXELS: usize = 1 << 28;
+/// Largest image accepted anywhere in moma, pixels: 2^26 = 67 108 864 (e.g. 8192 × 8192; eight
+/// times a 4K frame; a float32 map of this size takes 256 MiB). The one bound: decoders and
+/// file readers (`moma_io::MAX_IMAGE_PIXELS` is this value), calibration and anchor-store sizes
+/// refuse larger sizes before allocating. (It was 2^28 here and 2^26 in the decoders, so a
+/// calibration could claim a size no image file of it could have.)
+pub const MAX_IMAGE_PIXELS: usize = 1 << 26;
 
 /// `true` for a usable metric depth value: finite and strictly positive (metres).
 #[inline]

@@ -478,57 +478,18 @@ impl TryFrom<AnchorStoreFile> for AnchorStore {
     }
 }
 
-const B64: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-
+/// Standard base64 with padding (RFC 4648 §4), the `base64` crate's engine; decoding refuses
+/// non-canonical input (a length not a multiple of 4, misplaced padding, other characters).
 fn b64_encode(data: &[u8]) -> String {
-    let mut out = String::with_capacity(data.len().div_ceil(3) * 4);
-    for c in data.chunks(3) {
-        let b = [c[0], *c.get(1).unwrap_or(&0), *c.get(2).unwrap_or(&0)];
-        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
-        for k in 0..4 {
-            if k <= c.len() {
-                out.push(B64[(n >> (18 - 6 * k) & 63) as usize] as char);
-            } else {
-                out.push('=');
-            }
-        }
-    }
-    out
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD.encode(data)
 }
 
 fn b64_decode(s: &str) -> std::result::Result<Vec<u8>, String> {
-    let bytes = s.as_bytes();
-    if !bytes.len().is_multiple_of(4) {
-        return Err(format!("length {} is not a multiple of 4", bytes.len()));
-    }
-    let val = |c: u8, at: usize| -> std::result::Result<u32, String> {
-        match c {
-            b'A'..=b'Z' => Ok((c - b'A') as u32),
-            b'a'..=b'z' => Ok((c - b'a' + 26) as u32),
-            b'0'..=b'9' => Ok((c - b'0' + 52) as u32),
-            b'+' => Ok(62),
-            b'/' => Ok(63),
-            _ => Err(format!("invalid base64 character at offset {at}")),
-        }
-    };
-    let mut out = Vec::with_capacity(bytes.len() / 4 * 3);
-    let chunks = bytes.len() / 4;
-    for (ci, c) in bytes.chunks_exact(4).enumerate() {
-        let pad = c.iter().rev().take_while(|&&x| x == b'=').count();
-        if pad > 2 || (pad > 0 && ci + 1 != chunks) {
-            return Err(format!("misplaced padding in chunk {ci}"));
-        }
-        let mut n = 0u32;
-        for (k, &x) in c.iter().enumerate() {
-            n <<= 6;
-            if k < 4 - pad {
-                n |= val(x, 4 * ci + k)?;
-            }
-        }
-        let b = [(n >> 16) as u8, (n >> 8) as u8, n as u8];
-        out.extend_from_slice(&b[..3 - pad]);
-    }
-    Ok(out)
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD
+        .decode(s)
+        .map_err(|e| e.to_string())
 }
 
 /// Thresholds of the anchor rule (module documentation).
@@ -1431,4 +1392,31 @@ pub fn realign_prediction_affine(
     report.prediction_affine = Some([a, b]);
     report.reason = accepted_reason(&report, obs.len());
     Ok((report, Some((a as f32, b as f32))))
+}
+
+#[cfg(test)]
+mod base64_tests {
+    use super::{b64_decode, b64_encode};
+
+    #[test]
+    fn standard_base64_with_padding_and_canonical_decoding() {
+        // RFC 4648 §10 test vectors.
+        for (plain, coded) in [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ] {
+            assert_eq!(b64_encode(plain.as_bytes()), coded);
+            assert_eq!(b64_decode(coded).unwrap(), plain.as_bytes());
+        }
+        let all: Vec<u8> = (0..=255).collect();
+        assert_eq!(b64_decode(&b64_encode(&all)).unwrap(), all);
+        for bad in ["Zg=", "Zg", "Z===", "Zm9v!A==", "Zg==Zg=="] {
+            assert!(b64_decode(bad).is_err(), "{bad}");
+        }
+    }
 }

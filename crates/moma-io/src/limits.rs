@@ -9,9 +9,10 @@ use crate::error::{IoError, Result};
 /// Largest image side accepted by every decoder, pixels (PNG, JPEG, npy, PFM).
 pub const MAX_IMAGE_SIDE_PX: u64 = 65_535;
 
-/// Largest image accepted by every decoder, pixels: 2^26 = 67 108 864 (e.g. 8192 × 8192; eight
-/// times a 4K frame). A decoded float32 map of this size takes 256 MiB.
-pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+/// Largest image accepted by every decoder, pixels: [`moma_core::image::MAX_IMAGE_PIXELS`]
+/// (2^26 = 67 108 864, e.g. 8192 × 8192), as a `u64` for header arithmetic. A decoded float32 map
+/// of this size takes 256 MiB.
+pub const MAX_IMAGE_PIXELS: u64 = moma_core::image::MAX_IMAGE_PIXELS as u64;
 
 /// The largest expansion deflate can achieve: a 258-byte match coded in 2 bits gives at most
 /// 1032 bytes out per byte in. A PNG whose raw pixel data exceeds `1032 ×` its file length
