@@ -15,17 +15,16 @@
 
 mod common;
 
-use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor, Var};
-use common::{reference_dir, reference_input, tiny_config};
+use common::{ParityReference, flat, reference_dir, rel_max};
 use moma_depth::candle::open_checkpoint;
 use moma_depth::candle::train::{
     LoraConfig, LoraTarget, LossKind, OptimSettings, ParamSource, Sample, Schedule, TrainNet,
     Trainer, loss, valid_indices,
 };
-use ndarray::{Array2, s};
+use ndarray::Array2;
 
 const LOSS_TOL: f64 = 1e-5;
 const GRAD_TOL: f64 = 1e-4;
@@ -44,66 +43,14 @@ fn reference_file() -> PathBuf {
 }
 
 /// The reference file: tensors (as f64 on the CPU) and metadata.
-struct Reference {
-    tensors: HashMap<String, Tensor>,
-    meta: HashMap<String, String>,
+type Reference = ParityReference;
+
+fn load_reference() -> Reference {
+    ParityReference::load("lora_parity_tiny_metric.safetensors", "moma-lora-parity-v1")
 }
 
-impl Reference {
-    fn load() -> Self {
-        let path = reference_file();
-        let bytes = std::fs::read(&path)
-            .unwrap_or_else(|e| panic!("reading {}: {e} (committed test data)", path.display()));
-        let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
-        let meta = header.metadata().clone().unwrap_or_default();
-        assert_eq!(
-            meta.get("format").map(String::as_str),
-            Some("moma-lora-parity-v1")
-        );
-        let tensors = candle_core::safetensors::load(&path, &Device::Cpu)
-            .unwrap()
-            .into_iter()
-            .map(|(k, v)| (k, v.to_dtype(DType::F64).unwrap()))
-            .collect();
-        Self { tensors, meta }
-    }
-
-    fn get(&self, key: &str) -> &Tensor {
-        self.tensors
-            .get(key)
-            .unwrap_or_else(|| panic!("reference file lacks {key}"))
-    }
-
-    fn meta_f64(&self, key: &str) -> f64 {
-        self.meta[key].parse().unwrap()
-    }
-
-    fn meta_json(&self, key: &str) -> serde_json::Value {
-        serde_json::from_str(&self.meta[key]).unwrap()
-    }
-}
-
-fn flat(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
-/// `max |got − want| / max |want|`.
-fn rel_max(got: &Tensor, want: &Tensor) -> f64 {
-    assert_eq!(got.dims(), want.dims(), "shape");
-    let (g, w) = (flat(got), flat(want));
-    let err = g
-        .iter()
-        .zip(&w)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    let scale = w.iter().map(|b| b.abs()).fold(0.0, f64::max);
-    assert!(scale > 0.0, "reference tensor is all zeros");
-    err / scale
+fn meta_f64(r: &Reference, key: &str) -> f64 {
+    r.meta[key].parse().unwrap()
 }
 
 /// Worst relative error over a family of tensors, with its name.
@@ -135,21 +82,8 @@ struct GradWorst {
 fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, GradWorst, Worst) {
     let dir = reference_dir();
     let name = r.meta["reference"].clone();
-    let config = tiny_config(&dir, &name);
     let settings = r.meta_json(&format!("{case}/settings"));
-    let crop = r.meta_json("crop");
-    let c = |k: &str| crop[k].as_u64().unwrap() as usize;
-    let (y0, x0, h, w) = (c("y0"), c("x0"), c("h"), c("w"));
-    let input = reference_input(&dir, &name)
-        .slice(s![.., y0..y0 + h, x0..x0 + w])
-        .to_owned();
-    let gt: Vec<f32> = r.tensors["gt_m"]
-        .to_dtype(DType::F32)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+    let (config, input, gt, (h, w)) = r.training_crop();
     let gt_m = Array2::from_shape_vec((h, w), gt.clone()).unwrap();
 
     let train_head = settings["train_head"].as_bool().unwrap();
@@ -194,8 +128,8 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, GradWorst, Worst) 
         .map(|(k, v)| (k.clone(), v.clone()))
         .collect();
 
-    let min_depth_m = r.meta_f64("min_depth_m") as f32;
-    let max_depth_m = r.meta_f64("max_depth_m") as f32;
+    let min_depth_m = meta_f64(r, "min_depth_m") as f32;
+    let max_depth_m = meta_f64(r, "max_depth_m") as f32;
     let lr = settings["lr"].as_f64().unwrap();
 
     // Loss and gradients.
@@ -253,8 +187,8 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, GradWorst, Worst) 
     let optim = OptimSettings {
         loss: LossKind::Silog,
         lr,
-        head_lr: lr * r.meta_f64("head_lr_mult"),
-        weight_decay: r.meta_f64("weight_decay"),
+        head_lr: lr * meta_f64(r, "head_lr_mult"),
+        weight_decay: meta_f64(r, "weight_decay"),
         steps: 1,
         warmup: 0,
         schedule: Schedule::OneCycle,
@@ -305,7 +239,7 @@ fn run_case(r: &Reference, case: &str, dtype: DType) -> (f64, GradWorst, Worst) 
 }
 
 fn check(case: &str) {
-    let r = Reference::load();
+    let r = load_reference();
     let (loss_err, grad, after) = run_case(&r, case, DType::F64);
     eprintln!(
         "{case} (f64 vs PyTorch+peft f64): loss rel err {loss_err:.3e}; gradients worst {:.3e} \
@@ -345,7 +279,7 @@ fn lora_all_targets_and_head_match_pytorch_peft() {
 fn reference_file_is_complete() {
     let size = std::fs::metadata(reference_file()).unwrap().len();
     assert!(size < 300 * 1024, "reference file is {size} bytes");
-    let r = Reference::load();
+    let r = load_reference();
     for case in ["qv", "all"] {
         let s = r.meta_json(&format!("{case}/settings"));
         let rank = s["rank"].as_u64().unwrap() as i64;
@@ -382,7 +316,7 @@ fn reference_file_is_complete() {
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn f32_training_path_is_close_to_the_f64_reference() {
-    let r = Reference::load();
+    let r = load_reference();
     for case in ["qv", "all"] {
         let (loss_err, grad, after) = run_case(&r, case, DType::F32);
         eprintln!(

@@ -18,17 +18,16 @@
 
 mod common;
 
-use std::collections::HashMap;
 use std::path::PathBuf;
 
-use candle_core::{DType, Device, Tensor};
-use common::{reference_dir, reference_input, tiny_config};
+use candle_core::{DType, Device};
+use common::{ParityReference, flat, reference_dir, rel_max};
 use moma_depth::candle::open_checkpoint;
 use moma_depth::candle::train::{
     LoraConfig, LoraTarget, LossKind, OptimSettings, ParamSource, Sample, Schedule, TrainNet,
     Trainer, lr_factor,
 };
-use ndarray::{Array2, s};
+use ndarray::Array2;
 
 const LOSS_TOL: f64 = 1e-6;
 const NORM_TOL: f64 = 1e-6;
@@ -39,95 +38,26 @@ fn reference_file() -> PathBuf {
         .join("tests/data/lora_parity_steps_tiny_metric.safetensors")
 }
 
-struct Reference {
-    tensors: HashMap<String, Tensor>,
-    meta: HashMap<String, String>,
+fn load_reference() -> ParityReference {
+    ParityReference::load(
+        "lora_parity_steps_tiny_metric.safetensors",
+        "moma-lora-parity-steps-v1",
+    )
 }
 
-impl Reference {
-    fn load() -> Self {
-        let path = reference_file();
-        let bytes = std::fs::read(&path)
-            .unwrap_or_else(|e| panic!("reading {}: {e} (committed test data)", path.display()));
-        let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
-        let meta = header.metadata().clone().unwrap_or_default();
-        assert_eq!(
-            meta.get("format").map(String::as_str),
-            Some("moma-lora-parity-steps-v1")
-        );
-        let tensors = candle_core::safetensors::load(&path, &Device::Cpu)
-            .unwrap()
-            .into_iter()
-            .map(|(k, v)| (k, v.to_dtype(DType::F64).unwrap()))
-            .collect();
-        Self { tensors, meta }
-    }
-
-    fn get(&self, key: &str) -> &Tensor {
-        self.tensors
-            .get(key)
-            .unwrap_or_else(|| panic!("reference file lacks {key}"))
-    }
-
-    fn scalar(&self, key: &str) -> f64 {
-        self.get(key)
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f64>()
-            .unwrap()[0]
-    }
-
-    fn settings(&self) -> serde_json::Value {
-        serde_json::from_str(&self.meta["settings"]).unwrap()
-    }
-}
-
-fn flat(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
-/// `max |got − want| / max |want|`.
-fn rel_max(got: &Tensor, want: &Tensor) -> f64 {
-    assert_eq!(got.dims(), want.dims(), "shape");
-    let (g, w) = (flat(got), flat(want));
-    let err = g
-        .iter()
-        .zip(&w)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    let scale = w.iter().map(|b| b.abs()).fold(0.0, f64::max);
-    if scale == 0.0 {
-        return err;
-    }
-    err / scale
+/// A stored scalar (shape (1,)).
+fn scalar(r: &ParityReference, key: &str) -> f64 {
+    flat(r.get(key))[0]
 }
 
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn six_adamw_steps_with_clipping_schedule_and_head_match_pytorch_peft() {
-    let r = Reference::load();
-    let st = r.settings();
-    let dir = reference_dir();
+    let r = load_reference();
+    let st = r.meta_json("settings");
+    let (config, input, gt, (h, w)) = r.training_crop();
     let name = r.meta["reference"].clone();
-    let config = tiny_config(&dir, &name);
-    let crop: serde_json::Value = serde_json::from_str(&r.meta["crop"]).unwrap();
-    let c = |k: &str| crop[k].as_u64().unwrap() as usize;
-    let (y0, x0, h, w) = (c("y0"), c("x0"), c("h"), c("w"));
-    let input = reference_input(&dir, &name)
-        .slice(s![.., y0..y0 + h, x0..x0 + w])
-        .to_owned();
-    let gt: Vec<f32> = r.tensors["gt_m"]
-        .to_dtype(DType::F32)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+    let dir = reference_dir();
     let sample = Sample {
         input,
         gt_m: Array2::from_shape_vec((h, w), gt).unwrap(),
@@ -190,14 +120,14 @@ fn six_adamw_steps_with_clipping_schedule_and_head_match_pytorch_peft() {
         // The schedule of both sides (the reference stores PyTorch's LambdaLR factor).
         let f = lr_factor(Schedule::Poly, k - 1, steps, warmup);
         assert!(
-            (f - r.scalar(&format!("lr_factor/{k}"))).abs() < 1e-15,
+            (f - scalar(&r, &format!("lr_factor/{k}"))).abs() < 1e-15,
             "step {k}: lr factor"
         );
         let got_loss = trainer.step(&[vec![&sample]]).unwrap();
-        let want_loss = r.scalar(&format!("loss/{k}"));
+        let want_loss = scalar(&r, &format!("loss/{k}"));
         let loss_err = (got_loss - want_loss).abs() / want_loss.abs();
         let norm = trainer.last_grad_norm();
-        let want_norm = r.scalar(&format!("grad_norm/{k}"));
+        let want_norm = scalar(&r, &format!("grad_norm/{k}"));
         let norm_err = (norm - want_norm).abs() / want_norm;
         if clip / (want_norm + 1e-6) < 1.0 {
             clipped += 1;
@@ -233,15 +163,15 @@ fn six_adamw_steps_with_clipping_schedule_and_head_match_pytorch_peft() {
 fn steps_reference_file_is_complete() {
     let size = std::fs::metadata(reference_file()).unwrap().len();
     assert!(size < 4 * 1024 * 1024, "reference file is {size} bytes");
-    let r = Reference::load();
-    let st = r.settings();
+    let r = load_reference();
+    let st = r.meta_json("settings");
     let steps = st["steps"].as_u64().unwrap() as usize;
     assert!(steps >= 5);
     assert!(st["weight_decay"].as_f64().unwrap() > 0.0);
     assert!(st["train_head"].as_bool().unwrap());
     let clip = st["clip_grad_norm"].as_f64().unwrap();
     let clipped = (1..=steps)
-        .filter(|k| clip / (r.scalar(&format!("grad_norm/{k}")) + 1e-6) < 1.0)
+        .filter(|k| clip / (scalar(&r, &format!("grad_norm/{k}")) + 1e-6) < 1.0)
         .count();
     assert!(clipped >= 2, "clip factor < 1 on {clipped} step(s)");
     for k in 1..=steps {

@@ -6,6 +6,7 @@
 use moma_core::shapes::{BoxMesh, Segment3};
 
 use crate::cloud::Vec3;
+use crate::contact::perpendiculars;
 use crate::grasp::{Grasp, PlanOutcome};
 use crate::gripper::Gripper;
 
@@ -24,18 +25,6 @@ pub fn rank_colour(k: usize, n: usize) -> [u8; 3] {
 
 fn arr(v: Vec3) -> [f32; 3] {
     [v.x, v.y, v.z]
-}
-
-/// Two unit vectors completing `a` (unit) to a right-handed frame `(a, e1, e2)`.
-fn frame_around(a: Vec3) -> (Vec3, Vec3) {
-    let helper = if a.x.abs() < 0.9 {
-        Vec3::x()
-    } else {
-        Vec3::y()
-    };
-    let e1 = a.cross(&helper).normalize();
-    let e2 = a.cross(&e1);
-    (e1, e2)
 }
 
 /// The overlay of `outcome`'s grasps, worst first so that the best is drawn last (on top): for a
@@ -73,7 +62,7 @@ pub fn overlay_segments(outcome: &PlanOutcome, gripper: &Gripper) -> Vec<Segment
             }
             (Grasp::Suction(s), Gripper::Suction(cup)) => {
                 let (p, a) = (Vec3::from(s.pose.point_m), Vec3::from(s.pose.approach));
-                let (e1, e2) = frame_around(a);
+                let (e1, e2) = perpendiculars(&a);
                 let ring = |i: usize| {
                     let t = std::f32::consts::TAU * i as f32 / 36.0;
                     p + (e1 * t.cos() + e2 * t.sin()) * cup.radius_m
@@ -132,7 +121,7 @@ pub fn gripper_boxes(outcome: &PlanOutcome, gripper: &Gripper) -> Vec<BoxMesh> {
             }
             (Grasp::Suction(s), Gripper::Suction(cup)) => {
                 let (p, a) = (Vec3::from(s.pose.point_m), Vec3::from(s.pose.approach));
-                let (e1, e2) = frame_around(a);
+                let (e1, e2) = perpendiculars(&a);
                 push(
                     p - a * (cup.tool_length_m / 2.0),
                     [a, e1, e2],

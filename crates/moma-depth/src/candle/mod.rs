@@ -725,21 +725,27 @@ impl DepthModel for CandleDepthModel {
     }
 }
 
+/// A tiny architecture for unit tests (embed 32, 2 blocks, 8 DPT features).
+#[cfg(test)]
+pub(crate) fn tiny_test_config(head: Head) -> DepthAnythingConfig {
+    DepthAnythingConfig {
+        embed_dim: 32,
+        depth: 2,
+        num_heads: 2,
+        mlp_hidden_dim: 64,
+        intermediate_layers: [0, 1, 1, 1],
+        features: 8,
+        out_channels: [4, 8, 8, 16],
+        ..DepthAnythingConfig::vit_small(head)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn tiny(head: Head) -> DepthAnythingConfig {
-        DepthAnythingConfig {
-            embed_dim: 32,
-            depth: 2,
-            num_heads: 2,
-            mlp_hidden_dim: 64,
-            intermediate_layers: [0, 1, 1, 1],
-            features: 8,
-            out_channels: [4, 8, 8, 16],
-            ..DepthAnythingConfig::vit_small(head)
-        }
+        tiny_test_config(head)
     }
 
     #[test]

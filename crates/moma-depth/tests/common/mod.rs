@@ -121,3 +121,105 @@ pub fn tiny_config(dir: &std::path::Path, name: &str) -> DepthAnythingConfig {
         ..DepthAnythingConfig::vit_small(head)
     }
 }
+
+/// A committed parity reference (safetensors written by a benches/pytorch script): tensors as
+/// f64 on the CPU, and its metadata.
+#[cfg(feature = "candle")]
+pub struct ParityReference {
+    /// Tensors by name, f64.
+    pub tensors: std::collections::HashMap<String, candle_core::Tensor>,
+    /// The `__metadata__` strings.
+    pub meta: std::collections::HashMap<String, String>,
+}
+
+#[cfg(feature = "candle")]
+impl ParityReference {
+    /// Reads `tests/data/FILE` and checks its `format` metadata.
+    ///
+    /// # Panics
+    /// A missing or unreadable file, another format.
+    pub fn load(file: &str, format: &str) -> Self {
+        use candle_core::{DType, Device};
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data")
+            .join(file);
+        let bytes = std::fs::read(&path)
+            .unwrap_or_else(|e| panic!("reading {}: {e} (committed test data)", path.display()));
+        let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+        let meta = header.metadata().clone().unwrap_or_default();
+        assert_eq!(meta.get("format").map(String::as_str), Some(format));
+        let tensors = candle_core::safetensors::load(&path, &Device::Cpu)
+            .unwrap()
+            .into_iter()
+            .map(|(k, v)| (k, v.to_dtype(DType::F64).unwrap()))
+            .collect();
+        Self { tensors, meta }
+    }
+
+    /// The tensor `key`.
+    ///
+    /// # Panics
+    /// When the file lacks it.
+    pub fn get(&self, key: &str) -> &candle_core::Tensor {
+        self.tensors
+            .get(key)
+            .unwrap_or_else(|| panic!("reference file lacks {key}"))
+    }
+
+    /// What the training cases run on: the tiny network of `reference`, the `crop` of its
+    /// reference input, and the stored ground truth `gt_m` (metres, row-major) of that crop.
+    ///
+    /// # Panics
+    /// Without ../shared, or a file lacking these entries.
+    pub fn training_crop(&self) -> (DepthAnythingConfig, Array3<f32>, Vec<f32>, (usize, usize)) {
+        use ndarray::s;
+        let dir = reference_dir();
+        let name = self.meta["reference"].clone();
+        let config = tiny_config(&dir, &name);
+        let crop = self.meta_json("crop");
+        let c = |k: &str| crop[k].as_u64().unwrap() as usize;
+        let (y0, x0, h, w) = (c("y0"), c("x0"), c("h"), c("w"));
+        let input = reference_input(&dir, &name)
+            .slice(s![.., y0..y0 + h, x0..x0 + w])
+            .to_owned();
+        let gt: Vec<f32> = self.tensors["gt_m"]
+            .to_dtype(candle_core::DType::F32)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        (config, input, gt, (h, w))
+    }
+
+    /// The metadata value `key` as JSON.
+    pub fn meta_json(&self, key: &str) -> serde_json::Value {
+        serde_json::from_str(&self.meta[key]).unwrap()
+    }
+}
+
+/// A tensor's values as f64.
+#[cfg(feature = "candle")]
+pub fn flat(t: &candle_core::Tensor) -> Vec<f64> {
+    t.to_dtype(candle_core::DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// `max |got − want| / max |want|` (the max-abs norm of the difference relative to the
+/// reference tensor's max-abs value; the plain max-abs difference when the reference is 0).
+#[cfg(feature = "candle")]
+pub fn rel_max(got: &candle_core::Tensor, want: &candle_core::Tensor) -> f64 {
+    assert_eq!(got.dims(), want.dims(), "shape");
+    let (g, w) = (flat(got), flat(want));
+    let err = g
+        .iter()
+        .zip(&w)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    let scale = w.iter().map(|b| b.abs()).fold(0.0, f64::max);
+    if scale == 0.0 { err } else { err / scale }
+}

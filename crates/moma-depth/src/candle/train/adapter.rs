@@ -609,15 +609,8 @@ mod tests {
 
     fn tiny(head: Head) -> DepthAnythingConfig {
         DepthAnythingConfig {
-            embed_dim: 32,
-            depth: 2,
-            num_heads: 2,
-            mlp_hidden_dim: 64,
-            intermediate_layers: [0, 1, 1, 1],
-            features: 8,
-            out_channels: [4, 8, 8, 16],
             pos_grid: 4,
-            ..DepthAnythingConfig::vit_small(head)
+            ..crate::candle::tiny_test_config(head)
         }
     }
 

@@ -854,30 +854,21 @@ impl TrainNet {
         let Some(lora) = &self.lora_config else {
             candle_core::bail!("no LoRA adapters attached");
         };
-        let tensors = self
-            .lora_vars
-            .iter()
-            .map(|(k, v)| {
-                let t = v
-                    .as_tensor()
-                    .detach()
-                    .to_dtype(DType::F32)?
-                    .to_device(&Device::Cpu)?;
-                Ok((k.clone(), t))
-            })
-            .collect::<Result<BTreeMap<_, _>>>()?;
-        let base = self
-            .base_vars
-            .iter()
-            .map(|(k, v)| {
-                let t = v
-                    .as_tensor()
-                    .detach()
-                    .to_dtype(DType::F32)?
-                    .to_device(&Device::Cpu)?;
-                Ok((k.clone(), t))
-            })
-            .collect::<Result<BTreeMap<_, _>>>()?;
+        // Values copied to f32 on the CPU, by name.
+        let copy = |vars: &BTreeMap<String, Var>| {
+            vars.iter()
+                .map(|(k, v)| {
+                    let t = v
+                        .as_tensor()
+                        .detach()
+                        .to_dtype(DType::F32)?
+                        .to_device(&Device::Cpu)?;
+                    Ok((k.clone(), t))
+                })
+                .collect::<Result<BTreeMap<_, _>>>()
+        };
+        let tensors = copy(&self.lora_vars)?;
+        let base = copy(&self.base_vars)?;
         Ok(Adapter {
             lora: lora.clone(),
             arch: (
