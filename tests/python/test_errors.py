@@ -36,6 +36,8 @@ def test_kind_is_required():
         (dict(kind="depth", norm="zscore"), "unknown normalisation"),
         (dict(kind="depth", sampling="sobol"), "unknown sampling"),
         (dict(kind="depth", method="lwlr", bandwidth_px=-3.0), "bandwidth"),
+        # As `moma calibrate --bandwidth-px` (one rule, moma_core::policy): not silently ignored.
+        (dict(kind="depth", method="ssra", bandwidth_px=30.0), "LWLR methods only"),
         (dict(kind="depth", samples=2), "too few"),
         (dict(kind="depth", edge_margin_px=500), "edge margin of 500 px"),
     ],

@@ -20,6 +20,7 @@ pub mod metrics;
 mod names;
 pub mod normalise;
 pub mod pipeline;
+pub mod policy;
 pub mod realign;
 pub mod sampling;
 pub mod shapes;

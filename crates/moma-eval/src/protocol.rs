@@ -703,20 +703,12 @@ impl<'a> Prepared<'a> {
     /// The normalisation a method is evaluated with: RAW always `none` in depth space, the
     /// others `norm` in the configured space (default: the predictions' own).
     pub fn normalisation_for(&self, method: &Method, norm: Normalisation) -> NormalisationConfig {
-        if *method == Method::Raw {
-            NormalisationConfig {
-                method: Normalisation::None,
-                space: AlignSpace::Depth,
-            }
-        } else {
-            NormalisationConfig {
-                method: norm,
-                space: self
-                    .config
-                    .space
-                    .unwrap_or(AlignSpace::native(self.preds.maps[self.calib].kind)),
-            }
-        }
+        moma_core::policy::evaluation_normalisation(
+            method,
+            norm,
+            self.config.space,
+            self.preds.maps[self.calib].kind,
+        )
     }
 
     /// `method` with the set's intrinsics (SSRA reports canonical parameters with them).

@@ -16,9 +16,9 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use moma_core::align::robust::{Robust, RobustKind};
-use moma_core::align::{Method, lwlr};
+use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig, CalibrationFrame};
 use moma_core::realign::{AnchorTarget, CorrectionModel, RealignConfig};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
@@ -51,27 +51,15 @@ fn parse_sampling(s: &str) -> PyResult<SamplingStrategy> {
     s.parse::<SamplingStrategy>().py()
 }
 
-/// The alignment method, built as `moma calibrate` builds it (`method_from` in moma-cli).
+/// The alignment method with its settings ([`moma_core::policy::method`], as `moma calibrate`).
 fn parse_method(
     s: &str,
     bandwidth_px: Option<f64>,
     intrinsics: Option<CoreIntrinsics>,
 ) -> PyResult<Method> {
-    if let Some(b) = bandwidth_px
-        && !(b.is_finite() && b > 0.0)
-    {
-        return Err(value_err(format!(
-            "bandwidth_px {b} must be a positive number of pixels"
-        )));
-    }
     let method: Method = s.parse().py()?;
-    Ok(match method.with_intrinsics(intrinsics) {
-        Method::Lwlr(cfg) => Method::Lwlr(lwlr::LwlrConfig {
-            bandwidth_px: bandwidth_px.or(cfg.bandwidth_px),
-            ..cfg
-        }),
-        other => other,
-    })
+    moma_core::policy::method(method, bandwidth_px, intrinsics)
+        .map_err(|e| value_err(format!("bandwidth_px: {e}")))
 }
 
 /// One frame's re-alignment into `out` for every correction form (as the CLI's
@@ -564,18 +552,14 @@ fn calibrate(
 ) -> PyResult<Calibration> {
     let kind = parse_kind(kind)?;
     let intrinsics = cam.map(|c| c.inner);
-    let space = match space {
-        Some(s) => s.parse::<AlignSpace>().py()?,
-        None => AlignSpace::native(kind),
-    };
+    let space = space.map(|s| s.parse::<AlignSpace>()).transpose().py()?;
     let method = parse_method(method, bandwidth_px, intrinsics)?;
+    let normalisation =
+        moma_core::policy::normalisation(&method, Some(parse_norm(norm)?), space, kind);
     let config = CalibrationConfig {
         robust: robust_from(robust, robust_threshold_m, seed, &method)?,
         method,
-        normalisation: NormalisationConfig {
-            method: parse_norm(norm)?,
-            space,
-        },
+        normalisation,
         sampling: SamplingConfig {
             strategy: parse_sampling(sampling)?,
             n: samples,

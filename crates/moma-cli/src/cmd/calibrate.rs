@@ -5,9 +5,9 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use moma_core::align::Method;
 use moma_core::align::robust::{Robust, RobustKind};
-use moma_core::align::{Method, lwlr};
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_io::{CalibrationFile, CreationInfo};
@@ -153,53 +153,6 @@ impl RobustArgs {
     }
 }
 
-/// The method with the command line's LWLR bandwidth and SSRA intrinsics.
-///
-/// # Errors
-/// A bandwidth that is not a positive number of pixels, or given for a method without one.
-pub fn method_from(
-    method: &Method,
-    bandwidth_px: Option<f64>,
-    intrinsics: Option<moma_core::Intrinsics>,
-) -> Result<Method> {
-    if let Some(b) = bandwidth_px
-        && !(b.is_finite() && b > 0.0)
-    {
-        bail!("--bandwidth-px {b} must be a positive number of pixels");
-    }
-    Ok(match method.clone().with_intrinsics(intrinsics) {
-        Method::Lwlr(cfg) => Method::Lwlr(lwlr::LwlrConfig {
-            bandwidth_px: bandwidth_px.or(cfg.bandwidth_px),
-            ..cfg
-        }),
-        other if bandwidth_px.is_some() => {
-            bail!("--bandwidth-px applies to the LWLR methods only, not {other}")
-        }
-        other => other,
-    })
-}
-
-/// The normalisation from `--norm` (default `minmax`, also for RAW, which then refuses it: a
-/// user must say `--norm none` to use a prediction as metres) and `--space` (default: the
-/// prediction's own; depth space for RAW).
-pub fn normalisation_from(
-    method: &Method,
-    norm: Option<Normalisation>,
-    space: Option<AlignSpace>,
-    kind: moma_core::PredictionKind,
-) -> NormalisationConfig {
-    let default_norm = Normalisation::Minmax;
-    let default_space = if *method == Method::Raw {
-        AlignSpace::Depth
-    } else {
-        AlignSpace::native(kind)
-    };
-    NormalisationConfig {
-        method: norm.unwrap_or(default_norm),
-        space: space.unwrap_or(default_space),
-    }
-}
-
 pub fn run(args: &CalibrateArgs) -> Result<()> {
     let n_inputs = args.source.pred.len() + args.source.rgb.len();
     if n_inputs != args.gt.len() {
@@ -273,7 +226,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .map(|p| moma_io::read_mask_sized(p, size))
         .transpose()?;
 
-    let method = method_from(&args.method, args.bandwidth_px, intrinsics)?;
+    let method = moma_core::policy::method(args.method.clone(), args.bandwidth_px, intrinsics)
+        .context("--bandwidth-px")?;
     if intrinsics.is_none()
         && matches!(
             method,
@@ -287,7 +241,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         );
     }
     let config = CalibrationConfig {
-        normalisation: normalisation_from(&method, args.norm, args.space, kind),
+        normalisation: moma_core::policy::normalisation(&method, args.norm, args.space, kind),
         method,
         sampling: SamplingConfig {
             strategy: args.sampling,
