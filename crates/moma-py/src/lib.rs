@@ -15,8 +15,8 @@ mod errors;
 use std::path::PathBuf;
 use std::sync::Mutex;
 
-use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::align::Method;
+use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig, CalibrationFrame};
