@@ -13,7 +13,7 @@
 
 use moma_core::PredictionKind;
 use moma_core::align::Method;
-use moma_core::align::local::{AUTO_CANDIDATES, loo_predictions};
+use moma_core::align::local::{auto_candidates, loo_predictions};
 use moma_core::image::MetricDepth;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::AlignSpace;
@@ -112,10 +112,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let seeds: u64 = args.get(2).map_or(Ok(10), |s| s.parse())?;
     let edge_margin_px: u32 = args.get(3).map_or(Ok(0), |s| s.parse())?;
     let shared = std::env::var("MOMA_SHARED_DIR").unwrap_or_else(|_| "../shared".into());
-    let methods: Vec<Method> = AUTO_CANDIDATES
-        .iter()
-        .map(|n| n.parse())
-        .collect::<Result<_, _>>()?;
+    let methods: Vec<Method> = auto_candidates().to_vec();
     let grid = simplex(methods.len(), 10);
     for name in SETS {
         let set =
@@ -158,7 +155,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let (aligned, at_calib) = prep.score(&cal, &map, prep.calib)?;
                     let whole = DepthMetrics::compute(&aligned, &set.frames[prep.calib].gt, None)?;
                     let target = cal.samples.in_space(norm.space);
-                    let loo = loo_predictions(&target, &m.to_string())?;
+                    let loo = loo_predictions(&target, &m)?;
                     let sq: Vec<f64> = target
                         .samples
                         .iter()

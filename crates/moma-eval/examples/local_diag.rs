@@ -8,7 +8,7 @@
 
 use std::path::PathBuf;
 
-use moma_core::align::local::{AUTO_CANDIDATES, loo_predictions, one_standard_error_choice};
+use moma_core::align::local::{auto_candidates, loo_predictions, one_standard_error_choice};
 use moma_core::align::{AlignmentModel, Method};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::Normalisation;
@@ -137,8 +137,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let mut sq_t = Vec::new();
                 let mut sq_m = Vec::new();
                 let mut abs_m = Vec::new();
-                for name in AUTO_CANDIDATES {
-                    let loo = loo_predictions(&target, name)?;
+                for method in auto_candidates() {
+                    let loo = loo_predictions(&target, &method)?;
                     let mut a = Vec::new();
                     let mut b = Vec::new();
                     let mut c = Vec::new();
@@ -167,7 +167,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     } else {
                         one_standard_error_choice(&refs).unwrap_or(0)
                     };
-                    let name = AUTO_CANDIDATES[i];
+                    let name = auto_candidates()[i].name();
                     let mi = names.iter().position(|n| *n == name).unwrap_or(0);
                     let mae = last_mae[mi];
                     alt_sum[label_idx(label)] += mae;

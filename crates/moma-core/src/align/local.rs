@@ -51,7 +51,7 @@
 //!    comparison, else the model falls back to the global fit (`fallback: true`, no correction
 //!    maps; `chosen` then records the candidate with the lowest CV error).
 //!
-//! `auto` scores gssa, ssra, gssa-local, ssra-local and lwlr ([`AUTO_CANDIDATES`], simplest
+//! `auto` scores gssa, ssra, gssa-local, ssra-local and lwlr ([`auto_candidates`], simplest
 //! first) by the same buffered cross-validation (gssa, ssra: refits from the normal equations;
 //! lwlr: exact refits; local variants: as above, the model each keeps) and applies the same
 //! one-standard-error rule. The candidates' CV RMS are recorded.
@@ -68,7 +68,7 @@ use super::grid::{
 use super::gssa::{self, GssaModel};
 use super::lwlr;
 use super::ssra::{self, SsraConfig, SsraModel, solve_spd4};
-use super::{AlignmentModel, Sample, SampleSet};
+use super::{AlignmentModel, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::image::ImageSize;
 
@@ -924,7 +924,7 @@ pub struct AutoCandidate {
 pub struct AutoModel {
     /// The chosen method fitted on all samples.
     pub chosen: Box<AlignmentModel>,
-    /// Every candidate in the order tried, simplest first ([`AUTO_CANDIDATES`]).
+    /// Every candidate in the order tried, simplest first ([`auto_candidates`]).
     pub candidates: Vec<AutoCandidate>,
 }
 
@@ -991,19 +991,26 @@ fn lwlr_loo(
     Ok(loo)
 }
 
-/// The methods `auto` considers, simplest first: the order in which the one-standard-error rule
-/// prefers them.
-pub const AUTO_CANDIDATES: [&str; 5] = ["gssa", "ssra", "gssa-local", "ssra-local", "lwlr"];
+/// The methods `auto` considers, with their default settings, simplest first: the order in
+/// which the one-standard-error rule prefers them (gssa, ssra, gssa-local, ssra-local, lwlr).
+pub fn auto_candidates() -> [Method; 5] {
+    [
+        Method::Gssa,
+        Method::Ssra(SsraConfig::default()),
+        Method::GssaLocal(LocalConfig::default()),
+        Method::SsraLocal(LocalConfig::default()),
+        Method::Lwlr(lwlr::LwlrConfig::faithful()),
+    ]
+}
 
-/// Fits `method` (one of [`AUTO_CANDIDATES`], default settings) on `samples` with its
-/// cross-validated predictions (target units).
-fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, AlignmentModel)> {
+/// Fits `method` (with its settings) on `samples` with its cross-validated predictions (target
+/// units), the folds of `auto`'s plan ([`cv_plan`] with the default local settings).
+fn fit_candidate(samples: &SampleSet, method: &Method) -> Result<(Vec<f64>, AlignmentModel)> {
     let s = &samples.samples;
-    let config = LocalConfig::default();
-    let buffers = cv_plan(samples, &config);
+    let buffers = cv_plan(samples, &LocalConfig::default());
     let buffered = buffers.iter().any(|b| b.len() > 1);
     match method {
-        "gssa" => {
+        Method::Gssa => {
             let m = gssa::fit(s)?;
             let loo = if buffered {
                 buffered_global(s, LocalBase::Gssa, &buffers)?
@@ -1012,11 +1019,11 @@ fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, Alignme
             };
             Ok((loo, AlignmentModel::Gssa(m)))
         }
-        "ssra" => {
+        Method::Ssra(cfg) => {
             if s.len() < ssra::MIN_SAMPLES + 1 {
                 return Err(too_few("ssra", s.len(), ssra::MIN_SAMPLES + 1));
             }
-            let m = ssra::fit(samples, &SsraConfig::default())?;
+            let m = ssra::fit(samples, cfg)?;
             let loo = if buffered {
                 buffered_global(s, LocalBase::Ssra, &buffers)?
             } else {
@@ -1024,8 +1031,8 @@ fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, Alignme
             };
             Ok((loo, AlignmentModel::Ssra(m)))
         }
-        "gssa-local" | "ssra-local" => {
-            let (name, base, need) = if method == "gssa-local" {
+        Method::GssaLocal(cfg) | Method::SsraLocal(cfg) => {
+            let (name, base, need) = if matches!(method, Method::GssaLocal(_)) {
                 ("gssa-local", LocalBase::Gssa, GSSA_LOCAL_MIN_SAMPLES)
             } else {
                 ("ssra-local", LocalBase::Ssra, SSRA_LOCAL_MIN_SAMPLES)
@@ -1033,35 +1040,34 @@ fn fit_candidate(samples: &SampleSet, method: &str) -> Result<(Vec<f64>, Alignme
             if s.len() < need {
                 return Err(too_few(name, s.len(), need));
             }
-            let (m, loo) = fit_with_loo(samples, base, &config)?;
+            let (m, loo) = fit_with_loo(samples, base, cfg)?;
             Ok((loo, AlignmentModel::Local(Box::new(m))))
         }
-        "lwlr" => {
-            let cfg = lwlr::LwlrConfig::faithful();
-            let loo = lwlr_loo(samples, &cfg, &buffers)?;
-            Ok((loo, AlignmentModel::Lwlr(lwlr::fit(samples, &cfg)?)))
+        Method::Lwlr(cfg) => {
+            let loo = lwlr_loo(samples, cfg, &buffers)?;
+            Ok((loo, AlignmentModel::Lwlr(lwlr::fit(samples, cfg)?)))
         }
         other => Err(CoreError::InvalidParameter(format!(
             "auto: '{other}' is not a candidate method (expected one of: {})",
-            AUTO_CANDIDATES.join(", ")
+            auto_candidates().map(|m| m.name()).join(", ")
         ))),
     }
 }
 
-/// Cross-validated predictions (target units) of `method` — one of [`AUTO_CANDIDATES`], with
-/// default settings — on `samples`, as `auto` computes them (spatially buffered leave-one-out,
+/// Cross-validated predictions (target units) of `method` — one of [`auto_candidates`], with
+/// its settings — on `samples`, as `auto` computes them (spatially buffered leave-one-out,
 /// see the module docs): refits from the normal equations for gssa and ssra, exact refits for
 /// lwlr, and for the local variants those of the model kept by their own selection (the global
 /// fit's on fallback).
 ///
 /// # Errors
 /// An unknown method; the method's fitting errors.
-pub fn loo_predictions(samples: &SampleSet, method: &str) -> Result<Vec<f64>> {
+pub fn loo_predictions(samples: &SampleSet, method: &Method) -> Result<Vec<f64>> {
     samples.validate()?;
     Ok(fit_candidate(samples, method)?.0)
 }
 
-/// Fits `auto`: every method of [`AUTO_CANDIDATES`] with its leave-one-out errors on the
+/// Fits `auto`: every method of [`auto_candidates`] with its leave-one-out errors on the
 /// calibration samples; kept is the simplest method within one standard error of the best
 /// ([`one_standard_error_choice`] on the paired squared LOO errors).
 ///
@@ -1073,8 +1079,9 @@ pub fn fit_auto(samples: &SampleSet) -> Result<AutoModel> {
     let mut candidates = Vec::new();
     let mut fitted: Vec<(Vec<f64>, AlignmentModel)> = Vec::new();
     let mut first_err = None;
-    for name in AUTO_CANDIDATES {
-        match fit_candidate(samples, name) {
+    for method in auto_candidates() {
+        let name = method.name();
+        match fit_candidate(samples, &method) {
             Ok((loo, model)) => {
                 let sq: Vec<f64> = s
                     .iter()
