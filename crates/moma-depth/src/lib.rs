@@ -43,6 +43,23 @@ pub enum Backbone {
     Custom(CustomArch),
 }
 
+impl std::str::FromStr for Backbone {
+    type Err = String;
+
+    /// A preset by name, case-insensitive: `vits`, `vitb`, `vitl` (a custom size comes from a
+    /// configuration file instead).
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "vits" => Ok(Self::Vits),
+            "vitb" => Ok(Self::Vitb),
+            "vitl" => Ok(Self::Vitl),
+            _ => Err(format!(
+                "unknown model '{s}' (expected one of: vits, vitb, vitl)"
+            )),
+        }
+    }
+}
+
 /// Output head.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase", tag = "head")]
@@ -57,6 +74,26 @@ pub enum Head {
 }
 
 impl Head {
+    /// The head called `name` (`relative` or `metric`, case-insensitive); a metric head with
+    /// maximum depth `max_depth_m` (metres, positive and finite; unused for `relative`).
+    ///
+    /// # Errors
+    /// An unknown name; a metric head with a maximum depth that is not a positive number.
+    pub fn from_name(name: &str, max_depth_m: f32) -> std::result::Result<Self, String> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "relative" => Ok(Self::Relative),
+            "metric" if max_depth_m.is_finite() && max_depth_m > 0.0 => {
+                Ok(Self::Metric { max_depth_m })
+            }
+            "metric" => Err(format!(
+                "max depth {max_depth_m} must be a positive number of metres"
+            )),
+            _ => Err(format!(
+                "unknown head '{name}' (expected one of: relative, metric)"
+            )),
+        }
+    }
+
     /// The kind of map this head predicts.
     pub fn prediction_kind(&self) -> PredictionKind {
         match self {

@@ -85,6 +85,22 @@ pub enum Precision {
     Bf16,
 }
 
+impl FromStr for Precision {
+    type Err = String;
+
+    /// `f32`/`float32`, `f16`/`float16`, `bf16`/`bfloat16`, case-insensitive.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "f32" | "float32" => Ok(Self::F32),
+            "f16" | "float16" => Ok(Self::F16),
+            "bf16" | "bfloat16" => Ok(Self::Bf16),
+            _ => Err(format!(
+                "unknown dtype '{s}' (expected one of: f32, f16, bf16)"
+            )),
+        }
+    }
+}
+
 /// How to load a model: backend, device and precision.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct LoadOptions {
@@ -225,6 +241,38 @@ pub fn load_model_with_adapter(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn names_parse_once_with_the_valid_names_in_the_error() {
+        assert_eq!("VitS".parse::<crate::Backbone>(), Ok(crate::Backbone::Vits));
+        assert!(
+            "vitx"
+                .parse::<crate::Backbone>()
+                .unwrap_err()
+                .contains("vits, vitb, vitl")
+        );
+        assert_eq!("bfloat16".parse::<Precision>(), Ok(Precision::Bf16));
+        assert!(
+            "f64"
+                .parse::<Precision>()
+                .unwrap_err()
+                .contains("f32, f16, bf16")
+        );
+        assert_eq!(
+            crate::Head::from_name("relative", f32::NAN),
+            Ok(crate::Head::Relative)
+        );
+        assert_eq!(
+            crate::Head::from_name("Metric", 20.0),
+            Ok(crate::Head::Metric { max_depth_m: 20.0 })
+        );
+        assert!(crate::Head::from_name("metric", 0.0).is_err());
+        assert!(
+            crate::Head::from_name("ordinal", 20.0)
+                .unwrap_err()
+                .contains("relative, metric")
+        );
+    }
 
     #[test]
     fn device_requests_parse_and_print() {

@@ -977,46 +977,15 @@ struct DepthModel {
 }
 
 fn parse_backbone(s: &str) -> PyResult<Backbone> {
-    Ok(match s {
-        "vits" => Backbone::Vits,
-        "vitb" => Backbone::Vitb,
-        "vitl" => Backbone::Vitl,
-        other => {
-            return Err(value_err(format!(
-                "unknown model '{other}' (expected 'vits', 'vitb' or 'vitl')"
-            )));
-        }
-    })
+    s.parse().map_err(value_err)
 }
 
 fn parse_head(s: &str, max_depth_m: f32) -> PyResult<Head> {
-    match s {
-        "relative" => Ok(Head::Relative),
-        "metric" => {
-            if !(max_depth_m.is_finite() && max_depth_m > 0.0) {
-                return Err(value_err(format!(
-                    "max_depth {max_depth_m} must be a positive number of metres"
-                )));
-            }
-            Ok(Head::Metric { max_depth_m })
-        }
-        other => Err(value_err(format!(
-            "unknown head '{other}' (expected 'relative' or 'metric')"
-        ))),
-    }
+    Head::from_name(s, max_depth_m).map_err(value_err)
 }
 
 fn parse_precision(s: &str) -> PyResult<moma_depth::Precision> {
-    Ok(match s {
-        "f32" | "float32" => moma_depth::Precision::F32,
-        "f16" | "float16" => moma_depth::Precision::F16,
-        "bf16" | "bfloat16" => moma_depth::Precision::Bf16,
-        other => {
-            return Err(value_err(format!(
-                "unknown dtype '{other}' (expected 'f32', 'f16' or 'bf16')"
-            )));
-        }
-    })
+    s.parse().map_err(value_err)
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -23,15 +23,12 @@ impl std::str::FromStr for ModelArg {
     type Err = String;
 
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s.to_ascii_lowercase().as_str() {
-            "vits" => Ok(Self::Preset(Backbone::Vits)),
-            "vitb" => Ok(Self::Preset(Backbone::Vitb)),
-            "vitl" => Ok(Self::Preset(Backbone::Vitl)),
-            _ if has_extension(Path::new(s), "json") => Ok(Self::File(PathBuf::from(s))),
-            _ => Err(format!(
-                "unknown model {s:?} (expected vits, vitb, vitl or a configuration PATH.json)"
-            )),
+        if has_extension(Path::new(s), "json") {
+            return Ok(Self::File(PathBuf::from(s)));
         }
+        s.parse::<Backbone>()
+            .map(Self::Preset)
+            .map_err(|e| format!("{e}, or a configuration PATH.json"))
     }
 }
 
