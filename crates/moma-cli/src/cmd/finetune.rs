@@ -211,7 +211,9 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         bail!("give --steps N or --epochs E");
     }
 
-    let bar = progress(args.steps.unwrap_or(0), "fine-tuning", args.json);
+    // With --epochs the number of steps is known only once the frames are split: the bar's
+    // length is set from the first step's event (2 keeps it visible until then).
+    let bar = progress(args.steps.unwrap_or(2), "fine-tuning", args.json);
     let report = finetune(&opts, &mut |event| match event {
         Event::Step { done, total, loss } => {
             if bar.length() != Some(total as u64) {
