@@ -18,28 +18,15 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::TrainError;
 
-/// One frame at network resolution (before cropping and augmentation).
+/// One frame at network resolution (before cropping and augmentation): the whole frame is the
+/// validation sample as it is.
 #[derive(Debug, Clone)]
 pub struct Frame {
     /// `SET/frames/ID`, for messages.
     pub name: String,
-    /// Pre-processed network input `(3, H, W)` (ImageNet-normalised; H, W multiples of 14).
-    pub input: Array3<f32>,
-    /// Ground-truth depth `(H, W)`, metres (0 or non-finite = none), resized by nearest neighbour.
-    pub gt_m: Array2<f32>,
-    /// Loss region `(H, W)` (the frame's mask) with `mask_loss`.
-    pub mask: Option<Array2<bool>>,
-}
-
-impl Frame {
-    /// The whole frame as a [`Sample`] (validation: no crop, no augmentation).
-    pub fn sample(&self) -> Sample {
-        Sample {
-            input: self.input.clone(),
-            gt_m: self.gt_m.clone(),
-            mask: self.mask.clone(),
-        }
-    }
+    /// The pre-processed input `(3, H, W)` (ImageNet-normalised; H, W multiples of 14), the
+    /// ground truth (metres, resized by nearest neighbour) and, with `mask_loss`, the mask.
+    pub sample: Sample,
 }
 
 /// Nearest-neighbour resize (ground truth and masks must not be blended across edges).
@@ -105,9 +92,7 @@ pub fn load_frames(
             };
             out.push(Frame {
                 name,
-                input,
-                gt_m,
-                mask,
+                sample: Sample { input, gt_m, mask },
             });
         }
     }
@@ -154,6 +139,7 @@ pub fn training_sample(
     augment: bool,
     rng: &mut ChaCha8Rng,
 ) -> Sample {
+    let f = &f.sample;
     let (_, h, w) = f.input.dim();
     let (ch, cw) = crop.map_or((h, w), |(ch, cw)| (ch.min(h), cw.min(w)));
     let y0 = rng.random_range(0..=h - ch);
@@ -229,11 +215,13 @@ mod tests {
     fn frame(h: usize, w: usize) -> Frame {
         Frame {
             name: "f".into(),
-            input: Array3::from_shape_fn((3, h, w), |(c, y, x)| {
-                (c * 100 + y * 10 + x) as f32 * 1e-3
-            }),
-            gt_m: Array2::from_shape_fn((h, w), |(y, x)| 1.0 + (y * w + x) as f32),
-            mask: Some(Array2::from_shape_fn((h, w), |(_, x)| x < 2)),
+            sample: Sample {
+                input: Array3::from_shape_fn((3, h, w), |(c, y, x)| {
+                    (c * 100 + y * 10 + x) as f32 * 1e-3
+                }),
+                gt_m: Array2::from_shape_fn((h, w), |(y, x)| 1.0 + (y * w + x) as f32),
+                mask: Some(Array2::from_shape_fn((h, w), |(_, x)| x < 2)),
+            },
         }
     }
 
@@ -262,7 +250,7 @@ mod tests {
         let s = training_sample(&f, Some((14, 28)), false, &mut rng);
         let g0 = s.gt_m[[0, 0]] as usize - 1;
         let (y0, x0) = (g0 / 42, g0 % 42);
-        assert_eq!(s.input[[2, 3, 4]], f.input[[2, y0 + 3, x0 + 4]]);
+        assert_eq!(s.input[[2, 3, 4]], f.sample.input[[2, y0 + 3, x0 + 4]]);
     }
 
     #[test]

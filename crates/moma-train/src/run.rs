@@ -6,7 +6,7 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use moma_depth::candle::train::{
     Adapter, LoraConfig, LoraTarget, LossKind, OptimSettings, ParamSource, Sample, Schedule,
-    TrainNet, Trainer, derive_seed, fingerprint, loss, optim_state_path, seed_tag, valid_indices,
+    TrainNet, Trainer, derive_seed, fingerprint, loss, optim_state_path, seed_tag,
 };
 use moma_depth::candle::{DepthAnythingConfig, open_checkpoint, open_device, precision_dtype};
 use moma_depth::{
@@ -289,18 +289,17 @@ pub fn validation_loss_of_model(
     }
     let mut sum = 0.0;
     for f in frames {
-        let out = model.forward_net(&f.input)?;
-        if out.dim() != f.gt_m.dim() {
+        let s = &f.sample;
+        let out = model.forward_net(&s.input)?;
+        if out.dim() != s.gt_m.dim() {
             return Err(TrainError::Data(format!(
                 "{}: network output {:?} and ground truth {:?} differ in size",
                 f.name,
                 out.dim(),
-                f.gt_m.dim()
+                s.gt_m.dim()
             )));
         }
-        let gt: Vec<f32> = f.gt_m.iter().copied().collect();
-        let mask: Option<Vec<bool>> = f.mask.as_ref().map(|m| m.iter().copied().collect());
-        let valid = valid_indices(&gt, mask.as_deref(), min_depth_m, max_depth_m);
+        let valid = s.valid_pixels(min_depth_m, max_depth_m);
         let pred: Vec<f32> = out.iter().copied().collect();
         let needs_positive = matches!(kind, LossKind::Silog | LossKind::SilogMoma);
         let bad = valid
@@ -317,13 +316,9 @@ pub fn validation_loss_of_model(
             )));
         }
         let dims = out.dim();
-        let gt = gt
-            .into_iter()
-            .map(|v| if v.is_finite() { v } else { 0.0 })
-            .collect::<Vec<f32>>();
         let l = Tensor::from_vec(pred, dims, &Device::Cpu)
             .and_then(|p| {
-                let g = Tensor::from_vec(gt, dims, &Device::Cpu)?;
+                let g = Tensor::from_vec(s.loss_target(), dims, &Device::Cpu)?;
                 loss(kind, &p, &g, &valid)
             })
             .and_then(|l| l.to_dtype(DType::F64)?.to_scalar::<f64>())
@@ -359,7 +354,6 @@ pub fn finetune(
     };
     let mut targets = opts.lora_targets.clone();
     targets.sort_unstable();
-    targets.dedup();
     let lora = LoraConfig {
         rank: opts.lora_rank,
         alpha: opts.lora_alpha.unwrap_or(opts.lora_rank as f64),
@@ -371,10 +365,9 @@ pub fn finetune(
 
     // Data: a seeded split by frame.
     let frames = data::load_frames(&opts.sets, spec.input_size, opts.mask_loss)?;
-    let (train, val_frames) = data::split(frames, opts.val_frac, opts.seed)?;
-    let val: Vec<Sample> = val_frames.iter().map(Frame::sample).collect();
+    let (train, val) = data::split(frames, opts.val_frac, opts.seed)?;
     if let (Some((ch, cw)), Some(f)) = (opts.crop, train.first()) {
-        let (_, h, w) = f.input.dim();
+        let (_, h, w) = f.sample.input.dim();
         if ch > h || cw > w {
             return Err(TrainError::Invalid(format!(
                 "crop {ch}x{cw} is larger than the network-size frames ({h}x{w} at input size {}); use a smaller crop or a larger input size",
@@ -510,7 +503,7 @@ pub fn finetune(
             return Ok(None);
         }
         trainer
-            .eval_loss(&val)
+            .eval_loss(val.iter().map(|f| &f.sample))
             .map(Some)
             .map_err(TrainError::training(format!("validation loss {what}")))
     };
@@ -589,7 +582,7 @@ pub fn finetune(
         )?;
         Some(validation_loss_of_model(
             model.as_mut(),
-            &val_frames,
+            &val,
             loss_kind,
             opts.min_depth_m,
             max_depth_m,

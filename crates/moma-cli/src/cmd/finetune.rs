@@ -65,7 +65,12 @@ pub struct FinetuneArgs {
     #[arg(long, value_name = "LOSS")]
     pub loss: Option<LossKind>,
     /// Optimiser steps.
-    #[arg(long, value_name = "N", conflicts_with = "epochs")]
+    #[arg(
+        long,
+        value_name = "N",
+        conflicts_with = "epochs",
+        required_unless_present = "epochs"
+    )]
     pub steps: Option<usize>,
     /// Epochs over the training frames (instead of --steps).
     #[arg(long, value_name = "E")]
@@ -145,17 +150,12 @@ pub struct FinetuneArgs {
     pub json: bool,
 }
 
-/// `HxW` → (H, W), both positive multiples of 14.
+/// `HxW` → (H, W) in pixels (the sizes are checked by `FinetuneOptions`: multiples of 14).
 fn parse_crop(s: &str) -> std::result::Result<(usize, usize), String> {
     let bad = || format!("--crop {s:?}: expected HxW in pixels, e.g. 518x686");
     let (h, w) = s.trim().split_once(['x', 'X']).ok_or_else(bad)?;
     let h: usize = h.trim().parse().map_err(|_| bad())?;
     let w: usize = w.trim().parse().map_err(|_| bad())?;
-    if h == 0 || w == 0 || !h.is_multiple_of(14) || !w.is_multiple_of(14) {
-        return Err(format!(
-            "--crop {h}x{w}: both sides must be positive multiples of 14 (the ViT patch size)"
-        ));
-    }
     Ok((h, w))
 }
 
@@ -207,9 +207,6 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     opts.crop = args.crop;
     opts.keep_attention = args.keep_attention;
     opts.portable_ops = args.portable_ops;
-    if args.steps.is_none() && args.epochs.is_none() {
-        bail!("give --steps N or --epochs E");
-    }
 
     // With --epochs the number of steps is known only once the frames are split: the bar's
     // length is set from the first step's event (2 keeps it visible until then).

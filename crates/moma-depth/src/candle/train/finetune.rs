@@ -75,6 +75,25 @@ pub struct Sample {
     pub mask: Option<Array2<bool>>,
 }
 
+impl Sample {
+    /// Flat (row-major) indices of the pixels a loss uses: ground truth finite in
+    /// `[min_depth_m, max_depth_m]` and inside the mask ([`super::valid_indices`]).
+    pub fn valid_pixels(&self, min_depth_m: f32, max_depth_m: f32) -> Vec<u32> {
+        let g: Vec<f32> = self.gt_m.iter().copied().collect();
+        let m: Option<Vec<bool>> = self.mask.as_ref().map(|m| m.iter().copied().collect());
+        valid_indices(&g, m.as_deref(), min_depth_m, max_depth_m)
+    }
+
+    /// The ground truth as a loss reads it: row-major metres, non-finite values (never valid)
+    /// as 0 so that no NaN enters the tensor.
+    pub fn loss_target(&self) -> Vec<f32> {
+        self.gt_m
+            .iter()
+            .map(|&v| if v.is_finite() { v } else { 0.0 })
+            .collect()
+    }
+}
+
 /// Optimisation settings.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct OptimSettings {
@@ -302,16 +321,9 @@ impl Trainer {
                 );
             }
             x.extend(s.input.iter().copied());
-            let g: Vec<f32> = s.gt_m.iter().copied().collect();
-            let m: Option<Vec<bool>> = s.mask.as_ref().map(|m| m.iter().copied().collect());
-            let v = valid_indices(
-                &g,
-                m.as_deref(),
-                self.settings.min_depth_m,
-                self.settings.max_depth_m,
-            );
+            let v = s.valid_pixels(self.settings.min_depth_m, self.settings.max_depth_m);
             valid.extend(v.into_iter().map(|i| i + (k * h * w) as u32));
-            gt.extend(g.into_iter().map(|v| if v.is_finite() { v } else { 0.0 }));
+            gt.extend(s.loss_target());
         }
         let dev = self.net.device().clone();
         let x = Tensor::from_vec(x, (batch.len(), c, h, w), &dev)?;
@@ -427,14 +439,7 @@ impl Trainer {
                     .to_dtype(DType::F64)?
                     .flatten_all()?
                     .to_vec1()?;
-                let g: Vec<f32> = s.gt_m.iter().copied().collect();
-                let m: Option<Vec<bool>> = s.mask.as_ref().map(|m| m.iter().copied().collect());
-                let valid = valid_indices(
-                    &g,
-                    m.as_deref(),
-                    me.settings.min_depth_m,
-                    me.settings.max_depth_m,
-                );
+                let valid = s.valid_pixels(me.settings.min_depth_m, me.settings.max_depth_m);
                 let vals = valid.iter().map(|&i| y[i as usize]);
                 let non_finite = vals.clone().filter(|v| !v.is_finite()).count();
                 let non_positive = vals.filter(|v| *v <= 0.0).count();
@@ -452,16 +457,17 @@ impl Trainer {
     ///
     /// # Errors
     /// As [`Trainer::step`].
-    pub fn eval_loss(&mut self, samples: &[Sample]) -> Result<f64> {
-        if samples.is_empty() {
-            candle_core::bail!("no samples to evaluate");
-        }
-        let mut sum = 0.0;
+    pub fn eval_loss<'a>(&mut self, samples: impl IntoIterator<Item = &'a Sample>) -> Result<f64> {
+        let (mut sum, mut n) = (0.0, 0usize);
         for s in samples {
             let l = self.batch_loss(&[s])?.detach();
             sum += l.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+            n += 1;
         }
-        Ok(sum / samples.len() as f64)
+        if n == 0 {
+            candle_core::bail!("no samples to evaluate");
+        }
+        Ok(sum / n as f64)
     }
 
     /// Writes the optimiser state atomically to `path` (safetensors): the AdamW moments of every
