@@ -192,8 +192,18 @@ class Calibration:
     @property
     def has_anchors(self) -> bool:
         """Whether the calibration holds the anchor store ``align_realigned`` needs."""
+    @property
+    def error_model(self) -> Optional[dict[str, Any]]:
+        """The error model of the aligned depth (``sigma_flat_m``, ``depth_ref_m``, ...), None
+        in files written before error models existed."""
+    def sigma_map(
+        self, depth_m: npt.ArrayLike, report: Optional[dict[str, Any]] = None
+    ) -> _F32:
+        """Per-pixel σ (float32 metres, NaN = no depth) of the error of this calibration's
+        aligned depth ``depth_m``, as ``moma align --sigma-map`` writes it; ``report``: the
+        frame's re-alignment report (widens the flat σ)."""
     def save(self, path: _Path) -> None:
-        """Writes the CLI's calibration format (``moma-calibration`` v3 JSON, atomic), the
+        """Writes the CLI's calibration format (``moma-calibration`` v4 JSON, atomic), the
         workspace mask and anchor store (if any) embedded: the file is self-contained."""
     @staticmethod
     def load(path: _Path) -> "Calibration":
@@ -273,20 +283,32 @@ def metrics(
     """Accuracy of ``depth_m`` (metres) against ``gt_m`` (metres) over pixels valid in both."""
 
 def plan_grasps(
-    depth_m: npt.ArrayLike,
-    cam: Intrinsics,
+    source: Union[npt.ArrayLike, Calibration],
+    cam: Optional[Intrinsics] = None,
     gripper: Literal["parallel", "suction"] = "parallel",
     mask: Optional[_Mask] = None,
     top: int = 10,
     seed: int = 0,
     keep_border_objects: bool = False,
+    *,
+    pred: Optional[npt.ArrayLike] = None,
+    rgb: Optional[_Rgb] = None,
+    sigma_m: Optional[float] = None,
+    grasp_quality: Optional[Literal["nominal", "robust"]] = None,
+    grasp_draws: int = 16,
+    min_success_prob: Optional[float] = None,
 ) -> list[dict[str, Any]]:
-    """Grasps on metric depth (metres), best first, as ``moma grasp --json`` prints them:
-    parallel ``{"kind", "score", "center_m", "approach", "closing", "width_m"}``, suction
-    ``{"kind", "score", "point_m", "approach"}``; camera frame x right, y down, z forward,
-    metres. ``mask``: the objects (nonzero = inside); without one, regions over 10 mm above the
-    support plane that do not touch the image border (unless ``keep_border_objects``). An
-    empty list when nothing is graspable."""
+    """Grasps, best first, as ``moma grasp --json`` prints them: parallel ``{"kind", "score",
+    "success_prob", "center_m", "approach", "closing", "width_m"}``, suction ``{"kind",
+    "score", "success_prob", "point_m", "approach"}``; camera frame x right, y down, z forward,
+    metres. ``source``: metric depth (metres; ``cam`` required) or a ``Calibration`` with
+    ``pred=`` the frame's prediction (``cam`` defaults to its intrinsics; ``rgb=`` re-aligns on
+    static anchors). ``success_prob`` is the share of depth maps drawn from the error model
+    (the calibration's, or a uniform ``sigma_m``) on which the grasp succeeds, None without one;
+    ``grasp_quality`` ``"robust"`` (the default with an error model) ranks by it, ``"nominal"``
+    by the planner's score. ``mask``: the objects (nonzero = inside); without one, regions over
+    10 mm above the support plane that do not touch the image border (unless
+    ``keep_border_objects``). An empty list when nothing is graspable."""
 
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...

@@ -29,7 +29,8 @@ def test_suction_on_the_top_face_and_parallel_across_the_narrow_side():
     cam, depth, box = box_scene()
     suction = moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=3)
     assert suction and suction[0]["kind"] == "suction"
-    assert set(suction[0]) == {"kind", "score", "point_m", "approach"}
+    assert set(suction[0]) == {"kind", "score", "success_prob", "point_m", "approach"}
+    assert suction[0]["success_prob"] is None  # no error model
     x, y, z = suction[0]["point_m"]
     assert abs(z - TOP_M) < 0.003 and abs(x) < BOX_HALF_M[0] and abs(y) < BOX_HALF_M[1]
     a = np.array(suction[0]["approach"])
@@ -40,7 +41,7 @@ def test_suction_on_the_top_face_and_parallel_across_the_narrow_side():
     parallel = moma.plan_grasps(depth, cam, gripper="parallel", mask=box, top=5)
     assert parallel and parallel[0]["kind"] == "parallel"
     g = parallel[0]
-    assert set(g) == {"kind", "score", "center_m", "approach", "closing", "width_m"}
+    assert set(g) == {"kind", "score", "success_prob", "center_m", "approach", "closing", "width_m"}
     closing = np.abs(np.array(g["closing"]))
     assert closing[1] > 0.9  # closes across the 40 mm side (y)
     assert 2 * BOX_HALF_M[1] <= g["width_m"] <= 0.085
@@ -76,7 +77,9 @@ def test_same_grasps_as_the_cli(tmp_path):
         for a, b in zip(py, cli):
             assert a["kind"] == b["kind"]
             for key in a:
-                if key != "kind":
+                if key == "success_prob":
+                    assert a[key] == b[key]
+                elif key != "kind":
                     np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-6)
 
 
@@ -91,3 +94,46 @@ def test_without_a_mask_regions_touching_the_border_are_not_objects():
     assert default and all(v >= 12 for v in rows(default))
     kept = moma.plan_grasps(depth, cam, gripper="suction", top=10, keep_border_objects=True)
     assert any(v < 12 for v in rows(kept))
+
+
+def test_a_uniform_sigma_gives_probabilities_and_a_minimum_filters_them():
+    cam, depth, box = box_scene()
+    robust = moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=5, sigma_m=0.003)
+    assert robust and all(0.0 <= g["success_prob"] <= 1.0 for g in robust)
+    # the same seed draws the same depth maps: the same probabilities
+    again = moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=5, sigma_m=0.003)
+    assert [g["success_prob"] for g in again] == [g["success_prob"] for g in robust]
+    # a minimum no grasp reaches under a 50 mm σ (compliance 15 mm): an empty list
+    assert moma.plan_grasps(depth, cam, gripper="suction", mask=box, sigma_m=0.05, min_success_prob=1.0) == []
+    for bad in (dict(grasp_draws=0), dict(min_success_prob=1.5), dict(grasp_quality="best")):
+        with pytest.raises(ValueError):
+            moma.plan_grasps(depth, cam, gripper="suction", sigma_m=0.003, **bad)
+    with pytest.raises(ValueError, match="error model"):
+        moma.plan_grasps(depth, cam, gripper="suction", grasp_quality="robust")
+
+
+def test_planning_from_a_calibration_aligns_as_align_does_and_has_a_sigma_map():
+    cam, gt, box = box_scene()
+    # a prediction in inverse depth with a known affine map: the calibration recovers the depth
+    pred = (2.0 / gt + 0.5).astype(np.float32)
+    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth", method="gssa", norm="none", space="inverse")
+    model = cal.error_model
+    assert model is not None and model["sigma_flat_m"] < 1e-3
+    depth = cal.align(pred)
+    sigma = cal.sigma_map(depth)
+    assert sigma.shape == depth.shape and sigma.dtype == np.float32
+    assert np.all(np.isfinite(sigma[np.isfinite(depth)])) and np.all(sigma >= 0)
+    # near the box's edge the σ is larger than on the table (the edge part)
+    assert sigma[H // 2, W // 2 + int(BOX_HALF_M[0] / TOP_M * F)] > sigma[5, 5]
+    with pytest.raises(ValueError):
+        cal.sigma_map(depth[:, :10])
+    from_cal = moma.plan_grasps(cal, gripper="suction", mask=box, top=3, pred=pred)
+    from_depth = moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=3, grasp_quality="nominal")
+    assert from_cal and all(g["success_prob"] is not None for g in from_cal)
+    # the same depth: the nominal grasps on the aligned map are the calibration's candidates
+    assert from_cal[0]["point_m"] in [g["point_m"] for g in moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=20)]
+    assert from_depth
+    with pytest.raises(ValueError, match="pred"):
+        moma.plan_grasps(cal, gripper="suction")
+    with pytest.raises(ValueError):
+        moma.plan_grasps(depth, cam, pred=pred)

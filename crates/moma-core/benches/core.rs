@@ -69,6 +69,48 @@ fn bench_fits(c: &mut Criterion) {
     g.finish();
 }
 
+/// The error model's share of a calibration (issue 22: ≤ 5 ms on one core): a whole SSRA
+/// calibration on a 640×480 frame (normalise, sample, fit, error model), and the error-model
+/// fit alone, side by side.
+fn bench_error_model(c: &mut Criterion) {
+    use moma_core::error_model::{DepthErrorModel, ResidualFrame};
+    let p1 = pool(1);
+    // a table at 0.8 m with 30 mm bumps; the prediction a compressed, tilted inverse depth
+    let gt = Array2::from_shape_fn((480, 640), |(v, u)| {
+        let (x, y) = ((u % 80) as f32 - 40.0, (v % 80) as f32 - 40.0);
+        0.8 - 0.03 * (-(x * x + y * y) / 200.0).exp()
+    });
+    let pred = gt.mapv(|z| 1.0 / (0.9 * z + 0.02));
+    let aligned = gt.mapv(|z| z + 0.003);
+    let gt_m = MetricDepth::new(gt.clone());
+    let prediction = Prediction::new(pred, PredictionKind::InverseDepth);
+    let config = moma_core::CalibrationConfig {
+        method: Method::Ssra(SsraConfig::default()),
+        normalisation: NormalisationConfig {
+            method: Normalisation::MinMax,
+            space: moma_core::AlignSpace::Inverse,
+        },
+        sampling: moma_core::sampling::SamplingConfig::default(),
+        robust: None,
+    };
+    let mut g = c.benchmark_group("error_model");
+    g.bench_function("calibrate_ssra_n100_640x480_1thread", |b| {
+        p1.install(|| {
+            b.iter(|| {
+                moma_core::calibrate(black_box(&prediction), &gt_m, &config, None, None).unwrap()
+            })
+        })
+    });
+    g.bench_function("fit_640x480_1thread", |b| {
+        let frame = ResidualFrame {
+            aligned_m: aligned.view(),
+            truth_m: gt.view(),
+        };
+        p1.install(|| b.iter(|| DepthErrorModel::fit(black_box(&[frame]), &[], 2.0).unwrap()))
+    });
+    g.finish();
+}
+
 fn bench_apply(c: &mut Criterion) {
     let p1 = pool(1);
     let mut g = c.benchmark_group("apply");
@@ -332,6 +374,7 @@ fn bench_sampling(c: &mut Criterion) {
 
 criterion_group!(
     benches,
+    bench_error_model,
     bench_sampling,
     bench_align,
     bench_fits,

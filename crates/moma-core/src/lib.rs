@@ -13,6 +13,7 @@
 pub mod align;
 pub mod camera;
 pub mod error;
+pub mod error_model;
 mod fused;
 pub mod image;
 mod kernels;
@@ -27,8 +28,10 @@ pub mod shapes;
 
 pub use camera::{CameraPoint, Intrinsics, depth_to_points};
 pub use error::{CoreError, Result};
+pub use error_model::DepthErrorModel;
 pub use image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
 pub use normalise::{AlignSpace, Normalisation, NormalisationConfig};
 pub use pipeline::{
-    Calibration, CalibrationConfig, CalibrationFrame, Workspace, calibrate, calibrate_frames,
+    AlignOptions, Aligned, Calibration, CalibrationConfig, CalibrationFrame, Workspace, calibrate,
+    calibrate_frames,
 };

@@ -54,6 +54,7 @@ use sha2::{Digest, Sha256};
 use crate::align::robust::Robust;
 use crate::align::{AlignmentModel, FitReport, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
+use crate::error_model::{DepthErrorModel, ResidualFrame};
 use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use crate::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise, normalise_view,
@@ -271,6 +272,11 @@ pub struct Calibration {
     /// (and then not written, so files without it stay valid).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub anchors: Option<Arc<AnchorStore>>,
+    /// The error model of this calibration's aligned depth ([`crate::error_model`]), fitted
+    /// from the calibration frames; absent in files written before it existed (then grasps get
+    /// no success probability unless a uniform σ is given).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_model: Option<DepthErrorModel>,
 }
 
 /// Calibrates from one frame: normalise `pred` (over `workspace` if given), sample ground truth
@@ -505,7 +511,7 @@ pub fn calibrate_frames_normalised(
             (model, report)
         }
     };
-    Ok(Calibration {
+    let mut calibration = Calibration {
         normalisation: config.normalisation,
         prediction_kind: kind,
         model,
@@ -513,7 +519,98 @@ pub fn calibrate_frames_normalised(
         samples,
         workspace,
         anchors: None,
-    })
+        error_model: None,
+    };
+    calibration.error_model = Some(fit_error_model(&calibration, frames, config)?);
+    Ok(calibration)
+}
+
+/// Folds of the cross-validated residuals that floor the error model's flat σ.
+const ERROR_MODEL_FOLDS: usize = 5;
+
+/// The error model of a fitted calibration ([`DepthErrorModel::fit`]): the dense residuals of
+/// its result on each calibration frame, and, for the global fits (GSSA, SSRA: cheap to refit),
+/// the 5-fold cross-validated residuals of the samples (metres) as the floor of the flat σ; the
+/// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed.
+fn fit_error_model(
+    calibration: &Calibration,
+    frames: &[NormalisedFrame<'_>],
+    config: &CalibrationConfig,
+) -> Result<DepthErrorModel> {
+    let aligned = frames
+        .iter()
+        .map(|f| calibration.align_normalised(f.normalised))
+        .collect::<Result<Vec<_>>>()?;
+    let residual_frames: Vec<ResidualFrame<'_>> = aligned
+        .iter()
+        .zip(frames)
+        .map(|(a, f)| ResidualFrame {
+            aligned_m: a.depth_m.view(),
+            truth_m: f.gt.depth_m.view(),
+        })
+        .collect();
+    let space = calibration.space();
+    let cv = match &config.method {
+        Method::Gssa | Method::Ssra(_) => cv_residuals_m(
+            &config.method,
+            space,
+            &calibration.samples,
+            config.sampling.seed,
+        ),
+        _ => Vec::new(),
+    };
+    let exponent = match space {
+        AlignSpace::Depth => 0.0,
+        AlignSpace::Inverse => 2.0,
+    };
+    DepthErrorModel::fit(&residual_frames, &cv, exponent)
+}
+
+/// K-fold cross-validated residuals (truth − aligned, metres) of `method` on `samples`, with the
+/// samples' true depths; folds that cannot be fitted (too few samples) are left out.
+fn cv_residuals_m(
+    method: &Method,
+    space: AlignSpace,
+    samples: &SampleSet,
+    seed: u64,
+) -> Vec<(f64, f64)> {
+    use rand::seq::SliceRandom;
+    let n = samples.samples.len();
+    let mut order: Vec<usize> = (0..n).collect();
+    order.shuffle(
+        &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(
+            seed ^ 0x6572_726f_725f_6d64,
+        ),
+    );
+    let mut out = Vec::with_capacity(n);
+    for k in 0..ERROR_MODEL_FOLDS {
+        let held: Vec<usize> = order
+            .iter()
+            .copied()
+            .skip(k)
+            .step_by(ERROR_MODEL_FOLDS)
+            .collect();
+        let train = SampleSet {
+            image_size: samples.image_size,
+            samples: order
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| j % ERROR_MODEL_FOLDS != k)
+                .map(|(_, &i)| samples.samples[i])
+                .collect(),
+        };
+        let Ok((model, _)) = method.fit(&train.in_space(space)) else {
+            continue;
+        };
+        for i in held {
+            let s = &samples.samples[i];
+            let z = space.depth_from_target(model.predict_at(s.u, s.v, s.pred));
+            if z.is_finite() {
+                out.push((s.depth_m - z, s.depth_m));
+            }
+        }
+    }
+    out
 }
 
 /// A fit with too few samples, when the edge margin drew fewer than the `asked` ones: says so,
@@ -598,6 +695,9 @@ impl Calibration {
         }
         if let Some(r) = &self.report.robust {
             r.validate(self.report.n_used)?;
+        }
+        if let Some(m) = &self.error_model {
+            m.validate()?;
         }
         if matches!(self.model, AlignmentModel::Raw) {
             CalibrationConfig {
@@ -763,6 +863,76 @@ impl Calibration {
             crate::kernels::reciprocal_positive(out);
         }
         Ok(())
+    }
+}
+
+/// How [`Calibration::align_with`] aligns one frame: the one path from a prediction to the
+/// metres that `moma align`, `moma grasp` and Python use.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct AlignOptions<'a> {
+    /// Per-frame re-alignment on static anchors found in this frame's RGB `(height, width, 3)`,
+    /// with these settings (the calibration must hold an anchor store).
+    pub realign: Option<(ArrayView3<'a, u8>, &'a RealignConfig)>,
+    /// Also compute the per-pixel σ map of the result ([`Aligned::sigma_m`]).
+    pub sigma_map: bool,
+}
+
+/// One aligned frame ([`Calibration::align_with`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Aligned {
+    /// Metric depth, metres (NaN: no depth).
+    pub depth: MetricDepth,
+    /// The re-alignment report, when re-alignment was asked for.
+    pub realign: Option<RealignReport>,
+    /// The error model of this frame's depth ([`Calibration::frame_error_model`]); `None` when
+    /// the calibration has none.
+    pub error_model: Option<DepthErrorModel>,
+    /// Per-pixel σ of the depth's error, metres (NaN where there is no depth), when asked for
+    /// and an error model exists.
+    pub sigma_m: Option<Array2<f32>>,
+}
+
+impl Calibration {
+    /// Aligns one frame's prediction: [`Calibration::align`], then, with
+    /// [`AlignOptions::realign`], per-frame re-alignment ([`Calibration::align_realigned`]),
+    /// and the frame's error model and σ map.
+    ///
+    /// # Errors
+    /// As [`Calibration::align`] / [`Calibration::align_realigned`].
+    pub fn align_with(&self, pred: &Prediction, options: &AlignOptions<'_>) -> Result<Aligned> {
+        let (depth, realign) = match options.realign {
+            Some((rgb, config)) => {
+                let (d, r) = self.align_realigned(pred, rgb, config)?;
+                (d, Some(r))
+            }
+            None => (self.align(pred)?, None),
+        };
+        let error_model = self.frame_error_model(realign.as_ref());
+        let sigma_m = match (options.sigma_map, &error_model) {
+            (true, Some(m)) => Some(m.sigma_map(&depth)),
+            _ => None,
+        };
+        Ok(Aligned {
+            depth,
+            realign,
+            error_model,
+            sigma_m,
+        })
+    }
+
+    /// The error model of one frame's aligned depth: the calibration's
+    /// ([`Calibration::error_model`]), with the flat σ raised to the frame's held-out anchor
+    /// RMSE when it was re-aligned (after the correction when accepted, of the one-shot result
+    /// otherwise) and that is larger ([`DepthErrorModel::for_frame`]). `None` without a model.
+    pub fn frame_error_model(&self, realign: Option<&RealignReport>) -> Option<DepthErrorModel> {
+        let residual = realign.and_then(|r| {
+            if r.accepted {
+                r.held_out_rmse_after_m
+            } else {
+                r.held_out_rmse_before_m
+            }
+        });
+        self.error_model.map(|m| m.for_frame(residual))
     }
 }
 

@@ -136,6 +136,76 @@ pub fn write_visuals(
     Ok(files)
 }
 
+/// Draws the top-5 suction grasps planned on one evaluated frame (the first after the
+/// calibration frame) with the deployed configuration, SSRA (or the first method),
+/// re-aligned when `config.realign` is set, ranked robust under the frame's error model, onto
+/// its RGB (or the colour-mapped depth): `grasps/<frame>_suction.png` (best green, then yellow to
+/// red). Returns the path.
+///
+/// # Errors
+/// Alignment, planning or I/O failures, naming the frame.
+pub fn write_grasp_overlay(
+    set: &LoadedSet,
+    preds: &PredictionSet,
+    config: &EvalConfig,
+    out: &Path,
+) -> Result<PathBuf> {
+    use moma_grasp::{GraspRequest, Gripper, SuctionCup, plan_grasps};
+    let prep = Prepared::new(set, preds, config)?;
+    let method = config
+        .methods
+        .iter()
+        .find(|m| m.to_string() == "ssra")
+        .or(config.methods.first())
+        .ok_or_else(|| crate::EvalError::InvalidParameter("no method to plan with".into()))?;
+    let method = prep.method(method);
+    let norm = prep.normalisation_for(&method, config.norms.first().copied().unwrap_or_default());
+    let i = *prep.eval_indices().first().ok_or_else(|| {
+        crate::EvalError::InvalidParameter("the set has no frame to plan on".into())
+    })?;
+    let seed = config.seed_base;
+    let (depth, model) = match &config.realign {
+        Some(r) => {
+            let setup = crate::realign::RealignSetup::new(&prep, &norm, r, 1.0)?;
+            let cal = setup.calibrate(&prep, &method, &norm, config.samples, seed)?;
+            let (d, _, report) = setup.realign_frame(&prep, &cal, i, seed)?;
+            (d, cal.frame_error_model(Some(&report)))
+        }
+        None => {
+            let maps = prep.normalised_all(&norm)?;
+            let cal = prep.calibrate(&method, &norm, &maps[prep.calib], config.samples, seed)?;
+            let (d, _) = prep.score(&cal, &maps[i], i)?;
+            (d, cal.frame_error_model(None))
+        }
+    };
+    let f = &set.frames[i];
+    let gripper = Gripper::Suction(SuctionCup::default());
+    let mut request = GraspRequest::new(gripper.clone()).with_error_model(model);
+    request.top_k = 5;
+    request.seed = seed;
+    let (_, outcome) = plan_grasps(&depth, &set.intrinsics, f.mask.as_ref(), &request)
+        .map_err(|e| crate::EvalError::frame(&set.name, &f.id, format!("grasp planner: {e}")))?;
+    let mut img = match &f.rgb {
+        Some(rgb) => rgb.clone(),
+        None => {
+            moma_io::colourise_depth(&depth, Colormap::Turbo, DepthRange::default())
+                .map_err(|e| {
+                    crate::EvalError::core(format!("set '{}', frame '{}'", set.name, f.id), e)
+                })?
+                .0
+        }
+    };
+    moma_io::draw_segments(
+        &mut img,
+        &set.intrinsics,
+        &moma_grasp::render::overlay_segments(&outcome, &gripper),
+    );
+    let path = out.join("grasps").join(format!("{}_suction.png", f.id));
+    create_parent(&path)?;
+    moma_io::write_rgb(&path, &img)?;
+    Ok(path)
+}
+
 /// Settings of the bundled demo scene and its simulated predictions.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DemoScene {

@@ -14,19 +14,27 @@
 
 use std::collections::BTreeMap;
 
+use std::sync::Arc;
+
+use moma_core::align::robust::Robust;
 use moma_core::normalise::NormalisedMap;
-use moma_core::{Mask, MetricDepth};
+use moma_core::{DepthErrorModel, Mask, MetricDepth};
 use moma_grasp::{
-    FailureReason, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw, Scene,
-    SceneConfig, ScoreConfig, SuctionConfig, SuctionCup, mask_components, plan_parallel,
-    plan_suction, score_grasp,
+    DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_TIE_TOLERANCE, FailureReason, Grasp,
+    GraspQuality, GraspRequest, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw,
+    Scene, SceneConfig, ScoreConfig, SuctionConfig, SuctionCup, mask_components, plan_on_scene,
+    rank, score_grasp,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::data::LoadedSet;
 use crate::error::{EvalError, Result};
-use crate::protocol::{EvalConfig, PredictionSet, Prepared};
+use crate::protocol::{
+    EvalConfig, PredictionSet, Prepared, check_calib_frame_counts, check_few_shot,
+    few_shot_variant, variant_name,
+};
+use crate::realign::RealignSetup;
 use crate::report::Table;
 
 /// Which gripper a row is for.
@@ -96,6 +104,19 @@ pub struct GraspEvalConfig {
     pub parallel: ParallelConfig,
     /// Suction planner settings.
     pub suction: SuctionConfig,
+    /// Few-shot calibration frame counts (`moma eval --calib-frames`): rows `one-shot` /
+    /// `few-shot-K`, every K scored on the frames after the largest; empty: the one-shot,
+    /// robust and re-alignment variants of [`GraspEvalConfig::eval`].
+    pub calib_frames: Vec<usize>,
+    /// Grasp rankings evaluated, one block of rows each (rows of the `gt` and `sensor` depths
+    /// plan with σ = 0: nominal).
+    pub qualities: Vec<GraspQuality>,
+    /// Depth draws per trial for the success probabilities.
+    pub draws: usize,
+    /// Planner candidates scored on the draws.
+    pub candidates: usize,
+    /// Robust ranking's tolerance on the success probability ([`moma_grasp::rank`]).
+    pub tie_tolerance: f32,
 }
 
 impl Default for GraspEvalConfig {
@@ -108,6 +129,11 @@ impl Default for GraspEvalConfig {
             score: ScoreConfig::default(),
             parallel: ParallelConfig::default(),
             suction: SuctionConfig::default(),
+            calib_frames: Vec::new(),
+            qualities: vec![GraspQuality::Robust],
+            draws: DEFAULT_GRASP_DRAWS,
+            candidates: DEFAULT_ROBUST_CANDIDATES,
+            tie_tolerance: DEFAULT_TIE_TOLERANCE,
         }
     }
 }
@@ -119,6 +145,11 @@ pub struct GraspRow {
     pub set: String,
     /// Method name, or `gt` (planned on ground truth) / `sensor` (planned on raw sensor depth).
     pub method: String,
+    /// Calibration variant, as `moma eval` labels it (`one-shot`, `few-shot-K`,
+    /// `robust-<kind>`, `realign-anchors`, ...; `-` for `gt` and `sensor`).
+    pub variant: String,
+    /// How the grasp was chosen (`nominal`, `robust`).
+    pub grasp_quality: GraspQuality,
     /// Gripper.
     pub gripper: GripperKind,
     /// Trials (object regions × evaluated frames × seeds; × 1 seed for `gt` and `sensor`).
@@ -129,19 +160,44 @@ pub struct GraspRow {
     pub success_rate: f64,
     /// Failures by reason (`collision`, `no_grasp`, ...).
     pub failures: BTreeMap<String, usize>,
+    /// Brier score of the top-1 grasps' `success_prob` against their proxy outcome (trials with
+    /// a grasp that has a probability; `None` when none has).
+    pub brier: Option<f64>,
+    /// Mean `success_prob` of those top-1 grasps (`None` when none has one).
+    pub mean_success_prob: Option<f64>,
+    /// Reliability table of `success_prob` (5 bins of predicted probability).
+    pub reliability: Vec<ReliabilityBin>,
     /// Prediction source label (`SIMULATED …` for simulated predictions).
     pub source: String,
     /// Whether the depth the grasps were planned on came from simulated predictions.
     pub simulated: bool,
 }
 
-/// The `--json` contract: one object per (set, method, gripper).
+/// One bin of a reliability table: grasps whose predicted success probability lies in `bin`,
+/// their mean prediction and their achieved (proxy) success rate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ReliabilityBin {
+    /// `[lo, hi]` of the predicted probability (the last bin includes 1).
+    pub bin: [f64; 2],
+    /// Top-1 grasps in the bin.
+    pub grasps: usize,
+    /// Their mean predicted probability (`null` when empty).
+    pub predicted: Option<f64>,
+    /// Their achieved success rate (`null` when empty).
+    pub achieved: Option<f64>,
+}
+
+/// The `--json` contract: one object per (set, method, variant, grasp quality, gripper).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GraspJsonRow {
     /// Set name.
     pub set: String,
     /// Method (or `gt`, `sensor`).
     pub method: String,
+    /// Calibration variant (as `moma eval --json`).
+    pub variant: String,
+    /// `nominal` or `robust`.
+    pub grasp_quality: GraspQuality,
     /// `parallel` or `suction`.
     pub gripper: GripperKind,
     /// Trials.
@@ -150,6 +206,10 @@ pub struct GraspJsonRow {
     pub successes: usize,
     /// successes / trials.
     pub success_rate: f64,
+    /// Brier score of `success_prob` (`null` without probabilities).
+    pub brier: Option<f64>,
+    /// Reliability table.
+    pub reliability: Vec<ReliabilityBin>,
 }
 
 impl From<&GraspRow> for GraspJsonRow {
@@ -157,6 +217,10 @@ impl From<&GraspRow> for GraspJsonRow {
         Self {
             set: r.set.clone(),
             method: r.method.clone(),
+            variant: r.variant.clone(),
+            grasp_quality: r.grasp_quality,
+            brier: r.brier,
+            reliability: r.reliability.clone(),
             gripper: r.gripper,
             trials: r.trials,
             successes: r.successes,
@@ -177,11 +241,19 @@ struct Tally {
     trials: usize,
     successes: usize,
     failures: BTreeMap<String, usize>,
+    /// (predicted success probability, success) of the top-1 grasps that have one.
+    probs: Vec<(f64, bool)>,
 }
 
+/// One trial's result: the top-1 grasp's proxy outcome and its success probability.
+type TrialOutcome = (std::result::Result<(), FailureReason>, Option<f32>);
+
 impl Tally {
-    fn add(&mut self, outcome: std::result::Result<(), FailureReason>) {
+    fn add(&mut self, (outcome, prob): TrialOutcome) {
         self.trials += 1;
+        if let Some(p) = prob {
+            self.probs.push((f64::from(p), outcome.is_ok()));
+        }
         match outcome {
             Ok(()) => self.successes += 1,
             Err(r) => *self.failures.entry(r.to_string()).or_default() += 1,
@@ -191,41 +263,117 @@ impl Tally {
     fn merge(&mut self, other: Tally) {
         self.trials += other.trials;
         self.successes += other.successes;
+        self.probs.extend(other.probs);
         for (k, v) in other.failures {
             *self.failures.entry(k).or_default() += v;
         }
     }
+
+    fn brier(&self) -> Option<f64> {
+        (!self.probs.is_empty()).then(|| {
+            self.probs
+                .iter()
+                .map(|&(p, s)| (p - f64::from(u8::from(s))).powi(2))
+                .sum::<f64>()
+                / self.probs.len() as f64
+        })
+    }
+
+    fn reliability(&self) -> Vec<ReliabilityBin> {
+        reliability_table(&self.probs)
+    }
 }
 
-/// Plans the top-1 grasp on `planned` (object `mask`) and executes it on the ground-truth scene.
+/// Bins of the reliability table.
+pub const RELIABILITY_BINS: usize = 5;
+
+/// The reliability table of `(predicted probability, success)` pairs: [`RELIABILITY_BINS`]
+/// equal bins of [0, 1], the last closed.
+pub fn reliability_table(probs: &[(f64, bool)]) -> Vec<ReliabilityBin> {
+    let w = 1.0 / RELIABILITY_BINS as f64;
+    (0..RELIABILITY_BINS)
+        .map(|b| {
+            let (lo, hi) = (b as f64 * w, (b + 1) as f64 * w);
+            let inside: Vec<&(f64, bool)> = probs
+                .iter()
+                .filter(|(p, _)| *p >= lo && (*p < hi || (b + 1 == RELIABILITY_BINS && *p <= 1.0)))
+                .collect();
+            let n = inside.len();
+            ReliabilityBin {
+                bin: [lo, hi],
+                grasps: n,
+                predicted: (n > 0).then(|| inside.iter().map(|(p, _)| p).sum::<f64>() / n as f64),
+                achieved: (n > 0)
+                    .then(|| inside.iter().filter(|(_, s)| *s).count() as f64 / n as f64),
+            }
+        })
+        .collect()
+}
+
+/// A depth to plan on for one frame: metres and its error model (`None`: planned as exact).
+struct Planned<'a> {
+    depth: &'a MetricDepth,
+    error_model: Option<DepthErrorModel>,
+}
+
+/// Plans on `planned` (object `mask`) through [`plan_on_scene`] (the path of `moma grasp`),
+/// and executes the top-1 grasp of each ranking in `qualities` on the ground-truth scene.
 fn run_trial(
-    planned: &MetricDepth,
+    planned: &Planned<'_>,
     gt_scene: &Scene,
     set: &LoadedSet,
     mask: Option<&Mask>,
     gripper: GripperKind,
+    qualities: &[GraspQuality],
+    seed: u64,
     config: &GraspEvalConfig,
-) -> Result<std::result::Result<(), FailureReason>> {
-    let scene = match Scene::build(planned, &set.intrinsics, mask, &config.scene) {
+) -> Result<Vec<TrialOutcome>> {
+    let no_grasp = || vec![(Err(FailureReason::NoGrasp), None); qualities.len()];
+    let mut request = GraspRequest::new(gripper.gripper()).with_error_model(planned.error_model);
+    request.quality = GraspQuality::Nominal; // every candidate, in the planner's order
+    request.top_k = if planned.error_model.is_some() {
+        config.candidates
+    } else {
+        1
+    };
+    request.seed = seed;
+    request.draws = config.draws;
+    request.candidates = config.candidates;
+    request.scene = config.scene;
+    request.parallel = config.parallel.clone();
+    request.suction = config.suction;
+    request.score = config.score;
+    let scene = match Scene::build(planned.depth, &set.intrinsics, mask, &config.scene) {
         Ok(s) => s,
-        // the aligned depth may hold no valid pixel in the object region: no grasp
-        Err(_) => return Ok(Err(FailureReason::NoGrasp)),
+        // the planning depth may hold no valid pixel in the object region: no grasp
+        Err(_) => return Ok(no_grasp()),
     };
-    let outcome = match gripper.gripper() {
-        Gripper::Parallel(j) => plan_parallel(&scene, &j, &config.parallel),
-        Gripper::Suction(c) => plan_suction(&scene, &c, &config.suction),
+    let outcome = plan_on_scene(&scene, planned.depth, &set.intrinsics, &request)
+        .map_err(|e| EvalError::InvalidParameter(format!("grasp planner: {e}")))?;
+    if outcome.grasps.is_empty() {
+        return Ok(no_grasp());
     }
-    .map_err(|e| EvalError::InvalidParameter(format!("grasp planner: {e}")))?;
-    let Some(grasp) = outcome.grasps.first() else {
-        return Ok(Err(FailureReason::NoGrasp));
-    };
-    let score = score_grasp(gt_scene, grasp, &gripper.gripper(), &config.score)
-        .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))?;
-    Ok(match score.failure {
-        None if score.success => Ok(()),
-        Some(r) => Err(r),
-        None => Err(FailureReason::NoGrasp),
-    })
+    let candidates: Vec<(Grasp, f32)> = outcome
+        .grasps
+        .iter()
+        .map(|g| (*g, g.success_prob().unwrap_or(f32::NAN)))
+        .collect();
+    qualities
+        .iter()
+        .map(|&q| {
+            let mut ranked = candidates.clone();
+            rank(&mut ranked, q, config.tie_tolerance);
+            let grasp = ranked[0].0;
+            let score = score_grasp(gt_scene, &grasp, &gripper.gripper(), &config.score)
+                .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))?;
+            let result = match score.failure {
+                None if score.success => Ok(()),
+                Some(r) => Err(r),
+                None => Err(FailureReason::NoGrasp),
+            };
+            Ok((result, grasp.success_prob()))
+        })
+        .collect()
 }
 
 /// Ground-truth scenes of every (evaluated frame, trial) pair, built once.
@@ -244,39 +392,168 @@ fn gt_scenes(
         .collect()
 }
 
-/// Evaluates one set: rows for every (method, gripper), plus `gt` and (with raw depth) `sensor`.
-/// One-shot calibrations with the first normalisation only: the re-alignment and robust variants
-/// of [`EvalConfig`](crate::protocol::EvalConfig) are refused rather than silently skipped.
-/// With [`EvalConfig::gt_outliers`](crate::protocol::EvalConfig::gt_outliers) the rows' source
-/// says so.
+/// How well the σ of the error model covers the true error: pixels where |aligned − truth| ≤
+/// σ and ≤ 2σ, over all pixels, inside the object masks, and within 5 px of a depth edge of the
+/// ground truth.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoverageRow {
+    /// Set name.
+    pub set: String,
+    /// Method.
+    pub method: String,
+    /// Calibration variant.
+    pub variant: String,
+    /// `all`, `masks` or `edges`.
+    pub region: String,
+    /// Pixels with an aligned depth, a truth and a σ (over frames and seeds).
+    pub pixels: usize,
+    /// Share within ±1σ (a Gaussian: 0.683).
+    pub within_1sigma: f64,
+    /// Share within ±2σ (a Gaussian: 0.954).
+    pub within_2sigma: f64,
+    /// Whether the predictions were simulated.
+    pub simulated: bool,
+}
+
+/// Counts of σ coverage in the three regions.
+#[derive(Default, Clone, Copy)]
+struct Coverage {
+    /// [all, masks, edges] × (pixels, within 1σ, within 2σ)
+    counts: [[usize; 3]; 3],
+}
+
+/// Pixels within this distance of a ground-truth depth edge count as "near an edge".
+const EDGE_DISTANCE_PX: u32 = 5;
+/// A ground-truth depth edge: a step larger than this within the window, metres.
+const EDGE_STEP_M: f32 = 0.01;
+
+impl Coverage {
+    fn add(
+        &mut self,
+        aligned: &MetricDepth,
+        sigma: &ndarray::Array2<f32>,
+        gt: &MetricDepth,
+        mask: Option<&Mask>,
+    ) {
+        let edges = moma_core::error_model::relief_map(gt.depth_m.view(), EDGE_DISTANCE_PX);
+        let w = aligned.depth_m.ncols();
+        for (k, ((&a, &s), &t)) in aligned
+            .depth_m
+            .iter()
+            .zip(sigma.iter())
+            .zip(gt.depth_m.iter())
+            .enumerate()
+        {
+            if !(moma_core::is_valid_depth(a) && moma_core::is_valid_depth(t) && s.is_finite()) {
+                continue;
+            }
+            let e = (a - t).abs();
+            let (v, u) = (k / w, k % w);
+            let regions = [
+                true,
+                mask.is_some_and(|m| m.data()[[v, u]]),
+                edges[[v, u]] > EDGE_STEP_M,
+            ];
+            for (r, inside) in regions.into_iter().enumerate() {
+                if inside {
+                    let c = &mut self.counts[r];
+                    c[0] += 1;
+                    c[1] += usize::from(e <= s);
+                    c[2] += usize::from(e <= 2.0 * s);
+                }
+            }
+        }
+    }
+
+    fn rows(&self, set: &str, method: &str, variant: &str, simulated: bool) -> Vec<CoverageRow> {
+        ["all", "masks", "edges"]
+            .iter()
+            .enumerate()
+            .filter(|(r, _)| self.counts[*r][0] > 0)
+            .map(|(r, name)| {
+                let c = self.counts[r];
+                CoverageRow {
+                    set: set.into(),
+                    method: method.into(),
+                    variant: variant.into(),
+                    region: (*name).into(),
+                    pixels: c[0],
+                    within_1sigma: c[1] as f64 / c[0] as f64,
+                    within_2sigma: c[2] as f64 / c[0] as f64,
+                    simulated,
+                }
+            })
+            .collect()
+    }
+}
+
+/// What one evaluated variant is: its label, calibration frames, robust fit or re-alignment.
+enum VariantSpec {
+    /// Least-squares (or robust) calibration on `calib` frames.
+    Plain {
+        name: String,
+        calib: Vec<usize>,
+        robust: Option<Robust>,
+    },
+    /// One-shot calibration with per-frame re-alignment at brightness β.
+    Realign { beta: f64 },
+}
+
+/// The results of one set: success rows and σ-coverage rows.
+#[derive(Debug, Clone, Default)]
+pub struct GraspEvalResult {
+    /// Success-rate rows.
+    pub rows: Vec<GraspRow>,
+    /// σ-coverage rows of the error models.
+    pub coverage: Vec<CoverageRow>,
+}
+
+/// Evaluates one set: rows for every (method, variant, grasp quality, gripper), plus `gt` and
+/// (with raw depth) `sensor`. The variants are `moma eval`'s, with its labels: one-shot,
+/// `robust-<kind>` ([`EvalConfig::robust`](crate::protocol::EvalConfig::robust)),
+/// `realign-anchors[-bβ]` ([`EvalConfig::realign`](crate::protocol::EvalConfig::realign)), or
+/// with [`GraspEvalConfig::calib_frames`] `one-shot` / `few-shot-K` (scored on the frames after
+/// the largest K; not combined with the others, as in `moma eval`). The depth of each variant
+/// comes from the library calls `moma eval` scores; grasps from [`plan_on_scene`], the path of
+/// `moma grasp`, with the frame's error model ([`Calibration::frame_error_model`]).
 ///
 /// # Errors
-/// Bad input (see [`Prepared::new`]), alignment errors, an invalid planner configuration, an
-/// unsupported variant or more than one normalisation.
+/// Bad input (see [`Prepared::new`]), alignment errors, an invalid planner configuration, more
+/// than one normalisation, a few-shot request the set cannot serve.
 pub fn grasp_evaluate(
     set: &LoadedSet,
     preds: &PredictionSet,
     config: &GraspEvalConfig,
-) -> Result<Vec<GraspRow>> {
+) -> Result<GraspEvalResult> {
     if config.min_object_px == 0 {
         return Err(EvalError::InvalidParameter(
             "the smallest object region must be at least 1 pixel".into(),
         ));
     }
-    let unsupported = [
-        (config.eval.realign.is_some(), "re-alignment (--realign)"),
-        (!config.eval.robust.is_empty(), "robust fits (--robust)"),
-        (
-            config.eval.norms.len() > 1,
-            "more than one normalisation (--norm)",
-        ),
-    ];
-    if let Some((_, what)) = unsupported.iter().find(|(given, _)| *given) {
-        return Err(EvalError::InvalidParameter(format!(
-            "the grasp evaluation plans on one-shot calibrations with one normalisation: {what} \
-             is not supported here (use `moma eval` for it)"
-        )));
+    if config.eval.norms.len() > 1 {
+        return Err(EvalError::InvalidParameter(
+            "the grasp evaluation plans with one normalisation: more than one (--norm) is not \
+             supported here (use `moma eval` for it)"
+                .into(),
+        ));
     }
+    if config.qualities.is_empty() {
+        return Err(EvalError::InvalidParameter(
+            "give at least one grasp quality (nominal, robust)".into(),
+        ));
+    }
+    if config.draws == 0 {
+        return Err(EvalError::InvalidParameter(
+            "the number of depth draws must be at least 1".into(),
+        ));
+    }
+    let k_max = if config.calib_frames.is_empty() {
+        None
+    } else {
+        let k = check_calib_frame_counts(&config.calib_frames)?;
+        check_few_shot(set, &config.eval, k)?;
+        Some(k)
+    };
     let source = match config.eval.gt_outliers {
         Some(f) => format!(
             "{}; calibrated on ground truth with {:.1} % SIMULATED outliers",
@@ -286,7 +563,10 @@ pub fn grasp_evaluate(
         None => preds.label.clone(),
     };
     let prep = Prepared::new(set, preds, &config.eval)?;
-    let eval_idx = prep.eval_indices();
+    let eval_idx = match k_max {
+        Some(k) => (k..set.frames.len()).collect(),
+        None => prep.eval_indices(),
+    };
     let mut trials = Vec::new();
     for &i in &eval_idx {
         match &set.frames[i].mask {
@@ -314,93 +594,264 @@ pub fn grasp_evaluate(
     let seeds: Vec<u64> = (0..config.eval.seeds as u64)
         .map(|s| config.eval.seed_base + s)
         .collect();
-    let mut rows = Vec::new();
-    let row =
-        |method: String, gripper: GripperKind, t: Tally, source: &str, simulated: bool| GraspRow {
-            set: set.name.clone(),
-            method,
-            gripper,
-            success_rate: if t.trials > 0 {
-                t.successes as f64 / t.trials as f64
-            } else {
-                f64::NAN
-            },
-            trials: t.trials,
-            successes: t.successes,
-            failures: t.failures,
-            source: source.to_string(),
-            simulated,
-        };
-    // planned on a depth map per evaluated frame (index into set.frames)
-    // `depths[i]`: the depth planned on for frame i (None: nothing to plan on)
-    let tally_on = |depths: &[Option<&MetricDepth>], gripper: GripperKind| -> Result<Tally> {
-        let outcomes: Vec<std::result::Result<(), FailureReason>> = trials
+    let mut out = GraspEvalResult::default();
+    let row = |method: String,
+               variant: String,
+               quality: GraspQuality,
+               gripper: GripperKind,
+               t: Tally,
+               source: &str,
+               simulated: bool| GraspRow {
+        set: set.name.clone(),
+        method,
+        variant,
+        grasp_quality: quality,
+        gripper,
+        success_rate: if t.trials > 0 {
+            t.successes as f64 / t.trials as f64
+        } else {
+            f64::NAN
+        },
+        trials: t.trials,
+        successes: t.successes,
+        brier: t.brier(),
+        mean_success_prob: (!t.probs.is_empty())
+            .then(|| t.probs.iter().map(|p| p.0).sum::<f64>() / t.probs.len() as f64),
+        reliability: t.reliability(),
+        failures: t.failures,
+        source: source.to_string(),
+        simulated,
+    };
+    // `depths[i]`: what is planned on for frame i (None: nothing to plan on); one tally per
+    // quality
+    let tally_on = |depths: &[Option<Planned<'_>>],
+                    gripper: GripperKind,
+                    qualities: &[GraspQuality],
+                    seed: u64|
+     -> Result<Vec<Tally>> {
+        let outcomes: Vec<Vec<TrialOutcome>> = trials
             .par_iter()
             .zip(&gt)
             .map(|(t, g)| {
-                let (Some(g), Some(d)) = (g, depths[t.frame]) else {
-                    return Ok(Err(FailureReason::NoGrasp));
+                let (Some(g), Some(d)) = (g, depths[t.frame].as_ref()) else {
+                    return Ok(vec![(Err(FailureReason::NoGrasp), None); qualities.len()]);
                 };
-                run_trial(d, g, set, t.mask.as_ref(), gripper, config)
+                run_trial(d, g, set, t.mask.as_ref(), gripper, qualities, seed, config)
             })
             .collect::<Result<_>>()?;
-        let mut tally = Tally::default();
+        let mut tallies: Vec<Tally> = qualities.iter().map(|_| Tally::default()).collect();
         for o in outcomes {
-            tally.add(o);
+            for (k, r) in o.into_iter().enumerate() {
+                tallies[k].add(r);
+            }
         }
-        Ok(tally)
+        Ok(tallies)
     };
     for m in &config.eval.methods {
         let method = prep.method(m);
         let norm = prep.normalisation_for(&method, norm0);
-        let maps: Vec<NormalisedMap> = (0..set.frames.len())
-            .map(|i| prep.normalised(i, &norm))
-            .collect::<Result<_>>()?;
-        let mut per_gripper: Vec<Tally> =
-            config.grippers.iter().map(|_| Tally::default()).collect();
-        for &seed in &seeds {
-            let cal =
-                prep.calibrate(&method, &norm, &maps[prep.calib], config.eval.samples, seed)?;
-            let aligned: Vec<Option<MetricDepth>> = (0..set.frames.len())
-                .map(|i| {
-                    if eval_idx.contains(&i) {
-                        cal.align_normalised(&maps[i])
-                            .map(Some)
-                            .map_err(|e| EvalError::core(format!("set '{}'", set.name), e))
-                    } else {
-                        Ok(None)
+        let mut variants: Vec<VariantSpec> = Vec::new();
+        match k_max {
+            Some(_) => {
+                for &k in &config.calib_frames {
+                    variants.push(VariantSpec::Plain {
+                        name: few_shot_variant(k),
+                        calib: (0..k).collect(),
+                        robust: None,
+                    });
+                }
+            }
+            None => {
+                variants.push(VariantSpec::Plain {
+                    name: variant_name(None),
+                    calib: vec![prep.calib],
+                    robust: None,
+                });
+                for r in config
+                    .eval
+                    .robust
+                    .iter()
+                    .filter(|r| r.check_method(&method).is_ok())
+                {
+                    variants.push(VariantSpec::Plain {
+                        name: variant_name(Some(r)),
+                        calib: vec![prep.calib],
+                        robust: Some(*r),
+                    });
+                }
+                if let Some(r) = &config.eval.realign {
+                    for &beta in &r.brightness {
+                        crate::realign::check_brightness(beta, r.brightness_response)?;
+                        variants.push(VariantSpec::Realign { beta });
                     }
-                })
-                .collect::<Result<_>>()?;
-            let depths: Vec<Option<&MetricDepth>> = aligned.iter().map(Option::as_ref).collect();
-            for (k, &g) in config.grippers.iter().enumerate() {
-                per_gripper[k].merge(tally_on(&depths, g)?);
+                }
             }
         }
-        for (k, &g) in config.grippers.iter().enumerate() {
-            rows.push(row(
-                method.to_string(),
-                g,
-                std::mem::take(&mut per_gripper[k]),
-                &source,
+        for variant in &variants {
+            let (name, setup) = match variant {
+                VariantSpec::Plain { name, .. } => (name.clone(), None),
+                VariantSpec::Realign { beta } => {
+                    let r = config.eval.realign.as_ref().ok_or_else(|| {
+                        EvalError::InvalidParameter("re-alignment settings missing".into())
+                    })?;
+                    (
+                        crate::realign::variant_name(*beta),
+                        Some(RealignSetup::new(&prep, &norm, r, *beta)?),
+                    )
+                }
+            };
+            let maps = match &setup {
+                Some(s) => Arc::clone(&s.maps),
+                None => prep.normalised_all(&norm)?,
+            };
+            let mut per_gq: Vec<Vec<Tally>> = config
+                .grippers
+                .iter()
+                .map(|_| config.qualities.iter().map(|_| Tally::default()).collect())
+                .collect();
+            let mut coverage = Coverage::default();
+            for &seed in &seeds {
+                let mut frames: Vec<Option<(MetricDepth, Option<DepthErrorModel>)>> =
+                    vec![None; set.frames.len()];
+                match (variant, &setup) {
+                    (VariantSpec::Plain { calib, robust, .. }, _) => {
+                        let regions: Vec<Option<Mask>> = calib
+                            .iter()
+                            .map(|&i| {
+                                if i == prep.calib {
+                                    prep.sample_region.clone()
+                                } else {
+                                    prep.sample_region_of(i)
+                                }
+                            })
+                            .collect();
+                        let inputs: Vec<(usize, &NormalisedMap, Option<&Mask>)> = calib
+                            .iter()
+                            .zip(&regions)
+                            .map(|(&i, r)| (i, &maps[i], r.as_ref()))
+                            .collect();
+                        let cal = prep.calibrate_on(
+                            &method,
+                            &norm,
+                            &inputs,
+                            config.eval.samples,
+                            seed,
+                            robust.as_ref(),
+                        )?;
+                        for &i in &eval_idx {
+                            let (d, _) = prep.score(&cal, &maps[i], i)?;
+                            frames[i] = Some((d, cal.frame_error_model(None)));
+                        }
+                    }
+                    (VariantSpec::Realign { .. }, Some(s)) => {
+                        let cal = s.calibrate(&prep, &method, &norm, config.eval.samples, seed)?;
+                        for &i in &eval_idx {
+                            let (d, _, report) = s.realign_frame(&prep, &cal, i, seed)?;
+                            frames[i] = Some((d, cal.frame_error_model(Some(&report))));
+                        }
+                    }
+                    (VariantSpec::Realign { .. }, None) => unreachable!("set up above"),
+                }
+                for &i in &eval_idx {
+                    if let Some((d, Some(model))) = &frames[i] {
+                        coverage.add(
+                            d,
+                            &model.sigma_map(d),
+                            &set.frames[i].gt,
+                            set.frames[i].mask.as_ref(),
+                        );
+                    }
+                }
+                let depths: Vec<Option<Planned<'_>>> = frames
+                    .iter()
+                    .map(|f| {
+                        f.as_ref().map(|(depth, model)| Planned {
+                            depth,
+                            error_model: *model,
+                        })
+                    })
+                    .collect();
+                for (k, &g) in config.grippers.iter().enumerate() {
+                    for (q, t) in tally_on(&depths, g, &config.qualities, seed)?
+                        .into_iter()
+                        .enumerate()
+                    {
+                        per_gq[k][q].merge(t);
+                    }
+                }
+            }
+            for (k, &g) in config.grippers.iter().enumerate() {
+                for (q, &quality) in config.qualities.iter().enumerate() {
+                    out.rows.push(row(
+                        method.to_string(),
+                        name.clone(),
+                        quality,
+                        g,
+                        std::mem::take(&mut per_gq[k][q]),
+                        &source,
+                        preds.simulated,
+                    ));
+                }
+            }
+            out.coverage.extend(coverage.rows(
+                &set.name,
+                &method.to_string(),
+                &name,
                 preds.simulated,
             ));
         }
     }
-    let gt_depths: Vec<Option<&MetricDepth>> = set.frames.iter().map(|f| Some(&f.gt)).collect();
+    let nominal = [GraspQuality::Nominal];
+    let gt_depths: Vec<Option<Planned<'_>>> = set
+        .frames
+        .iter()
+        .map(|f| {
+            Some(Planned {
+                depth: &f.gt,
+                error_model: None,
+            })
+        })
+        .collect();
     for &g in &config.grippers {
-        let t = tally_on(&gt_depths, g)?;
-        rows.push(row("gt".into(), g, t, "ground-truth depth", false));
-    }
-    if eval_idx.iter().any(|&i| set.frames[i].raw_depth.is_some()) {
-        let raw: Vec<Option<&MetricDepth>> =
-            set.frames.iter().map(|f| f.raw_depth.as_ref()).collect();
-        for &g in &config.grippers {
-            let t = tally_on(&raw, g)?;
-            rows.push(row("sensor".into(), g, t, "raw sensor depth", false));
+        let t = tally_on(&gt_depths, g, &nominal, config.eval.seed_base)?;
+        for t in t {
+            out.rows.push(row(
+                "gt".into(),
+                "-".into(),
+                GraspQuality::Nominal,
+                g,
+                t,
+                "ground-truth depth",
+                false,
+            ));
         }
     }
-    Ok(rows)
+    if eval_idx.iter().any(|&i| set.frames[i].raw_depth.is_some()) {
+        let raw: Vec<Option<Planned<'_>>> = set
+            .frames
+            .iter()
+            .map(|f| {
+                f.raw_depth.as_ref().map(|depth| Planned {
+                    depth,
+                    error_model: None,
+                })
+            })
+            .collect();
+        for &g in &config.grippers {
+            for t in tally_on(&raw, g, &nominal, config.eval.seed_base)? {
+                out.rows.push(row(
+                    "sensor".into(),
+                    "-".into(),
+                    GraspQuality::Nominal,
+                    g,
+                    t,
+                    "raw sensor depth",
+                    false,
+                ));
+            }
+        }
+    }
+    Ok(out)
 }
 
 /// The success-rate table (proxy). Title says "proxy" and, for simulated predictions,
@@ -418,7 +869,7 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
     };
     let title = format!(
         "{}grasp success by PROXY (top-1 grasp planned on the method's depth, executed on the \
-         ground-truth depth; METHOD.md §8) — not robot trials; predictions: {}",
+         ground-truth depth; docs/grasping.md) — not robot trials; predictions: {}",
         if simulated {
             "SIMULATED predictions — "
         } else {
@@ -431,10 +882,14 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
         headers: [
             "set",
             "method",
+            "variant",
+            "grasps",
             "gripper",
             "trials",
             "successes",
             "success rate",
+            "mean success_prob",
+            "Brier",
             "failures",
         ]
         .iter()
@@ -446,15 +901,109 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
                 vec![
                     r.set.clone(),
                     r.method.to_uppercase(),
+                    r.variant.clone(),
+                    r.grasp_quality.to_string(),
                     r.gripper.to_string(),
                     r.trials.to_string(),
                     r.successes.to_string(),
                     format!("{:.0} %", 100.0 * r.success_rate),
+                    r.mean_success_prob
+                        .map_or("-".into(), |p| format!("{:.0} %", 100.0 * p)),
+                    r.brier.map_or("-".into(), |b| format!("{b:.3}")),
                     r.failures
                         .iter()
                         .map(|(k, v)| format!("{k} {v}"))
                         .collect::<Vec<_>>()
                         .join(", "),
+                ]
+            })
+            .collect(),
+    }
+}
+
+/// The reliability tables: one row per (set, method, variant, grasps, gripper) with
+/// probabilities, "predicted → achieved (n)" per bin.
+pub fn reliability_table_of(rows: &[GraspRow]) -> Table {
+    let simulated = rows.iter().any(|r| r.simulated);
+    let mut headers: Vec<String> = ["set", "method", "variant", "grasps", "gripper", "Brier"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let w = 1.0 / RELIABILITY_BINS as f64;
+    headers.extend(
+        (0..RELIABILITY_BINS).map(|b| format!("p {:.1}–{:.1}", b as f64 * w, (b + 1) as f64 * w)),
+    );
+    Table {
+        title: format!(
+            "{}reliability of success_prob: mean predicted → achieved proxy success (top-1 grasps)",
+            if simulated {
+                "SIMULATED predictions — "
+            } else {
+                ""
+            }
+        ),
+        headers,
+        rows: rows
+            .iter()
+            .filter(|r| r.brier.is_some())
+            .map(|r| {
+                let mut v = vec![
+                    r.set.clone(),
+                    r.method.to_uppercase(),
+                    r.variant.clone(),
+                    r.grasp_quality.to_string(),
+                    r.gripper.to_string(),
+                    r.brier.map_or("-".into(), |b| format!("{b:.3}")),
+                ];
+                v.extend(
+                    r.reliability
+                        .iter()
+                        .map(|b| match (b.predicted, b.achieved) {
+                            (Some(p), Some(a)) => format!("{p:.2} → {a:.2} ({})", b.grasps),
+                            _ => "-".into(),
+                        }),
+                );
+                v
+            })
+            .collect(),
+    }
+}
+
+/// The σ-coverage table of the error models.
+pub fn coverage_table(rows: &[CoverageRow]) -> Table {
+    let simulated = rows.iter().any(|r| r.simulated);
+    Table {
+        title: format!(
+            "{}error model: share of true errors within ±1σ / ±2σ (a Gaussian: 68 % / 95 %)",
+            if simulated {
+                "SIMULATED predictions — "
+            } else {
+                ""
+            }
+        ),
+        headers: [
+            "set",
+            "method",
+            "variant",
+            "region",
+            "pixels",
+            "within 1σ",
+            "within 2σ",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect(),
+        rows: rows
+            .iter()
+            .map(|r| {
+                vec![
+                    r.set.clone(),
+                    r.method.to_uppercase(),
+                    r.variant.clone(),
+                    r.region.clone(),
+                    r.pixels.to_string(),
+                    format!("{:.1} %", 100.0 * r.within_1sigma),
+                    format!("{:.1} %", 100.0 * r.within_2sigma),
                 ]
             })
             .collect(),

@@ -163,6 +163,133 @@ pub fn brightness_response(pred: &Prediction, beta: f64, kappa: f64) -> Predicti
     Prediction::new(values, pred.kind)
 }
 
+/// What re-aligning the frames of one set needs for one normalisation and brightness: the
+/// normalised maps (the evaluated frames with the brightness response), the evaluated frames'
+/// scaled RGB and the seed-independent anchor store of the calibration frame. Shared by the
+/// depth evaluation ([`evaluate_realign`]) and the grasp evaluation.
+pub struct RealignSetup {
+    /// Normalised maps of every frame.
+    pub maps: std::sync::Arc<Vec<moma_core::normalise::NormalisedMap>>,
+    rgbs: Vec<Option<Array3<u8>>>,
+    store: moma_core::realign::AnchorStore,
+    realign: RealignEval,
+}
+
+impl RealignSetup {
+    /// Prepares re-alignment of `prep`'s frames with normalisation `norm` at brightness `beta`.
+    ///
+    /// # Errors
+    /// A frame without RGB; no usable anchor store; normalisation errors.
+    pub fn new(
+        prep: &Prepared<'_>,
+        norm: &NormalisationConfig,
+        realign: &RealignEval,
+        beta: f64,
+    ) -> Result<Self> {
+        let set = prep.set;
+        let ctx = |i: usize| format!("set '{}', frame '{}'", set.name, set.frames[i].id);
+        let plain = prep.normalised_all(norm)?;
+        let maps = if beta == 1.0 {
+            plain
+        } else {
+            prep.cached_maps(norm, beta, |i| {
+                if i == prep.calib {
+                    return Ok(plain[i].clone());
+                }
+                let p = brightness_response(&prep.preds.maps[i], beta, realign.brightness_response);
+                moma_core::normalise::normalise(
+                    &p,
+                    norm,
+                    prep.workspace.as_deref().map(moma_core::Workspace::mask),
+                )
+                .map_err(|e| EvalError::core(ctx(i), e))
+            })?
+        };
+        let rgbs: Vec<Option<Array3<u8>>> = (0..set.frames.len())
+            .map(|i| -> Result<_> {
+                if i == prep.calib {
+                    return Ok(None);
+                }
+                Ok(Some(scale_brightness(rgb_view(prep, i)?, beta)))
+            })
+            .collect::<Result<_>>()?;
+        let calib_rgb = rgb_view(prep, prep.calib)?;
+        let calib_gt = &set.frames[prep.calib].gt;
+        let store = moma_core::realign::AnchorStore::new(calib_rgb, calib_gt)
+            .map_err(|e| EvalError::core(format!("{}: anchor store", ctx(prep.calib)), e))?;
+        Ok(Self {
+            maps,
+            rgbs,
+            store,
+            realign: realign.clone(),
+        })
+    }
+
+    /// The calibration of `method` for sampling seed `seed`, with the anchor store.
+    ///
+    /// # Errors
+    /// As [`Prepared::calibrate`].
+    pub fn calibrate(
+        &self,
+        prep: &Prepared<'_>,
+        method: &Method,
+        norm: &NormalisationConfig,
+        n: usize,
+        seed: u64,
+    ) -> Result<moma_core::Calibration> {
+        let ctx = format!(
+            "set '{}', frame '{}': anchor store",
+            prep.set.name, prep.set.frames[prep.calib].id
+        );
+        prep.calibrate(method, norm, &self.maps[prep.calib], n, seed)?
+            .with_anchor_store(&self.store, &self.maps[prep.calib])
+            .map_err(|e| EvalError::core(ctx, e))
+    }
+
+    /// Frame `i` aligned one-shot and then re-aligned on its anchors (the re-alignment seeded by
+    /// the sampling seed `seed`): the re-aligned depth, the one-shot metrics and the report.
+    ///
+    /// # Errors
+    /// A frame without RGB; alignment errors, naming the frame.
+    pub fn realign_frame(
+        &self,
+        prep: &Prepared<'_>,
+        cal: &moma_core::Calibration,
+        i: usize,
+        seed: u64,
+    ) -> Result<(
+        moma_core::MetricDepth,
+        DepthMetrics,
+        moma_core::realign::RealignReport,
+    )> {
+        let set = prep.set;
+        let config = RealignConfig {
+            seed: self.realign.config.seed.wrapping_add(seed),
+            ..self.realign.config
+        };
+        let (mut aligned, one) = prep.score(cal, &self.maps[i], i)?;
+        let rgb = self.rgbs[i]
+            .as_ref()
+            .map(|a| a.view())
+            .ok_or_else(|| EvalError::frame(&set.name, &set.frames[i].id, "no RGB"))?;
+        let report = cal
+            .realign_normalised_into(
+                rgb,
+                &config,
+                &self.maps[i],
+                &mut aligned.depth_m.view_mut(),
+                true,
+            )
+            .map_err(|e| {
+                EvalError::core(
+                    format!("set '{}', frame '{}'", set.name, set.frames[i].id),
+                    e,
+                )
+            })?;
+        Ok((aligned, one, report))
+    }
+}
+
 fn rgb_view<'a>(prep: &'a Prepared<'_>, i: usize) -> Result<ArrayView3<'a, u8>> {
     let f = &prep.set.frames[i];
     let img = f.rgb.as_ref().ok_or_else(|| {
@@ -202,38 +329,7 @@ pub fn evaluate_realign(
     let method = prep.method(method);
     let eval_idx = prep.eval_indices();
     let ctx = |i: usize| format!("set '{}', frame '{}'", set.name, set.frames[i].id);
-    // normalised maps (the evaluated frames with the brightness response) and scaled RGB
-    // (shared with the other rows of the set: one copy per normalisation and brightness)
-    let plain = prep.normalised_all(norm)?;
-    let maps = if beta == 1.0 {
-        plain
-    } else {
-        prep.cached_maps(norm, beta, |i| {
-            if i == prep.calib {
-                return Ok(plain[i].clone());
-            }
-            let p = brightness_response(&prep.preds.maps[i], beta, realign.brightness_response);
-            moma_core::normalise::normalise(
-                &p,
-                norm,
-                prep.workspace.as_deref().map(moma_core::Workspace::mask),
-            )
-            .map_err(|e| EvalError::core(ctx(i), e))
-        })?
-    };
-    let rgbs: Vec<Option<Array3<u8>>> = (0..set.frames.len())
-        .map(|i| -> Result<_> {
-            if i == prep.calib {
-                return Ok(None);
-            }
-            Ok(Some(scale_brightness(rgb_view(prep, i)?, beta)))
-        })
-        .collect::<Result<_>>()?;
-    let calib_rgb = rgb_view(prep, prep.calib)?;
-    let calib_gt = &set.frames[prep.calib].gt;
-    // the seed-independent part of the anchor store, built once (each seed adds its one-shot)
-    let store = moma_core::realign::AnchorStore::new(calib_rgb, calib_gt)
-        .map_err(|e| EvalError::core(format!("{}: anchor store", ctx(prep.calib)), e))?;
+    let setup = RealignSetup::new(prep, norm, realign, beta)?;
     let seeds: Vec<u64> = (0..prep.config.seeds as u64)
         .map(|s| prep.config.seed_base + s)
         .collect();
@@ -245,31 +341,11 @@ pub fn evaluate_realign(
     let per_seed: Vec<(moma_core::align::FitReport, Vec<PerFrame>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
-            let cal = prep
-                .calibrate(&method, norm, &maps[prep.calib], n, seed)?
-                .with_anchor_store(&store, &maps[prep.calib])
-                .map_err(|e| EvalError::core(format!("{}: anchor store", ctx(prep.calib)), e))?;
-            let config = RealignConfig {
-                seed: realign.config.seed.wrapping_add(seed),
-                ..realign.config
-            };
+            let cal = setup.calibrate(prep, &method, norm, n, seed)?;
             let frames = eval_idx
                 .iter()
                 .map(|&i| -> Result<PerFrame> {
-                    let (mut aligned, one) = prep.score(&cal, &maps[i], i)?;
-                    let rgb = rgbs[i]
-                        .as_ref()
-                        .map(|a| a.view())
-                        .ok_or_else(|| EvalError::frame(&set.name, &set.frames[i].id, "no RGB"))?;
-                    let report = cal
-                        .realign_normalised_into(
-                            rgb,
-                            &config,
-                            &maps[i],
-                            &mut aligned.depth_m.view_mut(),
-                            true,
-                        )
-                        .map_err(|e| EvalError::core(ctx(i), e))?;
+                    let (aligned, one, report) = setup.realign_frame(prep, &cal, i, seed)?;
                     let re = DepthMetrics::compute(
                         &aligned,
                         &set.frames[i].gt,

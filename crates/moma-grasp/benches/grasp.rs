@@ -10,9 +10,11 @@ mod common;
 
 use common::{BoxSpec, Scene as Synth, intrinsics};
 use criterion::{Criterion, criterion_group, criterion_main};
+use moma_core::DepthErrorModel;
 use moma_grasp::{
-    Grasp, Gripper, ParallelConfig, ParallelJaw, Scene, SceneConfig, ScoreConfig, SuctionConfig,
-    SuctionCup, plan_parallel, plan_parallel_tolerant, plan_suction, score_grasp,
+    Grasp, GraspRequest, Gripper, ParallelConfig, ParallelJaw, Scene, SceneConfig, ScoreConfig,
+    SuctionConfig, SuctionCup, plan_grasps, plan_parallel, plan_parallel_tolerant, plan_suction,
+    score_grasp,
 };
 use std::hint::black_box;
 
@@ -71,6 +73,32 @@ fn benches(c: &mut Criterion) {
     c.bench_function("score_one_suction_grasp", |bch| {
         bch.iter(|| score_grasp(black_box(&scene), &sg, &Gripper::Suction(cup), &sc).unwrap())
     });
+    // robust top-5 (issue 22's targets, one core: suction ≤ 60 ms, parallel ≤ 150 ms), scene
+    // build and planning included, with an error model like the one a calibration on
+    // gqcnn-primesense fits (SIMULATED predictions)
+    let model = DepthErrorModel {
+        sigma_flat_m: 0.0064,
+        depth_ref_m: 0.73,
+        depth_exponent: 2.0,
+        variance_shares: [0.0, 0.0, 0.18, 0.82],
+        relief_bias: 0.02,
+        relief_sigma: 0.02,
+        edge_gain: 0.33,
+        ..DepthErrorModel::default()
+    };
+    for draws in [4, 8, 16] {
+        for (name, gripper) in [
+            ("suction", Gripper::Suction(cup)),
+            ("parallel", Gripper::Parallel(jaw)),
+        ] {
+            let mut request = GraspRequest::new(gripper).with_error_model(Some(model));
+            request.top_k = 5;
+            request.draws = draws;
+            c.bench_function(&format!("robust_{name}_top5_{draws}draws_640x480"), |bch| {
+                bch.iter(|| plan_grasps(black_box(&depth), &k, None, &request).unwrap())
+            });
+        }
+    }
 }
 
 criterion_group!(grasp, benches);

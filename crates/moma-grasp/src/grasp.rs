@@ -32,6 +32,11 @@ pub struct SuctionPose {
 pub struct ParallelGrasp {
     /// Planner score in `[0, 1]`, higher is better.
     pub score: f32,
+    /// Estimated success probability in `[0, 1]` under the depth's error model (the share of
+    /// the error model's depth draws on which the grasp succeeds by the scorer's rules);
+    /// `null` when no error model was given.
+    #[serde(default)]
+    pub success_prob: Option<f32>,
     /// The pose in the camera frame.
     #[serde(flatten)]
     pub pose: ParallelPose,
@@ -45,6 +50,11 @@ pub struct ParallelGrasp {
 pub struct SuctionGrasp {
     /// Planner score in `[0, 1]`, higher is better.
     pub score: f32,
+    /// Estimated success probability in `[0, 1]` under the depth's error model (the share of
+    /// the error model's depth draws on which the grasp succeeds by the scorer's rules);
+    /// `null` when no error model was given.
+    #[serde(default)]
+    pub success_prob: Option<f32>,
     /// The pose in the camera frame.
     #[serde(flatten)]
     pub pose: SuctionPose,
@@ -69,6 +79,22 @@ impl Grasp {
         match self {
             Grasp::Parallel(g) => g.score,
             Grasp::Suction(g) => g.score,
+        }
+    }
+
+    /// The estimated success probability, when an error model was given.
+    pub fn success_prob(&self) -> Option<f32> {
+        match self {
+            Grasp::Parallel(g) => g.success_prob,
+            Grasp::Suction(g) => g.success_prob,
+        }
+    }
+
+    /// Sets the estimated success probability.
+    pub fn set_success_prob(&mut self, p: Option<f32>) {
+        match self {
+            Grasp::Parallel(g) => g.success_prob = p,
+            Grasp::Suction(g) => g.success_prob = p,
         }
     }
 
@@ -119,6 +145,15 @@ pub enum NoGraspReason {
     /// Objects exist but no candidate could be formed on them (no silhouette edge for a parallel
     /// jaw, no pixel with a normal for suction).
     NoCandidate,
+    /// Every grasp's success probability under the error model is below the minimum asked.
+    BelowMinSuccessProb {
+        /// Grasps below the minimum.
+        candidates: usize,
+        /// The best success probability found.
+        best_success_prob: f32,
+        /// The minimum asked.
+        min_success_prob: f32,
+    },
     /// Every candidate failed a check; the counts say which.
     AllRejected {
         /// Candidates examined.
@@ -136,6 +171,16 @@ impl std::fmt::Display for NoGraspReason {
                 write!(f, "no object: nothing stands above the support plane")
             }
             NoGraspReason::NoCandidate => write!(f, "no grasp candidate on the objects"),
+            NoGraspReason::BelowMinSuccessProb {
+                candidates,
+                best_success_prob,
+                min_success_prob,
+            } => write!(
+                f,
+                "all {candidates} grasps have a success probability below the minimum \
+                 {min_success_prob:.2} (best {best_success_prob:.2}): re-image the scene, or \
+                 lower --min-success-prob"
+            ),
             NoGraspReason::AllRejected {
                 candidates,
                 failures,

@@ -68,6 +68,7 @@ pub mod objects;
 pub mod parallel;
 pub mod plane;
 pub mod render;
+pub mod robust;
 pub mod scene;
 pub mod score;
 pub mod suction;
@@ -85,6 +86,10 @@ pub use gripper::{Gripper, ParallelJaw, SuctionCup};
 pub use objects::{MIN_TRIAL_COMPONENT_PX, components_8, mask_components};
 pub use parallel::{ParallelConfig, plan_parallel, plan_parallel_tolerant};
 pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};
+pub use robust::{
+    DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_TIE_TOLERANCE, GraspQuality,
+    GraspRequest, draw_region, plan_grasps, plan_on_scene, rank, success_probabilities,
+};
 pub use scene::{ObjectComponent, Scene, SceneConfig};
 pub use score::{GraspScore, ScoreConfig, no_grasp, score_grasp, score_parallel, score_suction};
 pub use suction::{SuctionConfig, plan_suction};

@@ -62,6 +62,11 @@ pub struct ParallelConfig {
     /// Depth of the closing line below the sampled contact along the approach, metres.
     /// Default 0.003 m.
     pub contact_depth_m: f32,
+    /// Thin objects lying flat (tools, spoons, pens: 10–25 mm tall): where `contact_depth_m`
+    /// would bring the fingertips closer to the support plane than this, the closing line is
+    /// raised so that they clear it by this much (never above 0.5 mm below the contact),
+    /// metres. Default 0.003 m.
+    pub fingertip_clearance_m: f32,
     /// Friction coefficient a planned grasp must pass (the scorer uses 0.8). Default 0.6.
     pub planner_mu: f32,
     /// Free length along the closing line that ends the object when finding the far side, metres.
@@ -109,6 +114,7 @@ impl Default for ParallelConfig {
             tilt_angles_deg: vec![20.0],
             fallback_tilt_angles_deg: vec![40.0, 60.0],
             contact_depth_m: 0.003,
+            fingertip_clearance_m: 0.003,
             planner_mu: 0.6,
             exit_gap_m: 0.003,
             min_clearance_m: 0.003,
@@ -160,6 +166,12 @@ impl ParallelConfig {
                 "soft_edge_window_px and soft_normal_radius_px must be >= 1".into(),
             ));
         }
+        if !(self.fingertip_clearance_m.is_finite() && self.fingertip_clearance_m >= 0.0) {
+            return Err(e(format!(
+                "fingertip_clearance_m = {} must be >= 0",
+                self.fingertip_clearance_m
+            )));
+        }
         if !(self.contact_depth_m.is_finite() && self.contact_depth_m >= 0.0) {
             return Err(e(format!(
                 "contact_depth_m = {} must be >= 0",
@@ -202,6 +214,35 @@ fn grasp_score(mu_needed: f32, width: f32, stroke: f32, d_centre_m: f32, tilt_de
     0.4 * q_mu + 0.2 * q_w + 0.3 * q_c + 0.1 * q_t
 }
 
+/// Shallowest depth of a closing line below its contact, metres.
+const MIN_CONTACT_DEPTH_M: f32 = 0.0005;
+
+/// How far below contact `i` the closing line runs along `approach`: `contact_depth_m`, or less
+/// where the fingertips (`contact_to_tip_m` further) would come within `fingertip_clearance_m`
+/// of the support plane (thin objects), but at least [`MIN_CONTACT_DEPTH_M`].
+fn contact_depth(
+    scene: &Scene,
+    i: usize,
+    approach: Vec3,
+    jaw: &ParallelJaw,
+    config: &ParallelConfig,
+) -> f32 {
+    let Some(plane) = &scene.plane else {
+        return config.contact_depth_m;
+    };
+    let down = approach.dot(&-scene.up());
+    if down < 0.1 {
+        return config.contact_depth_m;
+    }
+    let height = plane.height_m(&scene.cloud.points[i]);
+    let deepest = (height - config.fingertip_clearance_m) / down - jaw.contact_to_tip_m;
+    if deepest >= MIN_CONTACT_DEPTH_M {
+        config.contact_depth_m.min(deepest)
+    } else {
+        config.contact_depth_m
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn candidate(
     scene: &Scene,
@@ -215,7 +256,7 @@ fn candidate(
 ) -> std::result::Result<Candidate, FailureReason> {
     let exec = &config.exec;
     let step = exec.march_step_m;
-    let l0 = scene.cloud.points[i] + approach * config.contact_depth_m;
+    let l0 = scene.cloud.points[i] + approach * contact_depth(scene, i, approach, jaw, config);
     // Near side: where the closing line enters the object (`l0` itself, or farther on when moving
     // along a tilted approach, or past a rounded edge, left the object); far side: where it leaves
     // the object for at least `exit_gap_m`.
@@ -499,6 +540,7 @@ fn plan_pass(
         .map(|&k| {
             let c = &cands[k];
             Grasp::Parallel(ParallelGrasp {
+                success_prob: None,
                 score: c.score,
                 pose: ParallelPose {
                     center_m: arr(&c.pose.center),

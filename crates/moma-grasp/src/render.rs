@@ -164,6 +164,7 @@ mod tests {
             width_m: 0.04,
         };
         let o = outcome(vec![Grasp::Parallel(ParallelGrasp {
+            success_prob: None,
             score: 0.9,
             pose,
             base: None,
@@ -192,6 +193,7 @@ mod tests {
     fn a_suction_grasp_shows_its_rim_around_the_approach() {
         let cup = SuctionCup::default();
         let o = outcome(vec![Grasp::Suction(SuctionGrasp {
+            success_prob: None,
             score: 0.8,
             pose: SuctionPose {
                 point_m: [0.1, -0.05, 0.6],

@@ -258,6 +258,7 @@ pub fn plan_suction(
         .map(|&k| {
             let (p, a) = pose(k);
             Grasp::Suction(SuctionGrasp {
+                success_prob: None,
                 score: cands[k].1,
                 pose: SuctionPose {
                     point_m: arr(&p),

@@ -6,6 +6,7 @@ use moma_grasp::{
 
 fn parallel() -> Grasp {
     Grasp::Parallel(ParallelGrasp {
+        success_prob: None,
         score: 0.5,
         pose: ParallelPose {
             center_m: [0.1, -0.2, 0.7],
@@ -22,7 +23,7 @@ fn parallel_json_has_exactly_the_issue_fields_in_order() {
     let s = serde_json::to_string(&parallel()).unwrap();
     assert_eq!(
         s,
-        r#"{"kind":"parallel","score":0.5,"center_m":[0.1,-0.2,0.7],"approach":[0.0,0.0,1.0],"closing":[1.0,0.0,0.0],"width_m":0.06}"#
+        r#"{"kind":"parallel","score":0.5,"success_prob":null,"center_m":[0.1,-0.2,0.7],"approach":[0.0,0.0,1.0],"closing":[1.0,0.0,0.0],"width_m":0.06}"#
     );
     let back: Grasp = serde_json::from_str(&s).unwrap();
     assert_eq!(back, parallel());
@@ -31,6 +32,7 @@ fn parallel_json_has_exactly_the_issue_fields_in_order() {
 #[test]
 fn suction_json_and_base_frame() {
     let mut g = Grasp::Suction(SuctionGrasp {
+        success_prob: None,
         score: 0.25,
         pose: SuctionPose {
             point_m: [0.0, 0.1, 0.5],
@@ -40,7 +42,7 @@ fn suction_json_and_base_frame() {
     });
     assert_eq!(
         serde_json::to_string(&g).unwrap(),
-        r#"{"kind":"suction","score":0.25,"point_m":[0.0,0.1,0.5],"approach":[0.0,0.0,1.0]}"#
+        r#"{"kind":"suction","score":0.25,"success_prob":null,"point_m":[0.0,0.1,0.5],"approach":[0.0,0.0,1.0]}"#
     );
     // Camera looking down from 1 m above the base origin: x_b = x_c, y_b = −y_c, z_b = 1 − z_c.
     let e = Extrinsics::new([

@@ -569,3 +569,61 @@ fn regions_touching_the_border_are_not_objects_without_a_mask() {
     let masked = Scene::build(&depth, &intrinsics(), Some(&mask), &SceneConfig::default()).unwrap();
     assert!((0..band_px).all(|i| masked.is_object(i)));
 }
+
+#[test]
+fn a_thin_handle_lying_flat_is_grasped_with_the_fingertips_above_the_table() {
+    // a 15 mm tall, 20 mm wide handle (tools, spoons, pliers lie like this)
+    let handle = BoxSpec {
+        x_m: 0.0,
+        y_m: 0.0,
+        long_m: 0.12,
+        short_m: 0.02,
+        height_m: 0.015,
+        yaw_rad: 0.3,
+    };
+    let synth = Synth::top_down(DIST_M, Some(handle));
+    let depth = synth.render();
+    let scene = build(&depth);
+    let jaw = ParallelJaw::default();
+    for seed in 0..3 {
+        let config = ParallelConfig {
+            seed,
+            ..ParallelConfig::default()
+        };
+        let out = plan_parallel(&scene, &jaw, &config).unwrap();
+        let Some(Grasp::Parallel(g)) = out.grasps.first() else {
+            panic!(
+                "seed {seed}: no grasp on the handle ({:?})",
+                out.no_grasp_reason
+            );
+        };
+        let score = score_grasp(
+            &scene,
+            &out.grasps[0],
+            &Gripper::Parallel(jaw),
+            &ScoreConfig::default(),
+        )
+        .unwrap();
+        assert!(score.success, "seed {seed}: {score:?}");
+        // the fingertips (contact_to_tip past the closing line) clear the table by the 3 mm of
+        // `fingertip_clearance_m` (with 0 they come down to 2 mm: the closing line's default
+        // 3 mm under the top edge), measured in the synthetic scene's own frame
+        let a = v3([
+            g.pose.approach[0] as f64,
+            g.pose.approach[1] as f64,
+            g.pose.approach[2] as f64,
+        ]);
+        let tip = v3([
+            g.pose.center_m[0] as f64,
+            g.pose.center_m[1] as f64,
+            g.pose.center_m[2] as f64,
+        ]) + a * jaw.contact_to_tip_m;
+        let up = v3(synth.up);
+        let above = (tip - v3(synth.o)).dot(&up);
+        assert!(
+            above >= 0.0025,
+            "seed {seed}: fingertips {:.1} mm above the table",
+            above * 1e3
+        );
+    }
+}

@@ -25,8 +25,9 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// `anchors` store for per-frame re-alignment, samples from several frames (few-shot), the
 /// local variants' cross-validation settings (a version-2 file reads unchanged); within version 3,
 /// `created.simulated_predictions` (written only when true: builds older than it refuse such a
-/// file as an unknown field).
-pub const CALIBRATION_VERSION: u32 = 3;
+/// file as an unknown field); 4 — the optional `error_model` of the aligned depth (a version-2 or
+/// version-3 file reads unchanged, without one).
+pub const CALIBRATION_VERSION: u32 = 4;
 
 /// The oldest calibration-file version this build reads (migrated on reading).
 pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
@@ -238,9 +239,10 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        Some(3) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
-        // Version 3 only added optional fields: a version-2 document is a version-3 one.
-        Some(2) => {
+        Some(4) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        // Versions 3 and 4 only added optional fields: a version-2 or -3 document is a
+        // version-4 one.
+        Some(2 | 3) => {
             let mut file: CalibrationFile =
                 serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
             file.version = CALIBRATION_VERSION;

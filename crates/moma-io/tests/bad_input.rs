@@ -325,6 +325,7 @@ mod calibration {
             },
             workspace: None,
             anchors: None,
+            error_model: None,
         };
         CalibrationFile::new(calibration, None, CreationInfo::now())
     }
@@ -464,19 +465,49 @@ mod calibration {
     }
 
     #[test]
-    fn version_2_file_reads_as_version_3() {
-        // Version 3 only added optional fields: the same document labelled 2 must read, equal.
+    fn version_2_and_3_files_read_as_version_4() {
+        // Versions 3 and 4 only added optional fields: the same document (without them)
+        // labelled 2 or 3 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let written = read_calibration(&p).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["version"], 3);
-        v["version"] = 2.into();
+        assert_eq!(v["version"], 4);
+        for old in [2, 3] {
+            v["version"] = old.into();
+            std::fs::write(&p, v.to_string()).unwrap();
+            let read = read_calibration(&p).unwrap();
+            assert_eq!(read.calibration, written.calibration);
+            assert_eq!(read.version, 4);
+        }
+    }
+
+    #[test]
+    fn an_error_model_out_of_range_is_refused_naming_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        let mut f = file();
+        f.calibration.error_model = Some(moma_core::DepthErrorModel::uniform(0.004).unwrap());
+        write_calibration(&p, &f).unwrap();
+        assert_eq!(read_calibration(&p).unwrap(), f);
+        let mut v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        v["calibration"]["error_model"]["variance_shares"] =
+            serde_json::json!([0.5, 0.5, 0.5, 0.5]);
         std::fs::write(&p, v.to_string()).unwrap();
-        let read = read_calibration(&p).unwrap();
-        assert_eq!(read.calibration, written.calibration);
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(
+            m.contains("calib.json") && m.contains("variance shares"),
+            "{m}"
+        );
+        v["calibration"]["error_model"]["variance_shares"] =
+            serde_json::json!([0.0, 0.0, 0.0, 1.0]);
+        v["calibration"]["error_model"]["sigma_flat_m"] = serde_json::json!(-0.1);
+        std::fs::write(&p, v.to_string()).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(m.contains("sigma_flat_m"), "{m}");
     }
 
     #[test]
@@ -486,15 +517,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 4.into();
-        // A v4 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 5.into();
+        // A v5 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 4") && m.contains("versions 1 to 3"),
+            m.contains("calib.json") && m.contains("version 5") && m.contains("versions 1 to 4"),
             "{m}"
         );
 

@@ -319,6 +319,7 @@ pub fn sample_calibration() -> Calibration {
         },
         workspace: None,
         anchors: None,
+        error_model: None,
     }
 }
 
@@ -347,7 +348,7 @@ fn calibration_file_roundtrip() {
     // The documented top-level fields are there for scripts.
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
     assert_eq!(v["format"], "moma-calibration");
-    assert_eq!(v["version"], 3);
+    assert_eq!(v["version"], 4);
     assert_eq!(v["method"], "gssa");
     assert_eq!(v["normalisation"]["space"], "inverse");
     assert_eq!(v["calibration"]["workspace"]["inside_px"], 60 * 40);

@@ -137,6 +137,19 @@ fn to_py_json<'py>(py: Python<'py>, value: &impl serde::Serialize) -> PyResult<B
     py.import("json")?.call_method1("loads", (text,))
 }
 
+/// A Python object (dict, list, …) decoded through JSON into `T`.
+fn from_py_json<T: serde::de::DeserializeOwned>(
+    value: &Bound<'_, PyAny>,
+    what: &str,
+) -> PyResult<T> {
+    let text: String = value
+        .py()
+        .import("json")?
+        .call_method1("dumps", (value,))?
+        .extract()?;
+    serde_json::from_str(&text).map_err(|e| value_err(format!("{what}: {e}")))
+}
+
 // ---------------------------------------------------------------------------------------------
 // Intrinsics
 
@@ -272,7 +285,7 @@ impl Calibration {
             .py()
     }
 
-    /// Writes the calibration in the CLI's file format (`moma-calibration` v3, JSON, atomic),
+    /// Writes the calibration in the CLI's file format (`moma-calibration` v4, JSON, atomic),
     /// the workspace mask (if any) embedded: the file is self-contained.
     fn save(&self, path: PathBuf) -> PyResult<()> {
         moma_io::write_calibration(&path, &self.file()).py()
@@ -314,6 +327,48 @@ impl Calibration {
     #[getter]
     fn has_anchors(&self) -> bool {
         self.inner.anchor_store().is_ok()
+    }
+
+    /// The calibration's error model of its aligned depth (a dict: `sigma_flat_m`,
+    /// `depth_ref_m`, `depth_exponent`, `variance_shares`, `scales_px`, `relief_bias`,
+    /// `relief_sigma`, `relief_radius_px`, `edge_gain`, `edge_radius_px`), None in files
+    /// written before error models existed.
+    #[getter]
+    fn error_model<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        to_py_json(py, &self.inner.error_model)
+    }
+
+    /// The per-pixel σ of the error of `depth_m` (this calibration's aligned depth of a frame,
+    /// float32 metres) as `moma align --sigma-map` writes it: float32 metres, NaN where there is
+    /// no depth. `report`: the re-alignment report of the frame (`align_realigned`'s), whose
+    /// held-out anchor RMSE widens the flat σ. An error when the calibration has no error model.
+    #[pyo3(signature = (depth_m, report=None))]
+    fn sigma_map<'py>(
+        &self,
+        py: Python<'py>,
+        depth_m: &Bound<'py, PyAny>,
+        report: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+        self.inner
+            .image_size()
+            .expect_eq("depth_m", depth.size())
+            .py()?;
+        let report: Option<moma_core::realign::RealignReport> = match report {
+            Some(r) if !r.is_none() => Some(from_py_json(r, "report")?),
+            _ => None,
+        };
+        let model = self
+            .inner
+            .frame_error_model(report.as_ref())
+            .ok_or_else(|| {
+                value_err(
+                    "this calibration holds no error model (written before error models existed): \
+                 calibrate again",
+                )
+            })?;
+        let sigma = py.detach(|| model.sigma_map(&depth));
+        Ok(sigma.into_pyarray(py))
     }
 
     /// `align`, then per-frame re-alignment on static anchors found in this frame's RGB
@@ -828,72 +883,117 @@ fn depth_to_points<'py>(
     }
 }
 
-/// Plans grasps on a metric depth map (metres): the same planner and the same dicts as
-/// `moma grasp --json`, best first. Parallel: `{"kind": "parallel", "score", "center_m",
-/// "approach", "closing", "width_m"}`; suction: `{"kind": "suction", "score", "point_m",
-/// "approach"}`; camera frame (x right, y down, z forward, metres). `mask`: the objects to grasp
-/// (bool/uint8 H×W); without one, whatever stands more than 10 mm above the support plane,
-/// except regions touching the image border (partly seen; sensor edge bands, bin walls) unless
+/// Plans grasps on one frame, best first, as a list of dicts (`moma grasp --json`'s array).
+///
+/// `source` is a metric depth map (float32 metres, NaN or ≤ 0 = no depth; `cam` required) or a
+/// `Calibration` with `pred=` (the frame's prediction; `cam` defaults to the calibration's
+/// intrinsics): the depth is then aligned as `moma grasp --calib` does, re-aligned on static
+/// anchors when `rgb=` (uint8 `height × width × 3`) is given, and the calibration's error model
+/// gives every grasp a `success_prob` (the share of depth maps drawn from it on which the grasp
+/// succeeds). With a depth map, `sigma_m=` (a uniform σ, metres) does the same. `grasp_quality`
+/// is `"robust"` (the default where there is an error model: by success probability) or
+/// `"nominal"` (by the planner's score); `grasp_draws` depth draws (seeded by `seed`);
+/// `min_success_prob` drops grasps below it. Other keywords: `gripper` (`"parallel"` or
+/// `"suction"`), `mask` (bool/uint8 `height × width`, nonzero = object), `top`, `seed`,
 /// `keep_border_objects`. No grasp found is an empty list, not an error. The GIL is released
 /// while planning.
 #[pyfunction]
-#[pyo3(signature = (depth_m, cam, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false))]
+#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=moma_grasp::DEFAULT_GRASP_DRAWS, min_success_prob=None))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
 fn plan_grasps<'py>(
     py: Python<'py>,
-    depth_m: &Bound<'py, PyAny>,
-    cam: &Intrinsics,
+    source: &Bound<'py, PyAny>,
+    cam: Option<&Intrinsics>,
     gripper: &str,
     mask: Option<&Bound<'py, PyAny>>,
     top: usize,
     seed: u64,
     keep_border_objects: bool,
+    pred: Option<&Bound<'py, PyAny>>,
+    rgb: Option<&Bound<'py, PyAny>>,
+    sigma_m: Option<f64>,
+    grasp_quality: Option<&str>,
+    grasp_draws: usize,
+    min_success_prob: Option<f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    use moma_grasp::{
-        ParallelConfig, ParallelJaw, Scene, SceneConfig, SuctionConfig, SuctionCup, plan_parallel,
-        plan_suction,
+    use moma_grasp::{GraspRequest, Gripper, ParallelJaw, SceneConfig, SuctionCup};
+    let gripper = match gripper {
+        "parallel" => Gripper::Parallel(ParallelJaw::default()),
+        "suction" => Gripper::Suction(SuctionCup::default()),
+        other => {
+            return Err(value_err(format!(
+                "unknown gripper '{other}' (expected 'parallel' or 'suction')"
+            )));
+        }
     };
-    if top == 0 {
-        return Err(value_err("top must be at least 1"));
-    }
-    if gripper != "parallel" && gripper != "suction" {
-        return Err(value_err(format!(
-            "unknown gripper '{gripper}' (expected 'parallel' or 'suction')"
-        )));
-    }
-    let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
-    let mask = opt_mask(mask, "mask")?;
-    let k = cam.inner;
-    let parallel = gripper == "parallel";
-    let outcome = py
-        .detach(|| -> Result<_, moma_grasp::GraspError> {
-            let scene_config = SceneConfig {
-                keep_border_objects,
-                ..SceneConfig::default()
+    let (depth, error_model, k) = match source.cast::<Calibration>() {
+        Ok(cal) => {
+            let cal = cal.borrow();
+            let pred = pred.ok_or_else(|| {
+                value_err("planning from a Calibration needs the frame's prediction: pred=")
+            })?;
+            let prediction = Prediction::new(f32_owned(pred, "pred")?, cal.inner.prediction_kind);
+            let k = match (cam, cal.intrinsics) {
+                (Some(c), _) => c.inner,
+                (None, Some(k)) => k,
+                (None, None) => {
+                    return Err(value_err(
+                        "cam= is needed: the calibration records no intrinsics",
+                    ));
+                }
             };
-            let scene = Scene::build(&depth, &k, mask.as_ref(), &scene_config)?;
-            if parallel {
-                plan_parallel(
-                    &scene,
-                    &ParallelJaw::default(),
-                    &ParallelConfig {
-                        top_k: top,
-                        seed,
-                        ..ParallelConfig::default()
-                    },
-                )
-            } else {
-                plan_suction(
-                    &scene,
-                    &SuctionCup::default(),
-                    &SuctionConfig {
-                        top_k: top,
-                        seed,
-                        ..SuctionConfig::default()
-                    },
-                )
+            let rgb_ro = rgb.map(|r| arrays::rgb_ro(r, "rgb")).transpose()?;
+            let config = RealignConfig::default();
+            let rgb_view = rgb_ro.as_ref().map(|r| r.as_array());
+            let inner = &cal.inner;
+            let aligned = py
+                .detach(|| {
+                    let options = moma_core::AlignOptions {
+                        realign: rgb_view.map(|v| (v, &config)),
+                        sigma_map: false,
+                    };
+                    inner.align_with(&prediction, &options)
+                })
+                .py()?;
+            (aligned.depth, aligned.error_model, k)
+        }
+        Err(_) => {
+            if pred.is_some() || rgb.is_some() {
+                return Err(value_err(
+                    "pred= and rgb= go with a Calibration as the first argument, not a depth map",
+                ));
             }
-        })
+            let k = cam
+                .ok_or_else(|| value_err("cam= is needed with a depth map"))?
+                .inner;
+            (MetricDepth::new(f32_owned(source, "depth_m")?), None, k)
+        }
+    };
+    let error_model = match sigma_m {
+        Some(s) => Some(
+            moma_core::DepthErrorModel::uniform(s)
+                .map_err(|e| value_err(format!("sigma_m: {e}")))?,
+        ),
+        None => error_model,
+    };
+    let mask = opt_mask(mask, "mask")?;
+    let mut request = GraspRequest::new(gripper).with_error_model(error_model);
+    request.top_k = top;
+    request.seed = seed;
+    request.draws = grasp_draws;
+    request.min_success_prob = min_success_prob;
+    request.scene = SceneConfig {
+        keep_border_objects,
+        ..SceneConfig::default()
+    };
+    if let Some(q) = grasp_quality {
+        request.quality = q
+            .parse()
+            .map_err(|e: moma_grasp::GraspError| value_err(e.to_string()))?;
+    }
+    request.validate().map_err(|e| value_err(e.to_string()))?;
+    let (_, outcome) = py
+        .detach(|| moma_grasp::plan_grasps(&depth, &k, mask.as_ref(), &request))
         .map_err(|e| value_err(e.to_string()))?;
     to_py_json(py, &outcome.grasps)
 }

@@ -5,8 +5,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use moma_core::MetricDepth;
 use moma_core::realign::{AnchorTarget, CorrectionModel, RealignConfig};
+use moma_core::{AlignOptions, Aligned, MetricDepth};
 use moma_io::{Colormap, DepthRange, PlyFormat};
 use serde::Serialize;
 
@@ -136,6 +136,17 @@ pub struct AlignArgs {
     /// Print a JSON summary on stdout (and no progress bar).
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub realign: RealignArgs,
+    /// Also write each frame's per-pixel σ of the depth error from the calibration's error
+    /// model (metres, NaN = no depth) as NAME.sigma.npy, and its colour map NAME.sigma.png.
+    #[arg(long)]
+    pub sigma_map: bool,
+}
+
+/// Per-frame re-alignment on static anchors, as `moma align` and `moma grasp` take it.
+#[derive(Debug, Clone, Args)]
+pub struct RealignArgs {
     /// Re-align every frame on static anchors (pixels unchanged since calibration, found in the
     /// frame's RGB): needs a calibration made with `moma calibrate --anchors`; prints a
     /// per-frame report (anchors, held-out RMSE before/after, accepted or why not).
@@ -147,6 +158,62 @@ pub struct AlignArgs {
     pub realign_rgb: Vec<PathBuf>,
     #[command(flatten)]
     pub realign_flags: RealignFlags,
+}
+
+impl RealignArgs {
+    /// Checks the flags against `n_inputs` inputs and the calibration (read from
+    /// `calib_path`), and returns the re-alignment settings.
+    ///
+    /// # Errors
+    /// --realign-rgb not one per input; --realign with a calibration without anchors; bad
+    /// settings.
+    pub fn check(
+        &self,
+        n_inputs: usize,
+        calibration: &moma_core::Calibration,
+        calib_path: &Path,
+    ) -> Result<RealignConfig> {
+        if !self.realign_rgb.is_empty() && self.realign_rgb.len() != n_inputs {
+            bail!(
+                "--realign-rgb needs one image per input ({} given for {} inputs)",
+                self.realign_rgb.len(),
+                n_inputs
+            );
+        }
+        if self.realign.is_some() {
+            calibration
+                .anchor_store()
+                .with_context(|| format!("--realign anchors with {}", calib_path.display()))?;
+        }
+        self.realign_flags.config()
+    }
+
+    /// The RGB to re-align input `i` (named `name`, with its own RGB `own` when it came from
+    /// --rgb) on, `None` without --realign.
+    ///
+    /// # Errors
+    /// No RGB for the input; an unreadable image or one of another size.
+    pub fn rgb_for(
+        &self,
+        i: usize,
+        name: &Path,
+        own: Option<&image::RgbImage>,
+        size: moma_core::ImageSize,
+    ) -> Result<Option<image::RgbImage>> {
+        let Some(RealignArg::Anchors) = self.realign else {
+            return Ok(None);
+        };
+        Ok(Some(match self.realign_rgb.get(i) {
+            Some(p) => moma_io::read_rgb_sized(p, size)?,
+            None => own.cloned().with_context(|| {
+                format!(
+                    "--realign anchors needs the RGB of {}: give --realign-rgb IMG... \
+                     (one per input) or align from --rgb",
+                    name.display()
+                )
+            })?,
+        }))
+    }
 }
 
 /// What was written for one frame.
@@ -180,20 +247,16 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             source.len()
         );
     }
-    if !args.realign_rgb.is_empty() && args.realign_rgb.len() != source.len() {
+    let realign_config = args
+        .realign
+        .check(source.len(), &calib.calibration, &args.calib)?;
+    if args.sigma_map && calib.calibration.error_model.is_none() {
         bail!(
-            "--realign-rgb needs one image per input ({} given for {} inputs)",
-            args.realign_rgb.len(),
-            source.len()
+            "--sigma-map needs the calibration's error model, which {} does not hold (it was \
+             written before error models existed): run `moma calibrate` again",
+            args.calib.display()
         );
     }
-    if args.realign.is_some() {
-        calib
-            .calibration
-            .anchor_store()
-            .with_context(|| format!("--realign anchors with {}", args.calib.display()))?;
-    }
-    let realign_config = args.realign_flags.config()?;
     let size = calib.image_size;
     let intrinsics = match &args.camera {
         Some(p) => Some(moma_io::read_camera(p)?),
@@ -258,49 +321,38 @@ pub fn run(args: &AlignArgs) -> Result<()> {
                 )
             })?;
         let t = Instant::now();
-        let (depth, realign) = match args.realign {
-            None => (
-                calib
-                    .calibration
-                    .align(&input.prediction)
-                    .with_context(|| format!("aligning {}", input.path.display()))?,
-                None,
-            ),
-            Some(RealignArg::Anchors) => {
-                let img = match args.realign_rgb.get(i) {
-                    Some(p) => moma_io::read_rgb_sized(p, size)?,
-                    None => input.rgb.clone().with_context(|| {
-                        format!(
-                            "--realign anchors needs the RGB of {}: give --realign-rgb IMG... \
-                             (one per input) or align from --rgb",
-                            input.path.display()
-                        )
-                    })?,
-                };
-                let (depth, report) = calib
-                    .calibration
-                    .align_realigned(
-                        &input.prediction,
-                        super::common::rgb_view(&img)?,
-                        &realign_config,
-                    )
-                    .with_context(|| {
-                        format!("aligning and re-aligning {}", input.path.display())
-                    })?;
-                if !args.json {
-                    bar.suspend(|| {
-                        println!(
-                            "{}: {} anchors, {}{}",
-                            input.name,
-                            report.anchors,
-                            if report.accepted { "" } else { "WARNING: " },
-                            report.reason
-                        )
-                    });
-                }
-                (depth, Some(report))
-            }
+        let realign_rgb = args
+            .realign
+            .rgb_for(i, &input.path, input.rgb.as_ref(), size)?;
+        let options = AlignOptions {
+            realign: match &realign_rgb {
+                Some(img) => Some((super::common::rgb_view(img)?, &realign_config)),
+                None => None,
+            },
+            sigma_map: args.sigma_map,
         };
+        let Aligned {
+            depth,
+            realign,
+            sigma_m,
+            ..
+        } = calib
+            .calibration
+            .align_with(&input.prediction, &options)
+            .with_context(|| format!("aligning {}", input.path.display()))?;
+        if let Some(report) = &realign
+            && !args.json
+        {
+            bar.suspend(|| {
+                println!(
+                    "{}: {} anchors, {}{}",
+                    input.name,
+                    report.anchors,
+                    if report.accepted { "" } else { "WARNING: " },
+                    report.reason
+                )
+            });
+        }
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
 
         let mut outputs = Vec::new();
@@ -311,6 +363,19 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let npy = with_suffix(&base, "depth.npy");
         moma_io::write_depth(&npy, &depth)?;
         outputs.push(npy);
+        if let Some(sigma) = sigma_m {
+            let sigma = MetricDepth::new(sigma);
+            let npy = with_suffix(&base, "sigma.npy");
+            moma_io::write_depth(&npy, &sigma)?;
+            let png = with_suffix(&base, "sigma.png");
+            moma_io::write_depth_colormap(
+                &png,
+                &sigma,
+                moma_io::Colormap::Turbo,
+                DepthRange::default(),
+            )?;
+            outputs.extend([npy, png]);
+        }
         if let Some(cmap) = args.colormap {
             let path = with_suffix(&base, "color.png");
             moma_io::write_depth_colormap(&path, &depth, cmap.into(), range)?;

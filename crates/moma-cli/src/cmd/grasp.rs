@@ -8,8 +8,8 @@ use clap::{Args, ValueEnum};
 use image::RgbImage;
 use moma_core::{Intrinsics, MetricDepth, PredictionKind};
 use moma_grasp::{
-    Extrinsics, Grasp, Gripper, ParallelConfig, ParallelJaw, PlanOutcome, Scene, SceneConfig,
-    SuctionConfig, SuctionCup, plan_parallel, plan_suction,
+    Extrinsics, Grasp, GraspRequest, Gripper, ParallelJaw, PlanOutcome, SceneConfig, SuctionCup,
+    plan_grasps,
 };
 
 use super::common::{ModelArgs, SourceArgs, create_dir, print_json};
@@ -102,6 +102,28 @@ pub struct GraspArgs {
     /// Seed of the planner's sampling (same inputs and seed → same grasps).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub realign: super::align::RealignArgs,
+    /// A uniform σ of the depth's error, metres: with --depth (which has no calibration), or to
+    /// override the calibration's error model. Gives every grasp a success probability.
+    #[arg(long, value_name = "S")]
+    pub sigma_m: Option<f64>,
+    /// How grasps are ranked: robust (by their success probability on depth maps drawn from
+    /// the error model; the default when there is one) or nominal (by the planner's score on
+    /// the depth as if it were exact; success_prob is still reported where it can be).
+    #[arg(long, value_name = "QUALITY", value_parser = ["nominal", "robust"])]
+    pub grasp_quality: Option<String>,
+    /// Depth maps drawn from the error model per frame (seeded by --seed).
+    #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
+    pub grasp_draws: usize,
+    /// Robust ranking: success probabilities within this of the best count as tied, and the
+    /// planner's score decides among them (in [0, 1]).
+    #[arg(long, value_name = "P", default_value_t = moma_grasp::DEFAULT_TIE_TOLERANCE)]
+    pub grasp_tie_tolerance: f32,
+    /// Return only grasps whose success probability is at least P (in [0, 1]); when none is,
+    /// the list is empty and the reason is printed.
+    #[arg(long, value_name = "P")]
+    pub min_success_prob: Option<f64>,
     /// Print the grasps as one JSON array on stdout, best first.
     #[arg(long)]
     pub json: bool,
@@ -138,6 +160,8 @@ fn read_gripper(args: &GraspArgs) -> Result<Gripper> {
 struct LoadedFrame {
     /// Metric depth.
     depth: MetricDepth,
+    /// Its error model (the calibration's for this frame), if any.
+    error_model: Option<moma_core::DepthErrorModel>,
     /// Where it came from, for messages.
     name: String,
     /// Its RGB image, when known.
@@ -156,8 +180,12 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
             "--depth",
             "plan on it through its calibration instead (`--calib calib.json --pred FILE`)",
         )?;
+        if args.realign.realign.is_some() {
+            bail!("--realign needs a calibration: use --calib with --pred or --rgb, not --depth");
+        }
         return Ok(LoadedFrame {
             depth,
+            error_model: None,
             name: path.display().to_string(),
             rgb: None,
             calib_intrinsics: None,
@@ -191,12 +219,34 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
                 calib_path.display()
             )
         })?;
-    let depth = calib
+    let realign_config = args.realign.check(1, &calib.calibration, calib_path)?;
+    let realign_rgb = args
+        .realign
+        .rgb_for(0, &input.path, input.rgb.as_ref(), calib.image_size)?;
+    let options = moma_core::AlignOptions {
+        realign: match &realign_rgb {
+            Some(img) => Some((super::common::rgb_view(img)?, &realign_config)),
+            None => None,
+        },
+        sigma_map: false,
+    };
+    let aligned = calib
         .calibration
-        .align(&input.prediction)
+        .align_with(&input.prediction, &options)
         .with_context(|| format!("aligning {}", input.path.display()))?;
+    if let Some(report) = &aligned.realign {
+        eprintln!(
+            "{}: re-aligned on {} anchors: {}{}",
+            input.path.display(),
+            report.anchors,
+            if report.accepted { "" } else { "WARNING: " },
+            report.reason
+        );
+    }
+    let depth = aligned.depth;
     Ok(LoadedFrame {
         depth,
+        error_model: aligned.error_model,
         name: input.path.display().to_string(),
         rgb: input.rgb,
         calib_intrinsics: calib.intrinsics.map(|k| (k, calib_path.clone())),
@@ -216,6 +266,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     let gripper = read_gripper(args)?;
     let LoadedFrame {
         depth,
+        error_model,
         name: depth_name,
         rgb,
         calib_intrinsics,
@@ -254,25 +305,38 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         .as_ref()
         .map(|p| moma_io::read_mask_sized(p, depth.size()))
         .transpose()?;
-    let scene = Scene::build(
-        &depth,
-        &camera,
-        mask.as_ref(),
-        &SceneConfig {
-            keep_border_objects: args.keep_border_objects,
-            ..SceneConfig::default()
-        },
-    )
-    .map_err(|e| {
-        let about = match (&e, &args.mask) {
-            (moma_grasp::GraspError::MaskNoValidDepth { .. }, Some(m)) => {
-                format!("mask {} on the depth of {depth_name}", m.display())
-            }
-            (moma_grasp::GraspError::Intrinsics(_), _) => camera_name.clone(),
-            _ => format!("depth of {depth_name}"),
-        };
-        anyhow::Error::new(e).context(about)
+    let error_model = match args.sigma_m {
+        Some(sigma) => Some(moma_core::DepthErrorModel::uniform(sigma).context("--sigma-m")?),
+        None => error_model,
+    };
+    let mut request = GraspRequest::new(gripper.clone()).with_error_model(error_model);
+    request.top_k = args.top;
+    request.seed = args.seed;
+    request.draws = args.grasp_draws;
+    request.tie_tolerance = args.grasp_tie_tolerance;
+    request.min_success_prob = args.min_success_prob;
+    request.scene = SceneConfig {
+        keep_border_objects: args.keep_border_objects,
+        ..SceneConfig::default()
+    };
+    if let Some(q) = &args.grasp_quality {
+        request.quality = q.parse()?;
+    }
+    request.validate().map_err(|e| {
+        anyhow::Error::new(e)
+            .context("--grasp-quality / --grasp-draws / --min-success-prob / --sigma-m")
     })?;
+    let (scene, mut outcome) =
+        plan_grasps(&depth, &camera, mask.as_ref(), &request).map_err(|e| {
+            let about = match (&e, &args.mask) {
+                (moma_grasp::GraspError::MaskNoValidDepth { .. }, Some(m)) => {
+                    format!("mask {} on the depth of {depth_name}", m.display())
+                }
+                (moma_grasp::GraspError::Intrinsics(_), _) => camera_name.clone(),
+                _ => format!("depth of {depth_name}"),
+            };
+            anyhow::Error::new(e).context(about)
+        })?;
     if scene.border_regions_dropped() > 0 {
         eprintln!(
             "note: {} region(s) above the support plane touch the image border and are not \
@@ -280,26 +344,6 @@ pub fn run(args: &GraspArgs) -> Result<()> {
             scene.border_regions_dropped()
         );
     }
-    let mut outcome = match &gripper {
-        Gripper::Parallel(jaw) => plan_parallel(
-            &scene,
-            jaw,
-            &ParallelConfig {
-                top_k: args.top,
-                seed: args.seed,
-                ..ParallelConfig::default()
-            },
-        )?,
-        Gripper::Suction(cup) => plan_suction(
-            &scene,
-            cup,
-            &SuctionConfig {
-                top_k: args.top,
-                seed: args.seed,
-                ..SuctionConfig::default()
-            },
-        )?,
-    };
     if let Some(e) = &extrinsics {
         outcome.set_base(e);
     }
@@ -331,21 +375,24 @@ fn print_summary(outcome: &PlanOutcome) {
         outcome.grasps.len()
     );
     for (k, g) in outcome.grasps.iter().enumerate() {
+        let prob = |p: Option<f32>| p.map_or(String::new(), |p| format!("  success_prob {p:.2}"));
         let f = |v: [f32; 3]| format!("[{:+.3}, {:+.3}, {:+.3}]", v[0], v[1], v[2]);
         match g {
             Grasp::Parallel(p) => println!(
-                "  #{:<2} score {:.3}  centre {}  approach {}  closing {}  width {:.1} mm",
+                "  #{:<2} score {:.3}{}  centre {}  approach {}  closing {}  width {:.1} mm",
                 k + 1,
                 p.score,
+                prob(p.success_prob),
                 f(p.pose.center_m),
                 f(p.pose.approach),
                 f(p.pose.closing),
                 p.pose.width_m * 1e3
             ),
             Grasp::Suction(s) => println!(
-                "  #{:<2} score {:.3}  point {}  approach {}",
+                "  #{:<2} score {:.3}{}  point {}  approach {}",
                 k + 1,
                 s.score,
+                prob(s.success_prob),
                 f(s.pose.point_m),
                 f(s.pose.approach)
             ),

@@ -3,10 +3,11 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_eval::grasp_eval::{
-    GraspEvalConfig, GraspJsonRow, GraspRow, GripperKind, grasp_evaluate, grasp_table,
+    CoverageRow, GraspEvalConfig, GraspJsonRow, GraspRow, GripperKind, coverage_table,
+    grasp_evaluate, grasp_table, reliability_table_of,
 };
 use moma_eval::report::write_table;
 
@@ -19,8 +20,13 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// A trial is one object region: an 8-connected component of the frame's mask with at least
 /// --min-object-px pixels, or the whole frame without a mask; no grasp found is a failed trial.
 /// Rows `gt` (planned on the ground truth: the planner's ceiling) and `sensor` (planned on
-/// raw_depth.png where the set has one) are always added. Writes OUT/grasp_results.{md,csv,json};
-/// --json prints one array of {"set","method","gripper","trials","successes","success_rate"}.
+/// raw_depth.png where the set has one) are always added. The variants are `moma eval`'s, with
+/// its flags and labels (--realign anchors [--brightness], --robust, --calib-frames). Grasps are
+/// ranked robust (by success probability under the frame's error model; --grasp-quality).
+/// Writes OUT/grasp_results.{md,csv,json}, OUT/grasp_reliability.{md,csv,json} and
+/// OUT/sigma_coverage.{md,csv,json}; --json prints one array of {"set","method","variant",
+/// "grasp_quality","gripper","trials","successes","success_rate","brier","reliability":
+/// [{"bin":[lo,hi],"grasps":n,"predicted":p,"achieved":a}]}.
 /// PROXY scores, not robot trials; SIMULATED predictions are labelled so.
 ///
 /// Example:
@@ -56,17 +62,53 @@ pub struct GraspEvalArgs {
         default_value = "moma-grasp-eval-out"
     )]
     pub out: PathBuf,
+    /// Few-shot calibration, as `moma eval --calib-frames`: calibrate on the first K frames in
+    /// sorted frame-id order, for each K given; every K plans on the frames after the largest K.
+    /// Rows `one-shot` (K = 1) or `few-shot-K`.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "K",
+        conflicts_with = "calib_frame"
+    )]
+    pub calib_frames: Vec<usize>,
+    /// Grasp rankings to evaluate, comma-separated: robust (by success probability under the
+    /// calibration's error model), nominal (by the planner's score). One block of rows each.
+    #[arg(long, value_delimiter = ',', default_value = "robust", value_name = "QUALITIES", value_parser = parse_quality)]
+    pub grasp_quality: Vec<moma_grasp::GraspQuality>,
+    /// Depth maps drawn from the error model per trial.
+    #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
+    pub grasp_draws: usize,
+    /// Robust ranking: success probabilities within this of the best count as tied, and the
+    /// planner's score decides among them (in [0, 1]).
+    #[arg(long, value_name = "P", default_value_t = moma_grasp::DEFAULT_TIE_TOLERANCE)]
+    pub grasp_tie_tolerance: f32,
     /// Print the JSON contract array to stdout (the table goes to stderr).
     #[arg(long)]
     pub json: bool,
+}
+
+fn parse_quality(s: &str) -> std::result::Result<moma_grasp::GraspQuality, String> {
+    s.parse().map_err(|e: moma_grasp::GraspError| e.to_string())
 }
 
 pub fn run(args: &GraspEvalArgs) -> Result<()> {
     if args.gripper.is_empty() {
         bail!("--gripper needs at least one of parallel, suction");
     }
-    // refused before any set is loaded or any depth model runs
-    args.eval.one_shot_only("grasp-eval")?;
+    if !args.calib_frames.is_empty() {
+        moma_eval::protocol::check_calib_frame_counts(&args.calib_frames)
+            .context("--calib-frames")?;
+    }
+    if args.grasp_draws == 0 {
+        bail!("--grasp-draws must be at least 1");
+    }
+    if !(0.0..=1.0).contains(&args.grasp_tie_tolerance) {
+        bail!(
+            "--grasp-tie-tolerance {} is outside [0, 1]",
+            args.grasp_tie_tolerance
+        );
+    }
     if args.eval.norm.len() > 1 {
         bail!(
             "--norm: `moma grasp-eval` plans with one normalisation (use `moma eval` to compare several)"
@@ -74,6 +116,7 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
     }
     let t0 = Instant::now();
     let mut rows: Vec<GraspRow> = Vec::new();
+    let mut coverage: Vec<CoverageRow> = Vec::new();
     // sets without any trial, noted and skipped when other sets have trials
     let mut skipped: Vec<String> = Vec::new();
     for (i, dir) in args.set.iter().enumerate() {
@@ -83,10 +126,17 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
             eval: args.eval.config(preds.kind()?)?,
             grippers: args.gripper.clone(),
             min_object_px: args.min_object_px,
+            calib_frames: args.calib_frames.clone(),
+            qualities: args.grasp_quality.clone(),
+            draws: args.grasp_draws,
+            tie_tolerance: args.grasp_tie_tolerance,
             ..Default::default()
         };
         let r = match grasp_evaluate(&set, &preds, &config) {
-            Err(e @ moma_eval::EvalError::NoGraspTrials { .. }) if args.set.len() > 1 => {
+            Err(
+                e @ (moma_eval::EvalError::NoGraspTrials { .. }
+                | moma_eval::EvalError::TooFewFrames { .. }),
+            ) if args.set.len() > 1 => {
                 eprintln!("note: {e}; skipped");
                 skipped.push(e.to_string());
                 continue;
@@ -96,10 +146,11 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
         eprintln!(
             "{}: {} rows ({:.1} s)",
             set.name,
-            r.len(),
+            r.rows.len(),
             t0.elapsed().as_secs_f64()
         );
-        rows.extend(r);
+        rows.extend(r.rows);
+        coverage.extend(r.coverage);
     }
     if rows.is_empty() {
         bail!("no set has anything to grasp:\n  {}", skipped.join("\n  "));
@@ -109,13 +160,26 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
     for s in &skipped {
         table.title.push_str(&format!(" — skipped: {s}"));
     }
-    let files = write_table(&args.out, "grasp_results", &table, &rows)?;
+    let mut files = write_table(&args.out, "grasp_results", &table, &rows)?;
+    let reliability = reliability_table_of(&rows);
+    let cov = coverage_table(&coverage);
+    files.extend(write_table(
+        &args.out,
+        "grasp_reliability",
+        &reliability,
+        &rows,
+    )?);
+    files.extend(write_table(&args.out, "sigma_coverage", &cov, &coverage)?);
     if args.json {
         eprintln!("{}", table.to_text());
+        eprintln!("{}", reliability.to_text());
+        eprintln!("{}", cov.to_text());
         let json: Vec<GraspJsonRow> = rows.iter().map(GraspJsonRow::from).collect();
         println!("{}", serde_json::to_string_pretty(&json)?);
     } else {
         println!("{}", table.to_text());
+        println!("{}", reliability.to_text());
+        println!("{}", cov.to_text());
     }
     eprintln!(
         "wrote {} ({:.1} s)",

@@ -1,0 +1,318 @@
+//! One path to grasps and grasping under the depth's error (`moma grasp --realign`,
+//! `--sigma-m`, `--grasp-quality`, `--min-success-prob`; `moma align --sigma-map`;
+//! `moma grasp-eval` with `moma eval`'s variants, Brier scores and reliability tables) end to
+//! end on the bundled demo scene (SIMULATED predictions; no ../shared, no network).
+
+use std::path::Path;
+
+mod common;
+use common::{align_args, calibrate_args, demo, demo_frame, fails, ok, s};
+
+fn json(text: &str) -> Vec<serde_json::Value> {
+    serde_json::from_str::<serde_json::Value>(text)
+        .expect("JSON on stdout")
+        .as_array()
+        .expect("an array")
+        .clone()
+}
+
+#[test]
+fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let frames = scene.join("frames");
+    let camera = scene.join("camera.json");
+    let (pred0, gt0) = demo_frame(&scene, &pred, 0);
+    let (pred1, gt1) = demo_frame(&scene, &pred, 1);
+    let (rgb0, rgb1) = (
+        frames.join("frame_00/rgb.png"),
+        frames.join("frame_01/rgb.png"),
+    );
+    let calib = tmp.path().join("calib.json");
+    let plain = tmp.path().join("plain.json");
+    for (out, anchors) in [(&calib, true), (&plain, false)] {
+        let mut extra = vec!["--camera", s(&camera), "-o", s(out)];
+        if anchors {
+            extra.extend(["--anchors", "--anchors-rgb", s(&rgb0)]);
+        }
+        ok(&calibrate_args(&[&pred0], &[&gt0], &extra));
+    }
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+    assert_eq!(file["version"], 4);
+    let model = &file["calibration"]["error_model"];
+    assert!(model["sigma_flat_m"].as_f64().unwrap() > 0.0, "{model}");
+
+    // `moma grasp` takes its depth as `moma align` does: the nominal grasps on the re-aligned
+    // depth are those planned on `moma align --realign`'s output
+    let grasp = |extra: &[&str]| -> Vec<serde_json::Value> {
+        let mut a = vec![
+            "grasp",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(&pred1),
+            "--gripper",
+            "suction",
+            "--top",
+            "3",
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        json(&ok(&a))
+    };
+    let realign = ["--realign", "anchors", "--realign-rgb", s(&rgb1)];
+    let nominal = grasp(&[&realign[..], &["--grasp-quality", "nominal"]].concat());
+    let aligned_dir = tmp.path().join("aligned");
+    ok(&align_args(
+        &calib,
+        &pred1,
+        &aligned_dir,
+        &[&realign[..], &["--sigma-map"]].concat(),
+    ));
+    let aligned = aligned_dir.join("frame_01.depth.npy");
+    let on_depth = json(&ok(&[
+        "grasp",
+        "--depth",
+        s(&aligned),
+        "--camera",
+        s(&camera),
+        "--gripper",
+        "suction",
+        "--top",
+        "3",
+        "--json",
+    ]));
+    assert!(!nominal.is_empty());
+    assert_eq!(
+        nominal.iter().map(|g| &g["point_m"]).collect::<Vec<_>>(),
+        on_depth.iter().map(|g| &g["point_m"]).collect::<Vec<_>>()
+    );
+    // with a calibration: a probability on every grasp; on a bare depth map: null, unless a σ
+    for g in &nominal {
+        let p = g["success_prob"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&p), "{g}");
+    }
+    assert!(on_depth.iter().all(|g| g["success_prob"].is_null()));
+    let with_sigma = json(&ok(&[
+        "grasp",
+        "--depth",
+        s(&aligned),
+        "--camera",
+        s(&camera),
+        "--gripper",
+        "suction",
+        "--sigma-m",
+        "0.004",
+        "--json",
+    ]));
+    assert!(with_sigma.iter().all(|g| g["success_prob"].is_number()));
+    // robust (the default): best probability first, up to the tie tolerance
+    let robust = grasp(&realign);
+    let probs: Vec<f64> = robust
+        .iter()
+        .map(|g| g["success_prob"].as_f64().unwrap())
+        .collect();
+    let best = probs.iter().copied().fold(0.0, f64::max);
+    assert!(
+        probs[0] >= best - f64::from(moma_grasp::DEFAULT_TIE_TOLERANCE) - 1e-9,
+        "{probs:?}"
+    );
+    // the same seed: the same probabilities; a minimum above every grasp: empty, with the reason
+    assert_eq!(grasp(&realign), robust);
+    let out = common::moma(
+        &[
+            &[
+                "grasp",
+                "--calib",
+                s(&calib),
+                "--pred",
+                s(&pred1),
+                "--gripper",
+                "suction",
+                "--json",
+                "--min-success-prob",
+                "1.0",
+                "--sigma-m",
+                "0.05",
+            ][..],
+            &realign[..],
+        ]
+        .concat(),
+    );
+    assert!(out.status.success());
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "[]");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("below the minimum"));
+
+    // the σ map: metres, beside the depth, finite where the depth is
+    let sigma = moma_io::read_depth(aligned_dir.join("frame_01.sigma.npy")).unwrap();
+    let depth = moma_io::read_depth(&aligned).unwrap();
+    assert_eq!(sigma.size(), depth.size());
+    for (z, sg) in depth.depth_m.iter().zip(sigma.depth_m.iter()) {
+        assert_eq!(z.is_finite(), sg.is_finite());
+    }
+    assert!(aligned_dir.join("frame_01.sigma.png").is_file());
+    let _ = gt1;
+
+    // bad input
+    let e = fails(&[
+        "grasp",
+        "--calib",
+        s(&plain),
+        "--pred",
+        s(&pred1),
+        "--gripper",
+        "suction",
+        "--realign",
+        "anchors",
+        "--realign-rgb",
+        s(&rgb1),
+    ]);
+    assert!(e.contains("plain.json") && e.contains("anchor"), "{e}");
+    let e = fails(&[
+        "grasp",
+        "--depth",
+        s(&aligned),
+        "--camera",
+        s(&camera),
+        "--gripper",
+        "suction",
+        "--realign",
+        "anchors",
+        "--realign-rgb",
+        s(&rgb1),
+    ]);
+    assert!(e.contains("--realign") && e.contains("calibration"), "{e}");
+    for (flag, value, says) in [
+        ("--grasp-draws", "0", "draws"),
+        ("--min-success-prob", "1.5", "[0, 1]"),
+        ("--sigma-m", "-1", "sigma"),
+    ] {
+        let arg = format!("{flag}={value}");
+        let e = fails(&[
+            "grasp",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(&pred1),
+            "--gripper",
+            "suction",
+            &arg,
+        ]);
+        assert!(e.contains(says), "{flag} {value}: {e}");
+    }
+    let e = fails(&[
+        "grasp",
+        "--depth",
+        s(&aligned),
+        "--camera",
+        s(&camera),
+        "--gripper",
+        "suction",
+        "--grasp-quality",
+        "robust",
+    ]);
+    assert!(e.contains("error model"), "{e}");
+}
+
+fn grasp_eval(scene: &Path, pred: &Path, out: &Path, extra: &[&str]) -> Vec<serde_json::Value> {
+    let mut a = vec![
+        "grasp-eval",
+        "--set",
+        s(scene),
+        "--pred",
+        s(pred),
+        "-o",
+        s(out),
+        "--methods",
+        "gssa",
+        "--seeds",
+        "1",
+        "--grasp-draws",
+        "4",
+        "--json",
+    ];
+    a.extend_from_slice(extra);
+    json(&ok(&a))
+}
+
+#[test]
+fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let rows = grasp_eval(
+        &scene,
+        &pred,
+        &tmp.path().join("ge"),
+        &[
+            "--realign",
+            "anchors",
+            "--grasp-quality",
+            "nominal,robust",
+            "--gripper",
+            "suction",
+        ],
+    );
+    let labels: Vec<(String, String, String)> = rows
+        .iter()
+        .map(|r| {
+            (
+                r["method"].as_str().unwrap().into(),
+                r["variant"].as_str().unwrap().into(),
+                r["grasp_quality"].as_str().unwrap().into(),
+            )
+        })
+        .collect();
+    let l = |m: &str, v: &str, q: &str| (m.to_string(), v.to_string(), q.to_string());
+    assert_eq!(
+        labels,
+        [
+            l("gssa", "one-shot", "nominal"),
+            l("gssa", "one-shot", "robust"),
+            l("gssa", "realign-anchors", "nominal"),
+            l("gssa", "realign-anchors", "robust"),
+            l("gt", "-", "nominal"),
+        ]
+    );
+    for r in &rows {
+        let trials = r["trials"].as_u64().unwrap();
+        let rel = r["reliability"].as_array().unwrap();
+        if r["method"] == "gt" {
+            assert!(r["brier"].is_null() && rel.iter().all(|b| b["grasps"] == 0));
+            continue;
+        }
+        let b = r["brier"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&b), "{r}");
+        assert_eq!(rel.len(), 5);
+        let n: u64 = rel.iter().map(|b| b["grasps"].as_u64().unwrap()).sum();
+        assert!(n <= trials && n > 0, "{r}");
+        assert_eq!(rel[0]["bin"], serde_json::json!([0.0, 0.2]));
+    }
+    assert!(tmp.path().join("ge/sigma_coverage.json").is_file());
+    assert!(tmp.path().join("ge/grasp_reliability.md").is_file());
+
+    // few-shot, as `moma eval --calib-frames`
+    let rows = grasp_eval(
+        &scene,
+        &pred,
+        &tmp.path().join("ge2"),
+        &["--calib-frames", "1,2", "--gripper", "parallel"],
+    );
+    let variants: Vec<&str> = rows
+        .iter()
+        .map(|r| r["variant"].as_str().unwrap())
+        .collect();
+    assert_eq!(variants, ["one-shot", "few-shot-2", "-"]);
+    let e = fails(&[
+        "grasp-eval",
+        "--set",
+        s(&scene),
+        "--pred",
+        s(&pred),
+        "-o",
+        s(&tmp.path().join("ge3")),
+        "--grasp-draws",
+        "0",
+    ]);
+    assert!(e.contains("--grasp-draws"), "{e}");
+}

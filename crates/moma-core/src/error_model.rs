@@ -1,0 +1,986 @@
+//! A model of the error of aligned depth, fitted from the calibration itself, and the per-pixel
+//! σ map and random depth draws it gives (docs/grasping.md, "Planning for the depth's error").
+//!
+//! # The model
+//! The true depth of a pixel is modelled as the aligned depth `z` plus independent parts
+//! (metres):
+//! - **relief**: `c · hp(z)`, where `hp = z − box(z)` is the aligned depth's relief against a
+//!   wide box blur (radius [`DepthErrorModel::relief_radius_px`]) and `c ~ N(relief_bias,
+//!   relief_sigma²)` one number per frame. Depth models flatten small objects on a table: on the
+//!   calibration frame the truth's relief is larger than the aligned one, `relief_bias > 0`.
+//! - **flat error** of σ `σ_flat(z) = sigma_flat_m · (z / depth_ref_m)^depth_exponent` (the
+//!   exponent is 2 for a fit in inverse space, whose error in 1/z is even over depth, 0 in depth
+//!   space), split into an offset shared by the frame and three Gaussian fields with correlation
+//!   lengths [`DepthErrorModel::scales_px`] (fine, medium, coarse), by
+//!   [`DepthErrorModel::variance_shares`];
+//! - **edges**: σ = `edge_gain · relief(u, v)`, `relief` the depth range (max − min) of the
+//!   aligned depth in a `(2r+1)²` window, r = [`DepthErrorModel::edge_radius_px`]: aligned
+//!   silhouettes are spread over a few pixels, so near a depth edge the error is a fraction of
+//!   the edge's height.
+//!
+//! The per-pixel σ ([`DepthErrorModel::sigma_map`]) is the RMS of all parts, the relief bias
+//! included: `σ² = σ_flat(z)² + (relief_bias² + relief_sigma²)·hp² + (edge_gain·relief)²`.
+//!
+//! # Where the numbers come from
+//! Only from calibration data ([`DepthErrorModel::fit`]): the dense residuals of each
+//! calibration frame (the calibration's result on the frame against its ground truth), with the
+//! cross-validated residuals of the calibration samples as a floor of `σ_flat` (the fit has seen
+//! its own samples).
+//! 1. `relief_bias`: least squares of `truth − aligned` on `hp` over the pixels with
+//!    `|hp| ≤` [`MAX_RELIEF_M`]; `relief_sigma = |relief_bias|` (one frame cannot tell how the factor
+//!    varies between frames; a zero correction stays within one σ).
+//! 2. The rest `r = truth − aligned − relief_bias·hp`, divided by `(z / depth_ref_m)^p`
+//!    (`depth_ref_m` the median calibration depth): `σ_flat²` its mean square over flat pixels;
+//!    the offset share its mean squared over that; the field shares from its semivariogram at
+//!    lags 1–64 px (non-negative least squares of `γ(L) = Σ v_k · min(1, L / s_k)`).
+//! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels.
+//!
+//! With per-frame re-alignment on static anchors, the frame's own held-out anchor RMSE raises
+//! `σ_flat` for that frame ([`DepthErrorModel::for_frame`]).
+//!
+//! # Draws
+//! [`DepthErrorModel::draw_into`] adds one seeded sample of all parts to a depth map (a
+//! plausible true scene): the relief factor and the offset are single N(0, 1) numbers, each
+//! field is N(0, 1) on a grid every `s_k` pixels, bilinear between, divided per pixel by the
+//! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px.
+//! Pixels without depth stay without depth; a draw never leaves a pixel at ≤ 0 m (it keeps the
+//! original there).
+
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{CoreError, Result};
+use crate::image::{ImageSize, MetricDepth, is_valid_depth};
+
+/// Relief below which a pixel counts as flat (metres): 5 mm.
+pub const FLAT_RELIEF_M: f32 = 0.005;
+
+/// Largest relief |hp| that counts as a small object's (metres): larger ones are scene
+/// structure (walls, far background) and stay out of the relief factor's fit.
+pub const MAX_RELIEF_M: f32 = 0.1;
+
+/// Correlation lengths of the fine, medium and coarse fields, pixels.
+pub const FIELD_SCALES_PX: [f64; 3] = [2.0, 8.0, 32.0];
+
+/// Lags of the residual semivariogram, pixels.
+const LAGS_PX: [usize; 7] = [1, 2, 4, 8, 16, 32, 64];
+
+/// Correlation length of the edge field, pixels.
+const EDGE_SCALE_PX: f64 = 2.0;
+
+/// The error model of a calibration's aligned depth (module documentation). Metres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DepthErrorModel {
+    /// σ of the flat error at `depth_ref_m` (offset and fields together), metres.
+    pub sigma_flat_m: f64,
+    /// Reference depth of `sigma_flat_m`, metres.
+    pub depth_ref_m: f64,
+    /// Exponent p of the flat σ's growth with depth, `(z / depth_ref_m)^p` (0 or 2).
+    pub depth_exponent: f64,
+    /// Shares of the flat variance: offset, fine, medium and coarse field (sum 1).
+    pub variance_shares: [f64; 4],
+    /// Correlation lengths of the fine, medium and coarse fields, pixels.
+    pub scales_px: [f64; 3],
+    /// Mean of the relief factor c (truth − aligned = c·hp).
+    pub relief_bias: f64,
+    /// σ of the relief factor.
+    pub relief_sigma: f64,
+    /// Radius of the box blur that defines the relief hp, pixels.
+    pub relief_radius_px: u32,
+    /// σ of the edge part per metre of relief (dimensionless, ≥ 0).
+    pub edge_gain: f64,
+    /// Radius of the relief window, pixels.
+    pub edge_radius_px: u32,
+}
+
+impl Default for DepthErrorModel {
+    /// A model with no error at all (σ = 0 everywhere; draws equal the input).
+    fn default() -> Self {
+        Self {
+            sigma_flat_m: 0.0,
+            depth_ref_m: 1.0,
+            depth_exponent: 0.0,
+            variance_shares: [0.0, 0.0, 0.0, 1.0],
+            scales_px: FIELD_SCALES_PX,
+            relief_bias: 0.0,
+            relief_sigma: 0.0,
+            relief_radius_px: 48,
+            edge_gain: 0.0,
+            edge_radius_px: 3,
+        }
+    }
+}
+
+/// One calibration frame's residuals for [`DepthErrorModel::fit`].
+#[derive(Debug, Clone, Copy)]
+pub struct ResidualFrame<'a> {
+    /// The calibration's aligned depth of the frame, metres (NaN: no depth).
+    pub aligned_m: ArrayView2<'a, f32>,
+    /// The frame's ground truth, metres (NaN or ≤ 0: no depth).
+    pub truth_m: ArrayView2<'a, f32>,
+}
+
+impl DepthErrorModel {
+    /// A uniform model: σ = `sigma_m` everywhere, as a coarse field (no offset, relief or edge
+    /// part); for planning on a depth map that has no calibration
+    /// (`moma grasp --depth … --sigma-m S`).
+    ///
+    /// # Errors
+    /// `sigma_m` not finite or outside [0, 10] m.
+    pub fn uniform(sigma_m: f64) -> Result<Self> {
+        let m = Self {
+            sigma_flat_m: sigma_m,
+            ..Self::default()
+        };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// Checks the fields (a model read from a file).
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: &str, v: f64, rule: &str| {
+            Err(CoreError::InvalidParameter(format!(
+                "depth error model: {what} = {v} must be {rule}"
+            )))
+        };
+        let within = |v: f64, lo: f64, hi: f64| v.is_finite() && (lo..=hi).contains(&v);
+        if !within(self.sigma_flat_m, 0.0, 10.0) {
+            return bad("sigma_flat_m", self.sigma_flat_m, "finite, in [0, 10] m");
+        }
+        if !within(self.depth_ref_m, 1e-3, 1e3) {
+            return bad("depth_ref_m", self.depth_ref_m, "in [0.001, 1000] m");
+        }
+        if !within(self.depth_exponent, 0.0, 4.0) {
+            return bad("depth_exponent", self.depth_exponent, "in [0, 4]");
+        }
+        let sum: f64 = self.variance_shares.iter().sum();
+        if self.variance_shares.iter().any(|&s| !within(s, 0.0, 1.0)) || (sum - 1.0).abs() > 1e-6 {
+            return bad("the variance shares' sum", sum, "1, each share in [0, 1]");
+        }
+        if let Some(&s) = self.scales_px.iter().find(|&&s| !within(s, 1.0, 4096.0)) {
+            return bad("a field scale", s, "in [1, 4096] px");
+        }
+        if !within(self.relief_bias, -10.0, 10.0) {
+            return bad("relief_bias", self.relief_bias, "finite, in [-10, 10]");
+        }
+        if !within(self.relief_sigma, 0.0, 10.0) {
+            return bad("relief_sigma", self.relief_sigma, "finite, in [0, 10]");
+        }
+        if !within(self.edge_gain, 0.0, 10.0) {
+            return bad("edge_gain", self.edge_gain, "finite, in [0, 10]");
+        }
+        if self.edge_radius_px > 64 || self.relief_radius_px > 1024 {
+            return bad(
+                "edge_radius_px / relief_radius_px",
+                self.edge_radius_px.max(self.relief_radius_px) as f64,
+                "at most 64 / 1024 px",
+            );
+        }
+        Ok(())
+    }
+
+    /// Fits the model (module documentation) from the calibration frames' dense residuals and
+    /// the cross-validated residuals of the calibration samples (`cv_residuals_m`, metres, at
+    /// depths `cv_depths_m`; may be empty). `depth_exponent` is 2 for a fit in inverse space,
+    /// 0 in depth space.
+    ///
+    /// # Errors
+    /// A frame whose aligned depth and truth differ in size; no flat pixel with both depths.
+    pub fn fit(
+        frames: &[ResidualFrame<'_>],
+        cv_residuals_m: &[(f64, f64)],
+        depth_exponent: f64,
+    ) -> Result<Self> {
+        let mut m = Self {
+            depth_exponent,
+            ..Self::default()
+        };
+        let mut prepared = Vec::with_capacity(frames.len());
+        let mut depths: Vec<f32> = Vec::new();
+        for (k, f) in frames.iter().enumerate() {
+            let size = ImageSize::of(&f.aligned_m);
+            if ImageSize::of(&f.truth_m) != size {
+                return Err(CoreError::InvalidParameter(format!(
+                    "depth error model: calibration frame {k}: aligned depth {size} but ground \
+                     truth {}",
+                    ImageSize::of(&f.truth_m)
+                )));
+            }
+            m.relief_radius_px = relief_radius_for(size);
+            let relief = relief_map(f.aligned_m, m.edge_radius_px);
+            let hp = high_pass(f.aligned_m, m.relief_radius_px);
+            depths.extend(
+                f.aligned_m
+                    .iter()
+                    .zip(f.truth_m.iter())
+                    .filter(|(a, t)| is_valid_depth(**a) && is_valid_depth(**t))
+                    .map(|(a, _)| *a),
+            );
+            prepared.push((relief, hp));
+        }
+        if depths.is_empty() {
+            return Err(no_pixels());
+        }
+        let mid = depths.len() / 2;
+        m.depth_ref_m =
+            f64::from(*depths.select_nth_unstable_by(mid, f32::total_cmp).1).clamp(1e-3, 1e3);
+        // 1. the relief factor, over pixels of small-object relief
+        let (mut shp, mut shh) = (0.0f64, 0.0f64);
+        for (f, (_, hp)) in frames.iter().zip(&prepared) {
+            for ((&a, &t), &h) in f.aligned_m.iter().zip(f.truth_m.iter()).zip(hp.iter()) {
+                if is_valid_depth(a) && is_valid_depth(t) && h.abs() <= MAX_RELIEF_M {
+                    shp += f64::from(t - a) * f64::from(h);
+                    shh += f64::from(h) * f64::from(h);
+                }
+            }
+        }
+        m.relief_bias = if shh > 0.0 {
+            (shp / shh).clamp(-10.0, 10.0)
+        } else {
+            0.0
+        };
+        m.relief_sigma = m.relief_bias.abs();
+        // 2. the normalised rest: flat mean square, offset, semivariogram
+        let (mut sum_sq, mut sum, mut n_flat) = (0.0f64, 0.0f64, 0usize);
+        let mut gamma = [(0.0f64, 0usize); LAGS_PX.len()];
+        let mut rests = Vec::with_capacity(frames.len());
+        for (f, (relief, hp)) in frames.iter().zip(&prepared) {
+            let rest = Array2::from_shape_fn(f.aligned_m.raw_dim(), |(v, u)| {
+                let (a, t) = (f.aligned_m[[v, u]], f.truth_m[[v, u]]);
+                if !(is_valid_depth(a) && is_valid_depth(t)) {
+                    return f32::NAN;
+                }
+                let h = if hp[[v, u]].is_finite() {
+                    hp[[v, u]]
+                } else {
+                    0.0
+                };
+                ((f64::from(t - a) - m.relief_bias * f64::from(h)) / m.depth_scale(a)) as f32
+            });
+            let flat =
+                |v: usize, u: usize| rest[[v, u]].is_finite() && relief[[v, u]] < FLAT_RELIEF_M;
+            let (h, w) = rest.dim();
+            for v in 0..h {
+                for u in 0..w {
+                    if !flat(v, u) {
+                        continue;
+                    }
+                    let x = f64::from(rest[[v, u]]);
+                    sum_sq += x * x;
+                    sum += x;
+                    n_flat += 1;
+                    // every second row and column is enough for the semivariogram
+                    if v % 2 == 0 && u % 2 == 0 {
+                        for (g, &lag) in gamma.iter_mut().zip(&LAGS_PX) {
+                            if u + lag < w && flat(v, u + lag) {
+                                g.0 += (x - f64::from(rest[[v, u + lag]])).powi(2);
+                                g.1 += 1;
+                            }
+                            if v + lag < h && flat(v + lag, u) {
+                                g.0 += (x - f64::from(rest[[v + lag, u]])).powi(2);
+                                g.1 += 1;
+                            }
+                        }
+                    }
+                }
+            }
+            rests.push(rest);
+        }
+        if n_flat == 0 {
+            return Err(no_pixels());
+        }
+        let dense = sum_sq / n_flat as f64;
+        let cv = if cv_residuals_m.is_empty() {
+            0.0
+        } else {
+            cv_residuals_m
+                .iter()
+                .map(|&(r, z)| (r / m.depth_scale(z as f32)).powi(2))
+                .sum::<f64>()
+                / cv_residuals_m.len() as f64
+        };
+        let total = dense.max(cv);
+        m.sigma_flat_m = total.sqrt().min(10.0);
+        if total > 0.0 {
+            let mean = sum / n_flat as f64;
+            let offset = (mean * mean / total).clamp(0.0, 1.0);
+            let semi: Vec<(f64, f64)> = LAGS_PX
+                .iter()
+                .zip(&gamma)
+                .filter(|(_, g)| g.1 > 0)
+                .map(|(&l, g)| (l as f64, 0.5 * g.0 / g.1 as f64))
+                .collect();
+            let v = field_variances(&semi, &m.scales_px);
+            let fields: f64 = v.iter().sum();
+            // the fields share what the offset leaves, in the semivariogram's proportions
+            let rest_share = 1.0 - offset;
+            m.variance_shares = if fields > 0.0 {
+                [
+                    offset,
+                    rest_share * v[0] / fields,
+                    rest_share * v[1] / fields,
+                    rest_share * v[2] / fields,
+                ]
+            } else {
+                [offset, 0.0, 0.0, rest_share]
+            };
+        }
+        // 3. edges: r² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for ((f, (relief, _)), rest) in frames.iter().zip(&prepared).zip(&rests) {
+            for ((&x, &r), &a) in rest.iter().zip(relief.iter()).zip(f.aligned_m.iter()) {
+                if x.is_finite() && r >= FLAT_RELIEF_M {
+                    let s = m.depth_scale(a);
+                    let e2 = (f64::from(x) * s).powi(2);
+                    let r2 = f64::from(r).powi(2);
+                    num += r2 * (e2 - (m.sigma_flat_m * s).powi(2));
+                    den += r2 * r2;
+                }
+            }
+        }
+        m.edge_gain = if den > 0.0 {
+            (num / den).max(0.0).sqrt().min(10.0)
+        } else {
+            0.0
+        };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// `(z / depth_ref_m)^depth_exponent` (1 for an invalid z).
+    fn depth_scale(&self, z: f32) -> f64 {
+        if self.depth_exponent == 0.0 || !is_valid_depth(z) {
+            1.0
+        } else {
+            (f64::from(z) / self.depth_ref_m).powf(self.depth_exponent)
+        }
+    }
+
+    /// The model of one frame: `sigma_flat_m` raised to the frame's own background residual
+    /// (metres at the reference depth, e.g. the held-out anchor RMSE after re-alignment) when
+    /// that is larger.
+    pub fn for_frame(&self, frame_residual_m: Option<f64>) -> Self {
+        match frame_residual_m {
+            Some(r) if r.is_finite() && r > self.sigma_flat_m => Self {
+                sigma_flat_m: r.min(10.0),
+                ..*self
+            },
+            _ => *self,
+        }
+    }
+
+    /// The per-pixel σ (metres) of the error of `depth` (NaN where `depth` has no depth).
+    pub fn sigma_map(&self, depth: &MetricDepth) -> Array2<f32> {
+        let d = depth.depth_m.view();
+        let relief = relief_map(d, self.edge_radius_px);
+        let hp = self.relief_part(d);
+        let c2 = (self.relief_bias.powi(2) + self.relief_sigma.powi(2)) as f32;
+        let g = self.edge_gain as f32;
+        Array2::from_shape_fn(d.raw_dim(), |(v, u)| {
+            let z = d[[v, u]];
+            if !is_valid_depth(z) {
+                return f32::NAN;
+            }
+            let s = (self.sigma_flat_m * self.depth_scale(z)) as f32;
+            let h = hp.as_ref().map_or(0.0, |hp| hp[[v, u]]);
+            (s * s + c2 * h * h + (g * relief[[v, u]]).powi(2)).sqrt()
+        })
+    }
+
+    /// The relief hp of `d` when the model has a relief part (NaN-free: 0 where undefined).
+    fn relief_part(&self, d: ArrayView2<'_, f32>) -> Option<Array2<f32>> {
+        (self.relief_bias != 0.0 || self.relief_sigma != 0.0).then(|| {
+            high_pass(d, self.relief_radius_px).mapv(|h| if h.is_finite() { h } else { 0.0 })
+        })
+    }
+
+    /// Adds draw number `draw` (seeded by `seed`) of the error to `depth` in place: a plausible
+    /// true scene (module documentation). With σ = 0 everywhere the depth is unchanged.
+    pub fn draw_into(&self, depth: &mut ArrayViewMut2<'_, f32>, seed: u64, draw: u64) {
+        let (h, w) = depth.dim();
+        let drawn = Draws::new(self, depth.view(), Roi::full(w, h)).draw(seed, draw);
+        depth.assign(&drawn);
+    }
+
+    /// A new depth map: `depth` plus draw number `draw` ([`DepthErrorModel::draw_into`]).
+    pub fn draw(&self, depth: &MetricDepth, seed: u64, draw: u64) -> MetricDepth {
+        let (h, w) = depth.depth_m.dim();
+        MetricDepth::new(Draws::new(self, depth.depth_m.view(), Roi::full(w, h)).draw(seed, draw))
+    }
+}
+
+/// A rectangle of an image, pixels: columns `u0..u0 + width`, rows `v0..v0 + height`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Roi {
+    /// First column.
+    pub u0: usize,
+    /// First row.
+    pub v0: usize,
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+}
+
+impl Roi {
+    /// The whole `width × height` image.
+    pub const fn full(width: usize, height: usize) -> Self {
+        Self {
+            u0: 0,
+            v0: 0,
+            width,
+            height,
+        }
+    }
+}
+
+/// Depth draws of one region of a depth map: the relief maps the model needs are computed once
+/// (on the region grown by their window radii, so that they equal the whole map's there), and
+/// each draw fills only the region (the draws of a grasp need only the region around it).
+/// Draw `k` of seed `s` over the whole map equals [`DepthErrorModel::draw`].
+pub struct Draws<'a> {
+    model: DepthErrorModel,
+    depth: ArrayView2<'a, f32>,
+    roi: Roi,
+    /// Where the relief maps start in the map (they cover the grown region).
+    pad_u0: usize,
+    pad_v0: usize,
+    relief: Array2<f32>,
+    hp: Option<Array2<f32>>,
+}
+
+impl<'a> Draws<'a> {
+    /// Prepares draws of `model` around `depth` (metres) inside `roi` (clipped to the map).
+    pub fn new(model: &DepthErrorModel, depth: ArrayView2<'a, f32>, roi: Roi) -> Self {
+        let (h_all, w_all) = depth.dim();
+        let (u0, v0) = (roi.u0.min(w_all), roi.v0.min(h_all));
+        let roi = Roi {
+            u0,
+            v0,
+            width: roi.width.min(w_all - u0),
+            height: roi.height.min(h_all - v0),
+        };
+        let pad =
+            model
+                .edge_radius_px
+                .max(if model.relief_bias != 0.0 || model.relief_sigma != 0.0 {
+                    model.relief_radius_px
+                } else {
+                    0
+                }) as usize;
+        let (pu0, pv0) = (u0.saturating_sub(pad), v0.saturating_sub(pad));
+        let (pu1, pv1) = (
+            (u0 + roi.width + pad).min(w_all),
+            (v0 + roi.height + pad).min(h_all),
+        );
+        let grown = depth.slice(ndarray::s![pv0..pv1, pu0..pu1]);
+        Self {
+            model: *model,
+            depth,
+            roi,
+            pad_u0: pu0,
+            pad_v0: pv0,
+            relief: relief_map(grown, model.edge_radius_px),
+            hp: model.relief_part(grown),
+        }
+    }
+
+    /// The region the draws cover (clipped to the map).
+    pub fn roi(&self) -> Roi {
+        self.roi
+    }
+
+    /// Draw number `draw` (seeded by `seed`): the drawn depth of the region's pixels,
+    /// `roi.height × roi.width`.
+    pub fn draw(&self, seed: u64, draw: u64) -> Array2<f32> {
+        let m = &self.model;
+        let Roi {
+            u0,
+            v0,
+            width: w,
+            height: h,
+        } = self.roi;
+        let mut out = self
+            .depth
+            .slice(ndarray::s![v0..v0 + h, u0..u0 + w])
+            .to_owned();
+        if w == 0 || h == 0 {
+            return out;
+        }
+        // offsets of the region inside the relief maps
+        let (du, dv) = (u0 - self.pad_u0, v0 - self.pad_v0);
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            seed ^ draw.wrapping_add(1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let c = (m.relief_bias + m.relief_sigma * f64::from(normal(&mut rng))) as f32;
+        let shares = m.variance_shares;
+        let offset = (shares[0].sqrt() * m.sigma_flat_m) as f32 * normal(&mut rng);
+        let fields: Vec<(f32, SmoothField)> = m
+            .scales_px
+            .iter()
+            .zip(&shares[1..])
+            .filter(|(_, s)| **s > 0.0)
+            .map(|(&scale, &s)| {
+                (
+                    (s.sqrt() * m.sigma_flat_m) as f32,
+                    SmoothField::new(w, h, scale, &mut rng),
+                )
+            })
+            .collect();
+        let edges = SmoothField::new(w, h, EDGE_SCALE_PX, &mut rng);
+        let g = m.edge_gain as f32;
+        let inv_ref2 = (1.0 / (m.depth_ref_m * m.depth_ref_m)) as f32;
+        let mut flat = vec![0.0f32; w];
+        let mut rest = vec![0.0f32; w];
+        for v in 0..h {
+            let vf = v + dv;
+            flat.fill(offset);
+            for (s, f) in &fields {
+                f.add_row(v, &mut flat, |_| *s);
+            }
+            rest.fill(0.0);
+            let relief = self.relief.row(vf);
+            edges.add_row(v, &mut rest, |u| g * relief[u + du]);
+            if let Some(hp) = &self.hp {
+                let hp = hp.row(vf);
+                for (u, r) in rest.iter_mut().enumerate() {
+                    *r += c * hp[u + du];
+                }
+            }
+            for (u, z) in out.row_mut(v).iter_mut().enumerate() {
+                if !is_valid_depth(*z) {
+                    continue;
+                }
+                // (z / z_ref)^p: the exponents fitted are 0 and 2
+                let scale = if m.depth_exponent == 0.0 {
+                    1.0
+                } else if m.depth_exponent == 2.0 {
+                    *z * *z * inv_ref2
+                } else {
+                    m.depth_scale(*z) as f32
+                };
+                let t = *z + flat[u] * scale + rest[u];
+                if is_valid_depth(t) {
+                    *z = t;
+                }
+            }
+        }
+        out
+    }
+}
+
+fn no_pixels() -> CoreError {
+    CoreError::NoValidPixels(
+        "depth error model: no flat pixel with both an aligned and a ground-truth depth".into(),
+    )
+}
+
+/// The relief blur radius for an image: 7.5 % of its width (48 px at 640), at least 4 px.
+fn relief_radius_for(size: ImageSize) -> u32 {
+    ((size.width as f64 * 0.075).round() as u32).max(4)
+}
+
+/// Non-negative least squares of `γ(L) = Σ_k v_k · min(1, L / s_k)` over the semivariogram
+/// points `(L, γ)`: every subset of the three fields solved unconstrained, the best feasible
+/// kept (3 unknowns: 7 subsets).
+fn field_variances(semi: &[(f64, f64)], scales: &[f64; 3]) -> [f64; 3] {
+    let basis = |l: f64, k: usize| (l / scales[k]).min(1.0);
+    let mut best = ([0.0; 3], f64::INFINITY);
+    for subset in 1u32..8 {
+        let idx: Vec<usize> = (0..3).filter(|k| subset & (1 << k) != 0).collect();
+        let n = idx.len();
+        // normal equations
+        let mut a = [[0.0f64; 3]; 3];
+        let mut b = [0.0f64; 3];
+        for &(l, g) in semi {
+            for (i, &ki) in idx.iter().enumerate() {
+                b[i] += basis(l, ki) * g;
+                for (j, &kj) in idx.iter().enumerate() {
+                    a[i][j] += basis(l, ki) * basis(l, kj);
+                }
+            }
+        }
+        let Some(x) = solve(&a, &b, n) else { continue };
+        if x[..n].iter().any(|&v| v < 0.0) {
+            continue;
+        }
+        let mut v = [0.0; 3];
+        for (i, &k) in idx.iter().enumerate() {
+            v[k] = x[i];
+        }
+        let sse: f64 = semi
+            .iter()
+            .map(|&(l, g)| (g - (0..3).map(|k| v[k] * basis(l, k)).sum::<f64>()).powi(2))
+            .sum();
+        if sse < best.1 {
+            best = (v, sse);
+        }
+    }
+    best.0
+}
+
+/// Gaussian elimination of the leading `n × n` system; `None` when singular.
+fn solve(a: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
+    let mut m = *a;
+    let mut y = *b;
+    for c in 0..n {
+        let p = (c..n).max_by(|&i, &j| m[i][c].abs().total_cmp(&m[j][c].abs()))?;
+        if m[p][c].abs() < 1e-300 {
+            return None;
+        }
+        m.swap(c, p);
+        y.swap(c, p);
+        for r in c + 1..n {
+            let f = m[r][c] / m[c][c];
+            for k in c..n {
+                m[r][k] -= f * m[c][k];
+            }
+            y[r] -= f * y[c];
+        }
+    }
+    let mut x = [0.0; 3];
+    for c in (0..n).rev() {
+        let s: f64 = (c + 1..n).map(|k| m[c][k] * x[k]).sum();
+        x[c] = (y[c] - s) / m[c][c];
+    }
+    Some(x)
+}
+
+fn normal(rng: &mut ChaCha8Rng) -> f32 {
+    let x: f64 = StandardNormal.sample(rng);
+    x as f32
+}
+
+/// A unit-variance Gaussian field over a `w × h` region: N(0, 1) on a grid every `scale`
+/// pixels, bilinear between, each pixel divided by the norm of its interpolation weights. That
+/// norm factorises, `√((1−fx)² + fx²) · √((1−fy)² + fy²)`, so the weights are tabled once per
+/// column and per row.
+struct SmoothField {
+    nodes: Array2<f32>,
+    /// Per column: grid column `i` and the normalised weights of columns `i`, `i + 1`.
+    cols: Vec<(usize, f32, f32)>,
+    /// Per row: grid row `j` and the normalised weights of rows `j`, `j + 1`.
+    rows: Vec<(usize, f32, f32)>,
+}
+
+impl SmoothField {
+    fn new(w: usize, h: usize, scale: f64, rng: &mut ChaCha8Rng) -> Self {
+        let scale = scale.max(1.0) as f32;
+        let gw = (w as f32 / scale).ceil() as usize + 2;
+        let gh = (h as f32 / scale).ceil() as usize + 2;
+        let nodes = Array2::from_shape_fn((gh, gw), |_| normal(rng));
+        let table = |n: usize| -> Vec<(usize, f32, f32)> {
+            (0..n)
+                .map(|x| {
+                    let t = x as f32 / scale;
+                    let i = t.floor() as usize;
+                    let f = t - i as f32;
+                    let norm = ((1.0 - f) * (1.0 - f) + f * f).sqrt();
+                    (i, (1.0 - f) / norm, f / norm)
+                })
+                .collect()
+        };
+        Self {
+            nodes,
+            cols: table(w),
+            rows: table(h),
+        }
+    }
+
+    /// Adds `gain(u) · field(u, v)` to `row[u]` for every column `u` of row `v`.
+    #[inline]
+    fn add_row(&self, v: usize, row: &mut [f32], gain: impl Fn(usize) -> f32) {
+        let (j, wy0, wy1) = self.rows[v];
+        let (r0, r1) = (self.nodes.row(j), self.nodes.row(j + 1));
+        for (u, (x, &(i, wx0, wx1))) in row.iter_mut().zip(&self.cols).enumerate() {
+            let f = wy0 * (wx0 * r0[i] + wx1 * r0[i + 1]) + wy1 * (wx0 * r1[i] + wx1 * r1[i + 1]);
+            *x += gain(u) * f;
+        }
+    }
+}
+
+/// `depth − box(depth)`: the depth's relief against the mean of the valid pixels in a
+/// `(2r+1)²` box (integral images, so any radius costs the same); NaN where `depth` has no
+/// depth.
+pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
+    let (h, w) = depth.dim();
+    let r = r as usize;
+    // integral images of the sum and the count of valid pixels, (h+1) × (w+1)
+    let mut sum = Array2::<f64>::zeros((h + 1, w + 1));
+    let mut cnt = Array2::<u32>::zeros((h + 1, w + 1));
+    for v in 0..h {
+        let (mut rs, mut rc) = (0.0f64, 0u32);
+        for u in 0..w {
+            let z = depth[[v, u]];
+            if is_valid_depth(z) {
+                rs += f64::from(z);
+                rc += 1;
+            }
+            sum[[v + 1, u + 1]] = sum[[v, u + 1]] + rs;
+            cnt[[v + 1, u + 1]] = cnt[[v, u + 1]] + rc;
+        }
+    }
+    Array2::from_shape_fn((h, w), |(v, u)| {
+        let z = depth[[v, u]];
+        if !is_valid_depth(z) {
+            return f32::NAN;
+        }
+        let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
+        let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
+        let s = sum[[v1, u1]] - sum[[v0, u1]] - sum[[v1, u0]] + sum[[v0, u0]];
+        let c = cnt[[v1, u1]] + cnt[[v0, u0]] - cnt[[v0, u1]] - cnt[[v1, u0]];
+        (f64::from(z) - s / f64::from(c.max(1))) as f32
+    })
+}
+
+/// The depth range (max − min over valid pixels) of `depth` in a `(2r+1)²` window around each
+/// pixel, metres (0 where the window holds fewer than two valid pixels). Separable sliding
+/// max/min: rows, then columns.
+pub fn relief_map(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
+    let (h, w) = depth.dim();
+    let r = r as usize;
+    let mut hmax = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
+    let mut hmin = Array2::<f32>::from_elem((h, w), f32::INFINITY);
+    for v in 0..h {
+        for u in 0..w {
+            let (mut mx, mut mn) = (f32::NEG_INFINITY, f32::INFINITY);
+            for x in u.saturating_sub(r)..(u + r + 1).min(w) {
+                let z = depth[[v, x]];
+                if is_valid_depth(z) {
+                    mx = mx.max(z);
+                    mn = mn.min(z);
+                }
+            }
+            hmax[[v, u]] = mx;
+            hmin[[v, u]] = mn;
+        }
+    }
+    let mut out = Array2::<f32>::zeros((h, w));
+    for v in 0..h {
+        for u in 0..w {
+            let (mut mx, mut mn) = (f32::NEG_INFINITY, f32::INFINITY);
+            for y in v.saturating_sub(r)..(v + r + 1).min(h) {
+                mx = mx.max(hmax[[y, u]]);
+                mn = mn.min(hmin[[y, u]]);
+            }
+            out[[v, u]] = if mx > mn { mx - mn } else { 0.0 };
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn step_scene(w: usize, h: usize) -> Array2<f32> {
+        // a table at 1 m with a 50 mm box in the middle
+        Array2::from_shape_fn((h, w), |(v, u)| {
+            if (w / 3..2 * w / 3).contains(&u) && (h / 3..2 * h / 3).contains(&v) {
+                0.95
+            } else {
+                1.0
+            }
+        })
+    }
+
+    #[test]
+    fn relief_is_the_step_height_near_the_edge_and_zero_away() {
+        let d = step_scene(60, 45);
+        let r = relief_map(d.view(), 3);
+        assert!((r[[22, 20]] - 0.05).abs() < 1e-6); // at the box's left edge (u = 20)
+        assert_eq!(r[[22, 30]], 0.0); // inside
+        assert_eq!(r[[2, 2]], 0.0); // table
+    }
+
+    #[test]
+    fn high_pass_is_depth_minus_the_box_mean() {
+        // a ramp: the box mean of a linear function is its value at the centre (inside)
+        let d = Array2::from_shape_fn((20, 30), |(v, u)| 1.0 + 0.01 * u as f32 + 0.002 * v as f32);
+        let hp = high_pass(d.view(), 3);
+        assert!(hp[[10, 15]].abs() < 1e-5);
+        // a spike of +10 mm on a flat 1 m: 10 mm · (1 − 1/49) at the spike
+        let mut f = Array2::from_elem((20, 30), 1.0f32);
+        f[[10, 15]] = 1.01;
+        let hp = high_pass(f.view(), 3);
+        assert!((hp[[10, 15]] - 0.01 * (1.0 - 1.0 / 49.0)).abs() < 1e-6);
+        assert!((hp[[10, 12]] + 0.01 / 49.0).abs() < 1e-6);
+        f[[0, 0]] = f32::NAN;
+        assert!(high_pass(f.view(), 3)[[0, 0]].is_nan());
+    }
+
+    #[test]
+    fn semivariogram_shares_are_recovered() {
+        // γ(L) of 2 mm² at 2 px plus 3 mm² at 32 px
+        let scales = FIELD_SCALES_PX;
+        let semi: Vec<(f64, f64)> = LAGS_PX
+            .iter()
+            .map(|&l| {
+                let l = l as f64;
+                (l, 2.0 * (l / 2.0).min(1.0) + 3.0 * (l / 32.0).min(1.0))
+            })
+            .collect();
+        let v = field_variances(&semi, &scales);
+        assert!(
+            (v[0] - 2.0).abs() < 1e-9 && v[1].abs() < 1e-9 && (v[2] - 3.0).abs() < 1e-9,
+            "{v:?}"
+        );
+    }
+
+    #[test]
+    fn fit_recovers_flat_sigma_offset_and_edge_gain() {
+        // the aligned depth is a clean 50 mm step, so its relief is known in closed form (50 mm
+        // within 3 px of the edge, 0 elsewhere); the truth is aligned − e with e = 4 mm offset
+        // + ±2 mm checkerboard on flat pixels (σ_flat² = 20 mm², offset share 16/20, the rest at
+        // the finest scale) and ±√(σ_flat² + (0.4 · 50 mm)²) near the edge (no relief
+        // compression: the offset alone leaves a small relief factor where hp has a mean)
+        let (w, h) = (90usize, 60usize);
+        let aligned = step_scene(w, h);
+        let relief = relief_map(aligned.view(), 3);
+        let e_edge = (20e-6f32 + (0.4f32 * 0.05).powi(2)).sqrt();
+        let truth = Array2::from_shape_fn((h, w), |(v, u)| {
+            let sign = if (u + v) % 2 == 0 { 1.0 } else { -1.0 };
+            let e = if relief[[v, u]] > 0.0 {
+                sign * e_edge
+            } else {
+                0.004 + sign * 0.002
+            };
+            aligned[[v, u]] - e
+        });
+        let frame = ResidualFrame {
+            aligned_m: aligned.view(),
+            truth_m: truth.view(),
+        };
+        let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
+        assert!((m.sigma_flat_m - 20e-6f64.sqrt()).abs() < 2e-5, "{m:?}");
+        assert!((m.variance_shares[0] - 0.8).abs() < 0.02, "{m:?}");
+        assert!(
+            m.variance_shares[1] > 0.15,
+            "the checkerboard is fine-scale: {m:?}"
+        );
+        assert!((m.edge_gain - 0.4).abs() < 0.01, "{m:?}");
+        assert!(m.relief_bias.abs() < 0.1, "{m:?}");
+        assert_eq!(m.depth_ref_m, 1.0);
+        // cross-validated residuals larger than the dense ones raise σ_flat
+        let m2 = DepthErrorModel::fit(&[frame], &[(0.01, 1.0), (-0.01, 1.0)], 0.0).unwrap();
+        assert!((m2.sigma_flat_m - 0.01).abs() < 1e-9);
+        // no pixel with both depths: an error
+        let none = Array2::from_elem((h, w), f32::NAN);
+        let bad = ResidualFrame {
+            aligned_m: none.view(),
+            truth_m: truth.view(),
+        };
+        assert!(DepthErrorModel::fit(&[bad], &[], 0.0).is_err());
+    }
+
+    #[test]
+    fn fit_measures_relief_compression() {
+        // truth: bumps of 20 mm on a 1 m table; aligned: the same bumps at 80 % height
+        let (w, h) = (200usize, 150usize);
+        let bump = |u: usize, v: usize| {
+            let (x, y) = ((u % 40) as f32 - 20.0, (v % 40) as f32 - 20.0);
+            0.02 * (-(x * x + y * y) / 50.0).exp()
+        };
+        let truth = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - bump(u, v));
+        let aligned = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - 0.8 * bump(u, v));
+        let frame = ResidualFrame {
+            aligned_m: aligned.view(),
+            truth_m: truth.view(),
+        };
+        let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
+        // truth − aligned = −0.2·bump and hp ≈ −0.8·bump + its box mean: c ≈ 0.25
+        assert!((m.relief_bias - 0.25).abs() < 0.05, "{m:?}");
+    }
+
+    #[test]
+    fn draws_have_the_modelled_variance() {
+        // over many draws, each pixel's sample variance matches σ(u, v)² (no relief part: its
+        // bias is a mean, not a variance)
+        let (w, h) = (48usize, 36usize);
+        let d = MetricDepth::new(step_scene(w, h));
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.006,
+            variance_shares: [0.25, 0.25, 0.25, 0.25],
+            scales_px: [2.0, 4.0, 8.0],
+            edge_gain: 0.3,
+            edge_radius_px: 2,
+            ..DepthErrorModel::default()
+        };
+        let sigma = m.sigma_map(&d);
+        let n = 3000;
+        let mut s2 = Array2::<f64>::zeros((h, w));
+        for k in 0..n {
+            let x = m.draw(&d, 7, k);
+            ndarray::Zip::from(&mut s2)
+                .and(&x.depth_m)
+                .and(&d.depth_m)
+                .for_each(|s, &a, &b| *s += ((a - b) as f64).powi(2));
+        }
+        for (v, u) in [(2usize, 2usize), (18, 24), (12, 16), (18, 16)] {
+            let est = (s2[[v, u]] / n as f64).sqrt();
+            let want = sigma[[v, u]] as f64;
+            assert!(
+                (est - want).abs() < 0.06 * want,
+                "pixel ({u}, {v}): draws σ {est}, model σ {want}"
+            );
+        }
+        // same seed and draw: same map; another draw: another map
+        assert_eq!(m.draw(&d, 7, 3), m.draw(&d, 7, 3));
+        assert_ne!(m.draw(&d, 7, 3), m.draw(&d, 7, 4));
+    }
+
+    #[test]
+    fn sigma_grows_with_depth_squared_in_inverse_space() {
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.005,
+            depth_ref_m: 1.0,
+            depth_exponent: 2.0,
+            ..DepthErrorModel::default()
+        };
+        let d = MetricDepth::new(Array2::from_shape_fn(
+            (4, 4),
+            |(v, _)| if v < 2 { 1.0 } else { 2.0 },
+        ));
+        let s = m.sigma_map(&d);
+        assert!((s[[0, 0]] - 0.005).abs() < 1e-7);
+        assert!((s[[3, 3]] - 0.02).abs() < 1e-7);
+    }
+
+    #[test]
+    fn no_depth_stays_no_depth_and_a_zero_model_changes_nothing() {
+        let mut a = step_scene(20, 10);
+        a[[0, 0]] = f32::NAN;
+        let d = MetricDepth::new(a);
+        let m = DepthErrorModel::uniform(0.01).unwrap();
+        let x = m.draw(&d, 1, 0);
+        assert!(x.depth_m[[0, 0]].is_nan());
+        assert!(m.sigma_map(&d)[[0, 0]].is_nan());
+        assert_eq!(
+            DepthErrorModel::default().draw(&d, 1, 0).depth_m[[5, 5]],
+            d.depth_m[[5, 5]]
+        );
+        assert!(DepthErrorModel::uniform(-1.0).is_err());
+        assert!(DepthErrorModel::uniform(f64::NAN).is_err());
+        let shares = DepthErrorModel {
+            variance_shares: [0.5, 0.5, 0.5, 0.5],
+            ..DepthErrorModel::default()
+        };
+        assert!(shares.validate().is_err());
+    }
+
+    #[test]
+    fn a_frame_residual_only_widens() {
+        let m = DepthErrorModel::uniform(0.005).unwrap();
+        assert_eq!(m.for_frame(Some(0.002)).sigma_flat_m, 0.005);
+        assert_eq!(m.for_frame(Some(0.009)).sigma_flat_m, 0.009);
+        assert_eq!(m.for_frame(None).sigma_flat_m, 0.005);
+        assert_eq!(m.for_frame(Some(f64::NAN)).sigma_flat_m, 0.005);
+    }
+}

@@ -1,0 +1,396 @@
+//! The one path from a depth map to grasps ([`plan_grasps`]), with Dex-Net's *robust* grasp
+//! quality: the success probability of a grasp under the depth's error model.
+//!
+//! The planner ([`plan_parallel`] / [`plan_suction`]) proposes up to
+//! [`GraspRequest::candidates`] grasps on the planning depth. With an error model
+//! ([`moma_core::DepthErrorModel`]), [`GraspRequest::draws`] depth maps are drawn from it
+//! around the planning depth (seeded: draw k of seed s is the same on every run and thread
+//! count) in the region around the candidates, a scene is made of each with the planning
+//! scene's support plane and objects ([`Scene::with_depth_in`]), and every
+//! candidate is executed on every drawn scene with the scorer's rules ([`score_grasp`], the
+//! rules of the proxy evaluation, unchanged). A candidate's `success_prob` is the share of draws
+//! on which it succeeds. [`GraspQuality::Robust`] ranks by it: the grasps within
+//! [`GraspRequest::tie_tolerance`] of the best probability first, in the planner's order, then
+//! the others by probability ([`rank`]); [`GraspQuality::Nominal`] keeps the planner's order and
+//! only reports it. Without an error model, `success_prob` is `None` and the planner's order
+//! holds.
+
+use moma_core::error_model::{Draws, Roi};
+use moma_core::{DepthErrorModel, Intrinsics, Mask, MetricDepth};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{GraspError, Result};
+use crate::grasp::{Grasp, NoGraspReason, PlanOutcome};
+use crate::gripper::Gripper;
+use crate::parallel::{ParallelConfig, plan_parallel};
+use crate::scene::{Scene, SceneConfig};
+use crate::score::{ScoreConfig, score_grasp};
+use crate::suction::{SuctionConfig, plan_suction};
+
+/// How grasps are ranked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GraspQuality {
+    /// By the planner's score on the planning depth (taken as exact).
+    Nominal,
+    /// By the success probability under the error model (Dex-Net's robust quality).
+    Robust,
+}
+
+impl GraspQuality {
+    /// `nominal` or `robust`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Nominal => "nominal",
+            Self::Robust => "robust",
+        }
+    }
+}
+
+impl std::fmt::Display for GraspQuality {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for GraspQuality {
+    type Err = GraspError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "nominal" => Ok(Self::Nominal),
+            "robust" => Ok(Self::Robust),
+            _ => Err(GraspError::InvalidConfig(format!(
+                "unknown grasp quality '{s}' (expected 'nominal' or 'robust')"
+            ))),
+        }
+    }
+}
+
+/// Default number of depth draws per frame.
+pub const DEFAULT_GRASP_DRAWS: usize = 16;
+
+/// Default tolerance of the robust ranking on the success probability ([`rank`]).
+pub const DEFAULT_TIE_TOLERANCE: f32 = 0.2;
+
+/// Default number of planner candidates scored on the draws.
+pub const DEFAULT_ROBUST_CANDIDATES: usize = 20;
+
+/// What [`plan_grasps`] plans.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GraspRequest {
+    /// The gripper (validated by the planner).
+    pub gripper: Gripper,
+    /// Grasps returned at most.
+    pub top_k: usize,
+    /// Seed of the planner's sampling and of the depth draws.
+    pub seed: u64,
+    /// Ranking; [`GraspQuality::Robust`] needs an error model.
+    pub quality: GraspQuality,
+    /// The planning depth's error model (`None`: no success probabilities).
+    pub error_model: Option<DepthErrorModel>,
+    /// Depth draws per frame (≥ 1).
+    pub draws: usize,
+    /// Planner candidates scored on the draws (≥ `top_k`).
+    pub candidates: usize,
+    /// Robust ranking: probabilities within this of the best count as tied, and the planner's
+    /// order decides among them ([`rank`]).
+    pub tie_tolerance: f32,
+    /// Drop grasps whose success probability is below this (in [0, 1]).
+    pub min_success_prob: Option<f64>,
+    /// Scene construction.
+    pub scene: SceneConfig,
+    /// Parallel-jaw planner settings (`top_k` and `seed` are the request's).
+    pub parallel: ParallelConfig,
+    /// Suction planner settings (`top_k` and `seed` are the request's).
+    pub suction: SuctionConfig,
+    /// The execution rules the draws are scored with.
+    pub score: ScoreConfig,
+}
+
+impl GraspRequest {
+    /// A request for `gripper` with the defaults: top 10, seed 0, robust ranking where an error
+    /// model is given ([`GraspRequest::with_error_model`]), nominal otherwise.
+    pub fn new(gripper: Gripper) -> Self {
+        Self {
+            gripper,
+            top_k: 10,
+            seed: 0,
+            quality: GraspQuality::Nominal,
+            error_model: None,
+            draws: DEFAULT_GRASP_DRAWS,
+            candidates: DEFAULT_ROBUST_CANDIDATES,
+            tie_tolerance: DEFAULT_TIE_TOLERANCE,
+            min_success_prob: None,
+            scene: SceneConfig::default(),
+            parallel: ParallelConfig::default(),
+            suction: SuctionConfig::default(),
+            score: ScoreConfig::default(),
+        }
+    }
+
+    /// Adds an error model and makes the ranking robust.
+    pub fn with_error_model(mut self, model: Option<DepthErrorModel>) -> Self {
+        self.quality = if model.is_some() {
+            GraspQuality::Robust
+        } else {
+            GraspQuality::Nominal
+        };
+        self.error_model = model;
+        self
+    }
+
+    /// Checks the request.
+    ///
+    /// # Errors
+    /// [`GraspError::InvalidConfig`] naming the field.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(GraspError::InvalidConfig(m));
+        if self.top_k == 0 {
+            return bad("at least one grasp must be asked for (top_k ≥ 1)".into());
+        }
+        if self.draws == 0 {
+            return bad("the number of depth draws must be at least 1".into());
+        }
+        if self.draws > 4096 {
+            return bad(format!("{} depth draws is more than 4096", self.draws));
+        }
+        if !(0.0..=1.0).contains(&self.tie_tolerance) {
+            return bad(format!(
+                "the robust ranking's tolerance {} is outside [0, 1]",
+                self.tie_tolerance
+            ));
+        }
+        if let Some(p) = self.min_success_prob
+            && !(0.0..=1.0).contains(&p)
+        {
+            return bad(format!("minimum success probability {p} is outside [0, 1]"));
+        }
+        if self.quality == GraspQuality::Robust && self.error_model.is_none() {
+            return bad(
+                "robust grasp quality needs an error model of the depth (a calibration's, or a \
+                 uniform σ)"
+                    .into(),
+            );
+        }
+        if self.min_success_prob.is_some() && self.error_model.is_none() {
+            return bad(
+                "a minimum success probability needs an error model of the depth (a \
+                 calibration's, or a uniform σ)"
+                    .into(),
+            );
+        }
+        if let Some(m) = &self.error_model {
+            m.validate()
+                .map_err(|e| GraspError::InvalidConfig(format!("depth error model: {e}")))?;
+        }
+        Ok(())
+    }
+}
+
+/// Plans grasps on `depth` (object `mask` if given) as [`GraspRequest`] says (module
+/// documentation); the scene built on `depth` is returned too.
+///
+/// # Errors
+/// An invalid request or gripper; the errors of [`Scene::build`] on the planning depth.
+pub fn plan_grasps(
+    depth: &MetricDepth,
+    intrinsics: &Intrinsics,
+    mask: Option<&Mask>,
+    request: &GraspRequest,
+) -> Result<(Scene, PlanOutcome)> {
+    request.validate()?;
+    let scene = Scene::build(depth, intrinsics, mask, &request.scene)?;
+    let outcome = plan_on_scene(&scene, depth, intrinsics, request)?;
+    Ok((scene, outcome))
+}
+
+/// [`plan_grasps`] on a scene already built from `depth` (with `mask` and
+/// `request.scene`).
+///
+/// # Errors
+/// As [`plan_grasps`].
+pub fn plan_on_scene(
+    scene: &Scene,
+    depth: &MetricDepth,
+    intrinsics: &Intrinsics,
+    request: &GraspRequest,
+) -> Result<PlanOutcome> {
+    request.validate()?;
+    let k = match &request.error_model {
+        Some(_) => request.candidates.max(request.top_k),
+        None => request.top_k,
+    };
+    let mut outcome = match &request.gripper {
+        Gripper::Parallel(jaw) => plan_parallel(
+            scene,
+            jaw,
+            &ParallelConfig {
+                top_k: k,
+                seed: request.seed,
+                ..request.parallel.clone()
+            },
+        )?,
+        Gripper::Suction(cup) => plan_suction(
+            scene,
+            cup,
+            &SuctionConfig {
+                top_k: k,
+                seed: request.seed,
+                ..request.suction
+            },
+        )?,
+    };
+    let Some(model) = &request.error_model else {
+        outcome.grasps.truncate(request.top_k);
+        return Ok(outcome);
+    };
+    if outcome.grasps.is_empty() {
+        return Ok(outcome);
+    }
+    let probs = success_probabilities(&outcome.grasps, scene, depth, intrinsics, model, request)?;
+    let mut ranked: Vec<(Grasp, f32)> = outcome.grasps.drain(..).zip(probs).collect();
+    rank(&mut ranked, request.quality, request.tie_tolerance);
+    let min = request.min_success_prob;
+    let below = ranked
+        .iter()
+        .filter(|(_, p)| min.is_some_and(|m| f64::from(*p) < m))
+        .count();
+    let best = ranked.iter().map(|(_, p)| *p).fold(0.0f32, f32::max);
+    outcome.grasps = ranked
+        .into_iter()
+        .filter(|(_, p)| min.is_none_or(|m| f64::from(*p) >= m))
+        .take(request.top_k)
+        .map(|(mut g, p)| {
+            g.set_success_prob(Some(p));
+            g
+        })
+        .collect();
+    if outcome.grasps.is_empty()
+        && let Some(m) = min
+    {
+        outcome.no_grasp_reason = Some(NoGraspReason::BelowMinSuccessProb {
+            candidates: below,
+            best_success_prob: best,
+            min_success_prob: m as f32,
+        });
+    }
+    Ok(outcome)
+}
+
+/// Orders `(grasp, success probability)` pairs, given in the planner's order, by `quality`.
+/// Nominal keeps the planner's order. Robust puts first, in the planner's order, every grasp
+/// whose probability is within `tolerance` of the best one (a Monte-Carlo estimate from a few
+/// draws cannot tell those apart, and the planner's score then decides), then the others by
+/// probability, highest first (stable).
+pub fn rank(grasps: &mut [(Grasp, f32)], quality: GraspQuality, tolerance: f32) {
+    if quality == GraspQuality::Robust {
+        let best = grasps.iter().map(|g| g.1).fold(0.0f32, f32::max);
+        let key = |p: f32| if p >= best - tolerance { best } else { p };
+        grasps.sort_by(|a, b| key(b.1).total_cmp(&key(a.1)));
+    }
+}
+
+/// The success probability of each grasp: the share of `request.draws` depth maps drawn from
+/// `model` around `depth` (whose scene is `scene`) on which it succeeds by the scorer's rules.
+/// Each draw covers only the region around the grasps (their image points plus the gripper's
+/// reach at their depth, [`draw_region`]); its scene keeps the planning scene's support plane
+/// and objects ([`Scene::with_depth_in`]).
+///
+/// # Errors
+/// A malformed grasp (never from the planners).
+pub fn success_probabilities(
+    grasps: &[Grasp],
+    scene: &Scene,
+    depth: &MetricDepth,
+    intrinsics: &Intrinsics,
+    model: &DepthErrorModel,
+    request: &GraspRequest,
+) -> Result<Vec<f32>> {
+    if grasps.is_empty() {
+        return Ok(Vec::new());
+    }
+    let roi = draw_region(grasps, intrinsics, &request.gripper);
+    let k = Intrinsics {
+        width: roi.width,
+        height: roi.height,
+        cx: intrinsics.cx - roi.u0 as f64,
+        cy: intrinsics.cy - roi.v0 as f64,
+        ..*intrinsics
+    };
+    let draws = Draws::new(model, depth.depth_m.view(), roi);
+    let per_draw: Vec<Vec<bool>> = (0..request.draws as u64)
+        .into_par_iter()
+        .map(|d| -> Result<Vec<bool>> {
+            let drawn = MetricDepth::new(draws.draw(request.seed, d));
+            let Ok(drawn_scene) = scene.with_depth_in(roi, &drawn, &k, &request.scene) else {
+                // nothing to execute on in this draw: every grasp fails there
+                return Ok(vec![false; grasps.len()]);
+            };
+            grasps
+                .iter()
+                // the camera frame is the same: the crop only moves the principal point
+                .map(|g| {
+                    Ok(score_grasp(&drawn_scene, g, &request.gripper, &request.score)?.success)
+                })
+                .collect()
+        })
+        .collect::<Result<_>>()?;
+    let n = per_draw.len() as f32;
+    Ok((0..grasps.len())
+        .map(|i| per_draw.iter().filter(|d| d[i]).count() as f32 / n)
+        .collect())
+}
+
+/// The image region the draws of `grasps` need: the bounding box of their points' pixels,
+/// widened on every side by what the scorer looks at around a grasp (parallel: half the stroke
+/// + a finger + 2 cm; suction: 2 cup radii + 2 cm) at the nearest grasp's depth, clipped to
+/// the image.
+pub fn draw_region(grasps: &[Grasp], k: &Intrinsics, gripper: &Gripper) -> Roi {
+    let reach_m = match gripper {
+        Gripper::Parallel(j) => f64::from(0.5 * j.stroke_m + j.finger_thickness_m) + 0.02,
+        Gripper::Suction(c) => 2.0 * f64::from(c.radius_m) + 0.02,
+    };
+    let (mut u0, mut u1, mut v0, mut v1) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
+    let mut z_min = f64::INFINITY;
+    for g in grasps {
+        let p = g.point_m();
+        let z = f64::from(p[2]);
+        if !(z.is_finite() && z > 0.0) {
+            continue;
+        }
+        let (u, v) = (
+            k.fx * f64::from(p[0]) / z + k.cx,
+            k.fy * f64::from(p[1]) / z + k.cy,
+        );
+        u0 = u0.min(u);
+        u1 = u1.max(u);
+        v0 = v0.min(v);
+        v1 = v1.max(v);
+        z_min = z_min.min(z);
+    }
+    if !z_min.is_finite() {
+        return Roi::full(k.width, k.height);
+    }
+    let m = k.fx.max(k.fy) * reach_m / z_min;
+    let clip = |x: f64, hi: usize| x.clamp(0.0, hi as f64) as usize;
+    let (a, b) = (
+        clip((u0 - m).floor(), k.width),
+        clip((u1 + m).ceil() + 1.0, k.width),
+    );
+    let (c, d) = (
+        clip((v0 - m).floor(), k.height),
+        clip((v1 + m).ceil() + 1.0, k.height),
+    );
+    Roi {
+        u0: a,
+        v0: c,
+        width: b - a,
+        height: d - c,
+    }
+}
