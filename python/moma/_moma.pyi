@@ -295,7 +295,7 @@ def plan_grasps(
     rgb: Optional[_Rgb] = None,
     sigma_m: Optional[float] = None,
     grasp_quality: Optional[Literal["nominal", "robust"]] = None,
-    grasp_draws: int = 16,
+    grasp_draws: int = 4,
     min_success_prob: Optional[float] = None,
 ) -> list[dict[str, Any]]:
     """Grasps, best first, as ``moma grasp --json`` prints them: parallel ``{"kind", "score",

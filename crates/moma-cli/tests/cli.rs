@@ -730,10 +730,10 @@ fn demo_frame_counts_outside_2_to_100_are_refused() {
     assert!(!tmp.path().join("d").exists());
 }
 
-/// `grasp-eval` shares `eval`'s options but plans on one-shot calibrations: the variants it does
-/// not run are refused (they used to be accepted and silently skipped), and ground-truth
-/// outliers, which it does apply, are named in every row's source. Every object region below
-/// --min-object-px is an error too (it used to give 0 trials and a "NaN %" success rate).
+/// `grasp-eval` shares `eval`'s options and variants (re-alignment, robust fits, few-shot; see
+/// tests/grasp_robust.rs); what it cannot score is refused, and ground-truth outliers, which it
+/// applies, are named in every row's source. Every object region below --min-object-px is an
+/// error too (it used to give 0 trials and a "NaN %" success rate).
 #[test]
 fn grasp_eval_refuses_what_it_cannot_score_and_labels_outliers() {
     let tmp = tempfile::tempdir().unwrap();
@@ -741,14 +741,10 @@ fn grasp_eval_refuses_what_it_cannot_score_and_labels_outliers() {
     let out = tmp.path().join("ge");
     for (extra, expected) in [
         (
-            &["--realign", "anchors"][..],
-            ["--realign", "not supported"],
+            &["--calib-frames", "2", "--robust", "huber"][..],
+            ["few-shot", "does not combine"],
         ),
-        (
-            &["--realign", "anchors", "--brightness", "0.8"][..],
-            ["--realign", "not supported"],
-        ),
-        (&["--robust", "huber"][..], ["--robust", "not supported"]),
+        (&["--grasp-draws", "0"][..], ["--grasp-draws", "at least 1"]),
         (
             &["--norm", "minmax,median"][..],
             ["--norm", "one normalisation"],

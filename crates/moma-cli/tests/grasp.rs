@@ -96,10 +96,17 @@ fn parallel_json_closes_across_the_box() {
     assert_eq!(
         sorted,
         [
-            "approach", "center_m", "closing", "kind", "score", "width_m"
+            "approach",
+            "center_m",
+            "closing",
+            "kind",
+            "score",
+            "success_prob",
+            "width_m"
         ]
     );
     assert_eq!(g["kind"], "parallel");
+    assert!(g["success_prob"].is_null(), "no error model: no probability");
     let w = g["width_m"].as_f64().unwrap();
     assert!((0.04..=0.085).contains(&w), "width {w}");
     let closing: Vec<f64> = serde_json::from_value(g["closing"].clone()).unwrap();

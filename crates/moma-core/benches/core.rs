@@ -87,7 +87,7 @@ fn bench_error_model(c: &mut Criterion) {
     let config = moma_core::CalibrationConfig {
         method: Method::Ssra(SsraConfig::default()),
         normalisation: NormalisationConfig {
-            method: Normalisation::MinMax,
+            method: Normalisation::Minmax,
             space: moma_core::AlignSpace::Inverse,
         },
         sampling: moma_core::sampling::SamplingConfig::default(),

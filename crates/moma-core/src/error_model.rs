@@ -13,27 +13,30 @@
 //!   space), split into an offset shared by the frame and three Gaussian fields with correlation
 //!   lengths [`DepthErrorModel::scales_px`] (fine, medium, coarse), by
 //!   [`DepthErrorModel::variance_shares`];
-//! - **edges**: σ = `edge_gain · relief(u, v)`, `relief` the depth range (max − min) of the
-//!   aligned depth in a `(2r+1)²` window, r = [`DepthErrorModel::edge_radius_px`]: aligned
-//!   silhouettes are spread over a few pixels, so near a depth edge the error is a fraction of
-//!   the edge's height.
+//! - **edges**: aligned silhouettes are ramps spread over a few pixels where the truth is a
+//!   step. In a `(2r+1)²` window (r = [`DepthErrorModel::edge_radius_px`]) `relief` is the depth
+//!   range and `step` the move that snaps the pixel to the window's near or far side (whichever
+//!   half of the range it lies in). The truth takes `a · step`, `a ~ N(edge_sharpening,
+//!   edge_sharpening_sigma²)` per frame, plus noise of σ `edge_gain · relief`.
 //!
 //! The per-pixel σ ([`DepthErrorModel::sigma_map`]) is the RMS of all parts, the relief bias
-//! included: `σ² = σ_flat(z)² + (relief_bias² + relief_sigma²)·hp² + (edge_gain·relief)²`.
+//! included: `σ² = σ_flat(z)² + (relief_bias² + relief_sigma²)·hp² + (edge_sharpening² +
+//! edge_sharpening_sigma²)·step² + (edge_gain·relief)²`.
 //!
 //! # Where the numbers come from
 //! Only from calibration data ([`DepthErrorModel::fit`]): the dense residuals of each
 //! calibration frame (the calibration's result on the frame against its ground truth), with the
 //! cross-validated residuals of the calibration samples as a floor of `σ_flat` (the fit has seen
 //! its own samples).
-//! 1. `relief_bias`: least squares of `truth − aligned` on `hp` over the pixels with
-//!    `|hp| ≤` [`MAX_RELIEF_M`]; `relief_sigma = |relief_bias|` (one frame cannot tell how the factor
+//! 1. `relief_bias` and `edge_sharpening`: least squares of `truth − aligned = c·hp + a·step`
+//!    over the pixels with `|hp| ≤` [`MAX_RELIEF_M`] (a within [0, 1]); `relief_sigma = |relief_bias|` (one frame cannot tell how the factor
 //!    varies between frames; a zero correction stays within one σ).
-//! 2. The rest `r = truth − aligned − relief_bias·hp`, divided by `(z / depth_ref_m)^p`
+//! 2. The rest `r = truth − aligned − relief_bias·hp − edge_sharpening·step`, divided by `(z / depth_ref_m)^p`
 //!    (`depth_ref_m` the median calibration depth): `σ_flat²` its mean square over flat pixels;
 //!    the offset share its mean squared over that; the field shares from its semivariogram at
 //!    lags 1–64 px (non-negative least squares of `γ(L) = Σ v_k · min(1, L / s_k)`).
-//! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels.
+//! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels
+//!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
 //!
 //! With per-frame re-alignment on static anchors, the frame's own held-out anchor RMSE raises
 //! `σ_flat` for that frame ([`DepthErrorModel::for_frame`]).
@@ -42,7 +45,8 @@
 //! [`DepthErrorModel::draw_into`] adds one seeded sample of all parts to a depth map (a
 //! plausible true scene): the relief factor and the offset are single N(0, 1) numbers, each
 //! field is N(0, 1) on a grid every `s_k` pixels, bilinear between, divided per pixel by the
-//! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px.
+//! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px,
+//! the step share one number per draw (clamped to [0, 1]).
 //! Pixels without depth stay without depth; a draw never leaves a pixel at ≤ 0 m (it keeps the
 //! original there).
 
@@ -55,7 +59,9 @@ use serde::{Deserialize, Serialize};
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, MetricDepth, is_valid_depth};
 
-/// Relief below which a pixel counts as flat (metres): 5 mm.
+/// Relief below which a pixel counts as flat (metres): 5 mm, or 1.5 × the median relief of the
+/// calibration frames when that is larger (a steeply seen table has a relief of its own in every
+/// window; only what stands out of it is an edge).
 pub const FLAT_RELIEF_M: f32 = 0.005;
 
 /// Largest relief |hp| that counts as a small object's (metres): larger ones are scene
@@ -91,6 +97,11 @@ pub struct DepthErrorModel {
     pub relief_sigma: f64,
     /// Radius of the box blur that defines the relief hp, pixels.
     pub relief_radius_px: u32,
+    /// Mean share `a` of the step that the truth takes near a depth edge (module
+    /// documentation: `a · step(u, v)`), in [0, 1].
+    pub edge_sharpening: f64,
+    /// σ of that share between frames.
+    pub edge_sharpening_sigma: f64,
     /// σ of the edge part per metre of relief (dimensionless, ≥ 0).
     pub edge_gain: f64,
     /// Radius of the relief window, pixels.
@@ -109,6 +120,8 @@ impl Default for DepthErrorModel {
             relief_bias: 0.0,
             relief_sigma: 0.0,
             relief_radius_px: 48,
+            edge_sharpening: 0.0,
+            edge_sharpening_sigma: 0.0,
             edge_gain: 0.0,
             edge_radius_px: 3,
         }
@@ -173,6 +186,16 @@ impl DepthErrorModel {
         if !within(self.relief_sigma, 0.0, 10.0) {
             return bad("relief_sigma", self.relief_sigma, "finite, in [0, 10]");
         }
+        if !within(self.edge_sharpening, 0.0, 1.0) {
+            return bad("edge_sharpening", self.edge_sharpening, "in [0, 1]");
+        }
+        if !within(self.edge_sharpening_sigma, 0.0, 1.0) {
+            return bad(
+                "edge_sharpening_sigma",
+                self.edge_sharpening_sigma,
+                "in [0, 1]",
+            );
+        }
         if !within(self.edge_gain, 0.0, 10.0) {
             return bad("edge_gain", self.edge_gain, "finite, in [0, 10]");
         }
@@ -214,7 +237,7 @@ impl DepthErrorModel {
                 )));
             }
             m.relief_radius_px = relief_radius_for(size);
-            let relief = relief_map(f.aligned_m, m.edge_radius_px);
+            let edges = EdgeMaps::of(f.aligned_m, m.edge_radius_px);
             let hp = high_pass(f.aligned_m, m.relief_radius_px);
             depths.extend(
                 f.aligned_m
@@ -223,35 +246,70 @@ impl DepthErrorModel {
                     .filter(|(a, t)| is_valid_depth(**a) && is_valid_depth(**t))
                     .map(|(a, _)| *a),
             );
-            prepared.push((relief, hp));
+            prepared.push((edges, hp));
         }
         if depths.is_empty() {
             return Err(no_pixels());
         }
+        // the flat threshold (FLAT_RELIEF_M's documentation), from every fourth relief value
+        let mut reliefs: Vec<f32> = prepared
+            .iter()
+            .flat_map(|(edges, _)| edges.relief.iter().copied().step_by(4))
+            .filter(|r| r.is_finite())
+            .collect();
+        let flat_relief = if reliefs.is_empty() {
+            FLAT_RELIEF_M
+        } else {
+            let k = reliefs.len() / 2;
+            FLAT_RELIEF_M.max(1.5 * *reliefs.select_nth_unstable_by(k, f32::total_cmp).1)
+        };
         let mid = depths.len() / 2;
         m.depth_ref_m =
             f64::from(*depths.select_nth_unstable_by(mid, f32::total_cmp).1).clamp(1e-3, 1e3);
-        // 1. the relief factor, over pixels of small-object relief
-        let (mut shp, mut shh) = (0.0f64, 0.0f64);
-        for (f, (_, hp)) in frames.iter().zip(&prepared) {
-            for ((&a, &t), &h) in f.aligned_m.iter().zip(f.truth_m.iter()).zip(hp.iter()) {
+        // 1. the relief factor c and the edge step share a, jointly: least squares of
+        // truth − aligned = c·hp + a·step over the pixels of small-object relief
+        let mut normal_eq = [0.0f64; 5]; // Σhh, Σhs, Σss, Σxh, Σxs
+        for (f, (edges, hp)) in frames.iter().zip(&prepared) {
+            for (((&a, &t), &h), &st) in f
+                .aligned_m
+                .iter()
+                .zip(f.truth_m.iter())
+                .zip(hp.iter())
+                .zip(edges.step.iter())
+            {
                 if is_valid_depth(a) && is_valid_depth(t) && h.abs() <= MAX_RELIEF_M {
-                    shp += f64::from(t - a) * f64::from(h);
-                    shh += f64::from(h) * f64::from(h);
+                    let (x, h, st) = (f64::from(t - a), f64::from(h), f64::from(st));
+                    normal_eq[0] += h * h;
+                    normal_eq[1] += h * st;
+                    normal_eq[2] += st * st;
+                    normal_eq[3] += x * h;
+                    normal_eq[4] += x * st;
                 }
             }
         }
-        m.relief_bias = if shh > 0.0 {
-            (shp / shh).clamp(-10.0, 10.0)
+        let [shh, shs, sss, sxh, sxs] = normal_eq;
+        let alone = |sxy: f64, syy: f64| if syy > 0.0 { sxy / syy } else { 0.0 };
+        let det = shh * sss - shs * shs;
+        let (mut c, mut a) = if det > 1e-12 * (shh * sss).max(f64::MIN_POSITIVE) {
+            ((sxh * sss - sxs * shs) / det, (sxs * shh - sxh * shs) / det)
         } else {
-            0.0
+            (alone(sxh, shh), 0.0)
         };
+        if !(0.0..=1.0).contains(&a) {
+            // the share of a step is in [0, 1]: at a bound, c alone on what is left
+            a = a.clamp(0.0, 1.0);
+            c = alone(sxh - a * shs, shh);
+        }
+        m.relief_bias = c.clamp(-10.0, 10.0);
         m.relief_sigma = m.relief_bias.abs();
+        m.edge_sharpening = a;
+        m.edge_sharpening_sigma = 0.5 * a;
         // 2. the normalised rest: flat mean square, offset, semivariogram
         let (mut sum_sq, mut sum, mut n_flat) = (0.0f64, 0.0f64, 0usize);
         let mut gamma = [(0.0f64, 0usize); LAGS_PX.len()];
         let mut rests = Vec::with_capacity(frames.len());
-        for (f, (relief, hp)) in frames.iter().zip(&prepared) {
+        for (f, (edges, hp)) in frames.iter().zip(&prepared) {
+            let relief = &edges.relief;
             let rest = Array2::from_shape_fn(f.aligned_m.raw_dim(), |(v, u)| {
                 let (a, t) = (f.aligned_m[[v, u]], f.truth_m[[v, u]]);
                 if !(is_valid_depth(a) && is_valid_depth(t)) {
@@ -262,10 +320,12 @@ impl DepthErrorModel {
                 } else {
                     0.0
                 };
-                ((f64::from(t - a) - m.relief_bias * f64::from(h)) / m.depth_scale(a)) as f32
+                let explained = m.relief_bias * f64::from(h)
+                    + m.edge_sharpening * f64::from(edges.step[[v, u]]);
+                ((f64::from(t - a) - explained) / m.depth_scale(a)) as f32
             });
             let flat =
-                |v: usize, u: usize| rest[[v, u]].is_finite() && relief[[v, u]] < FLAT_RELIEF_M;
+                |v: usize, u: usize| rest[[v, u]].is_finite() && relief[[v, u]] < flat_relief;
             let (h, w) = rest.dim();
             for v in 0..h {
                 for u in 0..w {
@@ -332,18 +392,27 @@ impl DepthErrorModel {
                 [offset, 0.0, 0.0, rest_share]
             };
         }
-        // 3. edges: r² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
+        // 3. edge noise: (rest·scale)² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
+        let edge_pixels = || {
+            frames
+                .iter()
+                .zip(&prepared)
+                .zip(&rests)
+                .flat_map(|((f, (edges, _)), rest)| {
+                    rest.iter()
+                        .zip(edges.relief.iter())
+                        .zip(f.aligned_m.iter())
+                        .filter(|((x, r), _)| x.is_finite() && **r >= flat_relief)
+                        .map(|((&x, &r), &a)| (f64::from(x), f64::from(r), a))
+                })
+        };
         let (mut num, mut den) = (0.0f64, 0.0f64);
-        for ((f, (relief, _)), rest) in frames.iter().zip(&prepared).zip(&rests) {
-            for ((&x, &r), &a) in rest.iter().zip(relief.iter()).zip(f.aligned_m.iter()) {
-                if x.is_finite() && r >= FLAT_RELIEF_M {
-                    let s = m.depth_scale(a);
-                    let e2 = (f64::from(x) * s).powi(2);
-                    let r2 = f64::from(r).powi(2);
-                    num += r2 * (e2 - (m.sigma_flat_m * s).powi(2));
-                    den += r2 * r2;
-                }
-            }
+        for (x, r, a) in edge_pixels() {
+            let s = m.depth_scale(a);
+            let e2 = (x * s).powi(2);
+            let r2 = r * r;
+            num += r2 * (e2 - (m.sigma_flat_m * s).powi(2));
+            den += r2 * r2;
         }
         m.edge_gain = if den > 0.0 {
             (num / den).max(0.0).sqrt().min(10.0)
@@ -379,9 +448,10 @@ impl DepthErrorModel {
     /// The per-pixel σ (metres) of the error of `depth` (NaN where `depth` has no depth).
     pub fn sigma_map(&self, depth: &MetricDepth) -> Array2<f32> {
         let d = depth.depth_m.view();
-        let relief = relief_map(d, self.edge_radius_px);
+        let edges = EdgeMaps::of(d, self.edge_radius_px);
         let hp = self.relief_part(d);
         let c2 = (self.relief_bias.powi(2) + self.relief_sigma.powi(2)) as f32;
+        let a2 = (self.edge_sharpening.powi(2) + self.edge_sharpening_sigma.powi(2)) as f32;
         let g = self.edge_gain as f32;
         Array2::from_shape_fn(d.raw_dim(), |(v, u)| {
             let z = d[[v, u]];
@@ -390,7 +460,8 @@ impl DepthErrorModel {
             }
             let s = (self.sigma_flat_m * self.depth_scale(z)) as f32;
             let h = hp.as_ref().map_or(0.0, |hp| hp[[v, u]]);
-            (s * s + c2 * h * h + (g * relief[[v, u]]).powi(2)).sqrt()
+            let st = edges.step[[v, u]];
+            (s * s + c2 * h * h + a2 * st * st + (g * edges.relief[[v, u]]).powi(2)).sqrt()
         })
     }
 
@@ -452,7 +523,7 @@ pub struct Draws<'a> {
     /// Where the relief maps start in the map (they cover the grown region).
     pad_u0: usize,
     pad_v0: usize,
-    relief: Array2<f32>,
+    edges: EdgeMaps,
     hp: Option<Array2<f32>>,
 }
 
@@ -487,7 +558,7 @@ impl<'a> Draws<'a> {
             roi,
             pad_u0: pu0,
             pad_v0: pv0,
-            relief: relief_map(grown, model.edge_radius_px),
+            edges: EdgeMaps::of(grown, model.edge_radius_px),
             hp: model.relief_part(grown),
         }
     }
@@ -520,6 +591,8 @@ impl<'a> Draws<'a> {
             seed ^ draw.wrapping_add(1).wrapping_mul(0x9E37_79B9_7F4A_7C15),
         );
         let c = (m.relief_bias + m.relief_sigma * f64::from(normal(&mut rng))) as f32;
+        let sharpen = (m.edge_sharpening + m.edge_sharpening_sigma * f64::from(normal(&mut rng)))
+            .clamp(0.0, 1.0) as f32;
         let shares = m.variance_shares;
         let offset = (shares[0].sqrt() * m.sigma_flat_m) as f32 * normal(&mut rng);
         let fields: Vec<(f32, SmoothField)> = m
@@ -546,8 +619,13 @@ impl<'a> Draws<'a> {
                 f.add_row(v, &mut flat, |_| *s);
             }
             rest.fill(0.0);
-            let relief = self.relief.row(vf);
+            let (relief, step) = (self.edges.relief.row(vf), self.edges.step.row(vf));
             edges.add_row(v, &mut rest, |u| g * relief[u + du]);
+            if sharpen > 0.0 {
+                for (u, r) in rest.iter_mut().enumerate() {
+                    *r += sharpen * step[u + du];
+                }
+            }
             if let Some(hp) = &self.hp {
                 let hp = hp.row(vf);
                 for (u, r) in rest.iter_mut().enumerate() {
@@ -626,31 +704,14 @@ fn field_variances(semi: &[(f64, f64)], scales: &[f64; 3]) -> [f64; 3] {
     best.0
 }
 
-/// Gaussian elimination of the leading `n × n` system; `None` when singular.
+/// The leading `n × n` system solved by LU (nalgebra); `None` when singular.
 fn solve(a: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
-    let mut m = *a;
-    let mut y = *b;
-    for c in 0..n {
-        let p = (c..n).max_by(|&i, &j| m[i][c].abs().total_cmp(&m[j][c].abs()))?;
-        if m[p][c].abs() < 1e-300 {
-            return None;
-        }
-        m.swap(c, p);
-        y.swap(c, p);
-        for r in c + 1..n {
-            let f = m[r][c] / m[c][c];
-            for k in c..n {
-                m[r][k] -= f * m[c][k];
-            }
-            y[r] -= f * y[c];
-        }
-    }
-    let mut x = [0.0; 3];
-    for c in (0..n).rev() {
-        let s: f64 = (c + 1..n).map(|k| m[c][k] * x[k]).sum();
-        x[c] = (y[c] - s) / m[c][c];
-    }
-    Some(x)
+    let m = nalgebra::DMatrix::from_fn(n, n, |i, j| a[i][j]);
+    let y = nalgebra::DVector::from_fn(n, |i, _| b[i]);
+    let x = m.lu().solve(&y)?;
+    let mut out = [0.0; 3];
+    out[..n].copy_from_slice(x.as_slice());
+    Some(out)
 }
 
 fn normal(rng: &mut ChaCha8Rng) -> f32 {
@@ -740,10 +801,9 @@ pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
     })
 }
 
-/// The depth range (max − min over valid pixels) of `depth` in a `(2r+1)²` window around each
-/// pixel, metres (0 where the window holds fewer than two valid pixels). Separable sliding
-/// max/min: rows, then columns.
-pub fn relief_map(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
+/// The smallest and largest valid depth in a `(2r+1)²` window around each pixel (+∞ / −∞
+/// where the window holds none). Separable sliding min/max: rows, then columns.
+fn window_min_max(depth: ArrayView2<'_, f32>, r: u32) -> (Array2<f32>, Array2<f32>) {
     let (h, w) = depth.dim();
     let r = r as usize;
     let mut hmax = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
@@ -762,7 +822,8 @@ pub fn relief_map(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
             hmin[[v, u]] = mn;
         }
     }
-    let mut out = Array2::<f32>::zeros((h, w));
+    let mut lo = Array2::<f32>::from_elem((h, w), f32::INFINITY);
+    let mut hi = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
     for v in 0..h {
         for u in 0..w {
             let (mut mx, mut mn) = (f32::NEG_INFINITY, f32::INFINITY);
@@ -770,10 +831,49 @@ pub fn relief_map(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
                 mx = mx.max(hmax[[y, u]]);
                 mn = mn.min(hmin[[y, u]]);
             }
-            out[[v, u]] = if mx > mn { mx - mn } else { 0.0 };
+            lo[[v, u]] = mn;
+            hi[[v, u]] = mx;
         }
     }
-    out
+    (lo, hi)
+}
+
+/// Near a depth edge, the relief and the step: `relief` = max − min of the valid depth in the
+/// `(2r+1)²` window (0 with fewer than two distinct values), `step` = the move that snaps a
+/// pixel to the near side (the window's min) when it lies nearer than the window's midpoint,
+/// to the far side (its max) otherwise (0 where the pixel has no depth). Aligned silhouettes
+/// are ramps spread over a few pixels; the truth there is a step.
+pub(crate) struct EdgeMaps {
+    pub(crate) relief: Array2<f32>,
+    pub(crate) step: Array2<f32>,
+}
+
+impl EdgeMaps {
+    pub(crate) fn of(depth: ArrayView2<'_, f32>, r: u32) -> Self {
+        let (lo, hi) = window_min_max(depth, r);
+        let relief = ndarray::Zip::from(&lo)
+            .and(&hi)
+            .map_collect(|&a, &b| if b > a { b - a } else { 0.0 });
+        let step = ndarray::Zip::from(&depth)
+            .and(&lo)
+            .and(&hi)
+            .map_collect(|&z, &a, &b| {
+                if !(is_valid_depth(z) && b > a) {
+                    0.0
+                } else if z < 0.5 * (a + b) {
+                    a - z
+                } else {
+                    b - z
+                }
+            });
+        Self { relief, step }
+    }
+}
+
+/// The depth range (max − min over valid pixels) of `depth` in a `(2r+1)²` window around each
+/// pixel, metres (0 where the window holds fewer than two valid pixels).
+pub fn relief_map(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
+    EdgeMaps::of(depth, r).relief
 }
 
 #[cfg(test)]
@@ -897,6 +997,35 @@ mod tests {
         let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
         // truth − aligned = −0.2·bump and hp ≈ −0.8·bump + its box mean: c ≈ 0.25
         assert!((m.relief_bias - 0.25).abs() < 0.05, "{m:?}");
+    }
+
+    #[test]
+    fn fit_measures_edge_ramps_against_steps() {
+        // truth: a 40 mm step at u = 50; aligned: the same step as a 6 px ramp (no pixel at
+        // the ramp's midpoint, which no rule could assign to a side)
+        let (w, h) = (100usize, 40usize);
+        let truth = Array2::from_shape_fn((h, w), |(_, u)| if u < 50 { 0.96f32 } else { 1.0 });
+        let aligned = Array2::from_shape_fn((h, w), |(_, u)| {
+            let t = ((u as f32 - 46.5) / 6.0).clamp(0.0, 1.0);
+            0.96 + 0.04 * t
+        });
+        let frame = ResidualFrame {
+            aligned_m: aligned.view(),
+            truth_m: truth.view(),
+        };
+        let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
+        // snapping each ramp pixel to its side of the window's midpoint recovers the truth
+        // but for the pixels whose window does not reach both plateaus: a close to 1
+        assert!(m.edge_sharpening > 0.8, "{m:?}");
+        // and a draw with the mean share turns the ramp back into (most of) the step
+        let d = MetricDepth::new(aligned.clone());
+        let sharp = DepthErrorModel {
+            edge_sharpening: 1.0,
+            ..DepthErrorModel::default()
+        };
+        let x = sharp.draw(&d, 0, 0);
+        assert_eq!(x.depth_m[[20, 48]], 0.96);
+        assert_eq!(x.depth_m[[20, 51]], 1.0);
     }
 
     #[test]

@@ -273,7 +273,8 @@ pub struct Calibration {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub anchors: Option<Arc<AnchorStore>>,
     /// The error model of this calibration's aligned depth ([`crate::error_model`]), fitted
-    /// from the calibration frames; absent in files written before it existed (then grasps get
+    /// from the calibration frames; absent in files written before it existed, or when the
+    /// calibration frames hold no pixel with both an aligned and a true depth (then grasps get
     /// no success probability unless a uniform σ is given).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error_model: Option<DepthErrorModel>,
@@ -521,7 +522,9 @@ pub fn calibrate_frames_normalised(
         anchors: None,
         error_model: None,
     };
-    calibration.error_model = Some(fit_error_model(&calibration, frames, config)?);
+    // absent (no success probabilities later) when the calibration frames give no pixel with
+    // both an aligned and a true depth to learn it from; the fit itself stands
+    calibration.error_model = fit_error_model(&calibration, frames, config).ok();
     Ok(calibration)
 }
 

@@ -180,7 +180,7 @@ pub fn write_grasp_overlay(
     };
     let f = &set.frames[i];
     let gripper = Gripper::Suction(SuctionCup::default());
-    let mut request = GraspRequest::new(gripper.clone()).with_error_model(model);
+    let mut request = GraspRequest::new(gripper).with_error_model(model);
     request.top_k = 5;
     request.seed = seed;
     let (_, outcome) = plan_grasps(&depth, &set.intrinsics, f.mask.as_ref(), &request)

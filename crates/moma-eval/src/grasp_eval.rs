@@ -314,6 +314,8 @@ pub fn reliability_table(probs: &[(f64, bool)]) -> Vec<ReliabilityBin> {
 struct Planned<'a> {
     depth: &'a MetricDepth,
     error_model: Option<DepthErrorModel>,
+    /// Seed of the planner's sampling and of the depth draws.
+    seed: u64,
 }
 
 /// Plans on `planned` (object `mask`) through [`plan_on_scene`] (the path of `moma grasp`),
@@ -325,7 +327,6 @@ fn run_trial(
     mask: Option<&Mask>,
     gripper: GripperKind,
     qualities: &[GraspQuality],
-    seed: u64,
     config: &GraspEvalConfig,
 ) -> Result<Vec<TrialOutcome>> {
     let no_grasp = || vec![(Err(FailureReason::NoGrasp), None); qualities.len()];
@@ -336,7 +337,7 @@ fn run_trial(
     } else {
         1
     };
-    request.seed = seed;
+    request.seed = planned.seed;
     request.draws = config.draws;
     request.candidates = config.candidates;
     request.scene = config.scene;
@@ -626,8 +627,7 @@ pub fn grasp_evaluate(
     // quality
     let tally_on = |depths: &[Option<Planned<'_>>],
                     gripper: GripperKind,
-                    qualities: &[GraspQuality],
-                    seed: u64|
+                    qualities: &[GraspQuality]|
      -> Result<Vec<Tally>> {
         let outcomes: Vec<Vec<TrialOutcome>> = trials
             .par_iter()
@@ -636,7 +636,7 @@ pub fn grasp_evaluate(
                 let (Some(g), Some(d)) = (g, depths[t.frame].as_ref()) else {
                     return Ok(vec![(Err(FailureReason::NoGrasp), None); qualities.len()]);
                 };
-                run_trial(d, g, set, t.mask.as_ref(), gripper, qualities, seed, config)
+                run_trial(d, g, set, t.mask.as_ref(), gripper, qualities, config)
             })
             .collect::<Result<_>>()?;
         let mut tallies: Vec<Tally> = qualities.iter().map(|_| Tally::default()).collect();
@@ -768,11 +768,12 @@ pub fn grasp_evaluate(
                         f.as_ref().map(|(depth, model)| Planned {
                             depth,
                             error_model: *model,
+                            seed,
                         })
                     })
                     .collect();
                 for (k, &g) in config.grippers.iter().enumerate() {
-                    for (q, t) in tally_on(&depths, g, &config.qualities, seed)?
+                    for (q, t) in tally_on(&depths, g, &config.qualities)?
                         .into_iter()
                         .enumerate()
                     {
@@ -809,11 +810,12 @@ pub fn grasp_evaluate(
             Some(Planned {
                 depth: &f.gt,
                 error_model: None,
+                seed: config.eval.seed_base,
             })
         })
         .collect();
     for &g in &config.grippers {
-        let t = tally_on(&gt_depths, g, &nominal, config.eval.seed_base)?;
+        let t = tally_on(&gt_depths, g, &nominal)?;
         for t in t {
             out.rows.push(row(
                 "gt".into(),
@@ -834,11 +836,12 @@ pub fn grasp_evaluate(
                 f.raw_depth.as_ref().map(|depth| Planned {
                     depth,
                     error_model: None,
+                    seed: config.eval.seed_base,
                 })
             })
             .collect();
         for &g in &config.grippers {
-            for t in tally_on(&raw, g, &nominal, config.eval.seed_base)? {
+            for t in tally_on(&raw, g, &nominal)? {
                 out.rows.push(row(
                     "sensor".into(),
                     "-".into(),

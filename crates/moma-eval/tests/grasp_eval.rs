@@ -7,6 +7,7 @@ mod common;
 use common::{shared_set, simulated_inverse_depth};
 use moma_core::align::Method;
 use moma_eval::grasp_eval::{GraspEvalConfig, GripperKind, grasp_evaluate, grasp_table};
+use moma_grasp::GraspQuality;
 use moma_eval::protocol::EvalConfig;
 
 #[test]
@@ -20,9 +21,11 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
             seeds: 1,
             ..Default::default()
         },
+        qualities: vec![GraspQuality::Nominal, GraspQuality::Robust],
         ..Default::default()
     };
-    let rows = grasp_evaluate(&set, &preds, &config).unwrap();
+    let result = grasp_evaluate(&set, &preds, &config).unwrap();
+    let rows = result.rows;
     eprintln!("{}", grasp_table(&rows).to_text());
     let rate = |method: &str, g: GripperKind| {
         rows.iter()
@@ -30,13 +33,29 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
             .map(|r| (r.success_rate, r.trials))
             .unwrap()
     };
+    // every robust row of the aligned depth has success probabilities, a Brier score in [0, 1]
+    // and a reliability table whose counts add up to the trials with a probability
+    for r in rows.iter().filter(|r| r.method == "ssra") {
+        let b = r.brier.unwrap();
+        assert!((0.0..=1.0).contains(&b), "{r:?}");
+        let n: usize = r.reliability.iter().map(|b| b.grasps).sum();
+        assert!(n > 0 && n <= r.trials, "{r:?}");
+    }
+    // the error model's σ covers the true errors in a plausible share (not 0, not all)
+    for c in &result.coverage {
+        assert!(
+            c.within_1sigma > 0.1 && c.within_2sigma > c.within_1sigma && c.within_2sigma < 1.0,
+            "{c:?}"
+        );
+    }
     // 6 evaluated frames, at least one object each; the planner's ceiling on ground truth
     for g in GripperKind::ALL {
         let (gt, trials) = rate("gt", g);
         assert!(trials >= 6, "{trials} trials");
         assert!(gt >= 0.9, "{g} on ground truth: {gt}");
     }
-    // on aligned (simulated) depth the parallel jaw still finds grasps that hold
+    // on aligned (simulated) depth the parallel jaw still finds grasps that hold (nominal
+    // ranking: the first row of the method)
     let (ssra, _) = rate("ssra", GripperKind::Parallel);
     assert!(ssra >= 0.4, "parallel on SSRA-aligned depth: {ssra}");
     assert!(grasp_table(&rows).title.contains("PROXY"));

@@ -68,7 +68,7 @@ impl std::str::FromStr for GraspQuality {
 }
 
 /// Default number of depth draws per frame.
-pub const DEFAULT_GRASP_DRAWS: usize = 16;
+pub const DEFAULT_GRASP_DRAWS: usize = 4;
 
 /// Default tolerance of the robust ranking on the success probability ([`rank`]).
 pub const DEFAULT_TIE_TOLERANCE: f32 = 0.2;
@@ -343,9 +343,9 @@ pub fn success_probabilities(
 }
 
 /// The image region the draws of `grasps` need: the bounding box of their points' pixels,
-/// widened on every side by what the scorer looks at around a grasp (parallel: half the stroke
-/// + a finger + 2 cm; suction: 2 cup radii + 2 cm) at the nearest grasp's depth, clipped to
-/// the image.
+/// widened on every side by what the scorer looks at around a grasp (parallel: half the
+/// stroke, a finger and 2 cm; suction: 2 cup radii and 2 cm) at the nearest grasp's depth,
+/// clipped to the image.
 pub fn draw_region(grasps: &[Grasp], k: &Intrinsics, gripper: &Gripper) -> Roi {
     let reach_m = match gripper {
         Gripper::Parallel(j) => f64::from(0.5 * j.stroke_m + j.finger_thickness_m) + 0.02,

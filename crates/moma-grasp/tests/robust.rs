@@ -43,7 +43,7 @@ fn synth(layout: usize, tilt_deg: f64) -> Synth {
 
 /// Top-1 grasp planned on `planning`, executed on the ground-truth scene: success?
 fn top1_succeeds(planning: &MetricDepth, gt: &Scene, gripper: &Gripper, seed: u64) -> bool {
-    let mut request = GraspRequest::new(gripper.clone());
+    let mut request = GraspRequest::new(*gripper);
     request.top_k = 1;
     request.seed = seed;
     let (_, outcome) = plan_grasps(planning, &intrinsics(), None, &request).unwrap();
@@ -158,7 +158,7 @@ fn a_grasp_that_survives_a_20mm_offset_gets_a_higher_success_prob() {
         variance_shares: [1.0, 0.0, 0.0, 0.0],
         ..DepthErrorModel::default()
     };
-    let mut request = GraspRequest::new(jaw.clone()).with_error_model(Some(model));
+    let mut request = GraspRequest::new(jaw).with_error_model(Some(model));
     request.draws = 64;
     let p = success_probabilities(&[g_tall, g_low], &gt, &depth, &k, &model, &request).unwrap();
     assert!(

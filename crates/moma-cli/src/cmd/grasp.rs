@@ -309,7 +309,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         Some(sigma) => Some(moma_core::DepthErrorModel::uniform(sigma).context("--sigma-m")?),
         None => error_model,
     };
-    let mut request = GraspRequest::new(gripper.clone()).with_error_model(error_model);
+    let mut request = GraspRequest::new(gripper).with_error_model(error_model);
     request.top_k = args.top;
     request.seed = args.seed;
     request.draws = args.grasp_draws;
