@@ -106,7 +106,10 @@ fn parallel_json_closes_across_the_box() {
         ]
     );
     assert_eq!(g["kind"], "parallel");
-    assert!(g["success_prob"].is_null(), "no error model: no probability");
+    assert!(
+        g["success_prob"].is_null(),
+        "no error model: no probability"
+    );
     let w = g["width_m"].as_f64().unwrap();
     assert!((0.04..=0.085).contains(&w), "width {w}");
     let closing: Vec<f64> = serde_json::from_value(g["closing"].clone()).unwrap();

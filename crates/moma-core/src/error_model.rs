@@ -239,10 +239,12 @@ impl DepthErrorModel {
             m.relief_radius_px = relief_radius_for(size);
             let edges = EdgeMaps::of(f.aligned_m, m.edge_radius_px);
             let hp = high_pass(f.aligned_m, m.relief_radius_px);
+            // the reference depth: the median of every fourth pixel with both depths
             depths.extend(
                 f.aligned_m
                     .iter()
                     .zip(f.truth_m.iter())
+                    .step_by(4)
                     .filter(|(a, t)| is_valid_depth(**a) && is_valid_depth(**t))
                     .map(|(a, _)| *a),
             );
@@ -310,20 +312,19 @@ impl DepthErrorModel {
         let mut rests = Vec::with_capacity(frames.len());
         for (f, (edges, hp)) in frames.iter().zip(&prepared) {
             let relief = &edges.relief;
-            let rest = Array2::from_shape_fn(f.aligned_m.raw_dim(), |(v, u)| {
-                let (a, t) = (f.aligned_m[[v, u]], f.truth_m[[v, u]]);
-                if !(is_valid_depth(a) && is_valid_depth(t)) {
-                    return f32::NAN;
-                }
-                let h = if hp[[v, u]].is_finite() {
-                    hp[[v, u]]
-                } else {
-                    0.0
-                };
-                let explained = m.relief_bias * f64::from(h)
-                    + m.edge_sharpening * f64::from(edges.step[[v, u]]);
-                ((f64::from(t - a) - explained) / m.depth_scale(a)) as f32
-            });
+            let rest = ndarray::Zip::from(&f.aligned_m)
+                .and(&f.truth_m)
+                .and(hp)
+                .and(&edges.step)
+                .map_collect(|&a, &t, &h, &st| {
+                    if !(is_valid_depth(a) && is_valid_depth(t)) {
+                        return f32::NAN;
+                    }
+                    let h = if h.is_finite() { h } else { 0.0 };
+                    let explained =
+                        m.relief_bias * f64::from(h) + m.edge_sharpening * f64::from(st);
+                    ((f64::from(t - a) - explained) / m.depth_scale(a)) as f32
+                });
             let flat =
                 |v: usize, u: usize| rest[[v, u]].is_finite() && relief[[v, u]] < flat_relief;
             let (h, w) = rest.dim();
@@ -427,6 +428,10 @@ impl DepthErrorModel {
     fn depth_scale(&self, z: f32) -> f64 {
         if self.depth_exponent == 0.0 || !is_valid_depth(z) {
             1.0
+        } else if self.depth_exponent == 2.0 {
+            // the exponent every fit in inverse space has: no powf per pixel
+            let r = f64::from(z) / self.depth_ref_m;
+            r * r
         } else {
             (f64::from(z) / self.depth_ref_m).powf(self.depth_exponent)
         }
@@ -788,8 +793,7 @@ pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
             cnt[[v + 1, u + 1]] = cnt[[v, u + 1]] + rc;
         }
     }
-    Array2::from_shape_fn((h, w), |(v, u)| {
-        let z = depth[[v, u]];
+    ndarray::Zip::indexed(&depth).map_collect(|(v, u), &z| {
         if !is_valid_depth(z) {
             return f32::NAN;
         }
@@ -802,37 +806,61 @@ pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
 }
 
 /// The smallest and largest valid depth in a `(2r+1)²` window around each pixel (+∞ / −∞
-/// where the window holds none). Separable sliding min/max: rows, then columns.
+/// where the window holds none). Separable sliding min/max: rows, then columns, on contiguous
+/// rows (the vertical pass combines whole rows, which the compiler vectorises).
 fn window_min_max(depth: ArrayView2<'_, f32>, r: u32) -> (Array2<f32>, Array2<f32>) {
     let (h, w) = depth.dim();
     let r = r as usize;
-    let mut hmax = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
+    let depth = depth.as_standard_layout();
     let mut hmin = Array2::<f32>::from_elem((h, w), f32::INFINITY);
-    for v in 0..h {
-        for u in 0..w {
-            let (mut mx, mut mn) = (f32::NEG_INFINITY, f32::INFINITY);
-            for x in u.saturating_sub(r)..(u + r + 1).min(w) {
-                let z = depth[[v, x]];
+    let mut hmax = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
+    for ((row, mut lo), mut hi) in depth
+        .rows()
+        .into_iter()
+        .zip(hmin.rows_mut())
+        .zip(hmax.rows_mut())
+    {
+        // invalid depth becomes (+∞, −∞): it never wins a min or a max
+        let row: Vec<(f32, f32)> = row
+            .iter()
+            .map(|&z| {
                 if is_valid_depth(z) {
-                    mx = mx.max(z);
-                    mn = mn.min(z);
+                    (z, z)
+                } else {
+                    (f32::INFINITY, f32::NEG_INFINITY)
                 }
+            })
+            .collect();
+        for u in 0..w {
+            let (mut mn, mut mx) = (f32::INFINITY, f32::NEG_INFINITY);
+            for &(a, b) in &row[u.saturating_sub(r)..(u + r + 1).min(w)] {
+                mn = mn.min(a);
+                mx = mx.max(b);
             }
-            hmax[[v, u]] = mx;
-            hmin[[v, u]] = mn;
+            lo[u] = mn;
+            hi[u] = mx;
         }
     }
     let mut lo = Array2::<f32>::from_elem((h, w), f32::INFINITY);
     let mut hi = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
     for v in 0..h {
-        for u in 0..w {
-            let (mut mx, mut mn) = (f32::NEG_INFINITY, f32::INFINITY);
-            for y in v.saturating_sub(r)..(v + r + 1).min(h) {
-                mx = mx.max(hmax[[y, u]]);
-                mn = mn.min(hmin[[y, u]]);
+        let (mut out_lo, mut out_hi) = (lo.row_mut(v), hi.row_mut(v));
+        let (out_lo, out_hi) = (
+            out_lo.as_slice_mut().expect("a new array is contiguous"),
+            out_hi.as_slice_mut().expect("a new array is contiguous"),
+        );
+        for y in v.saturating_sub(r)..(v + r + 1).min(h) {
+            let (a, b) = (hmin.row(y), hmax.row(y));
+            let (a, b) = (
+                a.to_slice().expect("a new array is contiguous"),
+                b.to_slice().expect("a new array is contiguous"),
+            );
+            for (o, &x) in out_lo.iter_mut().zip(a) {
+                *o = o.min(x);
             }
-            lo[[v, u]] = mn;
-            hi[[v, u]] = mx;
+            for (o, &x) in out_hi.iter_mut().zip(b) {
+                *o = o.max(x);
+            }
         }
     }
     (lo, hi)

@@ -7,8 +7,8 @@ mod common;
 use common::{shared_set, simulated_inverse_depth};
 use moma_core::align::Method;
 use moma_eval::grasp_eval::{GraspEvalConfig, GripperKind, grasp_evaluate, grasp_table};
-use moma_grasp::GraspQuality;
 use moma_eval::protocol::EvalConfig;
+use moma_grasp::GraspQuality;
 
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]
