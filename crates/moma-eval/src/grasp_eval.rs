@@ -715,16 +715,7 @@ pub fn grasp_evaluate(
                     vec![None; set.frames.len()];
                 match (variant, &setup) {
                     (VariantSpec::Plain { calib, robust, .. }, _) => {
-                        let regions: Vec<Option<Mask>> = calib
-                            .iter()
-                            .map(|&i| {
-                                if i == prep.calib {
-                                    prep.sample_region.clone()
-                                } else {
-                                    prep.sample_region_of(i)
-                                }
-                            })
-                            .collect();
+                        let regions = prep.sample_regions(calib);
                         let inputs: Vec<(usize, &NormalisedMap, Option<&Mask>)> = calib
                             .iter()
                             .zip(&regions)

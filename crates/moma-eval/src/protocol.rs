@@ -613,6 +613,21 @@ impl<'a> Prepared<'a> {
             .map(|r| Mask::new(self.set.frames[i].gt.depth_m.mapv(|z| in_range(z, Some(r)))))
     }
 
+    /// The sample regions of the calibration frames `calib` (the calibration frame's own, or
+    /// [`Prepared::sample_region_of`]), in order.
+    pub fn sample_regions(&self, calib: &[usize]) -> Vec<Option<Mask>> {
+        calib
+            .iter()
+            .map(|&i| {
+                if i == self.calib {
+                    self.sample_region.clone()
+                } else {
+                    self.sample_region_of(i)
+                }
+            })
+            .collect()
+    }
+
     /// Calibrates `method` on several frames `(index, normalised map, sample region)` with
     /// sampling seed `seed` and `n` samples per frame: [`calibrate_frames_normalised`], the
     /// library path of `moma calibrate` with several frames. One frame is [`Prepared::calibrate`].
@@ -986,16 +1001,7 @@ pub fn evaluate_variant(
     .check(prep.preds.maps[prep.calib].kind)
     .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;
     let maps = prep.normalised_all(norm)?;
-    let regions: Vec<Option<Mask>> = calib
-        .iter()
-        .map(|&i| {
-            if i == prep.calib {
-                prep.sample_region.clone()
-            } else {
-                prep.sample_region_of(i)
-            }
-        })
-        .collect();
+    let regions = prep.sample_regions(calib);
     let calib_inputs: Vec<(usize, &NormalisedMap, Option<&Mask>)> = calib
         .iter()
         .zip(&regions)
