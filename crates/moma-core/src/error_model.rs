@@ -34,7 +34,7 @@
 //! 2. The rest `r = truth − aligned − relief_bias·hp − edge_sharpening·step`, divided by `(z / depth_ref_m)^p`
 //!    (`depth_ref_m` the median calibration depth): `σ_flat²` its mean square over flat pixels;
 //!    the offset share its mean squared over that; the field shares from its semivariogram at
-//!    lags 1–64 px (non-negative least squares of `γ(L) = Σ v_k · min(1, L / s_k)`).
+//!    lags 2–64 px on every second row and column (non-negative least squares of `γ(L) = Σ v_k · min(1, L / s_k)`).
 //! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels
 //!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
 //!
@@ -71,8 +71,13 @@ pub const MAX_RELIEF_M: f32 = 0.1;
 /// Correlation lengths of the fine, medium and coarse fields, pixels.
 pub const FIELD_SCALES_PX: [f64; 3] = [2.0, 8.0, 32.0];
 
-/// Lags of the residual semivariogram, pixels.
-const LAGS_PX: [usize; 7] = [1, 2, 4, 8, 16, 32, 64];
+/// The fit reads every `FIT_STRIDE`-th row and column (the windowed maps are computed at full
+/// resolution first): a quarter of the pixels is plenty for a few numbers, and keeps the fit
+/// within a few milliseconds.
+const FIT_STRIDE: usize = 2;
+
+/// Lags of the residual semivariogram on the fit's grid (× [`FIT_STRIDE`] pixels: 2–64 px).
+const LAGS: [usize; 6] = [1, 2, 4, 8, 16, 32];
 
 /// Correlation length of the edge field, pixels.
 const EDGE_SCALE_PX: f64 = 2.0;
@@ -126,6 +131,16 @@ impl Default for DepthErrorModel {
             edge_radius_px: 3,
         }
     }
+}
+
+/// What [`DepthErrorModel::fit`] reads of one frame: every [`FIT_STRIDE`]-th row and column of
+/// the depths and of the windowed maps (computed at full resolution).
+struct FitGrid {
+    aligned: Array2<f32>,
+    truth: Array2<f32>,
+    relief: Array2<f32>,
+    step: Array2<f32>,
+    hp: Array2<f32>,
 }
 
 /// One calibration frame's residuals for [`DepthErrorModel::fit`].
@@ -239,16 +254,23 @@ impl DepthErrorModel {
             m.relief_radius_px = relief_radius_for(size);
             let edges = EdgeMaps::of(f.aligned_m, m.edge_radius_px);
             let hp = high_pass(f.aligned_m, m.relief_radius_px);
-            // the reference depth: the median of every fourth pixel with both depths
+            let grid = ndarray::s![..;FIT_STRIDE, ..;FIT_STRIDE];
+            let sub = FitGrid {
+                aligned: f.aligned_m.slice(grid).to_owned(),
+                truth: f.truth_m.slice(grid).to_owned(),
+                relief: edges.relief.slice(grid).to_owned(),
+                step: edges.step.slice(grid).to_owned(),
+                hp: hp.slice(grid).to_owned(),
+            };
+            // the reference depth: the median of the grid's pixels with both depths
             depths.extend(
-                f.aligned_m
+                sub.aligned
                     .iter()
-                    .zip(f.truth_m.iter())
-                    .step_by(4)
+                    .zip(sub.truth.iter())
                     .filter(|(a, t)| is_valid_depth(**a) && is_valid_depth(**t))
                     .map(|(a, _)| *a),
             );
-            prepared.push((edges, hp));
+            prepared.push(sub);
         }
         if depths.is_empty() {
             return Err(no_pixels());
@@ -256,7 +278,7 @@ impl DepthErrorModel {
         // the flat threshold (FLAT_RELIEF_M's documentation), from every fourth relief value
         let mut reliefs: Vec<f32> = prepared
             .iter()
-            .flat_map(|(edges, _)| edges.relief.iter().copied().step_by(4))
+            .flat_map(|g| g.relief.iter().copied().step_by(4))
             .filter(|r| r.is_finite())
             .collect();
         let flat_relief = if reliefs.is_empty() {
@@ -271,13 +293,13 @@ impl DepthErrorModel {
         // 1. the relief factor c and the edge step share a, jointly: least squares of
         // truth − aligned = c·hp + a·step over the pixels of small-object relief
         let mut normal_eq = [0.0f64; 5]; // Σhh, Σhs, Σss, Σxh, Σxs
-        for (f, (edges, hp)) in frames.iter().zip(&prepared) {
-            for (((&a, &t), &h), &st) in f
-                .aligned_m
+        for g in &prepared {
+            for (((&a, &t), &h), &st) in g
+                .aligned
                 .iter()
-                .zip(f.truth_m.iter())
-                .zip(hp.iter())
-                .zip(edges.step.iter())
+                .zip(g.truth.iter())
+                .zip(g.hp.iter())
+                .zip(g.step.iter())
             {
                 if is_valid_depth(a) && is_valid_depth(t) && h.abs() <= MAX_RELIEF_M {
                     let (x, h, st) = (f64::from(t - a), f64::from(h), f64::from(st));
@@ -308,14 +330,14 @@ impl DepthErrorModel {
         m.edge_sharpening_sigma = 0.5 * a;
         // 2. the normalised rest: flat mean square, offset, semivariogram
         let (mut sum_sq, mut sum, mut n_flat) = (0.0f64, 0.0f64, 0usize);
-        let mut gamma = [(0.0f64, 0usize); LAGS_PX.len()];
+        let mut gamma = [(0.0f64, 0usize); LAGS.len()];
         let mut rests = Vec::with_capacity(frames.len());
-        for (f, (edges, hp)) in frames.iter().zip(&prepared) {
-            let relief = &edges.relief;
-            let rest = ndarray::Zip::from(&f.aligned_m)
-                .and(&f.truth_m)
-                .and(hp)
-                .and(&edges.step)
+        for g in &prepared {
+            let relief = &g.relief;
+            let rest = ndarray::Zip::from(&g.aligned)
+                .and(&g.truth)
+                .and(&g.hp)
+                .and(&g.step)
                 .map_collect(|&a, &t, &h, &st| {
                     if !(is_valid_depth(a) && is_valid_depth(t)) {
                         return f32::NAN;
@@ -337,17 +359,14 @@ impl DepthErrorModel {
                     sum_sq += x * x;
                     sum += x;
                     n_flat += 1;
-                    // every second row and column is enough for the semivariogram
-                    if v % 2 == 0 && u % 2 == 0 {
-                        for (g, &lag) in gamma.iter_mut().zip(&LAGS_PX) {
-                            if u + lag < w && flat(v, u + lag) {
-                                g.0 += (x - f64::from(rest[[v, u + lag]])).powi(2);
-                                g.1 += 1;
-                            }
-                            if v + lag < h && flat(v + lag, u) {
-                                g.0 += (x - f64::from(rest[[v + lag, u]])).powi(2);
-                                g.1 += 1;
-                            }
+                    for (g, &lag) in gamma.iter_mut().zip(&LAGS) {
+                        if u + lag < w && flat(v, u + lag) {
+                            g.0 += (x - f64::from(rest[[v, u + lag]])).powi(2);
+                            g.1 += 1;
+                        }
+                        if v + lag < h && flat(v + lag, u) {
+                            g.0 += (x - f64::from(rest[[v + lag, u]])).powi(2);
+                            g.1 += 1;
                         }
                     }
                 }
@@ -372,11 +391,11 @@ impl DepthErrorModel {
         if total > 0.0 {
             let mean = sum / n_flat as f64;
             let offset = (mean * mean / total).clamp(0.0, 1.0);
-            let semi: Vec<(f64, f64)> = LAGS_PX
+            let semi: Vec<(f64, f64)> = LAGS
                 .iter()
                 .zip(&gamma)
                 .filter(|(_, g)| g.1 > 0)
-                .map(|(&l, g)| (l as f64, 0.5 * g.0 / g.1 as f64))
+                .map(|(&l, g)| ((l * FIT_STRIDE) as f64, 0.5 * g.0 / g.1 as f64))
                 .collect();
             let v = field_variances(&semi, &m.scales_px);
             let fields: f64 = v.iter().sum();
@@ -395,14 +414,13 @@ impl DepthErrorModel {
         }
         // 3. edge noise: (rest·scale)² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
         let edge_pixels = || {
-            frames
+            prepared
                 .iter()
-                .zip(&prepared)
                 .zip(&rests)
-                .flat_map(|((f, (edges, _)), rest)| {
+                .flat_map(|(g, rest)| {
                     rest.iter()
-                        .zip(edges.relief.iter())
-                        .zip(f.aligned_m.iter())
+                        .zip(g.relief.iter())
+                        .zip(g.aligned.iter())
                         .filter(|((x, r), _)| x.is_finite() && **r >= flat_relief)
                         .map(|((&x, &r), &a)| (f64::from(x), f64::from(r), a))
                 })
@@ -946,12 +964,12 @@ mod tests {
 
     #[test]
     fn semivariogram_shares_are_recovered() {
-        // γ(L) of 2 mm² at 2 px plus 3 mm² at 32 px
+        // γ(L) of 2 mm² at 2 px plus 3 mm² at 32 px, at the fit's lags
         let scales = FIELD_SCALES_PX;
-        let semi: Vec<(f64, f64)> = LAGS_PX
+        let semi: Vec<(f64, f64)> = LAGS
             .iter()
             .map(|&l| {
-                let l = l as f64;
+                let l = (l * FIT_STRIDE) as f64;
                 (l, 2.0 * (l / 2.0).min(1.0) + 3.0 * (l / 32.0).min(1.0))
             })
             .collect();
@@ -966,7 +984,7 @@ mod tests {
     fn fit_recovers_flat_sigma_offset_and_edge_gain() {
         // the aligned depth is a clean 50 mm step, so its relief is known in closed form (50 mm
         // within 3 px of the edge, 0 elsewhere); the truth is aligned − e with e = 4 mm offset
-        // + ±2 mm checkerboard on flat pixels (σ_flat² = 20 mm², offset share 16/20, the rest at
+        // + ±2 mm checkerboard (2 × 2 px squares) on flat pixels (σ_flat² = 20 mm², offset share 16/20, the rest at
         // the finest scale) and ±√(σ_flat² + (0.4 · 50 mm)²) near the edge (no relief
         // compression: the offset alone leaves a small relief factor where hp has a mean)
         let (w, h) = (90usize, 60usize);
@@ -974,7 +992,8 @@ mod tests {
         let relief = relief_map(aligned.view(), 3);
         let e_edge = (20e-6f32 + (0.4f32 * 0.05).powi(2)).sqrt();
         let truth = Array2::from_shape_fn((h, w), |(v, u)| {
-            let sign = if (u + v) % 2 == 0 { 1.0 } else { -1.0 };
+            // 2 × 2 blocks: the fit reads every second row and column
+            let sign = if (u / 2 + v / 2) % 2 == 0 { 1.0 } else { -1.0 };
             let e = if relief[[v, u]] > 0.0 {
                 sign * e_edge
             } else {
