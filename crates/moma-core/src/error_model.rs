@@ -414,16 +414,13 @@ impl DepthErrorModel {
         }
         // 3. edge noise: (rest·scale)² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
         let edge_pixels = || {
-            prepared
-                .iter()
-                .zip(&rests)
-                .flat_map(|(g, rest)| {
-                    rest.iter()
-                        .zip(g.relief.iter())
-                        .zip(g.aligned.iter())
-                        .filter(|((x, r), _)| x.is_finite() && **r >= flat_relief)
-                        .map(|((&x, &r), &a)| (f64::from(x), f64::from(r), a))
-                })
+            prepared.iter().zip(&rests).flat_map(|(g, rest)| {
+                rest.iter()
+                    .zip(g.relief.iter())
+                    .zip(g.aligned.iter())
+                    .filter(|((x, r), _)| x.is_finite() && **r >= flat_relief)
+                    .map(|((&x, &r), &a)| (f64::from(x), f64::from(r), a))
+            })
         };
         let (mut num, mut den) = (0.0f64, 0.0f64);
         for (x, r, a) in edge_pixels() {
