@@ -28,8 +28,12 @@ pub enum GripperArg {
 /// The depth comes from --depth (metric: uint16 mm PNG, float32 .npy in metres, PFM), or from a
 /// calibration (`moma calibrate`) applied to --pred, or to --rgb run through the depth model.
 /// Grasps are in the camera frame (x right, y down, z forward, metres):
-///   parallel: {"kind":"parallel","score":s,"center_m":[x,y,z],"approach":[..],"closing":[..],"width_m":w}
-///   suction:  {"kind":"suction","score":s,"point_m":[x,y,z],"approach":[..]}
+///   parallel: {"kind":"parallel","score":s,"success_prob":p,"center_m":[x,y,z],"approach":[..],"closing":[..],"width_m":w}
+///   suction:  {"kind":"suction","score":s,"success_prob":p,"point_m":[x,y,z],"approach":[..]}
+/// `success_prob` is the share of depth maps drawn from the depth's error model (the
+/// calibration's, or a uniform --sigma-m) on which the grasp succeeds by the proxy's rules, in
+/// [0, 1]; null without an error model (--depth without --sigma-m). With --realign anchors the
+/// frame is re-aligned on static anchors first, exactly as `moma align --realign anchors` does.
 /// `center_m` is the midpoint of the two planned contacts, `approach` the unit vector along which
 /// the gripper moves (for suction: into the surface), `closing` the unit vector along which the
 /// fingers close, `width_m` the opening before closing. With --extrinsics each grasp also carries
