@@ -429,14 +429,21 @@ const EDGE_DISTANCE_PX: u32 = 5;
 const EDGE_STEP_M: f32 = 0.01;
 
 impl Coverage {
+    /// The pixels within [`EDGE_DISTANCE_PX`] of a depth edge of the ground truth `gt`: computed
+    /// once per frame, shared by every seed, method and variant.
+    fn edge_band(gt: &MetricDepth) -> ndarray::Array2<bool> {
+        moma_core::error_model::relief_map(gt.depth_m.view(), EDGE_DISTANCE_PX)
+            .mapv(|r| r > EDGE_STEP_M)
+    }
+
     fn add(
         &mut self,
         aligned: &MetricDepth,
         sigma: &ndarray::Array2<f32>,
         gt: &MetricDepth,
         mask: Option<&Mask>,
+        edges: &ndarray::Array2<bool>,
     ) {
-        let edges = moma_core::error_model::relief_map(gt.depth_m.view(), EDGE_DISTANCE_PX);
         let w = aligned.depth_m.ncols();
         for (k, ((&a, &s), &t)) in aligned
             .depth_m
@@ -450,11 +457,7 @@ impl Coverage {
             }
             let e = (a - t).abs();
             let (v, u) = (k / w, k % w);
-            let regions = [
-                true,
-                mask.is_some_and(|m| m.data()[[v, u]]),
-                edges[[v, u]] > EDGE_STEP_M,
-            ];
+            let regions = [true, mask.is_some_and(|m| m.data()[[v, u]]), edges[[v, u]]];
             for (r, inside) in regions.into_iter().enumerate() {
                 if inside {
                     let c = &mut self.counts[r];
@@ -591,6 +594,14 @@ pub fn grasp_evaluate(
         });
     }
     let gt = gt_scenes(set, &trials, config)?;
+    let edge_bands: Vec<Option<ndarray::Array2<bool>>> = (0..set.frames.len())
+        .into_par_iter()
+        .map(|i| {
+            eval_idx
+                .contains(&i)
+                .then(|| Coverage::edge_band(&set.frames[i].gt))
+        })
+        .collect();
     let norm0 = config.eval.norms.first().copied().unwrap_or_default();
     let seeds: Vec<u64> = (0..config.eval.seeds as u64)
         .map(|s| config.eval.seed_base + s)
@@ -744,12 +755,13 @@ pub fn grasp_evaluate(
                     (VariantSpec::Realign { .. }, None) => unreachable!("set up above"),
                 }
                 for &i in &eval_idx {
-                    if let Some((d, Some(model))) = &frames[i] {
+                    if let (Some((d, Some(model))), Some(edges)) = (&frames[i], &edge_bands[i]) {
                         coverage.add(
                             d,
                             &model.sigma_map(d),
                             &set.frames[i].gt,
                             set.frames[i].mask.as_ref(),
+                            edges,
                         );
                     }
                 }

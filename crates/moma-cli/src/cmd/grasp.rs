@@ -115,8 +115,8 @@ pub struct GraspArgs {
     /// How grasps are ranked: robust (by their success probability on depth maps drawn from
     /// the error model; the default when there is one) or nominal (by the planner's score on
     /// the depth as if it were exact; success_prob is still reported where it can be).
-    #[arg(long, value_name = "QUALITY", value_parser = ["nominal", "robust"])]
-    pub grasp_quality: Option<String>,
+    #[arg(long, value_name = "QUALITY", value_parser = super::grasp_eval::parse_quality)]
+    pub grasp_quality: Option<moma_grasp::GraspQuality>,
     /// Depth maps drawn from the error model per frame (seeded by --seed).
     #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
     pub grasp_draws: usize,
@@ -323,8 +323,8 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         keep_border_objects: args.keep_border_objects,
         ..SceneConfig::default()
     };
-    if let Some(q) = &args.grasp_quality {
-        request.quality = q.parse()?;
+    if let Some(q) = args.grasp_quality {
+        request.quality = q;
     }
     request.validate().map_err(|e| {
         anyhow::Error::new(e)

@@ -88,7 +88,8 @@ pub struct GraspEvalArgs {
     pub json: bool,
 }
 
-fn parse_quality(s: &str) -> std::result::Result<moma_grasp::GraspQuality, String> {
+/// `--grasp-quality` values (`moma grasp` and `moma grasp-eval`): the library's names.
+pub fn parse_quality(s: &str) -> std::result::Result<moma_grasp::GraspQuality, String> {
     s.parse().map_err(|e: moma_grasp::GraspError| e.to_string())
 }
 
