@@ -253,6 +253,9 @@ def calibrate(
     robust: Optional[_Robust] = None,
     robust_threshold_m: Optional[float] = None,
     anchors_rgb: Union[None, _Rgb, _Path] = None,
+    protocol: Literal["fixed-camera", "per-frame"] = "fixed-camera",
+    cv_loss: Optional[Literal["target", "abs", "rel"]] = None,
+    cv_margin_se: Optional[float] = None,
 ) -> Calibration:
     """Fits an alignment on one frame, or on several frames of one camera (few-shot), as
     ``moma calibrate`` does.
@@ -274,7 +277,12 @@ def calibrate(
     gssa-local), ``robust_threshold_m`` its residual scale in metres (None: the data-driven
     ``auto`` threshold, the CLI's default); ``anchors_rgb``: the (first) calibration frame's RGB (uint8 H×W×3 array or an image
     path) to store the anchors ``Calibration.align_realigned`` needs (``moma calibrate
-    --anchors``). Bad input (lists of different lengths, frames of different sizes, an unknown
+    --anchors``); ``protocol``: what the calibration will align, which decides how ``auto``,
+    ``ssra-local`` and ``gssa-local`` cross-validate: ``"fixed-camera"`` (other frames of a fixed
+    camera) or ``"per-frame"`` (the frame it was calibrated on, sparse-to-dense);
+    ``cv_loss`` (``"target"``, ``"abs"``, ``"rel"``) and ``cv_margin_se`` (standard errors; 1 is
+    the one-standard-error rule, 0 the lowest CV loss) replace the protocol's loss and rule
+    (``moma calibrate --protocol --cv-loss --cv-margin-se``). Bad input (lists of different lengths, frames of different sizes, an unknown
     robust kind, ...) raises ``InvalidInputError`` (a ``ValueError``) naming the problem."""
 
 def metrics(

@@ -33,6 +33,7 @@ fn samples(size: ImageSize, n: usize, seed: u64) -> SampleSet {
         })
         .collect();
     SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: size,
         samples,
     }
@@ -202,7 +203,7 @@ fn bench_local(c: &mut Criterion) {
     });
     g.sample_size(10);
     g.bench_function("fit_auto_n100", |b| {
-        p1.install(|| b.iter(|| Method::Auto.fit(black_box(&set)).unwrap()))
+        p1.install(|| b.iter(|| Method::Auto(Default::default()).fit(black_box(&set)).unwrap()))
     });
     g.finish();
 }

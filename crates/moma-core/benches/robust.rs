@@ -37,6 +37,7 @@ fn samples(n: usize, seed: u64) -> SampleSet {
         })
         .collect();
     SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: size,
         samples,
     }

@@ -482,6 +482,7 @@ pub fn calibrate_frames_normalised(
         size.expect_eq("workspace mask", w.mask().size())?;
     }
     let mut samples = SampleSet {
+        space: crate::normalise::AlignSpace::Depth,
         image_size: size,
         samples: Vec::new(),
     };
@@ -594,6 +595,7 @@ fn cv_residuals_m(
             .step_by(ERROR_MODEL_FOLDS)
             .collect();
         let train = SampleSet {
+            space: samples.space,
             image_size: samples.image_size,
             samples: order
                 .iter()

@@ -12,8 +12,16 @@
 //!   inverse-depth predictions, the only way to undo a relative model's disparity shift), depth
 //!   space for RAW;
 //! - method settings: SSRA gets the camera intrinsics (its canonical parameters are reported
-//!   with them); an LWLR bandwidth is for the LWLR methods only.
+//!   with them); an LWLR bandwidth is for the LWLR methods only;
+//! - the cross-validation of `auto` and of the local corrections follows the [`Protocol`], what
+//!   the calibration will align ([`local_config`]): other frames of a fixed camera (spatially
+//!   buffered, squared error in the fit's target units, the coarse bandwidths), or the frame it
+//!   was calibrated on (plain leave-one-out, relative error, bandwidths down to ≈ 30 px).
+//!   `--cv-loss` and `--cv-margin-se` override the loss and the rule, for these methods only.
 
+use serde::{Deserialize, Serialize};
+
+use crate::align::local::{CvLoss, LocalConfig};
 use crate::align::{Method, lwlr};
 use crate::camera::Intrinsics;
 use crate::error::{CoreError, Result};
@@ -65,17 +73,113 @@ pub fn evaluation_normalisation(
     }
 }
 
-/// `method` with its settings: the intrinsics (SSRA's canonical parameters) and, for the LWLR
-/// methods, a bandwidth in pixels replacing the default.
+/// What a calibration will align, which decides what its cross-validation estimates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Protocol {
+    /// A fixed camera (MOMA): calibrated once, then applied to other frames, where objects have
+    /// moved. The cross-validation predicts each sample without its neighbours (spatially
+    /// buffered), so that a correction is kept only where it carries over to content the
+    /// calibration frame did not show.
+    #[default]
+    FixedCamera,
+    /// Sparse-to-dense on one frame: the calibration aligns the frame its samples come from
+    /// (a camera that moves, sparse depth on every frame). The cross-validation is plain
+    /// leave-one-out: the error between samples of the same frame.
+    PerFrame,
+}
+
+impl Protocol {
+    /// Every protocol name, in documentation order.
+    pub const NAMES: [&'static str; 2] = ["fixed-camera", "per-frame"];
+
+    /// `fixed-camera` or `per-frame`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::FixedCamera => "fixed-camera",
+            Self::PerFrame => "per-frame",
+        }
+    }
+}
+
+impl std::fmt::Display for Protocol {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Protocol {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "fixed-camera" => Ok(Self::FixedCamera),
+            "per-frame" => Ok(Self::PerFrame),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown protocol '{other}' (expected one of: {})",
+                crate::names::join(Self::NAMES)
+            ))),
+        }
+    }
+}
+
+/// The settings of `auto`'s and the local corrections' cross-validation for `protocol`, chosen
+/// by measurement (docs/evaluation.md, "Choosing auto's cross-validation"):
+/// - fixed camera: [`LocalConfig::default`] (buffer 0.1 × diagonal, squared error in target
+///   units, one standard error, b ∈ {0.05, 0.1, 0.2, 0.4} × diagonal, ≥ 10 samples per node,
+///   λ ∈ {0.1, 1, 10, 100}); finer bandwidths, other losses or no buffer cost up to 5–12 % MAE
+///   on the simulated fixed-camera sets;
+/// - per frame: plain leave-one-out, relative error `|ẑ − z|/z`, one standard error,
+///   b ∈ {0.03, 0.04, 0.06, 0.1, 0.2, 0.4} × diagonal raised to ≥ 2 samples per node (≈ 31 px
+///   for 100 samples at 640×480, 27 px at 640×360), λ ∈ {0.01, 0.1, 1, 10, 100}: 10–30 % lower
+///   AbsRel than LWLR on the real Depth Anything 3 frames of zed-da3-office.
+pub fn local_config(protocol: Protocol) -> LocalConfig {
+    match protocol {
+        Protocol::FixedCamera => LocalConfig::default(),
+        Protocol::PerFrame => LocalConfig {
+            bandwidth_fractions: vec![0.03, 0.04, 0.06, 0.1, 0.2, 0.4],
+            ridges: vec![0.01, 0.1, 1.0, 10.0, 100.0],
+            min_node_samples: 2.0,
+            cv_buffer_fraction: 0.0,
+            cv_loss: CvLoss::Rel,
+            cv_margin_se: 1.0,
+            ..LocalConfig::default()
+        },
+    }
+}
+
+/// The user's settings of a method besides its name ([`method`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MethodOptions {
+    /// LWLR bandwidth, pixels (LWLR methods only).
+    pub bandwidth_px: Option<f64>,
+    /// Camera intrinsics (SSRA's canonical parameters).
+    pub intrinsics: Option<Intrinsics>,
+    /// What the calibration will align ([`local_config`]).
+    pub protocol: Protocol,
+    /// Cross-validation loss replacing the protocol's (ssra-local, gssa-local, auto only).
+    pub cv_loss: Option<CvLoss>,
+    /// Selection margin in standard errors replacing the protocol's (ssra-local, gssa-local,
+    /// auto only).
+    pub cv_margin_se: Option<f64>,
+}
+
+/// `method` with its settings: the intrinsics (SSRA's canonical parameters); for the LWLR
+/// methods, a bandwidth in pixels replacing the default; for ssra-local, gssa-local and auto,
+/// the cross-validation of `options.protocol` ([`local_config`]) with the loss and margin
+/// given.
 ///
 /// # Errors
 /// [`CoreError::InvalidParameter`]: a bandwidth that is not a positive number of pixels, or a
-/// bandwidth for a method that has none.
-pub fn method(
-    method: Method,
-    bandwidth_px: Option<f64>,
-    intrinsics: Option<Intrinsics>,
-) -> Result<Method> {
+/// bandwidth for a method that has none; a cross-validation setting for a method without
+/// cross-validation; a negative or non-finite margin.
+pub fn method(method: Method, options: &MethodOptions) -> Result<Method> {
+    let MethodOptions {
+        bandwidth_px,
+        intrinsics,
+        protocol,
+        cv_loss,
+        cv_margin_se,
+    } = *options;
     if let Some(b) = bandwidth_px
         && !(b.is_finite() && b > 0.0)
     {
@@ -83,14 +187,36 @@ pub fn method(
             "bandwidth {b} must be a positive number of pixels"
         )));
     }
-    Ok(match method.with_intrinsics(intrinsics) {
+    if let Some(k) = cv_margin_se
+        && !(k.is_finite() && k >= 0.0)
+    {
+        return Err(CoreError::InvalidParameter(format!(
+            "the selection margin {k} must be a finite number of standard errors ≥ 0"
+        )));
+    }
+    let cv = |_: LocalConfig| LocalConfig {
+        cv_loss: cv_loss.unwrap_or(local_config(protocol).cv_loss),
+        cv_margin_se: cv_margin_se.unwrap_or(local_config(protocol).cv_margin_se),
+        ..local_config(protocol)
+    };
+    let method = method.with_intrinsics(intrinsics);
+    if bandwidth_px.is_some() && !matches!(method, Method::Lwlr(_)) {
+        return Err(CoreError::InvalidParameter(format!(
+            "a bandwidth applies to the LWLR methods only, not {method}"
+        )));
+    }
+    Ok(match method {
         Method::Lwlr(cfg) => Method::Lwlr(lwlr::LwlrConfig {
             bandwidth_px: bandwidth_px.or(cfg.bandwidth_px),
             ..cfg
         }),
-        other if bandwidth_px.is_some() => {
+        Method::SsraLocal(c) => Method::SsraLocal(cv(c)),
+        Method::GssaLocal(c) => Method::GssaLocal(cv(c)),
+        Method::Auto(c) => Method::Auto(cv(c)),
+        other if cv_loss.is_some() || cv_margin_se.is_some() => {
             return Err(CoreError::InvalidParameter(format!(
-                "a bandwidth applies to the LWLR methods only, not {other}"
+                "a cross-validation loss or margin applies to ssra-local, gssa-local and auto \
+                 only, not {other}"
             )));
         }
         other => other,
@@ -152,24 +278,78 @@ mod tests {
     #[test]
     fn method_settings_and_their_errors() {
         let k = Intrinsics::nominal(ImageSize::new(64, 48));
-        let m = method("lwlr".parse().unwrap(), Some(25.0), Some(k)).unwrap();
+        let opts = |bandwidth_px, intrinsics| MethodOptions {
+            bandwidth_px,
+            intrinsics,
+            ..Default::default()
+        };
+        let m = method("lwlr".parse().unwrap(), &opts(Some(25.0), Some(k))).unwrap();
         assert!(matches!(m, Method::Lwlr(c) if c.bandwidth_px == Some(25.0)));
-        let m = method("ssra".parse().unwrap(), None, Some(k)).unwrap();
+        let m = method("ssra".parse().unwrap(), &opts(None, Some(k))).unwrap();
         assert_eq!(
             m,
             "ssra".parse::<Method>().unwrap().with_intrinsics(Some(k))
         );
         assert!(
-            method("gssa".parse().unwrap(), Some(25.0), None)
+            method("gssa".parse().unwrap(), &opts(Some(25.0), None))
                 .unwrap_err()
                 .to_string()
                 .contains("LWLR methods only")
         );
         for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
             assert!(
-                method("lwlr".parse().unwrap(), Some(bad), None).is_err(),
+                method("lwlr".parse().unwrap(), &opts(Some(bad), None)).is_err(),
                 "{bad}"
             );
         }
+    }
+
+    #[test]
+    fn cross_validation_follows_the_protocol_and_the_overrides() {
+        let per_frame = MethodOptions {
+            protocol: Protocol::PerFrame,
+            ..Default::default()
+        };
+        for name in ["auto", "ssra-local", "gssa-local"] {
+            let m = method(name.parse().unwrap(), &MethodOptions::default()).unwrap();
+            assert_eq!(m, name.parse::<Method>().unwrap(), "{name}: fixed camera = default");
+            let m = method(name.parse().unwrap(), &per_frame).unwrap();
+            let cfg = match m {
+                Method::Auto(c) | Method::SsraLocal(c) | Method::GssaLocal(c) => c,
+                other => panic!("{other}"),
+            };
+            assert_eq!(cfg, local_config(Protocol::PerFrame));
+            assert_eq!((cfg.cv_buffer_fraction, cfg.cv_loss), (0.0, CvLoss::Rel));
+        }
+        let m = method(
+            "auto".parse().unwrap(),
+            &MethodOptions {
+                cv_loss: Some(CvLoss::Abs),
+                cv_margin_se: Some(0.0),
+                ..per_frame
+            },
+        )
+        .unwrap();
+        assert!(matches!(&m, Method::Auto(c) if c.cv_loss == CvLoss::Abs
+            && c.cv_margin_se == 0.0 && c.cv_buffer_fraction == 0.0));
+        let loss = MethodOptions {
+            cv_loss: Some(CvLoss::Rel),
+            ..Default::default()
+        };
+        assert!(
+            method("ssra".parse().unwrap(), &loss)
+                .unwrap_err()
+                .to_string()
+                .contains("ssra-local, gssa-local and auto only")
+        );
+        for bad in [-0.5, f64::NAN, f64::INFINITY] {
+            let o = MethodOptions {
+                cv_margin_se: Some(bad),
+                ..Default::default()
+            };
+            assert!(method("auto".parse().unwrap(), &o).is_err(), "{bad}");
+        }
+        assert_eq!("per-frame".parse::<Protocol>().unwrap(), Protocol::PerFrame);
+        assert!("sideways".parse::<Protocol>().is_err());
     }
 }

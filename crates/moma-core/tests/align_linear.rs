@@ -249,6 +249,7 @@ fn apply_size_mismatch_is_an_error() {
 
 fn set_of(points: &[(f64, f64, f64, f64)]) -> SampleSet {
     SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: SIZE,
         samples: points
             .iter()

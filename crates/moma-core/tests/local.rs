@@ -55,6 +55,7 @@ fn scene_samples(n: usize, seed: u64, bump: f64, noise_m: f64) -> SampleSet {
         })
         .collect();
     SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: ImageSize::new(W, H),
         samples,
     }
@@ -153,6 +154,7 @@ fn global_loo_matches_brute_force_refits() {
             for k in 0..set.len() {
                 let p = set.samples[k];
                 let rest = SampleSet {
+                    space: moma_core::normalise::AlignSpace::Depth,
                     image_size: set.image_size,
                     samples: set
                         .samples
@@ -258,6 +260,7 @@ fn clustered_samples_fall_back_to_plain_leave_one_out() {
         })
         .collect();
     let set = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: ImageSize::new(W, H),
         samples,
     };
@@ -271,7 +274,7 @@ fn clustered_samples_fall_back_to_plain_leave_one_out() {
         assert_eq!(m.global_loo_rms, m0.global_loo_rms, "{base:?}");
         assert_eq!(m.candidates, m0.candidates, "{base:?}");
     }
-    assert!(Method::Auto.fit(&set).is_ok());
+    assert!(Method::Auto(Default::default()).fit(&set).is_ok());
     // plain leave-one-out is exact also with samples sharing a pixel (several here): brute force
     let m = fit_local(&set, LocalBase::Gssa, &LocalConfig::default()).unwrap();
     let mut ss = 0.0;
@@ -383,7 +386,7 @@ fn serde_round_trip_and_validation() {
 }
 
 fn auto_choice(set: &SampleSet) -> (String, Vec<(String, Option<f64>)>) {
-    let (model, report) = Method::Auto.fit(set).unwrap();
+    let (model, report) = Method::Auto(Default::default()).fit(set).unwrap();
     assert_eq!(report.method, "auto");
     let AlignmentModel::Auto(a) = &model else {
         panic!()
@@ -414,7 +417,7 @@ fn auto_picks_ssra_on_a_planar_scene_and_a_local_method_on_a_bump() {
     let (bumpy, cands) = auto_choice(&set);
     println!("bumpy: {bumpy} {cands:?}");
     assert!(bumpy.ends_with("-local") || bumpy == "lwlr", "{bumpy}");
-    let (auto, _) = Method::Auto.fit(&set).unwrap();
+    let (auto, _) = Method::Auto(Default::default()).fit(&set).unwrap();
     let (ssra, _) = method("ssra").fit(&set).unwrap();
     assert!(held_out_mae(&auto, 0.15) < 0.8 * held_out_mae(&ssra, 0.15));
 }
@@ -431,6 +434,7 @@ fn too_few_samples_are_errors() {
         })
     ));
     let three = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: set.image_size,
         samples: set.samples[..3].to_vec(),
     };
@@ -439,11 +443,12 @@ fn too_few_samples_are_errors() {
         Err(CoreError::TooFewSamples { need: 4, .. })
     ));
     let two = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: set.image_size,
         samples: set.samples[..2].to_vec(),
     };
     assert!(matches!(
-        Method::Auto.fit(&two),
+        Method::Auto(Default::default()).fit(&two),
         Err(CoreError::TooFewSamples { need: 3, .. })
     ));
     // bad settings are errors too

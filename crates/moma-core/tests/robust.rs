@@ -77,6 +77,7 @@ fn scene(
         bad[k].depth_m += sign * rng.random_range(0.1..0.5);
     }
     let set = |samples| SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: ImageSize::new(W, H),
         samples,
     };
@@ -158,6 +159,7 @@ fn inverse_space_residuals_are_in_metres() {
     // disparity d = a/z + b: exactly GSSA's family in inverse space
     let (clean, bad, flags) = scene(100, 7, (0.0, 0.0), 0.0, 0.2);
     let to_inverse = |set: &SampleSet| SampleSet {
+        space: moma_core::normalise::AlignSpace::Inverse,
         image_size: set.image_size,
         samples: set
             .samples
@@ -280,6 +282,7 @@ fn ransac_with_too_few_points_is_an_error() {
     );
     assert!(err.to_string().contains("need at least 4"));
     let one = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: bad.image_size,
         samples: bad.samples[..1].to_vec(),
     };
@@ -343,6 +346,7 @@ fn bad_settings_are_errors() {
     assert!(r.fit(&Method::Gssa, &bad, AlignSpace::Depth).is_err());
     // RANSAC where every minimal sample is degenerate (constant ẑ)
     let flat = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: bad.image_size,
         samples: bad
             .samples
@@ -395,6 +399,7 @@ fn weighted_fits_match_subsets_and_duplicates() {
         })
         .collect();
     let expanded = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: clean.image_size,
         samples: s
             .iter()
@@ -536,6 +541,7 @@ fn near_outliers_in_inverse_space_do_not_pull_irls_away() {
     let (clean, _, _) = scene(100, 21, field, 0.001, 0.0);
     let mut rng = ChaCha8Rng::seed_from_u64(99);
     let target = |set: &SampleSet| SampleSet {
+        space: moma_core::normalise::AlignSpace::Inverse,
         image_size: set.image_size,
         samples: set
             .samples
@@ -694,10 +700,12 @@ fn auto_threshold_on_a_noisy_line_with_outliers() {
         height: H,
     };
     let clean = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: size,
         samples: clean,
     };
     let bad = SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: size,
         samples: bad,
     };

@@ -50,6 +50,7 @@ fn aligned_methods(config: &EvalConfig) -> Vec<Method> {
 /// and every other frame; K > 1, the first K frames and the frames after K (checked as
 /// [`check_few_shot`]).
 fn frames_for(prep: &Prepared<'_>, calib_frames: usize) -> Result<(Vec<usize>, Vec<usize>)> {
+    prep.require_fixed_camera("the ablation")?;
     if calib_frames == 0 {
         return Err(EvalError::InvalidParameter(
             "calibration frame counts must be at least 1, got 0".into(),

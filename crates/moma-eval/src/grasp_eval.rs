@@ -567,6 +567,7 @@ pub fn grasp_evaluate(
         None => preds.label.clone(),
     };
     let prep = Prepared::new(set, preds, &config.eval)?;
+    prep.require_fixed_camera("grasp evaluation")?;
     let eval_idx = match k_max {
         Some(k) => (k..set.frames.len()).collect(),
         None => prep.eval_indices(),

@@ -89,7 +89,26 @@ pub struct EvalConfig {
     /// frames. `None`: the ground truth as read.
     #[serde(default)]
     pub gt_outliers: Option<f64>,
+    /// Which frames calibrate and which are scored ([`Protocol`]).
+    #[serde(default)]
+    pub protocol: Protocol,
+    /// Only ground truth up to this depth (metres) is scored; unlike
+    /// [`EvalConfig::depth_range_m`], sampling is unaffected. `None`: no cap.
+    #[serde(default)]
+    pub score_max_depth_m: Option<f64>,
 }
+
+/// Which frames calibrate and which are scored: [`Protocol::FixedCamera`] calibrates on one
+/// frame (or the first K) and scores every other frame (METHOD.md §4); [`Protocol::PerFrame`]
+/// calibrates each frame on its own n samples and scores its own dense ground truth
+/// (sparse-to-dense, as BoostingDepth's demo does), for single frames or frames that do not share
+/// a camera pose, and does not combine with re-alignment or few-shot calibration. The methods'
+/// cross-validation follows the protocol when they are built with
+/// [`moma_core::policy::method`], as `moma eval` does.
+pub use moma_core::policy::Protocol;
+
+/// The `calib_frame` of per-frame rows: every frame calibrates on itself.
+pub const PER_FRAME_CALIB: &str = "each";
 
 impl Default for EvalConfig {
     fn default() -> Self {
@@ -108,6 +127,8 @@ impl Default for EvalConfig {
             realign: None,
             robust: Vec::new(),
             gt_outliers: None,
+            protocol: Protocol::FixedCamera,
+            score_max_depth_m: None,
         }
     }
 }
@@ -188,6 +209,9 @@ pub struct EvalResult {
     pub pred_kind: PredictionKind,
     /// Method name.
     pub method: String,
+    /// Which frames calibrated and which were scored.
+    #[serde(default)]
+    pub protocol: Protocol,
     /// Calibration variant: `one-shot` (one calibration frame, least squares: the paper's
     /// protocol), `few-shot-K` (K frames, [`evaluate_few_shot`]), `robust-<kind>` (a robust fit,
     /// [`EvalConfig::robust`]) or `realign-anchors` (one-shot plus per-frame re-alignment on static
@@ -205,7 +229,8 @@ pub struct EvalResult {
     pub edge_margin_px: u32,
     /// Number of seeds.
     pub seeds: usize,
-    /// Calibration frame id (several frames: their ids joined by `+`).
+    /// Calibration frame id (several frames: their ids joined by `+`; [`PER_FRAME_CALIB`] in the
+    /// per-frame protocol).
     pub calib_frame: String,
     /// Evaluated frames.
     pub eval_frames: usize,
@@ -231,6 +256,8 @@ pub struct JsonRow {
     pub set: String,
     /// Method.
     pub method: String,
+    /// Protocol: `fixed-camera` (calibrate on one frame, score the others) or `per-frame`.
+    pub protocol: Protocol,
     /// Calibration variant (`one-shot`, `few-shot-K`, `robust-huber`, `realign-anchors`, ...).
     pub variant: String,
     /// Normalisation.
@@ -251,6 +278,7 @@ impl From<&EvalResult> for JsonRow {
         Self {
             set: r.set.clone(),
             method: r.method.clone(),
+            protocol: r.protocol,
             variant: r.variant.clone(),
             norm: r.norm.clone(),
             samples: r.samples,
@@ -401,10 +429,39 @@ impl<'a> Prepared<'a> {
             set: set.name.clone(),
             message,
         };
-        if set.frames.len() < 2 {
-            return Err(set_err(format!(
-                "has {} frame(s); the protocol needs one calibration frame and at least one frame to evaluate",
-                set.frames.len()
+        match config.protocol {
+            Protocol::FixedCamera if set.frames.len() < 2 => {
+                return Err(set_err(format!(
+                    "has {} frame(s); the fixed-camera protocol needs one calibration frame and \
+                     at least one frame to evaluate (--protocol per-frame scores single frames)",
+                    set.frames.len()
+                )));
+            }
+            Protocol::PerFrame if set.frames.is_empty() => {
+                return Err(set_err("has no frame".into()));
+            }
+            Protocol::PerFrame if config.calib_frame.is_some() => {
+                return Err(EvalError::InvalidParameter(
+                    "a calibration frame does not combine with the per-frame protocol (every \
+                     frame calibrates on its own samples)"
+                        .into(),
+                ));
+            }
+            Protocol::PerFrame if config.realign.is_some() => {
+                return Err(EvalError::InvalidParameter(
+                    "re-alignment needs the fixed-camera protocol (the calibration frame's \
+                     background is the anchor store); the per-frame protocol does not combine \
+                     with it"
+                        .into(),
+                ));
+            }
+            _ => {}
+        }
+        if let Some(cap) = config.score_max_depth_m
+            && !(cap.is_finite() && cap > 0.0)
+        {
+            return Err(EvalError::InvalidParameter(format!(
+                "the scoring depth cap must be finite and > 0 m, got {cap}"
             )));
         }
         if preds.maps.len() != set.frames.len() {
@@ -458,7 +515,11 @@ impl<'a> Prepared<'a> {
                     ),
                 ));
             }
-            let mut region = f.gt.depth_m.mapv(|z| in_range(z, config.depth_range_m));
+            let cap = config.score_max_depth_m.unwrap_or(f64::INFINITY);
+            let mut region = f
+                .gt
+                .depth_m
+                .mapv(|z| in_range(z, config.depth_range_m) && f64::from(z) <= cap);
             if let Some(m) = &f.mask {
                 ndarray::Zip::from(&mut region)
                     .and(m.data())
@@ -471,9 +532,12 @@ impl<'a> Prepared<'a> {
                 } else {
                     "the image"
                 };
-                let range = match config.depth_range_m {
-                    Some((lo, hi)) => format!(" within {lo}–{hi} m"),
-                    None => String::new(),
+                let (lo, hi) = config.depth_range_m.unwrap_or((0.0, f64::INFINITY));
+                let hi = hi.min(cap);
+                let range = if lo > 0.0 || hi.is_finite() {
+                    format!(" within {lo}–{hi} m")
+                } else {
+                    String::new()
                 };
                 return Err(EvalError::frame(
                     &set.name,
@@ -509,11 +573,31 @@ impl<'a> Prepared<'a> {
         &self.set.frames[self.calib].id
     }
 
-    /// Indices of the evaluated frames (all but the calibration frame).
+    /// Indices of the evaluated frames: all but the calibration frame (fixed camera), every
+    /// frame (per frame).
     pub fn eval_indices(&self) -> Vec<usize> {
         (0..self.set.frames.len())
-            .filter(|&i| i != self.calib)
+            .filter(|&i| i != self.calib || self.config.protocol == Protocol::PerFrame)
             .collect()
+    }
+
+    /// The protocol of this evaluation.
+    pub fn protocol(&self) -> Protocol {
+        self.config.protocol
+    }
+
+    /// Refuses the per-frame protocol for `what`, which calibrates once and scores other frames.
+    ///
+    /// # Errors
+    /// [`EvalError::InvalidParameter`] naming `what`.
+    pub fn require_fixed_camera(&self, what: &str) -> Result<()> {
+        if self.config.protocol == Protocol::PerFrame {
+            return Err(EvalError::InvalidParameter(format!(
+                "{what} needs the fixed-camera protocol (one calibration, other frames scored), \
+                 not per-frame"
+            )));
+        }
+        Ok(())
     }
 
     /// Normalises the prediction of frame `i` with `norm` over the workspace (when given), as
@@ -847,6 +931,13 @@ pub fn evaluate_few_shot(
 /// `config.calib_frame`, robust variants or re-alignment given ([`EvalError::InvalidParameter`]);
 /// no frame left to score after the first `k_max` ([`EvalError::TooFewFrames`]).
 pub fn check_few_shot(set: &LoadedSet, config: &EvalConfig, k_max: usize) -> Result<()> {
+    if config.protocol == Protocol::PerFrame {
+        return Err(EvalError::InvalidParameter(
+            "few-shot calibration (calibration frame counts) needs the fixed-camera protocol; \
+             the per-frame protocol calibrates every frame on its own samples"
+                .into(),
+        ));
+    }
     if let Some(id) = &config.calib_frame {
         return Err(EvalError::InvalidParameter(format!(
             "a calibration frame ('{id}') and calibration frame counts cannot both be given: \
@@ -1013,6 +1104,25 @@ pub fn evaluate_variant(
     let per_seed: Vec<(moma_core::align::FitReport, Vec<DepthMetrics>)> = seeds
         .par_iter()
         .map(|&seed| -> Result<_> {
+            if prep.protocol() == Protocol::PerFrame {
+                // each frame on its own samples; the row's report is the first frame's
+                let mut report = None;
+                let ms = eval_idx
+                    .iter()
+                    .map(|&i| {
+                        let region = prep.sample_regions(&[i]).pop().flatten();
+                        let own = [(i, &maps[i], region.as_ref())];
+                        let cal = prep.calibrate_on(&method, norm, &own, n, seed, robust)?;
+                        let m = prep.score(&cal, &maps[i], i).map(|(_, m)| m)?;
+                        report.get_or_insert(cal.report);
+                        Ok(m)
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                let report = report.ok_or_else(|| {
+                    EvalError::InvalidParameter("the per-frame protocol has no frame".into())
+                })?;
+                return Ok((report, ms));
+            }
             let cal = prep.calibrate_on(&method, norm, &calib_inputs, n, seed, robust)?;
             let ms = eval_idx
                 .iter()
@@ -1080,17 +1190,21 @@ pub(crate) fn summarise(
         simulated: prep.preds.simulated,
         pred_kind: prep.preds.maps[0].kind,
         method: method.to_string(),
+        protocol: prep.protocol(),
         variant: variant.to_string(),
         norm: norm.method.to_string(),
         space: norm.space,
         samples: n,
         edge_margin_px: prep.config.edge_margin_px,
         seeds: per_seed.len(),
-        calib_frame: calib
-            .iter()
-            .map(|&i| set.frames[i].id.as_str())
-            .collect::<Vec<_>>()
-            .join("+"),
+        calib_frame: match prep.protocol() {
+            Protocol::PerFrame => PER_FRAME_CALIB.to_string(),
+            Protocol::FixedCamera => calib
+                .iter()
+                .map(|&i| set.frames[i].id.as_str())
+                .collect::<Vec<_>>()
+                .join("+"),
+        },
         eval_frames: eval_idx.len(),
         per_image: MetricSummary::over_seeds(&image_means),
         pooled: MetricSummary::over_seeds(&pooled_),

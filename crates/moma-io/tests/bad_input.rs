@@ -320,6 +320,7 @@ mod calibration {
                 robust: None,
             },
             samples: SampleSet {
+                space: moma_core::normalise::AlignSpace::Depth,
                 image_size: ImageSize::new(8, 6),
                 samples: vec![],
             },

@@ -301,6 +301,7 @@ pub fn sample_calibration() -> Calibration {
             robust: None,
         },
         samples: SampleSet {
+            space: moma_core::normalise::AlignSpace::Depth,
             image_size: ImageSize::new(64, 48),
             samples: vec![
                 Sample {

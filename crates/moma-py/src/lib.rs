@@ -52,14 +52,9 @@ fn parse_sampling(s: &str) -> PyResult<SamplingStrategy> {
 }
 
 /// The alignment method with its settings ([`moma_core::policy::method`], as `moma calibrate`).
-fn parse_method(
-    s: &str,
-    bandwidth_px: Option<f64>,
-    intrinsics: Option<CoreIntrinsics>,
-) -> PyResult<Method> {
+fn parse_method(s: &str, options: &moma_core::policy::MethodOptions) -> PyResult<Method> {
     let method: Method = s.parse().py()?;
-    moma_core::policy::method(method, bandwidth_px, intrinsics)
-        .map_err(|e| value_err(format!("bandwidth_px: {e}")))
+    moma_core::policy::method(method, options).map_err(|e| value_err(e.to_string()))
 }
 
 /// One frame's re-alignment into `out` for every correction form (as the CLI's
@@ -583,7 +578,8 @@ fn robust_from(
 #[pyfunction]
 #[pyo3(signature = (pred, gt_m, cam=None, *, kind, method="ssra", norm="minmax", samples=100,
     sampling="random", seed=0, edge_margin_px=0, mask=None, workspace=None, space=None, bandwidth_px=None,
-    robust=None, robust_threshold_m=None, anchors_rgb=None))]
+    robust=None, robust_threshold_m=None, anchors_rgb=None, protocol="fixed-camera", cv_loss=None,
+    cv_margin_se=None))]
 #[allow(clippy::too_many_arguments)]
 fn calibrate(
     py: Python<'_>,
@@ -604,11 +600,23 @@ fn calibrate(
     robust: Option<&str>,
     robust_threshold_m: Option<f64>,
     anchors_rgb: Option<&Bound<'_, PyAny>>,
+    protocol: &str,
+    cv_loss: Option<&str>,
+    cv_margin_se: Option<f64>,
 ) -> PyResult<Calibration> {
     let kind = parse_kind(kind)?;
     let intrinsics = cam.map(|c| c.inner);
     let space = space.map(|s| s.parse::<AlignSpace>()).transpose().py()?;
-    let method = parse_method(method, bandwidth_px, intrinsics)?;
+    let method = parse_method(
+        method,
+        &moma_core::policy::MethodOptions {
+            bandwidth_px,
+            intrinsics,
+            protocol: protocol.parse().py()?,
+            cv_loss: cv_loss.map(str::parse).transpose().py()?,
+            cv_margin_se,
+        },
+    )?;
     let normalisation =
         moma_core::policy::normalisation(&method, Some(parse_norm(norm)?), space, kind);
     let config = CalibrationConfig {

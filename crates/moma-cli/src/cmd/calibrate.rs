@@ -6,6 +6,8 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_core::align::Method;
+use moma_core::align::local::CvLoss;
+use moma_core::policy::{MethodOptions, Protocol};
 use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
@@ -46,10 +48,10 @@ pub struct CalibrateArgs {
     pub workspace: Option<PathBuf>,
     /// Alignment method: ssra (the paper's), gssa, lwlr (BoostingDepth's grid solve),
     /// lwlr-exact, lwlr-bare, ssra-local / gssa-local (global fit + local correction, bandwidth
-    /// and ridge by spatially buffered cross-validation, kept only when it beats the global fit
-    /// by more than one standard error), auto (the simplest of gssa, ssra, gssa-local,
-    /// ssra-local, lwlr within one standard error of the best by that cross-validation), raw
-    /// (metric predictions used as metres; needs --norm none).
+    /// and ridge by cross-validation, kept only when it beats the global fit by more than the
+    /// rule's margin), auto (the simplest of gssa, ssra, gssa-local, ssra-local, lwlr within the
+    /// margin of the best by that cross-validation; see --protocol), raw (metric predictions
+    /// used as metres; needs --norm none).
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,
@@ -77,6 +79,8 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "PX")]
     pub bandwidth_px: Option<f64>,
     #[command(flatten)]
+    pub cv: CvArgs,
+    #[command(flatten)]
     pub robust: RobustArgs,
     /// Output calibration file (JSON).
     #[arg(short, long, visible_alias = "out", value_name = "FILE")]
@@ -92,6 +96,51 @@ pub struct CalibrateArgs {
     /// The calibration frame's RGB for --anchors when calibrating from --pred.
     #[arg(long, value_name = "IMG", requires = "anchors")]
     pub anchors_rgb: Option<PathBuf>,
+}
+
+/// What the calibration will align and how `auto` and the local corrections cross-validate
+/// (shared by calibrate and eval).
+#[derive(Debug, Clone, Args)]
+pub struct CvArgs {
+    /// What the calibration will align, which decides how auto, ssra-local and gssa-local
+    /// cross-validate: fixed-camera (other frames of a fixed camera: each sample predicted
+    /// without its neighbours, squared error in the fit's target units) or per-frame (the frame
+    /// it was calibrated on, sparse-to-dense: plain leave-one-out, relative error, bandwidths
+    /// down to ≈ 30 px).
+    #[arg(long, default_value = "fixed-camera", value_name = "PROTOCOL")]
+    pub protocol: Protocol,
+    /// Cross-validation loss of auto, ssra-local and gssa-local, replacing the protocol's:
+    /// target (squared error in the fit's target units: metres in depth space, 1/m in inverse
+    /// space), abs (squared error in metres) or rel (|ẑ − z| / z).
+    #[arg(long, value_name = "LOSS")]
+    pub cv_loss: Option<CvLoss>,
+    /// Selection rule of auto, ssra-local and gssa-local, replacing the protocol's: keep the
+    /// simplest model within this many standard errors of the best's CV loss (1: the
+    /// one-standard-error rule; 0: the lowest CV loss).
+    #[arg(long, value_name = "K")]
+    pub cv_margin_se: Option<f64>,
+}
+
+impl CvArgs {
+    /// `method` with its settings ([`moma_core::policy::method`]).
+    pub fn method(
+        &self,
+        method: Method,
+        bandwidth_px: Option<f64>,
+        intrinsics: Option<moma_core::Intrinsics>,
+    ) -> Result<Method> {
+        moma_core::policy::method(
+            method,
+            &MethodOptions {
+                bandwidth_px,
+                intrinsics,
+                protocol: self.protocol,
+                cv_loss: self.cv_loss,
+                cv_margin_se: self.cv_margin_se,
+            },
+        )
+        .context("the method's settings (--bandwidth-px, --cv-loss, --cv-margin-se)")
+    }
 }
 
 /// `--robust` and `--robust-threshold-m` of `moma calibrate`.
@@ -226,12 +275,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .map(|p| moma_io::read_mask_sized(p, size))
         .transpose()?;
 
-    let method = moma_core::policy::method(args.method.clone(), args.bandwidth_px, intrinsics)
-        .context("--bandwidth-px")?;
+    let method = args
+        .cv
+        .method(args.method.clone(), args.bandwidth_px, intrinsics)?;
     if intrinsics.is_none()
         && matches!(
             method,
-            Method::Ssra(_) | Method::SsraLocal(_) | Method::Auto
+            Method::Ssra(_) | Method::SsraLocal(_) | Method::Auto(_)
         )
     {
         eprintln!(

@@ -154,6 +154,10 @@ pub struct EvalOptions {
     /// Only sample and score ground truth up to this depth, metres (e.g. 1.0 as the authors' code).
     #[arg(long, value_name = "METRES")]
     pub max_gt_depth: Option<f64>,
+    /// Only score ground truth up to this depth, metres; calibration samples are still drawn
+    /// from all valid ground truth (with --max-gt-depth, the smaller cap scores).
+    #[arg(long, value_name = "METRES")]
+    pub score_max_gt_depth: Option<f64>,
     /// Fixed workspace mask PNG (nonzero = inside, the set's image size): normalisation
     /// statistics of every frame's prediction are computed over this region only (as
     /// `moma calibrate --workspace`); sampling and scoring are unchanged.
@@ -191,6 +195,13 @@ pub struct EvalOptions {
     /// Every variant calibrates on the same corrupted frame; scoring uses the true ground truth.
     #[arg(long, value_name = "FRACTION")]
     pub gt_outliers: Option<f64>,
+    /// The protocol (fixed-camera: calibrate on one frame, score every other frame, METHOD.md
+    /// §4; per-frame: sparse-to-dense, every frame calibrated on its own --samples and scored on
+    /// its own dense ground truth, for single frames or frames that do not share a camera pose;
+    /// rows carry `protocol`, per-frame rows have calib_frame `each`), and the cross-validation
+    /// of auto, ssra-local and gssa-local, as `moma calibrate`'s.
+    #[command(flatten)]
+    pub cv: super::calibrate::CvArgs,
 }
 
 impl EvalOptions {
@@ -218,6 +229,10 @@ impl EvalOptions {
         } else {
             self.methods.clone()
         };
+        let methods = methods
+            .into_iter()
+            .map(|m| self.cv.method(m, None, None))
+            .collect::<Result<Vec<_>>>()?;
         let depth_range_m = match (self.min_gt_depth, self.max_gt_depth) {
             (None, None) => None,
             (lo, hi) => {
@@ -283,6 +298,8 @@ impl EvalOptions {
             realign,
             robust,
             gt_outliers: self.gt_outliers,
+            protocol: self.cv.protocol,
+            score_max_depth_m: self.score_max_gt_depth,
         })
     }
 }

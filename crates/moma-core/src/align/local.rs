@@ -71,6 +71,7 @@ use super::ssra::{self, SsraConfig, SsraModel, solve_spd4};
 use super::{AlignmentModel, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::image::ImageSize;
+use crate::normalise::AlignSpace;
 
 /// Fewest samples `gssa-local` needs (GSSA's 2, plus 2 so that leave-one-out is defined).
 pub const GSSA_LOCAL_MIN_SAMPLES: usize = gssa::MIN_SAMPLES + 2;
@@ -114,6 +115,148 @@ pub struct LocalConfig {
     /// sample is predicted without every sample within this radius of it (0: plain
     /// leave-one-out). Must be ≥ 0.
     pub cv_buffer_fraction: f64,
+    /// What the cross-validation scores ([`CvLoss`]). Files written before it existed were
+    /// fitted with [`CvLoss::Target`].
+    #[serde(default = "legacy_cv_loss")]
+    pub cv_loss: CvLoss,
+    /// The selection rule: the simplest model whose mean CV loss is within this many standard
+    /// errors (of the paired loss differences) of the best model's is kept ([`choose_within`]).
+    /// 1 is the one-standard-error rule; 0 keeps the lowest CV loss. Must be ≥ 0. Files
+    /// written before it existed were fitted with 1.
+    #[serde(default = "legacy_cv_margin_se")]
+    pub cv_margin_se: f64,
+}
+
+fn legacy_cv_loss() -> CvLoss {
+    CvLoss::Target
+}
+
+fn legacy_cv_margin_se() -> f64 {
+    1.0
+}
+
+/// What the cross-validation of the local corrections and of `auto` scores, per sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CvLoss {
+    /// Squared error in the fit's target units: metres in depth space, 1/m in inverse space
+    /// (the least-squares objective itself; far samples dominate in depth space, near ones in
+    /// inverse space).
+    Target,
+    /// Squared error in metres, after the reciprocal in inverse space.
+    Abs,
+    /// Absolute error relative to the true depth, `|ẑ − z| / z` (its mean is AbsRel).
+    Rel,
+}
+
+impl CvLoss {
+    /// Every loss name, in documentation order.
+    pub const NAMES: [&'static str; 3] = ["target", "abs", "rel"];
+
+    /// `target`, `abs` or `rel`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Target => "target",
+            Self::Abs => "abs",
+            Self::Rel => "rel",
+        }
+    }
+
+    /// The loss of predicting `fitted` where the truth is `truth`, both in the target units of
+    /// `space`. A fitted value without a depth (disparity ≤ 0 in inverse space) costs the whole
+    /// depth: `z²` (abs) or 1 (rel).
+    #[inline]
+    pub fn of(self, space: AlignSpace, truth: f64, fitted: f64) -> f64 {
+        match self {
+            Self::Target => (truth - fitted).powi(2),
+            Self::Abs | Self::Rel => {
+                let z = space.depth_from_target(truth);
+                let zf = space.depth_from_target(fitted);
+                let err = if zf.is_finite() { (zf - z).abs() } else { z };
+                match self {
+                    Self::Abs => err * err,
+                    _ => err / z,
+                }
+            }
+        }
+    }
+
+    /// The summary of per-sample losses reported as "CV error": RMS for the squared losses
+    /// (target units or metres), the mean for `rel` (AbsRel).
+    pub fn summary(self, losses: &[f64]) -> f64 {
+        match self {
+            Self::Target | Self::Abs => mean_sqrt(losses),
+            Self::Rel => losses.iter().sum::<f64>() / losses.len().max(1) as f64,
+        }
+    }
+}
+
+impl std::fmt::Display for CvLoss {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for CvLoss {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "target" => Ok(Self::Target),
+            "abs" => Ok(Self::Abs),
+            "rel" => Ok(Self::Rel),
+            other => Err(CoreError::InvalidParameter(format!(
+                "unknown cross-validation loss '{other}' (expected one of: {})",
+                crate::names::join(Self::NAMES)
+            ))),
+        }
+    }
+}
+
+/// A model's cross-validated error in metres and relative to depth, whatever loss chose it:
+/// what a user can expect of it on pixels away from the calibration samples.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CvScore {
+    /// RMS of the cross-validated errors, metres.
+    pub rms_m: f64,
+    /// Mean of `|ẑ − z| / z` over the samples (AbsRel).
+    pub abs_rel: f64,
+}
+
+impl CvScore {
+    /// The score of cross-validated predictions `cv` (target units) of `samples`.
+    pub fn of(samples: &SampleSet, cv: &[f64]) -> Self {
+        let sq: Vec<f64> = samples
+            .samples
+            .iter()
+            .zip(cv)
+            .map(|(p, &y)| CvLoss::Abs.of(samples.space, p.depth_m, y))
+            .collect();
+        let rel: Vec<f64> = samples
+            .samples
+            .iter()
+            .zip(cv)
+            .map(|(p, &y)| CvLoss::Rel.of(samples.space, p.depth_m, y))
+            .collect();
+        Self {
+            rms_m: mean_sqrt(&sq),
+            abs_rel: CvLoss::Rel.summary(&rel),
+        }
+    }
+
+    fn is_valid(&self) -> bool {
+        self.rms_m.is_finite() && self.rms_m >= 0.0 && self.abs_rel.is_finite() && self.abs_rel >= 0.0
+    }
+}
+
+/// Per-sample losses `loss` of the cross-validated predictions `cv` (target units).
+fn losses_of(samples: &SampleSet, cv: &[f64], loss: CvLoss) -> Vec<f64> {
+    samples
+        .samples
+        .iter()
+        .zip(cv)
+        .map(|(p, &y)| loss.of(samples.space, p.depth_m, y))
+        .collect()
 }
 
 impl Default for LocalConfig {
@@ -125,6 +268,8 @@ impl Default for LocalConfig {
             grid_offset_px: 16,
             min_node_samples: 10.0,
             cv_buffer_fraction: 0.1,
+            cv_loss: CvLoss::Target,
+            cv_margin_se: 1.0,
         }
     }
 }
@@ -159,6 +304,12 @@ impl LocalConfig {
             return Err(CoreError::InvalidParameter(format!(
                 "local correction cv_buffer_fraction must be finite and ≥ 0, got {}",
                 self.cv_buffer_fraction
+            )));
+        }
+        if !(self.cv_margin_se.is_finite() && self.cv_margin_se >= 0.0) {
+            return Err(CoreError::InvalidParameter(format!(
+                "cv_margin_se must be finite and ≥ 0 (standard errors), got {}",
+                self.cv_margin_se
             )));
         }
         if !(self.min_node_samples.is_finite() && self.min_node_samples >= 0.0) {
@@ -228,6 +379,10 @@ pub struct LocalCandidate {
     /// Cross-validated RMS error on the calibration samples (spatially buffered leave-one-out,
     /// field name kept for file compatibility), target units (metres in depth space).
     pub loo_rms: f64,
+    /// The same cross-validated errors in metres and relative to depth (absent in files
+    /// written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cv: Option<CvScore>,
 }
 
 /// Full-size folded maps: `z = scale ⊙ ẑ + shift`.
@@ -251,6 +406,10 @@ pub struct LocalModel {
     pub global: GlobalFit,
     /// Cross-validated RMS error of the global fit alone, target units.
     pub global_loo_rms: f64,
+    /// The global fit's cross-validated errors in metres and relative to depth (absent in
+    /// files written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub global_cv: Option<CvScore>,
     /// Every candidate in order (bandwidth-major, after the floor; duplicates dropped), with its
     /// cross-validated RMS error.
     pub candidates: Vec<LocalCandidate>,
@@ -470,25 +629,53 @@ impl Prep<'_> {
 /// more complex model is therefore kept only when it beats every simpler one by more than the
 /// noise of the comparison. Non-finite mean losses are never chosen; `None` when none is finite.
 pub fn one_standard_error_choice(losses: &[&[f64]]) -> Option<usize> {
+    choose_within(losses, 1.0)
+}
+
+/// [`one_standard_error_choice`] with a margin of `margin_se` standard errors instead of one
+/// (0: the lowest mean loss, first on ties).
+pub fn choose_within(losses: &[&[f64]], margin_se: f64) -> Option<usize> {
+    let (best, excess) = excess_over_best(losses)?;
+    (0..=best).find(|&i| excess[i].is_some_and(|x| x <= margin_se))
+}
+
+/// For paired losses (as [`one_standard_error_choice`]): the index of the lowest finite mean
+/// (first on ties) and, for each model, by how many standard errors of the paired differences
+/// its mean loss exceeds the best's (`Some(0)` for the best, `Some(∞)` for a worse model with
+/// identical differences, `None` for a non-finite mean or another sample count).
+pub fn excess_over_best(losses: &[&[f64]]) -> Option<(usize, Vec<Option<f64>>)> {
     let mean = |l: &[f64]| l.iter().sum::<f64>() / l.len().max(1) as f64;
     let means: Vec<f64> = losses.iter().map(|l| mean(l)).collect();
     let best = (0..losses.len())
         .filter(|&i| means[i].is_finite())
         .min_by(|&a, &b| means[a].total_cmp(&means[b]).then(a.cmp(&b)))?;
-    (0..=best).find(|&i| {
-        if !means[i].is_finite() || losses[i].len() != losses[best].len() {
-            return false;
-        }
-        let n = losses[i].len() as f64;
-        let d: Vec<f64> = losses[i]
-            .iter()
-            .zip(losses[best])
-            .map(|(a, b)| a - b)
-            .collect();
-        let md = mean(&d);
-        let var = d.iter().map(|x| (x - md).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
-        md <= (var / n).sqrt()
-    })
+    let excess = (0..losses.len())
+        .map(|i| {
+            if !means[i].is_finite() || losses[i].len() != losses[best].len() {
+                return None;
+            }
+            if i == best {
+                return Some(0.0);
+            }
+            let n = losses[i].len() as f64;
+            let d: Vec<f64> = losses[i]
+                .iter()
+                .zip(losses[best])
+                .map(|(a, b)| a - b)
+                .collect();
+            let md = mean(&d);
+            let var = d.iter().map(|x| (x - md).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+            let se = (var / n).sqrt();
+            Some(if md <= 0.0 {
+                0.0
+            } else if se > 0.0 {
+                md / se
+            } else {
+                f64::INFINITY
+            })
+        })
+        .collect();
+    Some((best, excess))
 }
 
 /// The image diagonal, pixels.
@@ -594,12 +781,9 @@ fn fit_with_loo(
     if buffered {
         f_loo = buffered_global(s, base, &buffers)?;
     }
-    let global_sq: Vec<f64> = s
-        .iter()
-        .zip(&f_loo)
-        .map(|(p, f)| (p.depth_m - f).powi(2))
-        .collect();
-    let global_loo_rms = mean_sqrt(&global_sq);
+    let global_loo_rms = mean_sqrt(&losses_of(samples, &f_loo, CvLoss::Target));
+    let global_loss = losses_of(samples, &f_loo, config.cv_loss);
+    let global_cv = CvScore::of(samples, &f_loo);
     let n = s.len() as f64;
     let f: Vec<f64> = s.iter().map(|p| global.predict(p.u, p.v, p.pred)).collect();
     let c = f.iter().sum::<f64>() / n;
@@ -640,6 +824,7 @@ fn fit_with_loo(
         .collect();
 
     let mut candidates = Vec::new();
+    // per-sample CV losses of each candidate ([`LocalConfig::cv_loss`])
     let mut cand_sq: Vec<Vec<f64>> = Vec::new();
     let mut cand_pred: Vec<Vec<f64>> = Vec::new();
     for &b in &bandwidths {
@@ -669,17 +854,13 @@ fn fit_with_loo(
                     fl + ds * (fl - c) + dt
                 })
                 .collect();
-            let sq: Vec<f64> = s
-                .iter()
-                .zip(&loo)
-                .map(|(p, y)| (p.depth_m - y).powi(2))
-                .collect();
             candidates.push(LocalCandidate {
                 bandwidth_px: b,
                 ridge,
-                loo_rms: mean_sqrt(&sq),
+                loo_rms: mean_sqrt(&losses_of(samples, &loo, CvLoss::Target)),
+                cv: Some(CvScore::of(samples, &loo)),
             });
-            cand_sq.push(sq);
+            cand_sq.push(losses_of(samples, &loo, config.cv_loss));
             cand_pred.push(loo);
         }
     }
@@ -701,14 +882,15 @@ fn fit_with_loo(
             .then(cb.ridge.total_cmp(&ca.ridge))
             .then(a.cmp(&b))
     });
-    let mut losses: Vec<&[f64]> = vec![&global_sq];
+    let mut losses: Vec<&[f64]> = vec![&global_loss];
     losses.extend(order.iter().map(|&i| cand_sq[i].as_slice()));
-    let pick = one_standard_error_choice(&losses).unwrap_or(0);
+    let pick = choose_within(&losses, config.cv_margin_se).unwrap_or(0);
     let fallback = pick == 0;
-    // the chosen candidate: the one kept, or on fallback the best by LOO RMS (for the report)
+    // the chosen candidate: the one kept, or on fallback the best by CV loss (for the report)
     let ci = if fallback {
+        let mean = |l: &[f64]| l.iter().sum::<f64>() / l.len().max(1) as f64;
         (0..candidates.len())
-            .min_by(|&a, &b| candidates[a].loo_rms.total_cmp(&candidates[b].loo_rms))
+            .min_by(|&a, &b| mean(&cand_sq[a]).total_cmp(&mean(&cand_sq[b])))
             .unwrap_or(0)
     } else {
         order[pick - 1]
@@ -734,6 +916,7 @@ fn fit_with_loo(
         image_size: size,
         global,
         global_loo_rms,
+        global_cv: Some(global_cv),
         candidates,
         chosen,
         fallback,
@@ -859,6 +1042,9 @@ impl LocalModel {
         if !self.global_loo_rms.is_finite() {
             return bad(format!("global_loo_rms is {}", self.global_loo_rms));
         }
+        if self.global_cv.is_some_and(|cv| !cv.is_valid()) {
+            return bad("global_cv is invalid".into());
+        }
         for c in self.candidates.iter().chain([&self.chosen]) {
             if !(c.bandwidth_px.is_finite() && c.bandwidth_px > 0.0) {
                 return bad(format!(
@@ -871,6 +1057,9 @@ impl LocalModel {
             }
             if !c.loo_rms.is_finite() {
                 return bad(format!("loo_rms {} is not finite", c.loo_rms));
+            }
+            if c.cv.is_some_and(|cv| !cv.is_valid()) {
+                return bad("a candidate's cross-validation score is invalid".into());
             }
         }
         let (cols, rows) = self.config.grid_nodes(self.image_size);
@@ -916,6 +1105,33 @@ pub struct AutoCandidate {
     /// Cross-validated RMS error on the calibration samples (target units); `None` when the method could
     /// not be fitted on these samples.
     pub loo_rms: Option<f64>,
+    /// The same cross-validated errors in metres and relative to depth (absent when the method
+    /// could not be fitted, and in files written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cv: Option<CvScore>,
+    /// The selection loss's mean (RMS for the squared losses, mean for `rel`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cv_error: Option<f64>,
+    /// By how many standard errors of the paired loss differences the mean loss exceeds the best
+    /// candidate's (0 for the best; [`excess_over_best`]). The kept method is the first whose
+    /// excess is within [`AutoSelection::margin_se`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub excess_se: Option<f64>,
+}
+
+/// How `auto` chose: the loss, the rule and the candidate with the lowest loss.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AutoSelection {
+    /// The cross-validation loss.
+    pub loss: CvLoss,
+    /// The margin of the rule, standard errors (1: the one-standard-error rule; 0: lowest
+    /// loss).
+    pub margin_se: f64,
+    /// Radius of the cross-validation's spatial buffer, pixels (0: plain leave-one-out).
+    pub buffer_px: f64,
+    /// The candidate with the lowest mean loss.
+    pub best: String,
 }
 
 /// `auto`'s result: the chosen fitted model and every candidate's cross-validated RMS error.
@@ -926,6 +1142,9 @@ pub struct AutoModel {
     pub chosen: Box<AlignmentModel>,
     /// Every candidate in the order tried, simplest first ([`auto_candidates`]).
     pub candidates: Vec<AutoCandidate>,
+    /// How the choice was made (absent in files written before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selection: Option<AutoSelection>,
 }
 
 impl AutoModel {
@@ -950,6 +1169,26 @@ impl AutoModel {
                     c.method
                 )));
             }
+            if c.cv.is_some_and(|cv| !cv.is_valid())
+                || c.cv_error.is_some_and(|x| !(x.is_finite() && x >= 0.0))
+                || c.excess_se.is_some_and(|x| x.is_nan() || x < 0.0)
+            {
+                return Err(CoreError::InvalidParameter(format!(
+                    "auto: candidate {} has an invalid cross-validation score",
+                    c.method
+                )));
+            }
+        }
+        if let Some(sel) = &self.selection
+            && !(sel.margin_se.is_finite()
+                && sel.margin_se >= 0.0
+                && sel.buffer_px.is_finite()
+                && sel.buffer_px >= 0.0)
+        {
+            return Err(CoreError::InvalidParameter(format!(
+                "auto: selection margin {} or buffer {} px is invalid",
+                sel.margin_se, sel.buffer_px
+            )));
         }
         if !self
             .candidates
@@ -974,6 +1213,7 @@ fn lwlr_loo(
     let s = &samples.samples;
     let mut loo = Vec::with_capacity(s.len());
     let mut rest = SampleSet {
+        space: samples.space,
         image_size: samples.image_size,
         samples: Vec::with_capacity(s.len()),
     };
@@ -992,22 +1232,31 @@ fn lwlr_loo(
 }
 
 /// The methods `auto` considers, with their default settings, simplest first: the order in
-/// which the one-standard-error rule prefers them (gssa, ssra, gssa-local, ssra-local, lwlr).
+/// which the selection rule prefers them (gssa, ssra, gssa-local, ssra-local, lwlr).
 pub fn auto_candidates() -> [Method; 5] {
+    auto_candidates_with(&LocalConfig::default())
+}
+
+/// [`auto_candidates`] with the local variants set to `config`.
+pub fn auto_candidates_with(config: &LocalConfig) -> [Method; 5] {
     [
         Method::Gssa,
         Method::Ssra(SsraConfig::default()),
-        Method::GssaLocal(LocalConfig::default()),
-        Method::SsraLocal(LocalConfig::default()),
+        Method::GssaLocal(config.clone()),
+        Method::SsraLocal(config.clone()),
         Method::Lwlr(lwlr::LwlrConfig::faithful()),
     ]
 }
 
 /// Fits `method` (with its settings) on `samples` with its cross-validated predictions (target
-/// units), the folds of `auto`'s plan ([`cv_plan`] with the default local settings).
-fn fit_candidate(samples: &SampleSet, method: &Method) -> Result<(Vec<f64>, AlignmentModel)> {
+/// units), the folds of `auto`'s plan ([`cv_plan`] with `plan`'s buffer).
+fn fit_candidate(
+    samples: &SampleSet,
+    method: &Method,
+    plan: &LocalConfig,
+) -> Result<(Vec<f64>, AlignmentModel)> {
     let s = &samples.samples;
-    let buffers = cv_plan(samples, &LocalConfig::default());
+    let buffers = cv_plan(samples, plan);
     let buffered = buffers.iter().any(|b| b.len() > 1);
     match method {
         Method::Gssa => {
@@ -1064,54 +1313,85 @@ fn fit_candidate(samples: &SampleSet, method: &Method) -> Result<(Vec<f64>, Alig
 /// An unknown method; the method's fitting errors.
 pub fn loo_predictions(samples: &SampleSet, method: &Method) -> Result<Vec<f64>> {
     samples.validate()?;
-    Ok(fit_candidate(samples, method)?.0)
+    let plan = match method {
+        Method::GssaLocal(c) | Method::SsraLocal(c) | Method::Auto(c) => c.clone(),
+        _ => LocalConfig::default(),
+    };
+    Ok(fit_candidate(samples, method, &plan)?.0)
 }
 
-/// Fits `auto`: every method of [`auto_candidates`] with its leave-one-out errors on the
-/// calibration samples; kept is the simplest method within one standard error of the best
-/// ([`one_standard_error_choice`] on the paired squared LOO errors).
+/// Fits `auto` with `config`: every method of [`auto_candidates_with`] (the local variants with
+/// `config`) with its cross-validated errors on the calibration samples (spatially buffered by
+/// `config.cv_buffer_fraction`, scored by `config.cv_loss`); kept is the simplest method
+/// within `config.cv_margin_se` standard errors of the best ([`choose_within`] on the paired
+/// per-sample losses).
 ///
 /// # Errors
 /// [`CoreError::TooFewSamples`] below 3 samples; [`CoreError::Degenerate`] when no candidate
-/// could be fitted (the first candidate's error is returned).
-pub fn fit_auto(samples: &SampleSet) -> Result<AutoModel> {
-    let s = &samples.samples;
+/// could be fitted (the first candidate's error is returned); bad settings.
+pub fn fit_auto(samples: &SampleSet, config: &LocalConfig) -> Result<AutoModel> {
+    config.validate()?;
     let mut candidates = Vec::new();
-    let mut fitted: Vec<(Vec<f64>, AlignmentModel)> = Vec::new();
+    let mut fitted: Vec<(Vec<f64>, AlignmentModel, usize)> = Vec::new();
     let mut first_err = None;
-    for method in auto_candidates() {
+    for method in auto_candidates_with(config) {
         let name = method.name();
-        match fit_candidate(samples, &method) {
+        match fit_candidate(samples, &method, config) {
             Ok((loo, model)) => {
-                let sq: Vec<f64> = s
-                    .iter()
-                    .zip(&loo)
-                    .map(|(p, y)| (p.depth_m - y).powi(2))
-                    .collect();
+                let loss = losses_of(samples, &loo, config.cv_loss);
                 candidates.push(AutoCandidate {
                     method: name.to_string(),
-                    loo_rms: Some(mean_sqrt(&sq)),
+                    loo_rms: Some(mean_sqrt(&losses_of(samples, &loo, CvLoss::Target))),
+                    cv: Some(CvScore::of(samples, &loo)),
+                    cv_error: Some(config.cv_loss.summary(&loss)),
+                    excess_se: None,
                 });
-                fitted.push((sq, model));
+                fitted.push((loss, model, candidates.len() - 1));
             }
             Err(e) => {
                 candidates.push(AutoCandidate {
                     method: name.to_string(),
                     loo_rms: None,
+                    cv: None,
+                    cv_error: None,
+                    excess_se: None,
                 });
                 first_err.get_or_insert(e);
             }
         }
     }
-    let losses: Vec<&[f64]> = fitted.iter().map(|(sq, _)| sq.as_slice()).collect();
-    match one_standard_error_choice(&losses) {
-        Some(i) => Ok(AutoModel {
-            chosen: Box::new(fitted.swap_remove(i).1),
-            candidates,
-        }),
-        None => Err(first_err.unwrap_or_else(|| {
+    let losses: Vec<&[f64]> = fitted.iter().map(|(l, _, _)| l.as_slice()).collect();
+    let Some((best, excess)) = excess_over_best(&losses) else {
+        return Err(first_err.unwrap_or_else(|| {
             CoreError::Degenerate("auto: no candidate method could be fitted".into())
-        })),
+        }));
+    };
+    for ((_, _, ci), x) in fitted.iter().zip(&excess) {
+        candidates[*ci].excess_se = *x;
+    }
+    let pick = (0..=best)
+        .find(|&i| excess[i].is_some_and(|x| x <= config.cv_margin_se))
+        .unwrap_or(best);
+    let selection = AutoSelection {
+        loss: config.cv_loss,
+        margin_se: config.cv_margin_se,
+        buffer_px: cv_buffer_px(samples, config),
+        best: candidates[fitted[best].2].method.clone(),
+    };
+    Ok(AutoModel {
+        chosen: Box::new(fitted.swap_remove(pick).1),
+        candidates,
+        selection: Some(selection),
+    })
+}
+
+/// The radius of the cross-validation buffer `config` gives on `samples` (0 when the plan falls
+/// back to plain leave-one-out).
+fn cv_buffer_px(samples: &SampleSet, config: &LocalConfig) -> f64 {
+    if cv_plan(samples, config).iter().all(|b| b.len() == 1) {
+        0.0
+    } else {
+        config.cv_buffer_fraction * diagonal_px(samples.image_size)
     }
 }
 

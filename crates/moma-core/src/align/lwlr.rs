@@ -378,6 +378,8 @@ impl LwlrModel {
             )));
         }
         let set = SampleSet {
+            // the refit does not depend on what the targets are
+            space: crate::normalise::AlignSpace::Depth,
             image_size: self.image_size,
             samples: self.samples.clone(),
         };

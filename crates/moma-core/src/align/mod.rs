@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{CoreError, Result};
 use crate::image::{ImageSize, MetricDepth, is_valid_depth};
-use crate::normalise::NormalisedMap;
+use crate::normalise::{AlignSpace, NormalisedMap};
 use crate::sampling::Pixel;
 
 /// One calibration sample.
@@ -40,24 +40,50 @@ pub struct Sample {
 pub struct SampleSet {
     /// Size of the image the samples come from.
     pub image_size: ImageSize,
+    /// What [`Sample::depth_m`] holds: depth in metres ([`AlignSpace::Depth`], the default and
+    /// the only value in files) or the fit's target in inverse space, 1/m
+    /// ([`AlignSpace::Inverse`], made by [`SampleSet::in_space`]).
+    #[serde(default = "depth_space", skip_serializing_if = "is_depth_space")]
+    pub space: AlignSpace,
     /// The samples.
     pub samples: Vec<Sample>,
 }
 
+fn depth_space() -> AlignSpace {
+    AlignSpace::Depth
+}
+
+fn is_depth_space(space: &AlignSpace) -> bool {
+    *space == AlignSpace::Depth
+}
+
 impl SampleSet {
     /// The same samples with their ground truth as the fit's target in `space`: depth (metres)
-    /// unchanged in depth space, 1/z (1/m) in inverse space.
-    pub fn in_space(&self, space: crate::normalise::AlignSpace) -> Self {
+    /// in depth space, 1/z (1/m) in inverse space.
+    pub fn in_space(&self, space: AlignSpace) -> Self {
+        if space == self.space {
+            return self.clone();
+        }
         Self {
             image_size: self.image_size,
+            space,
             samples: self
                 .samples
                 .iter()
                 .map(|s| Sample {
-                    depth_m: space.target_from_depth(s.depth_m),
+                    depth_m: space.target_from_depth(self.space.depth_from_target(s.depth_m)),
                     ..*s
                 })
                 .collect(),
+        }
+    }
+
+    /// The same set with other samples (same image size and space).
+    pub fn with_samples(&self, samples: Vec<Sample>) -> Self {
+        Self {
+            image_size: self.image_size,
+            space: self.space,
+            samples,
         }
     }
 
@@ -89,6 +115,7 @@ impl SampleSet {
         }
         Ok(Self {
             image_size: size,
+            space: AlignSpace::Depth,
             samples,
         })
     }
@@ -214,9 +241,10 @@ pub enum Method {
     #[serde(rename = "gssa-local")]
     GssaLocal(local::LocalConfig),
     /// The simplest of gssa, ssra, gssa-local, ssra-local and lwlr whose cross-validated error
-    /// on the calibration samples is within one standard error of the best's
-    /// ([`local::fit_auto`]).
-    Auto,
+    /// on the calibration samples is within the rule's margin of the best's
+    /// ([`local::fit_auto`]); the settings are those of the cross-validation and of the local
+    /// candidates.
+    Auto(local::LocalConfig),
 }
 
 /// A fitted alignment: everything needed to turn a normalised map into metres. Serialisable into a calibration file.
@@ -262,7 +290,7 @@ impl Method {
             Self::Lwlr(cfg) => lwlr_name(cfg),
             Self::SsraLocal(_) => "ssra-local",
             Self::GssaLocal(_) => "gssa-local",
-            Self::Auto => "auto",
+            Self::Auto(_) => "auto",
         }
     }
 
@@ -285,7 +313,7 @@ impl Method {
             Self::Lwlr(_) => lwlr::MIN_SAMPLES,
             Self::GssaLocal(_) => local::GSSA_LOCAL_MIN_SAMPLES,
             Self::SsraLocal(_) => local::SSRA_LOCAL_MIN_SAMPLES,
-            Self::Auto => local::AUTO_MIN_SAMPLES,
+            Self::Auto(_) => local::AUTO_MIN_SAMPLES,
         }
     }
 
@@ -302,11 +330,12 @@ impl Method {
     /// # Example
     /// ```
     /// use moma_core::align::{Method, Sample, SampleSet};
+    /// use moma_core::normalise::AlignSpace;
     /// use moma_core::ImageSize;
     /// let samples = (0..10)
     ///     .map(|k| Sample { u: k as f64, v: 0.0, pred: k as f64, depth_m: 0.5 + 0.1 * k as f64 })
     ///     .collect();
-    /// let set = SampleSet { image_size: ImageSize::new(10, 1), samples };
+    /// let set = SampleSet { image_size: ImageSize::new(10, 1), space: AlignSpace::Depth, samples };
     /// let (model, report) = Method::Gssa.fit(&set).unwrap();
     /// assert!(report.rms_residual_m < 1e-12);
     /// ```
@@ -325,7 +354,7 @@ impl Method {
             Self::GssaLocal(cfg) => {
                 AlignmentModel::Local(Box::new(local::fit(samples, local::LocalBase::Gssa, cfg)?))
             }
-            Self::Auto => AlignmentModel::Auto(local::fit_auto(samples)?),
+            Self::Auto(cfg) => AlignmentModel::Auto(local::fit_auto(samples, cfg)?),
         };
         let rms_residual_m = match &model {
             AlignmentModel::Raw => rms_residual(&samples.samples, |s| s.pred),
@@ -377,7 +406,7 @@ impl std::str::FromStr for Method {
             "lwlr-bare" => Ok(Self::Lwlr(lwlr::LwlrConfig::bare_exact())),
             "ssra-local" => Ok(Self::SsraLocal(local::LocalConfig::default())),
             "gssa-local" => Ok(Self::GssaLocal(local::LocalConfig::default())),
-            "auto" => Ok(Self::Auto),
+            "auto" => Ok(Self::Auto(local::LocalConfig::default())),
             "raw" => Ok(Self::Raw),
             other => Err(CoreError::InvalidParameter(format!(
                 "unknown method '{other}' (expected one of: {})",

@@ -385,6 +385,7 @@ impl Robust {
                 for mut inliers in starts {
                     for _ in 0..LOCAL_ROUNDS {
                         let subset = SampleSet {
+                            space: targets.space,
                             image_size: targets.image_size,
                             samples: ctx
                                 .samples
@@ -500,6 +501,7 @@ impl Robust {
         let needed = adaptive_bound(n.div_ceil(2), n, m, 0, most).max(1);
         let mut drawn = 0;
         let mut subset = SampleSet {
+            space: ctx.set.space,
             image_size: ctx.set.image_size,
             samples: Vec::with_capacity(m),
         };
@@ -629,6 +631,7 @@ impl Robust {
         let mut needed = self.max_iterations;
         let mut drawn = 0;
         let mut subset = SampleSet {
+            space: ctx.set.space,
             image_size: ctx.set.image_size,
             samples: Vec::with_capacity(m),
         };

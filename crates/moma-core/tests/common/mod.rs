@@ -33,6 +33,7 @@ pub fn samples(
         })
         .collect();
     SampleSet {
+        space: moma_core::normalise::AlignSpace::Depth,
         image_size: size,
         samples,
     }
