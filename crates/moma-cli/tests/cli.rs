@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{align_args, calibrate_frame_00, demo, fails, moma, ok, s};
+use common::{align_args, calibrate_frame_00, demo, fails, moma, ok, s, shared_dir};
 
 /// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
@@ -370,28 +370,6 @@ fn depth_model_options_fail_clearly() {
 /// Whether a CUDA GPU is visible (then `--device cuda:0` may legitimately succeed).
 fn candle_core_cuda_available() -> bool {
     Path::new("/dev/nvidia0").exists()
-}
-
-/// The shared folder: `$MOMA_SHARED_DIR`, else `../shared` beside the workspace. Tests calling
-/// it are `#[ignore = "needs ../shared ..."]` and run with `-- --include-ignored` (CI does).
-///
-/// # Panics
-/// When it does not exist, naming where it was looked for.
-fn shared_dir() -> PathBuf {
-    let (dir, from) = match std::env::var_os("MOMA_SHARED_DIR") {
-        Some(d) => (PathBuf::from(d), "$MOMA_SHARED_DIR"),
-        None => (
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"),
-            "../shared beside the workspace (MOMA_SHARED_DIR unset)",
-        ),
-    };
-    assert!(
-        dir.is_dir(),
-        "this test needs the shared folder, not found at {} ({from}); set MOMA_SHARED_DIR, \
-         or run without --include-ignored to skip it",
-        dir.display()
-    );
-    dir
 }
 
 /// `shared_dir()/reference/dav2`.

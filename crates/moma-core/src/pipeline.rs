@@ -1136,3 +1136,40 @@ impl Calibration {
         realign_in_place(self.anchor_store()?, rgb, self.space(), config, depth_m)
     }
 }
+
+impl Calibration {
+    /// The error this calibration is expected to make away from its samples, estimated by
+    /// cross-validation on its samples: AbsRel and RMS in metres. `auto` and the local
+    /// corrections report the score of the model they kept (with their own cross-validation);
+    /// GSSA, SSRA and LWLR are cross-validated with the folds of `protocol`
+    /// ([`crate::policy::local_config`]: spatially buffered for a fixed camera, plain
+    /// leave-one-out per frame); RAW (no fit) reports its error on the samples. `None` for a
+    /// robust fit (its cross-validation is not the least-squares one) and for files written
+    /// before local models recorded their scores.
+    ///
+    /// # Errors
+    /// The refits' errors (degenerate samples).
+    pub fn predicted_error(
+        &self,
+        protocol: crate::policy::Protocol,
+    ) -> Result<Option<crate::align::local::CvScore>> {
+        use crate::align::local::{self, CvScore};
+        if self.report.robust.is_some() {
+            return Ok(None);
+        }
+        let samples = self.samples.in_space(self.space());
+        let plan = crate::policy::local_config(protocol);
+        let method = match &self.model {
+            AlignmentModel::Auto(m) => return Ok(m.chosen_cv()),
+            AlignmentModel::Local(m) => return Ok(m.cv()),
+            AlignmentModel::Raw => {
+                let raw: Vec<f64> = samples.samples.iter().map(|s| s.pred).collect();
+                return Ok(Some(CvScore::of(&samples, &raw)));
+            }
+            AlignmentModel::Gssa(_) => Method::Gssa,
+            AlignmentModel::Ssra(_) => Method::Ssra(Default::default()),
+            AlignmentModel::Lwlr(m) => Method::Lwlr(m.config.clone()),
+        };
+        local::cv_score(&samples, &method, &plan).map(Some)
+    }
+}

@@ -186,7 +186,7 @@ pub fn eval_table_with_notes(results: &[EvalResult], notes: &[EvalNote], pooled:
     let sim = results.iter().any(|r| r.simulated);
     let title = match first {
         Some(r) => format!(
-            "{}{} — n = {} samples{}, {} seeds, calibration frame(s): {}; {} (mean ± std over seeds{})",
+            "{}{} — n = {} samples{}, {} seeds, {}; {} (mean ± std over seeds{})",
             if sim {
                 "SIMULATED predictions — "
             } else {
@@ -196,7 +196,16 @@ pub fn eval_table_with_notes(results: &[EvalResult], notes: &[EvalNote], pooled:
             r.samples,
             edge_margin_clause(r.edge_margin_px),
             r.seeds,
-            calib_list(results),
+            if results
+                .iter()
+                .all(|r| r.protocol == crate::protocol::Protocol::PerFrame)
+            {
+                "per-frame protocol: each frame calibrated on its own samples and scored on its \
+                 own ground truth"
+                    .to_string()
+            } else {
+                format!("calibration frame(s): {}", calib_list(results))
+            },
             if pooled {
                 "pixel-pooled"
             } else {
@@ -250,6 +259,7 @@ pub fn eval_csv(results: &[EvalResult]) -> String {
         }
     }
     headers.push("fit_time_median_s".into());
+    headers.push("protocol".into());
     let stats = |m: &MetricSummary| -> Vec<String> {
         [m.d105, m.d110, m.d125, m.rel, m.rmse, m.mae]
             .iter()
@@ -275,6 +285,7 @@ pub fn eval_csv(results: &[EvalResult]) -> String {
             row.extend(stats(&r.per_image));
             row.extend(stats(&r.pooled));
             row.push(format!("{:.9}", r.fit_time_median_s));
+            row.push(r.protocol.to_string());
             row
         })
         .collect();

@@ -117,7 +117,7 @@ pub struct CvArgs {
     /// Selection rule of auto, ssra-local and gssa-local, replacing the protocol's: keep the
     /// simplest model within this many standard errors of the best's CV loss (1: the
     /// one-standard-error rule; 0: the lowest CV loss).
-    #[arg(long, value_name = "K")]
+    #[arg(long, value_name = "K", allow_negative_numbers = true)]
     pub cv_margin_se: Option<f64>,
 }
 
@@ -409,6 +409,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
 
     let report = &file.calibration.report;
     let n_frames = inputs.len();
+    let predicted = file
+        .calibration
+        .predicted_error(args.cv.protocol)
+        .context("cross-validating the calibration for its predicted error")?;
     if args.json {
         let mut summary = serde_json::json!({
             "output": args.output,
@@ -417,6 +421,11 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             "n_used": report.n_used,
             "rms_residual_m": report.rms_residual_m,
             "fit_time_s": report.fit_time_s,
+            "predicted_error": predicted.map(|cv| serde_json::json!({
+                "protocol": args.cv.protocol,
+                "abs_rel": cv.abs_rel,
+                "rms_m": cv.rms_m,
+            })),
             "model": file.calibration.model,
         });
         if let (Some(r), Some(obj)) = (&report.robust, summary.as_object_mut()) {
@@ -456,6 +465,19 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 r.inlier_rms_residual_m * 1e3,
                 r.iterations
             );
+        }
+        if let Some(cv) = predicted {
+            println!(
+                "predicted error ({} cross-validation on the samples): AbsRel {:.4}, RMS {:.1} mm",
+                args.cv.protocol,
+                cv.abs_rel,
+                cv.rms_m * 1e3
+            );
+        }
+        if let moma_core::align::AlignmentModel::Auto(m) = &file.calibration.model {
+            for line in m.explain() {
+                println!("{line}");
+            }
         }
         println!(
             "parameters: {}",

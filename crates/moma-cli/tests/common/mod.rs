@@ -145,3 +145,25 @@ pub fn align_args<'a>(
     args.extend_from_slice(extra);
     args
 }
+
+/// The shared folder: `$MOMA_SHARED_DIR`, else `../shared` beside the workspace. Tests calling
+/// it are `#[ignore = "needs ../shared ..."]` and run with `-- --include-ignored` (CI does).
+///
+/// # Panics
+/// When it does not exist, naming where it was looked for.
+pub fn shared_dir() -> PathBuf {
+    let (dir, from) = match std::env::var_os("MOMA_SHARED_DIR") {
+        Some(d) => (PathBuf::from(d), "$MOMA_SHARED_DIR"),
+        None => (
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared"),
+            "../shared beside the workspace (MOMA_SHARED_DIR unset)",
+        ),
+    };
+    assert!(
+        dir.is_dir(),
+        "this test needs the shared folder, not found at {} ({from}); set MOMA_SHARED_DIR, \
+         or run without --include-ignored to skip it",
+        dir.display()
+    );
+    dir
+}

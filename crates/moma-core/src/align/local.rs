@@ -1320,6 +1320,89 @@ pub fn loo_predictions(samples: &SampleSet, method: &Method) -> Result<Vec<f64>>
     Ok(fit_candidate(samples, method, &plan)?.0)
 }
 
+/// The cross-validated error of `method` on `samples` with the folds and buffer of `plan`
+/// (its other settings are ignored; the local variants and `auto` use their own settings):
+/// what [`crate::pipeline::Calibration::predicted_error`] reports.
+///
+/// # Errors
+/// An unknown method (RAW has no fit to cross-validate); the method's fitting errors.
+pub fn cv_score(samples: &SampleSet, method: &Method, plan: &LocalConfig) -> Result<CvScore> {
+    samples.validate()?;
+    if let Method::Auto(cfg) = method {
+        let m = fit_auto(samples, cfg)?;
+        return m.chosen_cv().ok_or_else(|| {
+            CoreError::Degenerate("auto: the chosen method has no cross-validation score".into())
+        });
+    }
+    Ok(CvScore::of(samples, &fit_candidate(samples, method, plan)?.0))
+}
+
+impl AutoModel {
+    /// The cross-validation score of the chosen method (`None` in files written before it was
+    /// recorded).
+    pub fn chosen_cv(&self) -> Option<CvScore> {
+        self.candidates
+            .iter()
+            .find(|c| c.method == self.chosen.name())
+            .and_then(|c| c.cv)
+    }
+
+    /// One line per candidate saying why `auto` kept what it kept: the loss, the rule, each
+    /// candidate's CV error and excess over the best in standard errors (empty for files
+    /// written before the selection was recorded).
+    pub fn explain(&self) -> Vec<String> {
+        let Some(sel) = &self.selection else {
+            return Vec::new();
+        };
+        let cv = if sel.buffer_px > 0.0 {
+            format!(
+                "leave-one-out without the samples within {:.0} px",
+                sel.buffer_px
+            )
+        } else {
+            "plain leave-one-out".to_string()
+        };
+        let mut lines = vec![format!(
+            "auto kept {}: the simplest candidate (in this order) whose mean {} loss is within \
+             {} standard error(s) of the best's ({}); {cv}",
+            self.chosen.name(),
+            sel.loss,
+            sel.margin_se,
+            sel.best
+        )];
+        for c in &self.candidates {
+            lines.push(match (c.cv, c.cv_error, c.excess_se) {
+                (Some(cv), Some(err), Some(x)) => format!(
+                    "  {:<11} CV {} {err:.4}  (AbsRel {:.4}, RMS {:.1} mm)  +{x:.2} SE{}",
+                    c.method,
+                    sel.loss,
+                    cv.abs_rel,
+                    cv.rms_m * 1e3,
+                    if c.method == self.chosen.name() {
+                        "  <- kept"
+                    } else {
+                        ""
+                    }
+                ),
+                _ => format!("  {:<11} could not be fitted on these samples", c.method),
+            });
+        }
+        lines
+    }
+}
+
+impl LocalModel {
+    /// The cross-validation score of the model as used (the global fit's on fallback; `None`
+    /// in files written before it was recorded).
+    pub fn cv(&self) -> Option<CvScore> {
+        if self.fallback {
+            self.global_cv
+        } else {
+            self.chosen.cv
+        }
+    }
+}
+
 /// Fits `auto` with `config`: every method of [`auto_candidates_with`] (the local variants with
 /// `config`) with its cross-validated errors on the calibration samples (spatially buffered by
 /// `config.cv_buffer_fraction`, scored by `config.cv_loss`); kept is the simplest method
