@@ -231,6 +231,12 @@ class Calibration:
     @property
     def samples(self) -> npt.NDArray[np.float64]:
         """``n × 4``: u (px), v (px), normalised prediction, ground-truth depth (m)."""
+    def predicted_error(
+        self, protocol: Literal["fixed-camera", "per-frame"] = "fixed-camera"
+    ) -> Optional[dict[str, Any]]:
+        """The error expected away from the samples, by cross-validation on them (``moma
+        calibrate``'s ``predicted_error``): ``{"protocol", "abs_rel", "rms_m"}`` (metres), None
+        for a robust fit."""
     def to_json(self) -> str:
         """The calibration file's JSON text."""
 

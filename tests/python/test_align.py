@@ -232,3 +232,48 @@ def test_raw_needs_norm_none():
     pred, gt = scene(holes=False)
     with pytest.raises(ValueError, match="normalisation 'none'"):
         moma.calibrate(gt, gt, kind="depth", method="raw")
+
+
+def _narrow_bumps(h=120, w=160):
+    """A depth prediction with narrow (σ = 6 px) ±15 % distortions of a smooth room: a
+    correction a few pixels wide follows them, a global fit cannot."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    truth = 1.0 + 4.0 * (1.0 - yy / h) + 0.3 * np.sin(xx / 20.0)
+    f = np.zeros_like(truth)
+    for cu, cv, a in [(30, 25, 0.15), (90, 70, -0.15), (130, 30, 0.12), (60, 95, -0.1)]:
+        f += a * np.exp(-((xx - cu) ** 2 + (yy - cv) ** 2) / (2 * 36.0))
+    return (truth * (1 + f)).astype(np.float32), truth.astype(np.float32)
+
+
+def test_protocol_decides_the_cross_validation_of_auto_and_local():
+    pred, gt = _narrow_bumps()
+    kw = dict(kind="depth", norm="none", samples=150, seed=1)
+    per_frame = moma.calibrate(pred, gt, method="auto", protocol="per-frame", **kw)
+    fixed = moma.calibrate(pred, gt, method="auto", **kw)
+    sel = per_frame.report["model"]["selection"]
+    assert (sel["loss"], sel["buffer_px"]) == ("rel", 0.0)
+    assert fixed.report["model"]["selection"]["loss"] == "target"
+    assert fixed.report["model"]["selection"]["buffer_px"] > 0
+    rel = lambda c: float(np.mean(np.abs(c.align(pred) - gt) / gt))  # noqa: E731
+    ssra = moma.calibrate(pred, gt, method="ssra", **kw)
+    assert rel(per_frame) < 0.8 * rel(ssra)
+    # the predicted error is the chosen candidate's cross-validated score
+    pe = per_frame.predicted_error("per-frame")
+    assert pe["protocol"] == "per-frame"
+    # the rule: the first candidate (simplest first) within the margin of the best
+    kept = next(c for c in per_frame.report["model"]["candidates"]
+                if c.get("excess_se") is not None and c["excess_se"] <= sel["margin_se"])
+    assert pe["abs_rel"] == kept["cv"]["abs_rel"]
+    assert 0 < pe["abs_rel"] < 0.2 and pe["rms_m"] > 0
+    # overrides, and what they refuse
+    c = moma.calibrate(pred, gt, method="ssra-local", protocol="per-frame", cv_loss="abs",
+                       cv_margin_se=0.0, **kw)
+    cfg = c.report["model"]["config"]
+    assert (cfg["cv_loss"], cfg["cv_margin_se"], cfg["cv_buffer_fraction"]) == ("abs", 0.0, 0.0)
+    with pytest.raises(ValueError, match="auto only"):
+        moma.calibrate(pred, gt, method="ssra", cv_loss="rel", **kw)
+    with pytest.raises(ValueError, match="protocol"):
+        moma.calibrate(pred, gt, method="auto", protocol="sideways", **kw)
+    with pytest.raises(ValueError, match="margin"):
+        moma.calibrate(pred, gt, method="auto", cv_margin_se=-1.0, **kw)
+    assert moma.calibrate(pred, gt, method="gssa", **kw).predicted_error()["protocol"] == "fixed-camera"

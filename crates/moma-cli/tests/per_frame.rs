@@ -126,17 +126,30 @@ fn calibrate_reports_the_predicted_error_and_the_choice() {
     let auto = json(&["--method", "auto", "--protocol", "per-frame"]);
     let pe = &auto["predicted_error"];
     assert_eq!(pe["protocol"], "per-frame");
-    let (rel, rms) = (pe["abs_rel"].as_f64().unwrap(), pe["rms_m"].as_f64().unwrap());
+    let (rel, rms) = (
+        pe["abs_rel"].as_f64().unwrap(),
+        pe["rms_m"].as_f64().unwrap(),
+    );
     assert!(rel > 0.0 && rel < 0.5 && rms > 0.0 && rms < 5.0, "{pe}");
     let sel = &auto["model"]["selection"];
-    assert_eq!((sel["loss"].as_str(), sel["buffer_px"].as_f64()), (Some("rel"), Some(0.0)));
+    assert_eq!(
+        (sel["loss"].as_str(), sel["buffer_px"].as_f64()),
+        (Some("rel"), Some(0.0))
+    );
     // the fixed-camera default: buffered, target loss
     let fixed = json(&["--method", "auto"]);
     assert_eq!(fixed["predicted_error"]["protocol"], "fixed-camera");
     assert_eq!(fixed["model"]["selection"]["loss"], "target");
     assert!(fixed["model"]["selection"]["buffer_px"].as_f64().unwrap() > 0.0);
     // overrides reach the fit
-    let abs = json(&["--method", "auto", "--cv-loss", "abs", "--cv-margin-se", "0"]);
+    let abs = json(&[
+        "--method",
+        "auto",
+        "--cv-loss",
+        "abs",
+        "--cv-margin-se",
+        "0",
+    ]);
     assert_eq!(abs["model"]["selection"]["loss"], "abs");
     assert_eq!(abs["model"]["selection"]["margin_se"], 0.0);
     // a global method is cross-validated too
@@ -145,7 +158,10 @@ fn calibrate_reports_the_predicted_error_and_the_choice() {
     let mut text_args = base.to_vec();
     text_args.extend(["--method", "auto", "--protocol", "per-frame"]);
     let text = ok(&text_args);
-    assert!(text.contains("predicted error (per-frame cross-validation"), "{text}");
+    assert!(
+        text.contains("predicted error (per-frame cross-validation"),
+        "{text}"
+    );
     assert!(text.contains("<- kept"), "{text}");
 }
 
@@ -155,7 +171,10 @@ fn bad_protocol_options_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
     let (scene, pred) = demo(tmp.path());
     let out = tmp.path().join("c.json");
-    let (p, gt) = (pred.join("frame_00.npy"), scene.join("frames/frame_00/depth.png"));
+    let (p, gt) = (
+        pred.join("frame_00.npy"),
+        scene.join("frames/frame_00/depth.png"),
+    );
     let cal = |extra: &[&str]| {
         let mut a = vec!["calibrate", "--pred", s(&p), "--gt", s(&gt), "-o", s(&out)];
         a.extend_from_slice(extra);
@@ -187,8 +206,19 @@ fn bad_protocol_options_are_refused() {
     // per-frame on the demo scene runs and labels its rows
     let o = tmp.path().join("pf");
     ok(&[
-        "eval", "--set", s(&scene), "--pred", s(&pred), "--seeds", "1", "--protocol",
-        "per-frame", "--methods", "gssa,auto", "-o", s(&o),
+        "eval",
+        "--set",
+        s(&scene),
+        "--pred",
+        s(&pred),
+        "--seeds",
+        "1",
+        "--protocol",
+        "per-frame",
+        "--methods",
+        "gssa,auto",
+        "-o",
+        s(&o),
     ]);
     let csv = std::fs::read_to_string(o.join("results.csv")).unwrap();
     assert!(csv.lines().next().unwrap().ends_with(",protocol"), "{csv}");

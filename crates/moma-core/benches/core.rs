@@ -203,8 +203,25 @@ fn bench_local(c: &mut Criterion) {
     });
     g.sample_size(10);
     g.bench_function("fit_auto_n100", |b| {
-        p1.install(|| b.iter(|| Method::Auto(Default::default()).fit(black_box(&set)).unwrap()))
+        p1.install(|| {
+            b.iter(|| {
+                Method::Auto(Default::default())
+                    .fit(black_box(&set))
+                    .unwrap()
+            })
+        })
     });
+    // issue 27: the per-frame cross-validation (plain leave-one-out, relative error, finer
+    // bandwidths and one more ridge), at 640×480 and 640×360; limit 10 ms on one core
+    let per_frame = Method::Auto(moma_core::policy::local_config(
+        moma_core::policy::Protocol::PerFrame,
+    ));
+    let set_360 = bumpy_samples(ImageSize::new(640, 360), 100, 11);
+    for (name, s) in [("640x480", &set), ("640x360", &set_360)] {
+        g.bench_function(BenchmarkId::new("fit_auto_per_frame_n100", name), |b| {
+            p1.install(|| b.iter(|| per_frame.fit(black_box(s)).unwrap()))
+        });
+    }
     g.finish();
 }
 

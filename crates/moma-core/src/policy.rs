@@ -312,7 +312,11 @@ mod tests {
         };
         for name in ["auto", "ssra-local", "gssa-local"] {
             let m = method(name.parse().unwrap(), &MethodOptions::default()).unwrap();
-            assert_eq!(m, name.parse::<Method>().unwrap(), "{name}: fixed camera = default");
+            assert_eq!(
+                m,
+                name.parse::<Method>().unwrap(),
+                "{name}: fixed camera = default"
+            );
             let m = method(name.parse().unwrap(), &per_frame).unwrap();
             let cfg = match m {
                 Method::Auto(c) | Method::SsraLocal(c) | Method::GssaLocal(c) => c,

@@ -73,7 +73,8 @@ fn emit(rows: &[EvalResult], labels: &[String], cap: &str) {
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let configs: Vec<Config> = serde_json::from_str(&std::fs::read_to_string(
-        args.get(1).ok_or("usage: cv_defaults CONFIGS.json [SEEDS] [NORM]")?,
+        args.get(1)
+            .ok_or("usage: cv_defaults CONFIGS.json [SEEDS] [NORM]")?,
     )?)?;
     let seeds: usize = args.get(2).map_or(Ok(10), |s| s.parse())?;
     let norm: Normalisation = args.get(3).map_or(Ok(Normalisation::None), |s| s.parse())?;

@@ -516,10 +516,9 @@ impl<'a> Prepared<'a> {
                 ));
             }
             let cap = config.score_max_depth_m.unwrap_or(f64::INFINITY);
-            let mut region = f
-                .gt
-                .depth_m
-                .mapv(|z| in_range(z, config.depth_range_m) && f64::from(z) <= cap);
+            let mut region =
+                f.gt.depth_m
+                    .mapv(|z| in_range(z, config.depth_range_m) && f64::from(z) <= cap);
             if let Some(m) = &f.mask {
                 ndarray::Zip::from(&mut region)
                     .and(m.data())

@@ -41,10 +41,7 @@ fn each_frame_is_calibrated_on_its_own_samples() {
             (Protocol::PerFrame, PER_FRAME_CALIB, 3)
         );
         let row = JsonRow::from(r);
-        assert_eq!(
-            serde_json::to_value(&row).unwrap()["protocol"],
-            "per-frame"
-        );
+        assert_eq!(serde_json::to_value(&row).unwrap()["protocol"], "per-frame");
         let method: moma_core::align::Method = r.method.parse().unwrap();
         let method = method.with_intrinsics(Some(intrinsics()));
         for (k, f) in r.frames.iter().enumerate() {
@@ -103,11 +100,19 @@ fn per_frame_recovers_frame_specific_scales_that_one_calibration_cannot() {
             .collect(),
     };
     let per_frame = evaluate(&set, &preds, &config(&["gssa"], Protocol::PerFrame)).unwrap();
-    assert!(per_frame[0].per_image.rel.mean < 1e-5, "{:?}", per_frame[0].per_image.rel);
+    assert!(
+        per_frame[0].per_image.rel.mean < 1e-5,
+        "{:?}",
+        per_frame[0].per_image.rel
+    );
     let fixed = evaluate(&set, &preds, &config(&["gssa"], Protocol::FixedCamera)).unwrap();
     assert_eq!(fixed[0].protocol, Protocol::FixedCamera);
     assert_eq!(fixed[0].eval_frames, 2);
-    assert!(fixed[0].per_image.rel.mean > 0.05, "{:?}", fixed[0].per_image.rel);
+    assert!(
+        fixed[0].per_image.rel.mean > 0.05,
+        "{:?}",
+        fixed[0].per_image.rel
+    );
 }
 
 /// The scoring cap removes far pixels from scoring only: the calibrations (their fit residuals)

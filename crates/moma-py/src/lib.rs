@@ -317,6 +317,25 @@ impl Calibration {
         Ok(d)
     }
 
+    /// The error this calibration is expected to make away from its samples, by
+    /// cross-validation on them (`moma calibrate`'s `predicted_error`): `{"protocol", "abs_rel",
+    /// "rms_m"}` (metres), or None for a robust fit. `protocol`: "fixed-camera" (spatially
+    /// buffered folds) or "per-frame" (plain leave-one-out) for gssa, ssra and lwlr; auto and the
+    /// local variants report their own cross-validation.
+    #[pyo3(signature = (protocol="fixed-camera"))]
+    fn predicted_error<'py>(&self, py: Python<'py>, protocol: &str) -> PyResult<Bound<'py, PyAny>> {
+        let protocol: moma_core::policy::Protocol = protocol.parse().py()?;
+        let cv = self.inner.predicted_error(protocol).py()?;
+        to_py_json(
+            py,
+            &cv.map(|cv| {
+                serde_json::json!({
+                    "protocol": protocol, "abs_rel": cv.abs_rel, "rms_m": cv.rms_m,
+                })
+            }),
+        )
+    }
+
     /// Whether the calibration holds the anchor store that `align_realigned` needs (made with
     /// `calibrate(..., anchors_rgb=...)` or `moma calibrate --anchors`).
     #[getter]

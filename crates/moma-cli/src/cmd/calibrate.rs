@@ -7,10 +7,10 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use moma_core::align::Method;
 use moma_core::align::local::CvLoss;
-use moma_core::policy::{MethodOptions, Protocol};
 use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
+use moma_core::policy::{MethodOptions, Protocol};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_io::{CalibrationFile, CreationInfo};
 

@@ -28,9 +28,14 @@ use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 /// δ1.05, δ1.10, δ1.25, REL, RMSE, MAE. Per-image metrics are averaged over frames; the table
 /// shows mean ± std (population) over sampling seeds; the pixel-pooled variant is written too.
 /// Writes OUT/results.{md,csv,json}; --json prints one JSON array (one object per set, method,
-/// variant and normalisation: set, method, variant, norm, samples, seeds, calib_frame and d105,
-/// d110, d125, rel, rmse, mae as {"mean", "std"}, RMSE/MAE in metres) to stdout and the table to
-/// stderr. `variant` is `one-shot` unless --calib-frames asks for few-shot calibration.
+/// variant and normalisation: set, method, protocol, variant, norm, samples, seeds, calib_frame and
+/// d105, d110, d125, rel, rmse, mae as {"mean", "std"}, RMSE/MAE in metres) to stdout and the
+/// table to stderr. `variant` is `one-shot` unless --calib-frames asks for few-shot calibration.
+///
+/// --protocol per-frame (sparse-to-dense, for single frames or a moving camera): every frame is
+/// calibrated on its own n samples and its own ground truth scored; auto, ssra-local and
+/// gssa-local then cross-validate by plain leave-one-out in relative error (as `moma calibrate
+/// --protocol per-frame`).
 ///
 /// Predictions: --pred DIR (<frame-id>.npy, float32 H×W, of kind --pred-kind; with several sets
 /// either one --pred per set or one root holding a folder per set name), --simulate (simulated
@@ -43,6 +48,8 @@ use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 ///   moma eval --set data/m2t2-table --simulate --max-gt-depth 2.0 --figures -o out/m2t2  # out/m2t2/m2t2-table/figures/
 ///   moma eval --set data/gqcnn-primesense --weights da2_vits.safetensors --model vits
 ///   moma eval --set data/gqcnn-primesense --simulate --calib-frames 1,2,3  # few-shot
+///   moma eval --set data/zed-da3-office --pred data/zed-da3-office/predictions --protocol per-frame \
+///       --methods gssa,ssra,lwlr,auto --norm none --score-max-gt-depth 5
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct EvalArgs {
