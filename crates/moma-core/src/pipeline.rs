@@ -1168,7 +1168,7 @@ impl Calibration {
             }
             AlignmentModel::Gssa(_) => Method::Gssa,
             AlignmentModel::Ssra(_) => Method::Ssra(Default::default()),
-            AlignmentModel::Lwlr(m) => Method::Lwlr(m.config.clone()),
+            AlignmentModel::Lwlr(m) => Method::Lwlr(m.config),
         };
         local::cv_score(&samples, &method, &plan).map(Some)
     }

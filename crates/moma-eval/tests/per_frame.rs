@@ -27,6 +27,40 @@ fn config(methods: &[&str], protocol: Protocol) -> EvalConfig {
     }
 }
 
+/// Frame `k` aligned by `method` calibrated on its own 40 samples (seed `seed`, no
+/// normalisation, depth space), through the library calibration.
+fn aligned_alone(
+    set: &moma_eval::data::LoadedSet,
+    preds: &PredictionSet,
+    k: usize,
+    method: &moma_core::align::Method,
+    seed: u64,
+) -> moma_core::MetricDepth {
+    let cal = calibrate_frames(
+        &[CalibrationFrame {
+            pred: &preds.maps[k],
+            gt: &set.frames[k].gt,
+            sample_region: None,
+        }],
+        &CalibrationConfig {
+            method: method.clone(),
+            normalisation: NormalisationConfig {
+                method: Normalisation::None,
+                space: AlignSpace::Depth,
+            },
+            sampling: SamplingConfig {
+                n: 40,
+                seed,
+                ..Default::default()
+            },
+            robust: None,
+        },
+        None,
+    )
+    .unwrap();
+    cal.align(&preds.maps[k]).unwrap()
+}
+
 /// Each row's per-frame metrics are those of `calibrate_frames` on that frame alone (same seed),
 /// applied to it and scored inside its mask; every frame is scored, `calib_frame` is `each`.
 #[test]
@@ -47,29 +81,7 @@ fn each_frame_is_calibrated_on_its_own_samples() {
         for (k, f) in r.frames.iter().enumerate() {
             assert_eq!(f.frame, format!("f{k}"));
             for (s, got) in f.per_seed.iter().enumerate() {
-                let cal = calibrate_frames(
-                    &[CalibrationFrame {
-                        pred: &preds.maps[k],
-                        gt: &set.frames[k].gt,
-                        sample_region: None,
-                    }],
-                    &CalibrationConfig {
-                        method: method.clone(),
-                        normalisation: NormalisationConfig {
-                            method: Normalisation::None,
-                            space: AlignSpace::Depth,
-                        },
-                        sampling: SamplingConfig {
-                            n: 40,
-                            seed: s as u64,
-                            ..Default::default()
-                        },
-                        robust: None,
-                    },
-                    None,
-                )
-                .unwrap();
-                let aligned = cal.align(&preds.maps[k]).unwrap();
+                let aligned = aligned_alone(&set, &preds, k, &method, s as u64);
                 let want =
                     DepthMetrics::compute(&aligned, &set.frames[k].gt, set.frames[k].mask.as_ref())
                         .unwrap();
@@ -133,29 +145,7 @@ fn the_scoring_cap_leaves_sampling_alone() {
     assert_ne!(a[0].per_image.mae.mean, b[0].per_image.mae.mean);
     // seed 0, frame 1 by hand
     let k = 1;
-    let cal = calibrate_frames(
-        &[CalibrationFrame {
-            pred: &preds.maps[k],
-            gt: &set.frames[k].gt,
-            sample_region: None,
-        }],
-        &CalibrationConfig {
-            method: moma_core::align::Method::Gssa,
-            normalisation: NormalisationConfig {
-                method: Normalisation::None,
-                space: AlignSpace::Depth,
-            },
-            sampling: SamplingConfig {
-                n: 40,
-                seed: 0,
-                ..Default::default()
-            },
-            robust: None,
-        },
-        None,
-    )
-    .unwrap();
-    let aligned = cal.align(&preds.maps[k]).unwrap();
+    let aligned = aligned_alone(&set, &preds, k, &moma_core::align::Method::Gssa, 0);
     let region = Mask::new(Array2::from_shape_fn((H, W), |(v, u)| {
         let z = set.frames[k].gt.depth_m[[v, u]];
         set.frames[k].mask.as_ref().unwrap().data()[[v, u]] && z > 0.0 && f64::from(z) <= cap
