@@ -8,7 +8,7 @@ calibration points.  This script repeats each check for simulator seeds 0..S-1 (
 averages each (set, method, variant) MAE over them and prints the checks with the per-seed
 counts, so that a check decided by one lucky or unlucky draw shows as such.
 
-With the simulator, all predictions are SIMULATED (METHOD.md §6): the tables test the machinery,
+With the simulator, all predictions are SIMULATED (docs/method.md §6): the tables test the machinery,
 not a depth model; the first line of the output says which predictions were scored.
 
     python3 benches/eval/issue12_checks.py --moma target/release/moma --shared ../shared \

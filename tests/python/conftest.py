@@ -1,5 +1,5 @@
 """Shared helpers of the Python tests: synthetic scenes with known answers, and NumPy
-re-implementations of moma's maths written from METHOD.md (independent of the Rust code)."""
+re-implementations of moma's maths written from docs/method.md (independent of the Rust code)."""
 
 import os
 import pathlib
@@ -14,7 +14,7 @@ REPO = pathlib.Path(__file__).resolve().parents[2]
 
 
 def normalise_np(pred, kind, norm="minmax", region=None):
-    """METHOD.md §1 in NumPy (float64): inverse depth → 1/d (NaN for d ≤ 0), then min-max etc."""
+    """docs/method.md §1 in NumPy (float64): inverse depth → 1/d (NaN for d ≤ 0), then min-max etc."""
     d = np.asarray(pred, dtype=np.float64)
     if kind == "inverse-depth":
         with np.errstate(divide="ignore"):
@@ -42,7 +42,7 @@ def ssra_apply_np(zhat, alpha, beta, gamma, t3):
 
 
 def metrics_np(pred, gt, mask=None):
-    """Depth metrics from their definitions (METHOD.md): pixels with valid gt and finite pred."""
+    """Depth metrics from their definitions (docs/method.md): pixels with valid gt and finite pred."""
     p = np.asarray(pred, dtype=np.float64)
     g = np.asarray(gt, dtype=np.float64)
     ok = np.isfinite(g) & (g > 0) & np.isfinite(p)

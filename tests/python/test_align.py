@@ -215,7 +215,7 @@ def test_ssra_with_camera_reports_canonical_parameters(small_scene, cam):
 
 
 def test_inverse_space_recovers_a_shifted_disparity_exactly():
-    """METHOD.md §1: d = a/z + b with b = -0.5·mean(a/z) is undone in inverse space (the
+    """docs/method.md §1: d = a/z + b with b = -0.5·mean(a/z) is undone in inverse space (the
     default for inverse-depth predictions) and not in depth space."""
     _, gt = scene(holes=False)
     a = 0.8

@@ -57,7 +57,7 @@ enum Command {
     )]
     Grasp(cmd::grasp::GraspArgs),
     #[command(
-        about = "Grasp success rates by PROXY: plan on aligned depth, execute on ground truth (METHOD.md §8)."
+        about = "Grasp success rates by PROXY: plan on aligned depth, execute on ground truth (docs/method.md §8)."
     )]
     GraspEval(cmd::grasp_eval::GraspEvalArgs),
     #[command(

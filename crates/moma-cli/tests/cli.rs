@@ -1,6 +1,6 @@
 //! End-to-end tests of the `moma` binary on the bundled procedural scene (`moma demo` writes it),
 //! so they need neither ../shared nor a network. Metrics are checked against an independent
-//! implementation of METHOD.md §3 written here.
+//! implementation of docs/method.md §3 written here.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -8,7 +8,7 @@ use std::process::Command;
 mod common;
 use common::{align_args, calibrate_frame_00, demo, fails, moma, ok, s, shared_dir};
 
-/// METHOD.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
+/// docs/method.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
     let p = moma_io::read_depth(pred).unwrap().depth_m;
     let g = moma_io::read_depth(gt).unwrap().depth_m;
@@ -770,7 +770,7 @@ fn every_command_help_prints_its_long_documentation() {
         (&["metrics"], "REL = mean |p−g|/g"),
         (&["predict"], "NAME.npy"),
         (&["simulate"], "viewpoint/intrinsics mismatch"),
-        (&["eval"], "Protocol (METHOD.md §4)"),
+        (&["eval"], "Protocol (docs/method.md §4)"),
         (&["ablate"], "ablation_<name>"),
         (&["grasp"], "camera_to_base"),
         (&["grasp-eval"], "8-connected component"),

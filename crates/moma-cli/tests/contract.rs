@@ -1,4 +1,4 @@
-//! The command-line contract of issue 8: prediction kinds are never guessed, RAW needs metric
+//! The command-line contract: prediction kinds are never guessed, RAW needs metric
 //! depth and `--norm none`, a calibration file is self-contained (its workspace embedded) and
 //! still aligns after being copied elsewhere, and bad calibration files are refused clearly.
 //! Runs on the bundled demo scene (no ../shared needed).

@@ -257,7 +257,7 @@ fn silog_vs_png(pred: &ndarray::Array2<f32>, gt_png: &Path) -> f64 {
     (s2 / n - 0.5 * (s1 / n).powi(2)).sqrt()
 }
 
-/// Issue 23: the run that lost its trained head and the run that turned NaN at `--lr 1e-3`,
+/// Regression: the run that lost its trained head and the run that turned NaN at `--lr 1e-3`,
 /// both with the default head multiplier. Every step finishes, the loss falls, the validation
 /// loss recomputed from the written adapter through the inference path equals the trainer's to
 /// 1e-5, and the SILog of `moma predict --lora` on the set's frames (computed here, outside moma)

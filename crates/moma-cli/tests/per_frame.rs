@@ -1,5 +1,5 @@
 //! `moma eval --protocol per-frame` and `moma calibrate --protocol/--cv-loss/--cv-margin-se` on
-//! the REAL Depth Anything 3 predictions of `zed-da3-office` (issue 27's targets), and their
+//! the REAL Depth Anything 3 predictions of `zed-da3-office` (the targets of docs/evaluation.md, "Real predictions"), and their
 //! bad combinations (no shared folder needed for those).
 
 mod common;
@@ -31,7 +31,7 @@ fn per_frame_rel(rows: &serde_json::Value) -> HashMap<String, Vec<f64>> {
         .collect()
 }
 
-/// Issue 27's targets on the shared real frames, 10 seeds, with the whole reference and with the
+/// The targets on the shared real frames, 10 seeds, with the whole reference and with the
 /// reference ≤ 5 m (scoring only): on every frame `auto` is within 1.05× the best of gssa, ssra
 /// and lwlr, and `ssra-local` at least as good as the better of ssra and lwlr.
 #[test]

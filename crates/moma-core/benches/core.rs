@@ -1,4 +1,4 @@
-//! Criterion benches of the hot paths (issue 2 "How it will be checked").
+//! Criterion benches of the hot paths (speed targets: docs/benchmarks.md).
 //!
 //! Everything runs on ONE thread (a 1-thread rayon pool) except `lwlr_exact_maps`, which runs on
 //! two. Run: `cargo bench -p moma-core --bench core -- --warm-up-time 1 --measurement-time 3`.
@@ -70,7 +70,7 @@ fn bench_fits(c: &mut Criterion) {
     g.finish();
 }
 
-/// The error model's share of a calibration (issue 22: ≤ 5 ms on one core): a whole SSRA
+/// The error model's share of a calibration (target ≤ 5 ms on one core, docs/grasping.md): a whole SSRA
 /// calibration on a 640×480 frame (normalise, sample, fit, error model), and the error-model
 /// fit alone, side by side.
 fn bench_error_model(c: &mut Criterion) {
@@ -211,7 +211,7 @@ fn bench_local(c: &mut Criterion) {
             })
         })
     });
-    // issue 27: the per-frame cross-validation (plain leave-one-out, relative error, finer
+    // the per-frame cross-validation (plain leave-one-out, relative error, finer
     // bandwidths and one more ridge), at 640×480 and 640×360; limit 10 ms on one core
     let per_frame = Method::Auto(moma_core::policy::local_config(
         moma_core::policy::Protocol::PerFrame,

@@ -1,4 +1,4 @@
-//! Criterion bench of per-frame re-alignment on static anchors at 640×480 (issue 12: anchor
+//! Criterion bench of per-frame re-alignment on static anchors at 640×480 (target: anchor
 //! selection + re-alignment ≤ 3 ms per frame, one core).
 //! Run: `cargo bench -p moma-core --bench realign -- --warm-up-time 1 --measurement-time 3`.
 

@@ -1,4 +1,4 @@
-//! Criterion benches of the robust fits (issue 12 item 3) at n = 100 samples, 640×480, 20 %
+//! Criterion benches of the robust fits (docs/method.md §2) at n = 100 samples, 640×480, 20 %
 //! gross outliers, on ONE thread, next to the plain least-squares fit of the same method; each
 //! kind with the default `auto` threshold and with the former fixed 0.01 m (`<kind>-fixed`).
 //! Run: `cargo bench -p moma-core --bench robust -- --warm-up-time 1 --measurement-time 3`.

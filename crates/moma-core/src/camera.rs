@@ -31,7 +31,7 @@ impl Intrinsics {
     }
 
     /// Default intrinsics when none are known: principal point at the image centre, `f = width` pixels
-    /// (the canonical choice for reporting SSRA parameters, METHOD.md §2).
+    /// (the canonical choice for reporting SSRA parameters, docs/method.md §2).
     pub fn nominal(size: ImageSize) -> Self {
         Self {
             width: size.width,

@@ -8,7 +8,32 @@
 //! Data flow, one function per step:
 //! `Prediction` → [`normalise::normalise`] → [`sampling::sample_pixels`] + [`align::SampleSet::gather`]
 //! → [`align::Method::fit`] → [`align::AlignmentModel::apply`] → [`metrics::DepthMetrics::compute`].
-//! [`pipeline`] chains them for the common case.
+//! [`pipeline`] chains them for the common case: calibrate once, align every later frame.
+//!
+//! ```
+//! use moma_core::align::Method;
+//! use moma_core::sampling::SamplingConfig;
+//! use moma_core::{CalibrationConfig, MetricDepth, Prediction, PredictionKind, calibrate, policy};
+//! use ndarray::Array2;
+//!
+//! // The calibration frame: the true depth (a table tilting away, metres) and a depth model's
+//! // prediction of it, right only up to a scale and a shift.
+//! let truth = Array2::from_shape_fn((48, 64), |(v, u)| 0.6 + 0.004 * v as f32 + 0.001 * u as f32);
+//! let pred = Prediction::new(truth.mapv(|z| 2.0 * z + 0.1), PredictionKind::Depth);
+//! let method = Method::Gssa;
+//! let config = CalibrationConfig {
+//!     // the defaults every front end shares: minmax, in the prediction's own space
+//!     normalisation: policy::normalisation(&method, None, None, pred.kind),
+//!     method,
+//!     sampling: SamplingConfig { n: 100, seed: 0, ..Default::default() },
+//!     robust: None,
+//! };
+//! let calibration = calibrate(&pred, &MetricDepth::new(truth.clone()), &config, None, None)?;
+//! // every later frame of the same camera: prediction → metres
+//! let depth = calibration.align(&pred)?;
+//! assert!((depth.depth_m[[10, 20]] - truth[[10, 20]]).abs() < 1e-4);
+//! # Ok::<(), moma_core::CoreError>(())
+//! ```
 
 pub mod align;
 pub mod camera;

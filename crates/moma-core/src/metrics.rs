@@ -1,4 +1,4 @@
-//! Depth metrics (METHOD.md §3): δ1.05, δ1.10, δ1.25, REL, RMSE, MAE.
+//! Depth metrics (docs/method.md §3): δ1.05, δ1.10, δ1.25, REL, RMSE, MAE.
 //!
 
 use serde::{Deserialize, Serialize};

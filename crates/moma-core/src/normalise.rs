@@ -1,4 +1,4 @@
-//! Normalisation of a depth model's output (METHOD.md §1).
+//! Normalisation of a depth model's output (docs/method.md §1).
 //!
 
 use ndarray::{Array2, ArrayView2};
@@ -55,7 +55,7 @@ impl std::str::FromStr for Normalisation {
     }
 }
 
-/// The space in which a prediction is normalised and aligned (METHOD.md §1, "Alignment space").
+/// The space in which a prediction is normalised and aligned (docs/method.md §1, "Alignment space").
 ///
 /// - [`AlignSpace::Depth`]: the predictor is depth (an inverse-depth prediction d becomes 1/d,
 ///   invalid where d ≤ 0), the fit's target is the ground-truth depth z (metres) and its output is
@@ -180,7 +180,7 @@ pub struct NormalisedMap {
     pub stats: NormStats,
 }
 
-/// Normalises `pred` per METHOD.md §1 over its valid pixels, or over `region` when given.
+/// Normalises `pred` per docs/method.md §1 over its valid pixels, or over `region` when given.
 ///
 /// Steps, in this order:
 /// 1. Every value of `pred` must be finite (else [`CoreError::NonFinitePrediction`] with the count

@@ -343,7 +343,7 @@ pub fn frame_seed(seed: u64, index: usize) -> u64 {
 /// every frame's samples, frame after frame. With one frame this is exactly [`calibrate`].
 ///
 /// Averaging over frames reduces what changes from frame to frame in the depth model's output
-/// (METHOD.md §6: the per-frame fluctuation of scale and shift); it cannot remove what every
+/// (docs/method.md §6: the per-frame fluctuation of scale and shift); it cannot remove what every
 /// frame shares.
 ///
 /// # Errors

@@ -1,4 +1,4 @@
-//! Per-frame re-alignment on static anchors (issue 12, item 4).
+//! Per-frame re-alignment on static anchors (docs/method.md §10).
 //!
 //! In a fixed-camera cell the calibration frame's ground truth stays valid wherever the scene
 //! has not changed (table, bin walls). The calibration keeps a compact [`AnchorStore`] — the

@@ -1,4 +1,4 @@
-//! Seeded choice of the n calibration pixels (METHOD.md §2).
+//! Seeded choice of the n calibration pixels (docs/method.md §2).
 //!
 
 use ndarray::Array2;

@@ -1,4 +1,4 @@
-//! The cross-validation of `auto` and the local corrections (issue 27): the losses against their
+//! The cross-validation of `auto` and the local corrections (docs/method.md §10): the losses against their
 //! closed forms, the selection rule's margin, the predicted error against brute-force
 //! leave-one-out, the per-frame settings on a scene with narrow distortions, the recorded
 //! selection, and files written before these fields existed.

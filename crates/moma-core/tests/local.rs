@@ -1,4 +1,4 @@
-//! `ssra-local`, `gssa-local` and `auto` (issue 12 item 1, METHOD.md §10) on synthetic scenes with
+//! `ssra-local`, `gssa-local` and `auto` (docs/method.md §10) on synthetic scenes with
 //! known answers.
 
 use moma_core::ImageSize;

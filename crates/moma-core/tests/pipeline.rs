@@ -186,7 +186,7 @@ fn pipeline_errors() {
 }
 
 /// A relative model's disparity d = a/z + b with a shift b = −0.5 × mean(a/z): recovered exactly
-/// in inverse space (GSSA and SSRA), not in depth space (METHOD.md §1, "Alignment space").
+/// in inverse space (GSSA and SSRA), not in depth space (docs/method.md §1, "Alignment space").
 #[test]
 fn inverse_space_recovers_a_shifted_disparity_exactly() {
     let gt = MetricDepth::new(common::tabletop_gt(SIZE));

@@ -1,4 +1,4 @@
-//! Robust fits (issue 12 item 3): Huber / Tukey IRLS and RANSAC for gssa, ssra, gssa-local and
+//! Robust fits (docs/method.md §2): Huber / Tukey IRLS and RANSAC for gssa, ssra, gssa-local and
 //! ssra-local, on synthetic scenes with known answers and injected gross outliers.
 
 use moma_core::align::gssa::{self, GssaModel};

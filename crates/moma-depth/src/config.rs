@@ -1,5 +1,5 @@
 //! Custom network sizes: the architecture of a Depth Anything V2 network that is not one of the
-//! released ViT-S/B/L models, read from a JSON file (issue 10, item 7).
+//! released ViT-S/B/L models, read from a JSON file.
 
 use std::path::Path;
 

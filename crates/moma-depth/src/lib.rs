@@ -6,6 +6,28 @@
 //!
 //! CONTRACT between the work items: keep [`DepthModel`], [`ModelSpec`] and the [`preprocess`]
 //! function names; backends live in their own modules.
+//!
+//! One frame: RGB → [`DepthModel::predict`] → [`Prediction`] (with its kind) at the image's
+//! size, which `moma_core::Calibration::align` turns into metres. The network input keeps the
+//! image's aspect (docs/method.md §5):
+//!
+//! ```
+//! use moma_core::ImageSize;
+//! use moma_depth::preprocess::network_input_size;
+//! // 640×480 → 686×518: both sides ≥ 518 and multiples of 14
+//! assert_eq!(network_input_size(ImageSize::new(640, 480), 518)?, ImageSize::new(686, 518));
+//! # Ok::<(), moma_depth::DepthError>(())
+//! ```
+//!
+//! ```no_run
+//! use moma_depth::{Backbone, Backend, Head, ModelSpec, load_model};
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! let spec = ModelSpec { backbone: Backbone::Vits, head: Head::Relative, input_size: 518 };
+//! let mut model = load_model("depth_anything_v2_vits.safetensors", spec, Backend::Candle)?;
+//! let rgb = image::open("frame.png")?.to_rgb8(); // moma_io::read_rgb checks sizes and bit depth
+//! let prediction = model.predict(&rgb)?; // inverse depth (relative head), H×W
+//! # Ok(()) }
+//! ```
 
 #[cfg(feature = "candle")]
 pub mod candle;

@@ -1,4 +1,4 @@
-//! Exact Depth Anything V2 pre- and post-processing (METHOD.md §5), pure functions.
+//! Exact Depth Anything V2 pre- and post-processing (docs/method.md §5), pure functions.
 //!
 //! The official pipeline (`depth_anything_v2/dpt.py::image2tensor`, commit a561b84) is
 //!

@@ -1,4 +1,4 @@
-//! The differentiable training path (issue 10): its forward equals the inference network, and
+//! The differentiable training path (docs/method.md §9): its forward equals the inference network, and
 //! its gradients equal central finite differences in f64 (LoRA A and B in the first and last
 //! block, head weights, the patch embedding). Random-weight reference models: these check the
 //! machinery, not a depth model's accuracy.

@@ -1,5 +1,5 @@
 //! Parity of the Rust LoRA training path with PyTorch + peft on the OFFICIAL Depth Anything V2
-//! metric network (issue 10): loss, gradients and one AdamW step, against
+//! metric network: loss, gradients and one AdamW step, against
 //! `tests/data/lora_parity_tiny_metric.safetensors`, written by `benches/pytorch/lora_parity.py`
 //! (which first reproduces `tiny-metric.output_net.npy`, so it ran the official network). Both
 //! sides compute in f64; the reference stores the loss in f64 and every other value rounded to

@@ -1,5 +1,5 @@
 //! Multi-step parity of the Rust LoRA trainer with PyTorch + peft on the OFFICIAL Depth Anything
-//! V2 metric network (issue 23): six AdamW steps (weight decay 0.01, a warm-up + poly schedule,
+//! V2 metric network: six AdamW steps (weight decay 0.01, a warm-up + poly schedule,
 //! gradient-norm clipping active with factors < 1 on five of the six steps), LoRA on q, k, v,
 //! proj, fc1, fc2 and the DPT head trained with its own learning rate, all in f64. Reference:
 //! `tests/data/lora_parity_steps_tiny_metric.safetensors`, written by

@@ -1,4 +1,4 @@
-//! Data for choosing `auto`'s selection rule (issue 12, item 1) on SIMULATED predictions over
+//! Data for choosing `auto`'s selection rule (docs/method.md §10) on SIMULATED predictions over
 //! several simulator seeds: per simulator seed, set and sampling seed, each candidate's
 //! cross-validated squared errors on the calibration samples (target units, as `auto` computes
 //! them) and the masked MAE it reaches on the other frames; and, for blends instead of a choice,

@@ -1,5 +1,5 @@
 //! Data for choosing the cross-validation defaults of `auto` and the local corrections
-//! (issue 27): for each configuration of a JSON list (`[{"label": …, "local": {LocalConfig
+//! (docs/evaluation.md, "Real predictions"): for each configuration of a JSON list (`[{"label": …, "local": {LocalConfig
 //! fields}}]`), `auto`, `ssra-local` and `gssa-local` with those settings (and gssa, ssra, lwlr
 //! once, as anchors) are evaluated
 //! - on the REAL predictions of `zed-da3-office`, per-frame protocol (each frame calibrated on its

@@ -1,10 +1,10 @@
-//! Few-shot calibration on moma sets with SIMULATED predictions (METHOD.md §6, seed 0,
+//! Few-shot calibration on moma sets with SIMULATED predictions (docs/method.md §6, seed 0,
 //! inverse depth), the same as `moma eval SETS --simulate --calib-frames 1,2,3 --methods
 //! ssra,gssa,lwlr` without building the CLI:
 //!
 //! `cargo run --release -p moma-eval --example few_shot -- SET_DIR... [--ks 1,2,3] [--seeds 10]
 //! [--norm minmax] [--fluctuation 0.03]` (`--fluctuation`: the simulator's per-frame
-//! fluctuation of a_k, b_k, METHOD.md §6 component 4).
+//! fluctuation of a_k, b_k, docs/method.md §6 component 4).
 //!
 //! Prints the table (notes for sets with too few frames), then per set and method whether
 //! K = 3 is worse than K = 1, and the per-frame MAE of each K (which frames K helps).

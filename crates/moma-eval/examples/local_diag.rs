@@ -1,4 +1,4 @@
-//! Diagnostics of the local correction and `auto` (issue 12, item 1) on simulated predictions:
+//! Diagnostics of the local correction and `auto` (docs/method.md §10) on simulated predictions:
 //! per set and seed, each candidate's leave-one-out RMS on the calibration samples against the
 //! MAE it reaches inside the masks of the other frames (what the evaluation scores), and what
 //! `ssra-local`, `gssa-local` and `auto` chose.

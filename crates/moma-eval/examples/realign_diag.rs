@@ -1,4 +1,4 @@
-//! Diagnosis of re-alignment on one set with SIMULATED predictions (issue 12 item 4): per
+//! Diagnosis of re-alignment on one set with SIMULATED predictions (docs/method.md §10): per
 //! evaluated frame and seed, the one-shot and `prediction-affine` re-aligned MAE and signed mean
 //! error (metres) on the evaluated objects and on the static background (valid ground truth
 //! outside the objects), the anchors on the objects, and the accepted map.

@@ -1,5 +1,5 @@
-//! Re-alignment on static anchors on the shared sets with SIMULATED predictions (issue 12,
-//! item 4): one-shot vs re-aligned MAE per set and method, brightness 1 / 0.8 / 1.2, and the
+//! Re-alignment on static anchors on the shared sets with SIMULATED predictions (docs/method.md
+//! §10): one-shot vs re-aligned MAE per set and method, brightness 1 / 0.8 / 1.2, and the
 //! ablation over the anchor count and the ridge.
 //!
 //! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation] [form=F] [ridge=λ] [max-anchors=N] [acceptance-se=K] [sim-seeds=S]`

@@ -1,4 +1,4 @@
-//! Ablations (METHOD.md §4 a–d): number of samples with calibration time, normalisation,
+//! Ablations (docs/method.md §4 a–d): number of samples with calibration time, normalisation,
 //! prediction source, transparent objects. Each returns rows and writes a table and a PNG plot.
 //!
 //! Every ablation takes `calib_frames` = K: 1 is the paper's one-shot protocol

@@ -1,4 +1,4 @@
-//! Grasp success by proxy (METHOD.md §8, the paper's §V-E table): calibrate as [`crate::protocol`]
+//! Grasp success by proxy (docs/method.md §8, the paper's §V-E table): calibrate as [`crate::protocol`]
 //! does, align every evaluated frame, plan the top-1 grasp per trial on the aligned depth, and
 //! execute it in imagination on the ground-truth depth of the same frame.
 //!

@@ -1,7 +1,7 @@
 //! # moma-eval — reproducing the paper's evaluation
 //!
-//! - [`simulate`]: the seeded MDEM simulator of METHOD.md §6 (outputs labelled *simulated*);
-//! - [`protocol`]: the evaluation protocol of METHOD.md §4 (one calibration frame, n random
+//! - [`simulate`]: the seeded MDEM simulator of docs/method.md §6 (outputs labelled *simulated*);
+//! - [`protocol`]: the evaluation protocol of docs/method.md §4 (one calibration frame, n random
 //!   samples, every other frame scored inside its mask, mean ± std over seeds);
 //! - [`report`]: paper-style tables as text, Markdown, CSV and JSON;
 //! - [`ablate`]: the ablations (samples n with fit time, normalisation, prediction source,

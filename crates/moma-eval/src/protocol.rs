@@ -1,4 +1,4 @@
-//! The evaluation protocol of METHOD.md §4: calibrate on one frame, evaluate every other frame
+//! The evaluation protocol of docs/method.md §4: calibrate on one frame, evaluate every other frame
 //! inside its mask, over several sampling seeds.
 //!
 //! Per seed: the calibration frame's prediction is normalised, `samples` valid ground-truth pixels
@@ -99,7 +99,7 @@ pub struct EvalConfig {
 }
 
 /// Which frames calibrate and which are scored: [`Protocol::FixedCamera`] calibrates on one
-/// frame (or the first K) and scores every other frame (METHOD.md §4); [`Protocol::PerFrame`]
+/// frame (or the first K) and scores every other frame (docs/method.md §4); [`Protocol::PerFrame`]
 /// calibrates each frame on its own n samples and scores its own dense ground truth
 /// (sparse-to-dense, as BoostingDepth's demo does), for single frames or frames that do not share
 /// a camera pose, and does not combine with re-alignment or few-shot calibration. The methods'

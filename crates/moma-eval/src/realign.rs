@@ -1,4 +1,4 @@
-//! Evaluation of per-frame re-alignment on static anchors (issue 12, item 4;
+//! Evaluation of per-frame re-alignment on static anchors (docs/method.md §10;
 //! [`moma_core::realign`]).
 //!
 //! Per seed, the calibration of [`crate::protocol`] gets the anchor store of the calibration
@@ -68,7 +68,7 @@ pub struct RealignStats {
     pub worse: usize,
     /// `worse / results`.
     pub worse_fraction: f64,
-    /// Results whose MAE rose by more than [`WORSE_BOUND_MM`] (issue 12's per-frame bound).
+    /// Results whose MAE rose by more than [`WORSE_BOUND_MM`] (the per-frame bound).
     #[serde(default)]
     pub worse_beyond_bound: usize,
     /// Largest MAE rise over all results, millimetres (0 when none rose).
@@ -86,7 +86,7 @@ pub struct RealignStats {
     pub one_shot_mae_m: f64,
 }
 
-/// The per-frame rise of the MAE that re-alignment should never exceed, millimetres (issue 12):
+/// The per-frame rise of the MAE that re-alignment should never exceed, millimetres (docs/evaluation.md):
 /// [`RealignStats::worse_beyond_bound`] counts the results beyond it.
 pub const WORSE_BOUND_MM: f64 = 2.0;
 

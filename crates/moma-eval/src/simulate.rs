@@ -1,4 +1,4 @@
-//! The MDEM simulator of METHOD.md §6: turns ground-truth depth into a plausible, **simulated**
+//! The MDEM simulator of docs/method.md §6: turns ground-truth depth into a plausible, **simulated**
 //! monocular-depth-model prediction, seeded and documented component by component.
 //!
 //! Components, applied in this order to the hole-filled ground truth (nearest valid pixel):
@@ -45,7 +45,7 @@ use crate::data::{LoadedSet, write_text};
 use crate::error::{EvalError, Result};
 use crate::imgproc::{fill_nearest, gaussian_blur};
 
-/// Strengths of the simulator components (METHOD.md §6). Every field at 0 disables its part.
+/// Strengths of the simulator components (docs/method.md §6). Every field at 0 disables its part.
 /// Pixel sizes are given for a 640-pixel-wide image and scaled with the image width.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -80,7 +80,7 @@ pub struct SimulatorConfig {
     pub inverse_log_scale: f64,
     /// Output `inverse-depth`: the disparity shift b = β·mean(K/z) of a relative model,
     /// β drawn per set uniformly from [`Self::disparity_shift_min`, `Self::disparity_shift_max`]
-    /// (defaults −0.55 and +0.3; −0.55 measured on a real relative output, METHOD.md §6);
+    /// (defaults −0.55 and +0.3; −0.55 measured on a real relative output, docs/method.md §6);
     /// disparities ≤ 0 become 0, as the model's final ReLU does.
     pub disparity_shift_min: f64,
     /// Upper end of β (default 0.3).
@@ -583,7 +583,7 @@ pub fn simulate_set(
         head: moma_io::PredictionIndexHead::new(
             sim.kind,
             true,
-            "SIMULATED MDEM prediction (moma-eval simulator, METHOD.md §6) — not a trained model",
+            "SIMULATED MDEM prediction (moma-eval simulator, docs/method.md §6) — not a trained model",
         ),
         set: set.name.clone(),
         seed: sim.seed,

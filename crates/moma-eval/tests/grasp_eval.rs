@@ -1,4 +1,4 @@
-//! `grasp_evaluate` end to end on a real set (issue 9): SIMULATED inverse-depth predictions of
+//! `grasp_evaluate` end to end on a real set (docs/method.md §8): SIMULATED inverse-depth predictions of
 //! graspnet6dof-table, calibrated and aligned on the library path, the top-1 grasp per object
 //! planned on the aligned depth and executed on the ground truth (PROXY scores, not robot trials).
 

@@ -1,4 +1,4 @@
-//! The evaluation protocol against an independent implementation of METHOD.md §3, and bad input.
+//! The evaluation protocol against an independent implementation of docs/method.md §3, and bad input.
 
 mod common;
 

@@ -1,4 +1,4 @@
-//! The simulator components one at a time (METHOD.md §6).
+//! The simulator components one at a time (docs/method.md §6).
 #![allow(clippy::needless_range_loop)]
 
 mod common;

@@ -1,6 +1,6 @@
 //! Criterion benches on a 640×480 synthetic scene (two boxes on a table, exact ray casting).
 //!
-//! Targets (issue 9), one core: suction planning ≤ 20 ms, parallel-jaw top-10 ≤ 60 ms (scene build
+//! Targets (docs/grasping.md), one core: suction planning ≤ 20 ms, parallel-jaw top-10 ≤ 60 ms (scene build
 //! — cloud, normals, edges, plane, objects — included), scoring one grasp ≤ 2 ms. When the strict
 //! parallel pass finds nothing, the tolerant pass runs too: worst case = both. Run:
 //! `RAYON_NUM_THREADS=1 cargo bench -p moma-grasp --bench grasp -- --warm-up-time 1 --measurement-time 3`
@@ -73,7 +73,7 @@ fn benches(c: &mut Criterion) {
     c.bench_function("score_one_suction_grasp", |bch| {
         bch.iter(|| score_grasp(black_box(&scene), &sg, &Gripper::Suction(cup), &sc).unwrap())
     });
-    // robust top-5 (issue 22's targets, one core: suction ≤ 60 ms, parallel ≤ 150 ms), scene
+    // robust top-5 (targets, one core: suction ≤ 60 ms, parallel ≤ 150 ms), scene
     // build and planning included, with an error model like the one a calibration on
     // gqcnn-primesense fits (SIMULATED predictions)
     let model = DepthErrorModel {

@@ -1,4 +1,4 @@
-//! Grasp execution on a depth scene: the rules of METHOD.md §8 shared by the planners and the
+//! Grasp execution on a depth scene: the rules of docs/method.md §8 shared by the planners and the
 //! proxy scorer (one implementation, so planning and scoring use the same convention).
 
 use serde::{Deserialize, Serialize};
@@ -12,7 +12,7 @@ use crate::scene::Scene;
 /// The friction coefficients GraspNet reports against, ascending.
 pub const MU_GRID: [f32; 6] = [0.2, 0.4, 0.6, 0.8, 1.0, 1.2];
 
-/// The execution rules (METHOD.md §8) with their documented defaults.
+/// The execution rules (docs/method.md §8) with their documented defaults.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ExecConfig {
     /// Step when marching along a closing line or an approach ray, metres. Default 0.001 m.
@@ -199,7 +199,7 @@ impl Scene {
     }
 
     /// Marches from `start` along unit `dir` for `length` metres and returns the first point inside
-    /// the scene. Contact normal (METHOD.md §8): when the previous sample was free because its pixel
+    /// the scene. Contact normal (docs/method.md §8): when the previous sample was free because its pixel
     /// lies farther (or is a hole / off-image), the contact is on a silhouette and its normal is the
     /// horizontal depth-gradient normal pointing out of the object; otherwise it is the observed
     /// surface normal there.
@@ -340,7 +340,7 @@ impl Scene {
         self.is_object(i)
     }
 
-    /// Executes a parallel grasp (METHOD.md §8). Reasons in the order collision, empty, missed
+    /// Executes a parallel grasp (docs/method.md §8). Reasons in the order collision, empty, missed
     /// object, not antipodal at `mu`. With `early_exit` (planning), the cheap contact and friction
     /// tests run first and the first failure is returned. `soft` (planning only) recognises
     /// silhouettes spread over a few pixels and shortens the fingertips in the collision test.
@@ -460,7 +460,7 @@ impl Scene {
         Ok(((-exec.seal_variance_scale * var).exp(), flat / n))
     }
 
-    /// Executes a suction grasp at `point` with approach `a` (METHOD.md §8): the hit along the ray,
+    /// Executes a suction grasp at `point` with approach `a` (docs/method.md §8): the hit along the ray,
     /// then object, crash / reach, seal and approach-angle tests. Returns the failure, if any.
     pub(crate) fn execute_suction(
         &self,

@@ -1,6 +1,6 @@
 //! Footprint candidates for the parallel-jaw planner: top-down grasps that do not rely on sharp
 //! depth edges or on per-pixel surface normals, for depth aligned from a depth-model prediction
-//! (soft silhouettes over 3–5 px, noisy surfaces, a few mm of global error; METHOD.md §6).
+//! (soft silhouettes over 3–5 px, noisy surfaces, a few mm of global error; docs/method.md §6).
 //!
 //! Per object component (its top-view footprint = the object points projected along "up" onto
 //! the support plane):

@@ -1,4 +1,4 @@
-//! Grasp types, serialised exactly as issue 9's JSON, and the planners' outcome.
+//! Grasp types, serialised exactly as `moma grasp --json` writes them, and the planners' outcome.
 
 use serde::{Deserialize, Serialize};
 
@@ -63,7 +63,7 @@ pub struct SuctionGrasp {
     pub base: Option<SuctionPose>,
 }
 
-/// A planned grasp; JSON `{"kind":"parallel",…}` or `{"kind":"suction",…}` (issue 9).
+/// A planned grasp; JSON `{"kind":"parallel",…}` or `{"kind":"suction",…}` (docs/grasping.md).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum Grasp {
@@ -226,7 +226,7 @@ impl PlanOutcome {
     }
 }
 
-/// Why a grasp fails, in planning or in proxy execution (METHOD.md §8).
+/// Why a grasp fails, in planning or in proxy execution (docs/method.md §8).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FailureReason {

@@ -18,7 +18,7 @@
 //! - **Scene volume (2.5-D).** A 3-D point is inside the scene when it lies at or behind the
 //!   observed surface at its pixel (tolerance [`ExecConfig::occupancy_tol_m`], 2 mm); holes in the
 //!   depth and rays leaving the image are free space.
-//! - **Contacts and normals (METHOD.md §8, shared by planner and scorer).** A finger closing along
+//! - **Contacts and normals (docs/method.md §8, shared by planner and scorer).** A finger closing along
 //!   the closing line (through the grasp centre) touches where the line first enters the scene
 //!   from free space. If the free sample before lies on a farther pixel (or a hole), the contact is
 //!   on a silhouette and its normal is the horizontal (⟂ up) direction of the depth-image
@@ -34,7 +34,7 @@
 //!   point between them or a contact off the object (missed object), or non-antipodal contacts.
 //! - **Planning on aligned depth.** Depth aligned from a depth-model prediction has soft
 //!   silhouettes (spread over 3–5 px), normals rotating across them and a few mm of correlated
-//!   noise (METHOD.md §6). [`plan_parallel`] first applies the scorer's rules to the planning
+//!   noise (docs/method.md §6). [`plan_parallel`] first applies the scorer's rules to the planning
 //!   depth (then again with the steeper [`ParallelConfig::fallback_tilt_angles_deg`], for objects
 //!   whose top is blocked); when that finds no grasp, a tolerant pass
 //!   ([`ParallelConfig::tolerant_pass`]) detects silhouettes as a depth drop over a small window,
@@ -51,6 +51,25 @@
 //!   input order, so results do not depend on the number of rayon threads.
 //!
 //! Scores from [`score_grasp`] are a *proxy* for robot success, not robot results.
+//!
+//! ```
+//! use moma_core::{Intrinsics, MetricDepth};
+//! use moma_grasp::{Grasp, GraspRequest, Gripper, SuctionCup, plan_grasps};
+//! use ndarray::Array2;
+//!
+//! // A 5 cm tall box on a table 0.70 m in front of the camera (metric depth, metres).
+//! let cam = Intrinsics { width: 160, height: 120, fx: 150.0, fy: 150.0, cx: 79.5, cy: 59.5 };
+//! let depth = MetricDepth::new(Array2::from_shape_fn((120, 160), |(v, u)| {
+//!     if (60..100).contains(&u) && (40..80).contains(&v) { 0.65 } else { 0.70 }
+//! }));
+//! let request = GraspRequest::new(Gripper::Suction(SuctionCup::default()));
+//! let (_scene, outcome) = plan_grasps(&depth, &cam, None, &request)?;
+//! let Some(Grasp::Suction(best)) = outcome.grasps.first() else { panic!("no grasp") };
+//! // on the box's top, approached along the optical axis
+//! assert!((best.pose.point_m[2] - 0.65).abs() < 0.005);
+//! assert!(best.pose.approach[2] > 0.95);
+//! # Ok::<(), moma_grasp::GraspError>(())
+//! ```
 //!
 //! Known limitation: without a mask, anything more than 10 mm above the support plane is an
 //! object, including walls, tote rims, robot parts or hole-filled background at the image border;

@@ -3,7 +3,7 @@
 use moma_core::{ImageSize, Mask};
 use ndarray::Array2;
 
-/// Trials of the proxy evaluation (METHOD.md §8): a mask component smaller than this is a speck,
+/// Trials of the proxy evaluation (docs/method.md §8): a mask component smaller than this is a speck,
 /// not an object. Pixels.
 pub const MIN_TRIAL_COMPONENT_PX: usize = 200;
 

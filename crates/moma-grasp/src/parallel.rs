@@ -16,7 +16,7 @@
 //! a robot hand or under an overhang cannot be reached from above, but often from the side.
 //!
 //! This strict pass applies the scorer's own rules to the planning depth. On depth aligned from a
-//! depth-model prediction (METHOD.md §6: silhouettes spread over 3–5 px, normals rotating over
+//! depth-model prediction (docs/method.md §6: silhouettes spread over 3–5 px, normals rotating over
 //! the soft edge, a few mm of correlated noise) it rejects every candidate, so when neither strict
 //! pass finds a grasp a **tolerant pass** ([`ParallelConfig::tolerant_pass`]) runs the same steps with
 //! - silhouettes found as a depth drop over a small window (`soft_edge_window_px`,

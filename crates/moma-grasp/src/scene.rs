@@ -16,10 +16,10 @@ pub struct SceneConfig {
     /// Support-plane fit.
     pub plane: PlaneConfig,
     /// Without a mask, a pixel belongs to an object when it stands more than this above the
-    /// support plane, metres. Default 0.01 m (METHOD.md §8).
+    /// support plane, metres. Default 0.01 m (docs/method.md §8).
     pub min_object_height_m: f32,
     /// Without a mask, connected object regions smaller than this are specks (noise), not objects,
-    /// pixels. Default 200 (the trial rule of METHOD.md §8). With a mask every masked pixel with
+    /// pixels. Default 200 (the trial rule of docs/method.md §8). With a mask every masked pixel with
     /// valid depth is an object pixel.
     pub min_object_px: usize,
     /// Without a mask, keep object regions that touch the image border. Default `false`: they

@@ -1,5 +1,5 @@
 //! Proxy scoring: a planned grasp executed "in imagination" on the ground-truth depth of the same
-//! frame (METHOD.md §8, graspnetAPI / suctionnetAPI rules). A proxy, not a robot.
+//! frame (docs/method.md §8, graspnetAPI / suctionnetAPI rules). A proxy, not a robot.
 
 use serde::{Deserialize, Serialize};
 

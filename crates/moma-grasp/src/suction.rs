@@ -1,4 +1,4 @@
-//! Suction planning: seal, flatness, edge distance and a collision-free approach (METHOD.md §8).
+//! Suction planning: seal, flatness, edge distance and a collision-free approach (docs/method.md §8).
 //!
 //! Candidates are object pixels with a surface normal on a `candidate_stride_px` grid (at most
 //! `max_candidates`, seeded); the approach is the inward normal `−n`. Each candidate's score is

@@ -1,6 +1,6 @@
-//! Issue 9 follow-up: the parallel planner on depth that looks like an ALIGNED depth-model
+//! The parallel planner on depth that looks like an ALIGNED depth-model
 //! prediction (soft silhouettes, noisy surfaces, a small global scale error), scored on the clean
-//! ground truth with the unchanged METHOD.md §8 rules.
+//! ground truth with the unchanged docs/method.md §8 rules.
 //!
 //! The "planned" depth is the exactly ray-cast scene blurred with a Gaussian of σ = 1.5 px (across
 //! the silhouettes too, as a network does), times `1 + 0.005·g` per pixel (`g` standard normal,

@@ -1,4 +1,4 @@
-//! JSON shapes of issue 9 and the camera→base transform.
+//! The grasp JSON shapes (docs/grasping.md) and the camera→base transform.
 
 use moma_grasp::{
     Extrinsics, Grasp, GraspError, ParallelGrasp, ParallelPose, SuctionGrasp, SuctionPose, Vec3,

@@ -1,4 +1,4 @@
-//! Issue 9 check on the shared real sets: grasps planned on the ground-truth depth of the opaque
+//! A check on the shared real sets: grasps planned on the ground-truth depth of the opaque
 //! sets, top-1 per trial (8-connected mask component ≥ 200 px, or the whole frame without a mask),
 //! scored on the same ground truth (the planner's own ceiling), succeed in ≥ 90 % of trials.
 //! Proxy scores, not robot results. Skipped when the shared data are absent.

@@ -1,4 +1,4 @@
-//! More synthetic scenes with known answers, for held-back scenes (issue 9): a cylinder lying on
+//! More synthetic scenes with known answers, for held-back scenes (docs/method.md §8): a cylinder lying on
 //! the table, two touching boxes, an object taller than the fingers, an object wider than the
 //! stroke. A top-down camera 0.7 m above a table; every scene is rendered by exact ray casting
 //! of axis-aligned boxes and a lying cylinder in the camera frame (independent of the crate's

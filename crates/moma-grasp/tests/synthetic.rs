@@ -1,4 +1,4 @@
-//! Synthetic scenes with known answers (issue 9 "How it will be checked").
+//! Synthetic scenes with known answers (docs/method.md §8).
 
 mod common;
 

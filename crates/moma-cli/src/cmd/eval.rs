@@ -1,4 +1,4 @@
-//! `moma eval`: the paper's evaluation protocol (METHOD.md §4) on moma sets.
+//! `moma eval`: the paper's evaluation protocol (docs/method.md §4) on moma sets.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -22,7 +22,7 @@ use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 
 /// Evaluate alignment methods on moma sets: calibrate on one frame, score every other frame.
 ///
-/// Protocol (METHOD.md §4): the calibration frame (default: first frame id in sorted order)
+/// Protocol (docs/method.md §4): the calibration frame (default: first frame id in sorted order)
 /// gives n random valid ground-truth samples; every method is fitted on them and applied to
 /// every other frame, which is scored inside its mask (whole image when there is no mask):
 /// δ1.05, δ1.10, δ1.25, REL, RMSE, MAE. Per-image metrics are averaged over frames; the table
@@ -99,7 +99,7 @@ pub struct PredArgs {
     /// folder's predictions.json when present (they must agree), else required.
     #[arg(long, value_name = "KIND")]
     pub pred_kind: Option<PredictionKind>,
-    /// Simulate predictions in memory (METHOD.md §6) instead of reading --pred.
+    /// Simulate predictions in memory (docs/method.md §6) instead of reading --pred.
     #[arg(long, conflicts_with = "pred")]
     pub simulate: bool,
     /// Kind of simulated predictions: inverse-depth (like relative Depth Anything) or depth.
@@ -202,7 +202,7 @@ pub struct EvalOptions {
     /// Every variant calibrates on the same corrupted frame; scoring uses the true ground truth.
     #[arg(long, value_name = "FRACTION")]
     pub gt_outliers: Option<f64>,
-    /// The protocol (fixed-camera: calibrate on one frame, score every other frame, METHOD.md
+    /// The protocol (fixed-camera: calibrate on one frame, score every other frame, docs/method.md
     /// §4; per-frame: sparse-to-dense, every frame calibrated on its own --samples and scored on
     /// its own dense ground truth, for single frames or frames that do not share a camera pose;
     /// rows carry `protocol`, per-frame rows have calib_frame `each`), and the cross-validation

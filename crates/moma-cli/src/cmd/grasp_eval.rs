@@ -1,4 +1,4 @@
-//! `moma grasp-eval`: the paper's grasp success-rate table, by proxy (METHOD.md §8).
+//! `moma grasp-eval`: the paper's grasp success-rate table, by proxy (docs/method.md §8).
 
 use std::path::PathBuf;
 use std::time::Instant;

@@ -8,7 +8,7 @@ use moma_core::metrics::DepthMetrics;
 
 use super::common::print_json;
 
-/// Depth metrics of a metric depth map against ground truth (METHOD.md §3).
+/// Depth metrics of a metric depth map against ground truth (docs/method.md §3).
 ///
 /// Over pixels inside the mask where the ground truth is valid (> 0, finite) and the prediction
 /// is finite: δ_t = fraction with max(p/g, g/p) < t (t = 1.05, 1.10, 1.25), REL = mean |p−g|/g,

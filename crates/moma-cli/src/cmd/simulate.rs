@@ -1,4 +1,4 @@
-//! `moma simulate`: simulated depth-model predictions for moma sets (METHOD.md §6).
+//! `moma simulate`: simulated depth-model predictions for moma sets (docs/method.md §6).
 
 use std::path::{Path, PathBuf};
 
@@ -11,7 +11,7 @@ use super::common::create_dir;
 /// Write SIMULATED depth-model predictions for moma sets (no trained model involved).
 ///
 /// Turns each frame's ground truth into a plausible monocular-depth-model output with the
-/// seeded simulator of METHOD.md §6, in this order: viewpoint/intrinsics mismatch (a planar scale
+/// seeded simulator of docs/method.md §6, in this order: viewpoint/intrinsics mismatch (a planar scale
 /// field), smooth non-planar bumps, relief compression, per-frame fluctuation in inverse depth,
 /// edge smoothing + correlated noise, transparent objects pulled towards the surface behind.
 /// Writes OUT/<frame-id>.npy (float32, H×W, of the given kind) and OUT/predictions.json (the

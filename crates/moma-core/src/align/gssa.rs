@@ -1,4 +1,4 @@
-//! GSSA — global scale and shift (METHOD.md §2): `min_{s,t} Σ (z_k − (s ẑ_k + t))²`, closed form.
+//! GSSA — global scale and shift (docs/method.md §2): `min_{s,t} Σ (z_k − (s ẑ_k + t))²`, closed form.
 
 use serde::{Deserialize, Serialize};
 

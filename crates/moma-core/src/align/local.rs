@@ -1,4 +1,4 @@
-//! Local correction on top of a global fit (`ssra-local`, `gssa-local`; METHOD.md §10) and
+//! Local correction on top of a global fit (`ssra-local`, `gssa-local`; docs/method.md §10) and
 //! `auto`, the method chosen by cross-validation.
 //!
 //! The global model (SSRA or GSSA) gives `F(u, v, ẑ)` in the target space (metres in depth space,
@@ -17,7 +17,7 @@
 //! `b` and `λ` are chosen by cross-validation on the calibration samples over
 //! [`LocalConfig::bandwidth_fractions`] (× image diagonal, each raised to a floor) ×
 //! [`LocalConfig::ridges`]. Three rules make the choice statistically sound rather than
-//! optimistic (issue 12: with plain leave-one-out and "lowest error wins", `ssra-local` was
+//! optimistic (docs/evaluation.md: with plain leave-one-out and "lowest error wins", `ssra-local` was
 //! worse than SSRA inside the objects of the shared sets on simulated predictions, because the
 //! correction learnt structure of the calibration frame that other frames do not share):
 //!

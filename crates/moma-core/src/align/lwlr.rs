@@ -1,4 +1,4 @@
-//! LWLR — locally weighted linear regression (Xu et al., BoostingDepth; METHOD.md §2).
+//! LWLR — locally weighted linear regression (Xu et al., BoostingDepth; docs/method.md §2).
 //!
 //! For a pixel `(u, v)` the local model is a weighted least-squares fit of `z` on `[x, 1]`,
 //!

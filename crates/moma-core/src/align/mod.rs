@@ -1,4 +1,4 @@
-//! Alignment methods: fit on sparse samples, apply to whole normalised maps (METHOD.md §2).
+//! Alignment methods: fit on sparse samples, apply to whole normalised maps (docs/method.md §2).
 //!
 //! A new method is one new module + one variant in [`Method`] and
 //! [`AlignmentModel`].
@@ -234,10 +234,10 @@ pub enum Method {
     Ssra(ssra::SsraConfig),
     /// Locally weighted linear regression.
     Lwlr(lwlr::LwlrConfig),
-    /// SSRA plus a cross-validated local scale/shift correction (METHOD.md §10).
+    /// SSRA plus a cross-validated local scale/shift correction (docs/method.md §10).
     #[serde(rename = "ssra-local")]
     SsraLocal(local::LocalConfig),
-    /// GSSA plus a cross-validated local scale/shift correction (METHOD.md §10).
+    /// GSSA plus a cross-validated local scale/shift correction (docs/method.md §10).
     #[serde(rename = "gssa-local")]
     GssaLocal(local::LocalConfig),
     /// The simplest of gssa, ssra, gssa-local, ssra-local and lwlr whose cross-validated error

@@ -1,5 +1,5 @@
 //! Robust fits for GSSA, SSRA and their local variants: Huber and Tukey-biweight IRLS, and RANSAC
-//! (issue 12, item 3). Real sensor depth is wrong at object edges and on glass; least squares
+//! (docs/method.md §2). Real sensor depth is wrong at object edges and on glass; least squares
 //! follows such gross errors, these fits do not.
 //!
 //! Residuals are always measured in **metres**, whatever the alignment space: in inverse space the

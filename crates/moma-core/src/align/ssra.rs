@@ -1,4 +1,4 @@
-//! SSRA — scale-shift-rotation, the paper's method (METHOD.md §2).
+//! SSRA — scale-shift-rotation, the paper's method (docs/method.md §2).
 //!
 //! The paper's model `F(u, v, ẑ | Θ) = s(−x sin φ + y sin θ cos φ + ẑ cos θ cos φ) + T3`, with
 //! `x = ẑ (u − c_x)/f`, `y = ẑ (v − c_y)/f` and `Θ = [s, θ, φ, T3, c_x, c_y, f]`, expands to
@@ -38,7 +38,7 @@ pub struct SsraConfig {
     pub intrinsics: Option<crate::camera::Intrinsics>,
 }
 
-/// The paper's 7 parameters in canonical form (METHOD.md §2): `(c_x, c_y, f)` fixed to the
+/// The paper's 7 parameters in canonical form (docs/method.md §2): `(c_x, c_y, f)` fixed to the
 /// intrinsics (or image centre and `f` = image width), `s` signed so that `R33 > 0`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -1,6 +1,6 @@
 //! The DINOv2 ViT encoder of Depth Anything V2 (`depth_anything_v2/dinov2.py`, commit a561b84):
 //! patch embedding (conv 14×14, stride 14), class token, position embedding with the exact
-//! bicubic interpolation rule of METHOD.md §5, pre-norm blocks with LayerScale, LayerNorm eps
+//! bicubic interpolation rule of docs/method.md §5, pre-norm blocks with LayerScale, LayerNorm eps
 //! 1e-6 and exact-erf GELU, and `get_intermediate_layers(..., norm=True)`.
 
 use std::collections::HashMap;

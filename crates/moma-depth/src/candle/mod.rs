@@ -1,5 +1,5 @@
 //! The candle backend: Depth Anything V2 (DINOv2 ViT-S/B/L + DPT head) in pure Rust, faithful to
-//! the official PyTorch code (`DepthAnything/Depth-Anything-V2`, commit a561b84; METHOD.md §5).
+//! the official PyTorch code (`DepthAnything/Depth-Anything-V2`, commit a561b84; docs/method.md §5).
 //!
 //! ```no_run
 //! use moma_depth::candle::{CandleDepthModel, DepthAnythingConfig, open_device};

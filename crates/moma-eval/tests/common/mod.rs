@@ -81,7 +81,7 @@ pub fn preds(frames: usize) -> PredictionSet {
     }
 }
 
-/// Independent, straightforward METHOD.md §3 metrics: [d105, d110, d125, rel, rmse, mae].
+/// Independent, straightforward docs/method.md §3 metrics: [d105, d110, d125, rel, rmse, mae].
 pub fn reference_metrics(p: &Array2<f32>, g: &Array2<f32>, m: &Array2<bool>) -> [f64; 6] {
     let mut n = 0.0;
     let mut acc = [0.0f64; 6];

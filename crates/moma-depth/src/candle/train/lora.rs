@@ -1,4 +1,4 @@
-//! LoRA settings: targets, rank, alpha, dropout (METHOD.md §9; issue 10).
+//! LoRA settings: targets, rank, alpha, dropout (docs/method.md §9).
 
 use std::fmt;
 use std::str::FromStr;

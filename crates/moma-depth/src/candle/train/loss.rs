@@ -1,4 +1,4 @@
-//! Training losses over valid ground-truth pixels (METHOD.md §9).
+//! Training losses over valid ground-truth pixels (docs/method.md §9).
 
 use std::fmt;
 use std::str::FromStr;
@@ -314,7 +314,7 @@ mod tests {
     #[test]
     fn saturated_metric_logits_keep_the_loss_and_gradient_finite() {
         // In f32 the sigmoid of −120 is exactly 0: ln(σ·max) = −∞ and the SILog is NaN. This is
-        // how the NaN of a too-high head learning rate started (issue 23). From the logits it is
+        // how the NaN of a too-high head learning rate started. From the logits it is
         // finite, with a gradient that pulls the saturated logit back up.
         let dev = Device::Cpu;
         let z = candle_core::Var::from_slice(&[-120.0f32, 0.5, 1.0, -0.5], 4, &dev).unwrap();

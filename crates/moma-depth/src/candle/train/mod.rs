@@ -1,4 +1,4 @@
-//! Fine-tuning Depth Anything V2 (issue 10): a differentiable training network ([`TrainNet`]),
+//! Fine-tuning Depth Anything V2 (docs/method.md §9): a differentiable training network ([`TrainNet`]),
 //! LoRA adapters ([`LoraConfig`]) and losses ([`loss::loss`]).
 //!
 //! Random-weight reference models learn nothing meaningful: every loss computed on them is a test

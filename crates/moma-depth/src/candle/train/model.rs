@@ -1,4 +1,4 @@
-//! The Depth Anything V2 network built from differentiable candle operations only (METHOD.md §9):
+//! The Depth Anything V2 network built from differentiable candle operations only (docs/method.md §9):
 //! LayerNorm from mean/variance, softmax with a detached maximum, exact-erf GELU, LayerScale as a
 //! product, convolutions with candle's `conv2d` (which has a backward), and both resampling steps —
 //! the bicubic position-embedding interpolation and the bilinear `align_corners` upsampling of the
