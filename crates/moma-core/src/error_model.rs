@@ -252,15 +252,15 @@ impl DepthErrorModel {
                 )));
             }
             m.relief_radius_px = relief_radius_for(size);
-            let edges = EdgeMaps::of(f.aligned_m, m.edge_radius_px);
-            let hp = high_pass(f.aligned_m, m.relief_radius_px);
+            // the filters' outputs on the fit's grid only (the full maps' values there)
+            let edges = EdgeMaps::of_strided(f.aligned_m, m.edge_radius_px, FIT_STRIDE);
             let grid = ndarray::s![..;FIT_STRIDE, ..;FIT_STRIDE];
             let sub = FitGrid {
                 aligned: f.aligned_m.slice(grid).to_owned(),
                 truth: f.truth_m.slice(grid).to_owned(),
-                relief: edges.relief.slice(grid).to_owned(),
-                step: edges.step.slice(grid).to_owned(),
-                hp: hp.slice(grid).to_owned(),
+                relief: edges.relief,
+                step: edges.step,
+                hp: high_pass_strided(f.aligned_m, m.relief_radius_px, FIT_STRIDE),
             };
             // the reference depth: the median of the grid's pixels with both depths
             depths.extend(
@@ -347,26 +347,43 @@ impl DepthErrorModel {
                         m.relief_bias * f64::from(h) + m.edge_sharpening * f64::from(st);
                     ((f64::from(t - a) - explained) / m.depth_scale(a)) as f32
                 });
-            let flat =
-                |v: usize, u: usize| rest[[v, u]].is_finite() && relief[[v, u]] < flat_relief;
+            // the rest where it is flat, NaN elsewhere, row-major: one test per neighbour
             let (h, w) = rest.dim();
+            let fl: Vec<f32> = ndarray::Zip::from(&rest)
+                .and(relief)
+                .map_collect(|&x, &r| {
+                    if x.is_finite() && r < flat_relief {
+                        x
+                    } else {
+                        f32::NAN
+                    }
+                })
+                .into_iter()
+                .collect();
             for v in 0..h {
-                for u in 0..w {
-                    if !flat(v, u) {
+                let row = &fl[v * w..(v + 1) * w];
+                for (u, &xf) in row.iter().enumerate() {
+                    if xf.is_nan() {
                         continue;
                     }
-                    let x = f64::from(rest[[v, u]]);
+                    let x = f64::from(xf);
                     sum_sq += x * x;
                     sum += x;
                     n_flat += 1;
+                    // the same order of additions as a pixel-by-pixel scan: right, then down
                     for (g, &lag) in gamma.iter_mut().zip(&LAGS) {
-                        if u + lag < w && flat(v, u + lag) {
-                            g.0 += (x - f64::from(rest[[v, u + lag]])).powi(2);
+                        if let Some(&y) = row.get(u + lag)
+                            && !y.is_nan()
+                        {
+                            g.0 += (x - f64::from(y)).powi(2);
                             g.1 += 1;
                         }
-                        if v + lag < h && flat(v + lag, u) {
-                            g.0 += (x - f64::from(rest[[v + lag, u]])).powi(2);
-                            g.1 += 1;
+                        if v + lag < h {
+                            let y = fl[(v + lag) * w + u];
+                            if !y.is_nan() {
+                                g.0 += (x - f64::from(y)).powi(2);
+                                g.1 += 1;
+                            }
                         }
                     }
                 }
@@ -791,31 +808,46 @@ impl SmoothField {
 /// `(2r+1)²` box (integral images, so any radius costs the same); NaN where `depth` has no
 /// depth.
 pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
+    high_pass_strided(depth, r, 1)
+}
+
+/// [`high_pass`] at every `stride`-th pixel of every `stride`-th row only (the full map sliced
+/// `[..;stride, ..;stride]`, computed without the other pixels' outputs; the same values).
+fn high_pass_strided(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array2<f32> {
     let (h, w) = depth.dim();
     let r = r as usize;
     // integral images of the sum and the count of valid pixels, (h+1) × (w+1)
-    let mut sum = Array2::<f64>::zeros((h + 1, w + 1));
-    let mut cnt = Array2::<u32>::zeros((h + 1, w + 1));
-    for v in 0..h {
+    let w1 = w + 1;
+    let mut sum = vec![0.0f64; (h + 1) * w1];
+    let mut cnt = vec![0u32; (h + 1) * w1];
+    for (v, row) in depth.rows().into_iter().enumerate() {
+        let (above, here) = sum.split_at_mut((v + 1) * w1);
+        let (above_c, here_c) = cnt.split_at_mut((v + 1) * w1);
+        let (above, above_c) = (&above[v * w1..], &above_c[v * w1..]);
         let (mut rs, mut rc) = (0.0f64, 0u32);
-        for u in 0..w {
-            let z = depth[[v, u]];
+        for (u, &z) in row.iter().enumerate() {
             if is_valid_depth(z) {
                 rs += f64::from(z);
                 rc += 1;
             }
-            sum[[v + 1, u + 1]] = sum[[v, u + 1]] + rs;
-            cnt[[v + 1, u + 1]] = cnt[[v, u + 1]] + rc;
+            here[u + 1] = above[u + 1] + rs;
+            here_c[u + 1] = above_c[u + 1] + rc;
         }
     }
-    ndarray::Zip::indexed(&depth).map_collect(|(v, u), &z| {
+    let at = |v: usize, u: usize| (sum[v * w1 + u], cnt[v * w1 + u]);
+    let stride = stride.max(1);
+    let grid = depth.slice(ndarray::s![..;stride, ..;stride]);
+    ndarray::Zip::indexed(&grid).map_collect(|(vs, us), &z| {
         if !is_valid_depth(z) {
             return f32::NAN;
         }
+        let (v, u) = (vs * stride, us * stride);
         let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
         let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
-        let s = sum[[v1, u1]] - sum[[v0, u1]] - sum[[v1, u0]] + sum[[v0, u0]];
-        let c = cnt[[v1, u1]] + cnt[[v0, u0]] - cnt[[v0, u1]] - cnt[[v1, u0]];
+        let ((s11, c11), (s01, c01), (s10, c10), (s00, c00)) =
+            (at(v1, u1), at(v0, u1), at(v1, u0), at(v0, u0));
+        let s = s11 - s01 - s10 + s00;
+        let c = c11 + c00 - c01 - c10;
         (f64::from(z) - s / f64::from(c.max(1))) as f32
     })
 }
@@ -823,43 +855,70 @@ pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
 /// The smallest and largest valid depth in a `(2r+1)²` window around each pixel (+∞ / −∞
 /// where the window holds none). Separable sliding min/max: rows, then columns, on contiguous
 /// rows (the vertical pass combines whole rows, which the compiler vectorises).
-fn window_min_max(depth: ArrayView2<'_, f32>, r: u32) -> (Array2<f32>, Array2<f32>) {
+fn window_min_max(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> (Array2<f32>, Array2<f32>) {
     let (h, w) = depth.dim();
     let r = r as usize;
+    let stride = stride.max(1);
+    // output columns u = 0, stride, …; output rows v = 0, stride, …
+    let (hs, ws) = (h.div_ceil(stride), w.div_ceil(stride));
     let depth = depth.as_standard_layout();
-    let mut hmin = Array2::<f32>::from_elem((h, w), f32::INFINITY);
-    let mut hmax = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
+    let mut hmin = Array2::<f32>::from_elem((h, ws), f32::INFINITY);
+    let mut hmax = Array2::<f32>::from_elem((h, ws), f32::NEG_INFINITY);
+    let (mut mn, mut mx, mut wmn, mut wmx) = (
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+    );
     for ((row, mut lo), mut hi) in depth
         .rows()
         .into_iter()
         .zip(hmin.rows_mut())
         .zip(hmax.rows_mut())
     {
-        // invalid depth becomes (+∞, −∞): it never wins a min or a max
-        let row: Vec<(f32, f32)> = row
-            .iter()
-            .map(|&z| {
-                if is_valid_depth(z) {
-                    (z, z)
-                } else {
-                    (f32::INFINITY, f32::NEG_INFINITY)
-                }
-            })
-            .collect();
-        for u in 0..w {
-            let (mut mn, mut mx) = (f32::INFINITY, f32::NEG_INFINITY);
-            for &(a, b) in &row[u.saturating_sub(r)..(u + r + 1).min(w)] {
-                mn = mn.min(a);
-                mx = mx.max(b);
+        // invalid depth becomes +∞ (min) / −∞ (max): it never wins. The window is combined by
+        // shifting the whole row (2r vectorised passes; min and max are exact, so the order
+        // does not matter), then read at the output columns. No NaN reaches the comparisons
+        // (invalid depth is ±∞), so a plain `<` is `f32::min` here and vectorises.
+        mn.clear();
+        mx.clear();
+        mn.extend(
+            row.iter()
+                .map(|&z| if is_valid_depth(z) { z } else { f32::INFINITY }),
+        );
+        mx.extend(row.iter().map(|&z| {
+            if is_valid_depth(z) {
+                z
+            } else {
+                f32::NEG_INFINITY
             }
-            lo[u] = mn;
-            hi[u] = mx;
+        }));
+        wmn.clone_from(&mn);
+        wmx.clone_from(&mx);
+        for k in 1..=r.min(w.saturating_sub(1)) {
+            for (o, a) in wmn[..w - k].iter_mut().zip(&mn[k..]) {
+                *o = if *a < *o { *a } else { *o };
+            }
+            for (o, b) in wmx[..w - k].iter_mut().zip(&mx[k..]) {
+                *o = if *b > *o { *b } else { *o };
+            }
+            for (o, a) in wmn[k..].iter_mut().zip(&mn[..w - k]) {
+                *o = if *a < *o { *a } else { *o };
+            }
+            for (o, b) in wmx[k..].iter_mut().zip(&mx[..w - k]) {
+                *o = if *b > *o { *b } else { *o };
+            }
+        }
+        for us in 0..ws {
+            lo[us] = wmn[us * stride];
+            hi[us] = wmx[us * stride];
         }
     }
-    let mut lo = Array2::<f32>::from_elem((h, w), f32::INFINITY);
-    let mut hi = Array2::<f32>::from_elem((h, w), f32::NEG_INFINITY);
-    for v in 0..h {
-        let (mut out_lo, mut out_hi) = (lo.row_mut(v), hi.row_mut(v));
+    let mut lo = Array2::<f32>::from_elem((hs, ws), f32::INFINITY);
+    let mut hi = Array2::<f32>::from_elem((hs, ws), f32::NEG_INFINITY);
+    for vs in 0..hs {
+        let v = vs * stride;
+        let (mut out_lo, mut out_hi) = (lo.row_mut(vs), hi.row_mut(vs));
         let (out_lo, out_hi) = (
             out_lo.as_slice_mut().expect("a new array is contiguous"),
             out_hi.as_slice_mut().expect("a new array is contiguous"),
@@ -871,10 +930,10 @@ fn window_min_max(depth: ArrayView2<'_, f32>, r: u32) -> (Array2<f32>, Array2<f3
                 b.to_slice().expect("a new array is contiguous"),
             );
             for (o, &x) in out_lo.iter_mut().zip(a) {
-                *o = o.min(x);
+                *o = if x < *o { x } else { *o };
             }
             for (o, &x) in out_hi.iter_mut().zip(b) {
-                *o = o.max(x);
+                *o = if x > *o { x } else { *o };
             }
         }
     }
@@ -893,7 +952,15 @@ pub(crate) struct EdgeMaps {
 
 impl EdgeMaps {
     pub(crate) fn of(depth: ArrayView2<'_, f32>, r: u32) -> Self {
-        let (lo, hi) = window_min_max(depth, r);
+        Self::of_strided(depth, r, 1)
+    }
+
+    /// [`EdgeMaps::of`] at every `stride`-th pixel of every `stride`-th row only (the full maps
+    /// sliced `[..;stride, ..;stride]`, with the same values; the fit's grid).
+    pub(crate) fn of_strided(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Self {
+        let (lo, hi) = window_min_max(depth, r, stride);
+        let stride = stride.max(1);
+        let depth = depth.slice(ndarray::s![..;stride, ..;stride]);
         let relief = ndarray::Zip::from(&lo)
             .and(&hi)
             .map_collect(|&a, &b| if b > a { b - a } else { 0.0 });
@@ -941,6 +1008,50 @@ mod tests {
         assert!((r[[22, 20]] - 0.05).abs() < 1e-6); // at the box's left edge (u = 20)
         assert_eq!(r[[22, 30]], 0.0); // inside
         assert_eq!(r[[2, 2]], 0.0); // table
+    }
+
+    /// The fit computes the filters on its grid only: the same values as the full maps there,
+    /// for odd sizes, holes and strides 2 and 3.
+    #[test]
+    fn strided_filters_equal_the_full_maps_sliced() {
+        let d = Array2::from_shape_fn((37, 51), |(v, u)| {
+            if (u * 7 + v * 3) % 23 == 0 {
+                f32::NAN
+            } else {
+                0.8 + 0.05 * ((u as f32 / 5.0).sin() + (v as f32 / 3.0).cos())
+                    + if (10..30).contains(&u) && (8..20).contains(&v) {
+                        -0.04
+                    } else {
+                        0.0
+                    }
+            }
+        });
+        for stride in [2usize, 3] {
+            let grid = ndarray::s![..;stride, ..;stride];
+            let full = EdgeMaps::of(d.view(), 3);
+            // the window's range by brute force
+            for (v, u) in [(0usize, 0usize), (9, 10), (19, 29), (36, 50), (12, 25)] {
+                let vals: Vec<f32> = (v.saturating_sub(3)..(v + 4).min(37))
+                    .flat_map(|y| (u.saturating_sub(3)..(u + 4).min(51)).map(move |x| (y, x)))
+                    .map(|(y, x)| d[[y, x]])
+                    .filter(|z| is_valid_depth(*z))
+                    .collect();
+                let lo = vals.iter().copied().fold(f32::INFINITY, f32::min);
+                let hi = vals.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                assert_eq!(full.relief[[v, u]], if hi > lo { hi - lo } else { 0.0 });
+            }
+            let sub = EdgeMaps::of_strided(d.view(), 3, stride);
+            assert_eq!(sub.relief, full.relief.slice(grid));
+            assert_eq!(sub.step, full.step.slice(grid));
+            let (hp, hps) = (
+                high_pass(d.view(), 5),
+                high_pass_strided(d.view(), 5, stride),
+            );
+            assert_eq!(hps.dim(), hp.slice(grid).dim());
+            for (a, b) in hps.iter().zip(hp.slice(grid).iter()) {
+                assert!(a.to_bits() == b.to_bits(), "{a} vs {b}");
+            }
+        }
     }
 
     #[test]
