@@ -14,7 +14,7 @@ use crate::error::Result;
 use crate::figure::frame_figure;
 use crate::protocol::{EvalConfig, PredictionSet, Prepared, aligned_maps};
 use crate::render::quantile;
-use crate::scene::{SceneConfig, build_scene};
+use crate::scene::{DemoSceneConfig, build_scene};
 use crate::simulate::{
     Simulator, SimulatorConfig, TransparencySource, simulate_frames, simulate_set,
 };
@@ -210,7 +210,7 @@ pub fn write_grasp_overlay(
 #[derive(Debug, Clone, PartialEq)]
 pub struct DemoScene {
     /// Scene geometry.
-    pub scene: SceneConfig,
+    pub scene: DemoSceneConfig,
     /// Simulator strengths.
     pub simulator: SimulatorConfig,
     /// Simulator seed.
@@ -222,7 +222,7 @@ pub struct DemoScene {
 impl Default for DemoScene {
     fn default() -> Self {
         Self {
-            scene: SceneConfig::default(),
+            scene: DemoSceneConfig::default(),
             simulator: SimulatorConfig::default(),
             simulator_seed: 0,
             kind: PredictionKind::InverseDepth,

@@ -14,13 +14,13 @@
 //! ```
 //! use moma_eval::demo::{DemoScene, build_demo};
 //! use moma_eval::protocol::{EvalConfig, evaluate};
-//! use moma_eval::scene::SceneConfig;
+//! use moma_eval::scene::DemoSceneConfig;
 //! use moma_core::ImageSize;
 //! use moma_core::align::Method;
 //!
 //! // a small version of the `moma demo` scene, simulated predictions, 2 seeds
 //! let demo = DemoScene {
-//!     scene: SceneConfig { size: ImageSize::new(160, 120), focal_px: 150.0, frames: 3, ..Default::default() },
+//!     scene: DemoSceneConfig { size: ImageSize::new(160, 120), focal_px: 150.0, frames: 3, ..Default::default() },
 //!     ..Default::default()
 //! };
 //! let (set, preds) = build_demo(&demo, None)?;

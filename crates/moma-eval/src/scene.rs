@@ -81,7 +81,7 @@ pub struct Object {
 
 /// Scene settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SceneConfig {
+pub struct DemoSceneConfig {
     /// Image size.
     pub size: ImageSize,
     /// Focal length, pixels.
@@ -98,7 +98,7 @@ pub struct SceneConfig {
     pub seed: u64,
 }
 
-impl Default for SceneConfig {
+impl Default for DemoSceneConfig {
     fn default() -> Self {
         Self {
             size: ImageSize::new(640, 480),
@@ -120,7 +120,7 @@ struct TableFrame {
 }
 
 impl TableFrame {
-    fn new(c: &SceneConfig) -> Self {
+    fn new(c: &DemoSceneConfig) -> Self {
         let (tx, ty) = (c.tilt_x_deg.to_radians(), c.tilt_y_deg.to_radians());
         // normal pointing towards the camera (−z), tilted
         let n = norm([ty.sin(), tx.sin(), -tx.cos() * ty.cos()]);
@@ -241,7 +241,7 @@ fn intersect(shape: &Shape, o: V3, d: V3) -> Option<(f64, V3)> {
 }
 
 /// Renders one frame: (depth in metres, RGB, object mask).
-pub fn render(config: &SceneConfig, objects: &[Object]) -> (MetricDepth, RgbImage, Mask) {
+pub fn render(config: &DemoSceneConfig, objects: &[Object]) -> (MetricDepth, RgbImage, Mask) {
     let k = intrinsics(config);
     let tf = TableFrame::new(config);
     let (w, h) = (config.size.width, config.size.height);
@@ -296,7 +296,7 @@ pub fn render(config: &SceneConfig, objects: &[Object]) -> (MetricDepth, RgbImag
 }
 
 /// The camera of the scene (principal point at the image centre).
-pub fn intrinsics(config: &SceneConfig) -> Intrinsics {
+pub fn intrinsics(config: &DemoSceneConfig) -> Intrinsics {
     Intrinsics {
         width: config.size.width,
         height: config.size.height,
@@ -319,7 +319,7 @@ const PALETTE: [V3; 8] = [
 ];
 
 /// Random objects for frame `index` (3–5 objects, sizes 3–10 cm, non-overlapping footprints).
-pub fn objects_for_frame(config: &SceneConfig, index: usize) -> Vec<Object> {
+pub fn objects_for_frame(config: &DemoSceneConfig, index: usize) -> Vec<Object> {
     let mut rng =
         ChaCha8Rng::seed_from_u64(config.seed.wrapping_mul(1000).wrapping_add(index as u64));
     let count = 3 + rng.random_range(0..3);
@@ -377,7 +377,7 @@ pub fn objects_for_frame(config: &SceneConfig, index: usize) -> Vec<Object> {
 }
 
 /// Builds the whole demo set in memory (frames `frame_00`, `frame_01`, ...).
-pub fn build_scene(config: &SceneConfig) -> LoadedSet {
+pub fn build_scene(config: &DemoSceneConfig) -> LoadedSet {
     let intrinsics = intrinsics(config);
     let frames = (0..config.frames)
         .map(|i| {
@@ -406,7 +406,7 @@ mod tests {
 
     #[test]
     fn table_depth_is_about_the_configured_distance_and_objects_are_nearer() {
-        let c = SceneConfig {
+        let c = DemoSceneConfig {
             frames: 2,
             ..Default::default()
         };
@@ -429,7 +429,7 @@ mod tests {
     #[test]
     fn sphere_depth_matches_closed_form() {
         // camera looking straight down at a flat table: the sphere top is at distance − 2r
-        let c = SceneConfig {
+        let c = DemoSceneConfig {
             tilt_x_deg: 0.0,
             tilt_y_deg: 0.0,
             ..Default::default()

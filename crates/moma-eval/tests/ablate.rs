@@ -21,7 +21,7 @@ use moma_eval::protocol::{
     evaluate_few_shot, evaluate_one, evaluate_variant, variant_name,
 };
 use moma_eval::realign::{RealignEval, evaluate_realign};
-use moma_eval::scene::SceneConfig;
+use moma_eval::scene::DemoSceneConfig;
 use ndarray::ArrayView3;
 
 fn config(methods: &[&str], norms: &[Normalisation], seeds: usize) -> EvalConfig {
@@ -52,7 +52,7 @@ fn assert_rows_eq(got: &[EvalResult], want: &[EvalResult]) {
 /// The small fixed-camera demo scene with RGB (SIMULATED inverse-depth predictions).
 fn demo(frames: usize) -> (LoadedSet, PredictionSet) {
     let demo = DemoScene {
-        scene: SceneConfig {
+        scene: DemoSceneConfig {
             size: ImageSize::new(96, 72),
             focal_px: 90.0,
             frames,

@@ -7,13 +7,13 @@ use moma_core::{Prediction, PredictionKind};
 use moma_eval::demo::{DemoScene, build_demo};
 use moma_eval::protocol::{EvalConfig, evaluate};
 use moma_eval::realign::{RealignEval, brightness_response, realign_table, scale_brightness};
-use moma_eval::scene::SceneConfig;
+use moma_eval::scene::DemoSceneConfig;
 use ndarray::{Array2, Array3};
 
 #[test]
 fn realign_rows_with_variants_and_stats() {
     let demo = DemoScene {
-        scene: SceneConfig {
+        scene: DemoSceneConfig {
             size: ImageSize::new(160, 120),
             focal_px: 150.0,
             frames: 3,

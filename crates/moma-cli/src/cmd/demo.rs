@@ -9,7 +9,7 @@ use clap::Args;
 use moma_eval::demo::{DemoScene, build_demo, write_grasp_overlay, write_visuals};
 use moma_eval::grasp_eval::{GraspEvalConfig, grasp_evaluate, grasp_table};
 use moma_eval::report::{eval_table, write_eval_outputs, write_table};
-use moma_eval::scene::SceneConfig;
+use moma_eval::scene::DemoSceneConfig;
 
 use super::common::create_dir;
 use super::eval::{EvalOptions, PredArgs, load_set};
@@ -86,7 +86,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                 );
             }
             let demo = DemoScene {
-                scene: SceneConfig {
+                scene: DemoSceneConfig {
                     frames: usize::from(args.frames),
                     ..Default::default()
                 },
