@@ -19,8 +19,9 @@ files are compared after dropping `created` (the date and the program version), 
 and in calib.json without the keys ending in `_ms` or `time_s`. Prints one line per difference and
 exits 1 if there is any. Build both binaries the same way (e.g. both with the README's test
 command, `cargo test --workspace --release --features moma-depth/onnx --no-run`): a workspace-wide
-build unifies features (e.g. the PNG encoder's deflate backend) that `cargo build -p moma-cli`
-does not, and the compressed PNG bytes differ between the two with the same pixels.
+build can unify features that `cargo build -p moma-cli` does not. (The PNG encoder's deflate
+backend, which made the compressed bytes differ with the same pixels, is fixed to zlib-rs by
+moma-io since 2026-12-02; binaries built before that still differ in it.)
 """
 import argparse
 import filecmp

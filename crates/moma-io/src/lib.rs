@@ -44,6 +44,7 @@
 //! ```
 
 mod atomic;
+pub mod batch;
 mod calibration;
 mod camera;
 mod colormap;

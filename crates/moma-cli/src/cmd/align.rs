@@ -10,7 +10,7 @@ use moma_core::{AlignOptions, Aligned, MetricDepth};
 use moma_io::{Colormap, DepthRange, PlyFormat};
 use serde::Serialize;
 
-use super::common::{SourceArgs, create_dir, print_json, progress};
+use super::common::{SourceArgs, SourcedPrediction, create_dir, print_json, progress};
 
 /// `--colormap` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -309,9 +309,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     create_dir(&args.output)?;
 
     let bar = progress(source.len(), "aligning", args.json);
-    let mut summaries = Vec::with_capacity(source.len());
-    for i in 0..source.len() {
-        let input = source.get(i)?;
+    let frame = |i: usize, input: SourcedPrediction| -> Result<FrameSummary> {
         size.expect_eq("prediction", input.prediction.size())
             .with_context(|| {
                 format!(
@@ -340,19 +338,6 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             .calibration
             .align_with(&input.prediction, &options)
             .with_context(|| format!("aligning {}", input.path.display()))?;
-        if let Some(report) = &realign
-            && !args.json
-        {
-            bar.suspend(|| {
-                println!(
-                    "{}: {} anchors, {}{}",
-                    input.name,
-                    report.anchors,
-                    if report.accepted { "" } else { "WARNING: " },
-                    report.reason
-                )
-            });
-        }
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
 
         let mut outputs = Vec::new();
@@ -390,7 +375,8 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             write_cloud(&path, &depth, &k, rgb.as_ref(), args.ply_ascii)?;
             outputs.push(path);
         }
-        summaries.push(FrameSummary {
+        bar.inc(1);
+        Ok(FrameSummary {
             name: input.name,
             input: input.path,
             outputs,
@@ -398,8 +384,41 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             realign,
             align_ms,
             simulated,
-        });
-        bar.inc(1);
+        })
+    };
+    let mut summaries = Vec::with_capacity(source.len());
+    // in input order, whatever ran in parallel
+    let mut done = |_: usize, s: FrameSummary| -> Result<()> {
+        if let Some(report) = &s.realign
+            && !args.json
+        {
+            bar.suspend(|| {
+                println!(
+                    "{}: {} anchors, {}{}",
+                    s.name,
+                    report.anchors,
+                    if report.accepted { "" } else { "WARNING: " },
+                    report.reason
+                )
+            });
+        }
+        summaries.push(s);
+        Ok(())
+    };
+    if let Some(files) = source.files() {
+        // files: decode, align and encode frames in parallel, a bounded batch at a time
+        moma_io::batch::map_bounded(
+            source.len(),
+            moma_io::batch::default_in_flight(),
+            |i| frame(i, files.read(i)?),
+            &mut done,
+        )?;
+    } else {
+        // a depth model: one frame at a time (the model uses every core itself)
+        for i in 0..source.len() {
+            let input = source.get(i)?;
+            done(i, frame(i, input)?)?;
+        }
     }
     bar.finish_and_clear();
 

@@ -350,36 +350,62 @@ impl Source {
         self.inputs.len()
     }
 
+    /// The reader of the prediction files (`None` when the source runs a depth model: use
+    /// [`Source::get`]); it reads any input from any thread.
+    pub fn files(&self) -> Option<FileReader<'_>> {
+        self.model.is_none().then_some(FileReader {
+            inputs: &self.inputs,
+            kind: self.kind,
+        })
+    }
+
     /// Reads (or predicts) input `i`.
     ///
     /// # Errors
     /// Unreadable file, model failure; the message names the file.
     pub fn get(&mut self, i: usize) -> Result<SourcedPrediction> {
         let path = self.inputs[i].clone();
-        let name = frame_name(&path);
-        match &mut self.model {
-            None => {
-                let prediction = moma_io::read_prediction(&path, self.kind)?;
-                Ok(SourcedPrediction {
-                    name,
-                    path,
-                    prediction,
-                    rgb: None,
-                })
+        let Some(model) = self.model.as_mut() else {
+            return FileReader {
+                inputs: &self.inputs,
+                kind: self.kind,
             }
-            Some(model) => {
-                let rgb = moma_io::read_rgb(&path)?;
-                let prediction = model
-                    .predict(&rgb)
-                    .with_context(|| format!("depth model failed on {}", path.display()))?;
-                Ok(SourcedPrediction {
-                    name,
-                    path,
-                    prediction,
-                    rgb: Some(rgb),
-                })
-            }
-        }
+            .read(i);
+        };
+        let rgb = moma_io::read_rgb(&path)?;
+        let prediction = model
+            .predict(&rgb)
+            .with_context(|| format!("depth model failed on {}", path.display()))?;
+        Ok(SourcedPrediction {
+            name: frame_name(&path),
+            path,
+            prediction,
+            rgb: Some(rgb),
+        })
+    }
+}
+
+/// Prediction files of a [`Source`], readable from any thread.
+#[derive(Clone, Copy)]
+pub struct FileReader<'a> {
+    inputs: &'a [PathBuf],
+    kind: PredictionKind,
+}
+
+impl FileReader<'_> {
+    /// Reads prediction file `i`.
+    ///
+    /// # Errors
+    /// Unreadable file; the message names it.
+    pub fn read(&self, i: usize) -> Result<SourcedPrediction> {
+        let path = self.inputs[i].clone();
+        let prediction = moma_io::read_prediction(&path, self.kind)?;
+        Ok(SourcedPrediction {
+            name: frame_name(&path),
+            path,
+            prediction,
+            rgb: None,
+        })
     }
 }
 

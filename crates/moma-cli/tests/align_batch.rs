@@ -1,0 +1,91 @@
+//! `moma align` over many files: frames run in bounded parallel batches, and what is written
+//! and reported does not depend on the number of threads (same bytes, input order), and a bad
+//! file among many is named.
+
+mod common;
+use std::path::Path;
+use std::process::Command;
+
+use common::{calibrate_frame_00, demo, s};
+
+/// Runs `moma align --json` with `threads` rayon threads over `preds` into `out`; returns the
+/// summaries without their timings.
+fn align(threads: usize, calib: &Path, preds: &[String], out: &Path) -> Vec<serde_json::Value> {
+    let mut args = vec!["align".to_string(), "--calib".into(), s(calib).into()];
+    args.push("--pred".into());
+    args.extend(preds.iter().cloned());
+    args.extend([
+        "-o".into(),
+        s(out).into(),
+        "--colormap".into(),
+        "turbo".into(),
+    ]);
+    args.push("--json".into());
+    let o = Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args(&args)
+        .env("RAYON_NUM_THREADS", threads.to_string())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut v: Vec<serde_json::Value> = serde_json::from_slice(&o.stdout).unwrap();
+    for f in &mut v {
+        f.as_object_mut().unwrap().remove("align_ms");
+    }
+    v
+}
+
+#[test]
+fn many_frames_give_the_same_files_and_order_on_any_thread_count() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let calib = tmp.path().join("calib.json");
+    calibrate_frame_00(&scene, &pred, &calib, &[]);
+    // 13 inputs (more than one batch on any machine with few cores): the 3 frames, copied
+    let many = tmp.path().join("many");
+    std::fs::create_dir(&many).unwrap();
+    std::fs::copy(pred.join("predictions.json"), many.join("predictions.json")).unwrap();
+    let mut preds = Vec::new();
+    for k in 0..13 {
+        let to = many.join(format!("f{k:02}.npy"));
+        std::fs::copy(pred.join(format!("frame_{:02}.npy", k % 3)), &to).unwrap();
+        preds.push(s(&to).to_string());
+    }
+    let (one, two) = (tmp.path().join("one"), tmp.path().join("two"));
+    let a = align(1, &calib, &preds, &one);
+    let b = align(2, &calib, &preds, &two);
+    let names: Vec<&str> = a.iter().map(|f| f["name"].as_str().unwrap()).collect();
+    let want: Vec<String> = (0..13).map(|k| format!("f{k:02}")).collect();
+    assert_eq!(names, want);
+    let strip = |v: &[serde_json::Value], dir: &Path| {
+        let d = s(dir).to_string();
+        serde_json::to_string(v).unwrap().replace(&d, "OUT")
+    };
+    assert_eq!(strip(&a, &one), strip(&b, &two));
+    for k in 0..13 {
+        for suffix in ["depth.png", "depth.npy", "color.png"] {
+            let f = format!("f{k:02}.{suffix}");
+            assert_eq!(
+                std::fs::read(one.join(&f)).unwrap(),
+                std::fs::read(two.join(&f)).unwrap(),
+                "{f}"
+            );
+        }
+    }
+    // the same frame copied gives the same bytes as its first copy
+    assert_eq!(
+        std::fs::read(one.join("f00.depth.npy")).unwrap(),
+        std::fs::read(one.join("f03.depth.npy")).unwrap()
+    );
+
+    // a corrupt file among many: the error names it
+    std::fs::write(many.join("f07.npy"), b"not a numpy file").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args(["align", "--calib", s(&calib), "--pred"])
+        .args(&preds)
+        .args(["-o", s(&tmp.path().join("bad"))])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("f07.npy"), "{err}");
+}
