@@ -4,6 +4,7 @@
 
 mod common;
 use std::collections::HashMap;
+use std::path::Path;
 
 use common::{demo, fails, ok, s, shared_dir};
 
@@ -184,9 +185,9 @@ fn bad_protocol_options_are_refused() {
     assert!(cal(&["--method", "ssra", "--cv-loss", "rel"]).contains("auto only"));
     assert!(cal(&["--method", "auto", "--cv-margin-se", "-1"]).contains("margin"));
     assert!(cal(&["--protocol", "sideways"]).contains("sideways"));
-    let e = tmp.path().join("e");
-    let eval = |extra: &[&str]| {
-        let mut a = vec![
+    let (e, o) = (tmp.path().join("e"), tmp.path().join("pf"));
+    let eval_args = |out: &Path, extra: &[&'static str]| -> Vec<String> {
+        let mut a: Vec<String> = [
             "eval",
             "--set",
             s(&scene),
@@ -194,33 +195,25 @@ fn bad_protocol_options_are_refused() {
             s(&pred),
             "--seeds",
             "1",
-            "-o",
-            s(&e),
-        ];
-        a.extend_from_slice(extra);
-        fails(&a)
+        ]
+        .iter()
+        .map(|x| x.to_string())
+        .collect();
+        a.extend(["-o".to_string(), s(out).to_string()]);
+        a.extend(extra.iter().map(|x| x.to_string()));
+        a
+    };
+    let eval = |extra: &[&'static str]| {
+        let a = eval_args(&e, extra);
+        fails(&a.iter().map(String::as_str).collect::<Vec<_>>())
     };
     assert!(eval(&["--protocol", "per-frame", "--realign", "anchors"]).contains("fixed-camera"));
     assert!(eval(&["--protocol", "per-frame", "--calib-frames", "1,2"]).contains("fixed-camera"));
     assert!(eval(&["--protocol", "per-frame", "--calib-frame", "frame_01"]).contains("per-frame"));
     assert!(eval(&["--score-max-gt-depth", "0"]).contains("cap"));
     // per-frame on the demo scene runs and labels its rows
-    let o = tmp.path().join("pf");
-    ok(&[
-        "eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "--seeds",
-        "1",
-        "--protocol",
-        "per-frame",
-        "--methods",
-        "gssa,auto",
-        "-o",
-        s(&o),
-    ]);
+    let a = eval_args(&o, &["--protocol", "per-frame", "--methods", "gssa,auto"]);
+    ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let csv = std::fs::read_to_string(o.join("results.csv")).unwrap();
     assert!(csv.lines().next().unwrap().ends_with(",protocol"), "{csv}");
     assert!(csv.lines().nth(1).unwrap().ends_with(",per-frame"), "{csv}");
