@@ -820,7 +820,16 @@ fn high_pass_strided(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array
     let w1 = w + 1;
     let mut sum = vec![0.0f64; (h + 1) * w1];
     let mut cnt = vec![0u32; (h + 1) * w1];
-    for (v, row) in depth.rows().into_iter().enumerate() {
+    let depth = depth.as_standard_layout();
+    let owned: Vec<f32>;
+    let data: &[f32] = match depth.as_slice() {
+        Some(d) => d,
+        None => {
+            owned = depth.iter().copied().collect();
+            &owned
+        }
+    };
+    for (v, row) in data.chunks_exact(w.max(1)).take(h).enumerate() {
         let (above, here) = sum.split_at_mut((v + 1) * w1);
         let (above_c, here_c) = cnt.split_at_mut((v + 1) * w1);
         let (above, above_c) = (&above[v * w1..], &above_c[v * w1..]);
@@ -852,6 +861,62 @@ fn high_pass_strided(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array
     })
 }
 
+/// `out` = `fill` × r, then `row` (invalid depth as `fill`), then `fill` × r.
+fn pad(out: &mut Vec<f32>, row: &[f32], r: usize, fill: f32) {
+    out.clear();
+    out.resize(r, fill);
+    out.extend(
+        row.iter()
+            .map(|&z| if is_valid_depth(z) { z } else { fill }),
+    );
+    out.resize(out.len() + r, fill);
+}
+
+/// The minimum (`MAX = false`) or maximum of every window of `2r + 1` values of `padded`:
+/// `out[u]` over `padded[u..=u + 2r]`, for the `padded.len() − 2r` windows. By doubling: the
+/// extremes of runs of 1, 2, 4, … values (one vectorised pass each), then two overlapping runs
+/// per window; log₂(2r + 1) + 1 passes instead of 2r. No NaN may be in `padded` (a plain `<` is
+/// `f32::min` then, and min and max are exact, so the result equals the direct one).
+fn window_extreme<const MAX: bool>(
+    padded: &[f32],
+    r: usize,
+    tmp: &mut Vec<f32>,
+    out: &mut Vec<f32>,
+) {
+    let ext = |a: f32, b: f32| {
+        if MAX {
+            if b > a { b } else { a }
+        } else if b < a {
+            b
+        } else {
+            a
+        }
+    };
+    let (n, l) = (padded.len(), 2 * r + 1);
+    out.clear();
+    if n < l {
+        return;
+    }
+    // out holds the extremes of runs of p values: out[i] over padded[i..i + p]
+    out.extend_from_slice(padded);
+    let mut p = 1;
+    while 2 * p <= l {
+        tmp.clear();
+        tmp.extend(out[..n - p].iter().zip(&out[p..]).map(|(&a, &b)| ext(a, b)));
+        std::mem::swap(out, tmp);
+        p *= 2;
+    }
+    // runs of p ≤ l < 2p: the window [u, u + l) is the union of [u, u + p) and [u + l − p, u + l)
+    tmp.clear();
+    tmp.extend(
+        out[..n - l + 1]
+            .iter()
+            .zip(&out[l - p..])
+            .map(|(&a, &b)| ext(a, b)),
+    );
+    std::mem::swap(out, tmp);
+}
+
 /// The smallest and largest valid depth in a `(2r+1)²` window around each pixel (+∞ / −∞
 /// where the window holds none). Separable sliding min/max: rows, then columns, on contiguous
 /// rows (the vertical pass combines whole rows, which the compiler vectorises).
@@ -864,51 +929,33 @@ fn window_min_max(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> (Array2<
     let depth = depth.as_standard_layout();
     let mut hmin = Array2::<f32>::from_elem((h, ws), f32::INFINITY);
     let mut hmax = Array2::<f32>::from_elem((h, ws), f32::NEG_INFINITY);
-    let (mut mn, mut mx, mut wmn, mut wmx) = (
-        Vec::with_capacity(w),
-        Vec::with_capacity(w),
-        Vec::with_capacity(w),
-        Vec::with_capacity(w),
+    let (mut mn, mut mx, mut wmn, mut wmx, mut tmp) = (
+        Vec::with_capacity(w + 2 * r),
+        Vec::with_capacity(w + 2 * r),
+        Vec::with_capacity(w + 2 * r),
+        Vec::with_capacity(w + 2 * r),
+        Vec::with_capacity(w + 2 * r),
     );
-    for ((row, mut lo), mut hi) in depth
-        .rows()
-        .into_iter()
+    // contiguous rows (`as_standard_layout`), read as slices so that the passes vectorise
+    let owned: Vec<f32>;
+    let data: &[f32] = match depth.as_slice() {
+        Some(d) => d,
+        None => {
+            owned = depth.iter().copied().collect();
+            &owned
+        }
+    };
+    for ((row, mut lo), mut hi) in data
+        .chunks_exact(w.max(1))
         .zip(hmin.rows_mut())
         .zip(hmax.rows_mut())
     {
-        // invalid depth becomes +∞ (min) / −∞ (max): it never wins. The window is combined by
-        // shifting the whole row (2r vectorised passes; min and max are exact, so the order
-        // does not matter), then read at the output columns. No NaN reaches the comparisons
-        // (invalid depth is ±∞), so a plain `<` is `f32::min` here and vectorises.
-        mn.clear();
-        mx.clear();
-        mn.extend(
-            row.iter()
-                .map(|&z| if is_valid_depth(z) { z } else { f32::INFINITY }),
-        );
-        mx.extend(row.iter().map(|&z| {
-            if is_valid_depth(z) {
-                z
-            } else {
-                f32::NEG_INFINITY
-            }
-        }));
-        wmn.clone_from(&mn);
-        wmx.clone_from(&mx);
-        for k in 1..=r.min(w.saturating_sub(1)) {
-            for (o, a) in wmn[..w - k].iter_mut().zip(&mn[k..]) {
-                *o = if *a < *o { *a } else { *o };
-            }
-            for (o, b) in wmx[..w - k].iter_mut().zip(&mx[k..]) {
-                *o = if *b > *o { *b } else { *o };
-            }
-            for (o, a) in wmn[k..].iter_mut().zip(&mn[..w - k]) {
-                *o = if *a < *o { *a } else { *o };
-            }
-            for (o, b) in wmx[k..].iter_mut().zip(&mx[..w - k]) {
-                *o = if *b > *o { *b } else { *o };
-            }
-        }
+        // invalid depth becomes +∞ (min) / −∞ (max): it never wins; the row is padded with the
+        // same on both sides, so that every window is whole ([`window_extreme`])
+        pad(&mut mn, row, r, f32::INFINITY);
+        pad(&mut mx, row, r, f32::NEG_INFINITY);
+        window_extreme::<false>(&mn, r, &mut tmp, &mut wmn);
+        window_extreme::<true>(&mx, r, &mut tmp, &mut wmx);
         for us in 0..ws {
             lo[us] = wmn[us * stride];
             hi[us] = wmx[us * stride];
@@ -1008,6 +1055,33 @@ mod tests {
         assert!((r[[22, 20]] - 0.05).abs() < 1e-6); // at the box's left edge (u = 20)
         assert_eq!(r[[22, 30]], 0.0); // inside
         assert_eq!(r[[2, 2]], 0.0); // table
+    }
+
+    /// The doubling window extremes equal the direct ones, for every radius and length (shorter
+    /// than one window included).
+    #[test]
+    fn window_extremes_by_doubling_equal_the_direct_ones() {
+        let xs: Vec<f32> = (0..41)
+            .map(|i| ((i * 37 % 17) as f32 - 8.0) * 0.1)
+            .collect();
+        let (mut tmp, mut out) = (Vec::new(), Vec::new());
+        for r in 0..9 {
+            for n in [0, 1, 2 * r, 2 * r + 1, 2 * r + 2, 41] {
+                let x = &xs[..n];
+                window_extreme::<false>(x, r, &mut tmp, &mut out);
+                let want: Vec<f32> = x
+                    .windows(2 * r + 1)
+                    .map(|w| w.iter().copied().fold(f32::INFINITY, f32::min))
+                    .collect();
+                assert_eq!(out, want, "min r {r} n {n}");
+                window_extreme::<true>(x, r, &mut tmp, &mut out);
+                let want: Vec<f32> = x
+                    .windows(2 * r + 1)
+                    .map(|w| w.iter().copied().fold(f32::NEG_INFINITY, f32::max))
+                    .collect();
+                assert_eq!(out, want, "max r {r} n {n}");
+            }
+        }
     }
 
     /// The fit computes the filters on its grid only: the same values as the full maps there,
