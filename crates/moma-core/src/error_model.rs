@@ -820,15 +820,7 @@ fn high_pass_strided(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array
     let w1 = w + 1;
     let mut sum = vec![0.0f64; (h + 1) * w1];
     let mut cnt = vec![0u32; (h + 1) * w1];
-    let depth = depth.as_standard_layout();
-    let owned: Vec<f32>;
-    let data: &[f32] = match depth.as_slice() {
-        Some(d) => d,
-        None => {
-            owned = depth.iter().copied().collect();
-            &owned
-        }
-    };
+    let data = row_major(depth);
     for (v, row) in data.chunks_exact(w.max(1)).take(h).enumerate() {
         let (above, here) = sum.split_at_mut((v + 1) * w1);
         let (above_c, here_c) = cnt.split_at_mut((v + 1) * w1);
@@ -859,6 +851,15 @@ fn high_pass_strided(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array
         let c = c11 + c00 - c01 - c10;
         (f64::from(z) - s / f64::from(c.max(1))) as f32
     })
+}
+
+/// The values of `depth` row by row in one slice: borrowed when the view is already contiguous
+/// and row-major, else copied once.
+fn row_major(depth: ArrayView2<'_, f32>) -> std::borrow::Cow<'_, [f32]> {
+    match depth.to_slice() {
+        Some(d) => std::borrow::Cow::Borrowed(d),
+        None => std::borrow::Cow::Owned(depth.iter().copied().collect()),
+    }
 }
 
 /// `out` = `fill` × r, then `row` (invalid depth as `fill`), then `fill` × r.
@@ -926,7 +927,6 @@ fn window_min_max(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> (Array2<
     let stride = stride.max(1);
     // output columns u = 0, stride, …; output rows v = 0, stride, …
     let (hs, ws) = (h.div_ceil(stride), w.div_ceil(stride));
-    let depth = depth.as_standard_layout();
     let mut hmin = Array2::<f32>::from_elem((h, ws), f32::INFINITY);
     let mut hmax = Array2::<f32>::from_elem((h, ws), f32::NEG_INFINITY);
     let (mut mn, mut mx, mut wmn, mut wmx, mut tmp) = (
@@ -936,15 +936,8 @@ fn window_min_max(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> (Array2<
         Vec::with_capacity(w + 2 * r),
         Vec::with_capacity(w + 2 * r),
     );
-    // contiguous rows (`as_standard_layout`), read as slices so that the passes vectorise
-    let owned: Vec<f32>;
-    let data: &[f32] = match depth.as_slice() {
-        Some(d) => d,
-        None => {
-            owned = depth.iter().copied().collect();
-            &owned
-        }
-    };
+    // contiguous rows, read as slices so that the passes vectorise
+    let data = row_major(depth);
     for ((row, mut lo), mut hi) in data
         .chunks_exact(w.max(1))
         .zip(hmin.rows_mut())
@@ -1100,6 +1093,16 @@ mod tests {
                     }
             }
         });
+        // a view that is not row-major (transposed) gives what its row-major copy gives
+        let t = d.t();
+        let tc = t.as_standard_layout().into_owned();
+        assert_eq!(EdgeMaps::of(t, 3).relief, EdgeMaps::of(tc.view(), 3).relief);
+        let (a, b) = (high_pass(t, 5), high_pass(tc.view(), 5));
+        assert!(
+            a.iter()
+                .zip(b.iter())
+                .all(|(x, y)| x.to_bits() == y.to_bits())
+        );
         for stride in [2usize, 3] {
             let grid = ndarray::s![..;stride, ..;stride];
             let full = EdgeMaps::of(d.view(), 3);
