@@ -45,21 +45,20 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
 
     // `moma grasp` takes its depth as `moma align` does: the nominal grasps on the re-aligned
     // depth are those planned on `moma align --realign`'s output
+    // `moma grasp` of frame 1 with suction, from the calibration or from an aligned depth map
+    let on_calib = [
+        "grasp",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&pred1),
+        "--gripper",
+        "suction",
+    ];
     let grasp = |extra: &[&str]| -> Vec<serde_json::Value> {
-        let mut a = vec![
-            "grasp",
-            "--calib",
-            s(&calib),
-            "--pred",
-            s(&pred1),
-            "--gripper",
-            "suction",
-            "--top",
-            "3",
-            "--json",
-        ];
-        a.extend_from_slice(extra);
-        json(&ok(&a))
+        json(&ok(
+            &[&on_calib[..], &["--top", "3", "--json"], extra].concat()
+        ))
     };
     let realign = ["--realign", "anchors", "--realign-rgb", s(&rgb1)];
     let nominal = grasp(&[&realign[..], &["--grasp-quality", "nominal"]].concat());
@@ -71,7 +70,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         &[&realign[..], &["--sigma-map"]].concat(),
     ));
     let aligned = aligned_dir.join("frame_01.depth.npy");
-    let on_depth = json(&ok(&[
+    let depth_args = [
         "grasp",
         "--depth",
         s(&aligned),
@@ -79,10 +78,8 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         s(&camera),
         "--gripper",
         "suction",
-        "--top",
-        "3",
-        "--json",
-    ]));
+    ];
+    let on_depth = json(&ok(&[&depth_args[..], &["--top", "3", "--json"]].concat()));
     assert!(!nominal.is_empty());
     assert_eq!(
         nominal.iter().map(|g| &g["point_m"]).collect::<Vec<_>>(),
@@ -94,18 +91,9 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         assert!((0.0..=1.0).contains(&p), "{g}");
     }
     assert!(on_depth.iter().all(|g| g["success_prob"].is_null()));
-    let with_sigma = json(&ok(&[
-        "grasp",
-        "--depth",
-        s(&aligned),
-        "--camera",
-        s(&camera),
-        "--gripper",
-        "suction",
-        "--sigma-m",
-        "0.004",
-        "--json",
-    ]));
+    let with_sigma = json(&ok(
+        &[&depth_args[..], &["--sigma-m", "0.004", "--json"]].concat()
+    ));
     assert!(with_sigma.iter().all(|g| g["success_prob"].is_number()));
     // robust (the default): best probability first, up to the tie tolerance
     let robust = grasp(&realign);
@@ -122,20 +110,8 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     assert_eq!(grasp(&realign), robust);
     let out = common::moma(
         &[
-            &[
-                "grasp",
-                "--calib",
-                s(&calib),
-                "--pred",
-                s(&pred1),
-                "--gripper",
-                "suction",
-                "--json",
-                "--min-success-prob",
-                "1.0",
-                "--sigma-m",
-                "0.05",
-            ][..],
+            &on_calib[..],
+            &["--json", "--min-success-prob", "1.0", "--sigma-m", "0.05"],
             &realign[..],
         ]
         .concat(),
@@ -169,19 +145,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         s(&rgb1),
     ]);
     assert!(e.contains("plain.json") && e.contains("anchor"), "{e}");
-    let e = fails(&[
-        "grasp",
-        "--depth",
-        s(&aligned),
-        "--camera",
-        s(&camera),
-        "--gripper",
-        "suction",
-        "--realign",
-        "anchors",
-        "--realign-rgb",
-        s(&rgb1),
-    ]);
+    let e = fails(&[&depth_args[..], &realign[..]].concat());
     assert!(e.contains("--realign") && e.contains("calibration"), "{e}");
     for (flag, value, says) in [
         ("--grasp-draws", "0", "draws"),
@@ -189,29 +153,10 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         ("--sigma-m", "-1", "sigma"),
     ] {
         let arg = format!("{flag}={value}");
-        let e = fails(&[
-            "grasp",
-            "--calib",
-            s(&calib),
-            "--pred",
-            s(&pred1),
-            "--gripper",
-            "suction",
-            &arg,
-        ]);
+        let e = fails(&[&on_calib[..], &[arg.as_str()]].concat());
         assert!(e.contains(says), "{flag} {value}: {e}");
     }
-    let e = fails(&[
-        "grasp",
-        "--depth",
-        s(&aligned),
-        "--camera",
-        s(&camera),
-        "--gripper",
-        "suction",
-        "--grasp-quality",
-        "robust",
-    ]);
+    let e = fails(&[&depth_args[..], &["--grasp-quality", "robust"]].concat());
     assert!(e.contains("error model"), "{e}");
 }
 
