@@ -482,6 +482,19 @@ impl DepthErrorModel {
         }
     }
 
+    /// The RMS (metres) of the flat error's variation within a patch of radius `radius_px`
+    /// pixels at depth `z_m`: the fields' semivariogram at that lag, `σ_flat(z)·√(Σ_k share_k ·
+    /// min(1, radius_px / s_k))`. What is left of the error at larger distances (the offset, and
+    /// the fields' parts longer than the patch) moves the patch as a whole and tilts nothing.
+    pub fn noise_within_m(&self, z_m: f32, radius_px: f64) -> f64 {
+        let shares: f64 = self.variance_shares[1..]
+            .iter()
+            .zip(&self.scales_px)
+            .map(|(&v, &s)| v * (radius_px / s.max(1e-9)).min(1.0))
+            .sum();
+        self.sigma_flat_m * self.depth_scale(z_m) * shares.max(0.0).sqrt()
+    }
+
     /// The per-pixel σ (metres) of the error of `depth` (NaN where `depth` has no depth).
     pub fn sigma_map(&self, depth: &MetricDepth) -> Array2<f32> {
         let d = depth.depth_m.view();
@@ -1039,6 +1052,41 @@ mod tests {
                 1.0
             }
         })
+    }
+
+    /// The variation within a patch is the fields' semivariogram at the patch radius:
+    /// `σ²·Σ share_k·min(1, r / s_k)` (closed form), scaled with depth as `σ_flat` is.
+    #[test]
+    fn noise_within_a_patch_is_the_semivariogram_at_its_radius() {
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.004,
+            depth_ref_m: 0.5,
+            depth_exponent: 2.0,
+            variance_shares: [0.1, 0.2, 0.3, 0.4],
+            ..DepthErrorModel::default()
+        };
+        let expect = |r: f64| {
+            0.004
+                * (0.2 * (r / 2.0).min(1.0) + 0.3 * (r / 8.0).min(1.0) + 0.4 * (r / 32.0).min(1.0))
+                    .sqrt()
+        };
+        for r in [1.0, 4.0, 16.0, 64.0] {
+            assert!(
+                (m.noise_within_m(0.5, r) - expect(r)).abs() < 1e-12,
+                "r = {r}"
+            );
+            // twice as deep: σ_flat × 4 in inverse space
+            assert!(
+                (m.noise_within_m(1.0, r) - 4.0 * expect(r)).abs() < 1e-9,
+                "r = {r}"
+            );
+        }
+        // the offset alone tilts nothing
+        let offset_only = DepthErrorModel {
+            variance_shares: [1.0, 0.0, 0.0, 0.0],
+            ..m
+        };
+        assert_eq!(offset_only.noise_within_m(0.5, 50.0), 0.0);
     }
 
     #[test]

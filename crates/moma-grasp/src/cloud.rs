@@ -287,6 +287,37 @@ impl OrganisedCloud {
         if n.dot(&self.points[i]) > 0.0 { -n } else { n }
     }
 
+    /// The plane of the surface patch within `radius_m` (3-D distance) of pixel `index`'s point:
+    /// its unit normal, pointing towards the camera, and the RMS distance of the patch's points
+    /// to it (metres). A suction cup conforms to its whole footprint, so on a noisy depth this
+    /// is the normal it seals on; the per-pixel normal ([`Self::normal`]) follows bumps of a few
+    /// pixels. `None` where the pixel is invalid or fewer than 6 points support the plane. At
+    /// most 17 points per row and column of the window are read.
+    pub(crate) fn patch_plane(&self, index: usize, radius_m: f32) -> Option<(Vec3, f32)> {
+        if !self.valid[index] {
+            return None;
+        }
+        let p = self.points[index];
+        let (u, v) = (index % self.width, index / self.width);
+        let r_px = (radius_m / self.metres_per_px(p.z)).ceil().max(1.0) as usize;
+        let step = (r_px / 8).max(1);
+        let mut pts = Vec::with_capacity((2 * r_px / step + 1).pow(2));
+        for nv in (v.saturating_sub(r_px)..=(v + r_px).min(self.height - 1)).step_by(step) {
+            for nu in (u.saturating_sub(r_px)..=(u + r_px).min(self.width - 1)).step_by(step) {
+                let j = nv * self.width + nu;
+                if self.valid[j] && (self.points[j] - p).norm_squared() <= radius_m * radius_m {
+                    pts.push(self.points[j]);
+                }
+            }
+        }
+        if pts.len() < 6 {
+            return None;
+        }
+        let (n, d) = crate::plane::refit(&pts)?;
+        let ms = pts.iter().map(|q| (n.dot(q) + d).powi(2)).sum::<f32>() / pts.len() as f32;
+        Some((if n.dot(&p) > 0.0 { -n } else { n }, ms.sqrt()))
+    }
+
     /// Near side of a depth jump: some valid 8-neighbour is farther by more than the edge jump, or
     /// at least 3 of the 8 neighbours are holes (isolated invalid pixels are not edges).
     fn edge_at(&self, u: usize, v: usize) -> bool {
@@ -402,5 +433,61 @@ impl OrganisedCloud {
     #[inline]
     pub(crate) fn metres_per_px(&self, z_m: f32) -> f32 {
         z_m / self.fx
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use moma_core::Intrinsics;
+    use ndarray::Array2;
+
+    fn k() -> Intrinsics {
+        Intrinsics {
+            width: 160,
+            height: 120,
+            fx: 150.0,
+            fy: 150.0,
+            cx: 79.5,
+            cy: 59.5,
+        }
+    }
+
+    /// On a plane n·p = d rendered exactly, the patch plane is that plane (normal towards the
+    /// camera, RMS 0); points across a depth step farther than the radius stay out of it.
+    #[test]
+    fn the_patch_plane_of_a_tilted_plane_is_exact_and_ignores_a_step_beyond_the_radius() {
+        let k = k();
+        let n = Vector3::new(0.2f64, -0.3, -1.0).normalize(); // towards the camera
+        let d = -0.6; // n·p = d
+        let depth = Array2::from_shape_fn((k.height, k.width), |(v, u)| {
+            let ray = Vector3::new((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy, 1.0);
+            let z = d / n.dot(&ray);
+            // a 50 mm step up (towards the camera) right of column 100
+            (if u > 100 { z - 0.05 } else { z }) as f32
+        });
+        let cloud =
+            OrganisedCloud::from_depth(&MetricDepth::new(depth), &k, &CloudConfig::default())
+                .unwrap();
+        let i = cloud.index(70, 60);
+        let (normal, rms) = cloud.patch_plane(i, 0.02).unwrap();
+        let angle = normal.cast::<f64>().dot(&n).clamp(-1.0, 1.0).acos();
+        assert!(
+            angle.to_degrees() < 0.05,
+            "normal {normal:?} is {angle} rad off"
+        );
+        assert!(rms < 1e-5, "rms {rms} m on an exact plane");
+        // next to the step: the step's points are more than 20 mm away in 3-D
+        let j = cloud.index(98, 60);
+        let (normal, rms) = cloud.patch_plane(j, 0.02).unwrap();
+        assert!(normal.cast::<f64>().dot(&n) > 0.9999, "{normal:?}");
+        assert!(rms < 1e-5);
+        // an invalid pixel has no patch
+        let mut holes = Array2::from_elem((k.height, k.width), 0.6f32);
+        holes[[60, 70]] = 0.0;
+        let cloud =
+            OrganisedCloud::from_depth(&MetricDepth::new(holes), &k, &CloudConfig::default())
+                .unwrap();
+        assert!(cloud.patch_plane(cloud.index(70, 60), 0.02).is_none());
     }
 }

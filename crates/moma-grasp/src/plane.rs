@@ -84,7 +84,9 @@ impl SupportPlane {
     }
 }
 
-fn refit(points: &[Vec3]) -> Option<(Vec3, f32)> {
+/// Least-squares plane of `points` (smallest principal axis): unit normal `n` and offset `d`
+/// with `n·p + d = 0`; `None` for fewer than 3 points or a degenerate set.
+pub(crate) fn refit(points: &[Vec3]) -> Option<(Vec3, f32)> {
     if points.len() < 3 {
         return None;
     }

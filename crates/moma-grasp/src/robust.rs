@@ -26,7 +26,7 @@ use crate::gripper::Gripper;
 use crate::parallel::{ParallelConfig, plan_parallel};
 use crate::scene::{Scene, SceneConfig};
 use crate::score::{ScoreConfig, score_grasp};
-use crate::suction::{SuctionConfig, plan_suction};
+use crate::suction::{PATCH_RADII, SuctionConfig, plan_suction};
 
 /// How grasps are ranked.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -205,6 +205,13 @@ pub fn plan_grasps(
     Ok((scene, outcome))
 }
 
+/// [`SuctionConfig::patch_noise_m`] of `model` at the median object depth of `scene`.
+fn patch_noise(model: &DepthErrorModel, scene: &Scene, cup_radius_m: f32) -> [f32; 4] {
+    let z = scene.object_depth_m();
+    let px_per_m = scene.cloud.fx / z.max(1e-3);
+    PATCH_RADII.map(|k| model.noise_within_m(z, f64::from(k * cup_radius_m * px_per_m)) as f32)
+}
+
 /// [`plan_grasps`] on a scene already built from `depth` (with `mask` and
 /// `request.scene`).
 ///
@@ -237,6 +244,12 @@ pub fn plan_on_scene(
             &SuctionConfig {
                 top_k: k,
                 seed: request.seed,
+                patch_noise_m: request
+                    .error_model
+                    .as_ref()
+                    .map_or(request.suction.patch_noise_m, |m| {
+                        patch_noise(m, scene, cup.radius_m)
+                    }),
                 ..request.suction
             },
         )?,

@@ -310,6 +310,29 @@ impl Scene {
         &self.components
     }
 
+    /// Median depth of the object pixels (every 4th one), metres; the median of all valid pixels
+    /// when there is no object pixel.
+    pub fn object_depth_m(&self) -> f32 {
+        let c = &self.cloud;
+        let mut z: Vec<f32> = (0..c.valid.len())
+            .step_by(4)
+            .filter(|&i| c.valid[i] && self.is_object(i))
+            .map(|i| c.points[i].z)
+            .collect();
+        if z.is_empty() {
+            z = (0..c.valid.len())
+                .step_by(4)
+                .filter(|&i| c.valid[i])
+                .map(|i| c.points[i].z)
+                .collect();
+        }
+        if z.is_empty() {
+            return 0.0;
+        }
+        let k = z.len() / 2;
+        *z.select_nth_unstable_by(k, f32::total_cmp).1
+    }
+
     /// Whether objects came from a mask.
     pub fn is_masked(&self) -> bool {
         self.masked

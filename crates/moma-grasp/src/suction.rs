@@ -36,7 +36,21 @@ pub struct SuctionConfig {
     pub nms_distance_m: f32,
     /// Seed of the candidate subsampling. Default 0.
     pub seed: u64,
+    /// RMS of the planning depth's error within a patch of each radius of [`PATCH_RADII`]
+    /// (metres). All 0 (exact depth): the approach is the pixel's normal. Otherwise it is the
+    /// normal of the largest patch that is planar within that noise and
+    /// [`PATCH_FLATNESS_M`]: a tilt that the depth's bumps put into a small patch breaks the
+    /// seal on the true surface. Set by [`crate::plan_on_scene`] from the error model
+    /// ([`moma_core::DepthErrorModel::noise_within_m`]). Default 0.
+    #[serde(default)]
+    pub patch_noise_m: [f32; 4],
 }
+
+/// Patch radii, in cup radii, tried for the approach normal on a noisy depth (largest first).
+pub const PATCH_RADII: [f32; 4] = [3.0, 2.0, 1.5, 1.0];
+
+/// Flatness allowed of a patch beyond the depth's noise (metres, RMS to its plane).
+pub const PATCH_FLATNESS_M: f32 = 0.002;
 
 impl Default for SuctionConfig {
     fn default() -> Self {
@@ -47,6 +61,7 @@ impl Default for SuctionConfig {
             top_k: 10,
             nms_distance_m: 0.02,
             seed: 0,
+            patch_noise_m: [0.0; 4],
         }
     }
 }
@@ -72,12 +87,21 @@ impl SuctionConfig {
     }
 }
 
-/// Chamfer (3-4) distance in pixels from every pixel to the nearest edge pixel.
-fn edge_distance_px(cloud: &OrganisedCloud) -> Vec<f32> {
+/// Chamfer (3-4) distance in pixels from every pixel to the nearest edge: a depth-edge pixel,
+/// or a pixel that is not an object's (the object's border, which a soft silhouette of aligned
+/// depth may not mark as a depth edge).
+fn edge_distance_px(scene: &Scene) -> Vec<f32> {
+    let cloud = &scene.cloud;
     let (w, h) = (cloud.width, cloud.height);
     let big = u32::MAX / 4;
     let mut d: Vec<u32> = (0..w * h)
-        .map(|i| if cloud.near_edge[i] { 0 } else { big })
+        .map(|i| {
+            if cloud.near_edge[i] || !scene.is_object(i) {
+                0
+            } else {
+                big
+            }
+        })
         .collect();
     for v in 0..h {
         for u in 0..w {
@@ -176,6 +200,30 @@ impl Scene {
     }
 }
 
+/// The surface normal a cup of radius `radius_m` is aimed along at pixel `i`
+/// ([`SuctionConfig::patch_noise_m`]).
+fn approach_normal(
+    cloud: &OrganisedCloud,
+    i: usize,
+    radius_m: f32,
+    noise_m: &[f32; 4],
+) -> Option<Vec3> {
+    let n = cloud.normal(i)?;
+    if noise_m.iter().all(|&s| s <= 0.0) {
+        return Some(n);
+    }
+    PATCH_RADII
+        .iter()
+        .zip(noise_m)
+        .find_map(|(&k, &noise)| {
+            cloud
+                .patch_plane(i, k * radius_m)
+                .filter(|&(_, rms)| rms <= noise.hypot(PATCH_FLATNESS_M))
+                .map(|(n, _)| n)
+        })
+        .or(Some(n))
+}
+
 /// Plans suction grasps on `scene` (camera frame), best first, at most `config.top_k`.
 /// Deterministic for a given `config.seed`, with any number of rayon threads.
 ///
@@ -206,20 +254,21 @@ pub fn plan_suction(
         return Ok(PlanOutcome::none(NoGraspReason::NoCandidate));
     }
     let samples = subsample(grid, config.max_candidates, config.seed);
-    let dist_px = edge_distance_px(cloud);
+    let dist_px = edge_distance_px(scene);
     let exec = &config.exec;
     let up = scene.up();
-    let results: Vec<std::result::Result<(usize, f32), FailureReason>> = samples
+    let results: Vec<std::result::Result<(usize, f32, Vec3), FailureReason>> = samples
         .par_iter()
         .map(|&i| {
             let p = cloud.points[i];
-            let n = cloud.normal(i).ok_or(FailureReason::ApproachAngle)?;
+            let n = approach_normal(cloud, i, cup.radius_m, &config.patch_noise_m)
+                .ok_or(FailureReason::ApproachAngle)?;
             let a = -n;
             let (quality, flatness) = scene.seal(&p, &a, cup, exec)?;
             let d_m = dist_px[i] * cloud.metres_per_px(p.z);
             let edge = d_m / (d_m + cup.radius_m);
             let reach = (1.0 + a.dot(&-up)) / 2.0;
-            Ok((i, quality * flatness * edge * reach))
+            Ok((i, quality * flatness * edge * reach, a))
         })
         .collect();
     let n_candidates = results.len();
@@ -234,8 +283,8 @@ pub fn plan_suction(
     let scores: Vec<f32> = cands.iter().map(|c| c.1).collect();
     let order = rank(&scores);
     let pose = |k: usize| {
-        let i = cands[k].0;
-        (cloud.points[i], -cloud.normals[i])
+        let (i, _, a) = cands[k];
+        (cloud.points[i], a)
     };
     let mut late_failures = Vec::new();
     let kept = greedy(
