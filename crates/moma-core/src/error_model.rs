@@ -482,6 +482,24 @@ impl DepthErrorModel {
         }
     }
 
+    /// The model without the fine and medium fields (their variance dropped; the offset, the
+    /// coarse field, relief and edges kept in metres): what moves or tilts a whole patch.
+    /// Robust grasp quality draws from it around a planning depth that already holds one
+    /// realisation of the short-range bumps.
+    pub fn long_range(&self) -> Self {
+        let [offset, _, _, coarse] = self.variance_shares;
+        let kept = offset + coarse;
+        Self {
+            sigma_flat_m: self.sigma_flat_m * kept.max(0.0).sqrt(),
+            variance_shares: if kept > 0.0 {
+                [offset / kept, 0.0, 0.0, coarse / kept]
+            } else {
+                [0.0, 0.0, 0.0, 1.0]
+            },
+            ..*self
+        }
+    }
+
     /// The RMS (metres) of the flat error's variation within a patch of radius `radius_px`
     /// pixels at depth `z_m`: the fields' semivariogram at that lag, `σ_flat(z)·√(Σ_k share_k ·
     /// min(1, radius_px / s_k))`. What is left of the error at larger distances (the offset, and
@@ -1081,6 +1099,15 @@ mod tests {
                 "r = {r}"
             );
         }
+        // without the short-range fields: the offset's and coarse field's variance in metres
+        let long = m.long_range();
+        assert!((long.sigma_flat_m - 0.004 * 0.5f64.sqrt()).abs() < 1e-12);
+        assert!((long.variance_shares[0] - 0.2).abs() < 1e-12);
+        assert!((long.variance_shares[3] - 0.8).abs() < 1e-12);
+        assert_eq!(
+            (long.variance_shares[1], long.variance_shares[2]),
+            (0.0, 0.0)
+        );
         // the offset alone tilts nothing
         let offset_only = DepthErrorModel {
             variance_shares: [1.0, 0.0, 0.0, 0.0],

@@ -305,7 +305,9 @@ pub fn rank(grasps: &mut [(Grasp, f32)], quality: GraspQuality, tolerance: f32) 
 }
 
 /// The success probability of each grasp: the share of `request.draws` depth maps drawn from
-/// `model` around `depth` (whose scene is `scene`) on which it succeeds by the scorer's rules.
+/// `model`'s long-range part ([`DepthErrorModel::long_range`]: the planning depth already holds
+/// one realisation of the short-range bumps, and a draw that adds another is rougher than the
+/// truth) around `depth` (whose scene is `scene`) on which it succeeds by the scorer's rules.
 /// Each draw covers only the region around the grasps (their image points plus the gripper's
 /// reach at their depth, [`draw_region`]); its scene keeps the planning scene's support plane
 /// and objects ([`Scene::with_depth_in`]).
@@ -331,7 +333,9 @@ pub fn success_probabilities(
         cy: intrinsics.cy - roi.v0 as f64,
         ..*intrinsics
     };
-    let draws = Draws::new(model, depth.depth_m.view(), roi);
+    // the planning depth already carries one realisation of the short-range error (bumps the
+    // planner has seen and aimed around): draws add what moves or tilts whole patches
+    let draws = Draws::new(&model.long_range(), depth.depth_m.view(), roi);
     let per_draw: Vec<Vec<bool>> = (0..request.draws as u64)
         .into_par_iter()
         .map(|d| -> Result<Vec<bool>> {
