@@ -43,23 +43,27 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     let model = &file["calibration"]["error_model"];
     assert!(model["sigma_flat_m"].as_f64().unwrap() > 0.0, "{model}");
 
-    // `moma grasp` takes its depth as `moma align` does: the nominal grasps on the re-aligned
-    // depth are those planned on `moma align --realign`'s output
     // `moma grasp` of frame 1 with suction, from the calibration or from an aligned depth map
-    let on_calib = [
-        "grasp",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&pred1),
-        "--gripper",
-        "suction",
-    ];
-    let grasp = |extra: &[&str]| -> Vec<serde_json::Value> {
-        json(&ok(
-            &[&on_calib[..], &["--top", "3", "--json"], extra].concat()
-        ))
+    let on_calib = |gripper: &'static str| {
+        [
+            "grasp",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(&pred1),
+            "--gripper",
+            gripper,
+        ]
     };
+    let grasp_with = |gripper: &'static str, extra: &[&str]| -> Vec<serde_json::Value> {
+        json(&ok(&[
+            &on_calib(gripper)[..],
+            &["--top", "3", "--json"],
+            extra,
+        ]
+        .concat()))
+    };
+    let grasp = |extra: &[&str]| grasp_with("suction", extra);
     let realign = ["--realign", "anchors", "--realign-rgb", s(&rgb1)];
     let nominal = grasp(&[&realign[..], &["--grasp-quality", "nominal"]].concat());
     let aligned_dir = tmp.path().join("aligned");
@@ -70,20 +74,41 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         &[&realign[..], &["--sigma-map"]].concat(),
     ));
     let aligned = aligned_dir.join("frame_01.depth.npy");
-    let depth_args = [
-        "grasp",
-        "--depth",
-        s(&aligned),
-        "--camera",
-        s(&camera),
-        "--gripper",
-        "suction",
-    ];
-    let on_depth = json(&ok(&[&depth_args[..], &["--top", "3", "--json"]].concat()));
+    let depth_args = |gripper: &'static str| {
+        [
+            "grasp",
+            "--depth",
+            s(&aligned),
+            "--camera",
+            s(&camera),
+            "--gripper",
+            gripper,
+        ]
+    };
+    let on_depth = json(&ok(&[
+        &depth_args("suction")[..],
+        &["--top", "3", "--json"],
+    ]
+    .concat()));
     assert!(!nominal.is_empty());
+    // `moma grasp` takes its depth as `moma align --realign` does: the parallel jaw's nominal
+    // grasps (candidates independent of the error model) are the same on both. Suction's differ
+    // on purpose: with the calibration's error model the cup is aimed along patch normals.
+    let par = |v: Vec<serde_json::Value>| -> Vec<serde_json::Value> {
+        v.iter().map(|g| g["center_m"].clone()).collect()
+    };
+    let par_calib = par(grasp_with(
+        "parallel",
+        &[&realign[..], &["--grasp-quality", "nominal"]].concat(),
+    ));
+    assert!(!par_calib.is_empty());
     assert_eq!(
-        nominal.iter().map(|g| &g["point_m"]).collect::<Vec<_>>(),
-        on_depth.iter().map(|g| &g["point_m"]).collect::<Vec<_>>()
+        par_calib,
+        par(json(&ok(&[
+            &depth_args("parallel")[..],
+            &["--top", "3", "--json"]
+        ]
+        .concat())))
     );
     // with a calibration: a probability on every grasp; on a bare depth map: null, unless a σ
     for g in &nominal {
@@ -91,9 +116,11 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         assert!((0.0..=1.0).contains(&p), "{g}");
     }
     assert!(on_depth.iter().all(|g| g["success_prob"].is_null()));
-    let with_sigma = json(&ok(
-        &[&depth_args[..], &["--sigma-m", "0.004", "--json"]].concat()
-    ));
+    let with_sigma = json(&ok(&[
+        &depth_args("suction")[..],
+        &["--sigma-m", "0.004", "--json"],
+    ]
+    .concat()));
     assert!(with_sigma.iter().all(|g| g["success_prob"].is_number()));
     // robust (the default): best probability first, up to the tie tolerance
     let robust = grasp(&realign);
@@ -110,7 +137,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     assert_eq!(grasp(&realign), robust);
     let out = common::moma(
         &[
-            &on_calib[..],
+            &on_calib("suction")[..],
             &["--json", "--min-success-prob", "1.0", "--sigma-m", "0.05"],
             &realign[..],
         ]
@@ -145,7 +172,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         s(&rgb1),
     ]);
     assert!(e.contains("plain.json") && e.contains("anchor"), "{e}");
-    let e = fails(&[&depth_args[..], &realign[..]].concat());
+    let e = fails(&[&depth_args("suction")[..], &realign[..]].concat());
     assert!(e.contains("--realign") && e.contains("calibration"), "{e}");
     for (flag, value, says) in [
         ("--grasp-draws", "0", "draws"),
@@ -153,10 +180,10 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         ("--sigma-m", "-1", "sigma"),
     ] {
         let arg = format!("{flag}={value}");
-        let e = fails(&[&on_calib[..], &[arg.as_str()]].concat());
+        let e = fails(&[&on_calib("suction")[..], &[arg.as_str()]].concat());
         assert!(e.contains(says), "{flag} {value}: {e}");
     }
-    let e = fails(&[&depth_args[..], &["--grasp-quality", "robust"]].concat());
+    let e = fails(&[&depth_args("suction")[..], &["--grasp-quality", "robust"]].concat());
     assert!(e.contains("error model"), "{e}");
 }
 
