@@ -314,17 +314,16 @@ impl Scene {
     /// when there is no object pixel.
     pub fn object_depth_m(&self) -> f32 {
         let c = &self.cloud;
-        let mut z: Vec<f32> = (0..c.valid.len())
-            .step_by(4)
-            .filter(|&i| c.valid[i] && self.is_object(i))
-            .map(|i| c.points[i].z)
-            .collect();
-        if z.is_empty() {
-            z = (0..c.valid.len())
+        let depths = |objects_only: bool| -> Vec<f32> {
+            (0..c.valid.len())
                 .step_by(4)
-                .filter(|&i| c.valid[i])
+                .filter(|&i| c.valid[i] && (!objects_only || self.is_object(i)))
                 .map(|i| c.points[i].z)
-                .collect();
+                .collect()
+        };
+        let mut z = depths(true);
+        if z.is_empty() {
+            z = depths(false);
         }
         if z.is_empty() {
             return 0.0;
