@@ -9,6 +9,7 @@ use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{AlignmentModel, Method, Sample, SampleSet};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{Normalisation, NormalisationConfig, normalise};
+use moma_core::{AlignOptions, CalibrationFrame, PredictionInput};
 use moma_core::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
@@ -93,12 +94,17 @@ fn bench_error_model(c: &mut Criterion) {
         },
         sampling: moma_core::sampling::SamplingConfig::default(),
         robust: None,
+        workspace: None,
     };
     let mut g = c.benchmark_group("error_model");
     g.bench_function("calibrate_ssra_n100_640x480_1thread", |b| {
         p1.install(|| {
             b.iter(|| {
-                moma_core::calibrate(black_box(&prediction), &gt_m, &config, None, None).unwrap()
+                moma_core::calibrate(
+                    &[CalibrationFrame::new(black_box(&prediction), &gt_m)],
+                    &config,
+                )
+                .unwrap()
             })
         })
     });
@@ -297,8 +303,9 @@ fn bench_normalise(c: &mut Criterion) {
 }
 
 /// The whole run-time step `Calibration::align` on 640×480 (normalisation + model + reciprocal
-/// in inverse space): the fused view path (`align_view_into`, `align_view` allocating its output)
-/// against the unfused steps (`normalise` then `align_normalised_into`).
+/// in inverse space): the fused path from a borrowed view (into a buffer, and `aligned`
+/// allocating its output) against the unfused steps (`normalise`, then `align` of the normalised
+/// map).
 fn bench_align(c: &mut Criterion) {
     let p1 = pool(1);
     let size = ImageSize::new(640, 480);
@@ -323,15 +330,16 @@ fn bench_align(c: &mut Criterion) {
                 },
                 sampling: moma_core::sampling::SamplingConfig::default(),
                 robust: None,
+                workspace: None,
             };
-            let cal = moma_core::calibrate(&pred, &gt, &config, None, None).unwrap();
+            let cal = moma_core::calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap();
             let id = format!("{name}_{space}_640x480");
             g.bench_function(BenchmarkId::new("fused_into", &id), |b| {
                 p1.install(|| {
                     b.iter(|| {
-                        cal.align_view_into(
-                            black_box(pred.values.view()),
-                            kind,
+                        cal.align(
+                            PredictionInput::view(black_box(pred.values.view()), kind),
+                            &AlignOptions::default(),
                             &mut out.view_mut(),
                         )
                         .unwrap()
@@ -340,14 +348,23 @@ fn bench_align(c: &mut Criterion) {
             });
             g.bench_function(BenchmarkId::new("fused_alloc", &id), |b| {
                 p1.install(|| {
-                    b.iter(|| cal.align_view(black_box(pred.values.view()), kind).unwrap())
+                    b.iter(|| {
+                        cal.aligned(
+                            PredictionInput::view(black_box(pred.values.view()), kind),
+                            &AlignOptions::default(),
+                        )
+                        .unwrap()
+                        .depth
+                    })
                 })
             });
             g.bench_function(BenchmarkId::new("unfused_into", &id), |b| {
                 p1.install(|| {
                     b.iter(|| {
                         let n = cal.normalise(black_box(&pred)).unwrap();
-                        cal.align_normalised_into(&n, &mut out.view_mut()).unwrap()
+                        let n = PredictionInput::normalised(&n, kind);
+                        cal.align(n, &AlignOptions::default(), &mut out.view_mut())
+                            .unwrap()
                     })
                 })
             });

@@ -6,6 +6,7 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use moma_core::MetricDepth;
 use moma_core::normalise::AlignSpace;
 use moma_core::realign::{AnchorStore, RealignConfig, find_anchors, realign_in_place};
+use moma_core::{AlignOptions, CalibrationFrame, PredictionInput};
 use ndarray::{Array2, Array3};
 use std::hint::black_box;
 
@@ -70,8 +71,7 @@ fn bench(c: &mut Criterion) {
             moma_core::PredictionKind::InverseDepth,
         );
         let cal = moma_core::calibrate(
-            &pred,
-            &gt,
+            &[CalibrationFrame::new(&pred, &gt)],
             &moma_core::CalibrationConfig {
                 method: moma_core::align::Method::Gssa,
                 normalisation: moma_core::normalise::NormalisationConfig {
@@ -80,9 +80,8 @@ fn bench(c: &mut Criterion) {
                 },
                 sampling: Default::default(),
                 robust: None,
+                workspace: None,
             },
-            None,
-            None,
         )
         .unwrap()
         .with_anchors(calib_rgb.view(), &gt, &pred)
@@ -104,24 +103,27 @@ fn bench(c: &mut Criterion) {
             model: moma_core::realign::CorrectionModel::PredictionAffine,
             ..config
         };
-        let mut depth = cal.align(&frame_pred).unwrap().depth_m;
+        let mut depth = cal
+            .aligned(&frame_pred, &AlignOptions::default())
+            .unwrap()
+            .depth
+            .depth_m;
         c.bench_function("realign_prediction_affine_640x480", |b| {
             b.iter(|| {
                 let r = cal
-                    .realign_normalised_into(
-                        black_box(frame_rgb.view()),
-                        &pa,
-                        &normalised,
+                    .align(
+                        PredictionInput::normalised(&normalised, frame_pred.kind),
+                        &AlignOptions::realigned(black_box(frame_rgb.view()), &pa),
                         &mut depth.view_mut(),
-                        true,
                     )
                     .unwrap();
-                assert!(r.accepted, "{r:?}");
+                assert!(r.realign.as_ref().is_some_and(|r| r.accepted), "{r:?}");
             })
         });
         c.bench_function("one_shot_align_normalised_640x480", |b| {
             b.iter(|| {
-                cal.align_normalised_into(black_box(&normalised), &mut depth.view_mut())
+                let n = PredictionInput::normalised(black_box(&normalised), frame_pred.kind);
+                cal.align(n, &AlignOptions::default(), &mut depth.view_mut())
                     .unwrap()
             })
         });

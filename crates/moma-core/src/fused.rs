@@ -1,4 +1,4 @@
-//! The fused run-time path of [`Calibration::align_view_into`](crate::Calibration::align_view_into):
+//! The fused run-time path of [`Calibration::align`](crate::Calibration::align) for a raw prediction:
 //! normalisation, a global alignment (GSSA, SSRA) and the reciprocal of inverse space in two
 //! passes over the image, reading the prediction in place:
 //!

@@ -13,7 +13,10 @@
 //! ```
 //! use moma_core::align::Method;
 //! use moma_core::sampling::SamplingConfig;
-//! use moma_core::{CalibrationConfig, MetricDepth, Prediction, PredictionKind, calibrate, policy};
+//! use moma_core::{
+//!     AlignOptions, CalibrationConfig, CalibrationFrame, MetricDepth, Prediction, PredictionKind,
+//!     calibrate, policy,
+//! };
 //! use ndarray::Array2;
 //!
 //! // The calibration frame: the true depth (a table tilting away, metres) and a depth model's
@@ -27,10 +30,12 @@
 //!     method,
 //!     sampling: SamplingConfig { n: 100, seed: 0, ..Default::default() },
 //!     robust: None,
+//!     workspace: None,
 //! };
-//! let calibration = calibrate(&pred, &MetricDepth::new(truth.clone()), &config, None, None)?;
+//! let gt = MetricDepth::new(truth.clone());
+//! let calibration = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config)?;
 //! // every later frame of the same camera: prediction → metres
-//! let depth = calibration.align(&pred)?;
+//! let depth = calibration.aligned(&pred, &AlignOptions::default())?.depth;
 //! assert!((depth.depth_m[[10, 20]] - truth[[10, 20]]).abs() < 1e-4);
 //! # Ok::<(), moma_core::CoreError>(())
 //! ```
@@ -57,6 +62,6 @@ pub use error_model::DepthErrorModel;
 pub use image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
 pub use normalise::{AlignSpace, Normalisation, NormalisationConfig};
 pub use pipeline::{
-    AlignOptions, Aligned, Calibration, CalibrationConfig, CalibrationFrame, Workspace, calibrate,
-    calibrate_frames,
+    AlignOptions, Aligned, Calibration, CalibrationConfig, CalibrationFrame, FrameReport,
+    PredictionInput, Workspace, calibrate,
 };

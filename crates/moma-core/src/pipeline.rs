@@ -1,24 +1,27 @@
 //! The one path from calibration to metric depth: what `moma calibrate` / `moma align` run,
 //! what `moma eval` measures and what a robot program calls.
 //!
-//! - [`calibrate`]: normalise one frame's prediction (over the workspace, if any), sample its
-//!   ground truth, fit the alignment in the chosen [`AlignSpace`]; the returned [`Calibration`]
-//!   owns everything needed later, including the workspace mask.
-//! - [`Calibration::align`] / [`Calibration::align_into`]: any later prediction of the same
-//!   camera to metric depth (metres), the latter without allocating.
-//! - [`Calibration::align_view`] / [`Calibration::align_view_into`]: the same from a borrowed
-//!   view (e.g. a NumPy buffer), without copying the prediction; what `align` runs.
+//! - [`calibrate`]: from one RGB-D frame or several of the same camera ([`CalibrationFrame`]):
+//!   normalise each prediction (over the workspace, if any), sample its ground truth, fit the
+//!   alignment in the chosen [`AlignSpace`]; the returned [`Calibration`] owns everything needed
+//!   later, including the workspace mask.
+//! - [`Calibration::align`]: any later prediction of the same camera to metric depth (metres)
+//!   in a caller's buffer, optionally re-aligned on static anchors ([`AlignOptions`]), with the
+//!   frame's error model; [`Calibration::aligned`] is the same into a new map, with the σ map.
 //!
-//! The evaluation caches normalised maps and calls the same steps through
-//! [`calibrate_normalised`] and [`Calibration::align_normalised`], which [`calibrate`] and
-//! [`Calibration::align`] are built from.
+//! Both take a [`PredictionInput`]: a `&Prediction`, a borrowed view (e.g. a NumPy buffer; not
+//! copied), or a prediction already normalised by [`Calibration::normalise`] (the evaluation
+//! normalises each frame once and fits many times).
 //!
 //! # A robot loop (calibrate once, align every frame from memory, no files)
 //! ```
 //! use moma_core::align::Method;
 //! use moma_core::normalise::{Normalisation, NormalisationConfig};
 //! use moma_core::sampling::SamplingConfig;
-//! use moma_core::{CalibrationConfig, MetricDepth, Prediction, PredictionKind, calibrate};
+//! use moma_core::{
+//!     AlignOptions, CalibrationConfig, CalibrationFrame, MetricDepth, Prediction, PredictionKind,
+//!     calibrate,
+//! };
 //! use ndarray::Array2;
 //!
 //! // Set-up, once: one RGB-D frame. Here a synthetic 64×48 scene: z = 0.6 m + 1 mm per row,
@@ -32,19 +35,22 @@
 //!     normalisation: NormalisationConfig::native(Normalisation::Minmax, PredictionKind::InverseDepth),
 //!     sampling: SamplingConfig { n: 100, seed: 0, ..Default::default() },
 //!     robust: None,
+//!     workspace: None,
 //! };
-//! let calibration = calibrate(&model_output(&gt), &gt, &config, None, None)?;
+//! let pred = model_output(&gt);
+//! let calibration = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config)?;
 //!
 //! // Every frame: RGB → depth model → metric depth, into a buffer allocated once.
 //! let mut depth_m = Array2::<f32>::zeros((48, 64));
 //! for _frame in 0..3 {
 //!     let pred = model_output(&gt); // the depth model's output for this frame
-//!     calibration.align_into(&pred, &mut depth_m.view_mut())?;
+//!     calibration.align(&pred, &AlignOptions::default(), &mut depth_m.view_mut())?;
 //!     assert!((depth_m[[10, 5]] - 0.61).abs() < 1e-4); // metres
 //! }
 //! # Ok::<(), moma_core::CoreError>(())
 //! ```
 
+use std::borrow::Cow;
 use std::sync::Arc;
 
 use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
@@ -57,7 +63,7 @@ use crate::error::{CoreError, Result};
 use crate::error_model::{DepthErrorModel, ResidualFrame};
 use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use crate::normalise::{
-    AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise, normalise_view,
+    AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise_view,
 };
 use crate::realign::{
     AnchorStore, CorrectionModel, RealignConfig, RealignReport, realign_in_place,
@@ -77,9 +83,23 @@ pub struct CalibrationConfig {
     /// Robust fit (Huber, Tukey, RANSAC; gssa, ssra and their local variants only); `None`:
     /// least squares.
     pub robust: Option<Robust>,
+    /// The region the predictions are normalised over, at calibration and at run time (the
+    /// calibration keeps it); `None`: the whole map.
+    pub workspace: Option<Arc<Workspace>>,
 }
 
 impl CalibrationConfig {
+    /// The same settings, normalising over `mask` (`None`: the whole map).
+    ///
+    /// # Errors
+    /// [`CoreError::NoValidPixels`] for an empty mask.
+    pub fn with_workspace(self, mask: Option<&Mask>) -> Result<Self> {
+        let workspace = mask
+            .map(|m| Workspace::new(m.clone()).map(Arc::new))
+            .transpose()?;
+        Ok(Self { workspace, ..self })
+    }
+
     /// Checks the combination for predictions of `kind`: a robust fit needs valid settings and a
     /// method that supports it ([`Robust::check_method`]); RAW uses the prediction as metric depth,
     /// so it needs a metric `depth` prediction, `none` normalisation and depth space.
@@ -280,67 +300,109 @@ pub struct Calibration {
     pub error_model: Option<DepthErrorModel>,
 }
 
-/// Calibrates from one frame: normalise `pred` (over `workspace` if given), sample ground truth
-/// (restricted to `sample_region` if given), fit in `config.normalisation.space`.
+/// A depth model's output for one frame, as [`calibrate`] and [`Calibration::align`] take it.
 ///
-/// The same as [`calibrate_frames`] with one frame.
-///
-/// # Errors
-/// [`CalibrationConfig::check`] failures (RAW on inverse depth or with normalisation), any error
-/// of the steps, size mismatches between inputs, an empty workspace.
-pub fn calibrate(
-    pred: &Prediction,
-    gt: &MetricDepth,
-    config: &CalibrationConfig,
-    workspace: Option<&Mask>,
-    sample_region: Option<&Mask>,
-) -> Result<Calibration> {
-    calibrate_frames(
-        &[CalibrationFrame {
-            pred,
-            gt,
-            sample_region,
-        }],
-        config,
-        workspace,
-    )
+/// `&Prediction` converts into it; a borrowed view (e.g. a NumPy buffer, any strides) is
+/// [`PredictionInput::view`], so nothing is copied.
+#[derive(Debug, Clone, Copy)]
+pub enum PredictionInput<'a> {
+    /// The raw output of the depth model, of kind `kind`.
+    Raw {
+        /// `(height, width)` values.
+        values: ArrayView2<'a, f32>,
+        /// What the values are.
+        kind: PredictionKind,
+    },
+    /// The raw output of kind `kind` already normalised with the calibration's normalisation
+    /// over its workspace ([`Calibration::normalise`]): the evaluation normalises each frame
+    /// once and fits or aligns it many times.
+    Normalised {
+        /// The normalised map.
+        map: &'a NormalisedMap,
+        /// The kind of the raw output it was normalised from.
+        kind: PredictionKind,
+    },
 }
 
-/// One frame of a (few-shot) calibration: the depth model's prediction, the ground truth of the
-/// same frame, and where its samples may be drawn (`None`: anywhere with valid ground truth).
+impl<'a> From<&'a Prediction> for PredictionInput<'a> {
+    fn from(pred: &'a Prediction) -> Self {
+        Self::view(pred.values.view(), pred.kind)
+    }
+}
+
+impl<'a> PredictionInput<'a> {
+    /// A raw output read through a view.
+    pub fn view(values: ArrayView2<'a, f32>, kind: PredictionKind) -> Self {
+        Self::Raw { values, kind }
+    }
+
+    /// A raw output already normalised ([`PredictionInput::Normalised`]).
+    pub fn normalised(map: &'a NormalisedMap, kind: PredictionKind) -> Self {
+        Self::Normalised { map, kind }
+    }
+
+    /// The kind of the raw output.
+    pub fn kind(&self) -> PredictionKind {
+        match *self {
+            Self::Raw { kind, .. } | Self::Normalised { kind, .. } => kind,
+        }
+    }
+
+    /// The image size, pixels.
+    pub fn size(&self) -> ImageSize {
+        match self {
+            Self::Raw { values, .. } => ImageSize::of(values),
+            Self::Normalised { map, .. } => ImageSize::of(&map.values.view()),
+        }
+    }
+}
+
+/// One frame of a calibration: the depth model's prediction, the ground truth of the same frame,
+/// and where its samples may be drawn (`None`: anywhere with valid ground truth).
 #[derive(Debug, Clone, Copy)]
 pub struct CalibrationFrame<'a> {
     /// The depth model's output for the frame.
-    pub pred: &'a Prediction,
+    pub pred: PredictionInput<'a>,
     /// Ground-truth depth of the same frame, metres.
     pub gt: &'a MetricDepth,
     /// Draw this frame's samples only inside this mask.
     pub sample_region: Option<&'a Mask>,
 }
 
-/// A calibration frame whose prediction is already normalised (see [`calibrate_frames_normalised`]).
-#[derive(Debug, Clone, Copy)]
-pub struct NormalisedFrame<'a> {
-    /// The prediction normalised with the calibration's normalisation over its workspace.
-    pub normalised: &'a NormalisedMap,
-    /// Ground-truth depth of the same frame, metres.
-    pub gt: &'a MetricDepth,
-    /// Draw this frame's samples only inside this mask.
-    pub sample_region: Option<&'a Mask>,
+impl<'a> CalibrationFrame<'a> {
+    /// A frame whose samples may be drawn anywhere with valid ground truth.
+    pub fn new(pred: impl Into<PredictionInput<'a>>, gt: &'a MetricDepth) -> Self {
+        Self {
+            pred: pred.into(),
+            gt,
+            sample_region: None,
+        }
+    }
+
+    /// The same frame with its samples drawn only inside `region` (`None`: anywhere).
+    pub fn sampled_in(self, region: Option<&'a Mask>) -> Self {
+        Self {
+            sample_region: region,
+            ..self
+        }
+    }
 }
 
-/// The sampling seed of calibration frame `index`: `seed` for frame 0 (so that one frame
-/// reproduces [`calibrate`]), `seed + index · 0x9E37_79B9_7F4A_7C15` (wrapping) for the others,
-/// so that frames of the same size do not draw the same pixel positions.
+/// The sampling seed of calibration frame `index`: `seed` for frame 0 (so that the first frame
+/// of several draws what it draws alone), `seed + index · 0x9E37_79B9_7F4A_7C15` (wrapping) for
+/// the others, so that frames of the same size do not draw the same pixel positions.
 pub fn frame_seed(seed: u64, index: usize) -> u64 {
     seed.wrapping_add((index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
 
-/// Few-shot calibration (one fit over several frames of the same camera): each frame's
-/// prediction is normalised on its own (same formula, space and `workspace`), `config.sampling.n`
-/// samples are drawn **per frame** (frame `i` with seed [`frame_seed`]`(seed, i)`, inside its
-/// own `sample_region`), and one model is fitted on the union. [`Calibration::samples`] holds
-/// every frame's samples, frame after frame. With one frame this is exactly [`calibrate`].
+/// Calibrates from one frame (`&[frame]`) or several of the same camera (few-shot): what
+/// `moma calibrate`, `moma eval` and Python run.
+///
+/// Each frame's prediction is normalised on its own (same formula and space, over
+/// `config.workspace` when given), `config.sampling.n` samples are drawn **per frame** (frame `i`
+/// with seed [`frame_seed`]`(seed, i)`, inside its own `sample_region`), and one model is fitted
+/// on the union in `config.normalisation.space`. [`Calibration::samples`] holds every frame's
+/// samples, frame after frame.
 ///
 /// Averaging over frames reduces what changes from frame to frame in the depth model's output
 /// (docs/method.md §6: the per-frame fluctuation of scale and shift); it cannot remove what every
@@ -348,39 +410,89 @@ pub fn frame_seed(seed: u64, index: usize) -> u64 {
 ///
 /// # Errors
 /// No frame; frames of different sizes or prediction kinds (naming the frame, counted from 0);
-/// [`CalibrationConfig::check`] failures; any error of [`calibrate`], naming the frame.
-pub fn calibrate_frames(
+/// [`CalibrationConfig::check`] failures (RAW on a relative prediction or with normalisation);
+/// size mismatches between inputs; sampling and fitting errors, naming the frame when there
+/// are several.
+pub fn calibrate(
     frames: &[CalibrationFrame<'_>],
     config: &CalibrationConfig,
-    workspace: Option<&Mask>,
 ) -> Result<Calibration> {
-    let (kind, _) = check_frames(frames.iter().map(|f| (f.pred.kind, f.pred.size())))?;
+    let (kind, size) = check_frames(frames.iter().map(|f| (f.pred.kind(), f.pred.size())))?;
     config.check(kind)?;
-    let workspace = workspace
-        .map(|m| Workspace::new(m.clone()).map(Arc::new))
-        .transpose()?;
+    if let Some(w) = &config.workspace {
+        size.expect_eq("workspace mask", w.mask().size())?;
+    }
+    let workspace = config.workspace.as_deref().map(Workspace::mask);
     let normalised = frames
         .iter()
         .enumerate()
-        .map(|(i, f)| {
-            normalise(
-                f.pred,
-                &config.normalisation,
-                workspace.as_ref().map(|w| w.mask()),
-            )
-            .map_err(|e| in_frame(frames.len(), i, e))
+        .map(|(i, f)| match f.pred {
+            PredictionInput::Raw { values, kind } => {
+                normalise_view(values, kind, &config.normalisation, workspace)
+                    .map(Cow::Owned)
+                    .map_err(|e| in_frame(frames.len(), i, e))
+            }
+            PredictionInput::Normalised { map, .. } => Ok(Cow::Borrowed(map)),
         })
-        .collect::<Result<Vec<_>>>()?;
-    let normalised_frames: Vec<NormalisedFrame<'_>> = normalised
-        .iter()
-        .zip(frames)
-        .map(|(normalised, f)| NormalisedFrame {
-            normalised,
-            gt: f.gt,
-            sample_region: f.sample_region,
-        })
-        .collect();
-    calibrate_frames_normalised(&normalised_frames, kind, config, workspace)
+        .collect::<Result<Vec<Cow<'_, NormalisedMap>>>>()?;
+    for (i, f) in frames.iter().enumerate() {
+        if i == 0 {
+            size.expect_eq("ground truth", f.gt.size())?;
+        } else if f.gt.size() != size {
+            return Err(CoreError::InvalidParameter(format!(
+                "calibration frame {i}: the ground truth is {}, but the predictions are {size}",
+                f.gt.size()
+            )));
+        }
+    }
+    let mut samples = SampleSet {
+        space: crate::normalise::AlignSpace::Depth,
+        image_size: size,
+        samples: Vec::new(),
+    };
+    for (i, (f, map)) in frames.iter().zip(&normalised).enumerate() {
+        let sampling = SamplingConfig {
+            seed: frame_seed(config.sampling.seed, i),
+            ..config.sampling
+        };
+        let pixels = sample_pixels(f.gt, &sampling, f.sample_region)
+            .map_err(|e| in_frame(frames.len(), i, e))?;
+        let frame_samples = SampleSet::gather(map, f.gt, &pixels)?;
+        samples.samples.extend(frame_samples.samples);
+    }
+    let space = config.normalisation.space;
+    let asked = config.sampling.n.saturating_mul(frames.len());
+    let fit = |targets: &SampleSet| {
+        match &config.robust {
+            None => config.method.fit(targets),
+            Some(r) => r.fit(&config.method, targets, space),
+        }
+        .map_err(|e| explain_edge_margin(e, config.sampling.edge_margin_px, asked))
+    };
+    let (model, report) = match space {
+        AlignSpace::Depth => fit(&samples)?,
+        AlignSpace::Inverse => {
+            let (model, mut report) = fit(&samples.in_space(space))?;
+            report.rms_residual_m = rms_residual_m(&model, space, &samples.samples);
+            (model, report)
+        }
+    };
+    let mut calibration = Calibration {
+        normalisation: config.normalisation,
+        prediction_kind: kind,
+        model,
+        report,
+        samples,
+        workspace: config.workspace.clone(),
+        anchors: None,
+        error_model: None,
+    };
+    // absent (no success probabilities later) when the calibration frames give no pixel with
+    // both an aligned and a true depth to learn it from; the fit itself stands
+    let maps: Vec<&NormalisedMap> = normalised.iter().map(|m| m.as_ref()).collect();
+    let truths: Vec<&MetricDepth> = frames.iter().map(|f| f.gt).collect();
+    calibration.error_model = fit_error_model(&calibration, &maps, &truths, config).ok();
+    Ok(calibration)
 }
 
 /// Checks that there is at least one frame and that every frame's prediction has the kind and
@@ -426,109 +538,6 @@ fn in_frame(n_frames: usize, i: usize, e: CoreError) -> CoreError {
     }
 }
 
-/// [`calibrate`] from a prediction already normalised with `config.normalisation` over
-/// `workspace` (the evaluation normalises each frame once and fits many times).
-///
-/// # Errors
-/// As [`calibrate`].
-pub fn calibrate_normalised(
-    normalised: &NormalisedMap,
-    kind: PredictionKind,
-    gt: &MetricDepth,
-    config: &CalibrationConfig,
-    workspace: Option<Arc<Workspace>>,
-    sample_region: Option<&Mask>,
-) -> Result<Calibration> {
-    calibrate_frames_normalised(
-        &[NormalisedFrame {
-            normalised,
-            gt,
-            sample_region,
-        }],
-        kind,
-        config,
-        workspace,
-    )
-}
-
-/// [`calibrate_frames`] from predictions already normalised with `config.normalisation` over
-/// `workspace`, each on its own.
-///
-/// # Errors
-/// As [`calibrate_frames`].
-pub fn calibrate_frames_normalised(
-    frames: &[NormalisedFrame<'_>],
-    kind: PredictionKind,
-    config: &CalibrationConfig,
-    workspace: Option<Arc<Workspace>>,
-) -> Result<Calibration> {
-    config.check(kind)?;
-    let (_, size) = check_frames(
-        frames
-            .iter()
-            .map(|f| (kind, ImageSize::of(&f.normalised.values.view()))),
-    )?;
-    for (i, f) in frames.iter().enumerate() {
-        if i == 0 {
-            size.expect_eq("ground truth", f.gt.size())?;
-        } else if f.gt.size() != size {
-            return Err(CoreError::InvalidParameter(format!(
-                "calibration frame {i}: the ground truth is {}, but the predictions are {size}",
-                f.gt.size()
-            )));
-        }
-    }
-    if let Some(w) = &workspace {
-        size.expect_eq("workspace mask", w.mask().size())?;
-    }
-    let mut samples = SampleSet {
-        space: crate::normalise::AlignSpace::Depth,
-        image_size: size,
-        samples: Vec::new(),
-    };
-    for (i, f) in frames.iter().enumerate() {
-        let sampling = SamplingConfig {
-            seed: frame_seed(config.sampling.seed, i),
-            ..config.sampling
-        };
-        let pixels = sample_pixels(f.gt, &sampling, f.sample_region)
-            .map_err(|e| in_frame(frames.len(), i, e))?;
-        let frame_samples = SampleSet::gather(f.normalised, f.gt, &pixels)?;
-        samples.samples.extend(frame_samples.samples);
-    }
-    let space = config.normalisation.space;
-    let asked = config.sampling.n.saturating_mul(frames.len());
-    let fit = |targets: &SampleSet| {
-        match &config.robust {
-            None => config.method.fit(targets),
-            Some(r) => r.fit(&config.method, targets, space),
-        }
-        .map_err(|e| explain_edge_margin(e, config.sampling.edge_margin_px, asked))
-    };
-    let (model, report) = match space {
-        AlignSpace::Depth => fit(&samples)?,
-        AlignSpace::Inverse => {
-            let (model, mut report) = fit(&samples.in_space(space))?;
-            report.rms_residual_m = rms_residual_m(&model, space, &samples.samples);
-            (model, report)
-        }
-    };
-    let mut calibration = Calibration {
-        normalisation: config.normalisation,
-        prediction_kind: kind,
-        model,
-        report,
-        samples,
-        workspace,
-        anchors: None,
-        error_model: None,
-    };
-    // absent (no success probabilities later) when the calibration frames give no pixel with
-    // both an aligned and a true depth to learn it from; the fit itself stands
-    calibration.error_model = fit_error_model(&calibration, frames, config).ok();
-    Ok(calibration)
-}
-
 /// Folds of the cross-validated residuals that floor the error model's flat σ.
 const ERROR_MODEL_FOLDS: usize = 5;
 
@@ -538,19 +547,20 @@ const ERROR_MODEL_FOLDS: usize = 5;
 /// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed.
 fn fit_error_model(
     calibration: &Calibration,
-    frames: &[NormalisedFrame<'_>],
+    normalised: &[&NormalisedMap],
+    truths: &[&MetricDepth],
     config: &CalibrationConfig,
 ) -> Result<DepthErrorModel> {
-    let aligned = frames
+    let aligned = normalised
         .iter()
-        .map(|f| calibration.align_normalised(f.normalised))
+        .map(|map| calibration.align_normalised(map))
         .collect::<Result<Vec<_>>>()?;
     let residual_frames: Vec<ResidualFrame<'_>> = aligned
         .iter()
-        .zip(frames)
-        .map(|(a, f)| ResidualFrame {
+        .zip(truths)
+        .map(|(a, gt)| ResidualFrame {
             aligned_m: a.depth_m.view(),
-            truth_m: f.gt.depth_m.view(),
+            truth_m: gt.depth_m.view(),
         })
         .collect();
     let space = calibration.space();
@@ -710,6 +720,7 @@ impl Calibration {
                 normalisation: self.normalisation,
                 sampling: SamplingConfig::default(),
                 robust: None,
+                workspace: None,
             }
             .check(self.prediction_kind)?;
         }
@@ -754,77 +765,142 @@ impl Calibration {
             .expect_eq("prediction", ImageSize::of(&pred))
     }
 
-    /// Turns a later prediction into metric depth (metres; NaN where no depth follows: a
-    /// non-positive prediction converted to another space, a non-positive fitted disparity).
+    /// Turns a prediction into metric depth: the one path from a depth model's output to the
+    /// metres that `moma align`, `moma grasp`, `moma eval` and Python use, written into `out`
+    /// (the calibration's image size) without allocating.
+    ///
+    /// Metres; NaN where no depth follows (a non-positive prediction converted to another
+    /// space, a non-positive fitted disparity). With [`AlignOptions::realign`], the frame is then
+    /// re-aligned on static anchors found in its RGB ([`crate::realign`]; when the correction is
+    /// rejected or too few anchors remain, `out` holds the one-shot result and the report says
+    /// why). The returned [`FrameReport`] holds the re-alignment report and the frame's error
+    /// model.
+    ///
+    /// For GSSA and SSRA (and `auto` choosing them) with min-max or no normalisation, a raw
+    /// prediction is normalised, aligned and (inverse space) inverted fused in two passes over
+    /// the image (see the `fused` module), identical bit for bit to normalising and then
+    /// applying the model.
     ///
     /// # Errors
-    /// Kind or size mismatch with the calibration, normalisation errors.
-    pub fn align(&self, pred: &Prediction) -> Result<MetricDepth> {
-        self.align_view(pred.values.view(), pred.kind)
+    /// Kind or size mismatch with the calibration (prediction or `out`), normalisation errors;
+    /// with re-alignment: no anchor store ([`Calibration::anchor_store`]), an RGB of another
+    /// size.
+    pub fn align<'p>(
+        &self,
+        pred: impl Into<PredictionInput<'p>>,
+        options: &AlignOptions<'_>,
+        out: &mut ArrayViewMut2<'_, f32>,
+    ) -> Result<FrameReport> {
+        let pred = pred.into();
+        if pred.kind() != self.prediction_kind {
+            return Err(CoreError::KindMismatch {
+                expected: self.prediction_kind,
+                got: pred.kind(),
+            });
+        }
+        let size = self.image_size();
+        size.expect_eq("prediction", pred.size())?;
+        size.expect_eq("output buffer", ImageSize::of(&out.view()))?;
+        let realign = match options.realign {
+            None => {
+                self.one_shot_into(pred, out)?;
+                None
+            }
+            Some((rgb, config)) => Some(self.realigned_into(pred, rgb, config, out)?),
+        };
+        Ok(FrameReport {
+            error_model: self.frame_error_model(realign.as_ref()),
+            realign,
+        })
     }
 
-    /// [`Calibration::align`] writing metres into `out` (the calibration's image size), for
-    /// per-frame use without allocating the output.
-    ///
-    /// # Errors
-    /// As [`Calibration::align`], and a size mismatch of `out`.
-    pub fn align_into(&self, pred: &Prediction, out: &mut ArrayViewMut2<'_, f32>) -> Result<()> {
-        self.align_view_into(pred.values.view(), pred.kind, out)
-    }
-
-    /// [`Calibration::align`] of a prediction read through a view (`pred` of kind `kind`, any
-    /// strides): the prediction is not copied. For GSSA and SSRA (and `auto` choosing them) with
-    /// min-max or no normalisation, normalisation, alignment and the reciprocal of inverse space
-    /// run fused in two passes over the image (see the `fused` module); the result is identical
-    /// bit for bit to normalising and then applying the model.
+    /// [`Calibration::align`] into a new map, with the σ map when [`AlignOptions::sigma_map`]
+    /// asks for it.
     ///
     /// # Errors
     /// As [`Calibration::align`].
-    pub fn align_view(
+    pub fn aligned<'p>(
         &self,
-        pred: ArrayView2<'_, f32>,
-        kind: PredictionKind,
-    ) -> Result<MetricDepth> {
-        self.check_prediction(pred, kind)?;
-        if let Some(pass) = self.fused_pass(pred, kind)? {
-            let mut out = Array2::<f32>::uninit(pred.raw_dim());
-            crate::fused::apply(&pass, pred, &mut out.view_mut());
-            // SAFETY: `fused::apply` writes every element of `out`, which has the shape of `pred`.
-            let out = unsafe { out.assume_init() };
-            return Ok(MetricDepth::new(out));
-        }
-        let normalised = self.normalise_view(pred, kind)?;
-        self.align_normalised(&normalised)
+        pred: impl Into<PredictionInput<'p>>,
+        options: &AlignOptions<'_>,
+    ) -> Result<Aligned> {
+        let size = self.image_size();
+        let mut depth = Array2::<f32>::zeros((size.height, size.width));
+        let report = self.align(pred, options, &mut depth.view_mut())?;
+        let depth = MetricDepth::new(depth);
+        let sigma_m = match (options.sigma_map, &report.error_model) {
+            (true, Some(m)) => Some(m.sigma_map(&depth)),
+            _ => None,
+        };
+        Ok(Aligned {
+            depth,
+            realign: report.realign,
+            error_model: report.error_model,
+            sigma_m,
+        })
     }
 
-    /// [`Calibration::align_view`] writing metres into `out` (the calibration's image size)
-    /// without allocating.
-    ///
-    /// # Errors
-    /// As [`Calibration::align`], and a size mismatch of `out`.
-    pub fn align_view_into(
+    /// The one-shot alignment of a checked prediction into a checked `out`.
+    fn one_shot_into(
         &self,
-        pred: ArrayView2<'_, f32>,
-        kind: PredictionKind,
+        pred: PredictionInput<'_>,
         out: &mut ArrayViewMut2<'_, f32>,
     ) -> Result<()> {
-        self.check_prediction(pred, kind)?;
-        if let Some(pass) = self.fused_pass(pred, kind)? {
-            ImageSize::of(&pred)
-                .expect_eq("output buffer", ImageSize::new(out.ncols(), out.nrows()))?;
-            crate::fused::apply(&pass, pred, out);
-            return Ok(());
+        match pred {
+            PredictionInput::Raw { values, kind } => {
+                if let Some(pass) = self.fused_pass(values)? {
+                    crate::fused::apply(&pass, values, out);
+                    return Ok(());
+                }
+                self.align_normalised_into(&self.normalise_view(values, kind)?, out)
+            }
+            PredictionInput::Normalised { map, .. } => self.align_normalised_into(map, out),
         }
-        let normalised = self.normalise_view(pred, kind)?;
-        self.align_normalised_into(&normalised, out)
+    }
+
+    /// Per-frame re-alignment of a checked prediction into a checked `out`, for every
+    /// correction form: `prediction-affine` applies the model to the corrected normalised map;
+    /// `scale-shift` and `planar` correct the one-shot metres
+    /// ([`crate::realign::realign_in_place`]).
+    fn realigned_into(
+        &self,
+        pred: PredictionInput<'_>,
+        rgb: ArrayView3<'_, u8>,
+        config: &RealignConfig,
+        out: &mut ArrayViewMut2<'_, f32>,
+    ) -> Result<RealignReport> {
+        let store = self.anchor_store()?; // no store: fail before aligning
+        if config.model != CorrectionModel::PredictionAffine {
+            self.one_shot_into(pred, out)?;
+            return realign_in_place(store, rgb, self.space(), config, out);
+        }
+        let normalised = match pred {
+            PredictionInput::Raw { values, kind } => Cow::Owned(self.normalise_view(values, kind)?),
+            PredictionInput::Normalised { map, .. } => Cow::Borrowed(map),
+        };
+        let (report, ab) = realign_prediction_affine(
+            store,
+            rgb,
+            &self.model,
+            self.space(),
+            config,
+            normalised.values.view(),
+        )?;
+        match ab {
+            Some((a, b)) => {
+                let corrected = NormalisedMap {
+                    values: normalised.values.mapv(|x| a * x + b),
+                    stats: normalised.stats,
+                };
+                self.align_normalised_into(&corrected, out)?;
+            }
+            None => self.align_normalised_into(&normalised, out)?,
+        }
+        Ok(report)
     }
 
     /// The fused path's statistics pass for a checked prediction, `None` where it does not apply.
-    fn fused_pass(
-        &self,
-        pred: ArrayView2<'_, f32>,
-        kind: PredictionKind,
-    ) -> Result<Option<crate::fused::FusedPass>> {
+    fn fused_pass(&self, pred: ArrayView2<'_, f32>) -> Result<Option<crate::fused::FusedPass>> {
         let size = self.image_size();
         let Some(terms) = crate::fused::ModelTerms::of(&self.model, size.width, size.height) else {
             return Ok(None);
@@ -835,28 +911,23 @@ impl Calibration {
         }
         crate::fused::prepare(
             pred,
-            AlignSpace::native(kind) != self.normalisation.space,
+            AlignSpace::native(self.prediction_kind) != self.normalisation.space,
             &self.normalisation,
             region,
             terms,
         )
     }
 
-    /// The alignment of a prediction already normalised by [`Calibration::normalise`].
-    ///
-    /// # Errors
-    /// Size mismatch with the calibration image.
-    pub fn align_normalised(&self, normalised: &NormalisedMap) -> Result<MetricDepth> {
+    /// The alignment of a prediction already normalised by [`Calibration::normalise`], into a
+    /// new map (the anchors' own result, the error model's residuals).
+    fn align_normalised(&self, normalised: &NormalisedMap) -> Result<MetricDepth> {
         let mut out = Array2::<f32>::zeros(normalised.values.raw_dim());
         self.align_normalised_into(normalised, &mut out.view_mut())?;
         Ok(MetricDepth::new(out))
     }
 
     /// [`Calibration::align_normalised`] into a caller's buffer.
-    ///
-    /// # Errors
-    /// Size mismatch with the calibration image or between `normalised` and `out`.
-    pub fn align_normalised_into(
+    fn align_normalised_into(
         &self,
         normalised: &NormalisedMap,
         out: &mut ArrayViewMut2<'_, f32>,
@@ -871,18 +942,38 @@ impl Calibration {
     }
 }
 
-/// How [`Calibration::align_with`] aligns one frame: the one path from a prediction to the
-/// metres that `moma align`, `moma grasp` and Python use.
+/// How [`Calibration::align`] aligns one frame.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct AlignOptions<'a> {
     /// Per-frame re-alignment on static anchors found in this frame's RGB `(height, width, 3)`,
     /// with these settings (the calibration must hold an anchor store).
     pub realign: Option<(ArrayView3<'a, u8>, &'a RealignConfig)>,
-    /// Also compute the per-pixel σ map of the result ([`Aligned::sigma_m`]).
+    /// Also compute the per-pixel σ map of the result ([`Aligned::sigma_m`];
+    /// [`Calibration::aligned`] only).
     pub sigma_map: bool,
 }
 
-/// One aligned frame ([`Calibration::align_with`]).
+impl<'a> AlignOptions<'a> {
+    /// Re-alignment on static anchors found in `rgb` `(height, width, 3)`, with `config`.
+    pub fn realigned(rgb: ArrayView3<'a, u8>, config: &'a RealignConfig) -> Self {
+        Self {
+            realign: Some((rgb, config)),
+            sigma_map: false,
+        }
+    }
+}
+
+/// What [`Calibration::align`] reports about one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameReport {
+    /// The re-alignment report, when re-alignment was asked for.
+    pub realign: Option<RealignReport>,
+    /// The error model of this frame's depth ([`Calibration::frame_error_model`]); `None` when
+    /// the calibration has none.
+    pub error_model: Option<DepthErrorModel>,
+}
+
+/// One aligned frame ([`Calibration::aligned`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Aligned {
     /// Metric depth, metres (NaN: no depth).
@@ -898,33 +989,6 @@ pub struct Aligned {
 }
 
 impl Calibration {
-    /// Aligns one frame's prediction: [`Calibration::align`], then, with
-    /// [`AlignOptions::realign`], per-frame re-alignment ([`Calibration::align_realigned`]),
-    /// and the frame's error model and σ map.
-    ///
-    /// # Errors
-    /// As [`Calibration::align`] / [`Calibration::align_realigned`].
-    pub fn align_with(&self, pred: &Prediction, options: &AlignOptions<'_>) -> Result<Aligned> {
-        let (depth, realign) = match options.realign {
-            Some((rgb, config)) => {
-                let (d, r) = self.align_realigned(pred, rgb, config)?;
-                (d, Some(r))
-            }
-            None => (self.align(pred)?, None),
-        };
-        let error_model = self.frame_error_model(realign.as_ref());
-        let sigma_m = match (options.sigma_map, &error_model) {
-            (true, Some(m)) => Some(m.sigma_map(&depth)),
-            _ => None,
-        };
-        Ok(Aligned {
-            depth,
-            realign,
-            error_model,
-            sigma_m,
-        })
-    }
-
     /// The error model of one frame's aligned depth: the calibration's
     /// ([`Calibration::error_model`]), with the flat σ raised to the frame's held-out anchor
     /// RMSE when it was re-aligned (after the correction when accepted, of the one-shot result
@@ -975,47 +1039,44 @@ impl Calibration {
     ///
     /// # Errors
     /// Size or kind mismatches with the calibration, no valid static ground-truth depth.
-    pub fn with_anchors(
+    pub fn with_anchors<'p>(
         self,
         rgb: ArrayView3<'_, u8>,
         gt: &MetricDepth,
-        pred: &Prediction,
-    ) -> Result<Self> {
-        let normalised = self.normalise(pred)?;
-        self.with_anchors_normalised(rgb, gt, &normalised)
-    }
-
-    /// [`Calibration::with_anchors`] from the prediction already normalised by
-    /// [`Calibration::normalise`].
-    ///
-    /// # Errors
-    /// As [`Calibration::with_anchors`].
-    pub fn with_anchors_normalised(
-        self,
-        rgb: ArrayView3<'_, u8>,
-        gt: &MetricDepth,
-        normalised: &NormalisedMap,
+        pred: impl Into<PredictionInput<'p>>,
     ) -> Result<Self> {
         self.image_size()
             .expect_eq("anchor ground truth", gt.size())?;
-        self.with_anchor_store(&AnchorStore::new(rgb, gt)?, normalised)
+        let store = AnchorStore::new(rgb, gt)?;
+        self.with_anchor_store(&store, pred)
     }
 
-    /// [`Calibration::with_anchors_normalised`] from a store already built from the calibration
-    /// frame's RGB and ground truth ([`AnchorStore::new`]), e.g. one store shared by several
-    /// calibrations of the same frame: a copy of `store` gets this calibration's own result on
-    /// `normalised` (replacing any it held).
+    /// [`Calibration::with_anchors`] from a store already built from the calibration frame's RGB
+    /// and ground truth ([`AnchorStore::new`]), e.g. one store shared by several calibrations of
+    /// the same frame: a copy of `store` gets this calibration's own result on `pred` (replacing
+    /// any it held).
     ///
     /// # Errors
-    /// A store of another image size; as [`Calibration::align_normalised`].
-    pub fn with_anchor_store(
+    /// A store of another image size; kind or size mismatches of `pred`.
+    pub fn with_anchor_store<'p>(
         mut self,
         store: &AnchorStore,
-        normalised: &NormalisedMap,
+        pred: impl Into<PredictionInput<'p>>,
     ) -> Result<Self> {
         self.image_size()
             .expect_eq("anchor store", store.image_size())?;
-        let own = self.align_normalised(normalised)?;
+        let pred = pred.into();
+        if pred.kind() != self.prediction_kind {
+            return Err(CoreError::KindMismatch {
+                expected: self.prediction_kind,
+                got: pred.kind(),
+            });
+        }
+        let normalised = match pred {
+            PredictionInput::Raw { values, kind } => Cow::Owned(self.normalise_view(values, kind)?),
+            PredictionInput::Normalised { map, .. } => Cow::Borrowed(map),
+        };
+        let own = self.align_normalised(&normalised)?;
         self.anchors = Some(Arc::new(
             store
                 .clone()
@@ -1038,102 +1099,6 @@ impl Calibration {
                     .into(),
             )
         })
-    }
-
-    /// [`Calibration::align`], then per-frame re-alignment on static anchors found in this
-    /// frame's RGB `(height, width, 3)` ([`crate::realign::realign_in_place`]): metres, and the
-    /// per-frame report (when the correction is rejected or too few anchors remain, the one-shot
-    /// result is returned and the report says why).
-    ///
-    /// # Errors
-    /// No anchor store ([`Calibration::anchor_store`]), the errors of [`Calibration::align`],
-    /// an RGB of another size.
-    pub fn align_realigned(
-        &self,
-        pred: &Prediction,
-        rgb: ArrayView3<'_, u8>,
-        config: &RealignConfig,
-    ) -> Result<(MetricDepth, RealignReport)> {
-        self.anchor_store()?; // no store: fail before aligning
-        if config.model == CorrectionModel::PredictionAffine {
-            let normalised = self.normalise(pred)?;
-            let mut depth = Array2::<f32>::zeros(normalised.values.raw_dim());
-            let report = self.realign_normalised_into(
-                rgb,
-                config,
-                &normalised,
-                &mut depth.view_mut(),
-                false,
-            )?;
-            return Ok((MetricDepth::new(depth), report));
-        }
-        let mut depth = self.align(pred)?;
-        let report = self.realign_into(rgb, config, &mut depth.depth_m.view_mut())?;
-        Ok((depth, report))
-    }
-
-    /// Per-frame re-alignment from the frame's normalised prediction (as
-    /// [`Calibration::normalise`] gives it), for every correction form: writes the re-aligned
-    /// metres into `depth_m`. With `holds_one_shot` the caller promises that `depth_m` already
-    /// holds this calibration's one-shot result of `normalised` (then it is only changed when
-    /// a correction is accepted); otherwise the one-shot result is computed into it first.
-    /// `prediction-affine` applies the model to the corrected normalised map; `scale-shift` and
-    /// `planar` correct the one-shot metres.
-    ///
-    /// # Errors
-    /// As [`Calibration::align_realigned`]; a store without the normalised calibration
-    /// prediction for `prediction-affine`.
-    pub fn realign_normalised_into(
-        &self,
-        rgb: ArrayView3<'_, u8>,
-        config: &RealignConfig,
-        normalised: &NormalisedMap,
-        depth_m: &mut ArrayViewMut2<'_, f32>,
-        holds_one_shot: bool,
-    ) -> Result<RealignReport> {
-        let store = self.anchor_store()?;
-        if config.model != CorrectionModel::PredictionAffine {
-            if !holds_one_shot {
-                self.align_normalised_into(normalised, depth_m)?;
-            }
-            return self.realign_into(rgb, config, depth_m);
-        }
-        self.image_size()
-            .expect_eq("re-aligned depth", ImageSize::of(&depth_m.view()))?;
-        let (report, ab) = realign_prediction_affine(
-            store,
-            rgb,
-            &self.model,
-            self.space(),
-            config,
-            normalised.values.view(),
-        )?;
-        match ab {
-            Some((a, b)) => {
-                let corrected = NormalisedMap {
-                    values: normalised.values.mapv(|x| a * x + b),
-                    stats: normalised.stats,
-                };
-                self.align_normalised_into(&corrected, depth_m)?;
-            }
-            None if !holds_one_shot => self.align_normalised_into(normalised, depth_m)?,
-            None => {}
-        }
-        Ok(report)
-    }
-
-    /// Re-aligns a result of this calibration in place (as [`Calibration::align_realigned`]
-    /// after [`Calibration::align_normalised_into`]).
-    ///
-    /// # Errors
-    /// As [`Calibration::align_realigned`].
-    pub fn realign_into(
-        &self,
-        rgb: ArrayView3<'_, u8>,
-        config: &RealignConfig,
-        depth_m: &mut ArrayViewMut2<'_, f32>,
-    ) -> Result<RealignReport> {
-        realign_in_place(self.anchor_store()?, rgb, self.space(), config, depth_m)
     }
 }
 

@@ -525,7 +525,7 @@ pub enum CorrectionModel {
     /// model applied: exact for every method when the background's prediction changed by an
     /// affine map (per-frame min-max statistics, a depth model's per-frame scale and shift in
     /// its own output space). Needs the frame's normalised map
-    /// ([`crate::Calibration::realign_normalised_into`]) and a store with
+    /// ([`crate::Calibration::align`] gives it) and a store with
     /// [`AnchorStore::with_normalised`]; target `calibration-output` only.
     PredictionAffine,
 }
@@ -1084,7 +1084,7 @@ pub fn realign_in_place(
     if config.model == CorrectionModel::PredictionAffine {
         return Err(CoreError::InvalidParameter(
             "the prediction-affine re-alignment needs the frame's normalised prediction: use \
-             Calibration::align_realigned or Calibration::realign_normalised_into"
+             Calibration::align with AlignOptions::realign"
                 .into(),
         ));
     }

@@ -1,5 +1,5 @@
-//! The view-taking, fused run-time path (`Calibration::align_view` / `align_view_into`) against
-//! the unfused one (`Calibration::normalise` then `align_normalised`): identical bit for bit
+//! The view-taking, fused run-time path (`Calibration::align` / `aligned` of a raw view) against
+//! the unfused one (`Calibration::normalise`, then `aligned` of the normalised map): identical bit for bit
 //! (NaN where the other is NaN) for every covered combination, the fallback for the others, any
 //! strides of input and output, workspace masks, and the same errors.
 
@@ -9,6 +9,7 @@ use moma_core::align::{AlignmentModel, Method};
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{Calibration, CalibrationConfig, calibrate};
 use moma_core::sampling::SamplingConfig;
+use moma_core::{AlignOptions, CalibrationFrame, PredictionInput};
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::{Array2, ArrayView2, ShapeBuilder, s};
 
@@ -58,16 +59,27 @@ fn calibration(
             ..Default::default()
         },
         robust: None,
+        workspace: None,
     };
     // Some combinations are refused by design (raw needs depth / none); skip those.
-    calibrate(&Prediction::new(pred, kind), &gt, &config, workspace, None).ok()
+    calibrate(
+        &[CalibrationFrame::new(&Prediction::new(pred, kind), &gt)],
+        &config.clone().with_workspace(workspace).unwrap(),
+    )
+    .ok()
 }
 
 /// The reference: normalise, then apply the model (the unfused path).
 fn unfused(cal: &Calibration, pred: &Array2<f32>, kind: PredictionKind) -> Array2<f32> {
     let p = Prediction::new(pred.clone(), kind);
     let n = cal.normalise(&p).unwrap();
-    cal.align_normalised(&n).unwrap().depth_m
+    cal.aligned(
+        PredictionInput::normalised(&n, kind),
+        &AlignOptions::default(),
+    )
+    .unwrap()
+    .depth
+    .depth_m
 }
 
 fn assert_same(what: &str, got: ArrayView2<'_, f32>, want: ArrayView2<'_, f32>) {
@@ -118,14 +130,31 @@ fn fused_path_equals_unfused_bit_for_bit() {
                         let what =
                             format!("{kind} {method} {norm} {space} ws={}", region.is_some());
                         let want = unfused(&cal, &pred, kind);
-                        let got = cal.align_view(pred.view(), kind).unwrap().depth_m;
+                        let got = cal
+                            .aligned(
+                                PredictionInput::view(pred.view(), kind),
+                                &AlignOptions::default(),
+                            )
+                            .unwrap()
+                            .depth
+                            .depth_m;
                         assert_same(&what, got.view(), want.view());
                         let mut out = Array2::from_elem(SIZE.shape(), 7.0f32);
-                        cal.align_view_into(pred.view(), kind, &mut out.view_mut())
-                            .unwrap();
+                        cal.align(
+                            PredictionInput::view(pred.view(), kind),
+                            &AlignOptions::default(),
+                            &mut out.view_mut(),
+                        )
+                        .unwrap();
                         assert_same(&what, out.view(), want.view());
                         // The owned API is the same path.
-                        let owned = cal.align(&Prediction::new(pred.clone(), kind)).unwrap();
+                        let owned = cal
+                            .aligned(
+                                &Prediction::new(pred.clone(), kind),
+                                &AlignOptions::default(),
+                            )
+                            .unwrap()
+                            .depth;
                         assert_same(&what, owned.depth_m.view(), want.view());
                         checked += 1;
                         if matches!(cal.model, AlignmentModel::Gssa(_) | AlignmentModel::Ssra(_))
@@ -157,20 +186,35 @@ fn strided_input_and_output_give_the_same_result() {
             let mut fortran = Array2::<f32>::zeros(SIZE.shape().f());
             fortran.assign(&pred);
             assert!(fortran.view().as_slice().is_none());
-            let got = cal.align_view(fortran.view(), kind).unwrap().depth_m;
+            let got = cal
+                .aligned(
+                    PredictionInput::view(fortran.view(), kind),
+                    &AlignOptions::default(),
+                )
+                .unwrap()
+                .depth
+                .depth_m;
             assert_same("fortran input", got.view(), want.view());
             // Every other column of a wider array.
             let mut wide = Array2::<f32>::zeros((SIZE.height, 2 * SIZE.width));
             wide.slice_mut(s![.., ..;2]).assign(&pred);
             let got = cal
-                .align_view(wide.slice(s![.., ..;2]), kind)
+                .aligned(
+                    PredictionInput::view(wide.slice(s![.., ..;2]), kind),
+                    &AlignOptions::default(),
+                )
                 .unwrap()
+                .depth
                 .depth_m;
             assert_same("strided input", got.view(), want.view());
             // A strided output.
             let mut out_wide = Array2::<f32>::zeros((SIZE.height, 2 * SIZE.width));
-            cal.align_view_into(pred.view(), kind, &mut out_wide.slice_mut(s![.., ..;2]))
-                .unwrap();
+            cal.align(
+                PredictionInput::view(pred.view(), kind),
+                &AlignOptions::default(),
+                &mut out_wide.slice_mut(s![.., ..;2]),
+            )
+            .unwrap();
             assert_same("strided output", out_wide.slice(s![.., ..;2]), want.view());
             assert!(out_wide.slice(s![.., 1..;2]).iter().all(|&x| x == 0.0));
         }
@@ -190,7 +234,14 @@ fn fused_path_reports_the_unfused_errors() {
     )
     .unwrap();
     let err_of = |p: &Array2<f32>| {
-        let fused = cal.align_view(p.view(), kind).unwrap_err().to_string();
+        let fused = cal
+            .aligned(
+                PredictionInput::view(p.view(), kind),
+                &AlignOptions::default(),
+            )
+            .map(|a| a.depth)
+            .unwrap_err()
+            .to_string();
         let unfused = cal
             .normalise(&Prediction::new(p.clone(), kind))
             .unwrap_err()
@@ -203,7 +254,11 @@ fn fused_path_reports_the_unfused_errors() {
     bad[[10, 2]] = f32::INFINITY;
     err_of(&bad);
     assert!(matches!(
-        cal.align_view(bad.view(), kind),
+        cal.aligned(
+            PredictionInput::view(bad.view(), kind),
+            &AlignOptions::default()
+        )
+        .map(|a| a.depth),
         Err(CoreError::NonFinitePrediction {
             count: 2,
             u: 9,
@@ -212,22 +267,38 @@ fn fused_path_reports_the_unfused_errors() {
     ));
     let constant = Array2::from_elem(SIZE.shape(), 0.5f32);
     assert!(matches!(
-        cal.align_view(constant.view(), kind),
+        cal.aligned(
+            PredictionInput::view(constant.view(), kind),
+            &AlignOptions::default()
+        )
+        .map(|a| a.depth),
         Err(CoreError::Degenerate(_))
     ));
     err_of(&constant);
     // Kind, prediction size and output size.
     assert!(matches!(
-        cal.align_view(pred.view(), PredictionKind::Depth),
+        cal.aligned(
+            PredictionInput::view(pred.view(), PredictionKind::Depth),
+            &AlignOptions::default()
+        )
+        .map(|a| a.depth),
         Err(CoreError::KindMismatch { .. })
     ));
     assert!(matches!(
-        cal.align_view(pred.slice(s![1.., ..]), kind),
+        cal.aligned(
+            PredictionInput::view(pred.slice(s![1.., ..]), kind),
+            &AlignOptions::default()
+        )
+        .map(|a| a.depth),
         Err(CoreError::SizeMismatch { .. })
     ));
     let mut small = Array2::<f32>::zeros((SIZE.height, SIZE.width - 1));
     assert!(matches!(
-        cal.align_view_into(pred.view(), kind, &mut small.view_mut()),
+        cal.align(
+            PredictionInput::view(pred.view(), kind),
+            &AlignOptions::default(),
+            &mut small.view_mut()
+        ),
         Err(CoreError::SizeMismatch { .. })
     ));
 }
@@ -252,18 +323,23 @@ fn fused_inverse_space_shifted_disparity_is_recovered() {
             ..Default::default()
         },
         robust: None,
+        workspace: None,
     };
     let cal = calibrate(
-        &Prediction::new(pred.clone(), PredictionKind::InverseDepth),
-        &MetricDepth::new(gt.clone()),
+        &[CalibrationFrame::new(
+            &Prediction::new(pred.clone(), PredictionKind::InverseDepth),
+            &MetricDepth::new(gt.clone()),
+        )],
         &config,
-        None,
-        None,
     )
     .unwrap();
     let out = cal
-        .align_view(pred.view(), PredictionKind::InverseDepth)
+        .aligned(
+            PredictionInput::view(pred.view(), PredictionKind::InverseDepth),
+            &AlignOptions::default(),
+        )
         .unwrap()
+        .depth
         .depth_m;
     for (&o, &z) in out.iter().zip(gt.iter()) {
         assert!((o - z).abs() < 2e-5 * z, "{o} vs {z}");

@@ -1,14 +1,13 @@
-//! Few-shot calibration (`calibrate_frames`): one frame reproduces the one-shot steps exactly,
+//! Few-shot calibration (`calibrate` with several frames): one frame reproduces the one-shot steps exactly,
 //! several frames average out per-frame noise, bad input is refused naming the frame.
 
 mod common;
 
+use moma_core::AlignOptions;
 use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{Method, SampleSet};
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig, normalise};
-use moma_core::pipeline::{
-    CalibrationConfig, CalibrationFrame, calibrate, calibrate_frames, frame_seed,
-};
+use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate, frame_seed};
 use moma_core::sampling::{SamplingConfig, sample_pixels};
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
@@ -45,6 +44,7 @@ fn config(method: Method, space: AlignSpace, norm: Normalisation, seed: u64) -> 
             ..Default::default()
         },
         robust: None,
+        workspace: None,
     }
 }
 
@@ -62,17 +62,20 @@ fn one_frame_is_the_one_shot_calibration() {
         (AlignSpace::Depth, Method::Lwlr(Default::default())),
     ] {
         let cfg = config(method.clone(), space, Normalisation::Minmax, 5);
-        let few = calibrate_frames(
+        let few = calibrate(
             &[CalibrationFrame {
-                pred: &pred,
+                pred: (&pred).into(),
                 gt: &gt,
                 sample_region: Some(&region),
             }],
             &cfg,
-            None,
         )
         .unwrap();
-        let one = calibrate(&pred, &gt, &cfg, None, Some(&region)).unwrap();
+        let one = calibrate(
+            &[CalibrationFrame::new(&pred, &gt).sampled_in(Some(&region))],
+            &cfg,
+        )
+        .unwrap();
         assert_eq!(few.model, one.model, "{method} in {space}");
         assert_eq!(few.samples, one.samples);
         assert_eq!(few.report.rms_residual_m, one.report.rms_residual_m);
@@ -109,13 +112,13 @@ fn samples_are_drawn_per_frame_and_kept() {
         .iter()
         .enumerate()
         .map(|(k, p)| CalibrationFrame {
-            pred: p,
+            pred: p.into(),
             gt: &gt,
             sample_region: (k == 1).then_some(&left),
         })
         .collect();
     let cfg = config(Method::Gssa, AlignSpace::Inverse, Normalisation::Minmax, 9);
-    let cal = calibrate_frames(&frames, &cfg, None).unwrap();
+    let cal = calibrate(&frames, &cfg).unwrap();
     assert_eq!(cal.samples.samples.len(), 3 * 60);
     assert_eq!(cal.report.n_used, 3 * 60);
     assert_eq!(frame_seed(9, 0), 9);
@@ -141,10 +144,7 @@ fn samples_are_drawn_per_frame_and_kept() {
     };
     assert_ne!(pos(0), pos(2));
     // Deterministic.
-    assert_eq!(
-        calibrate_frames(&frames, &cfg, None).unwrap().model,
-        cal.model
-    );
+    assert_eq!(calibrate(&frames, &cfg).unwrap().model, cal.model);
 }
 
 /// Each frame's depth-model output has its own scale/shift error (independent across frames,
@@ -168,15 +168,15 @@ fn three_frames_beat_one_on_held_out_truth() {
         let frames: Vec<CalibrationFrame<'_>> = preds
             .iter()
             .map(|p| CalibrationFrame {
-                pred: p,
+                pred: p.into(),
                 gt: &gt,
                 sample_region: None,
             })
             .collect();
         let cfg = config(Method::Gssa, AlignSpace::Inverse, Normalisation::None, t);
         let mae = |n: usize| {
-            let cal = calibrate_frames(&frames[..n], &cfg, None).unwrap();
-            let out = cal.align(&truth).unwrap();
+            let cal = calibrate(&frames[..n], &cfg).unwrap();
+            let out = cal.aligned(&truth, &AlignOptions::default()).unwrap().depth;
             let err: f64 = out
                 .depth_m
                 .iter()
@@ -202,7 +202,7 @@ fn message(e: CoreError) -> String {
 
 fn frame<'a>(pred: &'a Prediction, gt: &'a MetricDepth) -> CalibrationFrame<'a> {
     CalibrationFrame {
-        pred,
+        pred: pred.into(),
         gt,
         sample_region: None,
     }
@@ -216,17 +216,16 @@ fn bad_frames_are_refused_naming_the_frame() {
     let (pred, gt) = (&pred, &gt);
 
     // No frame.
-    let e = message(calibrate_frames(&[], &cfg, None).unwrap_err());
+    let e = message(calibrate(&[], &cfg).unwrap_err());
     assert!(e.contains("at least one frame"), "{e}");
 
     // A frame of another size.
     let small_gt = &MetricDepth::new(common::tabletop_gt(ImageSize::new(48, 36)));
     let small = &frame_pred(small_gt, 2.0, -0.4, 0.01, 2);
     let e = message(
-        calibrate_frames(
+        calibrate(
             &[frame(pred, gt), frame(pred, gt), frame(small, small_gt)],
             &cfg,
-            None,
         )
         .unwrap_err(),
     );
@@ -236,15 +235,12 @@ fn bad_frames_are_refused_naming_the_frame() {
     );
 
     // Ground truth of another size than its prediction (frame 1).
-    let e = message(
-        calibrate_frames(&[frame(pred, gt), frame(pred, small_gt)], &cfg, None).unwrap_err(),
-    );
+    let e = message(calibrate(&[frame(pred, gt), frame(pred, small_gt)], &cfg).unwrap_err());
     assert!(e.contains("frame 1") && e.contains("ground truth"), "{e}");
 
     // Kinds that differ.
     let depth = &Prediction::new(gt.depth_m.clone(), PredictionKind::Depth);
-    let e =
-        message(calibrate_frames(&[frame(pred, gt), frame(depth, gt)], &cfg, None).unwrap_err());
+    let e = message(calibrate(&[frame(pred, gt), frame(depth, gt)], &cfg).unwrap_err());
     assert!(
         e.contains("frame 1") && e.contains("'depth'") && e.contains("'inverse-depth'"),
         "{e}"
@@ -253,17 +249,16 @@ fn bad_frames_are_refused_naming_the_frame() {
     // A frame without valid ground truth inside its region is named.
     let empty = &Mask::new(Array2::from_elem(SIZE.shape(), false));
     let e = message(
-        calibrate_frames(
+        calibrate(
             &[
                 frame(pred, gt),
                 CalibrationFrame {
-                    pred,
+                    pred: pred.into(),
                     gt,
                     sample_region: Some(empty),
                 },
             ],
             &cfg,
-            None,
         )
         .unwrap_err(),
     );

@@ -9,6 +9,7 @@ use moma_core::align::local::{
 use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{AlignmentModel, Method, Sample, SampleSet};
 use moma_core::error::CoreError;
+use moma_core::{AlignOptions, CalibrationFrame};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -500,14 +501,18 @@ fn pipeline_calibrates_validates_and_round_trips_local_and_auto() {
                 ..Default::default()
             },
             robust: None,
+            workspace: None,
         };
-        let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+        let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
         assert_eq!(cal.report.method, name);
         cal.validate().unwrap();
         let back: Calibration =
             serde_json::from_str(&serde_json::to_string(&cal).unwrap()).unwrap();
         back.validate().unwrap();
-        let (a, b) = (cal.align(&pred).unwrap(), back.align(&pred).unwrap());
+        let (a, b) = (
+            cal.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+            back.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+        );
         assert_eq!(a.depth_m, b.depth_m);
     }
 }

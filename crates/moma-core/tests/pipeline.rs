@@ -9,6 +9,7 @@ use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{Calibration, CalibrationConfig, calibrate};
 use moma_core::sampling::SamplingConfig;
+use moma_core::{AlignOptions, CalibrationFrame};
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
 
@@ -41,6 +42,7 @@ fn config(method: Method) -> CalibrationConfig {
             ..Default::default()
         },
         robust: None,
+        workspace: None,
     }
 }
 
@@ -48,21 +50,23 @@ fn config(method: Method) -> CalibrationConfig {
 fn ssra_end_to_end_is_exact_on_its_own_family() {
     let (gt, pred) = scene();
     let cal = calibrate(
-        &pred,
-        &gt,
+        &[CalibrationFrame::new(&pred, &gt)],
         &config(Method::Ssra(SsraConfig::default())),
-        None,
-        None,
     )
     .unwrap();
     assert_eq!(cal.report.n_used, 100);
     assert!(cal.report.rms_residual_m < 1e-5, "{:?}", cal.report);
-    let out = cal.align(&pred).unwrap();
+    let out = cal.aligned(&pred, &AlignOptions::default()).unwrap().depth;
     let m = DepthMetrics::compute(&out, &gt, None).unwrap();
     assert!(m.mae < 1e-5 && m.d105 == 1.0, "{m:?}");
     // GSSA cannot represent the scale field and is clearly worse
-    let g = calibrate(&pred, &gt, &config(Method::Gssa), None, None).unwrap();
-    let mg = DepthMetrics::compute(&g.align(&pred).unwrap(), &gt, None).unwrap();
+    let g = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config(Method::Gssa)).unwrap();
+    let mg = DepthMetrics::compute(
+        &g.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+        &gt,
+        None,
+    )
+    .unwrap();
     assert!(mg.mae > 100.0 * m.mae.max(1e-6), "{mg:?}");
 }
 
@@ -82,7 +86,11 @@ fn every_method_runs_and_calibration_round_trips_through_json() {
         } else {
             pred.clone()
         };
-        let cal = calibrate(&pred, &gt, &config(method.clone()), None, None).unwrap();
+        let cal = calibrate(
+            &[CalibrationFrame::new(&pred, &gt)],
+            &config(method.clone()),
+        )
+        .unwrap();
         assert_eq!(cal.report.method, method.name());
         let json = serde_json::to_string(&cal).unwrap();
         // serde_json parses f64 to within 1 ulp (exact only with its `float_roundtrip` feature)
@@ -92,8 +100,14 @@ fn every_method_runs_and_calibration_round_trips_through_json() {
             (cal.prediction_kind, cal.normalisation, cal.samples.len())
         );
         let (x, y) = (
-            back.align(&pred).unwrap().depth_m,
-            cal.align(&pred).unwrap().depth_m,
+            back.aligned(&pred, &AlignOptions::default())
+                .unwrap()
+                .depth
+                .depth_m,
+            cal.aligned(&pred, &AlignOptions::default())
+                .unwrap()
+                .depth
+                .depth_m,
         );
         assert!(
             x.iter().zip(&y).all(|(p, q)| (p - q).abs() < 1e-6),
@@ -111,7 +125,11 @@ fn workspace_and_sample_region_are_used() {
     }));
     let mut cfg = config(Method::Ssra(SsraConfig::default()));
     cfg.normalisation.method = Normalisation::Minmax;
-    let cal = calibrate(&pred, &gt, &cfg, Some(&region), Some(&region)).unwrap();
+    let cal = calibrate(
+        &[CalibrationFrame::new(&pred, &gt).sampled_in(Some(&region))],
+        &cfg.clone().with_workspace(Some(&region)).unwrap(),
+    )
+    .unwrap();
     assert!(
         cal.samples
             .samples
@@ -119,7 +137,7 @@ fn workspace_and_sample_region_are_used() {
             .all(|s| s.u < 80.0 && s.v >= 30.0)
     );
     // the same workspace at run time reproduces the calibration frame
-    let out = cal.align(&pred).unwrap();
+    let out = cal.aligned(&pred, &AlignOptions::default()).unwrap().depth;
     let m = DepthMetrics::compute(&out, &gt, Some(&region)).unwrap();
     assert!(m.mae < 0.02, "{m:?}");
 }
@@ -127,10 +145,11 @@ fn workspace_and_sample_region_are_used() {
 #[test]
 fn pipeline_errors() {
     let (gt, pred) = scene();
-    let cal = calibrate(&pred, &gt, &config(Method::Gssa), None, None).unwrap();
+    let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config(Method::Gssa)).unwrap();
     let as_depth = Prediction::new(pred.values.clone(), PredictionKind::Depth);
     assert_eq!(
-        cal.align(&as_depth),
+        cal.aligned(&as_depth, &AlignOptions::default())
+            .map(|a| a.depth),
         Err(CoreError::KindMismatch {
             expected: PredictionKind::InverseDepth,
             got: PredictionKind::Depth
@@ -141,22 +160,29 @@ fn pipeline_errors() {
         PredictionKind::InverseDepth,
     );
     assert!(matches!(
-        cal.align(&small),
+        cal.aligned(&small, &AlignOptions::default())
+            .map(|a| a.depth),
         Err(CoreError::SizeMismatch { .. })
     ));
     assert!(matches!(
-        calibrate(&small, &gt, &config(Method::Gssa), None, None),
+        calibrate(&[CalibrationFrame::new(&small, &gt)], &config(Method::Gssa)),
         Err(CoreError::SizeMismatch { .. })
     ));
     let invalid_gt = MetricDepth::new(Array2::from_elem(SIZE.shape(), 0.0));
     assert!(matches!(
-        calibrate(&pred, &invalid_gt, &config(Method::Gssa), None, None),
+        calibrate(
+            &[CalibrationFrame::new(&pred, &invalid_gt)],
+            &config(Method::Gssa)
+        ),
         Err(CoreError::NoValidPixels(_))
     ));
     let mut nan_pred = pred.clone();
     nan_pred.values[[5, 6]] = f32::NAN;
     assert!(matches!(
-        calibrate(&nan_pred, &gt, &config(Method::Gssa), None, None),
+        calibrate(
+            &[CalibrationFrame::new(&nan_pred, &gt)],
+            &config(Method::Gssa)
+        ),
         Err(CoreError::NonFinitePrediction {
             count: 1,
             u: 6,
@@ -170,11 +196,8 @@ fn pipeline_errors() {
     }
     assert!(matches!(
         calibrate(
-            &pred,
-            &MetricDepth::new(sparse),
-            &config(Method::Ssra(SsraConfig::default())),
-            None,
-            None
+            &[CalibrationFrame::new(&pred, &MetricDepth::new(sparse))],
+            &config(Method::Ssra(SsraConfig::default()))
         ),
         Err(CoreError::TooFewSamples {
             need: 4,
@@ -199,21 +222,31 @@ fn inverse_space_recovers_a_shifted_disparity_exactly() {
         let mut cfg = config(method.clone());
         cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
         assert_eq!(cfg.normalisation.space, AlignSpace::Inverse);
-        let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+        let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
         assert!(
             cal.report.rms_residual_m < 1e-5,
             "{method}: {:?}",
             cal.report
         );
-        let m = DepthMetrics::compute(&cal.align(&pred).unwrap(), &gt, None).unwrap();
+        let m = DepthMetrics::compute(
+            &cal.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+            &gt,
+            None,
+        )
+        .unwrap();
         assert!(
             m.mae < 2e-5 && m.d105 == 1.0,
             "{method} inverse space: {m:?}"
         );
         // depth space (1/d as pseudo-depth) cannot undo the shift
         cfg.normalisation.space = AlignSpace::Depth;
-        let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
-        let md = DepthMetrics::compute(&cal.align(&pred).unwrap(), &gt, None).unwrap();
+        let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
+        let md = DepthMetrics::compute(
+            &cal.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+            &gt,
+            None,
+        )
+        .unwrap();
         assert!(
             md.mae > 100.0 * m.mae.max(1e-6),
             "{method} depth space: {md:?}"
@@ -229,12 +262,12 @@ fn inverse_space_output_is_nan_where_the_fitted_disparity_is_not_positive() {
     let pred = Prediction::new(gt.depth_m.mapv(|z| 1.0 / z), PredictionKind::InverseDepth);
     let mut cfg = config(Method::Gssa);
     cfg.normalisation.space = AlignSpace::Inverse;
-    let cal = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+    let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
     // a disparity far below anything seen maps to a negative fitted 1/z: no depth, not a
     // negative or huge one
     let mut later = pred.clone();
     later.values[[3, 4]] = -10.0;
-    let out = cal.align(&later).unwrap();
+    let out = cal.aligned(&later, &AlignOptions::default()).unwrap().depth;
     assert!(out.depth_m[[3, 4]].is_nan());
     assert!((out.depth_m[[0, 0]] - 0.5).abs() < 1e-5);
 }
@@ -245,20 +278,20 @@ fn raw_needs_metric_depth_and_no_normalisation() {
     let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::Depth);
     let mut cfg = config(Method::Raw);
     // inverse-depth prediction
-    let e = calibrate(&pred, &gt, &cfg, None, None).unwrap_err();
+    let e = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap_err();
     assert!(
         matches!(&e, CoreError::InvalidParameter(m) if m.contains("raw") && m.contains("inverse-depth")),
         "{e}"
     );
     // a normalisation would write normalised values as metres
     cfg.normalisation.method = Normalisation::Minmax;
-    let e = calibrate(&depth_pred, &gt, &cfg, None, None).unwrap_err();
+    let e = calibrate(&[CalibrationFrame::new(&depth_pred, &gt)], &cfg).unwrap_err();
     assert!(
         matches!(&e, CoreError::InvalidParameter(m) if m.contains("normalisation 'none'")),
         "{e}"
     );
     cfg.normalisation.method = Normalisation::None;
-    assert!(calibrate(&depth_pred, &gt, &cfg, None, None).is_ok());
+    assert!(calibrate(&[CalibrationFrame::new(&depth_pred, &gt)], &cfg).is_ok());
 }
 
 #[test]
@@ -269,30 +302,40 @@ fn the_calibration_owns_its_workspace_and_align_into_matches_align() {
     }));
     let mut cfg = config(Method::Ssra(SsraConfig::default()));
     cfg.normalisation.method = Normalisation::Minmax;
-    let cal = calibrate(&pred, &gt, &cfg, Some(&region), None).unwrap();
+    let cal = calibrate(
+        &[CalibrationFrame::new(&pred, &gt)],
+        &cfg.clone().with_workspace(Some(&region)).unwrap(),
+    )
+    .unwrap();
     assert_eq!(cal.workspace.as_ref().unwrap().mask(), &region);
     // normalised over the workspace: differs from a calibration without one, on the same samples
-    let whole = calibrate(&pred, &gt, &cfg, None, None).unwrap();
+    let whole = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
     assert_ne!(cal.model, whole.model);
     // through JSON (run lengths + hash) and back: the same workspace and output
     let back: Calibration = serde_json::from_str(&serde_json::to_string(&cal).unwrap()).unwrap();
     assert_eq!(back.workspace, cal.workspace);
     back.validate().unwrap();
-    let expected = cal.align(&pred).unwrap().depth_m;
+    let expected = cal
+        .aligned(&pred, &AlignOptions::default())
+        .unwrap()
+        .depth
+        .depth_m;
     assert!(
-        back.align(&pred)
+        back.aligned(&pred, &AlignOptions::default())
             .unwrap()
+            .depth
             .depth_m
             .iter()
             .zip(&expected)
             .all(|(p, q)| (p - q).abs() < 1e-6)
     );
     let mut out = Array2::<f32>::from_elem(SIZE.shape(), -1.0);
-    cal.align_into(&pred, &mut out.view_mut()).unwrap();
+    cal.align(&pred, &AlignOptions::default(), &mut out.view_mut())
+        .unwrap();
     assert_eq!(out, expected);
     let mut wrong = Array2::<f32>::zeros((3, 3));
     assert!(matches!(
-        cal.align_into(&pred, &mut wrong.view_mut()),
+        cal.align(&pred, &AlignOptions::default(), &mut wrong.view_mut()),
         Err(CoreError::SizeMismatch { .. })
     ));
     // a tampered workspace is refused on reading
@@ -312,11 +355,8 @@ fn the_calibration_owns_its_workspace_and_align_into_matches_align() {
 fn validation_refuses_broken_models() {
     let (gt, pred) = scene();
     let lwlr = calibrate(
-        &pred,
-        &gt,
+        &[CalibrationFrame::new(&pred, &gt)],
         &config(Method::Lwlr(LwlrConfig::default())),
-        None,
-        None,
     )
     .unwrap();
     lwlr.validate().unwrap();
@@ -348,11 +388,8 @@ fn validation_refuses_broken_models() {
     );
     // SSRA whose canonical parameters disagree with the linear ones
     let ssra = calibrate(
-        &pred,
-        &gt,
+        &[CalibrationFrame::new(&pred, &gt)],
         &config(Method::Ssra(SsraConfig::default())),
-        None,
-        None,
     )
     .unwrap();
     ssra.validate().unwrap();
@@ -405,7 +442,7 @@ fn huge_sample_counts_are_refused() {
         let mut cfg = config(Method::Gssa);
         cfg.sampling.strategy = strategy;
         cfg.sampling.n = usize::MAX;
-        let e = calibrate(&pred, &gt, &cfg, None, None).unwrap_err();
+        let e = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap_err();
         assert!(e.to_string().contains("exceeds the limit"), "{e}");
     }
 }
@@ -456,7 +493,7 @@ fn an_edge_margin_keeps_blurred_boundaries_out_of_the_fit() {
         cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
         cfg.sampling.n = 400;
         cfg.sampling.edge_margin_px = edge_margin_px;
-        calibrate(&pred, &gt, &cfg, None, None).unwrap()
+        calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap()
     };
     let kept = fit(3);
     assert!(
@@ -471,7 +508,12 @@ fn an_edge_margin_keeps_blurred_boundaries_out_of_the_fit() {
     let interior = Mask::new(Array2::from_shape_fn(SIZE.shape(), |(v, u)| {
         !near_boundary(v as i64, u as i64)
     }));
-    let m = DepthMetrics::compute(&kept.align(&pred).unwrap(), &gt, Some(&interior)).unwrap();
+    let m = DepthMetrics::compute(
+        &kept.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+        &gt,
+        Some(&interior),
+    )
+    .unwrap();
     assert!(m.mae < 2e-5, "{m:?}");
     // anywhere: some of the 400 samples land in the band, and the fit is off
     let any = fit(0);
@@ -482,7 +524,12 @@ fn an_edge_margin_keeps_blurred_boundaries_out_of_the_fit() {
             .any(|s| near_boundary(s.v as i64, s.u as i64))
     );
     assert!(any.report.rms_residual_m > 1e-3, "{:?}", any.report);
-    let ma = DepthMetrics::compute(&any.align(&pred).unwrap(), &gt, Some(&interior)).unwrap();
+    let ma = DepthMetrics::compute(
+        &any.aligned(&pred, &AlignOptions::default()).unwrap().depth,
+        &gt,
+        Some(&interior),
+    )
+    .unwrap();
     assert!(ma.mae > 100.0 * m.mae.max(1e-7), "{ma:?} vs {m:?}");
 }
 
@@ -499,7 +546,7 @@ fn too_few_samples_left_by_the_edge_margin_are_named() {
     let mut cfg = config(Method::Ssra(SsraConfig::default()));
     cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
     cfg.sampling.edge_margin_px = 3;
-    let e = calibrate(&pred, &gt, &cfg, None, None).unwrap_err();
+    let e = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap_err();
     assert!(matches!(e, CoreError::NoValidPixels(_)), "{e:?}");
     let msg = e.to_string();
     assert!(
@@ -510,5 +557,5 @@ fn too_few_samples_left_by_the_edge_margin_are_named() {
     );
     // without the margin the same scene calibrates
     cfg.sampling.edge_margin_px = 0;
-    assert!(calibrate(&pred, &gt, &cfg, None, None).is_ok());
+    assert!(calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).is_ok());
 }

@@ -7,10 +7,11 @@ use moma_core::realign::{
     AnchorStore, AnchorTarget, CorrectionModel, RealignConfig, RealignReport, find_anchors,
 };
 use moma_core::sampling::SamplingConfig;
+use moma_core::{AlignOptions, CalibrationFrame, PredictionInput};
 use moma_core::{
     Calibration, CalibrationConfig, CoreError, MetricDepth, Prediction, PredictionKind, calibrate,
 };
-use ndarray::{Array2, Array3};
+use ndarray::{Array2, Array3, ArrayView3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -100,9 +101,10 @@ fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
             ..Default::default()
         },
         robust: None,
+        workspace: None,
     };
     let pred = disparity(g, 2.0, 0.0);
-    calibrate(&pred, g, &config, None, None)
+    calibrate(&[CalibrationFrame::new(&pred, g)], &config)
         .unwrap()
         .with_anchors(rgb(false, 1.0, 0, 1).view(), g, &pred)
         .unwrap()
@@ -127,7 +129,7 @@ fn test_frame(a: f32, b: f32) -> TestFrame {
     let cal = calibration();
     let truth = gt(true);
     let pred = disparity(&truth, a, b);
-    let one_shot = cal.align(&pred).unwrap();
+    let one_shot = cal.aligned(&pred, &AlignOptions::default()).unwrap().depth;
     TestFrame {
         cal,
         truth,
@@ -142,8 +144,7 @@ fn realigned(
     pred: &Prediction,
     config: &RealignConfig,
 ) -> (MetricDepth, RealignReport) {
-    cal.align_realigned(pred, test_rgb().view(), config)
-        .unwrap()
+    align_realigned(&cal, pred, test_rgb().view(), config).unwrap()
 }
 
 /// Mean absolute error (metres) over pixels where `region` holds.
@@ -243,7 +244,7 @@ fn planar_correction_recovers_a_tilt() {
         }),
         PredictionKind::InverseDepth,
     );
-    let one_shot = cal.align(&pred).unwrap();
+    let one_shot = cal.aligned(&pred, &AlignOptions::default()).unwrap().depth;
     let run = |model| {
         let c = RealignConfig {
             model,
@@ -299,13 +300,13 @@ fn brightness_and_vibration_keep_the_anchors() {
     // the re-alignment itself under brightness 0.8
     let truth = gt(true);
     let pred = disparity(&truth, 2.3, 0.2);
-    let (_, report) = cal
-        .align_realigned(
-            &pred,
-            rgb(true, 0.8, 0, 7).view(),
-            &RealignConfig::default(),
-        )
-        .unwrap();
+    let (_, report) = align_realigned(
+        &cal,
+        &pred,
+        rgb(true, 0.8, 0, 7).view(),
+        &RealignConfig::default(),
+    )
+    .unwrap();
     assert!(report.accepted, "{report:?}");
 }
 
@@ -322,9 +323,8 @@ fn fully_covered_background_falls_back_cleanly() {
     for ((v, u, _), x) in covered.indexed_iter_mut() {
         *x = (110.0 + 50.0 * ((u as f32) / 3.0).cos() * ((v as f32) / 4.0).sin()) as u8;
     }
-    let (re, report) = cal
-        .align_realigned(&pred, covered.view(), &RealignConfig::default())
-        .unwrap();
+    let (re, report) =
+        align_realigned(&cal, &pred, covered.view(), &RealignConfig::default()).unwrap();
     assert!(!report.accepted);
     let valid = cal.anchor_store().unwrap().candidate_px();
     assert!(report.anchors * 20 < valid, "{} of {valid}", report.anchors);
@@ -337,17 +337,13 @@ fn fully_covered_background_falls_back_cleanly() {
     // a uniform dark frame (lens covered, lights off): the gain k = 0.06 is implausible, so no
     // pixel may match the gain-compressed background
     let dark = Array3::<u8>::from_elem((H, W, 3), 7);
-    let (re, r) = cal
-        .align_realigned(&pred, dark.view(), &RealignConfig::default())
-        .unwrap();
+    let (re, r) = align_realigned(&cal, &pred, dark.view(), &RealignConfig::default()).unwrap();
     assert!(!r.accepted && r.anchors == 0, "{r:?}");
     assert!(r.brightness_gain.unwrap() < 0.1);
     assert_eq!(re, one_shot);
     // a black frame: no brightness gain can be estimated, no anchor
     let black = Array3::<u8>::zeros((H, W, 3));
-    let (_, r) = cal
-        .align_realigned(&pred, black.view(), &RealignConfig::default())
-        .unwrap();
+    let (_, r) = align_realigned(&cal, &pred, black.view(), &RealignConfig::default()).unwrap();
     assert!(!r.accepted && r.brightness_gain.is_none() && r.anchors == 0);
 }
 
@@ -426,13 +422,13 @@ fn no_anchor_store_is_a_clear_error() {
     let mut cal = calibration();
     cal.anchors = None;
     let truth = gt(true);
-    let e = cal
-        .align_realigned(
-            &disparity(&truth, 2.0, 0.0),
-            test_rgb().view(),
-            &RealignConfig::default(),
-        )
-        .unwrap_err();
+    let e = align_realigned(
+        &cal,
+        &disparity(&truth, 2.0, 0.0),
+        test_rgb().view(),
+        &RealignConfig::default(),
+    )
+    .unwrap_err();
     assert!(matches!(e, CoreError::InvalidParameter(_)));
     assert!(e.to_string().contains("no anchor store"), "{e}");
     // wrong RGB size and channel count
@@ -440,7 +436,7 @@ fn no_anchor_store_is_a_clear_error() {
     let pred = disparity(&truth, 2.0, 0.0);
     let small = Array3::<u8>::zeros((H / 2, W, 3));
     assert!(matches!(
-        cal.align_realigned(&pred, small.view(), &RealignConfig::default()),
+        align_realigned(&cal, &pred, small.view(), &RealignConfig::default()),
         Err(CoreError::SizeMismatch { .. })
     ));
     // a store without the calibration's own result cannot serve the calibration-output target
@@ -448,29 +444,26 @@ fn no_anchor_store_is_a_clear_error() {
     gt_only.anchors = Some(std::sync::Arc::new(
         AnchorStore::new(rgb(false, 1.0, 0, 1).view(), &gt(false)).unwrap(),
     ));
-    let e = gt_only
-        .align_realigned(&pred, test_rgb().view(), &RealignConfig::default())
-        .unwrap_err();
+    let e = align_realigned(
+        &gt_only,
+        &pred,
+        test_rgb().view(),
+        &RealignConfig::default(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("calibration-output"), "{e}");
     let gt_target = RealignConfig {
         target: AnchorTarget::GroundTruth,
         ..Default::default()
     };
-    assert!(
-        gt_only
-            .align_realigned(&pred, test_rgb().view(), &gt_target)
-            .is_ok()
-    );
+    assert!(align_realigned(&gt_only, &pred, test_rgb().view(), &gt_target).is_ok());
     let grey = Array3::<u8>::zeros((H, W, 1));
-    assert!(
-        cal.align_realigned(&pred, grey.view(), &RealignConfig::default())
-            .is_err()
-    );
+    assert!(align_realigned(&cal, &pred, grey.view(), &RealignConfig::default()).is_err());
     let bad = RealignConfig {
         holdout_fraction: 1.0,
         ..Default::default()
     };
-    assert!(cal.align_realigned(&pred, test_rgb().view(), &bad).is_err());
+    assert!(align_realigned(&cal, &pred, test_rgb().view(), &bad).is_err());
 }
 
 /// The prediction-affine correction is exact for every method when the prediction of the
@@ -492,8 +485,14 @@ fn prediction_affine_is_exact_for_every_method() {
     // for them, the prediction-space map is
     for method in ["gssa", "lwlr", "gssa-local"] {
         let cal = calibration_on(method.parse().unwrap(), &gt_tilted(false));
-        let expected = cal.align(&unchanged).unwrap();
-        let one_shot = cal.align(&changed).unwrap();
+        let expected = cal
+            .aligned(&unchanged, &AlignOptions::default())
+            .unwrap()
+            .depth;
+        let one_shot = cal
+            .aligned(&changed, &AlignOptions::default())
+            .unwrap()
+            .depth;
         let (re, report) = realigned(&cal, &changed, &config);
         assert!(report.accepted, "{method}: {report:?}");
         assert_eq!(report.correction, Some(CorrectionModel::PredictionAffine));
@@ -514,21 +513,22 @@ fn prediction_affine_is_exact_for_every_method() {
             "{method}: the change must matter"
         );
     }
-    // the same through realign_normalised_into with the one-shot result already in the buffer
+    // the same from the normalised prediction (as the evaluation gives it), into a buffer
     let cal = calibration_on("lwlr".parse().unwrap(), &gt_tilted(false));
     let normalised = cal.normalise(&changed).unwrap();
-    let mut buf = cal.align(&changed).unwrap();
+    let mut buf = MetricDepth::new(Array2::zeros(changed.values.raw_dim()));
     let r = cal
-        .realign_normalised_into(
-            test_rgb().view(),
-            &config,
-            &normalised,
+        .align(
+            PredictionInput::normalised(&normalised, changed.kind),
+            &AlignOptions::realigned(test_rgb().view(), &config),
             &mut buf.depth_m.view_mut(),
-            true,
         )
         .unwrap();
-    assert!(r.accepted);
-    let expected = cal.align(&unchanged).unwrap();
+    assert!(r.realign.is_some_and(|r| r.accepted));
+    let expected = cal
+        .aligned(&unchanged, &AlignOptions::default())
+        .unwrap()
+        .depth;
     let d = buf
         .depth_m
         .iter()
@@ -549,10 +549,16 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
         ..Default::default()
     };
     // an output-space entry point cannot run it
-    let mut d = cal.align(&pred).unwrap();
-    let e = cal
-        .realign_into(test_rgb().view(), &pa, &mut d.depth_m.view_mut())
-        .unwrap_err();
+    let mut d = cal.aligned(&pred, &AlignOptions::default()).unwrap().depth;
+    let store = cal.anchor_store().unwrap();
+    let e = moma_core::realign::realign_in_place(
+        store,
+        test_rgb().view(),
+        cal.space(),
+        &pa,
+        &mut d.depth_m.view_mut(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("normalised prediction"), "{e}");
     // a store written before the prediction-affine correction (no normalised_b64) still reads,
     // serves scale-shift, and refuses prediction-affine with a clear message
@@ -564,25 +570,22 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
         .remove("normalised_b64");
     let old: Calibration = serde_json::from_value(v).unwrap();
     assert!(!old.anchor_store().unwrap().has_normalised());
-    let e = old
-        .align_realigned(&pred, test_rgb().view(), &pa)
-        .unwrap_err();
+    let e = align_realigned(&old, &pred, test_rgb().view(), &pa).unwrap_err();
     assert!(e.to_string().contains("calibrate again"), "{e}");
-    let (_, r) = old
-        .align_realigned(&pred, test_rgb().view(), &RealignConfig::default())
-        .unwrap();
+    let (_, r) =
+        align_realigned(&old, &pred, test_rgb().view(), &RealignConfig::default()).unwrap();
     assert!(r.accepted, "{r:?}");
     // target ground-truth is refused for prediction-affine
-    let e = cal
-        .align_realigned(
-            &pred,
-            test_rgb().view(),
-            &RealignConfig {
-                target: AnchorTarget::GroundTruth,
-                ..pa
-            },
-        )
-        .unwrap_err();
+    let e = align_realigned(
+        &cal,
+        &pred,
+        test_rgb().view(),
+        &RealignConfig {
+            target: AnchorTarget::GroundTruth,
+            ..pa
+        },
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("ground-truth"), "{e}");
     // a corrupted normalised_b64 is refused naming the field
     let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
@@ -595,9 +598,12 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
     let covered = Array3::from_shape_fn((H, W, 3), |(v, u, _)| {
         (110.0 + 50.0 * ((u as f32) / 3.0).cos() * ((v as f32) / 4.0).sin()) as u8
     });
-    let (re, r) = cal.align_realigned(&pred, covered.view(), &pa).unwrap();
+    let (re, r) = align_realigned(&cal, &pred, covered.view(), &pa).unwrap();
     assert!(!r.accepted && r.reason.contains("anchor"), "{r:?}");
-    assert_eq!(re, cal.align(&pred).unwrap());
+    assert_eq!(
+        re,
+        cal.aligned(&pred, &AlignOptions::default()).unwrap().depth
+    );
 }
 
 /// The acceptance margin: a correction whose held-out gain is not beyond its standard error is
@@ -626,4 +632,17 @@ fn acceptance_margin_rejects_with_the_gain_in_the_report() {
         ..Default::default()
     };
     assert!(bad.validate().is_err());
+}
+
+/// One frame aligned and re-aligned through the one path ([`Calibration::aligned`]): metres and
+/// the re-alignment report.
+fn align_realigned(
+    cal: &Calibration,
+    pred: &Prediction,
+    rgb: ArrayView3<'_, u8>,
+    config: &RealignConfig,
+) -> moma_core::Result<(MetricDepth, RealignReport)> {
+    let a = cal.aligned(pred, &AlignOptions::realigned(rgb, config))?;
+    let report = a.realign.expect("re-alignment was asked for");
+    Ok((a.depth, report))
 }

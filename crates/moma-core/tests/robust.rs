@@ -1,6 +1,7 @@
 //! Robust fits (docs/method.md §2): Huber / Tukey IRLS and RANSAC for gssa, ssra, gssa-local and
 //! ssra-local, on synthetic scenes with known answers and injected gross outliers.
 
+use moma_core::CalibrationFrame;
 use moma_core::align::gssa::{self, GssaModel};
 use moma_core::align::robust::{
     HUBER_K, OUTLIER_K, RANSAC_K, Robust, RobustKind, SCALE_FLOOR_M, TUKEY_K, robust_scale_m,
@@ -489,8 +490,9 @@ fn pipeline_calibration_with_robust_fit() {
             ..Default::default()
         },
         robust: None,
+        workspace: None,
     };
-    let plain = calibrate(&pred, &gt, &config, None, None).unwrap();
+    let plain = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap();
     let AlignmentModel::Gssa(p) = plain.model else {
         panic!()
     };
@@ -500,7 +502,7 @@ fn pipeline_calibration_with_robust_fit() {
     );
     for kind in KINDS {
         config.robust = Some(Robust::new(kind));
-        let cal = calibrate(&pred, &gt, &config, None, None).unwrap();
+        let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap();
         cal.validate().unwrap();
         let AlignmentModel::Gssa(GssaModel { scale, shift_m }) = cal.model else {
             panic!()
@@ -527,7 +529,7 @@ fn pipeline_calibration_with_robust_fit() {
     config.method = method("lwlr");
     config.robust = Some(Robust::new(RobustKind::Huber));
     assert!(matches!(
-        calibrate(&pred, &gt, &config, None, None),
+        calibrate(&[CalibrationFrame::new(&pred, &gt)], &config),
         Err(CoreError::InvalidParameter(_))
     ));
 }

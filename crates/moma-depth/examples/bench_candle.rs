@@ -67,7 +67,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let device = open_device(moma_depth::DeviceRequest::Auto)?;
     let t = Instant::now();
-    let mut net = CandleDepthModel::load(&weights, config, &device)?;
+    let mut net = CandleDepthModel::load(&weights, config, &device, candle_core::DType::F32, None)?;
     println!(
         "loaded {} on {device:?} in {:.2} s",
         weights.display(),

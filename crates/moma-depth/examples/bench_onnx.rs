@@ -116,7 +116,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let rss_before = status_kib("VmRSS:").unwrap_or(0);
     let t = Instant::now();
-    let mut model = OnnxDepthModel::load_with(&model_path, spec, &opts)?;
+    let mut model = OnnxDepthModel::load(&model_path, spec, &opts)?;
     let load_s = t.elapsed().as_secs_f64();
 
     let npy = model_path.with_extension("input.npy");

@@ -20,10 +20,11 @@
 //! ```
 //!
 //! ```no_run
-//! use moma_depth::{Backbone, Backend, Head, ModelSpec, load_model};
+//! use moma_depth::{Backbone, Backend, Head, LoadSpec, ModelSpec, load};
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
-//! let spec = ModelSpec { backbone: Backbone::Vits, head: Head::Relative, input_size: 518 };
-//! let mut model = load_model("depth_anything_v2_vits.safetensors", spec, Backend::Candle)?;
+//! let model = ModelSpec { backbone: Backbone::Vits, head: Head::Relative, input_size: 518 };
+//! let spec = LoadSpec::new("depth_anything_v2_vits.safetensors", model, Backend::Candle);
+//! let mut model = load(&spec)?;
 //! let rgb = image::open("frame.png")?.to_rgb8(); // moma_io::read_rgb checks sizes and bit depth
 //! let prediction = model.predict(&rgb)?; // inverse depth (relative head), H×W
 //! # Ok(()) }
@@ -42,10 +43,7 @@ pub mod weights_limits;
 
 pub use config::{CustomArch, ModelConfigFile};
 pub use error::{DepthError, Result};
-pub use loader::{
-    Backend, DeviceRequest, LoadOptions, Precision, load_model, load_model_with,
-    load_model_with_adapter,
-};
+pub use loader::{Backend, DeviceRequest, LoadOptions, LoadSpec, Precision, load};
 
 use moma_core::{Prediction, PredictionKind};
 use ndarray::{Array2, Array3};
@@ -139,7 +137,7 @@ pub struct ModelSpec {
 /// A monocular depth model: RGB in, a [`Prediction`] (with its kind) out, at the image's resolution.
 ///
 /// Every model is [`Send`]: a robot program can load it on one thread and move it to a worker
-/// thread (`Box<dyn DepthModel>`, as [`load_model`] returns, is `Send` too). Inference takes
+/// thread (`Box<dyn DepthModel>`, as [`load`] returns, is `Send` too). Inference takes
 /// `&mut self`, so the trait does not require [`Sync`]; both backends are nevertheless `Sync`
 /// (candle's tensors are immutable and reference-counted, an ONNX Runtime session may be shared
 /// across threads), which the crate checks at compile time.

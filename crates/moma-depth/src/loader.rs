@@ -1,7 +1,7 @@
 //! Choosing and loading a backend: the one entry point applications call.
 
 use std::fmt;
-use std::path::Path;
+use std::path::PathBuf;
 use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
@@ -123,55 +123,72 @@ impl LoadOptions {
     }
 }
 
-/// Loads `weights` for `spec` with `backend`, in `f32` on the best device this build supports
-/// (CUDA, then Metal, else the CPU). See [`load_model_with`].
-///
-/// # Errors
-/// As [`load_model_with`].
-pub fn load_model(
-    weights: impl AsRef<Path>,
-    spec: ModelSpec,
-    backend: Backend,
-) -> Result<Box<dyn DepthModel>> {
-    load_model_with(weights, spec, &LoadOptions::new(backend))
+/// What to load: the one input of [`load`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoadSpec {
+    /// The weights: `.safetensors` or PyTorch `.pth` (candle), `.onnx` (ONNX Runtime).
+    pub weights: PathBuf,
+    /// The network: backbone, head and input size.
+    pub model: ModelSpec,
+    /// Backend, device and precision.
+    pub options: LoadOptions,
+    /// A LoRA adapter file merged into the weights at load time (candle backend only).
+    pub adapter: Option<PathBuf>,
 }
 
-/// Loads `weights` for `spec` as `options` say.
+impl LoadSpec {
+    /// `weights` for `model` with `backend`, in `f32` on the best device this build supports,
+    /// without an adapter.
+    pub fn new(weights: impl Into<PathBuf>, model: ModelSpec, backend: Backend) -> Self {
+        Self {
+            weights: weights.into(),
+            model,
+            options: LoadOptions::new(backend),
+            adapter: None,
+        }
+    }
+}
+
+/// Loads a depth model as `spec` says: what `moma predict`/`align`/`grasp`/`eval`, Python's
+/// `DepthModel` and the trainer's reload check all call.
 ///
 /// # Errors
 /// [`DepthError::Unavailable`] when this build lacks the backend or device (or the ONNX Runtime
-/// library is missing), or the precision is not supported there; [`DepthError::Weights`] for
-/// unreadable or mismatching weights.
+/// library is missing), the precision is not supported there, or an adapter is given to the ONNX
+/// backend; [`DepthError::Weights`] for unreadable or mismatching weights, or an unreadable
+/// adapter or one made for other base weights or another model size.
 #[cfg_attr(
     not(any(feature = "candle", feature = "onnx")),
     allow(unused_variables)
 )]
-pub fn load_model_with(
-    weights: impl AsRef<Path>,
-    spec: ModelSpec,
-    options: &LoadOptions,
-) -> Result<Box<dyn DepthModel>> {
-    let weights = weights.as_ref();
+pub fn load(spec: &LoadSpec) -> Result<Box<dyn DepthModel>> {
+    let weights = spec.weights.as_path();
     if !weights.is_file() {
         return Err(DepthError::Weights {
             path: weights.display().to_string(),
             reason: "no such file".into(),
         });
     }
+    let options = &spec.options;
     match options.backend {
         #[cfg(feature = "candle")]
         Backend::Candle => {
             let device = crate::candle::open_device(options.device)?;
-            Ok(Box::new(crate::candle::CandleDepthModel::load_with(
+            let dtype = crate::candle::precision_dtype(options.precision, &device)?;
+            Ok(Box::new(crate::candle::CandleDepthModel::load(
                 weights,
-                crate::candle::DepthAnythingConfig::from_spec(&spec),
+                crate::candle::DepthAnythingConfig::from_spec(&spec.model),
                 &device,
-                options.precision,
+                dtype,
+                spec.adapter.as_deref(),
             )?))
         }
         #[cfg(not(feature = "candle"))]
         Backend::Candle => Err(DepthError::Unavailable(
             "this build has no candle backend (rebuild with `--features candle`)".into(),
+        )),
+        Backend::Onnx if spec.adapter.is_some() => Err(DepthError::Unavailable(
+            "LoRA adapters are merged by the candle backend (use --backend candle, or `moma lora merge` for other runtimes)".into(),
         )),
         #[cfg(feature = "onnx")]
         Backend::Onnx => {
@@ -186,54 +203,15 @@ pub fn load_model_with(
                     "the ONNX Runtime backend runs the model's own precision; --dtype applies to the candle backend".into(),
                 ));
             }
-            Ok(Box::new(crate::onnx::OnnxDepthModel::load(weights, spec)?))
+            Ok(Box::new(crate::onnx::OnnxDepthModel::load(
+                weights,
+                spec.model,
+                &crate::onnx::OnnxOptions::default(),
+            )?))
         }
         #[cfg(not(feature = "onnx"))]
         Backend::Onnx => Err(DepthError::Unavailable(
             "this build has no ONNX Runtime backend (rebuild with `--features onnx`, see docs/depth-model.md)".into(),
-        )),
-    }
-}
-
-/// As [`load_model_with`], with a LoRA adapter file merged into the weights at load time (candle
-/// backend only; `None` is plain [`load_model_with`]).
-///
-/// # Errors
-/// As [`load_model_with`]; [`DepthError::Unavailable`] for an adapter with the ONNX backend;
-/// [`DepthError::Weights`] for an unreadable adapter or one made for other base weights or another
-/// model size.
-#[cfg_attr(not(feature = "candle"), allow(unused_variables))]
-pub fn load_model_with_adapter(
-    weights: impl AsRef<Path>,
-    spec: ModelSpec,
-    options: &LoadOptions,
-    adapter: Option<&Path>,
-) -> Result<Box<dyn DepthModel>> {
-    let Some(adapter) = adapter else {
-        return load_model_with(weights, spec, options);
-    };
-    let weights = weights.as_ref();
-    match options.backend {
-        #[cfg(feature = "candle")]
-        Backend::Candle => {
-            if !weights.is_file() {
-                return Err(DepthError::Weights {
-                    path: weights.display().to_string(),
-                    reason: "no such file".into(),
-                });
-            }
-            let device = crate::candle::open_device(options.device)?;
-            let dtype = crate::candle::precision_dtype(options.precision, &device)?;
-            Ok(Box::new(crate::candle::CandleDepthModel::load_with_adapter(
-                weights,
-                crate::candle::DepthAnythingConfig::from_spec(&spec),
-                adapter,
-                &device,
-                dtype,
-            )?))
-        }
-        _ => Err(DepthError::Unavailable(
-            "LoRA adapters are merged by the candle backend (use --backend candle, or `moma lora merge` for other runtimes)".into(),
         )),
     }
 }

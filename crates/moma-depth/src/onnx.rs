@@ -16,9 +16,10 @@
 //! [`DepthError::Unavailable`] with these instructions, never a panic.
 //!
 //! ```no_run
-//! use moma_depth::{Backbone, DepthModel, Head, ModelSpec, onnx::OnnxDepthModel};
+//! use moma_depth::onnx::{OnnxDepthModel, OnnxOptions};
+//! use moma_depth::{Backbone, DepthModel, Head, ModelSpec};
 //! let spec = ModelSpec { backbone: Backbone::Vits, head: Head::Relative, input_size: 518 };
-//! let mut model = OnnxDepthModel::load("depth_anything_v2_vits.onnx", spec)?;
+//! let mut model = OnnxDepthModel::load("depth_anything_v2_vits.onnx", spec, &OnnxOptions::default())?;
 //! let rgb = image::open("frame.png").unwrap().to_rgb8();
 //! let pred = model.predict(&rgb)?;
 //! # Ok::<(), moma_depth::DepthError>(())
@@ -318,25 +319,13 @@ fn tensor_info(ty: &ValueType, what: &str, path: &Path) -> Result<(TensorElement
 }
 
 impl OnnxDepthModel {
-    /// Loads an ONNX export with [`OnnxOptions::default`] (all graph optimisations, one intra-op
-    /// thread per core).
+    /// Loads an ONNX export with explicit session options ([`OnnxOptions::default`]: all graph
+    /// optimisations, one intra-op thread per core). Applications call [`crate::load`].
     ///
     /// # Errors
     /// [`DepthError::Unavailable`] without an ONNX Runtime library; [`DepthError::Weights`] for a
     /// missing/invalid file or a model whose inputs/outputs are not those of a depth model.
-    pub fn load(path: impl AsRef<Path>, spec: ModelSpec) -> Result<Self> {
-        Self::load_with(path, spec, &OnnxOptions::default())
-    }
-
-    /// Loads an ONNX export with explicit session options.
-    ///
-    /// # Errors
-    /// As [`OnnxDepthModel::load`].
-    pub fn load_with(
-        path: impl AsRef<Path>,
-        spec: ModelSpec,
-        options: &OnnxOptions,
-    ) -> Result<Self> {
+    pub fn load(path: impl AsRef<Path>, spec: ModelSpec, options: &OnnxOptions) -> Result<Self> {
         let path = path.as_ref();
         let weights_err = |reason: String| DepthError::Weights {
             path: path.display().to_string(),

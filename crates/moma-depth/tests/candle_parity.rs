@@ -32,7 +32,14 @@ fn config_for(dir: &Path, name: &str) -> DepthAnythingConfig {
 fn check_model(dir: &Path, name: &str) -> (f32, f32) {
     let config = config_for(dir, name);
     let path = dir.join(format!("{name}.safetensors"));
-    let mut model = CandleDepthModel::load(&path, config, &candle_core::Device::Cpu).unwrap();
+    let mut model = CandleDepthModel::load(
+        &path,
+        config,
+        &candle_core::Device::Cpu,
+        candle_core::DType::F32,
+        None,
+    )
+    .unwrap();
 
     let input = reference_input(dir, name);
     let t = std::time::Instant::now();
@@ -93,7 +100,8 @@ fn generic_ops_path_matches_reference_in_f64_and_f16() {
             (candle_core::DType::F16, 1e-2),
         ] {
             let mut model =
-                CandleDepthModel::load_as(&path, config_for(&dir, name), &device, dtype).unwrap();
+                CandleDepthModel::load(&path, config_for(&dir, name), &device, dtype, None)
+                    .unwrap();
             assert_eq!(model.dtype(), dtype);
             let net = model.forward_net(&input).unwrap();
             let (err, range) = max_abs_err(&net, &want);
@@ -109,13 +117,16 @@ fn generic_ops_path_matches_reference_in_f64_and_f16() {
         }
     }
     // bf16 has no CPU matmul in candle: refused up front, naming the reason.
-    let err = CandleDepthModel::load_with(
+    let mut spec = moma_depth::LoadSpec::new(
         dir.join("tiny-rel.safetensors"),
-        config_for(&dir, "tiny-rel"),
-        &device,
-        moma_depth::Precision::Bf16,
-    )
-    .unwrap_err();
+        config_for(&dir, "tiny-rel").spec(),
+        moma_depth::Backend::Candle,
+    );
+    spec.options.device = moma_depth::DeviceRequest::Cpu;
+    spec.options.precision = moma_depth::Precision::Bf16;
+    let err = moma_depth::load(&spec)
+        .err()
+        .expect("bf16 on the CPU is refused");
     assert!(matches!(err, DepthError::Unavailable(_)), "{err:?}");
 }
 
@@ -138,7 +149,14 @@ fn mismatched_checkpoint_is_a_weights_error() {
     let path = tmp.path().join("broken.safetensors");
     candle_core::safetensors::save(&tensors, &path).unwrap();
 
-    let err = CandleDepthModel::load(&path, tiny_config(&dir, "tiny-rel"), &device).unwrap_err();
+    let err = CandleDepthModel::load(
+        &path,
+        tiny_config(&dir, "tiny-rel"),
+        &device,
+        candle_core::DType::F32,
+        None,
+    )
+    .unwrap_err();
     let DepthError::Weights { reason, .. } = &err else {
         panic!("expected Weights error, got {err:?}")
     };
@@ -163,6 +181,8 @@ fn mismatched_checkpoint_is_a_weights_error() {
         dir.join("tiny-rel.safetensors"),
         DepthAnythingConfig::vit_small(Head::Relative),
         &device,
+        candle_core::DType::F32,
+        None,
     )
     .unwrap_err();
     assert!(matches!(err, DepthError::Weights { .. }), "{err:?}");
@@ -171,6 +191,8 @@ fn mismatched_checkpoint_is_a_weights_error() {
         tmp.path().join("none.safetensors"),
         tiny_config(&dir, "tiny-rel"),
         &device,
+        candle_core::DType::F32,
+        None,
     )
     .unwrap_err();
     assert!(matches!(err, DepthError::Weights { .. }), "{err:?}");

@@ -107,8 +107,12 @@ fn pth_checkpoint_matches_its_safetensors_twin() {
 
     let input = reference_input(&dir, "tiny-rel");
     let config = tiny_config(&dir, "tiny-rel");
-    let mut from_st = CandleDepthModel::load(&st, config.clone(), &device).unwrap();
-    let mut from_pth = CandleDepthModel::load(&pth, config.clone(), &device).unwrap();
+    let mut from_st =
+        CandleDepthModel::load(&st, config.clone(), &device, candle_core::DType::F32, None)
+            .unwrap();
+    let mut from_pth =
+        CandleDepthModel::load(&pth, config.clone(), &device, candle_core::DType::F32, None)
+            .unwrap();
     let a = from_st.forward_net(&input).unwrap();
     let b = from_pth.forward_net(&input).unwrap();
     assert_eq!(a, b, "same weights, same kernels: bit-identical outputs");
@@ -117,7 +121,8 @@ fn pth_checkpoint_matches_its_safetensors_twin() {
     let dropped = listing.remove(0);
     let broken = tmp.path().join("broken.pth");
     write_torch_zip(&broken, &listing);
-    let err = CandleDepthModel::load(&broken, config, &device).unwrap_err();
+    let err = CandleDepthModel::load(&broken, config, &device, candle_core::DType::F32, None)
+        .unwrap_err();
     let DepthError::Weights { reason, path } = &err else {
         panic!("expected a weights error, got {err:?}")
     };
@@ -138,7 +143,14 @@ fn corrupt_and_legacy_archives_are_weights_errors() {
     std::fs::write(&legacy, b"\x80\x02\x8a\x0al\xfc\x9cF\xf9 j\xa8P\x19.").unwrap();
     // The broken archive: candle's own error is kept as the typed source, under a message
     // naming the file.
-    let err = CandleDepthModel::load(&truncated, config.clone(), &device).unwrap_err();
+    let err = CandleDepthModel::load(
+        &truncated,
+        config.clone(),
+        &device,
+        candle_core::DType::F32,
+        None,
+    )
+    .unwrap_err();
     let DepthError::Candle { context, .. } = &err else {
         panic!("expected candle's error as the source, got {err:?}")
     };
@@ -148,7 +160,8 @@ fn corrupt_and_legacy_archives_are_weights_errors() {
     );
     let source = std::error::Error::source(&err).expect("candle error as source");
     assert!(!err.to_string().contains(&source.to_string()), "{err}");
-    let err = CandleDepthModel::load(&legacy, config, &device).unwrap_err();
+    let err = CandleDepthModel::load(&legacy, config, &device, candle_core::DType::F32, None)
+        .unwrap_err();
     let DepthError::Weights { reason, .. } = &err else {
         panic!("expected a weights error, got {err:?}")
     };

@@ -24,7 +24,14 @@ fn training_forward_matches_inference() {
     for name in ["tiny-metric", "tiny-rel-392"] {
         let config = tiny_config(&dir, name);
         let path = dir.join(format!("{name}.safetensors"));
-        let mut infer = CandleDepthModel::load(&path, config.clone(), &Device::Cpu).unwrap();
+        let mut infer = CandleDepthModel::load(
+            &path,
+            config.clone(),
+            &Device::Cpu,
+            candle_core::DType::F32,
+            None,
+        )
+        .unwrap();
         let input = reference_input(&dir, name);
         let want = infer.forward_net(&input).unwrap();
         let vb = open_checkpoint(&path, &config, &Device::Cpu, DType::F32).unwrap();

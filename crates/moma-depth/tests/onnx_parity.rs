@@ -70,7 +70,7 @@ fn load(dir: &Path, name: &str) -> OnnxDepthModel {
         intra_threads: Some(2),
         ..OnnxOptions::default()
     };
-    OnnxDepthModel::load_with(dir.join(format!("{name}.onnx")), spec_of(dir, name), &opts)
+    OnnxDepthModel::load(dir.join(format!("{name}.onnx")), spec_of(dir, name), &opts)
         .expect("load onnx")
 }
 
@@ -170,13 +170,17 @@ fn onnx_fixed_shape_mismatch_is_a_clear_error() {
 fn onnx_bad_model_files_are_errors() {
     let dir = setup();
     let spec = spec_of(&dir, "tiny-rel");
-    let missing = OnnxDepthModel::load(dir.join("does-not-exist.onnx"), spec);
+    let missing = OnnxDepthModel::load(
+        dir.join("does-not-exist.onnx"),
+        spec,
+        &OnnxOptions::default(),
+    );
     assert!(
         matches!(missing, Err(DepthError::Weights { .. })),
         "{missing:?}"
     );
     // Not an ONNX file at all.
-    let not_onnx = OnnxDepthModel::load(dir.join("tiny-rel.json"), spec);
+    let not_onnx = OnnxDepthModel::load(dir.join("tiny-rel.json"), spec, &OnnxOptions::default());
     // ONNX Runtime's own error is kept as the typed source, under a message naming the file.
     match not_onnx {
         Err(err @ DepthError::Onnx { .. }) => {

@@ -33,6 +33,8 @@ fn a_loaded_model_predicts_on_another_thread() {
         dir.join(format!("{name}.safetensors")),
         tiny_config(&dir, name),
         &candle_core::Device::Cpu,
+        candle_core::DType::F32,
+        None,
     )
     .unwrap();
     let mut model: Box<dyn DepthModel> = Box::new(model);

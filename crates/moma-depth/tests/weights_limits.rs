@@ -20,6 +20,8 @@ fn load_err(bytes: &[u8]) -> (String, String) {
         &path,
         DepthAnythingConfig::vit_small(Head::Relative),
         &candle_core::Device::Cpu,
+        candle_core::DType::F32,
+        None,
     )
     .unwrap_err();
     let DepthError::Weights { path, reason } = err else {

@@ -5,10 +5,10 @@
 //!
 //! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_diag [SET] [METHOD] [SEEDS]`
 
-use moma_core::PredictionKind;
 use moma_core::align::Method;
 use moma_core::normalise::NormalisationConfig;
 use moma_core::realign::{CorrectionModel, RealignConfig};
+use moma_core::{AlignOptions, PredictionInput, PredictionKind};
 use moma_eval::protocol::{EvalConfig, Prepared};
 use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
 use ndarray::ArrayView3;
@@ -59,18 +59,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for seed in 0..seeds {
         let cal = prep
             .calibrate(&method, &norm, &cmap, 100, seed)?
-            .with_anchors_normalised(rgb(prep.calib)?, &set.frames[prep.calib].gt, &cmap)?;
+            .with_anchors(
+                rgb(prep.calib)?,
+                &set.frames[prep.calib].gt,
+                PredictionInput::normalised(&cmap, prep.kind()),
+            )?;
         for i in prep.eval_indices() {
             let map = prep.normalised(i, &norm)?;
-            let one = cal.align_normalised(&map)?;
-            let mut re = one.clone();
+            let input = PredictionInput::normalised(&map, prep.kind());
+            let one = cal.aligned(input, &AlignOptions::default())?.depth;
             let rc = RealignConfig {
                 model: CorrectionModel::PredictionAffine,
                 seed,
                 ..Default::default()
             };
-            let rep =
-                cal.realign_normalised_into(rgb(i)?, &rc, &map, &mut re.depth_m.view_mut(), true)?;
+            let realigned = cal.aligned(input, &AlignOptions::realigned(rgb(i)?, &rc))?;
+            let re = realigned.depth;
+            let rep = realigned.realign.ok_or("re-alignment gave no report")?;
             let anchors =
                 moma_core::realign::find_anchors(cal.anchor_store()?, rgb(i)?, &rc.thresholds)?;
             let objm = &prep.eval_masks[i];

@@ -17,7 +17,8 @@ use moma_core::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise,
 };
 use moma_core::pipeline::{
-    Calibration, CalibrationConfig, NormalisedFrame, Workspace, calibrate_frames_normalised,
+    AlignOptions, Calibration, CalibrationConfig, CalibrationFrame, PredictionInput, Workspace,
+    calibrate,
 };
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_core::{Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
@@ -665,8 +666,7 @@ impl<'a> Prepared<'a> {
     }
 
     /// Calibrates `method` on the calibration frame (normalised as `calib_map`) with sampling
-    /// seed `seed`: [`moma_core::pipeline::calibrate_normalised`], the library path of
-    /// `moma calibrate`.
+    /// seed `seed`: [`moma_core::calibrate`], the library path of `moma calibrate`.
     ///
     /// # Errors
     /// Sampling or fitting errors, naming the frame.
@@ -712,7 +712,7 @@ impl<'a> Prepared<'a> {
     }
 
     /// Calibrates `method` on several frames `(index, normalised map, sample region)` with
-    /// sampling seed `seed` and `n` samples per frame: [`calibrate_frames_normalised`], the
+    /// sampling seed `seed` and `n` samples per frame: [`moma_core::calibrate`], the
     /// library path of `moma calibrate` with several frames. One frame is [`Prepared::calibrate`].
     /// With `robust`, the fit is robust (RANSAC seeded with `seed`); with
     /// [`EvalConfig::gt_outliers`], each calibration frame's ground truth is corrupted first
@@ -739,6 +739,7 @@ impl<'a> Prepared<'a> {
                 edge_margin_px: self.config.edge_margin_px,
             },
             robust: robust.map(|r| r.with_seed(seed)),
+            workspace: self.workspace.clone(),
         };
         let corrupted: Vec<Option<MetricDepth>> = frames
             .iter()
@@ -749,17 +750,19 @@ impl<'a> Prepared<'a> {
                 })
             })
             .collect();
-        let inputs: Vec<NormalisedFrame<'_>> = frames
+        let kind = self.kind();
+        let inputs: Vec<CalibrationFrame<'_>> = frames
             .iter()
             .enumerate()
-            .map(|(k, &(i, normalised, sample_region))| NormalisedFrame {
-                normalised,
-                gt: corrupted[k].as_ref().unwrap_or(&self.set.frames[i].gt),
-                sample_region,
+            .map(|(k, &(i, normalised, sample_region))| {
+                CalibrationFrame::new(
+                    PredictionInput::normalised(normalised, kind),
+                    corrupted[k].as_ref().unwrap_or(&self.set.frames[i].gt),
+                )
+                .sampled_in(sample_region)
             })
             .collect();
-        let kind = self.preds.maps[self.calib].kind;
-        calibrate_frames_normalised(&inputs, kind, &config, self.workspace.clone()).map_err(|e| {
+        calibrate(&inputs, &config).map_err(|e| {
             let ids = frames
                 .iter()
                 .map(|&(i, _, _)| format!("'{}'", self.set.frames[i].id))
@@ -777,7 +780,12 @@ impl<'a> Prepared<'a> {
         })
     }
 
-    /// Aligns frame `i` (normalised as `map`) with [`Calibration::align_normalised`] and scores
+    /// The kind of the set's predictions.
+    pub fn kind(&self) -> PredictionKind {
+        self.preds.maps[self.calib].kind
+    }
+
+    /// Aligns frame `i` (normalised as `map`) with [`Calibration::aligned`] and scores
     /// it inside its evaluation region.
     ///
     /// # Errors
@@ -791,8 +799,12 @@ impl<'a> Prepared<'a> {
         let f = &self.set.frames[i];
         let ctx = || format!("set '{}', frame '{}'", self.set.name, f.id);
         let aligned = calibration
-            .align_normalised(map)
-            .map_err(|e| EvalError::core(ctx(), e))?;
+            .aligned(
+                PredictionInput::normalised(map, self.kind()),
+                &AlignOptions::default(),
+            )
+            .map_err(|e| EvalError::core(ctx(), e))?
+            .depth;
         let m = DepthMetrics::compute(&aligned, &f.gt, Some(&self.eval_masks[i]))
             .map_err(|e| EvalError::core(ctx(), e))?;
         Ok((aligned, m))
@@ -880,7 +892,7 @@ fn jobs(prep: &Prepared<'_>, config: &EvalConfig) -> Vec<(Method, NormalisationC
 
 /// Few-shot evaluation (`moma eval --calib-frames K1,K2,...`): for every K, every (method,
 /// normalisation) is calibrated on the first K frames in sorted frame-id order (one fit over
-/// `config.samples` samples per frame, [`moma_core::pipeline::calibrate_frames`]) and scored on
+/// `config.samples` samples per frame, [`moma_core::calibrate`]) and scored on
 /// the **same** frames for every K: those after the largest K. Rows are labelled
 /// [`few_shot_variant`] (`one-shot` for K = 1, `few-shot-K` otherwise), K in the order given,
 /// then method and normalisation as in [`evaluate`].
@@ -1087,8 +1099,9 @@ pub fn evaluate_variant(
         normalisation: *norm,
         sampling: SamplingConfig::default(),
         robust: robust.copied(),
+        workspace: None,
     }
-    .check(prep.preds.maps[prep.calib].kind)
+    .check(prep.kind())
     .map_err(|e| EvalError::core(format!("set '{}', method {method}", set.name), e))?;
     let maps = prep.normalised_all(norm)?;
     let regions = prep.sample_regions(calib);
@@ -1235,7 +1248,12 @@ pub fn aligned_maps(
         .iter()
         .enumerate()
         .map(|(i, m)| {
-            cal.align_normalised(m).map_err(|e| {
+            cal.aligned(
+                PredictionInput::normalised(m, prep.kind()),
+                &AlignOptions::default(),
+            )
+            .map(|a| a.depth)
+            .map_err(|e| {
                 EvalError::core(
                     format!("set '{}', frame '{}'", prep.set.name, prep.set.frames[i].id),
                     e,

@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::{EvalError, Result};
 use crate::protocol::{EvalResult, Prepared};
 use crate::report::Table;
+use moma_core::{AlignOptions, PredictionInput};
 
 /// What the evaluation of re-alignment runs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -242,7 +243,10 @@ impl RealignSetup {
             prep.set.name, prep.set.frames[prep.calib].id
         );
         prep.calibrate(method, norm, &self.maps[prep.calib], n, seed)?
-            .with_anchor_store(&self.store, &self.maps[prep.calib])
+            .with_anchor_store(
+                &self.store,
+                PredictionInput::normalised(&self.maps[prep.calib], prep.kind()),
+            )
             .map_err(|e| EvalError::core(ctx, e))
     }
 
@@ -267,18 +271,15 @@ impl RealignSetup {
             seed: self.realign.config.seed.wrapping_add(seed),
             ..self.realign.config
         };
-        let (mut aligned, one) = prep.score(cal, &self.maps[i], i)?;
+        let (_, one) = prep.score(cal, &self.maps[i], i)?;
         let rgb = self.rgbs[i]
             .as_ref()
             .map(|a| a.view())
             .ok_or_else(|| EvalError::frame(&set.name, &set.frames[i].id, "no RGB"))?;
-        let report = cal
-            .realign_normalised_into(
-                rgb,
-                &config,
-                &self.maps[i],
-                &mut aligned.depth_m.view_mut(),
-                true,
+        let aligned = cal
+            .aligned(
+                PredictionInput::normalised(&self.maps[i], prep.kind()),
+                &AlignOptions::realigned(rgb, &config),
             )
             .map_err(|e| {
                 EvalError::core(
@@ -286,7 +287,10 @@ impl RealignSetup {
                     e,
                 )
             })?;
-        Ok((aligned, one, report))
+        let report = aligned.realign.ok_or_else(|| {
+            EvalError::frame(&set.name, &set.frames[i].id, "re-alignment gave no report")
+        })?;
+        Ok((aligned.depth, one, report))
     }
 }
 

@@ -11,6 +11,7 @@ use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{CalibrationConfig, calibrate};
 use moma_core::realign::AnchorStore;
 use moma_core::sampling::SamplingConfig;
+use moma_core::{CalibrationFrame, PredictionInput};
 use moma_core::{ImageSize, MetricDepth};
 use moma_eval::EvalError;
 use moma_eval::ablate;
@@ -139,7 +140,7 @@ fn shared_normalisation_and_anchor_store_change_no_number() {
     );
 }
 
-/// The anchor store built once and completed per calibration is the one `with_anchors_normalised`
+/// The anchor store built once and completed per calibration is the one `with_anchors`
 /// builds from scratch, also when the shared store already held another calibration's result.
 #[test]
 fn anchor_store_built_once_equals_the_store_built_per_calibration() {
@@ -163,24 +164,26 @@ fn anchor_store_built_once_equals_the_store_built_per_calibration() {
                 ..Default::default()
             },
             robust: None,
+            workspace: None,
         };
-        calibrate(&preds.maps[0], &f.gt, &config, None, None).unwrap()
+        calibrate(&[CalibrationFrame::new(&preds.maps[0], &f.gt)], &config).unwrap()
     };
     let store = AnchorStore::new(rgb, &f.gt).unwrap();
     for (seed, method) in [(0, Method::Gssa), (5, Method::Ssra(Default::default()))] {
         let c = cal(seed, method);
         let map = c.normalise(&preds.maps[0]).unwrap();
-        let scratch = c.clone().with_anchors_normalised(rgb, &f.gt, &map).unwrap();
-        let shared = c.clone().with_anchor_store(&store, &map).unwrap();
+        let map = PredictionInput::normalised(&map, preds.maps[0].kind);
+        let scratch = c.clone().with_anchors(rgb, &f.gt, map).unwrap();
+        let shared = c.clone().with_anchor_store(&store, map).unwrap();
         assert!(shared.anchor_store().unwrap().has_one_shot());
         assert_eq!(shared.anchors, scratch.anchors);
         // a store holding another calibration's one-shot result gets this one's
         let other = cal(seed + 1, Method::Gssa)
-            .with_anchor_store(&store, &map)
+            .with_anchor_store(&store, map)
             .unwrap();
         assert_ne!(other.anchors, scratch.anchors);
         let again = c
-            .with_anchor_store(other.anchor_store().unwrap(), &map)
+            .with_anchor_store(other.anchor_store().unwrap(), map)
             .unwrap();
         assert_eq!(again.anchors, scratch.anchors);
     }
@@ -191,8 +194,7 @@ fn anchor_store_built_once_equals_the_store_built_per_calibration() {
     )
     .unwrap();
     let c = cal(0, Method::Gssa);
-    let map = c.normalise(&preds.maps[0]).unwrap();
-    let e = c.with_anchor_store(&small, &map).unwrap_err();
+    let e = c.with_anchor_store(&small, &preds.maps[0]).unwrap_err();
     assert!(e.to_string().contains("anchor store"), "{e}");
 }
 

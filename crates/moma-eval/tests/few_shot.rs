@@ -4,9 +4,10 @@
 mod common;
 
 use common::*;
+use moma_core::AlignOptions;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
+use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate};
 use moma_core::sampling::SamplingConfig;
 use moma_eval::EvalError;
 use moma_eval::protocol::{EvalConfig, EvalNote, JsonRow, evaluate, evaluate_few_shot};
@@ -23,7 +24,7 @@ fn config(methods: &[&str], seeds: usize) -> EvalConfig {
 }
 
 /// Every K scores the same frames (after the largest K); each row's MAE is that of
-/// `calibrate_frames` on the first K frames, applied and scored by hand.
+/// `calibrate` on the first K frames, applied and scored by hand.
 #[test]
 fn every_k_scores_the_same_frames_with_the_library_calibration() {
     let set = set(6);
@@ -62,12 +63,12 @@ fn every_k_scores_the_same_frames_with_the_library_calibration() {
             .map(|seed| {
                 let frames: Vec<CalibrationFrame<'_>> = (0..k)
                     .map(|i| CalibrationFrame {
-                        pred: &preds.maps[i],
+                        pred: (&preds.maps[i]).into(),
                         gt: &set.frames[i].gt,
                         sample_region: None,
                     })
                     .collect();
-                let cal = calibrate_frames(
+                let cal = calibrate(
                     &frames,
                     &CalibrationConfig {
                         method: method.clone(),
@@ -81,13 +82,16 @@ fn every_k_scores_the_same_frames_with_the_library_calibration() {
                             ..Default::default()
                         },
                         robust: None,
+                        workspace: None,
                     },
-                    None,
                 )
                 .unwrap();
                 let per_frame: Vec<f64> = (3..6)
                     .map(|i| {
-                        let out = cal.align(&preds.maps[i]).unwrap();
+                        let out = cal
+                            .aligned(&preds.maps[i], &AlignOptions::default())
+                            .unwrap()
+                            .depth;
                         let region = mask(i).data() & &set.frames[i].gt.depth_m.mapv(|z| z > 0.0);
                         DepthMetrics::compute(
                             &out,

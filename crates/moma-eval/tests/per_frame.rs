@@ -5,9 +5,10 @@
 mod common;
 
 use common::*;
+use moma_core::AlignOptions;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
+use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate};
 use moma_core::sampling::SamplingConfig;
 use moma_core::{Mask, Prediction, PredictionKind};
 use moma_eval::EvalError;
@@ -36,9 +37,9 @@ fn aligned_alone(
     method: &moma_core::align::Method,
     seed: u64,
 ) -> moma_core::MetricDepth {
-    let cal = calibrate_frames(
+    let cal = calibrate(
         &[CalibrationFrame {
-            pred: &preds.maps[k],
+            pred: (&preds.maps[k]).into(),
             gt: &set.frames[k].gt,
             sample_region: None,
         }],
@@ -54,14 +55,16 @@ fn aligned_alone(
                 ..Default::default()
             },
             robust: None,
+            workspace: None,
         },
-        None,
     )
     .unwrap();
-    cal.align(&preds.maps[k]).unwrap()
+    cal.aligned(&preds.maps[k], &AlignOptions::default())
+        .unwrap()
+        .depth
 }
 
-/// Each row's per-frame metrics are those of `calibrate_frames` on that frame alone (same seed),
+/// Each row's per-frame metrics are those of `calibrate` on that frame alone (same seed),
 /// applied to it and scored inside its mask; every frame is scored, `calib_frame` is `each`.
 #[test]
 fn each_frame_is_calibrated_on_its_own_samples() {

@@ -158,7 +158,7 @@ struct SeedCase {
 
 fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
     use moma_core::align::robust::{Robust, RobustKind};
-    use moma_core::pipeline::{CalibrationFrame, calibrate_frames};
+    use moma_core::pipeline::{CalibrationFrame, calibrate};
     let (h, w) = (24, 32);
     let k = Intrinsics {
         width: w,
@@ -242,20 +242,17 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
                 ..Default::default()
             },
             robust: robust.map(Robust::new),
+            workspace: None,
         };
         let scenes: Vec<_> = (0..n_frames)
             .map(|f| calibration_scene(h, w, kind, f))
             .collect();
         let frames: Vec<_> = scenes
             .iter()
-            .map(|(gt, pred, _)| CalibrationFrame {
-                pred,
-                gt,
-                sample_region: None,
-            })
+            .map(|(gt, pred, _)| CalibrationFrame::new(pred, gt))
             .collect();
-        let mut calibration = calibrate_frames(&frames, &config, None)
-            .map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
+        let mut calibration =
+            calibrate(&frames, &config).map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
         if anchors {
             let (gt, pred, rgb) = &scenes[0];
             calibration = calibration

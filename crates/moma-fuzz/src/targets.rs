@@ -1,5 +1,6 @@
 //! The fuzz targets: one parser entry point each, on bytes in memory.
 
+use moma_core::AlignOptions;
 use std::path::Path;
 
 /// A parser under test.
@@ -186,7 +187,10 @@ fn apply_calibration(path: &Path, text: &str) -> Result<(), String> {
             panic!("{what} wrote {z} metres");
         }
     };
-    let depth = c.align(&pred).map_err(|e| s(&e))?;
+    let depth = c
+        .aligned(&pred, &AlignOptions::default())
+        .map(|a| a.depth)
+        .map_err(|e| s(&e))?;
     no_inf(&depth, "align");
     if c.anchors.is_some() {
         let rgb = ndarray::Array3::from_shape_fn((h, w, 3), |(v, u, ch)| {
@@ -202,8 +206,8 @@ fn apply_calibration(path: &Path, text: &str) -> Result<(), String> {
                 ..Default::default()
             };
             // A refusal (e.g. a store without the normalised prediction) is fine; a panic is not.
-            if let Ok((depth, _report)) = c.align_realigned(&pred, rgb.view(), &config) {
-                no_inf(&depth, "re-alignment");
+            if let Ok(a) = c.aligned(&pred, &AlignOptions::realigned(rgb.view(), &config)) {
+                no_inf(&a.depth, "re-alignment");
             }
         }
     }

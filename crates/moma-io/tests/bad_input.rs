@@ -2,6 +2,7 @@
 
 use std::path::Path;
 
+use moma_core::{AlignOptions, CalibrationFrame};
 use moma_core::{ImageSize, Intrinsics, Mask, MetricDepth, Prediction, PredictionKind};
 use moma_io::*;
 use ndarray::{Array2, array};
@@ -589,8 +590,10 @@ mod calibration {
                 ..Default::default()
             },
             robust: None,
+            workspace: None,
         };
-        let c = moma_core::pipeline::calibrate(&pred, &gt, &config, None, None).unwrap();
+        let c =
+            moma_core::pipeline::calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap();
         serde_json::to_value(CalibrationFile::new(c, None, CreationInfo::now())).unwrap()
     }
 
@@ -602,9 +605,13 @@ mod calibration {
         std::fs::write(&p, v.to_string()).unwrap();
         let c = read_calibration(&p).unwrap().calibration;
         let values = Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
-        c.align(&Prediction::new(values, PredictionKind::InverseDepth))
-            .unwrap()
-            .depth_m
+        c.aligned(
+            &Prediction::new(values, PredictionKind::InverseDepth),
+            &AlignOptions::default(),
+        )
+        .unwrap()
+        .depth
+        .depth_m
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! iterations) through the calibration file; a file without it (every file written before robust
 //! fits) still reads; an inconsistent report is refused naming the problem.
 
+use moma_core::CalibrationFrame;
 use moma_core::align::Method;
 use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
@@ -35,8 +36,9 @@ fn calibration(robust: Option<Robust>) -> moma_core::pipeline::Calibration {
             ..Default::default()
         },
         robust,
+        workspace: None,
     };
-    calibrate(&pred, &gt, &config, None, None).unwrap()
+    calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap()
 }
 
 #[test]

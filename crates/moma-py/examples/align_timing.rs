@@ -5,6 +5,7 @@
 //! `{"median_ms": …, "min_ms": …, "repeats": …}` (wall time of normalisation + alignment,
 //! allocation of the output included, file I/O excluded).
 
+use moma_core::AlignOptions;
 use std::time::Instant;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -20,12 +21,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let pred = moma_io::read_prediction(pred, file.prediction_kind)?;
     // Warm-up (first-touch page faults, LWLR map cache), then timed calls.
     for _ in 0..5 {
-        std::hint::black_box(file.calibration.align(&pred)?);
+        std::hint::black_box(
+            file.calibration
+                .aligned(&pred, &AlignOptions::default())?
+                .depth,
+        );
     }
     let mut ms = Vec::with_capacity(repeats);
     for _ in 0..repeats.max(1) {
         let t = Instant::now();
-        let depth = file.calibration.align(&pred)?;
+        let depth = file
+            .calibration
+            .aligned(&pred, &AlignOptions::default())?
+            .depth;
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         std::hint::black_box(depth);
     }

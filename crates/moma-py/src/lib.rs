@@ -19,7 +19,10 @@ use moma_core::align::Method;
 use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation};
-use moma_core::pipeline::{Calibration as CoreCalibration, CalibrationConfig, CalibrationFrame};
+use moma_core::pipeline::{
+    AlignOptions, Calibration as CoreCalibration, CalibrationConfig, CalibrationFrame,
+    PredictionInput,
+};
 use moma_core::realign::{AnchorTarget, CorrectionModel, RealignConfig};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_core::{
@@ -57,9 +60,7 @@ fn parse_method(s: &str, options: &moma_core::policy::MethodOptions) -> PyResult
     moma_core::policy::method(method, options).map_err(|e| value_err(e.to_string()))
 }
 
-/// One frame's re-alignment into `out` for every correction form (as the CLI's
-/// `Calibration::align_realigned`): `prediction-affine` corrects the normalised prediction
-/// before the model, `scale-shift`/`planar` the one-shot metres (the zero-copy view path).
+/// One frame's re-alignment into `out` (the zero-copy view path of `Calibration::align`).
 fn realign_view_into(
     cal: &CoreCalibration,
     pred: ndarray::ArrayView2<'_, f32>,
@@ -68,13 +69,14 @@ fn realign_view_into(
     config: &RealignConfig,
     mut out: ndarray::ArrayViewMut2<'_, f32>,
 ) -> Result<moma_core::realign::RealignReport, CoreError> {
-    if config.model == CorrectionModel::PredictionAffine {
-        let normalised = cal.normalise_view(pred, kind)?;
-        cal.realign_normalised_into(rgb, config, &normalised, &mut out, false)
-    } else {
-        cal.align_view_into(pred, kind, &mut out)?;
-        cal.realign_into(rgb, config, &mut out)
-    }
+    let report = cal.align(
+        PredictionInput::view(pred, kind),
+        &AlignOptions::realigned(rgb, config),
+        &mut out,
+    )?;
+    report.realign.ok_or_else(|| {
+        CoreError::InvalidParameter("re-alignment was asked for but gave no report".into())
+    })
 }
 
 /// The re-alignment settings: [`RealignConfig::default`] (what `moma align --realign anchors`
@@ -259,8 +261,11 @@ impl Calibration {
         // Borrowed, not copied: NumPy's buffer is read in place (any strides).
         let view = ro.as_array();
         let kind = self.inner.prediction_kind;
-        let depth = py.detach(|| self.inner.align_view(view, kind)).py()?;
-        Ok(depth.depth_m.into_pyarray(py))
+        let input = PredictionInput::view(view, kind);
+        let aligned = py
+            .detach(|| self.inner.aligned(input, &AlignOptions::default()))
+            .py()?;
+        Ok(aligned.depth.depth_m.into_pyarray(py))
     }
 
     /// Like `align`, writing metres into `out` (float32, same shape as `pred`, writable) instead
@@ -276,8 +281,13 @@ impl Calibration {
         let view = ro.as_array();
         let mut out_view = rw.as_array_mut();
         let kind = self.inner.prediction_kind;
-        py.detach(|| self.inner.align_view_into(view, kind, &mut out_view))
-            .py()
+        let input = PredictionInput::view(view, kind);
+        py.detach(|| {
+            self.inner
+                .align(input, &AlignOptions::default(), &mut out_view)
+        })
+        .py()
+        .map(drop)
     }
 
     /// Writes the calibration in the CLI's file format (`moma-calibration` v4, JSON, atomic),
@@ -648,6 +658,7 @@ fn calibrate(
             seed,
             edge_margin_px,
         },
+        workspace: None,
     };
 
     // One frame (arrays) or several (lists of arrays, one per frame).
@@ -750,45 +761,35 @@ fn calibrate(
     };
     let inner = py
         .detach(|| -> Result<CoreCalibration, PyCalibrateError> {
-            let preds: Vec<Prediction> = pred_views
+            let preds: Vec<PredictionInput<'_>> = pred_views
                 .iter()
-                .map(|v| Prediction::new(v.to_owned(), kind))
+                .map(|v| PredictionInput::view(v.view(), kind))
                 .collect();
             let gts: Vec<MetricDepth> = gt_views
                 .iter()
                 .map(|v| MetricDepth::new(v.to_owned()))
                 .collect();
-            let size = preds[0].size();
+            let size = ImageSize::of(&pred_views[0]);
             if let Some(k) = &intrinsics {
                 k.size()
                     .expect_eq("prediction (vs camera intrinsics)", size)?;
             }
-            let calibration = if few_shot {
-                let frames: Vec<CalibrationFrame<'_>> = preds
-                    .iter()
-                    .zip(&gts)
-                    .enumerate()
-                    .map(|(i, (pred, gt))| CalibrationFrame {
-                        pred,
-                        gt,
-                        sample_region: sample_masks.get(i).or(sample_masks.first()),
-                    })
-                    .collect();
-                moma_core::pipeline::calibrate_frames(&frames, &config, workspace.as_ref())?
-            } else {
-                moma_core::pipeline::calibrate(
-                    &preds[0],
-                    &gts[0],
-                    &config,
-                    workspace.as_ref(),
-                    sample_masks.first(),
-                )?
-            };
+            let frames: Vec<CalibrationFrame<'_>> = preds
+                .iter()
+                .zip(&gts)
+                .enumerate()
+                .map(|(i, (&pred, gt))| {
+                    CalibrationFrame::new(pred, gt)
+                        .sampled_in(sample_masks.get(i).or(sample_masks.first()))
+                })
+                .collect();
+            let config = config.clone().with_workspace(workspace.as_ref())?;
+            let calibration = moma_core::calibrate(&frames, &config)?;
             // Anchors for per-frame re-alignment come from the first (calibration) frame.
             Ok(match (anchor_view, anchor_path) {
                 (Some(view), _) => {
                     ImageSize::new(view.dim().1, view.dim().0).expect_eq("anchors_rgb", size)?;
-                    calibration.with_anchors(view, &gts[0], &preds[0])?
+                    calibration.with_anchors(view, &gts[0], preds[0])?
                 }
                 (None, Some(path)) => {
                     let img = moma_io::read_rgb_sized(path, size)?;
@@ -797,7 +798,7 @@ fn calibrate(
                         img.as_raw().as_slice(),
                     )
                     .map_err(|e| CoreError::InvalidParameter(format!("{}: {e}", path.display())))?;
-                    calibration.with_anchors(view, &gts[0], &preds[0])?
+                    calibration.with_anchors(view, &gts[0], preds[0])?
                 }
                 (None, None) => calibration,
             })
@@ -979,7 +980,7 @@ fn plan_grasps<'py>(
                         realign: rgb_view.map(|v| (v, &config)),
                         sigma_map: false,
                     };
-                    inner.align_with(&prediction, &options)
+                    inner.aligned(&prediction, &options)
                 })
                 .py()?;
             (aligned.depth, aligned.error_model, k)
@@ -1088,14 +1089,13 @@ fn write_prediction(py: Python<'_>, path: PathBuf, pred: &Bound<'_, PyAny>) -> P
 // ---------------------------------------------------------------------------------------------
 // DepthModel
 
-type BoxedModel = Box<dyn DepthModelTrait + Send>;
+type BoxedModel = Box<dyn DepthModelTrait>;
 
 /// Depth Anything V2 (candle backend; ONNX Runtime in builds with the `onnx` feature).
 ///
 /// The network sits behind a mutex: one inference at a time per model object (the forward pass
-/// takes `&mut self`), usable from any thread; the GIL is released while it runs. The concrete
-/// backend types are boxed as `Send` here because `Box<dyn DepthModel>` from `load_model_with`
-/// is not `Send` yet.
+/// takes `&mut self`), usable from any thread; the GIL is released while it runs (every
+/// `DepthModel` is `Send`).
 #[pyclass(module = "moma", frozen)]
 struct DepthModel {
     model: Mutex<BoxedModel>,
@@ -1115,6 +1115,8 @@ fn parse_precision(s: &str) -> PyResult<moma_depth::Precision> {
     s.parse().map_err(value_err)
 }
 
+/// Loads the model: [`moma_depth::load`], or, for a custom architecture that a [`ModelSpec`]
+/// cannot describe (`config`), the candle backend's constructor.
 #[allow(clippy::too_many_arguments)]
 fn load_depth_model(
     weights: &std::path::Path,
@@ -1125,72 +1127,45 @@ fn load_depth_model(
     precision: moma_depth::Precision,
     lora: Option<&std::path::Path>,
 ) -> Result<(BoxedModel, String), moma_depth::DepthError> {
-    if !weights.is_file() {
-        return Err(moma_depth::DepthError::Weights {
-            path: weights.display().to_string(),
-            reason: "no such file".into(),
-        });
-    }
-    match backend {
-        "onnx" if lora.is_some() => Err(moma_depth::DepthError::Unavailable(
-            "LoRA adapters are merged by the candle backend (use backend=\"candle\", or \
-             `moma lora merge` to write merged weights for other runtimes)"
-                .into(),
-        )),
-        "onnx" => load_onnx(weights, spec, device, precision),
-        _ => {
-            let dev = moma_depth::candle::open_device(device)?;
-            let config =
-                config.unwrap_or_else(|| moma_depth::candle::DepthAnythingConfig::from_spec(&spec));
-            let m = match lora {
-                // The adapter is merged into the weights once, here: no per-frame cost.
-                Some(adapter) => moma_depth::candle::CandleDepthModel::load_with_adapter(
-                    weights,
-                    config,
-                    adapter,
-                    &dev,
-                    moma_depth::candle::precision_dtype(precision, &dev)?,
-                )?,
-                None => moma_depth::candle::CandleDepthModel::load_with(
-                    weights, config, &dev, precision,
-                )?,
-            };
-            let runtime = m.runtime();
-            Ok((Box::new(m), runtime))
-        }
-    }
-}
-
-#[cfg(feature = "onnx")]
-fn load_onnx(
-    weights: &std::path::Path,
-    spec: ModelSpec,
-    device: moma_depth::DeviceRequest,
-    precision: moma_depth::Precision,
-) -> Result<(BoxedModel, String), moma_depth::DepthError> {
-    use moma_depth::{DeviceRequest, Precision};
-    if !matches!(device, DeviceRequest::Auto | DeviceRequest::Cpu) || precision != Precision::F32 {
+    if backend == "onnx" && !cfg!(feature = "onnx") {
         return Err(moma_depth::DepthError::Unavailable(
-            "the ONNX Runtime backend runs on the CPU in the model's own precision (device='cpu', dtype='f32')".into(),
+            "this moma wheel was built without the ONNX Runtime backend: use backend=\"candle\", \
+             or rebuild with `pip install . --config-settings=build-args=\"--features onnx\"`"
+                .into(),
         ));
     }
-    let m = moma_depth::onnx::OnnxDepthModel::load(weights, spec)?;
-    let runtime = m.runtime();
-    Ok((Box::new(m), runtime))
-}
-
-#[cfg(not(feature = "onnx"))]
-fn load_onnx(
-    _weights: &std::path::Path,
-    _spec: ModelSpec,
-    _device: moma_depth::DeviceRequest,
-    _precision: moma_depth::Precision,
-) -> Result<(BoxedModel, String), moma_depth::DepthError> {
-    Err(moma_depth::DepthError::Unavailable(
-        "this moma wheel was built without the ONNX Runtime backend: use backend=\"candle\", or \
-         rebuild with `pip install . --config-settings=build-args=\"--features onnx\"`"
-            .into(),
-    ))
+    let model: BoxedModel = match config {
+        Some(config) if backend != "onnx" => {
+            if !weights.is_file() {
+                return Err(moma_depth::DepthError::Weights {
+                    path: weights.display().to_string(),
+                    reason: "no such file".into(),
+                });
+            }
+            let dev = moma_depth::candle::open_device(device)?;
+            let dtype = moma_depth::candle::precision_dtype(precision, &dev)?;
+            // The adapter is merged into the weights once, here: no per-frame cost.
+            Box::new(moma_depth::candle::CandleDepthModel::load(
+                weights, config, &dev, dtype, lora,
+            )?)
+        }
+        _ => moma_depth::load(&moma_depth::LoadSpec {
+            weights: weights.to_path_buf(),
+            model: spec,
+            options: moma_depth::LoadOptions {
+                backend: if backend == "onnx" {
+                    moma_depth::Backend::Onnx
+                } else {
+                    moma_depth::Backend::Candle
+                },
+                device,
+                precision,
+            },
+            adapter: lora.map(std::path::Path::to_path_buf),
+        })?,
+    };
+    let runtime = model.runtime();
+    Ok((model, runtime))
 }
 
 /// A custom architecture (e.g. small test networks): the `DepthAnythingConfig` fields as a dict.

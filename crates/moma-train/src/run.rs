@@ -10,8 +10,7 @@ use moma_depth::candle::train::{
 };
 use moma_depth::candle::{DepthAnythingConfig, open_checkpoint, open_device, precision_dtype};
 use moma_depth::{
-    Backend, DepthModel, DeviceRequest, Head, LoadOptions, ModelSpec, Precision,
-    load_model_with_adapter,
+    Backend, DepthModel, DeviceRequest, Head, LoadOptions, LoadSpec, ModelSpec, Precision, load,
 };
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -570,16 +569,16 @@ pub fn finetune(
     let val_after_reload = if val.is_empty() {
         None
     } else {
-        let mut model = load_model_with_adapter(
-            &opts.weights,
-            spec,
-            &LoadOptions {
+        let mut model = load(&LoadSpec {
+            weights: opts.weights.clone(),
+            model: spec,
+            options: LoadOptions {
                 backend: Backend::Candle,
                 device: opts.device,
                 precision: Precision::F32,
             },
-            Some(&opts.output),
-        )?;
+            adapter: Some(opts.output.clone()),
+        })?;
         Some(validation_loss_of_model(
             model.as_mut(),
             &val,

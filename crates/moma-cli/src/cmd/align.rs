@@ -336,7 +336,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             ..
         } = calib
             .calibration
-            .align_with(&input.prediction, &options)
+            .aligned(&input.prediction, &options)
             .with_context(|| format!("aligning {}", input.path.display()))?;
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
 

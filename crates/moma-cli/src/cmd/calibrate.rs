@@ -1,7 +1,7 @@
 //! `moma calibrate`: fit an alignment on one RGB-D frame (or several: few-shot) and write a
 //! calibration file.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -9,7 +9,7 @@ use moma_core::align::Method;
 use moma_core::align::local::CvLoss;
 use moma_core::align::robust::{Robust, RobustKind};
 use moma_core::normalise::{AlignSpace, Normalisation};
-use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate_frames};
+use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate};
 use moma_core::policy::{MethodOptions, Protocol};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
 use moma_io::{CalibrationFile, CreationInfo};
@@ -300,7 +300,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             edge_margin_px: args.edge_margin_px,
         },
         robust: args.robust.robust(args.seed)?,
-    };
+        workspace: None,
+    }
+    .with_workspace(workspace.as_ref())
+    .with_context(|| {
+        let path = args.workspace.as_deref().unwrap_or(Path::new(""));
+        format!("--workspace {}", path.display())
+    })?;
     if let Some(r) = &config.robust {
         r.check_method(&config.method)
             .with_context(|| format!("--robust {} with --method {}", r.kind, config.method))?;
@@ -319,36 +325,34 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         .iter()
         .zip(&gts)
         .enumerate()
-        .map(|(i, (input, gt))| CalibrationFrame {
-            pred: &input.prediction,
-            gt,
-            sample_region: sample_masks.get(i).or(sample_masks.first()),
+        .map(|(i, (input, gt))| {
+            CalibrationFrame::new(&input.prediction, gt)
+                .sampled_in(sample_masks.get(i).or(sample_masks.first()))
         })
         .collect();
-    let calibration =
-        calibrate_frames(&frames, &config, workspace.as_ref()).with_context(|| {
-            let pairs: Vec<String> = inputs
+    let calibration = calibrate(&frames, &config).with_context(|| {
+        let pairs: Vec<String> = inputs
+            .iter()
+            .zip(&args.gt)
+            .map(|(input, gt)| {
+                format!(
+                    "prediction {}, ground truth {}",
+                    input.path.display(),
+                    gt.display()
+                )
+            })
+            .collect();
+        if pairs.len() == 1 {
+            format!("calibration failed ({})", pairs[0])
+        } else {
+            let listed: Vec<String> = pairs
                 .iter()
-                .zip(&args.gt)
-                .map(|(input, gt)| {
-                    format!(
-                        "prediction {}, ground truth {}",
-                        input.path.display(),
-                        gt.display()
-                    )
-                })
+                .enumerate()
+                .map(|(i, p)| format!("frame {i}: {p}"))
                 .collect();
-            if pairs.len() == 1 {
-                format!("calibration failed ({})", pairs[0])
-            } else {
-                let listed: Vec<String> = pairs
-                    .iter()
-                    .enumerate()
-                    .map(|(i, p)| format!("frame {i}: {p}"))
-                    .collect();
-                format!("calibration failed ({})", listed.join("; "))
-            }
-        })?;
+            format!("calibration failed ({})", listed.join("; "))
+        }
+    })?;
 
     // Anchors for per-frame re-alignment come from the first (calibration) frame.
     let calibration = if args.anchors {

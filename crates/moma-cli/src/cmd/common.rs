@@ -206,10 +206,14 @@ impl ModelArgs {
                 DtypeArg::Bf16 => Precision::Bf16,
             },
         };
-        let model =
-            moma_depth::load_model_with_adapter(&weights, spec, &options, self.lora.as_deref())
-                // Weight-file errors name the file themselves.
-                .context("loading the depth model")?;
+        let model = moma_depth::load(&moma_depth::LoadSpec {
+            weights: weights.clone(),
+            model: spec,
+            options,
+            adapter: self.lora.clone(),
+        })
+        // Weight-file errors name the file themselves.
+        .context("loading the depth model")?;
         Ok(LoadedModel { model, weights })
     }
 }

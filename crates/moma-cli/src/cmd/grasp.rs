@@ -236,7 +236,7 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
     };
     let aligned = calib
         .calibration
-        .align_with(&input.prediction, &options)
+        .aligned(&input.prediction, &options)
         .with_context(|| format!("aligning {}", input.path.display()))?;
     if let Some(report) = &aligned.realign {
         eprintln!(

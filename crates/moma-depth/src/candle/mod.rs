@@ -7,7 +7,8 @@
 //!
 //! let device = open_device(DeviceRequest::Auto)?;
 //! let config = DepthAnythingConfig::vit_small(Head::Relative);
-//! let mut model = CandleDepthModel::load("depth_anything_v2_vits.safetensors", config, &device)?;
+//! let weights = "depth_anything_v2_vits.safetensors";
+//! let mut model = CandleDepthModel::load(weights, config, &device, candle_core::DType::F32, None)?;
 //! let rgb = image::open("frame.png").unwrap().to_rgb8();
 //! let prediction = model.predict(&rgb)?; // inverse depth at the image's size
 //! # Ok::<(), moma_depth::DepthError>(())
@@ -564,81 +565,36 @@ pub fn precision_dtype(precision: Precision, device: &Device) -> Result<DType> {
 }
 
 impl CandleDepthModel {
-    /// Loads a checkpoint with the official key names (`pretrained.*`, `depth_head.*`) in `f32`;
-    /// see [`CandleDepthModel::load_as`].
+    /// Loads a checkpoint with the official key names (`pretrained.*`, `depth_head.*`) from a
+    /// `.safetensors` file (memory-mapped) or a PyTorch `.pth` zip archive (the official release
+    /// format), any float storage dtype, computing in `dtype` (see [`precision_dtype`]), with the
+    /// LoRA adapter file `adapter` merged into the weights when given ([`train::merge_adapter`]).
+    /// Applications call [`crate::load`]; this is the candle backend's constructor, for a custom
+    /// `config`.
     ///
     /// # Errors
-    /// As [`CandleDepthModel::load_as`].
+    /// [`DepthError::Weights`] when the file cannot be read or its tensors do not match `config`
+    /// (the message lists missing and unexpected keys and shape mismatches), or for an
+    /// unreadable adapter or one made for other base weights or another model size (naming the
+    /// adapter); [`DepthError::Shape`] for an inconsistent `config`.
     pub fn load(
         path: impl AsRef<Path>,
         config: DepthAnythingConfig,
         device: &Device,
-    ) -> Result<Self> {
-        Self::load_as(path, config, device, DType::F32)
-    }
-
-    /// As [`CandleDepthModel::load_as`] with the dtype of `precision` ([`precision_dtype`]).
-    ///
-    /// # Errors
-    /// As [`CandleDepthModel::load_as`]; bf16 on the CPU is [`DepthError::Unavailable`].
-    pub fn load_with(
-        path: impl AsRef<Path>,
-        config: DepthAnythingConfig,
-        device: &Device,
-        precision: Precision,
-    ) -> Result<Self> {
-        let dtype = precision_dtype(precision, device)?;
-        Self::load_as(path, config, device, dtype)
-    }
-
-    /// Loads a checkpoint with the official key names (`pretrained.*`, `depth_head.*`) from a
-    /// `.safetensors` file (memory-mapped) or a PyTorch `.pth` zip archive (the official release
-    /// format), any float storage dtype, computing in `dtype`.
-    ///
-    /// # Errors
-    /// [`DepthError::Weights`] when the file cannot be read or its tensors do not match `config`
-    /// (the message lists missing and unexpected keys and shape mismatches); [`DepthError::Shape`]
-    /// for an inconsistent `config`.
-    pub fn load_as(
-        path: impl AsRef<Path>,
-        config: DepthAnythingConfig,
-        device: &Device,
         dtype: DType,
+        adapter: Option<&Path>,
     ) -> Result<Self> {
         let path = path.as_ref();
-        let vb = open_checkpoint(path, &config, device, dtype)?;
-        Self::from_var_builder(config, vb).map_err(|e| match e {
-            DepthError::Candle { source, .. } => weights_source(path)(source),
-            other => other,
-        })
-    }
-
-    /// As [`CandleDepthModel::load_as`], with the LoRA adapter file `adapter` merged into the
-    /// weights ([`train::merge_adapter`]).
-    ///
-    /// # Errors
-    /// As [`CandleDepthModel::load_as`]; an unreadable adapter or one made for other base weights
-    /// or another model size ([`DepthError::Weights`] naming the adapter).
-    pub fn load_with_adapter(
-        path: impl AsRef<Path>,
-        config: DepthAnythingConfig,
-        adapter: &Path,
-        device: &Device,
-        dtype: DType,
-    ) -> Result<Self> {
-        let path = path.as_ref();
-        let a = train::Adapter::load(adapter)?;
         let base = open_checkpoint(path, &config, device, dtype)?;
+        let Some(adapter) = adapter else {
+            return Self::from_var_builder(config, base).map_err(|e| match e {
+                DepthError::Candle { source, .. } => weights_source(path)(source),
+                other => other,
+            });
+        };
+        let a = train::Adapter::load(adapter)?;
         let vb = train::merge_adapter(base, &config, &a, adapter)?;
         Self::from_var_builder(config, vb)
-    }
-
-    /// Loads the preset of `spec` (see [`DepthAnythingConfig::from_spec`]).
-    ///
-    /// # Errors
-    /// As [`CandleDepthModel::load`].
-    pub fn load_spec(path: impl AsRef<Path>, spec: &ModelSpec, device: &Device) -> Result<Self> {
-        Self::load(path, DepthAnythingConfig::from_spec(spec), device)
     }
 
     /// Builds the network from any [`VarBuilder`] whose root holds `pretrained.*` and
