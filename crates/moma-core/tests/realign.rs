@@ -144,7 +144,7 @@ fn realigned(
     pred: &Prediction,
     config: &RealignConfig,
 ) -> (MetricDepth, RealignReport) {
-    align_realigned(&cal, pred, test_rgb().view(), config).unwrap()
+    align_realigned(cal, pred, test_rgb().view(), config).unwrap()
 }
 
 /// Mean absolute error (metres) over pixels where `region` holds.
