@@ -82,6 +82,14 @@ fn unfused(cal: &Calibration, pred: &Array2<f32>, kind: PredictionKind) -> Array
     .depth_m
 }
 
+/// [`Calibration::aligned`] of a borrowed view (no options): metres.
+fn aligned_view(cal: &Calibration, pred: ArrayView2<'_, f32>, kind: PredictionKind) -> Array2<f32> {
+    cal.aligned(PredictionInput::view(pred, kind), &AlignOptions::default())
+        .unwrap()
+        .depth
+        .depth_m
+}
+
 fn assert_same(what: &str, got: ArrayView2<'_, f32>, want: ArrayView2<'_, f32>) {
     assert_eq!(got.dim(), want.dim(), "{what}");
     let mut nan = 0;
@@ -130,14 +138,7 @@ fn fused_path_equals_unfused_bit_for_bit() {
                         let what =
                             format!("{kind} {method} {norm} {space} ws={}", region.is_some());
                         let want = unfused(&cal, &pred, kind);
-                        let got = cal
-                            .aligned(
-                                PredictionInput::view(pred.view(), kind),
-                                &AlignOptions::default(),
-                            )
-                            .unwrap()
-                            .depth
-                            .depth_m;
+                        let got = aligned_view(&cal, pred.view(), kind);
                         assert_same(&what, got.view(), want.view());
                         let mut out = Array2::from_elem(SIZE.shape(), 7.0f32);
                         cal.align(
@@ -186,26 +187,12 @@ fn strided_input_and_output_give_the_same_result() {
             let mut fortran = Array2::<f32>::zeros(SIZE.shape().f());
             fortran.assign(&pred);
             assert!(fortran.view().as_slice().is_none());
-            let got = cal
-                .aligned(
-                    PredictionInput::view(fortran.view(), kind),
-                    &AlignOptions::default(),
-                )
-                .unwrap()
-                .depth
-                .depth_m;
+            let got = aligned_view(&cal, fortran.view(), kind);
             assert_same("fortran input", got.view(), want.view());
             // Every other column of a wider array.
             let mut wide = Array2::<f32>::zeros((SIZE.height, 2 * SIZE.width));
             wide.slice_mut(s![.., ..;2]).assign(&pred);
-            let got = cal
-                .aligned(
-                    PredictionInput::view(wide.slice(s![.., ..;2]), kind),
-                    &AlignOptions::default(),
-                )
-                .unwrap()
-                .depth
-                .depth_m;
+            let got = aligned_view(&cal, wide.slice(s![.., ..;2]), kind);
             assert_same("strided input", got.view(), want.view());
             // A strided output.
             let mut out_wide = Array2::<f32>::zeros((SIZE.height, 2 * SIZE.width));
