@@ -1127,7 +1127,8 @@ fn load_depth_model(
     precision: moma_depth::Precision,
     lora: Option<&std::path::Path>,
 ) -> Result<(BoxedModel, String), moma_depth::DepthError> {
-    if backend == "onnx" && !cfg!(feature = "onnx") {
+    // (an adapter with ONNX is refused by `moma_depth::load`, naming the adapter, in every build)
+    if backend == "onnx" && lora.is_none() && !cfg!(feature = "onnx") {
         return Err(moma_depth::DepthError::Unavailable(
             "this moma wheel was built without the ONNX Runtime backend: use backend=\"candle\", \
              or rebuild with `pip install . --config-settings=build-args=\"--features onnx\"`"

@@ -585,14 +585,18 @@ impl CandleDepthModel {
         adapter: Option<&Path>,
     ) -> Result<Self> {
         let path = path.as_ref();
-        let base = open_checkpoint(path, &config, device, dtype)?;
-        let Some(adapter) = adapter else {
+        // the adapter first: a missing or broken one is named before the (larger) weights load
+        let Some((adapter, a)) = adapter
+            .map(|p| train::Adapter::load(p).map(|a| (p, a)))
+            .transpose()?
+        else {
+            let base = open_checkpoint(path, &config, device, dtype)?;
             return Self::from_var_builder(config, base).map_err(|e| match e {
                 DepthError::Candle { source, .. } => weights_source(path)(source),
                 other => other,
             });
         };
-        let a = train::Adapter::load(adapter)?;
+        let base = open_checkpoint(path, &config, device, dtype)?;
         let vb = train::merge_adapter(base, &config, &a, adapter)?;
         Self::from_var_builder(config, vb)
     }
