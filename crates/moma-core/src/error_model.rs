@@ -82,6 +82,10 @@ const LAGS: [usize; 6] = [1, 2, 4, 8, 16, 32];
 /// Correlation length of the edge field, pixels.
 const EDGE_SCALE_PX: f64 = 2.0;
 
+/// The smallest variance share of a short-range field that [`DepthErrorModel::expected_truth`]
+/// smooths out.
+const SHORT_SHARE_MIN: f64 = 0.01;
+
 /// The error model of a calibration's aligned depth (module documentation). Metres.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -498,6 +502,73 @@ impl DepthErrorModel {
             },
             ..*self
         }
+    }
+
+    /// The expected truth under this model, inside `roi`, of an aligned depth that holds one
+    /// realisation of the short-range (fine and medium field) error: `depth_m` averaged over a
+    /// window of the largest short-range field's correlation length, separably (along rows, then
+    /// columns), each average over the valid pixels within `3 σ_short(z) + 2 mm` of the centre's
+    /// depth so that depth edges stay where they are. Outside `roi`, and everywhere without
+    /// short-range error, the depth is returned unchanged.
+    ///
+    /// The truth is smooth where the depth model's output is rough: robust suction quality draws
+    /// around this, since its seal test reads the surface at a few pixels' scale.
+    pub fn expected_truth(&self, depth_m: ArrayView2<'_, f32>, roi: Roi) -> Array2<f32> {
+        let mut out = depth_m.to_owned();
+        let [_, fine, medium, _] = self.variance_shares;
+        let r = if medium > SHORT_SHARE_MIN {
+            self.scales_px[1]
+        } else if fine > SHORT_SHARE_MIN {
+            self.scales_px[0]
+        } else {
+            return out;
+        }
+        .round()
+        .max(1.0) as usize;
+        let (h, w) = depth_m.dim();
+        let (u0, u1) = (roi.u0.min(w), (roi.u0 + roi.width).min(w));
+        let (v0, v1) = (roi.v0.min(h), (roi.v0 + roi.height).min(h));
+        if u0 >= u1 || v0 >= v1 {
+            return out;
+        }
+        let short_sigma = self.sigma_flat_m * (fine + medium).max(0.0).sqrt();
+        let tol = |z: f32| (3.0 * short_sigma * self.depth_scale(z) + 0.002) as f32;
+        // the mean of the valid values of `line` within `t` of `z0`, `z0` itself included
+        let mean_near = |z0: f32, t: f32, line: &mut dyn Iterator<Item = f32>| {
+            let (mut sum, mut n) = (0.0f32, 0u32);
+            for z in line {
+                if is_valid_depth(z) && (z - z0).abs() <= t {
+                    sum += z;
+                    n += 1;
+                }
+            }
+            if n == 0 { z0 } else { sum / n as f32 }
+        };
+        // along rows, on the roi's columns and r rows above and below it (what the column pass reads)
+        let (rv0, rv1) = (v0.saturating_sub(r), (v1 + r).min(h));
+        let mut rows = depth_m.slice(ndarray::s![rv0..rv1, u0..u1]).to_owned();
+        for v in rv0..rv1 {
+            for u in u0..u1 {
+                let z0 = depth_m[[v, u]];
+                if is_valid_depth(z0) {
+                    let line =
+                        depth_m.slice(ndarray::s![v, u.saturating_sub(r)..(u + r + 1).min(w)]);
+                    rows[[v - rv0, u - u0]] = mean_near(z0, tol(z0), &mut line.iter().copied());
+                }
+            }
+        }
+        // along columns, inside the roi
+        for v in v0..v1 {
+            for u in u0..u1 {
+                let z0 = rows[[v - rv0, u - u0]];
+                if is_valid_depth(z0) {
+                    let (a, b) = (v.saturating_sub(r).max(rv0), (v + r + 1).min(rv1));
+                    let line = rows.slice(ndarray::s![a - rv0..b - rv0, u - u0]);
+                    out[[v, u]] = mean_near(z0, tol(z0), &mut line.iter().copied());
+                }
+            }
+        }
+        out
     }
 
     /// The RMS (metres) of the flat error's variation within a patch of radius `radius_px`
@@ -1070,6 +1141,78 @@ mod tests {
                 1.0
             }
         })
+    }
+
+    /// The expected truth of a depth holding one realisation of the model's short-range field:
+    /// closer to the truth than the rough depth (RMS), with the 50 mm box edge kept where it is,
+    /// nothing changed outside the region asked for, and nothing without short-range error.
+    #[test]
+    fn expected_truth_smooths_the_short_range_field_and_keeps_edges() {
+        let (w, h) = (120, 90);
+        let truth = MetricDepth::new(step_scene(w, h));
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.003,
+            depth_ref_m: 1.0,
+            variance_shares: [0.0, 0.0, 1.0, 0.0],
+            ..DepthErrorModel::default()
+        };
+        let rms = |a: &Array2<f32>| {
+            let n = a.len() as f64;
+            (a.iter()
+                .zip(truth.depth_m.iter())
+                .map(|(x, t)| f64::from(x - t).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt()
+        };
+        for seed in 0..3 {
+            let rough = m.draw(&truth, seed, 0).depth_m;
+            let smooth = m.expected_truth(rough.view(), Roi::full(w, h));
+            let (before, after) = (rms(&rough), rms(&smooth));
+            assert!(
+                before > 0.002,
+                "seed {seed}: the premise, {before} m of noise"
+            );
+            assert!(
+                after < 0.7 * before,
+                "seed {seed}: RMS {before} → {after} m"
+            );
+            // the box's border pixels stay on the box (0.95 m), the table's next to them on it
+            for u in w / 3 + 2..2 * w / 3 - 2 {
+                let (top_in, top_out) = (smooth[[h / 3, u]], smooth[[h / 3 - 1, u]]);
+                assert!(
+                    (top_in - 0.95).abs() < 0.008,
+                    "seed {seed}, u {u}: {top_in}"
+                );
+                assert!(
+                    (top_out - 1.0).abs() < 0.008,
+                    "seed {seed}, u {u}: {top_out}"
+                );
+            }
+            // outside the region: unchanged
+            let roi = Roi {
+                u0: 10,
+                v0: 20,
+                width: 30,
+                height: 40,
+            };
+            let part = m.expected_truth(rough.view(), roi);
+            for ((v, u), z) in part.indexed_iter() {
+                let inside = (20..60).contains(&v) && (10..40).contains(&u);
+                if inside {
+                    assert_eq!(*z, smooth[[v, u]], "({v}, {u}) inside the roi");
+                } else {
+                    assert_eq!(*z, rough[[v, u]], "({v}, {u}) outside the roi");
+                }
+            }
+        }
+        // no short-range field: the depth as it is
+        let coarse = DepthErrorModel {
+            variance_shares: [0.5, 0.0, 0.0, 0.5],
+            ..m
+        };
+        let rough = m.draw(&truth, 0, 0).depth_m;
+        assert_eq!(coarse.expected_truth(rough.view(), Roi::full(w, h)), rough);
     }
 
     /// The variation within a patch is the fields' semivariogram at the patch radius:

@@ -10,7 +10,7 @@ use common::{BoxSpec, H, Scene as Synth, W, intrinsics, v3};
 use moma_core::{DepthErrorModel, MetricDepth};
 use moma_grasp::{
     Grasp, GraspQuality, GraspRequest, Gripper, Scene, SceneConfig, ScoreConfig, SuctionCup,
-    plan_grasps, score_grasp,
+    plan_grasps, score_grasp, success_probabilities,
 };
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
@@ -18,6 +18,8 @@ use rand_chacha::ChaCha8Rng;
 
 const DIST_M: f64 = 0.7;
 const NOISE_M: f64 = 0.003;
+/// Bumps as rough as the shared sets' calibrations find at the cup's scale (the 8-px field).
+const BUMPS_M: f64 = 0.004;
 
 /// Seeded noise of unit standard deviation, correlated over a few pixels: white noise through
 /// three passes of a (2·4+1)-px box blur in each direction (close to a Gaussian of σ ≈ 4 px).
@@ -149,5 +151,67 @@ fn with_the_error_model_the_cup_is_aimed_along_the_true_surface_under_bumps() {
         worst_without >= 2.0 * worst_with,
         "the control: pixel normals on the same depths are off by up to {worst_without:.1}° \
          (with the model {worst_with:.1}°); the bumps do not tilt them as assumed"
+    );
+}
+
+/// The success probability of a seal on the bumpy box top, where the truth is flat and the
+/// grasp (the one planned on the exact depth) succeeds: the draws are around the expected truth
+/// (the bumps the planning depth holds are smoothed out, [`DepthErrorModel::expected_truth`]),
+/// not around the bumps, which alone break the seal's 5 mm gap tolerance at the cup's ring.
+#[test]
+fn a_seal_on_a_flat_top_under_bumps_gets_a_high_success_probability() {
+    // the bumps' σ in the 8-px field, and as much again in the coarse field that moves and tilts
+    // whole patches (as calibrations on the shared sets find)
+    let model = DepthErrorModel {
+        sigma_flat_m: BUMPS_M * 2f64.sqrt(),
+        depth_ref_m: DIST_M,
+        variance_shares: [0.0, 0.0, 0.5, 0.5],
+        ..DepthErrorModel::default()
+    };
+    let cup = Gripper::Suction(SuctionCup::default());
+    let (s, _) = scene(0.0);
+    let gt_depth = s.render();
+    let gt = Scene::build(&gt_depth, &intrinsics(), None, &SceneConfig::default()).unwrap();
+    let mut exact = GraspRequest::new(cup);
+    exact.top_k = 1;
+    let (_, outcome) = plan_grasps(&gt_depth, &intrinsics(), None, &exact).unwrap();
+    let grasp = outcome.grasps[0];
+    assert!(
+        score_grasp(&gt, &grasp, &cup, &ScoreConfig::default())
+            .unwrap()
+            .success,
+        "the premise: the exact depth's grasp succeeds on the truth"
+    );
+    let mut request = GraspRequest::new(cup).with_error_model(Some(model));
+    request.draws = 16;
+    let (mut rough_seals, mut p_sum) = (0u64, 0.0);
+    let seeds = 8u64;
+    for seed in 0..seeds {
+        let noise = correlated_noise(seed);
+        let planning = MetricDepth::new(
+            ndarray::Zip::from(&gt_depth.depth_m)
+                .and(&noise)
+                .map_collect(|&z, &n| if z > 0.0 { z + (BUMPS_M * n) as f32 } else { z }),
+        );
+        let scene = Scene::build(&planning, &intrinsics(), None, &SceneConfig::default()).unwrap();
+        // the control: on the bumps themselves the seal breaks
+        rough_seals += u64::from(
+            score_grasp(&scene, &grasp, &cup, &ScoreConfig::default())
+                .unwrap()
+                .success,
+        );
+        request.seed = seed;
+        let p = success_probabilities(&[grasp], &scene, &planning, &intrinsics(), &model, &request)
+            .unwrap()[0];
+        p_sum += p;
+    }
+    let mean_p = p_sum / seeds as f32;
+    assert!(
+        mean_p >= 0.45,
+        "mean success_prob {mean_p} for a seal that holds on the truth"
+    );
+    assert!(
+        rough_seals <= seeds / 2,
+        "the control: the seal holds on {rough_seals} of {seeds} bumpy depths"
     );
 }
