@@ -56,6 +56,16 @@ fn correlated_noise(seed: u64) -> Array2<f64> {
     a.mapv(|x| (x - mean) / sd)
 }
 
+/// `depth` with seeded bumps of σ `sigma_m` ([`correlated_noise`]) where it has depth.
+fn bumpy(depth: &MetricDepth, sigma_m: f64, seed: u64) -> MetricDepth {
+    let noise = correlated_noise(seed);
+    MetricDepth::new(
+        ndarray::Zip::from(&depth.depth_m)
+            .and(&noise)
+            .map_collect(|&z, &n| if z > 0.0 { z + (sigma_m * n) as f32 } else { z }),
+    )
+}
+
 /// A wide box (100 × 80 mm top, 50 mm tall) on a table tilted by `tilt_deg`.
 fn scene(tilt_deg: f64) -> (Synth, BoxSpec) {
     let b = BoxSpec {
@@ -123,12 +133,7 @@ fn with_the_error_model_the_cup_is_aimed_along_the_true_surface_under_bumps() {
         assert!(ok_exact, "tilt {tilt}°: the exact depth's grasp fails");
         exact_worst = exact_worst.max(a_exact);
         for seed in 0..4u64 {
-            let noise = correlated_noise(seed);
-            let planning = MetricDepth::new(
-                ndarray::Zip::from(&gt_depth.depth_m)
-                    .and(&noise)
-                    .map_collect(|&z, &n| if z > 0.0 { z + (NOISE_M * n) as f32 } else { z }),
-            );
+            let planning = bumpy(&gt_depth, NOISE_M, seed);
             let (a_with, ok_with) = top1(&s, &planning, &gt, Some(model), seed);
             let (a_without, _) = top1(&s, &planning, &gt, None, seed);
             assert!(
@@ -187,12 +192,7 @@ fn a_seal_on_a_flat_top_under_bumps_gets_a_high_success_probability() {
     let (mut rough_seals, mut p_sum) = (0u64, 0.0);
     let seeds = 8u64;
     for seed in 0..seeds {
-        let noise = correlated_noise(seed);
-        let planning = MetricDepth::new(
-            ndarray::Zip::from(&gt_depth.depth_m)
-                .and(&noise)
-                .map_collect(|&z, &n| if z > 0.0 { z + (BUMPS_M * n) as f32 } else { z }),
-        );
+        let planning = bumpy(&gt_depth, BUMPS_M, seed);
         let scene = Scene::build(&planning, &intrinsics(), None, &SceneConfig::default()).unwrap();
         // the control: on the bumps themselves the seal breaks
         rough_seals += u64::from(
