@@ -745,7 +745,7 @@ impl Calibration {
         pred: ArrayView2<'_, f32>,
         kind: PredictionKind,
     ) -> Result<NormalisedMap> {
-        self.check_prediction(pred, kind)?;
+        self.check_prediction(PredictionInput::view(pred, kind))?;
         normalise_view(
             pred,
             kind,
@@ -754,15 +754,24 @@ impl Calibration {
         )
     }
 
-    fn check_prediction(&self, pred: ArrayView2<'_, f32>, kind: PredictionKind) -> Result<()> {
-        if kind != self.prediction_kind {
+    /// Checks a prediction's kind and size against the calibration's.
+    fn check_prediction(&self, pred: PredictionInput<'_>) -> Result<()> {
+        if pred.kind() != self.prediction_kind {
             return Err(CoreError::KindMismatch {
                 expected: self.prediction_kind,
-                got: kind,
+                got: pred.kind(),
             });
         }
-        self.image_size()
-            .expect_eq("prediction", ImageSize::of(&pred))
+        self.image_size().expect_eq("prediction", pred.size())
+    }
+
+    /// A checked prediction as a normalised map: a raw one normalised ([`Calibration::normalise`]),
+    /// a normalised one borrowed.
+    fn normalised_input<'p>(&self, pred: PredictionInput<'p>) -> Result<Cow<'p, NormalisedMap>> {
+        Ok(match pred {
+            PredictionInput::Raw { values, kind } => Cow::Owned(self.normalise_view(values, kind)?),
+            PredictionInput::Normalised { map, .. } => Cow::Borrowed(map),
+        })
     }
 
     /// Turns a prediction into metric depth: the one path from a depth model's output to the
@@ -792,15 +801,9 @@ impl Calibration {
         out: &mut ArrayViewMut2<'_, f32>,
     ) -> Result<FrameReport> {
         let pred = pred.into();
-        if pred.kind() != self.prediction_kind {
-            return Err(CoreError::KindMismatch {
-                expected: self.prediction_kind,
-                got: pred.kind(),
-            });
-        }
-        let size = self.image_size();
-        size.expect_eq("prediction", pred.size())?;
-        size.expect_eq("output buffer", ImageSize::of(&out.view()))?;
+        self.check_prediction(pred)?;
+        self.image_size()
+            .expect_eq("output buffer", ImageSize::of(&out.view()))?;
         let realign = match options.realign {
             None => {
                 self.one_shot_into(pred, out)?;
@@ -874,10 +877,7 @@ impl Calibration {
             self.one_shot_into(pred, out)?;
             return realign_in_place(store, rgb, self.space(), config, out);
         }
-        let normalised = match pred {
-            PredictionInput::Raw { values, kind } => Cow::Owned(self.normalise_view(values, kind)?),
-            PredictionInput::Normalised { map, .. } => Cow::Borrowed(map),
-        };
+        let normalised = self.normalised_input(pred)?;
         let (report, ab) = realign_prediction_affine(
             store,
             rgb,
@@ -1066,16 +1066,8 @@ impl Calibration {
         self.image_size()
             .expect_eq("anchor store", store.image_size())?;
         let pred = pred.into();
-        if pred.kind() != self.prediction_kind {
-            return Err(CoreError::KindMismatch {
-                expected: self.prediction_kind,
-                got: pred.kind(),
-            });
-        }
-        let normalised = match pred {
-            PredictionInput::Raw { values, kind } => Cow::Owned(self.normalise_view(values, kind)?),
-            PredictionInput::Normalised { map, .. } => Cow::Borrowed(map),
-        };
+        self.check_prediction(pred)?;
+        let normalised = self.normalised_input(pred)?;
         let own = self.align_normalised(&normalised)?;
         self.anchors = Some(Arc::new(
             store
