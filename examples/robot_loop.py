@@ -35,7 +35,7 @@ def predict(depth_m):
 # 1. one calibration frame: prediction + sensor depth (0/NaN where the sensor has none)
 gt_m = grab(0.0)
 gt_m[rng.random(gt_m.shape) < 0.2] = 0.0
-cal = moma.calibrate(predict(grab(0.0)), gt_m, CAM, kind="inverse-depth", samples=100, seed=0)
+cal = moma.calibrate(predict(grab(0.0)), gt_m, CAM, kind="relative-disparity", samples=100, seed=0)
 print(cal)
 print({k: v for k, v in cal.report.items() if k != "model"})
 

@@ -44,7 +44,7 @@ def median_ms(fn, repeats):
 
 
 def numpy_align(pred, model, space):
-    """The whole step in NumPy (float32 throughout), for an inverse-depth prediction:
+    """The whole step in NumPy (float32 throughout), for a relative-disparity prediction:
     min-max normalisation in `space` (depth: z = 1/d, NaN for d ≤ 0; inverse: z = d), the model
     (SSRA ẑ(αu + βv + γ) + T3, or GSSA s·ẑ + t), and in inverse space the reciprocal of the
     fitted disparity (NaN where ≤ 0)."""
@@ -90,7 +90,7 @@ def main():
     rows = []
     for method in ["ssra", "gssa"]:
         for space in ["depth", "inverse"]:
-            cal = moma.calibrate(pred, gt, kind="inverse-depth", method=method, space=space,
+            cal = moma.calibrate(pred, gt, kind="relative-disparity", method=method, space=space,
                                  samples=100, seed=0)
             model = cal.report["model"]
             np.testing.assert_allclose(numpy_align(frame, model, space), cal.align(frame),
@@ -113,7 +113,7 @@ def main():
                         capture_output=True, text=True, check=True)
                     r["rust_ms"] = json.loads(p.stdout)["median_ms"]
             rows.append(r)
-    print(f"640x480 cal.align, inverse-depth prediction, min-max, median of {args.repeats} (ms):")
+    print(f"640x480 cal.align, relative-disparity prediction, min-max, median of {args.repeats} (ms):")
     print(f"{'method':6s} {'space':7s} {'python':>7s} {'py_into':>7s} {'rust':>7s} {'numpy':>7s}"
           f" {'py/rust':>7s} {'numpy/py':>8s}")
     for r in rows:

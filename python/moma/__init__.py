@@ -2,14 +2,15 @@
 
 NumPy in, NumPy out. Depth maps are ``float32`` arrays of shape ``(height, width)`` in metres,
 NaN where there is no depth; predictions are ``float32`` ``(height, width)`` arrays of a depth
-model's raw output, of kind ``"depth"`` (larger = farther) or ``"inverse-depth"`` (larger =
-nearer). Pixel coordinates: u right, v down; camera frame: x right, y down, z forward.
+model's raw output, of kind ``"metric-depth"`` (metres as a metric model predicts them),
+``"relative-depth"`` (larger = farther, no unit) or ``"relative-disparity"`` (larger = nearer, no
+unit). Pixel coordinates: u right, v down; camera frame: x right, y down, z forward.
 
 Example::
 
     import moma
     cam = moma.Intrinsics(fx, fy, cx, cy, width, height)
-    cal = moma.calibrate(pred, gt_m, cam, kind="inverse-depth", samples=100, seed=0)
+    cal = moma.calibrate(pred, gt_m, cam, kind="relative-disparity", samples=100, seed=0)
     depth_m = cal.align(next_pred)
 """
 

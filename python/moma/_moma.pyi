@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 _Path = Union[str, "PathLike[str]"]
-_Kind = Literal["depth", "inverse-depth"]
+_Kind = Literal["metric-depth", "relative-depth", "relative-disparity"]
 _Method = Literal[
     "ssra", "gssa", "lwlr", "lwlr-exact", "lwlr-bare", "ssra-local", "gssa-local", "auto", "raw"
 ]
@@ -278,7 +278,7 @@ def calibrate(
     nonzero = inside; few-shot: one for all frames or a list, one per frame); ``workspace``:
     normalise over this region (embedded in the calibration); ``space``: ``"inverse"``
     (disparity predictor, 1/z target) or ``"depth"``, default the prediction's own
-    (inverse-depth → inverse); ``bandwidth_px``: LWLR bandwidth in pixels; ``robust``: robust
+    (relative-disparity → inverse, the depth kinds → depth); ``bandwidth_px``: LWLR bandwidth in pixels; ``robust``: robust
     fit against wrong ground truth (Huber or Tukey IRLS, RANSAC; for ssra, gssa, ssra-local,
     gssa-local), ``robust_threshold_m`` its residual scale in metres (None: the data-driven
     ``auto`` threshold, the CLI's default); ``anchors_rgb``: the (first) calibration frame's RGB (uint8 H×W×3 array or an image

@@ -9,7 +9,7 @@ from conftest import TRUE, metrics_np, normalise_np, scene, ssra_apply_np
 
 
 @pytest.mark.parametrize(
-    "kind,norm", [("inverse-depth", "minmax"), ("depth", "none"), ("depth", "median")]
+    "kind,norm", [("relative-disparity", "minmax"), ("metric-depth", "none"), ("metric-depth", "median")]
 )
 def test_ssra_recovers_known_parameters(kind, norm):
     pred, gt = scene(kind=kind, norm=norm)
@@ -28,14 +28,14 @@ def test_ssra_recovers_known_parameters(kind, norm):
 
 def test_align_reproduces_ground_truth_and_numpy_apply(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", seed=0)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", seed=0)
     depth = cal.align(pred)
     assert depth.dtype == np.float32 and depth.shape == pred.shape
     valid = np.isfinite(gt) & (gt > 0)
     np.testing.assert_allclose(depth[valid], gt[valid], rtol=1e-4, atol=1e-5)
     m = cal.report["model"]
     want = ssra_apply_np(
-        normalise_np(pred, "inverse-depth"),
+        normalise_np(pred, "relative-disparity"),
         m["alpha_m_per_px"],
         m["beta_m_per_px"],
         m["gamma_m"],
@@ -46,11 +46,11 @@ def test_align_reproduces_ground_truth_and_numpy_apply(small_scene):
 
 def test_align_of_another_frame_uses_the_same_parameters(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth")
     other = (pred * 1.3 + 0.2).astype(np.float32)
     m = cal.report["model"]
     want = ssra_apply_np(
-        normalise_np(other, "inverse-depth"),
+        normalise_np(other, "relative-disparity"),
         m["alpha_m_per_px"], m["beta_m_per_px"], m["gamma_m"], m["t3_m"],
     )
     np.testing.assert_allclose(cal.align(other), want, rtol=1e-5, atol=1e-6)
@@ -58,7 +58,7 @@ def test_align_of_another_frame_uses_the_same_parameters(small_scene):
 
 def test_inverse_depth_zero_gives_nan():
     pred, gt = scene()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth")
     p2 = pred.copy()
     p2[10, 20] = 0.0  # no depth can be inferred from zero disparity
     out = cal.align(p2)
@@ -68,7 +68,7 @@ def test_inverse_depth_zero_gives_nan():
 
 def test_align_into_matches_align_and_does_not_reallocate(small_scene):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth")
     out = np.full(pred.shape, -1.0, dtype=np.float32)
     ptr = out.ctypes.data
     cal.align_into(pred, out)
@@ -89,7 +89,7 @@ def test_other_dtypes_and_layouts_give_the_same_result(small_scene, method, spac
     if with_workspace:
         ws = np.zeros(pred.shape, bool)
         ws[10:100, 20:140] = True
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space=space, method=method, norm=norm,
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space=space, method=method, norm=norm,
                          workspace=ws)
     ref = cal.align(pred)
     assert np.isfinite(ref).mean() > 0.9
@@ -108,7 +108,7 @@ def test_other_dtypes_and_layouts_give_the_same_result(small_scene, method, spac
 def test_calibration_does_not_modify_inputs(small_scene):
     pred, gt = small_scene
     p0, g0 = pred.copy(), gt.copy()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth")
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth")
     cal.align(pred)
     np.testing.assert_array_equal(pred, p0)
     np.testing.assert_array_equal(gt, g0)
@@ -116,9 +116,9 @@ def test_calibration_does_not_modify_inputs(small_scene):
 
 def test_seed_is_deterministic_and_matters(small_scene):
     pred, gt = small_scene
-    a = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", samples=20, seed=1)
-    b = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", samples=20, seed=1)
-    c = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", samples=20, seed=2)
+    a = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", samples=20, seed=1)
+    b = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", samples=20, seed=1)
+    c = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", samples=20, seed=2)
     np.testing.assert_array_equal(a.samples, b.samples)
     assert not np.array_equal(a.samples[:, :2], c.samples[:, :2])
 
@@ -127,7 +127,7 @@ def test_sample_mask_restricts_samples(small_scene):
     pred, gt = small_scene
     mask = np.zeros(pred.shape, dtype=np.uint8)
     mask[40:80, 50:120] = 255
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", mask=mask, samples=50)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", mask=mask, samples=50)
     u, v = cal.samples[:, 0], cal.samples[:, 1]
     assert ((u >= 50) & (u < 120) & (v >= 40) & (v < 80)).all()
 
@@ -136,9 +136,9 @@ def test_workspace_normalisation_matches_numpy():
     pred, _ = scene(holes=False)
     ws = np.zeros(pred.shape, dtype=bool)
     ws[20:100, 30:140] = True
-    zhat = normalise_np(pred, "inverse-depth", "minmax", region=ws)
+    zhat = normalise_np(pred, "relative-disparity", "minmax", region=ws)
     gt = ssra_apply_np(zhat, **TRUE).astype(np.float32)
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", space="depth", workspace=ws)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", workspace=ws)
     np.testing.assert_array_equal(cal.workspace, ws)
     np.testing.assert_allclose(cal.align(pred), gt, rtol=1e-4, atol=1e-5)
 
@@ -146,7 +146,7 @@ def test_workspace_normalisation_matches_numpy():
 @pytest.mark.parametrize("method", ["gssa", "lwlr", "lwlr-exact", "raw"])
 def test_other_methods_run(small_scene, method):
     pred, gt = small_scene
-    kind = "depth" if method == "raw" else "inverse-depth"
+    kind = "metric-depth" if method == "raw" else "relative-disparity"
     norm = "none" if method == "raw" else "minmax"
     cal = moma.calibrate(pred, gt, kind=kind, method=method, norm=norm)
     out = cal.align(pred)
@@ -157,7 +157,7 @@ def test_gssa_recovers_scale_and_shift():
     rng = np.random.default_rng(5)
     pred = rng.uniform(1, 3, (60, 80)).astype(np.float32)
     gt = (0.4 * pred + 0.25).astype(np.float32)
-    cal = moma.calibrate(pred, gt, kind="depth", method="gssa", norm="none")
+    cal = moma.calibrate(pred, gt, kind="metric-depth", method="gssa", norm="none")
     m = cal.report["model"]
     assert m["scale"] == pytest.approx(0.4, rel=1e-5)
     assert m["shift_m"] == pytest.approx(0.25, abs=1e-5)
@@ -208,7 +208,7 @@ def test_intrinsics_fields(cam):
 
 def test_ssra_with_camera_reports_canonical_parameters(small_scene, cam):
     pred, gt = small_scene
-    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth", space="depth")
+    cal = moma.calibrate(pred, gt, cam, kind="relative-disparity", space="depth")
     can = cal.report["model"]["canonical"]
     assert can["f_px"] == 150.0 and can["cx_px"] == 79.5 and can["cy_px"] == 59.5
     assert cal.intrinsics == cam
@@ -221,17 +221,17 @@ def test_inverse_space_recovers_a_shifted_disparity_exactly():
     a = 0.8
     b = -0.5 * np.mean(a / gt)
     d = (a / gt + b).astype(np.float32)
-    cal = moma.calibrate(d, gt, kind="inverse-depth", method="gssa")
+    cal = moma.calibrate(d, gt, kind="relative-disparity", method="gssa")
     assert cal.space == "inverse"
     np.testing.assert_allclose(cal.align(d), gt, rtol=2e-5)
-    depth_space = moma.calibrate(d, gt, kind="inverse-depth", method="gssa", space="depth")
+    depth_space = moma.calibrate(d, gt, kind="relative-disparity", method="gssa", space="depth")
     assert np.nanmean(np.abs(depth_space.align(d) - gt)) > 100 * np.nanmean(np.abs(cal.align(d) - gt))
 
 
 def test_raw_needs_norm_none():
     pred, gt = scene(holes=False)
     with pytest.raises(ValueError, match="normalisation 'none'"):
-        moma.calibrate(gt, gt, kind="depth", method="raw")
+        moma.calibrate(gt, gt, kind="metric-depth", method="raw")
 
 
 def _narrow_bumps(h=120, w=160):
@@ -247,7 +247,7 @@ def _narrow_bumps(h=120, w=160):
 
 def test_protocol_decides_the_cross_validation_of_auto_and_local():
     pred, gt = _narrow_bumps()
-    kw = dict(kind="depth", norm="none", samples=150, seed=1)
+    kw = dict(kind="metric-depth", norm="none", samples=150, seed=1)
     per_frame = moma.calibrate(pred, gt, method="auto", protocol="per-frame", **kw)
     fixed = moma.calibrate(pred, gt, method="auto", **kw)
     sel = per_frame.report["model"]["selection"]
@@ -277,3 +277,19 @@ def test_protocol_decides_the_cross_validation_of_auto_and_local():
     with pytest.raises(ValueError, match="margin"):
         moma.calibrate(pred, gt, method="auto", cv_margin_se=-1.0, **kw)
     assert moma.calibrate(pred, gt, method="gssa", **kw).predicted_error()["protocol"] == "fixed-camera"
+
+
+def test_old_kind_names_read_with_the_documented_mapping():
+    """docs/formats.md "Prediction kinds": `inverse-depth` is `relative-disparity`; a bare
+    `depth` claims no unit (`relative-depth`), so `raw` refuses it and says what to write."""
+    pred, gt = scene(holes=False)
+    assert moma.calibrate(pred, gt, kind="inverse-depth").kind == "relative-disparity"
+    depth_pred = (1.3 * gt + 0.2).astype(np.float32)
+    rel = moma.calibrate(depth_pred, gt, kind="depth", method="gssa")
+    assert rel.kind == "relative-depth" and rel.space == "depth"
+    with pytest.raises(ValueError, match="metric-depth"):
+        moma.calibrate(gt, gt, kind="depth", method="raw", norm="none")
+    with pytest.raises(ValueError, match="relative-depth, relative-disparity"):
+        moma.calibrate(pred, gt, kind="metres")
+    raw = moma.calibrate(gt, gt, kind="metric-depth", method="raw", norm="none")
+    assert raw.kind == "metric-depth"

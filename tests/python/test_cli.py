@@ -39,17 +39,17 @@ def test_python_calibration_aligns_identically_with_cli(frames, cam):
     d, pred, gt, other = frames
     ws = np.zeros(pred.shape, dtype=np.uint8)
     ws[5:115, 5:155] = 1
-    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth", samples=80, seed=9, workspace=ws)
+    cal = moma.calibrate(pred, gt, cam, kind="relative-disparity", samples=80, seed=9, workspace=ws)
     cal.save(d / "py.json")
     run("align", "--calib", d / "py.json", "--pred", d / "pred1.npy",
-        "--pred-kind", "inverse-depth", "-o", d / "out_py")
+        "--pred-kind", "relative-disparity", "-o", d / "out_py")
     cli = np.load(d / "out_py" / "pred1.depth.npy")
     np.testing.assert_array_equal(cli, cal.align(other))
 
 
 def test_cli_calibration_aligns_identically_in_python(frames):
     d, pred, gt, other = frames
-    out = run("calibrate", "--pred", d / "pred0.npy", "--pred-kind", "inverse-depth",
+    out = run("calibrate", "--pred", d / "pred0.npy", "--pred-kind", "relative-disparity",
               "--gt", d / "gt.npy", "--camera", d / "camera.json", "--samples", "50",
               "--seed", "2", "-o", d / "cli.json", "--json")
     summary = json.loads(out)
@@ -58,8 +58,8 @@ def test_cli_calibration_aligns_identically_in_python(frames):
     assert cal.report["n_used"] == summary["n_used"] == 50
     # same seed and samples in Python: the same fit
     py = moma.calibrate(pred, gt, moma.Intrinsics.load(d / "camera.json"),
-                        kind="inverse-depth", samples=50, seed=2)
+                        kind="relative-disparity", samples=50, seed=2)
     assert py.report["model"] == summary["model"]
     run("align", "--calib", d / "cli.json", "--pred", d / "pred1.npy",
-        "--pred-kind", "inverse-depth", "-o", d / "out_cli")
+        "--pred-kind", "relative-disparity", "-o", d / "out_cli")
     np.testing.assert_array_equal(np.load(d / "out_cli" / "pred1.depth.npy"), cal.align(other))

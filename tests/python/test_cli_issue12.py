@@ -52,7 +52,7 @@ def files(tmp_path, cam):
 
 def cli_align(d, calib, name, *extra):
     out = run("align", "--calib", calib, "--pred", d / "test.npy", "--pred-kind",
-              "inverse-depth", "-o", d / name, "--json", *extra)
+              "relative-disparity", "-o", d / name, "--json", *extra)
     return np.load(d / name / "test.depth.npy"), json.loads(out)
 
 
@@ -89,12 +89,12 @@ def test_calibrate_matches_cli(files, cam, py_kw, cli_args):
     frame_args = []
     for i in range(n):
         frame_args += ["--pred", d / f"pred{i}.npy", "--gt", d / f"gt{i}.npy"]
-    summary = json.loads(run("calibrate", *frame_args, "--pred-kind", "inverse-depth",
+    summary = json.loads(run("calibrate", *frame_args, "--pred-kind", "relative-disparity",
                              "--camera", d / "camera.json", "--samples", "50", "--seed", "3",
                              *cli_args, "-o", d / "cli.json", "--json"))
     pred_arg = preds[:n] if n > 1 else preds[0]
     gt_arg = gts[:n] if n > 1 else gts[0]
-    cal = moma.calibrate(pred_arg, gt_arg, cam, kind="inverse-depth", samples=50, seed=3,
+    cal = moma.calibrate(pred_arg, gt_arg, cam, kind="relative-disparity", samples=50, seed=3,
                          **py_kw)
     assert summary["frames"] == n
     assert cal.report["model"] == summary["model"]
@@ -121,11 +121,11 @@ def test_calibrate_matches_cli(files, cam, py_kw, cli_args):
 def test_realigned_calibration_matches_cli(files, cam, frame_rgb, anchors_from, form):
     d, preds, gts, test, rgb0, rgb_cov = files
     summary = json.loads(run("calibrate", "--pred", d / "pred0.npy", "--gt", d / "gt0.npy",
-                             "--pred-kind", "inverse-depth", "--camera", d / "camera.json",
+                             "--pred-kind", "relative-disparity", "--camera", d / "camera.json",
                              "--method", "gssa", "--seed", "1", "--anchors", "--anchors-rgb",
                              d / "rgb0.png", "-o", d / "cli.json", "--json"))
     anchors = rgb0 if anchors_from == "array" else d / "rgb0.png"
-    cal = moma.calibrate(preds[0], gts[0], cam, kind="inverse-depth", method="gssa", seed=1,
+    cal = moma.calibrate(preds[0], gts[0], cam, kind="relative-disparity", method="gssa", seed=1,
                          anchors_rgb=anchors)
     assert cal.report["model"] == summary["model"] and cal.has_anchors
     cli_depth, frames = cli_align(d, d / "cli.json", "out", "--realign", "anchors",

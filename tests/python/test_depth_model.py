@@ -54,7 +54,7 @@ def tiny_metric():
 
 
 def test_metric_head_kind_and_output(tiny_metric):
-    assert tiny_metric.kind == "depth"
+    assert tiny_metric.kind == "metric-depth"
     assert tiny_metric.runtime.lower().startswith("candle, cpu")
     rgb = read_png_rgb()
     pred = tiny_metric.predict(rgb)
@@ -77,7 +77,7 @@ def test_matches_official_pytorch_reference(name):
 
 def test_relative_head_kind():
     m = moma.DepthModel(REF / "tiny-rel.safetensors", config=tiny_config("tiny-rel"))
-    assert m.kind == "inverse-depth"
+    assert m.kind == "relative-disparity"
     pred = m.predict(read_png_rgb()[:100, :150].copy())
     assert pred.shape == (100, 150) and (pred >= 0).all()  # ReLU head
 

@@ -10,7 +10,7 @@ from conftest import scene
 @pytest.fixture(scope="module")
 def cal():
     pred, gt = scene()
-    return moma.calibrate(pred, gt, kind="inverse-depth")
+    return moma.calibrate(pred, gt, kind="relative-disparity")
 
 
 def test_exception_hierarchy():
@@ -32,14 +32,14 @@ def test_kind_is_required():
     "kwargs,match",
     [
         (dict(kind="disparity-ish"), "prediction kind"),
-        (dict(kind="depth", method="magic"), "unknown method"),
-        (dict(kind="depth", norm="zscore"), "unknown normalisation"),
-        (dict(kind="depth", sampling="sobol"), "unknown sampling"),
-        (dict(kind="depth", method="lwlr", bandwidth_px=-3.0), "bandwidth"),
+        (dict(kind="metric-depth", method="magic"), "unknown method"),
+        (dict(kind="metric-depth", norm="zscore"), "unknown normalisation"),
+        (dict(kind="metric-depth", sampling="sobol"), "unknown sampling"),
+        (dict(kind="metric-depth", method="lwlr", bandwidth_px=-3.0), "bandwidth"),
         # As `moma calibrate --bandwidth-px` (one rule, moma_core::policy): not silently ignored.
-        (dict(kind="depth", method="ssra", bandwidth_px=30.0), "LWLR methods only"),
-        (dict(kind="depth", samples=2), "too few"),
-        (dict(kind="depth", edge_margin_px=500), "edge margin of 500 px"),
+        (dict(kind="metric-depth", method="ssra", bandwidth_px=30.0), "LWLR methods only"),
+        (dict(kind="metric-depth", samples=2), "too few"),
+        (dict(kind="metric-depth", edge_margin_px=500), "edge margin of 500 px"),
     ],
 )
 def test_bad_parameters(kwargs, match):
@@ -73,7 +73,7 @@ def test_nan_in_prediction_is_named(cal):
     with pytest.raises(moma.InvalidInputError, match=r"non-finite.*u=9, v=7"):
         cal.align(pred)
     with pytest.raises(moma.InvalidInputError, match="non-finite"):
-        moma.calibrate(pred, scene()[1], kind="inverse-depth")
+        moma.calibrate(pred, scene()[1], kind="relative-disparity")
 
 
 def test_bad_out_buffers(cal):
@@ -93,15 +93,15 @@ def test_bad_out_buffers(cal):
 def test_bad_ground_truth_and_masks():
     pred, gt = scene()
     with pytest.raises(moma.InvalidInputError, match="size mismatch"):
-        moma.calibrate(pred, gt[:, :100], kind="inverse-depth")
+        moma.calibrate(pred, gt[:, :100], kind="relative-disparity")
     with pytest.raises(moma.InvalidInputError, match="no valid"):
-        moma.calibrate(pred, np.zeros_like(gt), kind="inverse-depth")
+        moma.calibrate(pred, np.zeros_like(gt), kind="relative-disparity")
     with pytest.raises(moma.InvalidInputError, match="bool or uint8"):
-        moma.calibrate(pred, gt, kind="inverse-depth", mask=np.ones(pred.shape, np.float32))
+        moma.calibrate(pred, gt, kind="relative-disparity", mask=np.ones(pred.shape, np.float32))
     with pytest.raises(moma.InvalidInputError, match="2-D"):
-        moma.calibrate(pred, gt, kind="inverse-depth", workspace=np.ones((3, 120, 160), bool))
+        moma.calibrate(pred, gt, kind="relative-disparity", workspace=np.ones((3, 120, 160), bool))
     with pytest.raises(moma.InvalidInputError, match="size mismatch"):
-        moma.calibrate(pred, gt, kind="inverse-depth", mask=np.ones((10, 10), bool))
+        moma.calibrate(pred, gt, kind="relative-disparity", mask=np.ones((10, 10), bool))
 
 
 def test_bad_intrinsics():
@@ -117,7 +117,7 @@ def test_camera_size_must_match_prediction():
     pred, gt = scene()
     cam = moma.Intrinsics(100.0, 100.0, 50.0, 40.0, 100, 80)
     with pytest.raises(moma.InvalidInputError, match="size mismatch"):
-        moma.calibrate(pred, gt, cam, kind="inverse-depth")
+        moma.calibrate(pred, gt, cam, kind="relative-disparity")
 
 
 def test_metrics_errors():

@@ -11,12 +11,12 @@ from conftest import scene
 
 def test_save_load_round_trip(tmp_path, cam):
     pred, gt = scene()
-    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth", samples=60, seed=4)
+    cal = moma.calibrate(pred, gt, cam, kind="relative-disparity", samples=60, seed=4)
     path = tmp_path / "calib.json"
     cal.save(path)
     text = json.loads(path.read_text())
-    assert text["format"] == "moma-calibration" and text["version"] == 4
-    assert text["prediction_kind"] == "inverse-depth" and text["method"] == "ssra"
+    assert text["format"] == "moma-calibration" and text["version"] == 5
+    assert text["prediction_kind"] == "relative-disparity" and text["method"] == "ssra"
     back = moma.Calibration.load(str(path))
     assert back.report == cal.report
     assert back.intrinsics == cam and back.kind == cal.kind and back.shape == cal.shape
@@ -30,7 +30,7 @@ def test_workspace_mask_is_embedded_in_the_file(tmp_path):
     pred, gt = scene()
     ws = np.zeros(pred.shape, dtype=bool)
     ws[10:90, 20:150] = True
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", workspace=ws)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", workspace=ws)
     cal.save(tmp_path / "cal.json")
     embedded = json.loads((tmp_path / "cal.json").read_text())["calibration"]["workspace"]
     assert embedded["inside_px"] == int(ws.sum())
@@ -57,7 +57,7 @@ def test_load_errors_are_os_errors(tmp_path):
 
 def test_save_into_missing_directory_is_an_os_error(tmp_path):
     pred, gt = scene()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="relative-disparity")
     with pytest.raises(OSError):
         cal.save(tmp_path / "no" / "such" / "dir" / "c.json")
 

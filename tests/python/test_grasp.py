@@ -121,7 +121,7 @@ def test_planning_from_a_calibration_aligns_as_align_does_and_has_a_sigma_map():
         gt[1 + dv : H - 1 + dv, 1 + du : W - 1 + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)
     ) / 9.0
     pred = (2.0 / soft + 0.5).astype(np.float32)
-    cal = moma.calibrate(pred, gt, cam, kind="inverse-depth", method="gssa", norm="none", space="inverse")
+    cal = moma.calibrate(pred, gt, cam, kind="relative-disparity", method="gssa", norm="none", space="inverse")
     model = cal.error_model
     assert model is not None and model["sigma_flat_m"] < 2e-3 and model["edge_gain"] > 0.0
     depth = cal.align(pred)

@@ -46,9 +46,9 @@ def test_few_shot_with_one_frame_equals_one_shot(method, cam):
     pred, gt = scene()
     mask = np.ones(pred.shape, dtype=bool)
     mask[:, :20] = False
-    one = moma.calibrate(pred, gt, cam, kind="inverse-depth", method=method, samples=60,
+    one = moma.calibrate(pred, gt, cam, kind="relative-disparity", method=method, samples=60,
                          seed=4, mask=mask)
-    few = moma.calibrate([pred], [gt], cam, kind="inverse-depth", method=method, samples=60,
+    few = moma.calibrate([pred], [gt], cam, kind="relative-disparity", method=method, samples=60,
                          seed=4, mask=[mask])
     assert few.report["model"] == one.report["model"]
     assert few.report["n_used"] == one.report["n_used"] == 60
@@ -59,7 +59,7 @@ def test_few_shot_with_one_frame_equals_one_shot(method, cam):
 
 def test_few_shot_samples_per_frame_and_frame_zero_is_the_one_shot_draw(cam):
     preds, gts = frames(3)
-    kw = dict(kind="inverse-depth", samples=40, seed=7, space="depth")
+    kw = dict(kind="relative-disparity", samples=40, seed=7, space="depth")
     few = moma.calibrate(preds, gts, cam, **kw)
     one = moma.calibrate(preds[0], gts[0], cam, **kw)
     s = few.samples
@@ -89,10 +89,10 @@ def test_few_shot_averages_a_per_frame_fluctuation():
     shifts = [0.0, 0.15, -0.1]
     preds = [(1.0 / z + b).astype(np.float32) for b in shifts]
     gts = [z] * 3
-    few = moma.calibrate(preds, gts, kind="inverse-depth", method="gssa", seed=1)
+    few = moma.calibrate(preds, gts, kind="relative-disparity", method="gssa", seed=1)
     mae_few = np.mean([moma.metrics(few.align(p), z)["mae"] for p in preds])
     mae_one = np.mean([
-        np.mean([moma.metrics(moma.calibrate(pk, z, kind="inverse-depth", method="gssa",
+        np.mean([moma.metrics(moma.calibrate(pk, z, kind="relative-disparity", method="gssa",
                                              seed=1).align(p), z)["mae"] for p in preds])
         for pk in preds
     ])
@@ -120,7 +120,7 @@ def test_robust_fit_with_20_percent_gross_outliers_stays_close_to_the_clean_fit(
     pred, gt_noisy, _ = plane_scene(noise_m=0.001, seed=seed)
     pred_o, gt_out, _ = plane_scene(noise_m=0.001, outliers=0.2, seed=seed)
     assert np.array_equal(pred, pred_o)
-    kw = dict(kind="depth", method=method, space="depth", samples=100, seed=5)
+    kw = dict(kind="metric-depth", method=method, space="depth", samples=100, seed=5)
     clean = moma.calibrate(pred, gt_noisy, **kw).align(pred)
     plain = moma.calibrate(pred, gt_out, **kw).align(pred)
     cal = moma.calibrate(pred, gt_out, robust=robust, robust_threshold_m=threshold_m, **kw)
@@ -145,19 +145,19 @@ def test_robust_fit_with_20_percent_gross_outliers_stays_close_to_the_clean_fit(
 
 def test_robust_threshold_is_recorded_and_plain_fit_has_no_robust_block():
     pred, gt, _ = plane_scene(noise_m=0.001, outliers=0.2, seed=2)
-    cal = moma.calibrate(pred, gt, kind="depth", method="gssa", robust="huber",
+    cal = moma.calibrate(pred, gt, kind="metric-depth", method="gssa", robust="huber",
                          robust_threshold_m=0.02, seed=3)
     assert cal.report["robust"]["threshold_m"] == 0.02
-    plain = moma.calibrate(pred, gt, kind="depth", method="gssa", seed=3)
+    plain = moma.calibrate(pred, gt, kind="metric-depth", method="gssa", seed=3)
     assert "robust" not in plain.report
 
 
 def test_robust_ransac_is_seeded_and_few_shot_robust_works():
     pred, gt, _ = plane_scene(noise_m=0.001, outliers=0.2, seed=4)
-    a = moma.calibrate(pred, gt, kind="depth", method="gssa", robust="ransac", seed=8)
-    b = moma.calibrate(pred, gt, kind="depth", method="gssa", robust="ransac", seed=8)
+    a = moma.calibrate(pred, gt, kind="metric-depth", method="gssa", robust="ransac", seed=8)
+    b = moma.calibrate(pred, gt, kind="metric-depth", method="gssa", robust="ransac", seed=8)
     assert a.report["model"] == b.report["model"]
-    few = moma.calibrate([pred, pred], [gt, gt], kind="depth", method="gssa", robust="tukey",
+    few = moma.calibrate([pred, pred], [gt, gt], kind="metric-depth", method="gssa", robust="tukey",
                          seed=8)
     assert few.report["n_used"] == 200 and few.report["robust"]["kind"] == "tukey"
 
@@ -176,10 +176,10 @@ def test_inverse_space_recovers_a_disparity_shift_exactly():
     b = -0.5 * np.mean(a / z)
     pred = (a / z + b).astype(np.float32)
     gt = z.astype(np.float32)
-    inv = moma.calibrate(pred, gt, kind="inverse-depth", method="gssa", space="inverse")
-    dep = moma.calibrate(pred, gt, kind="inverse-depth", method="gssa", space="depth")
+    inv = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", space="inverse")
+    dep = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", space="depth")
     assert inv.space == "inverse" and dep.space == "depth"
-    assert moma.calibrate(pred, gt, kind="inverse-depth", method="gssa").space == "inverse"
+    assert moma.calibrate(pred, gt, kind="relative-disparity", method="gssa").space == "inverse"
     np.testing.assert_allclose(inv.align(pred), gt, rtol=2e-5)
     assert moma.metrics(dep.align(pred), gt)["rel"] > 0.01
 
@@ -193,7 +193,7 @@ def anchored():
     """A calibration with anchors on a textured static scene, and its inputs."""
     pred, gt = smooth_scene()
     rgb = textured_rgb()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", method="gssa", seed=2,
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
                          anchors_rgb=rgb)
     return cal, pred, gt, rgb
 
@@ -269,7 +269,7 @@ def test_realign_into_options_and_file_round_trip(anchored, tmp_path):
 def test_anchors_from_an_image_file_equal_anchors_from_the_array(anchored, tmp_path):
     cal, pred, gt, rgb = anchored
     write_png(tmp_path / "rgb.png", rgb)
-    from_file = moma.calibrate(pred, gt, kind="inverse-depth", method="gssa", seed=2,
+    from_file = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
                                anchors_rgb=str(tmp_path / "rgb.png"))
     assert from_file.has_anchors
     drifted = (pred * 1.15 + 0.1).astype(np.float32)
@@ -288,32 +288,32 @@ def test_bad_input_raises_value_error_naming_the_problem(anchored):
     small_p, small_g = scene(h=60, w=80)
     preds, gts = frames(2)
     cases = [
-        (lambda: moma.calibrate([pred, small_p], [gt, small_g], kind="inverse-depth"),
+        (lambda: moma.calibrate([pred, small_p], [gt, small_g], kind="relative-disparity"),
          "same size"),
-        (lambda: moma.calibrate([pred, pred], [gt], kind="inverse-depth"),
+        (lambda: moma.calibrate([pred, pred], [gt], kind="relative-disparity"),
          "2 predictions and 1 ground truths"),
-        (lambda: moma.calibrate([pred, pred], gt, kind="inverse-depth"), "both lists"),
-        (lambda: moma.calibrate(pred, [gt, gt], kind="inverse-depth"), "both lists"),
-        (lambda: moma.calibrate([], [], kind="inverse-depth"), "at least one frame"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", robust="l1"),
+        (lambda: moma.calibrate([pred, pred], gt, kind="relative-disparity"), "both lists"),
+        (lambda: moma.calibrate(pred, [gt, gt], kind="relative-disparity"), "both lists"),
+        (lambda: moma.calibrate([], [], kind="relative-disparity"), "at least one frame"),
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", robust="l1"),
          "unknown robust fit 'l1'"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", robust_threshold_m=0.01),
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", robust_threshold_m=0.01),
          "needs robust="),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", robust="huber",
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", robust="huber",
                                 robust_threshold_m=-1.0), "robust_threshold_m"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", robust="huber",
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", robust="huber",
                                 method="lwlr"), "lwlr"),
-        (lambda: moma.calibrate(preds, gts, kind="inverse-depth",
+        (lambda: moma.calibrate(preds, gts, kind="relative-disparity",
                                 mask=[np.ones(pred.shape, bool)] * 3), "3 masks for 2"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", space="disparity"),
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", space="disparity"),
          "disparity"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth",
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity",
                                 anchors_rgb=textured_rgb(60, 80)), "anchors_rgb"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth",
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity",
                                 anchors_rgb=rgb.astype(np.float32)), "uint8"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", anchors_rgb=5),
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=5),
          "image path (str or os.PathLike) or a uint8"),
-        (lambda: moma.calibrate(pred, gt, kind="inverse-depth", anchors_rgb=b"rgb.png"),
+        (lambda: moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=b"rgb.png"),
          "got bytes"),
         (lambda: cal.align_realigned(pred, rgb, ridge=-1.0), "ridge"),
         (lambda: cal.align_realigned(pred, rgb, ridg=1.0), "unknown re-alignment option"),
@@ -326,9 +326,9 @@ def test_bad_input_raises_value_error_naming_the_problem(anchored):
             call()
         assert isinstance(e.value, moma.InvalidInputError), e.value
         assert words.lower() in str(e.value).lower(), (words, str(e.value))
-    plain = moma.calibrate(pred, gt, kind="inverse-depth")
+    plain = moma.calibrate(pred, gt, kind="relative-disparity")
     assert not plain.has_anchors
     with pytest.raises(moma.InvalidInputError, match="no anchor store"):
         plain.align_realigned(pred, rgb)
     with pytest.raises(moma.MomaFileError, match="nope.png"):
-        moma.calibrate(pred, gt, kind="inverse-depth", anchors_rgb="nope.png")
+        moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb="nope.png")

@@ -10,7 +10,7 @@ from conftest import scene
 
 def test_thread_pool_align_matches_serial():
     pred, gt = scene(h=240, w=320)
-    cal = moma.calibrate(pred, gt, kind="inverse-depth")
+    cal = moma.calibrate(pred, gt, kind="relative-disparity")
     rng = np.random.default_rng(0)
     frames = [(pred * s + o).astype(np.float32) for s, o in rng.uniform(0.5, 2.0, (24, 2))]
     serial = [cal.align(f) for f in frames]
@@ -25,7 +25,7 @@ def test_thread_pool_calibrate_and_align_into():
 
     def job(pg):
         pred, gt = pg
-        cal = moma.calibrate(pred, gt, kind="inverse-depth", seed=1)
+        cal = moma.calibrate(pred, gt, kind="relative-disparity", seed=1)
         out = np.empty_like(pred)
         cal.align_into(pred, out)
         return cal.report["model"], out
@@ -43,7 +43,7 @@ def test_thread_pool_align_realigned_matches_serial():
 
     pred, gt = smooth_scene()
     rgb = textured_rgb()
-    cal = moma.calibrate(pred, gt, kind="inverse-depth", method="gssa", anchors_rgb=rgb)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", anchors_rgb=rgb)
     rng = np.random.default_rng(1)
     frames = [(pred * s + o).astype(np.float32) for s, o in rng.uniform(0.8, 1.2, (16, 2))]
     rgbs = [rgb if i % 2 == 0 else textured_rgb(seed=i) for i in range(16)]

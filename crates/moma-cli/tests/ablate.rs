@@ -1,5 +1,5 @@
 //! `moma ablate --calib-frames K` end to end on the bundled demo scene (3 frames, SIMULATED
-//! inverse-depth predictions; no ../shared needed).
+//! relative-disparity predictions; no ../shared needed).
 
 use std::path::Path;
 

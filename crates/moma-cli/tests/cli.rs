@@ -60,7 +60,7 @@ fn calibrate_align_metrics_end_to_end() {
         "--pred",
         s(&pred.join("frame_00.npy")),
         "--pred-kind",
-        "inverse-depth",
+        "relative-disparity",
         "--gt",
         s(&frames.join("frame_00/depth.png")),
         "--camera",
@@ -91,7 +91,7 @@ fn calibrate_align_metrics_end_to_end() {
         s(&pred.join("frame_01.npy")),
         s(&pred.join("frame_02.npy")),
         "--pred-kind",
-        "inverse-depth",
+        "relative-disparity",
         "-o",
         s(&out),
         "--ply",
@@ -137,7 +137,7 @@ fn calibrate_align_metrics_end_to_end() {
             "--pred".into(),
             s(&pred.join("frame_01.npy")).into(),
             "--pred-kind".into(),
-            "inverse-depth".into(),
+            "relative-disparity".into(),
             "-o".into(),
             s(out).into(),
             "--colormap".into(),
@@ -212,14 +212,24 @@ fn bad_input_is_a_clear_error() {
     assert!(err.contains(s(&rgb)) && err.contains("16-bit"), "{err}");
     assert!(!calib.exists());
 
-    calibrate_frame_00(&scene, &pred, &calib, &["--pred-kind", "inverse-depth"]);
+    calibrate_frame_00(
+        &scene,
+        &pred,
+        &calib,
+        &["--pred-kind", "relative-disparity"],
+    );
 
     // Kind mismatch between calibration (and predictions.json) and run time.
     let frame1 = pred.join("frame_01.npy");
     let a = tmp.path().join("a");
-    let err = fails(&align_args(&calib, &frame1, &a, &["--pred-kind", "depth"]));
+    let err = fails(&align_args(
+        &calib,
+        &frame1,
+        &a,
+        &["--pred-kind", "metric-depth"],
+    ));
     assert!(
-        err.contains("inverse-depth") && err.contains("prediction kind mismatch"),
+        err.contains("relative-disparity") && err.contains("prediction kind mismatch"),
         "{err}"
     );
 
@@ -250,7 +260,7 @@ fn bad_input_is_a_clear_error() {
         &calib,
         &frame1,
         &a,
-        &["--pred-kind", "inverse-depth", "--ply"],
+        &["--pred-kind", "relative-disparity", "--ply"],
     ));
     assert!(err.contains("intrinsics"), "{err}");
 
@@ -262,7 +272,7 @@ fn bad_input_is_a_clear_error() {
         &broken,
         &frame1,
         &a,
-        &["--pred-kind", "inverse-depth"],
+        &["--pred-kind", "relative-disparity"],
     ));
     assert!(err.contains("broken.json") && err.contains("JSON"), "{err}");
 
@@ -270,7 +280,7 @@ fn bad_input_is_a_clear_error() {
     let nan = tmp.path().join("nan.npy");
     let mut p = moma_io::read_prediction(
         pred.join("frame_01.npy"),
-        moma_core::PredictionKind::InverseDepth,
+        moma_core::PredictionKind::RelativeDisparity,
     )
     .unwrap();
     p.values[[5, 7]] = f32::NAN;
@@ -279,7 +289,7 @@ fn bad_input_is_a_clear_error() {
         &calib,
         &nan,
         &a,
-        &["--pred-kind", "inverse-depth"],
+        &["--pred-kind", "relative-disparity"],
     ));
     assert!(
         err.contains("nan.npy") && err.contains("non-finite"),
@@ -408,7 +418,7 @@ fn predict_reproduces_the_official_full_image_output() {
         "--json",
     ]);
     let index: serde_json::Value = serde_json::from_str(&stdout).unwrap();
-    assert_eq!(index["prediction_kind"], "inverse-depth");
+    assert_eq!(index["prediction_kind"], "relative-disparity");
     assert_eq!(index["model"]["backbone"], "vits");
     assert!(
         index["runtime"].as_str().unwrap().starts_with("candle"),
@@ -422,7 +432,7 @@ fn predict_reproduces_the_official_full_image_output() {
 
     let got = moma_io::read_prediction(
         out.join("input.npy"),
-        moma_core::PredictionKind::InverseDepth,
+        moma_core::PredictionKind::RelativeDisparity,
     )
     .unwrap()
     .values;
@@ -494,7 +504,7 @@ fn nested_errors_print_each_part_once() {
         "--pred",
         s(&pred.join("frame_00.npy")),
         "--pred-kind",
-        "inverse-depth",
+        "relative-disparity",
         "--gt",
         s(&missing),
         "-o",
@@ -523,7 +533,7 @@ fn huge_sample_counts_fail_clearly() {
             "--pred",
             s(&pred.join("frame_00.npy")),
             "--pred-kind",
-            "inverse-depth",
+            "relative-disparity",
             "--gt",
             s(&scene.join("frames/frame_00/depth.png")),
             "--samples",
@@ -568,7 +578,7 @@ fn edge_margin_keeps_samples_off_object_boundaries() {
             "--pred",
             s(&pred0),
             "--pred-kind",
-            "inverse-depth",
+            "relative-disparity",
         ];
         args.extend([
             "--gt",
@@ -805,7 +815,7 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
     let err = fails(&["metrics", "--pred", s(&raw), "--gt", s(&gt)]);
     assert!(
         err.contains(s(&raw))
-            && err.contains("raw SIMULATED inverse-depth prediction")
+            && err.contains("raw SIMULATED relative-disparity prediction")
             && err.contains("not metres")
             && err.contains("moma align"),
         "{err}"
@@ -823,20 +833,51 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
         err.contains("not metres") && err.contains("--calib"),
         "{err}"
     );
-    // a metric head's raw output (kind depth) is nominally metres: read, with a note
+    // a metric head's raw output (kind metric-depth) is nominally metres: read, with a note
     let metric = tmp.path().join("metric");
     std::fs::create_dir_all(&metric).unwrap();
     let depth = moma_io::read_depth(&gt).unwrap();
     moma_io::write_prediction(
         metric.join("f_01.npy"),
-        &moma_core::Prediction::new(depth.depth_m, moma_core::PredictionKind::Depth),
+        &moma_core::Prediction::new(depth.depth_m, moma_core::PredictionKind::MetricDepth),
     )
     .unwrap();
-    std::fs::write(
-        metric.join("predictions.json"),
-        r#"{"format": "moma-predictions", "prediction_kind": "depth", "frames": ["f_01"]}"#,
-    )
-    .unwrap();
+    let index = |kind_and_more: &str| {
+        std::fs::write(
+            metric.join("predictions.json"),
+            format!(
+                r#"{{"format": "moma-predictions", "prediction_kind": {kind_and_more},
+                    "frames": ["f_01"]}}"#
+            ),
+        )
+        .unwrap()
+    };
+    // an old index's bare `depth` records no metric model: relative depth, refused as metres
+    // (docs/formats.md "Prediction kinds") ...
+    index(r#""depth""#);
+    let err = fails(&[
+        "metrics",
+        "--pred",
+        s(&metric.join("f_01.npy")),
+        "--gt",
+        s(&gt),
+    ]);
+    assert!(
+        err.contains("relative-depth") && err.contains("not metres"),
+        "{err}"
+    );
+    // ... unless its writer recorded a metric head (`moma predict`'s model spec)
+    index(
+        r#""depth", "model": {"backbone": "vits", "head": {"head": "metric", "max_depth_m": 20}}"#,
+    );
+    ok(&[
+        "metrics",
+        "--pred",
+        s(&metric.join("f_01.npy")),
+        "--gt",
+        s(&gt),
+    ]);
+    index(r#""metric-depth""#);
     let out = moma(&[
         "metrics",
         "--pred",

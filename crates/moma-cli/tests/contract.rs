@@ -4,7 +4,7 @@
 //! Runs on the bundled demo scene (no ../shared needed).
 
 mod common;
-use common::{demo, fails, ok, s};
+use common::{demo, fails, moma, ok, s};
 
 #[test]
 fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
@@ -14,7 +14,7 @@ fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
         serde_json::from_str(&std::fs::read_to_string(pred.join("predictions.json")).unwrap())
             .unwrap();
     assert_eq!(index["format"], "moma-predictions");
-    assert_eq!(index["prediction_kind"], "inverse-depth");
+    assert_eq!(index["prediction_kind"], "relative-disparity");
     assert_eq!(index["simulated"], true);
     let gt = scene.join("frames/frame_00/depth.png");
     let calib = tmp.path().join("calib.json");
@@ -30,7 +30,7 @@ fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
     ]);
     let file: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
-    assert_eq!(file["prediction_kind"], "inverse-depth");
+    assert_eq!(file["prediction_kind"], "relative-disparity");
     assert_eq!(file["normalisation"]["space"], "inverse");
     // a contradicting --pred-kind is an error naming both
     let e = fails(&[
@@ -38,7 +38,7 @@ fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
         "--pred",
         s(&pred.join("frame_00.npy")),
         "--pred-kind",
-        "depth",
+        "metric-depth",
         "--gt",
         s(&gt),
         "-o",
@@ -83,7 +83,7 @@ fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
         "--pred",
         s(&lone.join("p.npy")),
         "--pred-kind",
-        "depth",
+        "metric-depth",
         "-o",
         s(&out),
     ]);
@@ -99,7 +99,7 @@ fn raw_needs_norm_none_and_metric_depth() {
     let (scene, pred) = demo(tmp.path());
     let gt = scene.join("frames/frame_00/depth.png");
     let calib = tmp.path().join("calib.json");
-    // inverse-depth predictions: refused whatever the normalisation
+    // relative-disparity predictions: refused whatever the normalisation
     let e = fails(&[
         "calibrate",
         "--pred",
@@ -123,7 +123,7 @@ fn raw_needs_norm_none_and_metric_depth() {
         "--pred",
         s(&p),
         "--pred-kind",
-        "depth",
+        "metric-depth",
         "--gt",
         s(&gt),
         "--method",
@@ -138,7 +138,7 @@ fn raw_needs_norm_none_and_metric_depth() {
         "--pred",
         s(&p),
         "--pred-kind",
-        "depth",
+        "metric-depth",
         "--gt",
         s(&gt),
         "--method",
@@ -148,6 +148,77 @@ fn raw_needs_norm_none_and_metric_depth() {
         "-o",
         s(&calib),
     ]);
+    // raw uses the values as metres: refused for relative depth, and for the old name `depth`,
+    // which claims no unit (docs/formats.md "Prediction kinds")
+    for kind in ["relative-depth", "depth"] {
+        let e = fails(&[
+            "calibrate",
+            "--pred",
+            s(&p),
+            "--pred-kind",
+            kind,
+            "--gt",
+            s(&gt),
+            "--method",
+            "raw",
+            "--norm",
+            "none",
+            "-o",
+            s(&tmp.path().join("refused.json")),
+        ]);
+        assert!(
+            e.contains("'relative-depth'") && e.contains("metric-depth"),
+            "{e}"
+        );
+    }
+    // the raw (metric-depth) calibration refuses a relative depth map at run time ...
+    let align = |calib: &std::path::Path, kind: &str, out: &str| {
+        moma(&[
+            "align",
+            "--calib",
+            s(calib),
+            "--pred",
+            s(&p),
+            "--pred-kind",
+            kind,
+            "-o",
+            s(&tmp.path().join(out)),
+        ])
+    };
+    let refused = align(&calib, "relative-depth", "r");
+    assert!(!refused.status.success());
+    let e = String::from_utf8_lossy(&refused.stderr);
+    assert!(e.contains("prediction kind mismatch"), "{e}");
+    // ... while a relative-depth calibration also aligns a metric model's output (metric depth is
+    // relative depth with a known scale), to the same metres as it aligns the same values given
+    // as relative depth
+    let rel = tmp.path().join("rel.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&p),
+        "--pred-kind",
+        "relative-depth",
+        "--gt",
+        s(&gt),
+        "--method",
+        "gssa",
+        "-o",
+        s(&rel),
+    ]);
+    assert!(align(&rel, "metric-depth", "m").status.success());
+    assert!(align(&rel, "relative-depth", "d").status.success());
+    let read = |out: &str| {
+        moma_io::read_depth(tmp.path().join(out).join("p.depth.npy"))
+            .unwrap()
+            .depth_m
+    };
+    let (m, d) = (read("m"), read("d"));
+    assert!(m.iter().any(|z| z.is_finite()));
+    assert_eq!(
+        m.iter().map(|z| z.to_bits()).collect::<Vec<_>>(),
+        d.iter().map(|z| z.to_bits()).collect::<Vec<_>>()
+    );
 }
 
 #[test]

@@ -19,7 +19,7 @@ fn calibrate_with_several_frames() {
     let (one, two) = (tmp.path().join("one.json"), tmp.path().join("two.json"));
     let base = [
         "--pred-kind",
-        "inverse-depth",
+        "relative-disparity",
         "--method",
         "gssa",
         "--seed",
@@ -110,7 +110,7 @@ fn calibrate_bad_frame_lists_fail_clearly() {
     let err = fails(&calibrate_args(
         &[&p0, &small],
         &[&g0, &g1],
-        &["--pred-kind", "inverse-depth", "-o", s(&out)],
+        &["--pred-kind", "relative-disparity", "-o", s(&out)],
     ));
     assert!(
         err.contains("same size") && err.contains("small.npy"),

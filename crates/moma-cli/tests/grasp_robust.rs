@@ -39,7 +39,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     }
     let file: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
-    assert_eq!(file["version"], 4);
+    assert_eq!(file["version"], moma_io::CALIBRATION_VERSION);
     let model = &file["calibration"]["error_model"];
     assert!(model["sigma_flat_m"].as_f64().unwrap() > 0.0, "{model}");
 

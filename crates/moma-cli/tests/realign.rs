@@ -22,7 +22,7 @@ fn calibrate_align_and_eval_with_realignment() {
         &[&gt0],
         &[
             "--pred-kind",
-            "inverse-depth",
+            "relative-disparity",
             "--method",
             "ssra",
             "--anchors",
@@ -43,7 +43,7 @@ fn calibrate_align_and_eval_with_realignment() {
     let align = |extra: &[&str], rgb: &Path| -> Vec<String> {
         let mut a = vec![
             "--pred-kind",
-            "inverse-depth",
+            "relative-disparity",
             "--realign",
             "anchors",
             "--realign-rgb",
@@ -140,7 +140,7 @@ fn calibrate_align_and_eval_with_realignment() {
         &calib,
         &pred1,
         &out,
-        &["--pred-kind", "inverse-depth", "--realign-ridge", "3"],
+        &["--pred-kind", "relative-disparity", "--realign-ridge", "3"],
     ));
     assert!(e.contains("--realign"), "{e}");
 

@@ -17,7 +17,7 @@ fn calibrate_and_eval_with_robust_fits() {
         &[&gt0],
         &[
             "--pred-kind",
-            "inverse-depth",
+            "relative-disparity",
             "--method",
             "gssa",
             "--seed",
@@ -63,7 +63,7 @@ fn calibrate_and_eval_with_robust_fits() {
             &calib,
             &pred.join("frame_01.npy"),
             &tmp.path().join("aligned"),
-            &["--pred-kind", "inverse-depth"],
+            &["--pred-kind", "relative-disparity"],
         ));
     }
     let text = ok(&with(&[

@@ -85,7 +85,7 @@ fn bench_error_model(c: &mut Criterion) {
     let pred = gt.mapv(|z| 1.0 / (0.9 * z + 0.02));
     let aligned = gt.mapv(|z| z + 0.003);
     let gt_m = MetricDepth::new(gt.clone());
-    let prediction = Prediction::new(pred, PredictionKind::InverseDepth);
+    let prediction = Prediction::new(pred, PredictionKind::RelativeDisparity);
     let config = moma_core::CalibrationConfig {
         method: Method::Ssra(SsraConfig::default()),
         normalisation: NormalisationConfig {
@@ -287,7 +287,7 @@ fn bench_metrics(c: &mut Criterion) {
 fn bench_normalise(c: &mut Criterion) {
     let p1 = pool(1);
     let size = ImageSize::new(640, 480);
-    let pred = Prediction::new(zhat(size), PredictionKind::InverseDepth);
+    let pred = Prediction::new(zhat(size), PredictionKind::RelativeDisparity);
     let mut g = c.benchmark_group("normalise");
     g.throughput(Throughput::Elements(size.pixels() as u64));
     for m in [Normalisation::Minmax, Normalisation::Median] {
@@ -312,7 +312,7 @@ fn bench_align(c: &mut Criterion) {
     let gt = MetricDepth::new(Array2::from_shape_fn(size.shape(), |(v, u)| {
         0.5 + ((u * 3 + v) % 500) as f32 * 1e-3
     }));
-    let kind = PredictionKind::InverseDepth;
+    let kind = PredictionKind::RelativeDisparity;
     let pred = Prediction::new(gt.depth_m.mapv(|z| 2.0 / z - 0.5), kind);
     let mut out = Array2::<f32>::zeros(size.shape());
     let mut g = c.benchmark_group("align");

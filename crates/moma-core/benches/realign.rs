@@ -68,7 +68,7 @@ fn bench(c: &mut Criterion) {
         // applied to the corrected normalised map (GSSA, inverse space, min-max)
         let pred = moma_core::Prediction::new(
             gt.depth_m.mapv(|z| 2.0 / z),
-            moma_core::PredictionKind::InverseDepth,
+            moma_core::PredictionKind::RelativeDisparity,
         );
         let cal = moma_core::calibrate(
             &[CalibrationFrame::new(&pred, &gt)],
@@ -96,7 +96,7 @@ fn bench(c: &mut Criterion) {
                 };
                 2.2 / z + 0.1
             }),
-            moma_core::PredictionKind::InverseDepth,
+            moma_core::PredictionKind::RelativeDisparity,
         );
         let normalised = cal.normalise(&frame_pred).unwrap();
         let pa = RealignConfig {

@@ -132,35 +132,112 @@ impl Mask {
     }
 }
 
-/// What a depth model's output means. Kept explicit so that inverse depth is never aligned as depth by accident.
+/// What a depth model's output means. Kept explicit so that a relative map is never written as
+/// metres, nor disparity aligned as depth, by accident.
+///
+/// Names (files, `--pred-kind`, Python's `kind=`): `metric-depth`, `relative-depth`,
+/// `relative-disparity`. Names written by moma before these three existed are read with a fixed
+/// mapping ([`PredictionKind::from_name`], docs/formats.md "Prediction kinds"): `inverse-depth`
+/// (also `inverse_depth`, `disparity`) is `relative-disparity`; `depth` is `metric-depth` where the
+/// writer recorded a metric head or model (the file readers decide that), else `relative-depth`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
+#[serde(try_from = "String", into = "&'static str")]
 pub enum PredictionKind {
-    /// Larger = farther (metric models, or relative depth).
-    Depth,
-    /// Larger = nearer: disparity / inverse depth (Depth Anything relative models).
-    InverseDepth,
+    /// Depth in metres as the model predicts it (a metric head, e.g. Depth Anything V2 metric or
+    /// Depth Anything 3 metric): larger = farther, scale nominally known. The only kind that
+    /// `raw` (the prediction used as metres) accepts.
+    MetricDepth,
+    /// Depth up to an unknown scale (and shift): larger = farther, no unit.
+    RelativeDepth,
+    /// Disparity (inverse depth) up to an unknown scale and shift: larger = nearer, no unit
+    /// (Depth Anything's relative models).
+    RelativeDisparity,
+}
+
+impl PredictionKind {
+    /// Every kind, in documentation order.
+    pub const ALL: [PredictionKind; 3] = [
+        PredictionKind::MetricDepth,
+        PredictionKind::RelativeDepth,
+        PredictionKind::RelativeDisparity,
+    ];
+
+    /// The file and command-line name: `metric-depth`, `relative-depth` or `relative-disparity`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::MetricDepth => "metric-depth",
+            Self::RelativeDepth => "relative-depth",
+            Self::RelativeDisparity => "relative-disparity",
+        }
+    }
+
+    /// `true` for disparity (larger = nearer), `false` for the two depth kinds.
+    pub const fn is_disparity(self) -> bool {
+        matches!(self, Self::RelativeDisparity)
+    }
+
+    /// `true` for `metric-depth` only: values nominally in metres.
+    pub const fn is_metric(self) -> bool {
+        matches!(self, Self::MetricDepth)
+    }
+
+    /// Whether a calibration fitted on predictions of kind `self` may align a prediction of kind
+    /// `pred`: the same kind, or metric depth under a `relative-depth` calibration (a metric map
+    /// is a depth map whose scale happens to be known, and a relative-depth fit estimates the
+    /// scale anyway). The converse is refused: a `metric-depth` calibration may use the values
+    /// as metres (`raw`), which a relative map is not. This also keeps a calibration file written
+    /// before the three kinds existed (kind `depth`, read as `relative-depth` unless its method
+    /// is `raw`) usable on a metric model's predictions.
+    pub const fn accepts(self, pred: PredictionKind) -> bool {
+        matches!(
+            (self, pred),
+            (Self::MetricDepth, Self::MetricDepth)
+                | (Self::RelativeDepth, Self::RelativeDepth | Self::MetricDepth)
+                | (Self::RelativeDisparity, Self::RelativeDisparity)
+        )
+    }
+
+    /// The kind called `name`: one of the three names, or a name written before they existed:
+    /// `inverse-depth`, `inverse_depth` and `disparity` are `relative-disparity`, and `depth` is
+    /// `legacy_depth`, which the caller decides from what the writer recorded (`metric-depth`
+    /// for a metric head or model, else `relative-depth`; [`str::parse`] uses
+    /// `relative-depth`, the kind that claims no unit).
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`] for any other name, listing the three names.
+    pub fn from_name(name: &str, legacy_depth: PredictionKind) -> Result<Self> {
+        match name {
+            "inverse-depth" | "inverse_depth" | "disparity" => Ok(Self::RelativeDisparity),
+            "depth" => Ok(legacy_depth),
+            other => crate::names::parse(other, &Self::ALL, Self::name, "prediction kind"),
+        }
+    }
 }
 
 impl std::fmt::Display for PredictionKind {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Self::Depth => "depth",
-            Self::InverseDepth => "inverse-depth",
-        })
+        f.write_str(self.name())
     }
 }
 
 impl std::str::FromStr for PredictionKind {
     type Err = CoreError;
+    /// [`PredictionKind::from_name`] with an old `depth` read as `relative-depth`.
     fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "depth" => Ok(Self::Depth),
-            "inverse-depth" | "inverse_depth" | "disparity" => Ok(Self::InverseDepth),
-            other => Err(CoreError::InvalidParameter(format!(
-                "unknown prediction kind '{other}' (expected 'depth' or 'inverse-depth')"
-            ))),
-        }
+        Self::from_name(s, Self::RelativeDepth)
+    }
+}
+
+impl TryFrom<String> for PredictionKind {
+    type Error = CoreError;
+    fn try_from(s: String) -> Result<Self> {
+        s.parse()
+    }
+}
+
+impl From<PredictionKind> for &'static str {
+    fn from(k: PredictionKind) -> Self {
+        k.name()
     }
 }
 
@@ -234,5 +311,55 @@ mod valid_depth_tests {
         ] {
             assert_eq!(is_valid_depth(z), z.is_finite() && z > 0.0, "{z}");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::PredictionKind::{self, *};
+
+    #[test]
+    fn kind_names_round_trip_and_old_names_map() {
+        for k in PredictionKind::ALL {
+            assert_eq!(k.name().parse::<PredictionKind>().unwrap(), k);
+            let json = serde_json::to_string(&k).unwrap();
+            assert_eq!(json, format!("\"{}\"", k.name()));
+            assert_eq!(serde_json::from_str::<PredictionKind>(&json).unwrap(), k);
+        }
+        for old in ["inverse-depth", "inverse_depth", "disparity"] {
+            assert_eq!(old.parse::<PredictionKind>().unwrap(), RelativeDisparity);
+        }
+        assert_eq!("depth".parse::<PredictionKind>().unwrap(), RelativeDepth);
+        assert_eq!(
+            PredictionKind::from_name("depth", MetricDepth).unwrap(),
+            MetricDepth
+        );
+        let e = "metres".parse::<PredictionKind>().unwrap_err().to_string();
+        assert!(
+            e.contains("'metres'")
+                && e.contains("metric-depth, relative-depth, relative-disparity"),
+            "{e}"
+        );
+        assert!(serde_json::from_str::<PredictionKind>("\"metres\"").is_err());
+    }
+
+    /// Metric depth may go where relative depth is expected, never the reverse, and disparity
+    /// only with disparity.
+    #[test]
+    fn a_calibration_accepts_its_kind_and_metric_under_relative_depth() {
+        let accepted: Vec<(PredictionKind, PredictionKind)> = PredictionKind::ALL
+            .into_iter()
+            .flat_map(|c| PredictionKind::ALL.map(|p| (c, p)))
+            .filter(|&(c, p)| c.accepts(p))
+            .collect();
+        assert_eq!(
+            accepted,
+            [
+                (MetricDepth, MetricDepth),
+                (RelativeDepth, MetricDepth),
+                (RelativeDepth, RelativeDepth),
+                (RelativeDisparity, RelativeDisparity)
+            ]
+        );
     }
 }

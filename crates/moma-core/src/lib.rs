@@ -22,7 +22,7 @@
 //! // The calibration frame: the true depth (a table tilting away, metres) and a depth model's
 //! // prediction of it, right only up to a scale and a shift.
 //! let truth = Array2::from_shape_fn((48, 64), |(v, u)| 0.6 + 0.004 * v as f32 + 0.001 * u as f32);
-//! let pred = Prediction::new(truth.mapv(|z| 2.0 * z + 0.1), PredictionKind::Depth);
+//! let pred = Prediction::new(truth.mapv(|z| 2.0 * z + 0.1), PredictionKind::MetricDepth);
 //! let method = Method::Gssa;
 //! let config = CalibrationConfig {
 //!     // the defaults every front end shares: minmax, in the prediction's own space

@@ -79,12 +79,13 @@ impl AlignSpace {
     /// Both spaces.
     pub const ALL: [AlignSpace; 2] = [AlignSpace::Depth, AlignSpace::Inverse];
 
-    /// The prediction's own space: inverse-depth predictions align in inverse space, depth
-    /// predictions (metric heads) in depth space.
+    /// The prediction's own space: disparity (`relative-disparity`) aligns in inverse space, the
+    /// two depth kinds in depth space.
     pub const fn native(kind: PredictionKind) -> Self {
-        match kind {
-            PredictionKind::Depth => Self::Depth,
-            PredictionKind::InverseDepth => Self::Inverse,
+        if kind.is_disparity() {
+            Self::Inverse
+        } else {
+            Self::Depth
         }
     }
 
@@ -210,8 +211,8 @@ pub struct NormalisedMap {
 /// ```
 /// use moma_core::normalise::{normalise, Normalisation, NormalisationConfig};
 /// use moma_core::{Prediction, PredictionKind};
-/// let pred = Prediction::new(ndarray::array![[1.0f32, 2.0], [3.0, 5.0]], PredictionKind::Depth);
-/// let cfg = NormalisationConfig::native(Normalisation::MinmaxUnit, PredictionKind::Depth);
+/// let pred = Prediction::new(ndarray::array![[1.0f32, 2.0], [3.0, 5.0]], PredictionKind::MetricDepth);
+/// let cfg = NormalisationConfig::native(Normalisation::MinmaxUnit, PredictionKind::MetricDepth);
 /// let n = normalise(&pred, &cfg, None).unwrap();
 /// assert_eq!(n.values, ndarray::array![[0.0f32, 0.25], [0.5, 1.0]]);
 /// ```

@@ -28,11 +28,11 @@
 //! // and a depth model whose output is a disparity with unknown scale and shift.
 //! let gt = MetricDepth::new(Array2::from_shape_fn((48, 64), |(v, _)| 0.6 + 0.001 * v as f32));
 //! let model_output = |z: &MetricDepth| {
-//!     Prediction::new(z.depth_m.mapv(|z| 3.0 / z - 1.5), PredictionKind::InverseDepth)
+//!     Prediction::new(z.depth_m.mapv(|z| 3.0 / z - 1.5), PredictionKind::RelativeDisparity)
 //! };
 //! let config = CalibrationConfig {
 //!     method: Method::Gssa,
-//!     normalisation: NormalisationConfig::native(Normalisation::Minmax, PredictionKind::InverseDepth),
+//!     normalisation: NormalisationConfig::native(Normalisation::Minmax, PredictionKind::RelativeDisparity),
 //!     sampling: SamplingConfig { n: 100, seed: 0, ..Default::default() },
 //!     robust: None,
 //!     workspace: None,
@@ -102,7 +102,7 @@ impl CalibrationConfig {
 
     /// Checks the combination for predictions of `kind`: a robust fit needs valid settings and a
     /// method that supports it ([`Robust::check_method`]); RAW uses the prediction as metric depth,
-    /// so it needs a metric `depth` prediction, `none` normalisation and depth space.
+    /// so it needs a `metric-depth` prediction, `none` normalisation and depth space.
     ///
     /// # Errors
     /// [`CoreError::InvalidParameter`] explaining the conflict.
@@ -112,10 +112,11 @@ impl CalibrationConfig {
             r.check_method(&self.method)?;
         }
         if self.method == Method::Raw {
-            if kind != PredictionKind::Depth {
+            if !kind.is_metric() {
                 return Err(CoreError::InvalidParameter(format!(
-                    "method raw uses the prediction as metric depth, but the prediction is \
-                     '{kind}': raw needs a metric depth model's output (kind 'depth')"
+                    "method raw uses the prediction as metres, but the prediction is '{kind}': \
+                     raw needs a metric depth model's output (kind 'metric-depth'; the old name \
+                     'depth' reads as 'relative-depth' unless its writer recorded a metric model)"
                 )));
             }
             if self.normalisation.method != Normalisation::None {
@@ -754,9 +755,10 @@ impl Calibration {
         )
     }
 
-    /// Checks a prediction's kind and size against the calibration's.
+    /// Checks a prediction's kind ([`PredictionKind::accepts`]) and size against the
+    /// calibration's.
     fn check_prediction(&self, pred: PredictionInput<'_>) -> Result<()> {
-        if pred.kind() != self.prediction_kind {
+        if !self.prediction_kind.accepts(pred.kind()) {
             return Err(CoreError::KindMismatch {
                 expected: self.prediction_kind,
                 got: pred.kind(),

@@ -9,7 +9,7 @@
 //!   use a prediction as metres; an evaluation of RAW uses `none` in depth space whatever the
 //!   other methods' normalisation ([`evaluation_normalisation`]);
 //! - space: the prediction's own unless given ([`AlignSpace::native`]: inverse space for
-//!   inverse-depth predictions, the only way to undo a relative model's disparity shift), depth
+//!   relative-disparity predictions, the only way to undo a relative model's disparity shift), depth
 //!   space for RAW;
 //! - method settings: SSRA gets the camera intrinsics (its canonical parameters are reported
 //!   with them); an LWLR bandwidth is for the LWLR methods only;
@@ -231,14 +231,14 @@ mod tests {
     #[test]
     fn defaults_follow_the_method_and_the_kind() {
         let ssra: Method = "ssra".parse().unwrap();
-        let n = normalisation(&ssra, None, None, PredictionKind::InverseDepth);
+        let n = normalisation(&ssra, None, None, PredictionKind::RelativeDisparity);
         assert_eq!(
             (n.method, n.space),
             (Normalisation::Minmax, AlignSpace::Inverse)
         );
-        let n = normalisation(&ssra, None, None, PredictionKind::Depth);
+        let n = normalisation(&ssra, None, None, PredictionKind::MetricDepth);
         assert_eq!(n.space, AlignSpace::Depth);
-        let n = normalisation(&Method::Raw, None, None, PredictionKind::InverseDepth);
+        let n = normalisation(&Method::Raw, None, None, PredictionKind::RelativeDisparity);
         assert_eq!(
             (n.method, n.space),
             (Normalisation::Minmax, AlignSpace::Depth)
@@ -247,7 +247,7 @@ mod tests {
             &ssra,
             Some(Normalisation::Median),
             Some(AlignSpace::Depth),
-            PredictionKind::InverseDepth,
+            PredictionKind::RelativeDisparity,
         );
         assert_eq!(
             (n.method, n.space),
@@ -257,7 +257,7 @@ mod tests {
             &Method::Raw,
             Normalisation::Median,
             None,
-            PredictionKind::Depth,
+            PredictionKind::MetricDepth,
         );
         assert_eq!(
             (e.method, e.space),
@@ -267,7 +267,7 @@ mod tests {
             &ssra,
             Normalisation::Median,
             None,
-            PredictionKind::InverseDepth,
+            PredictionKind::RelativeDisparity,
         );
         assert_eq!(
             (e.method, e.space),

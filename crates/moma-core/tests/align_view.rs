@@ -24,9 +24,10 @@ fn scene(kind: PredictionKind) -> (MetricDepth, Array2<f32>) {
     });
     let pred = Array2::from_shape_fn(SIZE.shape(), |(v, u)| {
         let z = gt[[v, u]];
-        let p = match kind {
-            PredictionKind::InverseDepth => 2.0 / z - 0.7,
-            PredictionKind::Depth => 1.3 * z + 0.2,
+        let p = if kind.is_disparity() {
+            2.0 / z - 0.7
+        } else {
+            1.3 * z + 0.2
         } + 0.003 * ((u + 3 * v) as f32).cos();
         if (u * 7 + v * 11) % 97 == 0 {
             -0.25
@@ -125,7 +126,10 @@ fn fused_path_equals_unfused_bit_for_bit() {
     let ws = workspace();
     let mut checked = 0;
     let mut fused_models = 0;
-    for kind in [PredictionKind::InverseDepth, PredictionKind::Depth] {
+    for kind in [
+        PredictionKind::RelativeDisparity,
+        PredictionKind::MetricDepth,
+    ] {
         let (_, pred) = scene(kind);
         for method in &methods {
             for norm in Normalisation::ALL {
@@ -176,7 +180,7 @@ fn fused_path_equals_unfused_bit_for_bit() {
 
 #[test]
 fn strided_input_and_output_give_the_same_result() {
-    let kind = PredictionKind::InverseDepth;
+    let kind = PredictionKind::RelativeDisparity;
     let (_, pred) = scene(kind);
     for method in [Method::Gssa, Method::Ssra(SsraConfig::default())] {
         for space in AlignSpace::ALL {
@@ -210,7 +214,7 @@ fn strided_input_and_output_give_the_same_result() {
 
 #[test]
 fn fused_path_reports_the_unfused_errors() {
-    let kind = PredictionKind::InverseDepth;
+    let kind = PredictionKind::RelativeDisparity;
     let (_, pred) = scene(kind);
     let cal = calibration(
         kind,
@@ -265,7 +269,7 @@ fn fused_path_reports_the_unfused_errors() {
     // Kind, prediction size and output size.
     assert!(matches!(
         cal.aligned(
-            PredictionInput::view(pred.view(), PredictionKind::Depth),
+            PredictionInput::view(pred.view(), PredictionKind::MetricDepth),
             &AlignOptions::default()
         )
         .map(|a| a.depth),
@@ -302,7 +306,7 @@ fn fused_inverse_space_shifted_disparity_is_recovered() {
         method: Method::Gssa,
         normalisation: NormalisationConfig::native(
             Normalisation::Minmax,
-            PredictionKind::InverseDepth,
+            PredictionKind::RelativeDisparity,
         ),
         sampling: SamplingConfig {
             n: 50,
@@ -314,7 +318,7 @@ fn fused_inverse_space_shifted_disparity_is_recovered() {
     };
     let cal = calibrate(
         &[CalibrationFrame::new(
-            &Prediction::new(pred.clone(), PredictionKind::InverseDepth),
+            &Prediction::new(pred.clone(), PredictionKind::RelativeDisparity),
             &MetricDepth::new(gt.clone()),
         )],
         &config,
@@ -322,7 +326,7 @@ fn fused_inverse_space_shifted_disparity_is_recovered() {
     .unwrap();
     let out = cal
         .aligned(
-            PredictionInput::view(pred.view(), PredictionKind::InverseDepth),
+            PredictionInput::view(pred.view(), PredictionKind::RelativeDisparity),
             &AlignOptions::default(),
         )
         .unwrap()

@@ -28,7 +28,7 @@ fn frame_pred(gt: &MetricDepth, a: f64, b: f64, noise: f64, seed: u64) -> Predic
         let e: f64 = (0..12).map(|_| rng.random::<f64>()).sum::<f64>() - 6.0;
         (a / f64::from(z) * (1.0 + noise * e) + b) as f32
     });
-    Prediction::new(values, PredictionKind::InverseDepth)
+    Prediction::new(values, PredictionKind::RelativeDisparity)
 }
 
 fn config(method: Method, space: AlignSpace, norm: Normalisation, seed: u64) -> CalibrationConfig {
@@ -239,10 +239,10 @@ fn bad_frames_are_refused_naming_the_frame() {
     assert!(e.contains("frame 1") && e.contains("ground truth"), "{e}");
 
     // Kinds that differ.
-    let depth = &Prediction::new(gt.depth_m.clone(), PredictionKind::Depth);
+    let depth = &Prediction::new(gt.depth_m.clone(), PredictionKind::MetricDepth);
     let e = message(calibrate(&[frame(pred, gt), frame(depth, gt)], &cfg).unwrap_err());
     assert!(
-        e.contains("frame 1") && e.contains("'depth'") && e.contains("'inverse-depth'"),
+        e.contains("frame 1") && e.contains("'metric-depth'") && e.contains("'relative-disparity'"),
         "{e}"
     );
 

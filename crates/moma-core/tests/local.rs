@@ -486,7 +486,7 @@ fn pipeline_calibrates_validates_and_round_trips_local_and_auto() {
     let z = Array2::from_shape_fn((H, W), |(v, u)| zhat(u as f64, v as f64, 0.15) as f32);
     let (gt, pred) = (
         MetricDepth::new(gt),
-        Prediction::new(z, PredictionKind::Depth),
+        Prediction::new(z, PredictionKind::MetricDepth),
     );
     for name in ["ssra-local", "gssa-local", "auto"] {
         let cfg = CalibrationConfig {

@@ -14,7 +14,7 @@ fn cfg(method: Normalisation) -> NormalisationConfig {
 }
 
 fn depth(a: Array2<f32>) -> Prediction {
-    Prediction::new(a, PredictionKind::Depth)
+    Prediction::new(a, PredictionKind::MetricDepth)
 }
 
 fn close(a: &Array2<f32>, b: &Array2<f32>) -> bool {
@@ -84,7 +84,10 @@ fn none_is_identity() {
 #[test]
 fn inverse_depth_is_inverted_and_nonpositive_is_nan() {
     // d = 1, 2, 4, 0 → z = 1, .5, .25, NaN; minmax-unit over valid: (z − .25)/.75
-    let p = Prediction::new(array![[1.0, 2.0], [4.0, 0.0]], PredictionKind::InverseDepth);
+    let p = Prediction::new(
+        array![[1.0, 2.0], [4.0, 0.0]],
+        PredictionKind::RelativeDisparity,
+    );
     let n = normalise(&p, &cfg(Normalisation::MinmaxUnit), None).unwrap();
     assert!(
         close(&n.values, &array![[1.0, 1.0 / 3.0], [0.0, f32::NAN]]),
@@ -158,7 +161,7 @@ fn normalisation_errors() {
         Err(CoreError::SizeMismatch { .. })
     ));
     // inverse depth with no positive value
-    let p = Prediction::new(array![[0.0, -1.0]], PredictionKind::InverseDepth);
+    let p = Prediction::new(array![[0.0, -1.0]], PredictionKind::RelativeDisparity);
     assert!(matches!(
         normalise(&p, &cfg(Normalisation::Minmax), None),
         Err(CoreError::NoValidPixels(_))

@@ -25,7 +25,7 @@ fn scene() -> (MetricDepth, Prediction) {
     });
     (
         MetricDepth::new(gt),
-        Prediction::new(inv, PredictionKind::InverseDepth),
+        Prediction::new(inv, PredictionKind::RelativeDisparity),
     )
 }
 
@@ -74,7 +74,7 @@ fn ssra_end_to_end_is_exact_on_its_own_family() {
 fn every_method_runs_and_calibration_round_trips_through_json() {
     let (gt, pred) = scene();
     // RAW takes a metric depth prediction (here the pseudo-depth 1/d)
-    let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::Depth);
+    let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::MetricDepth);
     for method in [
         Method::Raw,
         Method::Gssa,
@@ -146,18 +146,18 @@ fn workspace_and_sample_region_are_used() {
 fn pipeline_errors() {
     let (gt, pred) = scene();
     let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config(Method::Gssa)).unwrap();
-    let as_depth = Prediction::new(pred.values.clone(), PredictionKind::Depth);
+    let as_depth = Prediction::new(pred.values.clone(), PredictionKind::MetricDepth);
     assert_eq!(
         cal.aligned(&as_depth, &AlignOptions::default())
             .map(|a| a.depth),
         Err(CoreError::KindMismatch {
-            expected: PredictionKind::InverseDepth,
-            got: PredictionKind::Depth
+            expected: PredictionKind::RelativeDisparity,
+            got: PredictionKind::MetricDepth
         })
     );
     let small = Prediction::new(
         Array2::from_elem((10, 10), 1.0),
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
     );
     assert!(matches!(
         cal.aligned(&small, &AlignOptions::default())
@@ -217,7 +217,7 @@ fn inverse_space_recovers_a_shifted_disparity_exactly() {
     let mean_inv = gt.depth_m.iter().map(|&z| a / f64::from(z)).sum::<f64>() / SIZE.pixels() as f64;
     let b = -0.5 * mean_inv;
     let disparity = gt.depth_m.mapv(|z| (a / f64::from(z) + b) as f32);
-    let pred = Prediction::new(disparity, PredictionKind::InverseDepth);
+    let pred = Prediction::new(disparity, PredictionKind::RelativeDisparity);
     for method in [Method::Gssa, Method::Ssra(SsraConfig::default())] {
         let mut cfg = config(method.clone());
         cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
@@ -259,7 +259,10 @@ fn inverse_space_output_is_nan_where_the_fitted_disparity_is_not_positive() {
     let gt = MetricDepth::new(Array2::from_shape_fn((20, 30), |(_, u)| {
         0.5 + 0.01 * u as f32
     }));
-    let pred = Prediction::new(gt.depth_m.mapv(|z| 1.0 / z), PredictionKind::InverseDepth);
+    let pred = Prediction::new(
+        gt.depth_m.mapv(|z| 1.0 / z),
+        PredictionKind::RelativeDisparity,
+    );
     let mut cfg = config(Method::Gssa);
     cfg.normalisation.space = AlignSpace::Inverse;
     let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
@@ -275,12 +278,12 @@ fn inverse_space_output_is_nan_where_the_fitted_disparity_is_not_positive() {
 #[test]
 fn raw_needs_metric_depth_and_no_normalisation() {
     let (gt, pred) = scene();
-    let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::Depth);
+    let depth_pred = Prediction::new(pred.values.mapv(|d| 1.0 / d), PredictionKind::MetricDepth);
     let mut cfg = config(Method::Raw);
-    // inverse-depth prediction
+    // relative-disparity prediction
     let e = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap_err();
     assert!(
-        matches!(&e, CoreError::InvalidParameter(m) if m.contains("raw") && m.contains("inverse-depth")),
+        matches!(&e, CoreError::InvalidParameter(m) if m.contains("raw") && m.contains("relative-disparity")),
         "{e}"
     );
     // a normalisation would write normalised values as metres
@@ -487,7 +490,7 @@ fn an_edge_margin_keeps_blurred_boundaries_out_of_the_fit() {
             .zip(&exact)
             .any(|(b, e)| (b - e).abs() > 0.01)
     );
-    let pred = Prediction::new(blurred, PredictionKind::InverseDepth);
+    let pred = Prediction::new(blurred, PredictionKind::RelativeDisparity);
     let fit = |edge_margin_px| {
         let mut cfg = config(Method::Gssa);
         cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
@@ -542,7 +545,10 @@ fn too_few_samples_left_by_the_edge_margin_are_named() {
         let block = (5..14).contains(&v) && (5..14).contains(&u);
         if block || (u + v) % 2 == 0 { 1.0 } else { 1.2 }
     }));
-    let pred = Prediction::new(gt.depth_m.mapv(|z| 1.0 / z), PredictionKind::InverseDepth);
+    let pred = Prediction::new(
+        gt.depth_m.mapv(|z| 1.0 / z),
+        PredictionKind::RelativeDisparity,
+    );
     let mut cfg = config(Method::Ssra(SsraConfig::default()));
     cfg.normalisation = NormalisationConfig::native(Normalisation::Minmax, pred.kind);
     cfg.sampling.edge_margin_px = 3;

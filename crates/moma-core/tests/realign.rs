@@ -66,7 +66,10 @@ fn rgb(with_object: bool, gain: f32, shift_px: usize, seed: u64) -> Array3<u8> {
 
 /// Disparity a/z + b of a depth map.
 fn disparity(z: &MetricDepth, a: f32, b: f32) -> Prediction {
-    Prediction::new(z.depth_m.mapv(|z| a / z + b), PredictionKind::InverseDepth)
+    Prediction::new(
+        z.depth_m.mapv(|z| a / z + b),
+        PredictionKind::RelativeDisparity,
+    )
 }
 
 fn calibration() -> Calibration {
@@ -242,7 +245,7 @@ fn planar_correction_recovers_a_tilt() {
         Array2::from_shape_fn((H, W), |(v, u)| {
             2.0 / truth.depth_m[[v, u]] * (1.0 + 0.2 * u as f32 / W as f32)
         }),
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
     );
     let one_shot = cal.aligned(&pred, &AlignOptions::default()).unwrap().depth;
     let run = |model| {

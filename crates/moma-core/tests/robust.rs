@@ -470,7 +470,7 @@ fn pipeline_calibration_with_robust_fit() {
     let truth = Array2::from_shape_fn((48, 64), |(v, u)| {
         0.6 + 0.004 * v as f32 + 0.02 * ((u as f32) / 5.0).sin()
     });
-    let pred = Prediction::new(truth.mapv(|z| 2.0 * z - 0.3), PredictionKind::Depth);
+    let pred = Prediction::new(truth.mapv(|z| 2.0 * z - 0.3), PredictionKind::MetricDepth);
     let gt = MetricDepth::new(Array2::from_shape_fn((48, 64), |(v, u)| {
         if (u * 7 + v * 3).is_multiple_of(5) {
             truth[[v, u]] + 0.3 // 20 % of pixels wrong by 0.3 m

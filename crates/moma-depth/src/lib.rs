@@ -117,8 +117,8 @@ impl Head {
     /// The kind of map this head predicts.
     pub fn prediction_kind(&self) -> PredictionKind {
         match self {
-            Self::Relative => PredictionKind::InverseDepth,
-            Self::Metric { .. } => PredictionKind::Depth,
+            Self::Relative => PredictionKind::RelativeDisparity,
+            Self::Metric { .. } => PredictionKind::MetricDepth,
         }
     }
 }

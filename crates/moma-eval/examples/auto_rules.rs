@@ -122,7 +122,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 &set,
                 SimulatorConfig::default(),
                 sim_seed,
-                PredictionKind::InverseDepth,
+                PredictionKind::RelativeDisparity,
                 TransparencySource::Auto,
             )?;
             let config = EvalConfig {

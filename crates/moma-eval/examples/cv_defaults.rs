@@ -109,7 +109,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 &set,
                 SimulatorConfig::default(),
                 0,
-                PredictionKind::InverseDepth,
+                PredictionKind::RelativeDisparity,
                 TransparencySource::Auto,
             )?;
             let config = EvalConfig {

@@ -60,7 +60,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &set,
             sim_config,
             0,
-            PredictionKind::InverseDepth,
+            PredictionKind::RelativeDisparity,
             TransparencySource::Auto,
         )?;
         match evaluate_few_shot(&set, &preds, &config, &ks) {

@@ -23,7 +23,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let seeds: u64 = std::env::args().nth(3).map_or(Ok(3), |s| s.parse())?;
     let shared = std::env::var("MOMA_SHARED_DIR").unwrap_or_else(|_| "/work/shared".into());
     let set = moma_eval::data::load_set(&std::path::Path::new(&shared).join("data").join(&name))?;
-    let kind = PredictionKind::InverseDepth;
+    let kind = PredictionKind::RelativeDisparity;
     let preds = simulated_predictions(
         &set,
         SimulatorConfig::default(),

@@ -3,7 +3,8 @@
 //! ablation over the anchor count and the ridge.
 //!
 //! `MOMA_SHARED_DIR=/work/shared cargo run --release -p moma-eval --example realign_eval [SEEDS] [KIND] [TARGET] [no-ablation] [form=F] [ridge=λ] [max-anchors=N] [acceptance-se=K] [sim-seeds=S]`
-//! (default 10 seeds, simulated kind `inverse-depth`; `depth` for metric-like predictions;
+//! (default 10 seeds, simulated kind `relative-disparity` (old name `inverse-depth`);
+//! `metric-depth` for metric-like predictions;
 //! target `calibration-output` or `ground-truth`; the main table uses the library's
 //! `RealignConfig` defaults unless `key=value` arguments override them). `sim-seeds=S` repeats
 //! everything for simulator seeds 0..S (each a new draw of the per-set distortions and of the
@@ -51,7 +52,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let seeds: usize = std::env::args().nth(1).map_or(Ok(10), |s| s.parse())?;
     let kind: PredictionKind = std::env::args()
         .nth(2)
-        .map_or(Ok(PredictionKind::InverseDepth), |s| s.parse())?;
+        .map_or(Ok(PredictionKind::RelativeDisparity), |s| s.parse())?;
     let target: moma_core::realign::AnchorTarget = std::env::args()
         .nth(3)
         .map_or(Ok(Default::default()), |s| s.parse())?;

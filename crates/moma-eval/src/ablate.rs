@@ -316,9 +316,9 @@ pub fn sources(
 ) -> Result<Vec<EvalResult>> {
     let mut out = Vec::new();
     for s in sources {
-        // RAW uses a prediction as metres: only for metric (depth) sources.
+        // RAW uses a prediction as metres: only for metric-depth sources.
         let mut cfg = config.clone();
-        if s.kind()? != moma_core::PredictionKind::Depth {
+        if !s.kind()?.is_metric() {
             cfg.methods.retain(|m| *m != Method::Raw);
         }
         out.extend(evaluate_k(set, s, &cfg, calib_frames)?);

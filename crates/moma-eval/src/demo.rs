@@ -225,7 +225,7 @@ impl Default for DemoScene {
             scene: DemoSceneConfig::default(),
             simulator: SimulatorConfig::default(),
             simulator_seed: 0,
-            kind: PredictionKind::InverseDepth,
+            kind: PredictionKind::RelativeDisparity,
         }
     }
 }

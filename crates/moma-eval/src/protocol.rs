@@ -29,14 +29,14 @@ use crate::data::LoadedSet;
 use crate::error::{EvalError, Result};
 
 /// The methods evaluated by default for predictions of `kind`: SSRA, GSSA, LWLR, and RAW for
-/// metric (`depth`) predictions only (RAW uses the prediction as metres).
+/// `metric-depth` predictions only (RAW uses the prediction as metres).
 pub fn default_methods(kind: PredictionKind) -> Vec<Method> {
     let mut m = vec![
         Method::Ssra(Default::default()),
         Method::Gssa,
         Method::Lwlr(Default::default()),
     ];
-    if kind == PredictionKind::Depth {
+    if kind.is_metric() {
         m.push(Method::Raw);
     }
     m
@@ -114,7 +114,7 @@ pub const PER_FRAME_CALIB: &str = "each";
 impl Default for EvalConfig {
     fn default() -> Self {
         Self {
-            methods: default_methods(PredictionKind::Depth),
+            methods: default_methods(PredictionKind::MetricDepth),
             norms: vec![Normalisation::Minmax],
             space: None,
             samples: 100,
@@ -325,7 +325,7 @@ impl EvalNote {
 /// Predictions for every frame of a set (same order as `set.frames`), with their provenance.
 #[derive(Debug, Clone)]
 pub struct PredictionSet {
-    /// Label (e.g. "simulated inverse-depth", a model name).
+    /// Label (e.g. "SIMULATED relative-disparity", a model name).
     pub label: String,
     /// Whether simulated.
     pub simulated: bool,
@@ -350,10 +350,13 @@ impl PredictionSet {
             .as_ref()
             .map(|i| i.path.display().to_string())
             .unwrap_or_default();
-        let kind = moma_io::resolve_prediction_kind(&[
-            ("--pred-kind", kind),
-            (index_what.as_str(), index.as_ref().map(|i| i.kind)),
-        ])
+        let kind = moma_io::resolve_prediction_kind(
+            &[
+                ("--pred-kind", kind),
+                (index_what.as_str(), index.as_ref().map(|i| i.kind)),
+            ],
+            None,
+        )
         .map_err(|m| {
             EvalError::InvalidParameter(format!("predictions in {}: {m}", dir.display()))
         })?;

@@ -20,11 +20,11 @@
 //! 0 keep the minimum fixed, so it does change the one-shot result (the one-shot baseline of a
 //! β ≠ 1 row differs from the β = 1 row; [`RealignStats::one_shot_mae_m`] records it).
 
+use moma_core::Prediction;
 use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::NormalisationConfig;
 use moma_core::realign::RealignConfig;
-use moma_core::{Prediction, PredictionKind};
 use ndarray::{Array3, ArrayView3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -139,10 +139,8 @@ pub fn brightness_response(pred: &Prediction, beta: f64, kappa: f64) -> Predicti
         return pred.clone();
     }
     let e = kappa * beta.ln();
-    let to_q = |p: f32| match pred.kind {
-        PredictionKind::InverseDepth => p as f64,
-        PredictionKind::Depth => 1.0 / p as f64,
-    };
+    let disparity = pred.kind.is_disparity();
+    let to_q = |p: f32| if disparity { p as f64 } else { 1.0 / p as f64 };
     let min_q = pred
         .values
         .iter()
@@ -156,9 +154,10 @@ pub fn brightness_response(pred: &Prediction, beta: f64, kappa: f64) -> Predicti
             return p; // no depth (the model's ReLU region) stays as it is
         }
         let q = (1.0 + e) * q + e * min_q;
-        match pred.kind {
-            PredictionKind::InverseDepth => q as f32,
-            PredictionKind::Depth => (1.0 / q) as f32,
+        if disparity {
+            q as f32
+        } else {
+            (1.0 / q) as f32
         }
     });
     Prediction::new(values, pred.kind)

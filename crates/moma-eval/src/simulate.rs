@@ -22,10 +22,12 @@
 //!    z ← z + p(B − z), B the surface behind the object (nearest pixel outside the mask, smoothed),
 //!    p = `transparency_pull` (the model "sees through" glass).
 //!
-//! Output kinds: `depth` = g·z with a per-set global scale error g = 1 + U(±`depth_scale_error`);
-//! `inverse-depth` = max(0, K/z + b) with a per-set arbitrary scale K = exp(U(±`inverse_log_scale`))
-//! and shift b = β·mean(K/z), β = U(`disparity_shift_min`, `disparity_shift_max`) per set
-//! (a relative model's disparity is affine-invariant: scale *and* shift unknown).
+//! Output kinds: `metric-depth` = g·z with a per-set global scale error
+//! g = 1 + U(±`depth_scale_error`) (a metric head, nominally metres); `relative-disparity` =
+//! max(0, K/z + b) with a per-set arbitrary scale K = exp(U(±`inverse_log_scale`)) and shift
+//! b = β·mean(K/z), β = U(`disparity_shift_min`, `disparity_shift_max`) per set (a relative model's
+//! disparity is affine-invariant: scale *and* shift unknown); `relative-depth` = K·z (a relative
+//! depth model: the same arbitrary scale K, no unit).
 //!
 //! Every component is disabled by setting its strength to 0; with all strengths 0 the output is
 //! the hole-filled ground truth (times g, or K/·). Randomness: per-set parts come from `seed`,
@@ -74,11 +76,12 @@ pub struct SimulatorConfig {
     pub noise_corr_sigma_px: f64,
     /// 6. Pull p of the depth inside the transparency mask towards the surface behind (default 0.5).
     pub transparency_pull: f64,
-    /// Output `depth`: largest global scale error (default 0.25 = ±25 %).
+    /// Output `metric-depth`: largest global scale error (default 0.25 = ±25 %).
     pub depth_scale_error: f64,
-    /// Output `inverse-depth`: K = exp(U(±this)) (default 1.0, K in [0.37, 2.7]).
+    /// Outputs `relative-disparity` and `relative-depth`: K = exp(U(±this)) (default 1.0, K in
+    /// [0.37, 2.7]).
     pub inverse_log_scale: f64,
-    /// Output `inverse-depth`: the disparity shift b = β·mean(K/z) of a relative model,
+    /// Output `relative-disparity`: the disparity shift b = β·mean(K/z) of a relative model,
     /// β drawn per set uniformly from [`Self::disparity_shift_min`, `Self::disparity_shift_max`]
     /// (defaults −0.55 and +0.3; −0.55 measured on a real relative output, docs/method.md §6);
     /// disparities ≤ 0 become 0, as the model's final ReLU does.
@@ -211,11 +214,11 @@ pub struct SetDraws {
     pub bumps: Vec<Bump>,
     /// 2. Normalisation making max |g| = 1.
     pub bump_norm: f64,
-    /// Output `depth`: global scale g.
+    /// Output `metric-depth`: global scale g.
     pub depth_scale: f64,
-    /// Output `inverse-depth`: scale K.
+    /// Outputs `relative-disparity` and `relative-depth`: scale K.
     pub inverse_scale: f64,
-    /// Output `inverse-depth`: shift fraction β (b = β·mean(K/z) per frame).
+    /// Output `relative-disparity`: shift fraction β (b = β·mean(K/z) per frame).
     pub disparity_shift: f64,
 }
 
@@ -448,11 +451,15 @@ impl Simulator {
                 });
         }
         let values = match self.kind {
-            PredictionKind::Depth => {
+            PredictionKind::MetricDepth => {
                 let g = self.draws.depth_scale as f32;
                 z.mapv(|x| g * x)
             }
-            PredictionKind::InverseDepth => {
+            PredictionKind::RelativeDepth => {
+                let k = self.draws.inverse_scale as f32;
+                z.mapv(|x| k * x)
+            }
+            PredictionKind::RelativeDisparity => {
                 let k = self.draws.inverse_scale;
                 let (sum, n) = z
                     .iter()

@@ -109,7 +109,7 @@ fn per_frame_recovers_frame_specific_scales_that_one_calibration_cannot() {
                 let g = &set.frames[k].gt.depth_m;
                 Prediction::new(
                     g.mapv(|z| if z > 0.0 { a * z + b } else { b }),
-                    PredictionKind::Depth,
+                    PredictionKind::MetricDepth,
                 )
             })
             .collect(),

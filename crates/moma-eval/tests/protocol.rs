@@ -217,7 +217,7 @@ fn size_mismatch_names_the_frame() {
     let mut p = preds(3);
     p.maps[1] = moma_core::Prediction::new(
         Array2::from_elem((H, W + 1), 1.0),
-        moma_core::PredictionKind::Depth,
+        moma_core::PredictionKind::MetricDepth,
     );
     let e = evaluate(&set(3), &p, &config(&["gssa"], Normalisation::Minmax, 1)).unwrap_err();
     let msg = chain(&e);
@@ -232,8 +232,8 @@ fn missing_prediction_file_names_the_frame() {
     let dir = tempfile::tempdir().unwrap();
     let s = set(3);
     moma_io::write_npy_f32(dir.path().join("f0.npy"), preds(1).maps[0].values.view()).unwrap();
-    let e =
-        PredictionSet::read(&s, dir.path(), Some(moma_core::PredictionKind::Depth)).unwrap_err();
+    let e = PredictionSet::read(&s, dir.path(), Some(moma_core::PredictionKind::MetricDepth))
+        .unwrap_err();
     let msg = chain(&e);
     assert!(
         msg.contains("'f1'") && msg.contains("missing prediction file"),

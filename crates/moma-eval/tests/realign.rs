@@ -73,7 +73,7 @@ fn brightness_helpers() {
     // the response: q ← (1 + κ ln β)·q + κ ln β·min q; zeros (no depth) stay zero
     let p = Prediction::new(
         Array2::from_shape_vec((1, 3), vec![0.0, 1.0, 2.0]).unwrap(),
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
     );
     let r = brightness_response(&p, 0.8, 0.05);
     let e = 0.05 * 0.8f64.ln();

@@ -69,10 +69,10 @@ fn ls_residual(z: &Array2<f32>, feats: &dyn Fn(usize, usize) -> Vec<f64>) -> f64
 #[test]
 fn all_strengths_zero_is_identity_up_to_the_kind_conversion() {
     let g = dense_gt();
-    let sim = Simulator::new(off(), 5, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(off(), 5, PredictionKind::MetricDepth, intrinsics()).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap();
     assert_eq!(p.values, g.depth_m);
-    let sim = Simulator::new(off(), 5, PredictionKind::InverseDepth, intrinsics()).unwrap();
+    let sim = Simulator::new(off(), 5, PredictionKind::RelativeDisparity, intrinsics()).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap();
     for (a, b) in p.values.iter().zip(g.depth_m.iter()) {
         assert!((a * b - 1.0).abs() < 1e-6);
@@ -82,7 +82,7 @@ fn all_strengths_zero_is_identity_up_to_the_kind_conversion() {
 #[test]
 fn holes_are_filled_with_the_nearest_valid_pixel() {
     let g = gt(0); // hole in the top-left 3×3 corner
-    let sim = Simulator::new(off(), 0, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(off(), 0, PredictionKind::MetricDepth, intrinsics()).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap();
     assert!(p.values.iter().all(|&x| x > 0.0 && x.is_finite()));
     let v = p.values[[0, 0]];
@@ -99,7 +99,7 @@ fn viewpoint_component_alone_is_exactly_ssra() {
         depth_scale_error: 0.25,
         ..off()
     };
-    let sim = Simulator::new(cfg, 11, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(cfg, 11, PredictionKind::MetricDepth, intrinsics()).unwrap();
     assert!(sim.draws.theta_rad != 0.0 && sim.draws.phi_rad != 0.0);
     let p = sim.predict(&g, None, "f0").unwrap().values;
     // SSRA: z = ẑ(αu + βv + γ) + T3 — features [ẑu, ẑv, ẑ, 1]
@@ -123,7 +123,7 @@ fn bumps_alone_stay_within_the_amplitude() {
         bump_count: 4,
         ..off()
     };
-    let sim = Simulator::new(cfg, 3, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(cfg, 3, PredictionKind::MetricDepth, intrinsics()).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap().values;
     let mut max_dev = 0.0f64;
     for (a, b) in p.iter().zip(g.depth_m.iter()) {
@@ -157,7 +157,7 @@ fn relief_compression_shrinks_small_objects() {
         relief_sigma_px: 60.0,
         ..off()
     };
-    let sim = Simulator::new(cfg, 0, PredictionKind::Depth, k).unwrap();
+    let sim = Simulator::new(cfg, 0, PredictionKind::MetricDepth, k).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap().values;
     let relief = p[[10, 10]] as f64 - p[[75, 100]] as f64;
     assert!(
@@ -180,7 +180,7 @@ fn frame_fluctuation_alone_is_absorbed_by_normalisation() {
         frame_fluctuation: 0.03,
         ..off()
     };
-    let sim = Simulator::new(cfg, 2, PredictionKind::InverseDepth, intrinsics()).unwrap();
+    let sim = Simulator::new(cfg, 2, PredictionKind::RelativeDisparity, intrinsics()).unwrap();
     let a = sim.predict(&g, None, "frame-a").unwrap().values;
     let b = sim.predict(&g, None, "frame-b").unwrap().values;
     let diff = a
@@ -208,7 +208,7 @@ fn noise_is_small_and_edges_are_smoothed() {
         noise_std: 0.005,
         ..off()
     };
-    let sim = Simulator::new(cfg, 9, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(cfg, 9, PredictionKind::MetricDepth, intrinsics()).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap().values;
     let rel: Vec<f64> = p
         .iter()
@@ -222,7 +222,7 @@ fn noise_is_small_and_edges_are_smoothed() {
         edge_sigma_px: 20.0,
         ..off()
     };
-    let sim = Simulator::new(cfg, 9, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(cfg, 9, PredictionKind::MetricDepth, intrinsics()).unwrap();
     let p = sim.predict(&g, None, "f0").unwrap().values;
     // the box edge (step of 5 cm at u = 5/6 around row 12) becomes a ramp
     let step = (g.depth_m[[12, 5]] - g.depth_m[[12, 6]]).abs();
@@ -238,7 +238,7 @@ fn transparency_pulls_towards_the_surface_behind() {
         transparency_pull: 0.5,
         ..off()
     };
-    let sim = Simulator::new(cfg, 1, PredictionKind::Depth, intrinsics()).unwrap();
+    let sim = Simulator::new(cfg, 1, PredictionKind::MetricDepth, intrinsics()).unwrap();
     let p = sim.predict(&g, Some(&m), "f0").unwrap().values;
     let (obj, plane) = (
         g.depth_m[[12, 10]] as f64,
@@ -263,7 +263,7 @@ fn deterministic_per_seed_and_frame() {
     let sim = Simulator::new(
         SimulatorConfig::default(),
         42,
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
         intrinsics(),
     )
     .unwrap();
@@ -275,7 +275,7 @@ fn deterministic_per_seed_and_frame() {
     let sim2 = Simulator::new(
         SimulatorConfig::default(),
         43,
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
         intrinsics(),
     )
     .unwrap();
@@ -283,7 +283,7 @@ fn deterministic_per_seed_and_frame() {
     let sim3 = Simulator::new(
         SimulatorConfig::default(),
         42,
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
         intrinsics(),
     )
     .unwrap();
@@ -297,7 +297,7 @@ fn simulate_set_writes_npy_and_the_simulated_label() {
     let sim = Simulator::new(
         SimulatorConfig::default(),
         0,
-        PredictionKind::Depth,
+        PredictionKind::MetricDepth,
         intrinsics(),
     )
     .unwrap();
@@ -314,19 +314,19 @@ fn simulate_set_writes_npy_and_the_simulated_label() {
     }
     let index = moma_io::read_prediction_index(dir.path()).unwrap().unwrap();
     assert!(index.simulated && index.source.contains("SIMULATED"));
-    assert_eq!(index.kind, PredictionKind::Depth);
+    assert_eq!(index.kind, PredictionKind::MetricDepth);
     // the kind comes from predictions.json; --pred-kind may repeat it but not contradict it
     let p = moma_eval::protocol::PredictionSet::read(&s, dir.path(), None).unwrap();
     assert!(p.simulated && p.label.contains("SIMULATED"));
-    assert_eq!(p.kind().unwrap(), PredictionKind::Depth);
+    assert_eq!(p.kind().unwrap(), PredictionKind::MetricDepth);
     assert!(
-        moma_eval::protocol::PredictionSet::read(&s, dir.path(), Some(PredictionKind::Depth))
+        moma_eval::protocol::PredictionSet::read(&s, dir.path(), Some(PredictionKind::MetricDepth))
             .is_ok()
     );
     let e = moma_eval::protocol::PredictionSet::read(
         &s,
         dir.path(),
-        Some(PredictionKind::InverseDepth),
+        Some(PredictionKind::RelativeDisparity),
     )
     .unwrap_err()
     .to_string();

@@ -127,7 +127,7 @@ fn calibration_scene(
                 0.7
             };
             match kind {
-                PredictionKind::InverseDepth => 1.0 / z - 0.4,
+                PredictionKind::RelativeDisparity => 1.0 / z - 0.4,
                 _ => 1.1 * z,
             }
         }),
@@ -168,7 +168,7 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
         cx: 16.0,
         cy: 12.0,
     };
-    let inverse = PredictionKind::InverseDepth;
+    let inverse = PredictionKind::RelativeDisparity;
     let case = |name: &str, method: &'static str, kind, robust, frames, anchors| SeedCase {
         name: name.to_string(),
         method,
@@ -183,8 +183,22 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
         .map(|m| case(m, m, inverse, None, 1, false))
         .collect();
     cases.extend([
-        case("gssa-depth", "gssa", PredictionKind::Depth, None, 1, false),
-        case("raw-depth", "raw", PredictionKind::Depth, None, 1, false),
+        case(
+            "gssa-depth",
+            "gssa",
+            PredictionKind::MetricDepth,
+            None,
+            1,
+            false,
+        ),
+        case(
+            "raw-depth",
+            "raw",
+            PredictionKind::MetricDepth,
+            None,
+            1,
+            false,
+        ),
         case(
             "ssra-huber",
             "ssra",

@@ -23,7 +23,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let path = std::path::Path::new(&files[i]);
             let p = moma_io::read_prediction(path, kind)?;
             // as metres (the reciprocal of a disparity): about the depth map `moma align` writes
-            let inverse = p.kind == PredictionKind::InverseDepth;
+            let inverse = p.kind == PredictionKind::RelativeDisparity;
             let depth = MetricDepth::new(p.values.mapv(|d| match (inverse, d > 0.0) {
                 (false, _) => d,
                 (true, true) => 1.0 / d,

@@ -26,8 +26,12 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// local variants' cross-validation settings (a version-2 file reads unchanged); within version 3,
 /// `created.simulated_predictions` (written only when true: builds older than it refuse such a
 /// file as an unknown field); 4 — the optional `error_model` of the aligned depth (a version-2 or
-/// version-3 file reads unchanged, without one).
-pub const CALIBRATION_VERSION: u32 = 4;
+/// version-3 file reads unchanged, without one); 5 — `prediction_kind` is one of
+/// `metric-depth`, `relative-depth`, `relative-disparity` (versions 1–4 wrote `depth` or
+/// `inverse-depth`: `inverse-depth` reads as `relative-disparity`, `depth` as `metric-depth` for
+/// method `raw`, which used the prediction as metres, else as `relative-depth`, which still
+/// aligns a metric model's predictions, [`PredictionKind::accepts`]).
+pub const CALIBRATION_VERSION: u32 = 5;
 
 /// The oldest calibration-file version this build reads (migrated on reading).
 pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
@@ -239,20 +243,39 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        Some(4) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
-        // Versions 3 and 4 only added optional fields: a version-2 or -3 document is a
-        // version-4 one.
-        Some(2 | 3) => {
+        Some(5) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        // Versions 3 and 4 only added optional fields, and version 5 renamed the kinds (the old
+        // names still parse): a version-2 to -4 document is a version-5 one once its kind is
+        // mapped.
+        Some(2..=4) => {
             let mut file: CalibrationFile =
                 serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
             file.version = CALIBRATION_VERSION;
+            migrate_kind(&mut file);
             file
         }
-        Some(1) => migrate_v1(path, text)?,
+        Some(1) => {
+            let mut file = migrate_v1(path, text)?;
+            migrate_kind(&mut file);
+            file
+        }
         _ => return Err(version_error()),
     };
     file.check(path)?;
     Ok(file)
+}
+
+/// Versions 1–4 → 5: an old `depth` was parsed as `relative-depth`; a `raw` calibration used
+/// the prediction as metres, so its predictions were a metric model's: `metric-depth`.
+fn migrate_kind(file: &mut CalibrationFile) {
+    if file.calibration.model.name() == "raw"
+        && file.calibration.prediction_kind == PredictionKind::RelativeDepth
+    {
+        file.calibration.prediction_kind = PredictionKind::MetricDepth;
+        if file.prediction_kind == PredictionKind::RelativeDepth {
+            file.prediction_kind = PredictionKind::MetricDepth;
+        }
+    }
 }
 
 /// Version 1 → 2: the normalisation gains its space (version 1 aligned in depth space unless

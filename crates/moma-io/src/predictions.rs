@@ -5,9 +5,15 @@
 //! a simulated prediction is always labelled as such.
 //!
 //! ```json
-//! {"format": "moma-predictions", "prediction_kind": "inverse-depth", "simulated": true,
+//! {"format": "moma-predictions", "prediction_kind": "relative-disparity", "simulated": true,
 //!  "source": "SIMULATED ...", ...tool-specific fields (model, weights, runtime, frames, simulator)}
 //! ```
+//!
+//! `prediction_kind` is `metric-depth`, `relative-depth` or `relative-disparity`. Indexes written
+//! before these names existed are read with the mapping of docs/formats.md ("Prediction kinds"):
+//! `inverse-depth` is `relative-disparity`; `depth` is `metric-depth` where the writer recorded a
+//! metric model (a metric head, a simulation of one, or a source that says "metric depth"), else
+//! `relative-depth`.
 
 use std::path::{Path, PathBuf};
 
@@ -42,7 +48,8 @@ pub struct PredictionIndex {
 #[derive(Deserialize)]
 struct IndexHead {
     format: String,
-    prediction_kind: PredictionKind,
+    /// A name, new or old: mapped by [`legacy_depth_kind`].
+    prediction_kind: String,
     #[serde(default)]
     simulated: bool,
     #[serde(default)]
@@ -58,8 +65,34 @@ struct IndexHead {
 
 #[derive(Deserialize)]
 struct LegacySimulated {
-    kind: PredictionKind,
+    kind: String,
     label: String,
+}
+
+/// What an old index's kind `depth` means, from what its writer recorded: `metric-depth` when
+/// - `model` records a metric head (`moma predict` writes the model's spec, with
+///   `"head": "metric"`), or
+/// - it is simulated (`moma simulate`'s `depth` was always g·z: metres with a scale error, the
+///   simulation of a metric head), or
+/// - `source` says "metric depth" (an index written by hand for a metric model's output, such as
+///   ../shared/data/zed-da3-office's, whose README says the maps are metres);
+///
+/// else `relative-depth`, the kind that claims no unit.
+fn legacy_depth_kind(
+    model: Option<&serde_json::Value>,
+    simulated: bool,
+    source: Option<&str>,
+) -> PredictionKind {
+    let metric_head = model.is_some_and(|m| {
+        let head = &m["head"];
+        head.as_str() == Some("metric") || head["head"].as_str() == Some("metric")
+    });
+    let says_metric = source.is_some_and(|s| s.to_ascii_lowercase().contains("metric depth"));
+    if metric_head || simulated || says_metric {
+        PredictionKind::MetricDepth
+    } else {
+        PredictionKind::RelativeDepth
+    }
 }
 
 /// The common fields a writer puts at the top of `predictions.json` (flatten it into the
@@ -103,6 +136,9 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
     if path.is_file() {
         let text = std::fs::read_to_string(&path).map_err(|e| IoError::io(&path, "read", e))?;
         let head: IndexHead = serde_json::from_str(&text).map_err(|e| IoError::json(&path, &e))?;
+        let legacy = legacy_depth_kind(head.model.as_ref(), head.simulated, head.source.as_deref());
+        let kind = PredictionKind::from_name(&head.prediction_kind, legacy)
+            .map_err(|e| IoError::invalid(&path, format!("prediction_kind: {e}")))?;
         if head.format != PREDICTIONS_FORMAT {
             return Err(IoError::invalid(
                 &path,
@@ -115,10 +151,10 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
         let source = head
             .source
             .or_else(|| head.model.map(|m| format!("depth model {m}")))
-            .unwrap_or_else(|| format!("{} predictions", head.prediction_kind));
+            .unwrap_or_else(|| format!("{kind} predictions"));
         return Ok(Some(PredictionIndex {
             path,
-            kind: head.prediction_kind,
+            kind,
             simulated: head.simulated,
             source,
             frames: head
@@ -139,9 +175,11 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
         let text = std::fs::read_to_string(&legacy).map_err(|e| IoError::io(&legacy, "read", e))?;
         let meta: LegacySimulated =
             serde_json::from_str(&text).map_err(|e| IoError::json(&legacy, &e))?;
+        let kind = PredictionKind::from_name(&meta.kind, PredictionKind::MetricDepth)
+            .map_err(|e| IoError::invalid(&legacy, format!("kind: {e}")))?;
         return Ok(Some(PredictionIndex {
             path: legacy,
-            kind: meta.kind,
+            kind,
             simulated: true,
             source: meta.label,
             frames: Vec::new(),
@@ -181,34 +219,46 @@ pub fn prediction_index_listing(file: &Path) -> Result<Option<PredictionIndex>> 
     Ok(read_prediction_index_for(file)?.filter(|i| i.frames.iter().any(|f| f == stem)))
 }
 
-/// The prediction kind from every source that states one, which must agree; at least one must.
+/// The kind of the predictions from every source that states one, which must agree, checked
+/// against the kind a calibration expects.
 ///
-/// `sources` are `(what, kind)` pairs, e.g. `("--pred-kind", Some(k))`,
-/// `("predictions.json", …)`, `("the calibration file", …)`, `("the model's head", …)`.
+/// `sources` are `(what, kind)` pairs that describe the predictions, e.g.
+/// `("--pred-kind", Some(k))`, `("predictions.json", …)`, `("the model's head", …)`; where none
+/// states a kind, the calibration's (`(what, kind)`, e.g. `("the calibration file", k)`) is used.
+/// A calibration accepts the kinds of [`PredictionKind::accepts`]: its own, and `metric-depth`
+/// under a `relative-depth` calibration.
 ///
 /// # Errors
-/// A message for the user: none stated (the kind is never guessed), or two that disagree.
+/// A message for the user: no kind stated anywhere (the kind is never guessed), two sources that
+/// disagree, or a kind the calibration does not accept.
 pub fn resolve_prediction_kind(
     sources: &[(&str, Option<PredictionKind>)],
+    calibration: Option<(&str, PredictionKind)>,
 ) -> std::result::Result<PredictionKind, String> {
     let stated: Vec<(&str, PredictionKind)> = sources
         .iter()
         .filter_map(|(w, k)| k.map(|k| (*w, k)))
         .collect();
-    let Some(&(first_what, first)) = stated.first() else {
-        return Err(
-            "the prediction kind is unknown: pass --pred-kind depth|inverse-depth (relative \
-             Depth Anything heads output inverse-depth, metric heads depth), or keep the \
+    let Some(&(first_what, first)) = stated.first().or(calibration.as_ref()) else {
+        return Err("the prediction kind is unknown: pass --pred-kind \
+             metric-depth|relative-depth|relative-disparity (Depth Anything's relative heads \
+             output relative-disparity, metric heads metric-depth), or keep the \
              predictions.json that `moma predict`/`moma simulate` wrote beside the predictions"
-                .into(),
-        );
+            .into());
     };
-    for &(what, k) in &stated[1..] {
+    for &(what, k) in stated.iter().skip(1) {
         if k != first {
             return Err(format!(
                 "prediction kind mismatch: {first_what} says '{first}' but {what} says '{k}'"
             ));
         }
+    }
+    if let Some((what, expected)) = calibration
+        && !expected.accepts(first)
+    {
+        return Err(format!(
+            "prediction kind mismatch: {first_what} says '{first}' but {what} says '{expected}'"
+        ));
     }
     Ok(first)
 }
@@ -226,7 +276,7 @@ mod tests {
             std::fs::write(
                 dir.path().join(PREDICTIONS_INDEX_FILE),
                 format!(
-                    r#"{{"format": "moma-predictions", "prediction_kind": "inverse-depth",
+                    r#"{{"format": "moma-predictions", "prediction_kind": "relative-disparity",
                         "simulated": true, "source": "SIMULATED", "frames": {frames}}}"#
                 ),
             )
@@ -241,7 +291,7 @@ mod tests {
             let found = prediction_index_listing(&file("f_01.npy"))
                 .unwrap()
                 .unwrap();
-            assert_eq!(found.kind, PredictionKind::InverseDepth);
+            assert_eq!(found.kind, PredictionKind::RelativeDisparity);
             assert!(found.simulated && found.frames.contains(&"f_01".to_string()));
             assert!(
                 prediction_index_listing(&file("f_01.depth.npy"))
@@ -295,5 +345,71 @@ mod tests {
                 .unwrap()
                 .is_none()
         );
+    }
+
+    /// docs/formats.md "Prediction kinds": new names as they are; an old `inverse-depth` is
+    /// `relative-disparity`; an old `depth` is `metric-depth` only where the writer recorded a
+    /// metric model (a metric head in `model`, a simulation, a source saying "metric depth").
+    #[test]
+    fn old_kind_names_follow_what_the_writer_recorded() {
+        let dir = tempfile::tempdir().unwrap();
+        let kind_of = |fields: &str| {
+            std::fs::write(
+                dir.path().join(PREDICTIONS_INDEX_FILE),
+                format!(r#"{{"format": "moma-predictions", {fields}}}"#),
+            )
+            .unwrap();
+            read_prediction_index(dir.path()).map(|i| i.unwrap().kind)
+        };
+        use PredictionKind::*;
+        let cases = [
+            (r#""prediction_kind": "relative-depth""#, RelativeDepth),
+            (r#""prediction_kind": "metric-depth""#, MetricDepth),
+            (
+                r#""prediction_kind": "relative-disparity""#,
+                RelativeDisparity,
+            ),
+            (r#""prediction_kind": "inverse-depth""#, RelativeDisparity),
+            (r#""prediction_kind": "depth""#, RelativeDepth),
+            (
+                r#""prediction_kind": "depth", "model": {"backbone": "vits", "head": {"head": "metric", "max_depth_m": 20.0}}"#,
+                MetricDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "model": {"backbone": "vits", "head": {"head": "relative"}}"#,
+                RelativeDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "simulated": true"#,
+                MetricDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "DA3 metric, Metric depth in metres""#,
+                MetricDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "MiDaS""#,
+                RelativeDepth,
+            ),
+        ];
+        for (fields, want) in cases {
+            assert_eq!(kind_of(fields).unwrap(), want, "{fields}");
+        }
+        let e = kind_of(r#""prediction_kind": "metres""#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("predictions.json") && e.contains("metres") && e.contains("metric-depth"),
+            "{e}"
+        );
+        // the legacy simulator label: its `depth` was metres × a scale error
+        std::fs::remove_file(dir.path().join(PREDICTIONS_INDEX_FILE)).unwrap();
+        std::fs::write(
+            dir.path().join(LEGACY_SIMULATED_FILE),
+            r#"{"kind": "depth", "label": "SIMULATED"}"#,
+        )
+        .unwrap();
+        let legacy = read_prediction_index(dir.path()).unwrap().unwrap();
+        assert_eq!((legacy.kind, legacy.simulated), (MetricDepth, true));
     }
 }

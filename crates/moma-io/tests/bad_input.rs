@@ -92,7 +92,7 @@ fn eight_bit_png_is_not_depth() {
         msg(&e).contains("m.png") && msg(&e).contains("16-bit"),
         "{e}"
     );
-    assert!(read_prediction(&p, PredictionKind::Depth).is_err());
+    assert!(read_prediction(&p, PredictionKind::MetricDepth).is_err());
 }
 
 #[test]
@@ -172,7 +172,7 @@ fn wrong_dtype_npy_is_unsupported() {
     );
     let p = dir.path().join("u16.npy");
     ndarray_npy::write_npy(&p, &Array2::<u16>::zeros((2, 2))).unwrap();
-    assert!(msg(&read_prediction(&p, PredictionKind::Depth).unwrap_err()).contains("<u2"));
+    assert!(msg(&read_prediction(&p, PredictionKind::MetricDepth).unwrap_err()).contains("<u2"));
 }
 
 #[test]
@@ -211,7 +211,7 @@ fn prediction_refuses_millimetre_png() {
     let p = dir.path().join("pred.png");
     let e = write_prediction(
         &p,
-        &Prediction::new(Array2::ones((2, 2)), PredictionKind::InverseDepth),
+        &Prediction::new(Array2::ones((2, 2)), PredictionKind::RelativeDisparity),
     )
     .unwrap_err();
     assert!(matches!(e, IoError::Unsupported { .. }), "{e}");
@@ -311,7 +311,7 @@ mod calibration {
                 method: moma_core::Normalisation::None,
                 space: moma_core::AlignSpace::Depth,
             },
-            prediction_kind: PredictionKind::Depth,
+            prediction_kind: PredictionKind::MetricDepth,
             model: AlignmentModel::Raw,
             report: FitReport {
                 method: "raw".into(),
@@ -467,23 +467,79 @@ mod calibration {
     }
 
     #[test]
-    fn version_2_and_3_files_read_as_version_4() {
-        // Versions 3 and 4 only added optional fields: the same document (without them)
-        // labelled 2 or 3 must read, equal.
+    fn version_2_to_4_files_read_as_version_5() {
+        // Versions 3 and 4 only added optional fields and version 5 renamed the kinds: the same
+        // document (without them) labelled 2, 3 or 4 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let written = read_calibration(&p).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["version"], 4);
-        for old in [2, 3] {
+        assert_eq!(v["version"], 5);
+        for old in [2, 3, 4] {
             v["version"] = old.into();
             std::fs::write(&p, v.to_string()).unwrap();
             let read = read_calibration(&p).unwrap();
             assert_eq!(read.calibration, written.calibration);
-            assert_eq!(read.version, 4);
+            assert_eq!(read.version, 5);
         }
+    }
+
+    /// docs/formats.md "Prediction kinds": a version-1 to -4 file's `depth` is `metric-depth`
+    /// for `raw` (it used the prediction as metres) and `relative-depth` otherwise;
+    /// `inverse-depth` is `relative-disparity`. A version-5 file is written with the new name.
+    #[test]
+    fn old_kind_names_are_mapped_on_reading() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        let with_kind = |v: &mut serde_json::Value, kind: &str| {
+            v["prediction_kind"] = kind.into();
+            v["calibration"]["prediction_kind"] = kind.into();
+        };
+        // raw + depth → metric-depth
+        write_calibration(&p, &file()).unwrap();
+        let mut raw: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        assert_eq!(raw["prediction_kind"], "metric-depth");
+        raw["version"] = 4.into();
+        with_kind(&mut raw, "depth");
+        std::fs::write(&p, raw.to_string()).unwrap();
+        let read = read_calibration(&p).unwrap();
+        assert_eq!(read.prediction_kind, PredictionKind::MetricDepth);
+        assert_eq!(
+            read.calibration.prediction_kind,
+            PredictionKind::MetricDepth
+        );
+        // the v1 GSSA file: inverse-depth → relative-disparity, depth → relative-depth
+        let mut v1: serde_json::Value = serde_json::from_str(&v1_text("null", false)).unwrap();
+        for (old, new) in [
+            ("inverse-depth", PredictionKind::RelativeDisparity),
+            ("depth", PredictionKind::RelativeDepth),
+        ] {
+            with_kind(&mut v1, old);
+            std::fs::write(&p, v1.to_string()).unwrap();
+            let read = read_calibration(&p).unwrap();
+            assert_eq!(
+                (read.prediction_kind, read.calibration.prediction_kind),
+                (new, new)
+            );
+            // written back under the new name, and read back equal
+            let q = dir.path().join("rewritten.json");
+            write_calibration(&q, &read).unwrap();
+            let text: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&q).unwrap()).unwrap();
+            assert_eq!(text["prediction_kind"], new.name());
+            assert_eq!(read_calibration(&q).unwrap(), read);
+        }
+        // an unknown name is refused, naming the three
+        with_kind(&mut v1, "metres");
+        std::fs::write(&p, v1.to_string()).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(
+            m.contains("metres") && m.contains("relative-disparity"),
+            "{m}"
+        );
     }
 
     #[test]
@@ -519,15 +575,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 5.into();
-        // A v5 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 6.into();
+        // A v6 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 5") && m.contains("versions 1 to 4"),
+            m.contains("calib.json") && m.contains("version 6") && m.contains("versions 1 to 5"),
             "{m}"
         );
 
@@ -577,13 +633,13 @@ mod calibration {
         }));
         let pred = Prediction::new(
             gt.depth_m.mapv(|z| 1.0 / z - 0.4),
-            PredictionKind::InverseDepth,
+            PredictionKind::RelativeDisparity,
         );
         let config = moma_core::pipeline::CalibrationConfig {
             method: method.parse().unwrap(),
             normalisation: moma_core::NormalisationConfig::native(
                 moma_core::Normalisation::Minmax,
-                PredictionKind::InverseDepth,
+                PredictionKind::RelativeDisparity,
             ),
             sampling: moma_core::sampling::SamplingConfig {
                 n: 60,
@@ -606,7 +662,7 @@ mod calibration {
         let c = read_calibration(&p).unwrap().calibration;
         let values = Array2::from_shape_fn((24, 32), |(v, u)| 0.5 + 0.01 * (u + 2 * v) as f32);
         c.aligned(
-            &Prediction::new(values, PredictionKind::InverseDepth),
+            &Prediction::new(values, PredictionKind::RelativeDisparity),
             &AlignOptions::default(),
         )
         .unwrap()
@@ -1062,7 +1118,7 @@ fn npy_header_claiming_100000_squared_is_too_large() {
         for e in [
             read_depth(&p).unwrap_err(),
             read_npy_f32(&p).unwrap_err(),
-            read_prediction(&p, PredictionKind::Depth).unwrap_err(),
+            read_prediction(&p, PredictionKind::MetricDepth).unwrap_err(),
         ] {
             let m = msg(&e);
             assert!(

@@ -22,7 +22,7 @@ fn calibration(robust: Option<Robust>) -> moma_core::pipeline::Calibration {
     }));
     let pred = Prediction::new(
         Array2::from_shape_fn((24, 32), |(v, _)| 1.0 / (0.6 + 0.01 * v as f32)),
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
     );
     let config = CalibrationConfig {
         method: Method::Gssa,

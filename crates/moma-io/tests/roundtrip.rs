@@ -160,12 +160,12 @@ fn predictions_keep_raw_values_and_kind() {
     let dir = tempfile::tempdir().unwrap();
     let pred = Prediction::new(
         array![[0.0f32, 3.5], [-1.0, 1e6]],
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
     );
     for name in ["p.npy", "p.pfm"] {
         let p = dir.path().join(name);
         write_prediction(&p, &pred).unwrap();
-        let back = read_prediction(&p, PredictionKind::InverseDepth).unwrap();
+        let back = read_prediction(&p, PredictionKind::RelativeDisparity).unwrap();
         assert_eq!(back, pred);
     }
     // A 16-bit PNG prediction is read as raw values (no millimetre conversion).
@@ -175,9 +175,9 @@ fn predictions_keep_raw_values_and_kind() {
         &MetricDepth::new(array![[0.0f32, 0.007], [1.0, 65.535]]),
     )
     .unwrap();
-    let back = read_prediction(&p, PredictionKind::Depth).unwrap();
+    let back = read_prediction(&p, PredictionKind::MetricDepth).unwrap();
     assert_eq!(back.values, array![[0.0f32, 7.0], [1000.0, 65535.0]]);
-    assert_eq!(back.kind, PredictionKind::Depth);
+    assert_eq!(back.kind, PredictionKind::MetricDepth);
 }
 
 #[test]
@@ -288,7 +288,7 @@ pub fn sample_calibration() -> Calibration {
             method: Normalisation::Median,
             space: moma_core::AlignSpace::Inverse,
         },
-        prediction_kind: PredictionKind::InverseDepth,
+        prediction_kind: PredictionKind::RelativeDisparity,
         model: AlignmentModel::Gssa(moma_core::align::gssa::GssaModel {
             scale: 0.25,
             shift_m: 0.5,
@@ -349,7 +349,7 @@ fn calibration_file_roundtrip() {
     // The documented top-level fields are there for scripts.
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
     assert_eq!(v["format"], "moma-calibration");
-    assert_eq!(v["version"], 4);
+    assert_eq!(v["version"], 5);
     assert_eq!(v["method"], "gssa");
     assert_eq!(v["normalisation"]["space"], "inverse");
     assert_eq!(v["calibration"]["workspace"]["inside_px"], 60 * 40);
@@ -359,7 +359,7 @@ fn calibration_file_roundtrip() {
     std::fs::copy(&p, &q).unwrap();
     drop(dir);
     assert_eq!(read_calibration(&q).unwrap(), file);
-    assert_eq!(v["prediction_kind"], "inverse-depth");
+    assert_eq!(v["prediction_kind"], "relative-disparity");
     assert_eq!(v["normalisation"]["method"], "median");
     assert_eq!(v["image_size"]["width"], 64);
     assert_eq!(v["created"]["sources"]["prediction"], "frames/a/pred.npy");

@@ -103,3 +103,18 @@ fn every_shared_set_opens_and_loads() {
         }
     }
 }
+
+/// The one index in ../shared written before the three prediction kinds: zed-da3-office's says
+/// `depth`, and its README and `source` say the maps are a metric model's metres, so it reads as
+/// `metric-depth` (docs/formats.md "Prediction kinds"), which `raw` and `moma metrics` accept.
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn the_real_da3_index_reads_as_metric_depth() {
+    let dir = shared_data().join("zed-da3-office/predictions");
+    let index = moma_io::read_prediction_index(&dir)
+        .unwrap()
+        .expect("zed-da3-office/predictions has a predictions.json");
+    assert_eq!(index.kind, moma_core::PredictionKind::MetricDepth);
+    assert!(!index.simulated);
+    assert_eq!(index.frames.len(), 3);
+}

@@ -472,7 +472,8 @@ impl Calibration {
         to_py_json(py, &report)
     }
 
-    /// `"depth"` or `"inverse-depth"`: the prediction kind this calibration accepts.
+    /// `"metric-depth"`, `"relative-depth"` or `"relative-disparity"`: the prediction kind this
+    /// calibration accepts (a `"relative-depth"` calibration also accepts `"metric-depth"`).
     #[getter]
     fn kind(&self) -> String {
         self.inner.prediction_kind.to_string()
@@ -1056,7 +1057,7 @@ fn write_depth<'py>(
 fn read_prediction(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyArray2<f32>>> {
     // The kind only labels the values; reading does not depend on it.
     let pred = py
-        .detach(|| moma_io::read_prediction(&path, PredictionKind::Depth))
+        .detach(|| moma_io::read_prediction(&path, PredictionKind::RelativeDepth))
         .py()?;
     Ok(pred.values.into_pyarray(py))
 }
@@ -1082,7 +1083,8 @@ fn read_mask(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, numpy::PyArray
 /// Writes a raw prediction (unitless): `.npy` or `.pfm` (atomic).
 #[pyfunction]
 fn write_prediction(py: Python<'_>, path: PathBuf, pred: &Bound<'_, PyAny>) -> PyResult<()> {
-    let pred = Prediction::new(f32_owned(pred, "pred")?, PredictionKind::Depth);
+    // The kind only labels the values; writing does not depend on it.
+    let pred = Prediction::new(f32_owned(pred, "pred")?, PredictionKind::RelativeDepth);
     py.detach(|| moma_io::write_prediction(&path, &pred)).py()
 }
 
@@ -1432,7 +1434,8 @@ impl DepthModel {
         Ok(pred.values.into_pyarray(py))
     }
 
-    /// `"inverse-depth"` (relative head) or `"depth"` (metric head, metres): pass it to `calibrate`.
+    /// `"relative-disparity"` (relative head) or `"metric-depth"` (metric head, metres): pass it to
+    /// `calibrate`.
     #[getter]
     fn kind(&self) -> String {
         self.spec.head.prediction_kind().to_string()

@@ -21,7 +21,7 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// Examples:
 ///   moma ablate samples --set data/gqcnn-primesense --simulate -o out/ablations
 ///   moma ablate norm --set data/gqcnn-primesense --simulate --norms minmax,median,none
-///   moma ablate source --set data/gqcnn-primesense --source "sim depth:depth:preds/d" --source "sim inv:inverse-depth:preds/i"
+///   moma ablate source --set data/gqcnn-primesense --source "sim metric:metric-depth:preds/d" --source "sim disp:relative-disparity:preds/i"
 ///   moma ablate source --set data/gqcnn-primesense      # simulated depth vs simulated inverse depth
 ///   moma ablate transparent --set data/cleargrasp-transparent --simulate
 ///   moma ablate norm --set data/gqcnn-primesense --simulate --calib-frames 3   # few-shot
@@ -61,7 +61,7 @@ pub enum AblateCommand {
     Source {
         #[command(flatten)]
         common: AblateCommon,
-        /// LABEL:KIND:DIR (KIND = depth | inverse-depth), repeatable.
+        /// LABEL:KIND:DIR (KIND = metric-depth | relative-depth | relative-disparity), repeatable.
         #[arg(long, value_name = "LABEL:KIND:DIR")]
         source: Vec<String>,
     },
@@ -191,31 +191,29 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let set = load_set(dir)?;
                 let sources: Vec<PredictionSet> = if source.is_empty() {
                     let cfg = common.pred.sim.config()?;
-                    [PredictionKind::Depth, PredictionKind::InverseDepth]
-                        .into_iter()
-                        .map(|kind| -> Result<PredictionSet> {
-                            let sim =
-                                Simulator::new(cfg, common.pred.sim_seed, kind, set.intrinsics)?;
-                            Ok(PredictionSet {
-                                label: format!("SIMULATED {kind}"),
-                                simulated: true,
-                                maps: simulate_frames(
-                                    &set,
-                                    &sim,
-                                    common.pred.sim_transparency.into(),
-                                )?,
-                            })
+                    [
+                        PredictionKind::MetricDepth,
+                        PredictionKind::RelativeDisparity,
+                    ]
+                    .into_iter()
+                    .map(|kind| -> Result<PredictionSet> {
+                        let sim = Simulator::new(cfg, common.pred.sim_seed, kind, set.intrinsics)?;
+                        Ok(PredictionSet {
+                            label: format!("SIMULATED {kind}"),
+                            simulated: true,
+                            maps: simulate_frames(&set, &sim, common.pred.sim_transparency.into())?,
                         })
-                        .collect::<Result<_>>()?
+                    })
+                    .collect::<Result<_>>()?
                 } else {
                     source
                         .iter()
                         .map(|s| parse_source(s, &set))
                         .collect::<Result<_>>()?
                 };
-                // RAW only for the metric (depth) sources: the default method list of a depth
+                // RAW only for the metric-depth sources: the default method list of a depth
                 // prediction, filtered per source by the library.
-                let config = common.eval.config(PredictionKind::Depth)?;
+                let config = common.eval.config(PredictionKind::MetricDepth)?;
                 let r = ablate::sources(&set, &sources, &config, k);
                 rows.extend(common.noted(&mut notes, r)?);
             }

@@ -21,7 +21,7 @@ use super::common::{SourceArgs, print_json};
 /// are drawn per frame, one fit over all).
 ///
 /// Examples:
-///   moma calibrate --pred pred/0000.npy --pred-kind inverse-depth --gt set/frames/0000/depth.png \
+///   moma calibrate --pred pred/0000.npy --pred-kind relative-disparity --gt set/frames/0000/depth.png \
 ///       --camera set/camera.json -o calib.json
 ///   moma calibrate --rgb set/frames/0000/rgb.png --weights depth_anything_v2_vits.safetensors \
 ///       --gt set/frames/0000/depth.png --camera set/camera.json --method ssra --samples 100 --seed 7 -o calib.json
@@ -59,7 +59,8 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "NORM")]
     pub norm: Option<Normalisation>,
     /// Alignment space: inverse (predictor disparity, target 1/z) or depth. Default: the
-    /// prediction's own (inverse-depth predictions align in inverse space, depth in depth space).
+    /// prediction's own (relative-disparity predictions align in inverse space, the depth kinds in
+    /// depth space).
     #[arg(long, value_name = "SPACE")]
     pub space: Option<AlignSpace>,
     /// Number of calibration samples n (per frame).

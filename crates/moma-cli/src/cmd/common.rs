@@ -238,10 +238,11 @@ pub struct SourceArgs {
     /// Prediction files (.npy float32, .pfm, or 16-bit .png holding raw values).
     #[arg(long, num_args = 1.., value_name = "FILE", required_unless_present = "rgb", conflicts_with = "rgb")]
     pub pred: Vec<PathBuf>,
-    /// What the prediction files hold: depth | inverse-depth (relative Depth Anything heads
-    /// output inverse-depth, metric heads depth). Never guessed: taken from predictions.json
-    /// beside the files (written by `moma predict` / `moma simulate`), the model's head with
-    /// --rgb, or the calibration file; when several state it they must agree.
+    /// What the prediction files hold: metric-depth | relative-depth | relative-disparity
+    /// (relative Depth Anything heads output relative-disparity, metric heads metric-depth;
+    /// docs/formats.md "Prediction kinds"). Never guessed: taken from predictions.json beside
+    /// the files (written by `moma predict` / `moma simulate`) or the model's head with --rgb,
+    /// which must agree, else the calibration file's; the calibration must accept it.
     #[arg(long, value_name = "KIND")]
     pub pred_kind: Option<PredictionKind>,
     /// RGB images to run through the depth model (--weights or --hub) instead of --pred files.
@@ -313,8 +314,11 @@ impl SourceArgs {
                     .zip(&indexes)
                     .map(|(n, i)| (n.as_str(), Some(i.kind))),
             );
-            sources.push(("the calibration file", calibration_kind));
-            let kind = moma_io::resolve_prediction_kind(&sources).map_err(anyhow::Error::msg)?;
+            let kind = moma_io::resolve_prediction_kind(
+                &sources,
+                calibration_kind.map(|k| ("the calibration file", k)),
+            )
+            .map_err(anyhow::Error::msg)?;
             if let Some(sim) = indexes.iter().find(|i| i.simulated) {
                 eprintln!(
                     "note: SIMULATED predictions ({}): not a depth model's output",
@@ -329,14 +333,16 @@ impl SourceArgs {
             })
         } else {
             let model = self.model.load()?.model;
-            let kind = moma_io::resolve_prediction_kind(&[
-                (
-                    "the depth model's head",
-                    Some(model.spec().head.prediction_kind()),
-                ),
-                ("--pred-kind", self.pred_kind),
-                ("the calibration file", calibration_kind),
-            ])
+            let kind = moma_io::resolve_prediction_kind(
+                &[
+                    (
+                        "the depth model's head",
+                        Some(model.spec().head.prediction_kind()),
+                    ),
+                    ("--pred-kind", self.pred_kind),
+                ],
+                calibration_kind.map(|k| ("the calibration file", k)),
+            )
             .map_err(anyhow::Error::msg)?;
             Ok(Source {
                 inputs: self.inputs().to_vec(),
@@ -414,22 +420,24 @@ impl FileReader<'_> {
 }
 
 /// Reads a metric depth map for `flag`, refusing a relative model's raw output: a `.npy` that
-/// the `predictions.json` beside it lists as an `inverse-depth` prediction holds disparity with
-/// an unknown scale and shift, not metres (`hint` says what to do instead). A raw `depth`
-/// prediction (a metric head's output, nominally metres) is read with a note: uncalibrated.
+/// the `predictions.json` beside it lists as a `relative-disparity` or `relative-depth`
+/// prediction holds values with an unknown scale (and shift), not metres (`hint` says what to do
+/// instead). A raw `metric-depth` prediction (a metric head's output, nominally metres) is read
+/// with a note: uncalibrated.
 pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_core::MetricDepth> {
     if let Some(index) = moma_io::prediction_index_listing(path)? {
         let simulated = if index.simulated { "SIMULATED " } else { "" };
-        if index.kind == PredictionKind::InverseDepth {
+        if !index.kind.is_metric() {
             bail!(
-                "{flag} {}: this is a raw {simulated}inverse-depth prediction listed in {}: \
-                 disparity, not metres; {hint}",
+                "{flag} {}: this is a raw {simulated}{} prediction listed in {}: no unit, not \
+                 metres; {hint}",
                 path.display(),
+                index.kind,
                 index.path.display()
             );
         }
         eprintln!(
-            "note: {flag} {}: a raw {simulated}depth prediction listed in {}, used as metres \
+            "note: {flag} {}: a raw {simulated}metric-depth prediction listed in {}, used as metres \
              without calibration (its scale is the model's own)",
             path.display(),
             index.path.display()

@@ -95,15 +95,17 @@ pub struct PredArgs {
     /// sub-folder per set name.
     #[arg(long, value_name = "DIR")]
     pub pred: Vec<PathBuf>,
-    /// Kind of the predictions in --pred: depth | inverse-depth. Never guessed: taken from the
-    /// folder's predictions.json when present (they must agree), else required.
+    /// Kind of the predictions in --pred: metric-depth | relative-depth | relative-disparity
+    /// (docs/formats.md "Prediction kinds"). Never guessed: taken from the folder's
+    /// predictions.json when present (they must agree), else required.
     #[arg(long, value_name = "KIND")]
     pub pred_kind: Option<PredictionKind>,
     /// Simulate predictions in memory (docs/method.md §6) instead of reading --pred.
     #[arg(long, conflicts_with = "pred")]
     pub simulate: bool,
-    /// Kind of simulated predictions: inverse-depth (like relative Depth Anything) or depth.
-    #[arg(long, default_value = "inverse-depth", value_name = "KIND")]
+    /// Kind of simulated predictions: relative-disparity (like relative Depth Anything),
+    /// metric-depth (a metric head) or relative-depth.
+    #[arg(long, default_value = "relative-disparity", value_name = "KIND")]
     pub sim_kind: PredictionKind,
     /// Simulator seed.
     #[arg(long, default_value_t = 0)]
@@ -121,8 +123,8 @@ pub struct PredArgs {
 #[derive(Debug, Clone, Args)]
 pub struct EvalOptions {
     /// Methods, comma-separated: ssra, gssa, lwlr (BoostingDepth's grid variant), lwlr-exact,
-    /// lwlr-bare, ssra-local, gssa-local, auto, raw. Default: ssra,gssa,lwlr, and raw for metric
-    /// (depth) predictions.
+    /// lwlr-bare, ssra-local, gssa-local, auto, raw. Default: ssra,gssa,lwlr, and raw for
+    /// metric-depth predictions.
     #[arg(long, value_delimiter = ',', value_name = "METHODS")]
     pub methods: Vec<Method>,
     /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none.

@@ -70,8 +70,8 @@ pub struct GraspArgs {
     /// A prediction file of the frame (.npy, .pfm, 16-bit .png), with --calib.
     #[arg(long, value_name = "FILE", requires = "calib", conflicts_with = "rgb")]
     pub pred: Option<PathBuf>,
-    /// What --pred holds: depth | inverse-depth (default: from predictions.json beside it and
-    /// the calibration file, which must agree).
+    /// What --pred holds: metric-depth | relative-depth | relative-disparity (default: from
+    /// predictions.json beside it, else the calibration file's; the calibration must accept it).
     #[arg(long, value_name = "KIND", requires = "pred")]
     pub pred_kind: Option<PredictionKind>,
     /// RGB image of the frame, run through the depth model (--weights or --hub), with --calib.

@@ -42,7 +42,7 @@ pub struct PredictArgs {
 struct PredictionsIndex<'a> {
     /// Always "moma-predictions".
     format: &'static str,
-    /// `depth` or `inverse-depth`.
+    /// `metric-depth` (metric head) or `relative-disparity` (relative head).
     prediction_kind: moma_core::PredictionKind,
     model: moma_depth::ModelSpec,
     weights: &'a std::path::Path,

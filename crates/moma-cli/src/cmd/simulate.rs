@@ -19,7 +19,7 @@ use super::common::create_dir;
 ///
 /// Examples:
 ///   moma simulate --set data/gqcnn-primesense -o preds/gqcnn
-///   moma simulate --set data/m2t2-table --kind depth --seed 3 -o preds/m2t2-depth
+///   moma simulate --set data/m2t2-table --kind metric-depth --seed 3 -o preds/m2t2-metric
 ///   moma simulate --set data/gqcnn-primesense --off bumps,noise -o preds/gqcnn-clean
 ///   moma simulate --set data/a --set data/b -o preds/        # preds/a/, preds/b/
 #[derive(Debug, Clone, Args)]
@@ -31,9 +31,10 @@ pub struct SimulateArgs {
     /// Output prediction folder (with several sets: one sub-folder per set name).
     #[arg(short, long, visible_alias = "output", value_name = "DIR")]
     pub out: PathBuf,
-    /// Kind of prediction to simulate: inverse-depth (relative, arbitrary scale, like Depth
-    /// Anything V2's relative models) or depth (metric-like, global scale error ±25 %).
-    #[arg(long, default_value = "inverse-depth", value_name = "KIND")]
+    /// Kind of prediction to simulate: relative-disparity (arbitrary scale and shift, like Depth
+    /// Anything V2's relative models), metric-depth (a metric head: metres with a global scale
+    /// error of ±25 %) or relative-depth (depth with an arbitrary scale).
+    #[arg(long, default_value = "relative-disparity", value_name = "KIND")]
     pub kind: moma_core::PredictionKind,
     /// Seed of the per-set draws (per-frame parts are seeded by seed + frame id).
     #[arg(long, default_value_t = 0)]
@@ -75,9 +76,9 @@ pub enum Component {
     Noise,
     /// 6. transparent objects.
     Transparency,
-    /// the output's global scale error (depth) / arbitrary scale (inverse depth).
+    /// the output's global scale error (metric-depth) / arbitrary scale (the relative kinds).
     Scale,
-    /// the disparity shift of inverse-depth output.
+    /// the disparity shift of relative-disparity output.
     Shift,
 }
 

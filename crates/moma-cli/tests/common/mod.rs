@@ -49,7 +49,7 @@ pub fn s(p: &Path) -> &str {
 }
 
 /// Writes the bundled demo scene under `dir` (`moma demo --frames 3 --no-exports --seeds 1`:
-/// 3 frames, SIMULATED inverse-depth predictions with predictions.json) and checks that it did;
+/// 3 frames, SIMULATED relative-disparity predictions with predictions.json) and checks that it did;
 /// returns (the moma set folder, the predictions folder).
 pub fn demo(dir: &Path) -> (PathBuf, PathBuf) {
     let out = dir.join("demo");

@@ -53,7 +53,7 @@ pub fn pred(k: usize) -> Prediction {
             + 0.02 * (v as f32 / 36.0)
             + 0.01 * k as f32
     });
-    Prediction::new(v, PredictionKind::Depth)
+    Prediction::new(v, PredictionKind::MetricDepth)
 }
 
 pub fn set(frames: usize) -> LoadedSet {
@@ -133,7 +133,7 @@ pub fn simulated_inverse_depth(set: &LoadedSet, sim_seed: u64) -> PredictionSet 
         set,
         SimulatorConfig::default(),
         sim_seed,
-        PredictionKind::InverseDepth,
+        PredictionKind::RelativeDisparity,
         TransparencySource::Auto,
     )
     .unwrap()
