@@ -16,10 +16,10 @@ def test_ssra_recovers_known_parameters(kind, norm):
     cal = moma.calibrate(pred, gt, kind=kind, norm=norm, samples=100, seed=3, space="depth")
     model = cal.report["model"]
     assert model["method"] == "ssra"
-    assert model["alpha_m_per_px"] == pytest.approx(TRUE["alpha"], rel=1e-3)
-    assert model["beta_m_per_px"] == pytest.approx(TRUE["beta"], rel=1e-3)
-    assert model["gamma_m"] == pytest.approx(TRUE["gamma"], rel=1e-4)
-    assert model["t3_m"] == pytest.approx(TRUE["t3"], abs=1e-4)
+    assert model["alpha_per_px"] == pytest.approx(TRUE["alpha"], rel=1e-3)
+    assert model["beta_per_px"] == pytest.approx(TRUE["beta"], rel=1e-3)
+    assert model["gamma"] == pytest.approx(TRUE["gamma"], rel=1e-4)
+    assert model["t3"] == pytest.approx(TRUE["t3"], abs=1e-4)
     assert cal.report["n_used"] == 100
     assert cal.report["rms_residual_m"] < 1e-4
     assert cal.kind == kind and cal.method == "ssra" and cal.norm == norm
@@ -36,10 +36,10 @@ def test_align_reproduces_ground_truth_and_numpy_apply(small_scene):
     m = cal.report["model"]
     want = ssra_apply_np(
         normalise_np(pred, "relative-disparity"),
-        m["alpha_m_per_px"],
-        m["beta_m_per_px"],
-        m["gamma_m"],
-        m["t3_m"],
+        m["alpha_per_px"],
+        m["beta_per_px"],
+        m["gamma"],
+        m["t3"],
     )
     np.testing.assert_allclose(depth, want, rtol=1e-5, atol=1e-6)
 
@@ -51,7 +51,7 @@ def test_align_of_another_frame_uses_the_same_parameters(small_scene):
     m = cal.report["model"]
     want = ssra_apply_np(
         normalise_np(other, "relative-disparity"),
-        m["alpha_m_per_px"], m["beta_m_per_px"], m["gamma_m"], m["t3_m"],
+        m["alpha_per_px"], m["beta_per_px"], m["gamma"], m["t3"],
     )
     np.testing.assert_allclose(cal.align(other), want, rtol=1e-5, atol=1e-6)
 
@@ -160,7 +160,7 @@ def test_gssa_recovers_scale_and_shift():
     cal = moma.calibrate(pred, gt, kind="metric-depth", method="gssa", norm="none")
     m = cal.report["model"]
     assert m["scale"] == pytest.approx(0.4, rel=1e-5)
-    assert m["shift_m"] == pytest.approx(0.25, abs=1e-5)
+    assert m["shift"] == pytest.approx(0.25, abs=1e-5)
 
 
 def test_metrics_match_numpy():

@@ -29,7 +29,7 @@ fn samples(size: ImageSize, n: usize, seed: u64) -> SampleSet {
                 u,
                 v,
                 pred,
-                depth_m,
+                target: depth_m,
             }
         })
         .collect();
@@ -165,7 +165,7 @@ fn bumpy_samples(size: ImageSize, n: usize, seed: u64) -> SampleSet {
     let mut set = samples(size, n, seed);
     for s in &mut set.samples {
         let bump = 0.1 * (-((s.u - 400.0).powi(2) + (s.v - 240.0).powi(2)) / 7200.0).exp();
-        s.depth_m += s.pred * bump;
+        s.target += s.pred * bump;
     }
     set
 }

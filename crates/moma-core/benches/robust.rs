@@ -32,7 +32,7 @@ fn samples(n: usize, seed: u64) -> SampleSet {
                 u,
                 v,
                 pred,
-                depth_m,
+                target: depth_m,
             }
         })
         .collect();

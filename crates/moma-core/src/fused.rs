@@ -47,12 +47,12 @@ impl ModelTerms {
             AlignmentModel::Gssa(m) => Some(Self {
                 col: vec![-0.0; width],
                 rows: vec![m.scale as f32; height],
-                t: m.shift_m as f32,
+                t: m.shift as f32,
             }),
             AlignmentModel::Ssra(m) => Some(Self {
                 col: m.column_terms(width),
                 rows: (0..height).map(|v| m.row_term(v)).collect(),
-                t: m.t3_m as f32,
+                t: m.t3 as f32,
             }),
             AlignmentModel::Auto(m) => Self::of(&m.chosen, width, height),
             AlignmentModel::Raw | AlignmentModel::Lwlr(_) | AlignmentModel::Local(_) => None,

@@ -97,6 +97,15 @@ impl AlignSpace {
         }
     }
 
+    /// The unit of the fit's target, and so of every fitted parameter and target-space error:
+    /// `m` in depth space, `1/m` in inverse space.
+    pub const fn target_unit(self) -> &'static str {
+        match self {
+            Self::Depth => "m",
+            Self::Inverse => "1/m",
+        }
+    }
+
     /// The fit's target for a ground-truth depth `z_m` (metres): z, or 1/z in inverse space.
     #[inline]
     pub fn target_from_depth(self, z_m: f64) -> f64 {

@@ -622,7 +622,7 @@ fn cv_residuals_m(
             let s = &samples.samples[i];
             let z = space.depth_from_target(model.predict_at(s.u, s.v, s.pred));
             if z.is_finite() {
-                out.push((s.depth_m - z, s.depth_m));
+                out.push((s.target - z, s.target));
             }
         }
     }
@@ -655,9 +655,9 @@ fn rms_residual_m(model: &AlignmentModel, space: AlignSpace, samples: &[Sample])
         .map(|s| {
             let z = space.depth_from_target(model.predict_at(s.u, s.v, s.pred));
             let r = if z.is_finite() {
-                z - s.depth_m
+                z - s.target
             } else {
-                s.depth_m
+                s.target
             };
             r * r
         })
@@ -702,7 +702,7 @@ impl Calibration {
             a.validate()?;
             size.expect_eq("anchor store", a.image_size())?;
         }
-        let method = self.model.name();
+        let method = crate::align::MethodName::from(&self.model);
         if method != self.report.method {
             return Err(CoreError::InvalidParameter(format!(
                 "the model is {method} but the fit report says {}",

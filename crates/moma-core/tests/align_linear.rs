@@ -26,7 +26,7 @@ fn gssa_recovers_exact_parameters_noise_free() {
         panic!("not gssa")
     };
     assert_relative_eq!(g.scale, 0.7, epsilon = 1e-12);
-    assert_relative_eq!(g.shift_m, 0.3, epsilon = 1e-12);
+    assert_relative_eq!(g.shift, 0.3, epsilon = 1e-12);
     assert!(report.rms_residual_m < 1e-12);
     assert_eq!((report.method.as_str(), report.n_used), ("gssa", 50));
 }
@@ -40,7 +40,7 @@ fn gssa_recovers_parameters_with_noise() {
         panic!("not gssa")
     };
     assert!((g.scale - 0.7).abs() < 1e-3, "{g:?}");
-    assert!((g.shift_m - 0.3).abs() < 1e-3, "{g:?}");
+    assert!((g.shift - 0.3).abs() < 1e-3, "{g:?}");
     assert!((report.rms_residual_m - 0.002).abs() < 2e-4, "{report:?}");
 }
 
@@ -59,12 +59,40 @@ fn ssra_recovers_exact_parameters_noise_free() {
     let set = common::samples(SIZE, 100, 3, 0.0, linear_truth);
     let (model, report) = Method::Ssra(SsraConfig::default()).fit(&set).unwrap();
     let m = ssra_model(&model);
-    assert_relative_eq!(m.alpha_m_per_px, ALPHA, epsilon = 1e-13);
-    assert_relative_eq!(m.beta_m_per_px, BETA, epsilon = 1e-13);
-    assert_relative_eq!(m.gamma_m, GAMMA, epsilon = 1e-10);
-    assert_relative_eq!(m.t3_m, T3, epsilon = 1e-10);
+    assert_relative_eq!(m.alpha_per_px, ALPHA, epsilon = 1e-13);
+    assert_relative_eq!(m.beta_per_px, BETA, epsilon = 1e-13);
+    assert_relative_eq!(m.gamma, GAMMA, epsilon = 1e-10);
+    assert_relative_eq!(m.t3, T3, epsilon = 1e-10);
     assert!(report.rms_residual_m < 1e-12, "{report:?}");
     assert_eq!(m.image_size, SIZE);
+}
+
+/// Files before version 5 named the parameters in metres (`alpha_m_per_px`, …, `t3_m`, `s_m`)
+/// although an inverse-space fit holds 1/m: the same document with those names reads as the
+/// same model, and a model is written with the unit-free names.
+#[test]
+fn ssra_parameters_named_before_version_5_read_as_the_same_model() {
+    let set = common::samples(SIZE, 100, 3, 0.0, linear_truth);
+    let (model, _) = Method::Ssra(SsraConfig::default()).fit(&set).unwrap();
+    let text = serde_json::to_string(&model).unwrap();
+    for name in [
+        "\"alpha_per_px\"",
+        "\"beta_per_px\"",
+        "\"gamma\"",
+        "\"t3\"",
+        "\"s\"",
+    ] {
+        assert!(text.contains(name), "{name} missing in {text}");
+    }
+    let old = text
+        .replace("\"alpha_per_px\"", "\"alpha_m_per_px\"")
+        .replace("\"beta_per_px\"", "\"beta_m_per_px\"")
+        .replace("\"gamma\"", "\"gamma_m\"")
+        .replace("\"t3\"", "\"t3_m\"")
+        .replace("\"s\"", "\"s_m\"");
+    assert!(!old.contains("\"t3\""));
+    let back: AlignmentModel = serde_json::from_str(&old).unwrap();
+    assert_eq!(back, model);
 }
 
 #[test]
@@ -72,8 +100,8 @@ fn ssra_exactly_four_samples_interpolates() {
     let set = common::samples(SIZE, 4, 4, 0.0, linear_truth);
     let (model, _) = Method::Ssra(SsraConfig::default()).fit(&set).unwrap();
     let m = ssra_model(&model);
-    assert_relative_eq!(m.alpha_m_per_px, ALPHA, epsilon = 1e-10);
-    assert_relative_eq!(m.t3_m, T3, epsilon = 1e-8);
+    assert_relative_eq!(m.alpha_per_px, ALPHA, epsilon = 1e-10);
+    assert_relative_eq!(m.t3, T3, epsilon = 1e-8);
 }
 
 #[test]
@@ -107,10 +135,10 @@ fn ssra_canonical_parameters_round_trip() {
         cy: 241.25,
     };
     let truth = SsraCanonical {
-        s_m: 1.15,
+        s: 1.15,
         theta_rad: 0.07,
         phi_rad: -0.11,
-        t3_m: 0.08,
+        t3: 0.08,
         cx_px: k.cx,
         cy_px: k.cy,
         f_px: k.fx,
@@ -127,23 +155,23 @@ fn ssra_canonical_parameters_round_trip() {
     };
     let (model, _) = Method::Ssra(cfg).fit(&set).unwrap();
     let c = ssra_model(&model).canonical;
-    assert_relative_eq!(c.s_m, truth.s_m, epsilon = 1e-9);
+    assert_relative_eq!(c.s, truth.s, epsilon = 1e-9);
     assert_relative_eq!(c.theta_rad, truth.theta_rad, epsilon = 1e-9);
     assert_relative_eq!(c.phi_rad, truth.phi_rad, epsilon = 1e-9);
-    assert_relative_eq!(c.t3_m, truth.t3_m, epsilon = 1e-9);
+    assert_relative_eq!(c.t3, truth.t3, epsilon = 1e-9);
     assert_eq!((c.cx_px, c.cy_px, c.f_px), (k.cx, k.cy, k.fx));
     // canonical → linear → canonical
     let (a, b, g, t) = c.to_linear();
     let back = SsraCanonical::from_linear(a, b, g, t, k.cx, k.cy, k.fx);
     assert_relative_eq!(back.theta_rad, c.theta_rad, epsilon = 1e-12);
-    assert_relative_eq!(back.s_m, c.s_m, epsilon = 1e-12);
+    assert_relative_eq!(back.s, c.s, epsilon = 1e-12);
 }
 
 #[test]
 fn ssra_canonical_sign_makes_r33_positive() {
     // negative overall scale: s must come out negative with R33 > 0 (|θ| < π/2)
     let c = SsraCanonical::from_linear(1e-5, 2e-5, -0.8, 0.1, 320.0, 240.0, 640.0);
-    assert!(c.s_m < 0.0);
+    assert!(c.s < 0.0);
     assert!(c.theta_rad.abs() < std::f64::consts::FRAC_PI_2);
     let (a, b, g, t) = c.to_linear();
     assert_relative_eq!(a, 1e-5, epsilon = 1e-15);
@@ -214,7 +242,7 @@ fn ssra_apply_matches_model_and_keeps_nan() {
 fn gssa_apply_is_affine() {
     let model = AlignmentModel::Gssa(moma_core::align::gssa::GssaModel {
         scale: 2.0,
-        shift_m: -0.5,
+        shift: -0.5,
     });
     let z = ndarray::array![[1.0f32, f32::NAN], [0.25, 3.0]];
     let out = model.apply(z.view()).unwrap().depth_m;
@@ -253,12 +281,7 @@ fn set_of(points: &[(f64, f64, f64, f64)]) -> SampleSet {
         image_size: SIZE,
         samples: points
             .iter()
-            .map(|&(u, v, pred, depth_m)| Sample {
-                u,
-                v,
-                pred,
-                depth_m,
-            })
+            .map(|&(u, v, pred, target)| Sample { u, v, pred, target })
             .collect(),
     }
 }
@@ -426,9 +449,30 @@ proptest! {
         let set = common::samples(SIZE, 60, seed, 0.01, |_, _, p| 1.3 * p - 0.2 + 0.05 * p * p);
         let (m, _) = Method::Gssa.fit(&set).unwrap();
         let AlignmentModel::Gssa(g) = m else { unreachable!() };
-        let r: Vec<f64> = set.samples.iter().map(|s| g.predict(s.pred) - s.depth_m).collect();
+        let r: Vec<f64> = set.samples.iter().map(|s| g.predict(s.pred) - s.target).collect();
         let s0: f64 = r.iter().sum();
         let s1: f64 = r.iter().zip(&set.samples).map(|(r, s)| r * s.pred).sum();
         prop_assert!(s0.abs() < 1e-10 && s1.abs() < 1e-10);
     }
+}
+
+/// A fit report names its method with a [`MethodName`]: the same names, in the same order, as
+/// [`Method::NAMES`], each the name of the method it is parsed from, and serialised as that name.
+#[test]
+fn method_names_match_the_methods() {
+    use moma_core::align::MethodName;
+    assert_eq!(MethodName::ALL.map(MethodName::as_str), Method::NAMES);
+    for name in Method::NAMES {
+        let method: Method = name.parse().unwrap();
+        let id = MethodName::from(&method);
+        assert_eq!(id.as_str(), name);
+        assert_eq!(name.parse::<MethodName>().unwrap(), id);
+        assert_eq!(serde_json::to_string(&id).unwrap(), format!("\"{name}\""));
+    }
+    let e = "lwlr2".parse::<MethodName>().unwrap_err().to_string();
+    assert!(e.contains("'lwlr2'") && e.contains("lwlr-exact"), "{e}");
+    let set = common::samples(SIZE, 100, 3, 0.0, linear_truth);
+    let (model, report) = Method::Ssra(SsraConfig::default()).fit(&set).unwrap();
+    assert_eq!(report.method, MethodName::Ssra);
+    assert_eq!(MethodName::from(&model), MethodName::Ssra);
 }

@@ -103,7 +103,7 @@ fn samples(n_side_u: usize, n_side_v: usize, seed: u64) -> SampleSet {
                 u,
                 v,
                 pred: pred(u, v),
-                depth_m: depth_m(u, v),
+                target: depth_m(u, v),
             });
         }
     }
@@ -190,7 +190,7 @@ fn predicted_error_is_leave_one_out_in_metres() {
                 let s = rest.samples.remove(k);
                 let (m, _) = method.fit(&rest).unwrap();
                 let z = space.depth_from_target(m.predict_at(s.u, s.v, s.pred));
-                let truth = space.depth_from_target(s.depth_m);
+                let truth = space.depth_from_target(s.target);
                 sq += (z - truth).powi(2);
                 rel += (z - truth).abs() / truth;
             }
@@ -297,8 +297,8 @@ fn per_frame_settings_keep_the_global_fit_where_nothing_is_local() {
         let mut rng = ChaCha8Rng::seed_from_u64(100 + seed);
         let mut set = samples(10, 10, seed);
         for s in &mut set.samples {
-            s.pred = 0.8 * s.depth_m + 0.3;
-            s.depth_m *= 1.0 + rng.random_range(-0.03..0.03);
+            s.pred = 0.8 * s.target + 0.3;
+            s.target *= 1.0 + rng.random_range(-0.03..0.03);
         }
         let (m, _) = Method::SsraLocal(local_config(Protocol::PerFrame))
             .fit(&set)

@@ -88,7 +88,7 @@ fn one_frame_is_the_one_shot_calibration() {
         let fit_on = if space == AlignSpace::Inverse {
             let mut t = samples.clone();
             for s in &mut t.samples {
-                s.depth_m = 1.0 / s.depth_m;
+                s.target = 1.0 / s.target;
             }
             t
         } else {

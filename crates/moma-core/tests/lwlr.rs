@@ -24,7 +24,7 @@ fn nonlinear_truth(u: f64, v: f64, p: f64) -> f64 {
 /// Dense per-point reference: w_k = exp(−d²/2b²), x = prefit(ẑ), 2×2 ridge solve, folded onto ẑ.
 fn reference_scale_shift(m: &LwlrModel, u: f64, v: f64) -> (f64, f64) {
     let (ps, pt) = if m.config.global_prefit {
-        (m.global.scale, m.global.shift_m)
+        (m.global.scale, m.global.shift)
     } else {
         (1.0, 0.0)
     };
@@ -35,7 +35,7 @@ fn reference_scale_shift(m: &LwlrModel, u: f64, v: f64) -> (f64, f64) {
         let w = (-((u - s.u).powi(2) + (v - s.v).powi(2)) / (2.0 * b * b)).exp();
         let x = Vector2::new(ps * s.pred + pt, 1.0);
         a += w * x * x.transpose();
-        r += w * x * s.depth_m;
+        r += w * x * s.target;
     }
     a[(1, 1)] += m.config.ridge_shift;
     let sol = a.lu().solve(&r).expect("reference system singular");
@@ -60,17 +60,13 @@ fn huge_bandwidth_without_ridge_equals_gssa() {
             let m = fit_lwlr(&set, cfg);
             let maps = m.maps();
             assert_eq!(maps.singular_fits, 0);
-            for (&s, &t) in maps.scale.iter().zip(&maps.shift_m) {
+            for (&s, &t) in maps.scale.iter().zip(&maps.shift) {
                 assert!(
                     (f64::from(s) - g.scale).abs() < 1e-5,
                     "{prefit} {solve:?}: {s} vs {}",
                     g.scale
                 );
-                assert!(
-                    (f64::from(t) - g.shift_m).abs() < 1e-5,
-                    "{t} vs {}",
-                    g.shift_m
-                );
+                assert!((f64::from(t) - g.shift).abs() < 1e-5, "{t} vs {}", g.shift);
             }
         }
     }
@@ -96,10 +92,7 @@ fn exact_matches_naive_reference() {
         for v in 0..30 {
             for u in 0..40 {
                 let (s, t) = reference_scale_shift(&m, u as f64, v as f64);
-                let (gs, gt) = (
-                    f64::from(maps.scale[[v, u]]),
-                    f64::from(maps.shift_m[[v, u]]),
-                );
+                let (gs, gt) = (f64::from(maps.scale[[v, u]]), f64::from(maps.shift[[v, u]]));
                 assert!(
                     (gs - s).abs() < 1e-5 * (1.0 + s.abs()),
                     "({u},{v}) scale {gs} vs {s} {cfg:?}"
@@ -172,7 +165,7 @@ fn grid_matches_boostingdepth_style_reference() {
     let m = fit_lwlr(&set, cfg);
     let (sm, tm) = reference_grid(&m);
     let maps = m.maps();
-    for ((a, b), (c, d)) in maps.scale.iter().zip(&sm).zip(maps.shift_m.iter().zip(&tm)) {
+    for ((a, b), (c, d)) in maps.scale.iter().zip(&sm).zip(maps.shift.iter().zip(&tm)) {
         assert!(
             (f64::from(*a) - b).abs() < 1e-5 * (1.0 + b.abs()),
             "scale {a} vs {b}"
@@ -222,12 +215,7 @@ fn singular_local_systems_fall_back_to_global_fit() {
     let m = fit_lwlr(&set, cfg);
     let maps = m.maps();
     assert!(maps.singular_fits > 1000, "{}", maps.singular_fits);
-    assert!(
-        maps.scale
-            .iter()
-            .chain(&maps.shift_m)
-            .all(|x| x.is_finite())
-    );
+    assert!(maps.scale.iter().chain(&maps.shift).all(|x| x.is_finite()));
     // a pixel far from every sample uses the global fit
     let far = (0..40)
         .flat_map(|v| (0..60).map(move |u| (u, v)))
@@ -240,7 +228,7 @@ fn singular_local_systems_fall_back_to_global_fit() {
         })
         .unwrap();
     assert!((f64::from(maps.scale[[far.1, far.0]]) - g.scale).abs() < 1e-6);
-    assert!((f64::from(maps.shift_m[[far.1, far.0]]) - g.shift_m).abs() < 1e-6);
+    assert!((f64::from(maps.shift[[far.1, far.0]]) - g.shift).abs() < 1e-6);
 }
 
 #[test]

@@ -397,8 +397,8 @@ fn validation_refuses_broken_models() {
     .unwrap();
     ssra.validate().unwrap();
     let mut v = serde_json::to_value(&ssra).unwrap();
-    let s = v["model"]["canonical"]["s_m"].as_f64().unwrap();
-    v["model"]["canonical"]["s_m"] = serde_json::json!(s * 1.01);
+    let s = v["model"]["canonical"]["s"].as_f64().unwrap();
+    v["model"]["canonical"]["s"] = serde_json::json!(s * 1.01);
     let bad: Calibration = serde_json::from_value(v).unwrap();
     assert!(
         bad.validate()

@@ -64,7 +64,7 @@ fn scene(
                 u,
                 v,
                 pred: zhat(u, v, field),
-                depth_m: depth_m(u, v) + e,
+                target: depth_m(u, v) + e,
             }
         })
         .collect();
@@ -75,7 +75,7 @@ fn scene(
     for k in picked.iter() {
         flags[k] = true;
         let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
-        bad[k].depth_m += sign * rng.random_range(0.1..0.5);
+        bad[k].target += sign * rng.random_range(0.1..0.5);
     }
     let set = |samples| SampleSet {
         space: moma_core::normalise::AlignSpace::Depth,
@@ -167,7 +167,7 @@ fn inverse_space_residuals_are_in_metres() {
             .iter()
             .map(|s| Sample {
                 pred: 2.0 / depth_m(s.u, s.v) - 0.7,
-                depth_m: 1.0 / s.depth_m,
+                target: 1.0 / s.target,
                 ..*s
             })
             .collect(),
@@ -177,7 +177,7 @@ fn inverse_space_residuals_are_in_metres() {
     let AlignmentModel::Gssa(e) = exact else {
         panic!("gssa model expected")
     };
-    assert!((e.scale - 0.5).abs() < 1e-9 && (e.shift_m - 0.35).abs() < 1e-9);
+    assert!((e.scale - 0.5).abs() < 1e-9 && (e.shift - 0.35).abs() < 1e-9);
     let plain = Method::Gssa.fit(&bad).unwrap().0;
     let AlignmentModel::Gssa(p) = plain else {
         panic!("gssa model expected")
@@ -196,7 +196,7 @@ fn inverse_space_residuals_are_in_metres() {
         // Worst depth error over the scene's depth range 0.8–1.15 m, metres.
         let worst = [0.8f64, 0.95, 1.15]
             .iter()
-            .map(|z| (1.0 / (g.scale * (2.0 / z - 0.7) + g.shift_m) - z).abs())
+            .map(|z| (1.0 / (g.scale * (2.0 / z - 0.7) + g.shift) - z).abs())
             .fold(0.0, f64::max);
         // Huber keeps a bounded pull c·sign(r) from each outlier: its depth bias is of the order
         // n_out/n_in·c = 0.25 c (2.5 mm here; 0.4 c allows for leverage); Tukey and RANSAC
@@ -413,16 +413,16 @@ fn weighted_fits_match_subsets_and_duplicates() {
         gssa::fit_weighted(s, &w).unwrap(),
         gssa::fit(&expanded.samples).unwrap(),
     );
-    assert!(close(g1.scale, g2.scale) && close(g1.shift_m, g2.shift_m));
+    assert!(close(g1.scale, g2.scale) && close(g1.shift, g2.shift));
     let (m1, m2) = (
         ssra::fit_weighted(&clean, &cfg, &w).unwrap(),
         ssra::fit(&expanded, &cfg).unwrap(),
     );
     for (a, b) in [
-        (m1.alpha_m_per_px, m2.alpha_m_per_px),
-        (m1.beta_m_per_px, m2.beta_m_per_px),
-        (m1.gamma_m, m2.gamma_m),
-        (m1.t3_m, m2.t3_m),
+        (m1.alpha_per_px, m2.alpha_per_px),
+        (m1.beta_per_px, m2.beta_per_px),
+        (m1.gamma, m2.gamma),
+        (m1.t3, m2.t3),
     ] {
         assert!(close(a, b), "{a} vs {b}");
     }
@@ -496,15 +496,12 @@ fn pipeline_calibration_with_robust_fit() {
     let AlignmentModel::Gssa(p) = plain.model else {
         panic!()
     };
-    assert!(
-        (p.shift_m - 0.15).abs() > 0.02,
-        "outliers move the plain fit"
-    );
+    assert!((p.shift - 0.15).abs() > 0.02, "outliers move the plain fit");
     for kind in KINDS {
         config.robust = Some(Robust::new(kind));
         let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap();
         cal.validate().unwrap();
-        let AlignmentModel::Gssa(GssaModel { scale, shift_m }) = cal.model else {
+        let AlignmentModel::Gssa(GssaModel { scale, shift }) = cal.model else {
             panic!()
         };
         // one-sided outliers: Huber's bias (see above) is of the order 0.25 c in depth
@@ -514,8 +511,8 @@ fn pipeline_calibration_with_robust_fit() {
             1e-5
         };
         assert!(
-            (scale * 1.2 + shift_m - 0.75).abs() < tol && (shift_m - 0.15).abs() < tol,
-            "{kind}: scale {scale}, shift {shift_m} m"
+            (scale * 1.2 + shift - 0.75).abs() < tol && (shift - 0.15).abs() < tol,
+            "{kind}: scale {scale}, shift {shift} m"
         );
         let rep = cal.report.robust.unwrap();
         let bad = cal
@@ -549,14 +546,14 @@ fn near_outliers_in_inverse_space_do_not_pull_irls_away() {
             .samples
             .iter()
             .map(|s| Sample {
-                depth_m: 1.0 / s.depth_m,
+                target: 1.0 / s.target,
                 ..*s
             })
             .collect(),
     };
     let mut bad = clean.clone();
     for s in bad.samples.iter_mut().step_by(5) {
-        s.depth_m = rng.random_range(0.05..0.15);
+        s.target = rng.random_range(0.05..0.15);
     }
     let (clean, bad) = (target(&clean), target(&bad));
     // held-out MAE in depth of an inverse-space model on the true scene
@@ -683,13 +680,13 @@ fn auto_threshold_on_a_noisy_line_with_outliers() {
             u: rng.random_range(0..W) as f64,
             v: rng.random_range(0..H) as f64,
             pred,
-            depth_m: 1.3 * pred + 0.12 + sigma * e,
+            target: 1.3 * pred + 0.12 + sigma * e,
         };
         clean.push(s);
         let mut b = s;
         if rng.random_range(0.0..1.0) < 0.2 {
             let m: f64 = rng.random_range(0.1..0.5);
-            b.depth_m += if rng.random_range(0.0..1.0) < 0.5 {
+            b.target += if rng.random_range(0.0..1.0) < 0.5 {
                 m
             } else {
                 -m

@@ -160,9 +160,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         .samples
                         .iter()
                         .zip(&loo)
-                        .map(|(s, y)| (s.depth_m - y).powi(2))
+                        .map(|(s, y)| (s.target - y).powi(2))
                         .collect();
-                    target_y = target.samples.iter().map(|s| s.depth_m).collect();
+                    target_y = target.samples.iter().map(|s| s.target).collect();
                     space = norm.space;
                     loos.push(loo);
                     cands.push(serde_json::json!({"method": m.to_string(), "mae_m": mae, "cv_sq": sq, "calib_mask_mae_m": at_calib.mae, "calib_whole_mae_m": whole.mae}));

@@ -105,8 +105,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     AlignmentModel::Local(l) if verbose => {
                         line += &format!(
                             "[gl {:.4} ch {:.4} b{:.0} l{} fb{}]",
-                            l.global_loo_rms,
-                            l.chosen.loo_rms,
+                            l.global_loo_rms_target,
+                            l.chosen.loo_rms_target,
                             l.chosen.bandwidth_px,
                             l.chosen.ridge,
                             u8::from(l.fallback)
@@ -117,8 +117,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         line += &format!("[{}", a.chosen.name());
                         if verbose {
                             for c in &a.candidates {
-                                line +=
-                                    &format!(" {}:{:.4}", c.method, c.loo_rms.unwrap_or(f64::NAN));
+                                line += &format!(
+                                    " {}:{:.4}",
+                                    c.method,
+                                    c.loo_rms_target.unwrap_or(f64::NAN)
+                                );
                             }
                         }
                         line += "]";
@@ -143,12 +146,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let mut b = Vec::new();
                     let mut c = Vec::new();
                     for ((p, t), y) in depth.samples.iter().zip(&target.samples).zip(&loo) {
-                        a.push((t.depth_m - y).powi(2));
+                        a.push((t.target - y).powi(2));
                         let z = norm.space.depth_from_target(*y);
                         let e = if z.is_finite() {
-                            z - p.depth_m
+                            z - p.target
                         } else {
-                            p.depth_m
+                            p.target
                         };
                         b.push(e * e);
                         c.push(e.abs());

@@ -93,8 +93,8 @@ pub struct CalibrationFile {
     pub format: String,
     /// Always [`CALIBRATION_VERSION`].
     pub version: u32,
-    /// Alignment method name (`ssra`, `gssa`, `lwlr`, `raw`), from the fit report.
-    pub method: String,
+    /// Alignment method (`ssra`, `gssa`, `lwlr`, `raw`, …), from the fit report.
+    pub method: moma_core::align::MethodName,
     /// Normalisation applied before alignment (at calibration and at run time).
     pub normalisation: NormalisationConfig,
     /// Kind of prediction the calibration expects.
@@ -119,7 +119,7 @@ impl CalibrationFile {
         Self {
             format: CALIBRATION_FORMAT.to_string(),
             version: CALIBRATION_VERSION,
-            method: calibration.report.method.clone(),
+            method: calibration.report.method,
             normalisation: calibration.normalisation,
             prediction_kind: calibration.prediction_kind,
             image_size: calibration.samples.image_size,
@@ -150,7 +150,11 @@ impl CalibrationFile {
             ))
         };
         if self.method != c.report.method {
-            return disagree("method", self.method.clone(), c.report.method.clone());
+            return disagree(
+                "method",
+                self.method.to_string(),
+                c.report.method.to_string(),
+            );
         }
         if self.normalisation != c.normalisation {
             return disagree(
@@ -268,7 +272,7 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
 /// Versions 1–4 → 5: an old `depth` was parsed as `relative-depth`; a `raw` calibration used
 /// the prediction as metres, so its predictions were a metric model's: `metric-depth`.
 fn migrate_kind(file: &mut CalibrationFile) {
-    if file.calibration.model.name() == "raw"
+    if file.calibration.model == moma_core::align::AlignmentModel::Raw
         && file.calibration.prediction_kind == PredictionKind::RelativeDepth
     {
         file.calibration.prediction_kind = PredictionKind::MetricDepth;
@@ -337,8 +341,8 @@ fn migrate_v1(path: &Path, text: &str) -> Result<CalibrationFile> {
         file.calibration.workspace = Some(std::sync::Arc::new(ws));
     }
     // Version 1 named every LWLR variant "lwlr"; names now follow the preset.
-    let name = file.calibration.model.name().to_string();
-    file.calibration.report.method = name.clone();
+    let name = moma_core::align::MethodName::from(&file.calibration.model);
+    file.calibration.report.method = name;
     file.method = name;
     Ok(file)
 }

@@ -314,7 +314,7 @@ mod calibration {
             prediction_kind: PredictionKind::MetricDepth,
             model: AlignmentModel::Raw,
             report: FitReport {
-                method: "raw".into(),
+                method: moma_core::align::MethodName::Raw,
                 n_used: 0,
                 rms_residual_m: 0.0,
                 fit_time_s: 0.0,
@@ -340,7 +340,7 @@ mod calibration {
             "prediction_kind":"inverse-depth",
             "calibration":{{"normalisation":{{"method":"minmax","inverse_space":{inverse_space}}},
               "prediction_kind":"inverse-depth",
-              "model":{{"method":"gssa","scale":0.5,"shift_m":0.25}},
+              "model":{{"method":"gssa","scale":0.5,"shift":0.25}},
               "report":{{"method":"gssa","n_used":2,"rms_residual_m":0.001,"fit_time_s":1e-6}},
               "samples":{{"image_size":{{"width":8,"height":6}},"samples":[
                 {{"u":1.0,"v":2.0,"pred":0.3,"depth_m":0.8}},{{"u":5.0,"v":4.0,"pred":0.6,"depth_m":0.9}}]}}}},
@@ -524,6 +524,12 @@ mod calibration {
                 (read.prediction_kind, read.calibration.prediction_kind),
                 (new, new)
             );
+            // the parameter named `shift_m` before version 5 is the model's `shift`
+            assert!(
+                matches!(read.calibration.model, AlignmentModel::Gssa(m) if m.shift == 0.25),
+                "{:?}",
+                read.calibration.model
+            );
             // written back under the new name, and read back equal
             let q = dir.path().join("rewritten.json");
             write_calibration(&q, &read).unwrap();
@@ -613,7 +619,7 @@ mod calibration {
         );
         // Writing an inconsistent file is refused as well.
         let mut f = file();
-        f.method = "ssra".into();
+        f.method = moma_core::align::MethodName::Ssra;
         let q = dir.path().join("q.json");
         assert!(write_calibration(&q, &f).is_err());
         assert!(!q.exists());
@@ -708,7 +714,7 @@ mod calibration {
         v["normalisation"]["method"] = serde_json::json!("minmax-unit");
         v["calibration"]["normalisation"]["method"] = serde_json::json!("minmax-unit");
         v["calibration"]["model"]["scale"] = serde_json::json!(0.5);
-        v["calibration"]["model"]["shift_m"] = serde_json::json!(1e-45);
+        v["calibration"]["model"]["shift"] = serde_json::json!(1e-45);
         let depth = read_and_align(&v);
         assert!(depth[[0, 0]].is_nan(), "{}", depth[[0, 0]]);
         assert!(depth.iter().all(|z| !z.is_infinite()));
@@ -733,7 +739,7 @@ mod calibration {
                 v["normalisation"]["space"] = serde_json::json!(space);
                 v["calibration"]["normalisation"]["space"] = serde_json::json!(space);
                 v["calibration"]["model"]["scale"] = serde_json::json!(scale);
-                v["calibration"]["model"]["shift_m"] = serde_json::json!(shift);
+                v["calibration"]["model"]["shift"] = serde_json::json!(shift);
                 let depth = read_and_align(&v);
                 let what = format!("{space} space, scale {scale:e}, shift {shift:e}");
                 assert!(depth.iter().all(|z| !z.is_infinite()), "{what}");

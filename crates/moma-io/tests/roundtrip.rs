@@ -291,10 +291,10 @@ pub fn sample_calibration() -> Calibration {
         prediction_kind: PredictionKind::RelativeDisparity,
         model: AlignmentModel::Gssa(moma_core::align::gssa::GssaModel {
             scale: 0.25,
-            shift_m: 0.5,
+            shift: 0.5,
         }),
         report: FitReport {
-            method: "gssa".into(),
+            method: moma_core::align::MethodName::Gssa,
             n_used: 2,
             rms_residual_m: 0.012_345_678_9,
             fit_time_s: 1.5e-6,
@@ -308,13 +308,13 @@ pub fn sample_calibration() -> Calibration {
                     u: 1.0,
                     v: 2.0,
                     pred: 0.3,
-                    depth_m: 0.812,
+                    target: 0.812,
                 },
                 Sample {
                     u: 60.0,
                     v: 40.0,
                     pred: -1.25,
-                    depth_m: 1.1,
+                    target: 1.1,
                 },
             ],
         },

@@ -316,7 +316,7 @@ impl Calibration {
     fn report<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let r = &self.inner.report;
         let d = PyDict::new(py);
-        d.set_item("method", &r.method)?;
+        d.set_item("method", r.method.as_str())?;
         d.set_item("n_used", r.n_used)?;
         d.set_item("rms_residual_m", r.rms_residual_m)?;
         d.set_item("fit_time_s", r.fit_time_s)?;
@@ -526,7 +526,7 @@ impl Calibration {
             0 => s[i].u,
             1 => s[i].v,
             2 => s[i].pred,
-            _ => s[i].depth_m,
+            _ => s[i].target,
         })
         .into_pyarray(py)
     }

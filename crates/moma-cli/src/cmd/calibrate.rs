@@ -484,18 +484,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 println!("{line}");
             }
         }
+        let space = file.calibration.normalisation.space;
         println!(
-            "parameters: {}",
+            "parameters ({space} space, target units {}): {}",
+            space.target_unit(),
             serde_json::to_string(&file.calibration.model)?
         );
-        if file.calibration.normalisation.space == AlignSpace::Inverse {
-            // the file keeps one set of field names for both spaces
-            println!(
-                "units: inverse space (the model maps the normalised disparity to 1/z): its \
-                 metre-named parameters (e.g. t3_m, shift_m) and loo_rms are in 1/m; the RMS \
-                 residuals above are in metres"
-            );
-        }
         println!("wrote {}", args.output.display());
     }
     Ok(())

@@ -12,27 +12,31 @@ pub const MIN_SAMPLES: usize = 2;
 /// `Σ(ẑ − ẑ̄)² ≤ DEGENERATE_REL · Σ ẑ²` (ẑ constant to ~1e-5 relative, or all zero).
 pub(crate) const DEGENERATE_REL: f64 = 1e-10;
 
-/// Fitted global scale-shift: z = scale·ẑ + shift (metres).
+/// Fitted global scale-shift: target = scale·ẑ + shift, in the target units of the calibration's
+/// space ([`crate::normalise::AlignSpace::target_unit`]): depth in metres in depth space, 1/depth
+/// in 1/m in inverse space (the aligned depth is then its reciprocal).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct GssaModel {
-    /// Scale, metres per unit ẑ.
+    /// Scale, target units per unit ẑ.
     pub scale: f64,
-    /// Shift, metres.
-    pub shift_m: f64,
+    /// Shift, target units (`shift_m` in files before version 5).
+    #[serde(alias = "shift_m")]
+    pub shift: f64,
 }
 
 impl GssaModel {
     /// The identity map (scale 1, shift 0).
     pub const IDENTITY: Self = Self {
         scale: 1.0,
-        shift_m: 0.0,
+        shift: 0.0,
     };
 
-    /// Metric depth (metres) for a normalised value ẑ: `scale·ẑ + shift_m`.
+    /// The target (metres in depth space, 1/m in inverse space) for a normalised value ẑ:
+    /// `scale·ẑ + shift`.
     #[inline]
     pub fn predict(&self, pred: f64) -> f64 {
-        self.scale * pred + self.shift_m
+        self.scale * pred + self.shift
     }
 }
 
@@ -75,7 +79,7 @@ fn fit_with(samples: &[Sample], weights: Option<&[f64]>) -> Result<GssaModel> {
         .enumerate()
         .fold((0.0, 0.0, 0.0), |(a, b, c), (k, s)| {
             let wk = w(k);
-            (a + wk, b + wk * s.pred, c + wk * s.depth_m)
+            (a + wk, b + wk * s.pred, c + wk * s.target)
         });
     let (mx, my) = (sx / sw, sy / sw);
     let (mut sxx, mut sxy, mut sxx_raw) = (0.0, 0.0, 0.0);
@@ -83,7 +87,7 @@ fn fit_with(samples: &[Sample], weights: Option<&[f64]>) -> Result<GssaModel> {
         let wk = w(k);
         let dx = s.pred - mx;
         sxx += wk * dx * dx;
-        sxy += wk * dx * (s.depth_m - my);
+        sxy += wk * dx * (s.target - my);
         sxx_raw += wk * s.pred * s.pred;
     }
     if sxx.is_nan() || sxx <= DEGENERATE_REL * sxx_raw {
@@ -94,6 +98,6 @@ fn fit_with(samples: &[Sample], weights: Option<&[f64]>) -> Result<GssaModel> {
     let scale = sxy / sxx;
     Ok(GssaModel {
         scale,
-        shift_m: my - scale * mx,
+        shift: my - scale * mx,
     })
 }

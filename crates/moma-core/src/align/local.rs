@@ -239,13 +239,13 @@ impl CvScore {
             .samples
             .iter()
             .zip(cv)
-            .map(|(p, &y)| CvLoss::Abs.of(samples.space, p.depth_m, y))
+            .map(|(p, &y)| CvLoss::Abs.of(samples.space, p.target, y))
             .collect();
         let rel: Vec<f64> = samples
             .samples
             .iter()
             .zip(cv)
-            .map(|(p, &y)| CvLoss::Rel.of(samples.space, p.depth_m, y))
+            .map(|(p, &y)| CvLoss::Rel.of(samples.space, p.target, y))
             .collect();
         Self {
             rms_m: mean_sqrt(&sq),
@@ -267,7 +267,7 @@ fn losses_of(samples: &SampleSet, cv: &[f64], loss: CvLoss) -> Vec<f64> {
         .samples
         .iter()
         .zip(cv)
-        .map(|(p, &y)| loss.of(samples.space, p.depth_m, y))
+        .map(|(p, &y)| loss.of(samples.space, p.target, y))
         .collect()
 }
 
@@ -364,11 +364,8 @@ impl GlobalFit {
     #[inline]
     fn slope_offset(&self, u: f64, v: f64) -> (f64, f64) {
         match self {
-            Self::Gssa(m) => (m.scale, m.shift_m),
-            Self::Ssra(m) => (
-                m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m,
-                m.t3_m,
-            ),
+            Self::Gssa(m) => (m.scale, m.shift),
+            Self::Ssra(m) => (m.alpha_per_px * u + m.beta_per_px * v + m.gamma, m.t3),
         }
     }
 
@@ -388,9 +385,11 @@ pub struct LocalCandidate {
     pub bandwidth_px: f64,
     /// Ridge λ, units of weight.
     pub ridge: f64,
-    /// Cross-validated RMS error on the calibration samples (spatially buffered leave-one-out,
-    /// field name kept for file compatibility), target units (metres in depth space).
-    pub loo_rms: f64,
+    /// Cross-validated RMS error on the calibration samples (spatially buffered leave-one-out),
+    /// in target units: metres in depth space, 1/m in inverse space (`loo_rms` in files before
+    /// version 5); [`LocalCandidate::cv`] holds it in metres.
+    #[serde(alias = "loo_rms")]
+    pub loo_rms_target: f64,
     /// The same cross-validated errors in metres and relative to depth (absent in files
     /// written before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -416,8 +415,10 @@ pub struct LocalModel {
     pub image_size: ImageSize,
     /// The global fit.
     pub global: GlobalFit,
-    /// Cross-validated RMS error of the global fit alone, target units.
-    pub global_loo_rms: f64,
+    /// Cross-validated RMS error of the global fit alone, target units (metres in depth space,
+    /// 1/m in inverse space; `global_loo_rms` in files before version 5).
+    #[serde(alias = "global_loo_rms")]
+    pub global_loo_rms_target: f64,
     /// The global fit's cross-validated errors in metres and relative to depth (absent in
     /// files written before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -544,7 +545,7 @@ fn buffered_global(
             let mut b = [0.0f64; 4];
             for ((xi, s), _) in x.iter().zip(samples).zip(&out).filter(|(_, o)| !**o) {
                 for i in 0..4 {
-                    b[i] += xi[i] * s.depth_m;
+                    b[i] += xi[i] * s.target;
                     for j in 0..4 {
                         a[i][j] += xi[i] * xi[j];
                     }
@@ -566,7 +567,7 @@ fn loo_value(k: usize, s: &Sample, fitted: f64, h: f64) -> Result<f64> {
             "sample {k} alone determines the global fit (leverage {h:.6}); leave-one-out is undefined"
         )));
     }
-    Ok(s.depth_m - (s.depth_m - fitted) / (1.0 - h))
+    Ok(s.target - (s.target - fitted) / (1.0 - h))
 }
 
 /// `sqrt(mean(x))` of squared errors (0 for none): the RMS.
@@ -793,7 +794,7 @@ fn fit_with_loo(
     if buffered {
         f_loo = buffered_global(s, base, &buffers)?;
     }
-    let global_loo_rms = mean_sqrt(&losses_of(samples, &f_loo, CvLoss::Target));
+    let global_loo_rms_target = mean_sqrt(&losses_of(samples, &f_loo, CvLoss::Target));
     let global_loss = losses_of(samples, &f_loo, config.cv_loss);
     let global_cv = CvScore::of(samples, &f_loo);
     let n = s.len() as f64;
@@ -804,7 +805,7 @@ fn fit_with_loo(
     let (cols, rows) = config.grid_nodes(size);
     let prep = Prep {
         samples: s,
-        e: s.iter().zip(&f).map(|(p, fk)| p.depth_m - fk).collect(),
+        e: s.iter().zip(&f).map(|(p, fk)| p.target - fk).collect(),
         x,
         q,
         cols,
@@ -869,17 +870,17 @@ fn fit_with_loo(
             candidates.push(LocalCandidate {
                 bandwidth_px: b,
                 ridge,
-                loo_rms: mean_sqrt(&losses_of(samples, &loo, CvLoss::Target)),
+                loo_rms_target: mean_sqrt(&losses_of(samples, &loo, CvLoss::Target)),
                 cv: Some(CvScore::of(samples, &loo)),
             });
             cand_sq.push(losses_of(samples, &loo, config.cv_loss));
             cand_pred.push(loo);
         }
     }
-    if let Some(bad) = candidates.iter().find(|c| !c.loo_rms.is_finite()) {
+    if let Some(bad) = candidates.iter().find(|c| !c.loo_rms_target.is_finite()) {
         return Err(CoreError::Degenerate(format!(
             "local correction leave-one-out error is {} (bandwidth {:.1} px, ridge {}) on these {} samples",
-            bad.loo_rms,
+            bad.loo_rms_target,
             bad.bandwidth_px,
             bad.ridge,
             s.len()
@@ -927,7 +928,7 @@ fn fit_with_loo(
         config: config.clone(),
         image_size: size,
         global,
-        global_loo_rms,
+        global_loo_rms_target,
         global_cv: Some(global_cv),
         candidates,
         chosen,
@@ -949,19 +950,24 @@ fn nearest_pixel(u: f64, v: f64, size: ImageSize) -> (f64, f64) {
 impl LocalModel {
     /// `ssra-local` or `gssa-local`.
     pub fn name(&self) -> &'static str {
+        self.method_name().as_str()
+    }
+
+    /// [`MethodName::SsraLocal`] or [`MethodName::GssaLocal`].
+    pub fn method_name(&self) -> super::MethodName {
         match self.global {
-            GlobalFit::Gssa(_) => "gssa-local",
-            GlobalFit::Ssra(_) => "ssra-local",
+            GlobalFit::Gssa(_) => super::MethodName::GssaLocal,
+            GlobalFit::Ssra(_) => super::MethodName::SsraLocal,
         }
     }
 
-    /// The cross-validated RMS error of the model as used: the global one on fallback, else the chosen
-    /// candidate's.
-    pub fn loo_rms(&self) -> f64 {
+    /// The cross-validated RMS error of the model as used, in target units: the global one on
+    /// fallback, else the chosen candidate's.
+    pub fn loo_rms_target(&self) -> f64 {
         if self.fallback {
-            self.global_loo_rms
+            self.global_loo_rms_target
         } else {
-            self.chosen.loo_rms
+            self.chosen.loo_rms_target
         }
     }
 
@@ -1005,7 +1011,7 @@ impl LocalModel {
         if self.fallback {
             match &self.global {
                 GlobalFit::Gssa(m) => {
-                    let (s, t) = (m.scale as f32, m.shift_m as f32);
+                    let (s, t) = (m.scale as f32, m.shift as f32);
                     crate::kernels::map_rows(normalised, out, |_, zin, zout| {
                         crate::kernels::affine(zin, zout, s, t)
                     });
@@ -1051,8 +1057,11 @@ impl LocalModel {
             return bad("global SSRA fit is for another image size".into());
         }
         self.global.as_model().validate()?;
-        if !self.global_loo_rms.is_finite() {
-            return bad(format!("global_loo_rms is {}", self.global_loo_rms));
+        if !self.global_loo_rms_target.is_finite() {
+            return bad(format!(
+                "global_loo_rms_target is {}",
+                self.global_loo_rms_target
+            ));
         }
         if self.global_cv.is_some_and(|cv| !cv.is_valid()) {
             return bad("global_cv is invalid".into());
@@ -1067,8 +1076,8 @@ impl LocalModel {
             if !(c.ridge.is_finite() && c.ridge > 0.0) {
                 return bad(format!("ridge {} must be finite and > 0", c.ridge));
             }
-            if !c.loo_rms.is_finite() {
-                return bad(format!("loo_rms {} is not finite", c.loo_rms));
+            if !c.loo_rms_target.is_finite() {
+                return bad(format!("loo_rms_target {} is not finite", c.loo_rms_target));
             }
             if c.cv.is_some_and(|cv| !cv.is_valid()) {
                 return bad("a candidate's cross-validation score is invalid".into());
@@ -1112,11 +1121,13 @@ impl LocalModel {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AutoCandidate {
-    /// Method name.
-    pub method: String,
-    /// Cross-validated RMS error on the calibration samples (target units); `None` when the method could
-    /// not be fitted on these samples.
-    pub loo_rms: Option<f64>,
+    /// The method.
+    pub method: super::MethodName,
+    /// Cross-validated RMS error on the calibration samples in target units (metres in depth
+    /// space, 1/m in inverse space; `loo_rms` in files before version 5); `None` when the method
+    /// could not be fitted on these samples.
+    #[serde(alias = "loo_rms")]
+    pub loo_rms_target: Option<f64>,
     /// The same cross-validated errors in metres and relative to depth (absent when the method
     /// could not be fitted, and in files written before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -1143,7 +1154,7 @@ pub struct AutoSelection {
     /// Radius of the cross-validation's spatial buffer, pixels (0: plain leave-one-out).
     pub buffer_px: f64,
     /// The candidate with the lowest mean loss.
-    pub best: String,
+    pub best: super::MethodName,
 }
 
 /// `auto`'s result: the chosen fitted model and every candidate's cross-validated RMS error.
@@ -1173,7 +1184,7 @@ impl AutoModel {
         }
         self.chosen.validate()?;
         for c in &self.candidates {
-            if let Some(x) = c.loo_rms
+            if let Some(x) = c.loo_rms_target
                 && !(x.is_finite() && x >= 0.0)
             {
                 return Err(CoreError::InvalidParameter(format!(
@@ -1433,13 +1444,13 @@ pub fn fit_auto(samples: &SampleSet, config: &LocalConfig) -> Result<AutoModel> 
     let mut fitted: Vec<(Vec<f64>, AlignmentModel, usize)> = Vec::new();
     let mut first_err = None;
     for method in auto_candidates_with(config) {
-        let name = method.name();
+        let name = super::MethodName::from(&method);
         match fit_candidate(samples, &method, config) {
             Ok((loo, model)) => {
                 let loss = losses_of(samples, &loo, config.cv_loss);
                 candidates.push(AutoCandidate {
-                    method: name.to_string(),
-                    loo_rms: Some(mean_sqrt(&losses_of(samples, &loo, CvLoss::Target))),
+                    method: name,
+                    loo_rms_target: Some(mean_sqrt(&losses_of(samples, &loo, CvLoss::Target))),
                     cv: Some(CvScore::of(samples, &loo)),
                     cv_error: Some(config.cv_loss.summary(&loss)),
                     excess_se: None,
@@ -1448,8 +1459,8 @@ pub fn fit_auto(samples: &SampleSet, config: &LocalConfig) -> Result<AutoModel> 
             }
             Err(e) => {
                 candidates.push(AutoCandidate {
-                    method: name.to_string(),
-                    loo_rms: None,
+                    method: name,
+                    loo_rms_target: None,
                     cv: None,
                     cv_error: None,
                     excess_se: None,
@@ -1474,7 +1485,7 @@ pub fn fit_auto(samples: &SampleSet, config: &LocalConfig) -> Result<AutoModel> 
         loss: config.cv_loss,
         margin_se: config.cv_margin_se,
         buffer_px: cv_buffer_px(samples, config),
-        best: candidates[fitted[best].2].method.clone(),
+        best: candidates[fitted[best].2].method,
     };
     Ok(AutoModel {
         chosen: Box::new(fitted.swap_remove(pick).1),

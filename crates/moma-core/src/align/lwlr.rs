@@ -157,13 +157,14 @@ impl LwlrConfig {
     }
 }
 
-/// Full-size LWLR maps: `z = scale ⊙ ẑ + shift_m`.
+/// Full-size LWLR maps: `z = scale ⊙ ẑ + shift`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LwlrMaps {
-    /// Local scale S, metres per unit ẑ, `(height, width)`.
+    /// Local scale S, target units per unit ẑ (metres in depth space, 1/m in inverse space),
+    /// `(height, width)`.
     pub scale: Array2<f32>,
-    /// Local shift T, metres, `(height, width)`.
-    pub shift_m: Array2<f32>,
+    /// Local shift T, target units, `(height, width)`.
+    pub shift: Array2<f32>,
     /// Number of local fits (pixels or grid nodes) that were singular and fell back to the global fit.
     pub singular_fits: usize,
 }
@@ -276,7 +277,7 @@ impl LwlrModel {
                 let singular = solve_lattice(&p, &cols, &rows, &mut scale, &mut shift);
                 LwlrMaps {
                     scale: Array2::from_shape_vec((h, w), scale).unwrap_or_default(),
-                    shift_m: Array2::from_shape_vec((h, w), shift).unwrap_or_default(),
+                    shift: Array2::from_shape_vec((h, w), shift).unwrap_or_default(),
                     singular_fits: singular,
                 }
             }
@@ -288,7 +289,7 @@ impl LwlrModel {
                 let singular = solve_lattice(&p, &cols, &rows, &mut scale, &mut shift);
                 LwlrMaps {
                     scale: resize_bilinear(&scale, nx, ny, w, h),
-                    shift_m: resize_bilinear(&shift, nx, ny, w, h),
+                    shift: resize_bilinear(&shift, nx, ny, w, h),
                     singular_fits: singular,
                 }
             }
@@ -340,7 +341,7 @@ impl LwlrModel {
         let ss: f64 = self
             .samples
             .iter()
-            .map(|s| (self.predict_at_pixel(s.u, s.v, s.pred) - s.depth_m).powi(2))
+            .map(|s| (self.predict_at_pixel(s.u, s.v, s.pred) - s.target).powi(2))
             .sum();
         (ss / self.samples.len() as f64).sqrt()
     }
@@ -353,7 +354,7 @@ impl LwlrModel {
         let (w, h) = (self.image_size.width, self.image_size.height);
         let u = (u.round().max(0.0) as usize).min(w.saturating_sub(1));
         let v = (v.round().max(0.0) as usize).min(h.saturating_sub(1));
-        f64::from(m.scale[[v, u]]) * pred + f64::from(m.shift_m[[v, u]])
+        f64::from(m.scale[[v, u]]) * pred + f64::from(m.shift[[v, u]])
     }
 
     /// Checks a model read from a file: settings valid for its image size, the stored bandwidth
@@ -371,10 +372,10 @@ impl LwlrModel {
                 self.bandwidth_px
             )));
         }
-        if !(self.global.scale.is_finite() && self.global.shift_m.is_finite()) {
+        if !(self.global.scale.is_finite() && self.global.shift.is_finite()) {
             return Err(CoreError::InvalidParameter(format!(
                 "LWLR global fit is not finite: scale {}, shift {}",
-                self.global.scale, self.global.shift_m
+                self.global.scale, self.global.shift
             )));
         }
         let set = SampleSet {
@@ -395,7 +396,7 @@ impl LwlrModel {
     ) {
         let m = self.maps();
         let w = self.image_size.width;
-        let (s_all, t_all) = match (m.scale.as_slice(), m.shift_m.as_slice()) {
+        let (s_all, t_all) = match (m.scale.as_slice(), m.shift.as_slice()) {
             (Some(s), Some(t)) => (s, t),
             _ => return, // maps are built in standard layout
         };
@@ -407,14 +408,14 @@ impl LwlrModel {
 
     fn prepare(&self) -> Prepared {
         let pre = if self.config.global_prefit {
-            (self.global.scale, self.global.shift_m)
+            (self.global.scale, self.global.shift)
         } else {
             (1.0, 0.0)
         };
         let fallback = if self.config.global_prefit {
             (1.0, 0.0)
         } else {
-            (self.global.scale, self.global.shift_m)
+            (self.global.scale, self.global.shift)
         };
         let n = self.samples.len().max(1) as f64;
         let xs: Vec<f64> = self
@@ -423,13 +424,13 @@ impl LwlrModel {
             .map(|s| pre.0 * s.pred + pre.1)
             .collect();
         let x_mean = xs.iter().sum::<f64>() / n;
-        let y_mean = self.samples.iter().map(|s| s.depth_m).sum::<f64>() / n;
+        let y_mean = self.samples.iter().map(|s| s.target).sum::<f64>() / n;
         Prepared {
             uv: self.samples.iter().map(|s| (s.u, s.v)).collect(),
             xy: xs
                 .iter()
                 .zip(&self.samples)
-                .map(|(x, s)| (x - x_mean, s.depth_m - y_mean))
+                .map(|(x, s)| (x - x_mean, s.target - y_mean))
                 .collect(),
             x_mean,
             y_mean,

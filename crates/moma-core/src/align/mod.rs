@@ -30,8 +30,11 @@ pub struct Sample {
     pub v: f64,
     /// Normalised prediction ẑ (unitless).
     pub pred: f64,
-    /// Ground-truth depth, metres.
-    pub depth_m: f64,
+    /// The ground truth as the fit's target, in the units of [`SampleSet::space`]
+    /// ([`AlignSpace::target_unit`]): depth in metres in depth space (always, in files: the field
+    /// is `depth_m` there), 1/depth in 1/m in inverse space ([`SampleSet::in_space`]).
+    #[serde(rename = "depth_m")]
+    pub target: f64,
 }
 
 /// The calibration samples of one frame.
@@ -40,7 +43,7 @@ pub struct Sample {
 pub struct SampleSet {
     /// Size of the image the samples come from.
     pub image_size: ImageSize,
-    /// What [`Sample::depth_m`] holds: depth in metres ([`AlignSpace::Depth`], the default and
+    /// What [`Sample::target`] holds: depth in metres ([`AlignSpace::Depth`], the default and
     /// the only value in files) or the fit's target in inverse space, 1/m
     /// ([`AlignSpace::Inverse`], made by [`SampleSet::in_space`]).
     #[serde(default = "depth_space", skip_serializing_if = "is_depth_space")]
@@ -71,7 +74,7 @@ impl SampleSet {
                 .samples
                 .iter()
                 .map(|s| Sample {
-                    depth_m: space.target_from_depth(self.space.depth_from_target(s.depth_m)),
+                    target: space.target_from_depth(self.space.depth_from_target(s.target)),
                     ..*s
                 })
                 .collect(),
@@ -109,7 +112,7 @@ impl SampleSet {
                     u: u as f64,
                     v: v as f64,
                     pred: f64::from(pred),
-                    depth_m: f64::from(depth),
+                    target: f64::from(depth),
                 });
             }
         }
@@ -138,10 +141,10 @@ impl SampleSet {
         for (index, s) in self.samples.iter().enumerate() {
             let reason = if !s.pred.is_finite() {
                 Some(format!("normalised prediction {} is not finite", s.pred))
-            } else if !(s.depth_m.is_finite() && s.depth_m > 0.0) {
+            } else if !(s.target.is_finite() && s.target > 0.0) {
                 Some(format!(
                     "ground-truth depth {} m is not a valid depth",
-                    s.depth_m
+                    s.target
                 ))
             } else if !(s.u.is_finite() && s.v.is_finite()) {
                 Some(format!("pixel position ({}, {}) is not finite", s.u, s.v))
@@ -177,7 +180,7 @@ fn rms_residual(samples: &[Sample], predict: impl Fn(&Sample) -> f64) -> f64 {
     let ss: f64 = samples
         .iter()
         .map(|s| {
-            let r = predict(s) - s.depth_m;
+            let r = predict(s) - s.target;
             r * r
         })
         .sum();
@@ -188,8 +191,8 @@ fn rms_residual(samples: &[Sample], predict: impl Fn(&Sample) -> f64) -> f64 {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FitReport {
-    /// Method name (`ssra`, `gssa`, `lwlr`, `raw`).
-    pub method: String,
+    /// The method fitted (its settings are in the model).
+    pub method: MethodName,
     /// Samples used.
     pub n_used: usize,
     /// Root-mean-square residual on the calibration samples, metres.
@@ -283,15 +286,7 @@ impl Method {
     /// LWLR the preset its settings follow (`lwlr` grid solve, `lwlr-exact` exact solve with
     /// BoostingDepth's pre-fit and ridge, `lwlr-bare` the bare formula).
     pub fn name(&self) -> &'static str {
-        match self {
-            Self::Raw => "raw",
-            Self::Gssa => "gssa",
-            Self::Ssra(_) => "ssra",
-            Self::Lwlr(cfg) => lwlr_name(cfg),
-            Self::SsraLocal(_) => "ssra-local",
-            Self::GssaLocal(_) => "gssa-local",
-            Self::Auto(_) => "auto",
-        }
+        MethodName::from(self).as_str()
     }
 
     /// The method with `intrinsics` used for reporting (SSRA's canonical parameters); other
@@ -333,7 +328,7 @@ impl Method {
     /// use moma_core::normalise::AlignSpace;
     /// use moma_core::ImageSize;
     /// let samples = (0..10)
-    ///     .map(|k| Sample { u: k as f64, v: 0.0, pred: k as f64, depth_m: 0.5 + 0.1 * k as f64 })
+    ///     .map(|k| Sample { u: k as f64, v: 0.0, pred: k as f64, target: 0.5 + 0.1 * k as f64 })
     ///     .collect();
     /// let set = SampleSet { image_size: ImageSize::new(10, 1), space: AlignSpace::Depth, samples };
     /// let (model, report) = Method::Gssa.fit(&set).unwrap();
@@ -368,7 +363,7 @@ impl Method {
             }
         };
         let report = FitReport {
-            method: self.name().to_string(),
+            method: MethodName::from(self),
             n_used: samples.len(),
             rms_residual_m,
             fit_time_s: start.elapsed().as_secs_f64(),
@@ -379,11 +374,130 @@ impl Method {
 }
 
 /// The name of an LWLR configuration: the preset its solve, pre-fit and ridge follow.
-fn lwlr_name(cfg: &lwlr::LwlrConfig) -> &'static str {
+/// Which alignment method, without its settings: what a fit report, a calibration file's
+/// summary and `auto`'s candidate list record. Named as [`Method::name`] and
+/// [`AlignmentModel::name`] name them (serialised as that name, parsed with [`Method::NAMES`] in
+/// the error). A [`Method`] is the method *with* its settings, a fitted [`AlignmentModel`] the
+/// result; both give their `MethodName` with [`MethodName::from`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "&'static str")]
+pub enum MethodName {
+    /// `raw`.
+    Raw,
+    /// `gssa`.
+    Gssa,
+    /// `ssra`.
+    Ssra,
+    /// `lwlr` (grid solve, BoostingDepth's).
+    Lwlr,
+    /// `lwlr-exact`.
+    LwlrExact,
+    /// `lwlr-bare`.
+    LwlrBare,
+    /// `ssra-local`.
+    SsraLocal,
+    /// `gssa-local`.
+    GssaLocal,
+    /// `auto`.
+    Auto,
+}
+
+impl MethodName {
+    /// Every name, in the order of [`Method::NAMES`].
+    pub const ALL: [MethodName; 9] = [
+        Self::Ssra,
+        Self::Gssa,
+        Self::Lwlr,
+        Self::LwlrExact,
+        Self::LwlrBare,
+        Self::SsraLocal,
+        Self::GssaLocal,
+        Self::Auto,
+        Self::Raw,
+    ];
+
+    /// The name on the command line and in files.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Raw => "raw",
+            Self::Gssa => "gssa",
+            Self::Ssra => "ssra",
+            Self::Lwlr => "lwlr",
+            Self::LwlrExact => "lwlr-exact",
+            Self::LwlrBare => "lwlr-bare",
+            Self::SsraLocal => "ssra-local",
+            Self::GssaLocal => "gssa-local",
+            Self::Auto => "auto",
+        }
+    }
+}
+
+impl std::fmt::Display for MethodName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for MethodName {
+    type Err = CoreError;
+    fn from_str(s: &str) -> Result<Self> {
+        crate::names::parse(s, &Self::ALL, Self::as_str, "method")
+    }
+}
+
+impl TryFrom<String> for MethodName {
+    type Error = CoreError;
+    fn try_from(s: String) -> Result<Self> {
+        s.parse()
+    }
+}
+
+impl From<MethodName> for &'static str {
+    fn from(m: MethodName) -> Self {
+        m.as_str()
+    }
+}
+
+impl PartialEq<&str> for MethodName {
+    fn eq(&self, other: &&str) -> bool {
+        self.as_str() == *other
+    }
+}
+
+impl From<&Method> for MethodName {
+    fn from(m: &Method) -> Self {
+        match m {
+            Method::Raw => Self::Raw,
+            Method::Gssa => Self::Gssa,
+            Method::Ssra(_) => Self::Ssra,
+            Method::Lwlr(cfg) => lwlr_name(cfg),
+            Method::SsraLocal(_) => Self::SsraLocal,
+            Method::GssaLocal(_) => Self::GssaLocal,
+            Method::Auto(_) => Self::Auto,
+        }
+    }
+}
+
+impl From<&AlignmentModel> for MethodName {
+    fn from(m: &AlignmentModel) -> Self {
+        match m {
+            AlignmentModel::Raw => Self::Raw,
+            AlignmentModel::Gssa(_) => Self::Gssa,
+            AlignmentModel::Ssra(_) => Self::Ssra,
+            AlignmentModel::Lwlr(m) => lwlr_name(&m.config),
+            AlignmentModel::Local(m) => m.method_name(),
+            AlignmentModel::Auto(_) => Self::Auto,
+        }
+    }
+}
+
+fn lwlr_name(cfg: &lwlr::LwlrConfig) -> MethodName {
     match cfg.solve {
-        lwlr::LwlrSolve::Grid => "lwlr",
-        lwlr::LwlrSolve::Exact if !cfg.global_prefit && cfg.ridge_shift == 0.0 => "lwlr-bare",
-        lwlr::LwlrSolve::Exact => "lwlr-exact",
+        lwlr::LwlrSolve::Grid => MethodName::Lwlr,
+        lwlr::LwlrSolve::Exact if !cfg.global_prefit && cfg.ridge_shift == 0.0 => {
+            MethodName::LwlrBare
+        }
+        lwlr::LwlrSolve::Exact => MethodName::LwlrExact,
     }
 }
 
@@ -420,14 +534,7 @@ impl AlignmentModel {
     /// Method name (`raw`, `gssa`, `ssra`, `lwlr`, `lwlr-exact`, `lwlr-bare`, `ssra-local`,
     /// `gssa-local`, `auto`).
     pub fn name(&self) -> &'static str {
-        match self {
-            Self::Raw => "raw",
-            Self::Gssa(_) => "gssa",
-            Self::Ssra(_) => "ssra",
-            Self::Lwlr(m) => lwlr_name(&m.config),
-            Self::Local(m) => m.name(),
-            Self::Auto(_) => "auto",
-        }
+        MethodName::from(self).as_str()
     }
 
     /// The fitted value at pixel `(u, v)` for normalised value ẑ = `pred`, in the fit's target
@@ -473,24 +580,16 @@ impl AlignmentModel {
             Self::Raw => Ok(()),
             Self::Gssa(m) => {
                 finite("scale", m.scale)?;
-                finite("shift_m", m.shift_m)
+                finite("shift", m.shift)
             }
             Self::Ssra(m) => {
-                finite("alpha_m_per_px", m.alpha_m_per_px)?;
-                finite("beta_m_per_px", m.beta_m_per_px)?;
-                finite("gamma_m", m.gamma_m)?;
-                finite("t3_m", m.t3_m)?;
-                for (name, x) in [
-                    "s_m",
-                    "theta_rad",
-                    "phi_rad",
-                    "t3_m",
-                    "cx_px",
-                    "cy_px",
-                    "f_px",
-                ]
-                .iter()
-                .zip(m.canonical.as_array())
+                finite("alpha_per_px", m.alpha_per_px)?;
+                finite("beta_per_px", m.beta_per_px)?;
+                finite("gamma", m.gamma)?;
+                finite("t3", m.t3)?;
+                for (name, x) in ["s", "theta_rad", "phi_rad", "t3", "cx_px", "cy_px", "f_px"]
+                    .iter()
+                    .zip(m.canonical.as_array())
                 {
                     finite(name, x)?;
                 }
@@ -507,17 +606,16 @@ impl AlignmentModel {
                 let corners = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)];
                 let scale = corners
                     .iter()
-                    .map(|&(u, v)| (m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m).abs())
-                    .fold(m.t3_m.abs(), f64::max)
+                    .map(|&(u, v)| (m.alpha_per_px * u + m.beta_per_px * v + m.gamma).abs())
+                    .fold(m.t3.abs(), f64::max)
                     .max(1e-12);
                 let worst = corners
                     .iter()
                     .map(|&(u, v)| {
-                        ((a * u + b * v + g)
-                            - (m.alpha_m_per_px * u + m.beta_m_per_px * v + m.gamma_m))
+                        ((a * u + b * v + g) - (m.alpha_per_px * u + m.beta_per_px * v + m.gamma))
                             .abs()
                     })
-                    .fold((t - m.t3_m).abs(), f64::max);
+                    .fold((t - m.t3).abs(), f64::max);
                 if worst > 1e-6 * scale {
                     return Err(CoreError::InvalidParameter(format!(
                         "ssra linear parameters (alpha, beta, gamma, t3) and canonical parameters \
@@ -572,7 +670,7 @@ impl AlignmentModel {
         match self {
             Self::Raw => out.assign(&normalised),
             Self::Gssa(m) => {
-                let (s, t) = (m.scale as f32, m.shift_m as f32);
+                let (s, t) = (m.scale as f32, m.shift as f32);
                 crate::kernels::map_rows(normalised, out, |_, zin, zout| {
                     crate::kernels::affine(zin, zout, s, t)
                 });

@@ -454,7 +454,7 @@ impl Robust {
         };
         let depths: Vec<f64> = ctx.samples.iter().map(|s| ctx.depth_m(s)).collect();
         let report = FitReport {
-            method: method.name().to_string(),
+            method: super::MethodName::from(method),
             n_used: ctx.samples.len(),
             rms_residual_m: rms(&residuals, &depths),
             fit_time_s: start.elapsed().as_secs_f64(),
@@ -908,7 +908,7 @@ struct Ctx<'a> {
 impl Ctx<'_> {
     /// Ground-truth depth of a sample, metres.
     fn depth_m(&self, s: &Sample) -> f64 {
-        self.space.depth_from_target(s.depth_m)
+        self.space.depth_from_target(s.target)
     }
 
     /// Fitted minus ground-truth depth, metres; infinite where the fit gives no depth.
@@ -928,9 +928,9 @@ impl Ctx<'_> {
     /// wrong near ground truth (1/z huge) would otherwise dominate the fit.
     fn linearised_residual_m(&self, s: &Sample, fitted_target: f64) -> f64 {
         match self.space {
-            AlignSpace::Depth => fitted_target - s.depth_m,
+            AlignSpace::Depth => fitted_target - s.target,
             AlignSpace::Inverse if fitted_target > 0.0 && fitted_target.is_finite() => {
-                -(fitted_target - s.depth_m) / (fitted_target * fitted_target)
+                -(fitted_target - s.target) / (fitted_target * fitted_target)
             }
             AlignSpace::Inverse => f64::INFINITY,
         }

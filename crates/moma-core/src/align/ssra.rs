@@ -43,14 +43,17 @@ pub struct SsraConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SsraCanonical {
-    /// Scale s, metres per unit ẑ.
-    pub s_m: f64,
+    /// Scale s, target units per unit ẑ (metres in depth space, 1/m in inverse space; `s_m` in
+    /// files before version 5).
+    #[serde(alias = "s_m")]
+    pub s: f64,
     /// Rotation θ about the camera x axis, radians.
     pub theta_rad: f64,
     /// Rotation φ about the camera y axis, radians.
     pub phi_rad: f64,
-    /// Shift T3, metres.
-    pub t3_m: f64,
+    /// Shift T3, target units (`t3_m` in files before version 5).
+    #[serde(alias = "t3_m")]
+    pub t3: f64,
     /// Principal point column c_x, pixels.
     pub cx_px: f64,
     /// Principal point row c_y, pixels.
@@ -67,7 +70,7 @@ impl SsraCanonical {
         alpha: f64,
         beta: f64,
         gamma: f64,
-        t3_m: f64,
+        t3: f64,
         cx_px: f64,
         cy_px: f64,
         f_px: f64,
@@ -78,7 +81,7 @@ impl SsraCanonical {
             gamma + alpha * cx_px + beta * cy_px,
         ];
         let norm = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
-        let (s_m, theta_rad, phi_rad) = if norm > 0.0 {
+        let (s, theta_rad, phi_rad) = if norm > 0.0 {
             let s = if w[2] < 0.0 { -norm } else { norm };
             let r = [w[0] / s, w[1] / s, w[2] / s];
             (s, r[1].atan2(r[2]), -r[0].clamp(-1.0, 1.0).asin())
@@ -86,10 +89,10 @@ impl SsraCanonical {
             (0.0, 0.0, 0.0)
         };
         Self {
-            s_m,
+            s,
             theta_rad,
             phi_rad,
-            t3_m,
+            t3,
             cx_px,
             cy_px,
             f_px,
@@ -100,10 +103,10 @@ impl SsraCanonical {
     pub fn to_linear(&self) -> (f64, f64, f64, f64) {
         let (st, ct) = self.theta_rad.sin_cos();
         let (sp, cp) = self.phi_rad.sin_cos();
-        let alpha = self.s_m * (-sp) / self.f_px;
-        let beta = self.s_m * st * cp / self.f_px;
-        let gamma = self.s_m * ct * cp - alpha * self.cx_px - beta * self.cy_px;
-        (alpha, beta, gamma, self.t3_m)
+        let alpha = self.s * (-sp) / self.f_px;
+        let beta = self.s * st * cp / self.f_px;
+        let gamma = self.s * ct * cp - alpha * self.cx_px - beta * self.cy_px;
+        (alpha, beta, gamma, self.t3)
     }
 
     /// The paper's `F(u, v, ẑ | Θ)` in metres, evaluated literally.
@@ -114,10 +117,10 @@ impl SsraCanonical {
     /// `[s, θ, φ, T3, c_x, c_y, f]`.
     pub fn as_array(&self) -> [f64; 7] {
         [
-            self.s_m,
+            self.s,
             self.theta_rad,
             self.phi_rad,
-            self.t3_m,
+            self.t3,
             self.cx_px,
             self.cy_px,
             self.f_px,
@@ -127,10 +130,10 @@ impl SsraCanonical {
     /// From `[s, θ, φ, T3, c_x, c_y, f]` (no canonicalisation).
     pub fn from_array(p: [f64; 7]) -> Self {
         Self {
-            s_m: p[0],
+            s: p[0],
             theta_rad: p[1],
             phi_rad: p[2],
-            t3_m: p[3],
+            t3: p[3],
             cx_px: p[4],
             cy_px: p[5],
             f_px: p[6],
@@ -138,18 +141,25 @@ impl SsraCanonical {
     }
 }
 
-/// Fitted SSRA: z = ẑ(αu + βv + γ) + T3, plus the canonical (s, θ, φ, T3, cx, cy, f).
+/// Fitted SSRA: target = ẑ(αu + βv + γ) + T3, plus the canonical (s, θ, φ, T3, cx, cy, f).
+/// Every parameter but the angles and the pixels is in the target units of the calibration's
+/// space ([`crate::normalise::AlignSpace::target_unit`]): metres in depth space, 1/m in inverse
+/// space (files before version 5 named them `…_m`, read as aliases).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SsraModel {
-    /// α, metres per unit ẑ per pixel column.
-    pub alpha_m_per_px: f64,
-    /// β, metres per unit ẑ per pixel row.
-    pub beta_m_per_px: f64,
-    /// γ, metres per unit ẑ (the scale at pixel (0, 0)).
-    pub gamma_m: f64,
-    /// T3, metres.
-    pub t3_m: f64,
+    /// α, target units per unit ẑ per pixel column.
+    #[serde(alias = "alpha_m_per_px")]
+    pub alpha_per_px: f64,
+    /// β, target units per unit ẑ per pixel row.
+    #[serde(alias = "beta_m_per_px")]
+    pub beta_per_px: f64,
+    /// γ, target units per unit ẑ (the scale at pixel (0, 0)).
+    #[serde(alias = "gamma_m")]
+    pub gamma: f64,
+    /// T3, target units.
+    #[serde(alias = "t3_m")]
+    pub t3: f64,
     /// The same model as the paper's 7 parameters, canonical form.
     pub canonical: SsraCanonical,
     /// Size of the calibration image (pixel coordinates refer to it).
@@ -163,7 +173,7 @@ impl SsraModel {
         alpha: f64,
         beta: f64,
         gamma: f64,
-        t3_m: f64,
+        t3: f64,
         image_size: ImageSize,
         intrinsics: Option<&Intrinsics>,
     ) -> Self {
@@ -171,11 +181,11 @@ impl SsraModel {
             .copied()
             .unwrap_or_else(|| Intrinsics::nominal(image_size));
         Self {
-            alpha_m_per_px: alpha,
-            beta_m_per_px: beta,
-            gamma_m: gamma,
-            t3_m,
-            canonical: SsraCanonical::from_linear(alpha, beta, gamma, t3_m, k.cx, k.cy, k.fx),
+            alpha_per_px: alpha,
+            beta_per_px: beta,
+            gamma,
+            t3,
+            canonical: SsraCanonical::from_linear(alpha, beta, gamma, t3, k.cx, k.cy, k.fx),
             image_size,
         }
     }
@@ -183,7 +193,7 @@ impl SsraModel {
     /// Metric depth (metres) at pixel `(u, v)` for normalised value ẑ: `ẑ(αu + βv + γ) + T3`.
     #[inline]
     pub fn predict(&self, u: f64, v: f64, pred: f64) -> f64 {
-        pred * (self.alpha_m_per_px * u + self.beta_m_per_px * v + self.gamma_m) + self.t3_m
+        pred * (self.alpha_per_px * u + self.beta_per_px * v + self.gamma) + self.t3
     }
 
     /// One fused f32 pass: per-column `αu`, per-row `βv + γ`, `out = ẑ·(αu + βv + γ) + T3`.
@@ -194,7 +204,7 @@ impl SsraModel {
         out: &mut ArrayViewMut2<'_, f32>,
     ) {
         let col = self.column_terms(normalised.ncols());
-        let t = self.t3_m as f32;
+        let t = self.t3 as f32;
         crate::kernels::map_rows(normalised, out, |v, zin, zout| {
             crate::kernels::ssra_row(zin, zout, &col, self.row_term(v), t);
         });
@@ -203,14 +213,14 @@ impl SsraModel {
     /// The per-column part `αu` of the scale field for `width` columns (f32, as applied).
     pub(crate) fn column_terms(&self, width: usize) -> Vec<f32> {
         (0..width)
-            .map(|u| (self.alpha_m_per_px * u as f64) as f32)
+            .map(|u| (self.alpha_per_px * u as f64) as f32)
             .collect()
     }
 
     /// The per-row part `βv + γ` of the scale field for row `v` (f32, as applied).
     #[inline]
     pub(crate) fn row_term(&self, v: usize) -> f32 {
-        (self.beta_m_per_px * v as f64 + self.gamma_m) as f32
+        (self.beta_per_px * v as f64 + self.gamma) as f32
     }
 }
 
@@ -286,7 +296,7 @@ fn fit_with(
         let x1 = r * p.pred * (p.v - mv);
         let x2 = r * p.pred;
         let x3 = r;
-        let z = r * p.depth_m;
+        let z = r * p.target;
         a[0] += x0 * x0;
         a[1] += x0 * x1;
         a[2] += x0 * x2;
@@ -421,7 +431,7 @@ pub fn fit_lm(samples: &SampleSet, starts: usize, seed: u64) -> Result<LmFit> {
         g.scale,
         0.0,
         0.0,
-        g.shift_m,
+        g.shift,
         (w - 1.0) / 2.0,
         (h - 1.0) / 2.0,
         w,
@@ -429,7 +439,7 @@ pub fn fit_lm(samples: &SampleSet, starts: usize, seed: u64) -> Result<LmFit> {
     let data: Vec<[f64; 4]> = samples
         .samples
         .iter()
-        .map(|s| [s.u, s.v, s.pred, s.depth_m])
+        .map(|s| [s.u, s.v, s.pred, s.target])
         .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let solver = LevenbergMarquardt::new()

@@ -28,7 +28,7 @@ pub fn samples(
                 u,
                 v,
                 pred,
-                depth_m: f(u, v, pred) + noise_m * e,
+                target: f(u, v, pred) + noise_m * e,
             }
         })
         .collect();
