@@ -35,27 +35,31 @@ fn bench(c: &mut Criterion) {
             (0.9 * grey(u, v)) as u8
         }
     });
-    let store = AnchorStore::new(calib_rgb.view(), &gt)
+    let calib_grey = moma_io::grey_half(calib_rgb.view()).unwrap();
+    let store = AnchorStore::new(&calib_grey, &gt)
         .unwrap()
         .with_one_shot(&gt)
         .unwrap();
     // one-shot result off by a global scale
     let one_shot = gt.depth_m.mapv(|z| 1.05 * z);
     let config = RealignConfig::default();
-    // re-alignment is single-threaded code (no rayon inside): one core
+    // re-alignment is single-threaded code (no rayon inside): one core; every frame's time
+    // includes its RGB → grey conversion (moma_io::grey_half)
     {
         c.bench_function("find_anchors_640x480", |b| {
             b.iter(|| {
-                find_anchors(&store, black_box(frame_rgb.view()), &config.thresholds).unwrap()
+                let grey = moma_io::grey_half(black_box(frame_rgb.view())).unwrap();
+                find_anchors(&store, &grey, &config.thresholds).unwrap()
             })
         });
         let mut depth = one_shot.clone();
         c.bench_function("realign_640x480", |b| {
             b.iter(|| {
                 depth.assign(&one_shot);
+                let grey = moma_io::grey_half(black_box(frame_rgb.view())).unwrap();
                 let r = realign_in_place(
                     &store,
-                    black_box(frame_rgb.view()),
+                    &grey,
                     AlignSpace::Inverse,
                     &config,
                     &mut depth.view_mut(),
@@ -84,7 +88,7 @@ fn bench(c: &mut Criterion) {
             },
         )
         .unwrap()
-        .with_anchors(calib_rgb.view(), &gt, &pred)
+        .with_anchors(&calib_grey, &gt, &pred)
         .unwrap();
         // the frame: the background's prediction ×1.1 and shifted, an object nearer
         let frame_pred = moma_core::Prediction::new(
@@ -110,10 +114,11 @@ fn bench(c: &mut Criterion) {
             .depth_m;
         c.bench_function("realign_prediction_affine_640x480", |b| {
             b.iter(|| {
+                let grey = moma_io::grey_half(black_box(frame_rgb.view())).unwrap();
                 let r = cal
                     .align(
                         PredictionInput::normalised(&normalised, frame_pred.kind),
-                        &AlignOptions::realigned(black_box(frame_rgb.view()), &pa),
+                        &AlignOptions::realigned(&grey, &pa),
                         &mut depth.view_mut(),
                     )
                     .unwrap();

@@ -33,7 +33,7 @@ fn main() {
             (0.9 * grey(u, v)) as u8
         }
     });
-    let store = AnchorStore::new(calib.view(), &gt)
+    let store = AnchorStore::new(&moma_io::grey_half(calib.view()).expect("grey"), &gt)
         .and_then(|s| s.with_one_shot(&gt))
         .expect("store");
     let one_shot = gt.depth_m.mapv(|z| 1.05 * z);
@@ -43,9 +43,10 @@ fn main() {
     let t0 = cpu_s();
     for _ in 0..n {
         depth.assign(&one_shot);
+        let grey = moma_io::grey_half(frame.view()).expect("grey");
         let r = realign_in_place(
             &store,
-            frame.view(),
+            &grey,
             AlignSpace::Inverse,
             &config,
             &mut depth.view_mut(),

@@ -53,7 +53,7 @@
 use std::borrow::Cow;
 use std::sync::Arc;
 
-use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -66,7 +66,7 @@ use crate::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise_view,
 };
 use crate::realign::{
-    AnchorStore, CorrectionModel, RealignConfig, RealignReport, realign_in_place,
+    AnchorStore, CorrectionModel, GreyHalf, RealignConfig, RealignReport, realign_in_place,
     realign_prediction_affine,
 };
 use crate::sampling::{SamplingConfig, sample_pixels};
@@ -289,9 +289,10 @@ pub struct Calibration {
     #[serde(default)]
     pub workspace: Option<Arc<Workspace>>,
     /// The calibration frame's grey and ground truth for per-frame re-alignment on static
-    /// anchors ([`crate::realign`]); absent unless added with [`Calibration::with_anchors`]
-    /// (and then not written, so files without it stay valid).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// anchors ([`crate::realign`]); absent unless added with [`Calibration::with_anchors`].
+    /// Not serialised here: the calibration file (`moma_io`) writes it as `anchors`, next to
+    /// the other fields, and reads it back.
+    #[serde(skip)]
     pub anchors: Option<Arc<AnchorStore>>,
     /// The error model of this calibration's aligned depth ([`crate::error_model`]), fitted
     /// from the calibration frames; absent in files written before it existed, or when the
@@ -811,7 +812,7 @@ impl Calibration {
                 self.one_shot_into(pred, out)?;
                 None
             }
-            Some((rgb, config)) => Some(self.realigned_into(pred, rgb, config, out)?),
+            Some((grey, config)) => Some(self.realigned_into(pred, grey, config, out)?),
         };
         Ok(FrameReport {
             error_model: self.frame_error_model(realign.as_ref()),
@@ -870,19 +871,19 @@ impl Calibration {
     fn realigned_into(
         &self,
         pred: PredictionInput<'_>,
-        rgb: ArrayView3<'_, u8>,
+        grey: &GreyHalf,
         config: &RealignConfig,
         out: &mut ArrayViewMut2<'_, f32>,
     ) -> Result<RealignReport> {
         let store = self.anchor_store()?; // no store: fail before aligning
         if config.model != CorrectionModel::PredictionAffine {
             self.one_shot_into(pred, out)?;
-            return realign_in_place(store, rgb, self.space(), config, out);
+            return realign_in_place(store, grey, self.space(), config, out);
         }
         let normalised = self.normalised_input(pred)?;
         let (report, ab) = realign_prediction_affine(
             store,
-            rgb,
+            grey,
             &self.model,
             self.space(),
             config,
@@ -947,19 +948,19 @@ impl Calibration {
 /// How [`Calibration::align`] aligns one frame.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct AlignOptions<'a> {
-    /// Per-frame re-alignment on static anchors found in this frame's RGB `(height, width, 3)`,
-    /// with these settings (the calibration must hold an anchor store).
-    pub realign: Option<(ArrayView3<'a, u8>, &'a RealignConfig)>,
+    /// Per-frame re-alignment on static anchors found in this frame's grey (from its RGB:
+    /// `moma_io::grey_half`), with these settings (the calibration must hold an anchor store).
+    pub realign: Option<(&'a GreyHalf, &'a RealignConfig)>,
     /// Also compute the per-pixel σ map of the result ([`Aligned::sigma_m`];
     /// [`Calibration::aligned`] only).
     pub sigma_map: bool,
 }
 
 impl<'a> AlignOptions<'a> {
-    /// Re-alignment on static anchors found in `rgb` `(height, width, 3)`, with `config`.
-    pub fn realigned(rgb: ArrayView3<'a, u8>, config: &'a RealignConfig) -> Self {
+    /// Re-alignment on static anchors found in the frame's grey `grey`, with `config`.
+    pub fn realigned(grey: &'a GreyHalf, config: &'a RealignConfig) -> Self {
         Self {
-            realign: Some((rgb, config)),
+            realign: Some((grey, config)),
             sigma_map: false,
         }
     }
@@ -1035,7 +1036,7 @@ impl Calibration {
 
 impl Calibration {
     /// Adds the anchor store for per-frame re-alignment ([`crate::realign`]): the calibration
-    /// frame's RGB `(height, width, 3)`, its ground truth and its prediction (the frame the
+    /// frame's grey (from its RGB: `moma_io::grey_half`), its ground truth and its prediction (the frame the
     /// calibration was fitted on, or any frame of the same fixed camera with ground truth); the
     /// store keeps this calibration's own result on that prediction too.
     ///
@@ -1043,13 +1044,13 @@ impl Calibration {
     /// Size or kind mismatches with the calibration, no valid static ground-truth depth.
     pub fn with_anchors<'p>(
         self,
-        rgb: ArrayView3<'_, u8>,
+        grey: &GreyHalf,
         gt: &MetricDepth,
         pred: impl Into<PredictionInput<'p>>,
     ) -> Result<Self> {
         self.image_size()
             .expect_eq("anchor ground truth", gt.size())?;
-        let store = AnchorStore::new(rgb, gt)?;
+        let store = AnchorStore::new(grey, gt)?;
         self.with_anchor_store(&store, pred)
     }
 

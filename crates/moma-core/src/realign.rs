@@ -9,7 +9,9 @@
 //!
 //! # The anchor rule ([`AnchorThresholds`])
 //! Grey g = (R + 2G + B)/4, averaged over 2×2 blocks (half resolution, which also halves sensor
-//! noise). For the frame (g_f) against the calibration (g_c):
+//! noise): a [`GreyHalf`], which `moma_io::grey_half` makes from an RGB image (the conversion
+//! lives with the images; the rule below works on greys). For the frame (g_f) against the
+//! calibration (g_c):
 //! 1. **Global gain** k = median of g_f/g_c over pixels with g_c in [20, 235] and g_f in
 //!    [1, 250] (every 7th half-resolution pixel): absorbs a global brightness / exposure change;
 //!    new objects are a minority and do not move the median. A gain outside
@@ -89,10 +91,11 @@
 //!
 //! Store size at 640×480: 320×240 half-resolution pixels × (1 byte grey + 2 bytes depth + 2 bytes
 //! one-shot + 4 bytes normalised prediction) = 691 200 bytes, 921 600 characters of base64 in the
-//! calibration file (230 400 bytes for a store of grey and depth only). Stores written without
-//! the normalised prediction read unchanged and serve `scale-shift` and `planar`.
+//! calibration file (230 400 bytes for a store of grey and depth only; the file form, base64 of
+//! the little-endian arrays, is moma-io's). Stores written without the normalised prediction
+//! read unchanged and serve `scale-shift` and `planar`.
 
-use ndarray::{Array2, ArrayView2, ArrayView3, ArrayViewMut2};
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
@@ -118,13 +121,14 @@ pub const MAX_GAIN: f32 = 4.0;
 pub const MIN_ANCHOR_IMAGE_SIDE_PX: usize = 8;
 
 /// The compact calibration-frame record re-alignment needs: grey (u8) and ground-truth depth
-/// (u16 mm, 0 = invalid or on a depth edge) at half resolution.
+/// (u16 mm, 0 = invalid or on a depth edge) at half resolution, and optionally the calibration's
+/// own one-shot result (u16 mm) and normalised prediction (f32) at the same pixels.
 ///
 /// Half-resolution pixel (i, j) covers full-resolution rows 2i, 2i+1 and columns 2j, 2j+1; its
 /// grey is the block mean, its depth the ground truth at full-resolution pixel (u = 2j, v = 2i).
-/// Serialised with both arrays as base64 (depth little-endian).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(try_from = "AnchorStoreFile", into = "AnchorStoreFile")]
+/// This crate holds no file form: the calibration file (`moma_io`) stores it as
+/// `calibration.anchors`, through [`AnchorStore::from_parts`] and the accessors.
+#[derive(Debug, Clone, PartialEq)]
 pub struct AnchorStore {
     size: ImageSize,
     grey: Array2<u8>,
@@ -133,98 +137,76 @@ pub struct AnchorStore {
     normalised: Option<Array2<f32>>,
 }
 
-/// The serialised form of an [`AnchorStore`].
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct AnchorStoreFile {
-    /// Full-resolution width, pixels.
-    width: usize,
-    /// Full-resolution height, pixels.
-    height: usize,
-    /// Grey at half resolution, (height/2)×(width/2) bytes row-major, base64.
-    grey_b64: String,
-    /// Depth in mm at half resolution, u16 little-endian row-major, base64.
-    depth_mm_b64: String,
-    /// The calibration's own one-shot result on the calibration frame at the same pixels, mm,
-    /// u16 little-endian, base64 (absent: only the ground-truth target is available).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    one_shot_mm_b64: Option<String>,
-    /// The calibration's normalised prediction ẑ on the calibration frame at the same pixels,
-    /// f32 little-endian, base64 (NaN where none; absent in stores written before the
-    /// `prediction-affine` correction).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    normalised_b64: Option<String>,
-}
-
 fn half(size: ImageSize) -> (usize, usize) {
     (size.height / 2, size.width / 2)
 }
 
-/// Checks an RGB view `(height, width, 3)` against `size`.
-fn check_rgb(rgb: &ArrayView3<'_, u8>, size: ImageSize, what: &'static str) -> Result<()> {
-    let (h, w, c) = rgb.dim();
-    if c != 3 {
-        return Err(CoreError::InvalidParameter(format!(
-            "{what} must have 3 channels (RGB), got {c}"
-        )));
-    }
-    size.expect_eq(what, ImageSize::new(w, h))
+/// A frame as the anchor rule compares it: grey g = (R + 2G + B)/4 averaged over 2×2 blocks,
+/// f32 in [0, 255], at half resolution `(height/2, width/2)` of a full-resolution image of
+/// [`GreyHalf::size`] (module documentation, "The anchor rule"; its grey tolerances are in these
+/// levels). The conversion from RGB lives with the images: `moma_io::grey_half`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GreyHalf {
+    size: ImageSize,
+    values: Array2<f32>,
 }
 
-/// Grey (R + 2G + B)/4 averaged over 2×2 blocks, as f32 in [0, 255], row-major half resolution.
-fn grey_half(rgb: &ArrayView3<'_, u8>, hh: usize, hw: usize, out: &mut Vec<f32>) {
-    out.clear();
-    out.reserve(hh * hw);
-    let w = rgb.dim().1;
-    let owned;
-    let data: &[u8] = match rgb.as_slice() {
-        Some(s) => s,
-        None => {
-            owned = rgb.iter().copied().collect::<Vec<u8>>();
-            &owned
+impl GreyHalf {
+    /// Wraps the half-resolution grey `values` of an image of full-resolution `size`.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`]: `values` not `(height/2, width/2)` in standard layout,
+    /// or a value outside [0, 255] (NaN included).
+    pub fn new(size: ImageSize, values: Array2<f32>) -> Result<Self> {
+        let (hh, hw) = half(size);
+        if values.dim() != (hh, hw) || !values.is_standard_layout() {
+            return Err(CoreError::InvalidParameter(format!(
+                "half-resolution grey of a {size} image must be {hw}x{hh} (row-major), got {}x{}",
+                values.ncols(),
+                values.nrows()
+            )));
         }
-    };
-    let stride = 3 * w;
-    for i in 0..hh {
-        let r0 = &data[2 * i * stride..2 * i * stride + 6 * hw];
-        let r1 = &data[(2 * i + 1) * stride..(2 * i + 1) * stride + 6 * hw];
-        out.extend(r0.chunks_exact(6).zip(r1.chunks_exact(6)).map(|(a, b)| {
-            let s = a[0] as u32
-                + 2 * a[1] as u32
-                + a[2] as u32
-                + a[3] as u32
-                + 2 * a[4] as u32
-                + a[5] as u32
-                + b[0] as u32
-                + 2 * b[1] as u32
-                + b[2] as u32
-                + b[3] as u32
-                + 2 * b[4] as u32
-                + b[5] as u32;
-            s as f32 / 16.0
-        }));
+        if let Some(g) = values.iter().find(|g| !(0.0..=255.0).contains(*g)) {
+            return Err(CoreError::InvalidParameter(format!(
+                "grey level {g} is outside [0, 255]"
+            )));
+        }
+        Ok(Self { size, values })
+    }
+
+    /// Full-resolution image size, pixels.
+    pub fn size(&self) -> ImageSize {
+        self.size
+    }
+
+    /// The grey levels, `(height/2, width/2)`.
+    pub fn values(&self) -> ArrayView2<'_, f32> {
+        self.values.view()
+    }
+
+    /// Row-major grey levels (standard layout is checked at construction).
+    fn as_slice(&self) -> &[f32] {
+        self.values.as_slice().unwrap_or(&[])
     }
 }
 
 impl AnchorStore {
-    /// Builds the store from the calibration frame's RGB `(height, width, 3)` and ground truth.
+    /// Builds the store from the calibration frame's grey ([`GreyHalf`], from its RGB) and
+    /// ground truth.
     ///
     /// # Errors
-    /// Size mismatch between `rgb` and `gt`, an image smaller than 8×8, no channel count of 3,
-    /// no pixel with valid static depth.
-    pub fn new(rgb: ArrayView3<'_, u8>, gt: &MetricDepth) -> Result<Self> {
+    /// Size mismatch between `grey` and `gt`, an image smaller than 8×8, no pixel with valid
+    /// static depth.
+    pub fn new(grey: &GreyHalf, gt: &MetricDepth) -> Result<Self> {
         let size = gt.size();
-        check_rgb(&rgb, size, "calibration RGB")?;
+        size.expect_eq("calibration RGB", grey.size())?;
         if size.width < MIN_ANCHOR_IMAGE_SIDE_PX || size.height < MIN_ANCHOR_IMAGE_SIDE_PX {
             return Err(CoreError::InvalidParameter(format!(
                 "anchor store needs an image of at least {MIN_ANCHOR_IMAGE_SIDE_PX}x{MIN_ANCHOR_IMAGE_SIDE_PX} pixels, got {size}"
             )));
         }
         let (hh, hw) = half(size);
-        let mut g = Vec::new();
-        grey_half(&rgb, hh, hw, &mut g);
-        let grey = Array2::from_shape_vec((hh, hw), g.iter().map(|&x| x.round() as u8).collect())
-            .map_err(|e| CoreError::InvalidParameter(e.to_string()))?;
+        let grey = grey.values.mapv(|x| x.round() as u8);
         let z = Array2::from_shape_fn((hh, hw), |(i, j)| {
             let z = gt.depth_m[[2 * i, 2 * j]];
             if is_valid_depth(z) && z * 1000.0 < u16::MAX as f32 - 0.5 {
@@ -353,6 +335,59 @@ impl AnchorStore {
             + self.normalised.as_ref().map_or(0, |a| 4 * a.len())
     }
 
+    /// A store from its arrays, as a file reader decodes them: `size` the full-resolution
+    /// image size, every array `(height/2, width/2)`; `normalised` NaN where none.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidParameter`]: a size below 8×8 or above the image limit, an array of
+    /// another shape, an infinite normalised value.
+    pub fn from_parts(
+        size: ImageSize,
+        grey: Array2<u8>,
+        depth_mm: Array2<u16>,
+        one_shot_mm: Option<Array2<u16>>,
+        normalised: Option<Array2<f32>>,
+    ) -> Result<Self> {
+        let store = Self {
+            size,
+            grey,
+            depth_mm,
+            one_shot_mm,
+            normalised,
+        };
+        store.validate()?;
+        if store
+            .normalised
+            .as_ref()
+            .is_some_and(|a| a.iter().any(|x| x.is_infinite()))
+        {
+            return Err(CoreError::InvalidParameter(
+                "anchor store normalised prediction holds an infinite value".into(),
+            ));
+        }
+        Ok(store)
+    }
+
+    /// Grey at half resolution, `(height/2, width/2)`.
+    pub fn grey(&self) -> ArrayView2<'_, u8> {
+        self.grey.view()
+    }
+
+    /// Ground-truth depth at half resolution, millimetres (0 = invalid or on a depth edge).
+    pub fn depth_mm(&self) -> ArrayView2<'_, u16> {
+        self.depth_mm.view()
+    }
+
+    /// The calibration's one-shot result at the same pixels, millimetres (0 = none), if stored.
+    pub fn one_shot_mm(&self) -> Option<ArrayView2<'_, u16>> {
+        self.one_shot_mm.as_ref().map(|a| a.view())
+    }
+
+    /// The calibration's normalised prediction at the same pixels (NaN = none), if stored.
+    pub fn normalised(&self) -> Option<ArrayView2<'_, f32>> {
+        self.normalised.as_ref().map(|a| a.view())
+    }
+
     /// Checks internal consistency (array shapes against the image size).
     ///
     /// # Errors
@@ -386,110 +421,6 @@ impl AnchorStore {
         }
         Ok(())
     }
-}
-
-impl From<AnchorStore> for AnchorStoreFile {
-    fn from(s: AnchorStore) -> Self {
-        let le = |a: &Array2<u16>| -> Vec<u8> { a.iter().flat_map(|d| d.to_le_bytes()).collect() };
-        let depth = le(&s.depth_mm);
-        Self {
-            width: s.size.width,
-            height: s.size.height,
-            grey_b64: b64_encode(&s.grey.iter().copied().collect::<Vec<u8>>()),
-            depth_mm_b64: b64_encode(&depth),
-            one_shot_mm_b64: s.one_shot_mm.as_ref().map(|a| b64_encode(&le(a))),
-            normalised_b64: s
-                .normalised
-                .as_ref()
-                .map(|a| b64_encode(&a.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>())),
-        }
-    }
-}
-
-impl TryFrom<AnchorStoreFile> for AnchorStore {
-    type Error = String;
-    fn try_from(f: AnchorStoreFile) -> std::result::Result<Self, String> {
-        let size = ImageSize::new(f.width, f.height);
-        if f.width < MIN_ANCHOR_IMAGE_SIDE_PX
-            || f.height < MIN_ANCHOR_IMAGE_SIDE_PX
-            || !size.is_within_limits()
-        {
-            return Err(format!(
-                "anchor store size {size} is too small or too large"
-            ));
-        }
-        let (hh, hw) = half(size);
-        let grey = b64_decode(&f.grey_b64).map_err(|e| format!("anchor store grey_b64: {e}"))?;
-        if grey.len() != hh * hw {
-            return Err(format!(
-                "anchor store grey_b64 holds {} bytes, expected {} ({hw}x{hh})",
-                grey.len(),
-                hh * hw
-            ));
-        }
-        let u16s = |field: &str, text: &str| -> std::result::Result<Array2<u16>, String> {
-            let bytes = b64_decode(text).map_err(|e| format!("anchor store {field}: {e}"))?;
-            if bytes.len() != 2 * hh * hw {
-                return Err(format!(
-                    "anchor store {field} holds {} bytes, expected {} ({hw}x{hh} u16)",
-                    bytes.len(),
-                    2 * hh * hw
-                ));
-            }
-            let v: Vec<u16> = bytes
-                .chunks_exact(2)
-                .map(|c| u16::from_le_bytes([c[0], c[1]]))
-                .collect();
-            Array2::from_shape_vec((hh, hw), v).map_err(|e| e.to_string())
-        };
-        Ok(Self {
-            size,
-            grey: Array2::from_shape_vec((hh, hw), grey).map_err(|e| e.to_string())?,
-            depth_mm: u16s("depth_mm_b64", &f.depth_mm_b64)?,
-            one_shot_mm: f
-                .one_shot_mm_b64
-                .as_deref()
-                .map(|t| u16s("one_shot_mm_b64", t))
-                .transpose()?,
-            normalised: f
-                .normalised_b64
-                .as_deref()
-                .map(|t| -> std::result::Result<Array2<f32>, String> {
-                    let bytes =
-                        b64_decode(t).map_err(|e| format!("anchor store normalised_b64: {e}"))?;
-                    if bytes.len() != 4 * hh * hw {
-                        return Err(format!(
-                            "anchor store normalised_b64 holds {} bytes, expected {} ({hw}x{hh} f32)",
-                            bytes.len(),
-                            4 * hh * hw
-                        ));
-                    }
-                    let v: Vec<f32> = bytes
-                        .chunks_exact(4)
-                        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                        .collect();
-                    if v.iter().any(|x| x.is_infinite()) {
-                        return Err("anchor store normalised_b64 holds an infinite value".into());
-                    }
-                    Array2::from_shape_vec((hh, hw), v).map_err(|e| e.to_string())
-                })
-                .transpose()?,
-        })
-    }
-}
-
-/// Standard base64 with padding (RFC 4648 §4), the `base64` crate's engine; decoding refuses
-/// non-canonical input (a length not a multiple of 4, misplaced padding, other characters).
-fn b64_encode(data: &[u8]) -> String {
-    use base64::Engine as _;
-    base64::engine::general_purpose::STANDARD.encode(data)
-}
-
-fn b64_decode(s: &str) -> std::result::Result<Vec<u8>, String> {
-    use base64::Engine as _;
-    base64::engine::general_purpose::STANDARD
-        .decode(s)
-        .map_err(|e| e.to_string())
 }
 
 /// Thresholds of the anchor rule (module documentation).
@@ -739,26 +670,25 @@ fn median_in_place(xs: &mut [f32]) -> Option<f32> {
     Some(*m)
 }
 
-/// Finds the anchors of a frame with RGB `(height, width, 3)` (module documentation, rule 1–4).
+/// Finds the anchors of a frame with grey `grey` (from its RGB; module documentation, rule 1–4).
 ///
 /// # Errors
-/// Size or channel mismatch with the store.
+/// Size mismatch with the store.
 pub fn find_anchors(
     store: &AnchorStore,
-    rgb: ArrayView3<'_, u8>,
+    grey: &GreyHalf,
     thresholds: &AnchorThresholds,
 ) -> Result<Anchors> {
-    check_rgb(&rgb, store.size, "frame RGB")?;
+    store.size.expect_eq("frame RGB", grey.size())?;
     let (hh, hw) = half(store.size);
-    let mut gf = Vec::new();
-    grey_half(&rgb, hh, hw, &mut gf);
+    let gf = grey.as_slice();
     let gc = store
         .grey
         .as_slice()
         .ok_or_else(|| CoreError::InvalidParameter("anchor store grey is not contiguous".into()))?;
     let mut ratios: Vec<f32> = gc
         .iter()
-        .zip(&gf)
+        .zip(gf)
         .step_by(7)
         .filter(|&(&c, &f)| (20..=235).contains(&c) && (1.0..=250.0).contains(&f))
         .map(|(&c, &f)| f / c as f32)
@@ -1064,8 +994,8 @@ fn empty_report(anchors: &Anchors, model: CorrectionModel) -> RealignReport {
     }
 }
 
-/// Re-aligns a one-shot result in place on the anchors of the frame with RGB `rgb`
-/// `(height, width, 3)` with an output-space correction (`scale-shift`, `planar`); `depth_m`
+/// Re-aligns a one-shot result in place on the anchors of the frame with grey `grey` (from its
+/// RGB) with an output-space correction (`scale-shift`, `planar`); `depth_m`
 /// holds the one-shot metres (NaN where none) and is changed only when the correction is
 /// accepted. `space` is the calibration's alignment space.
 ///
@@ -1075,7 +1005,7 @@ fn empty_report(anchors: &Anchors, model: CorrectionModel) -> RealignReport {
 /// rejected correction are not errors: the report says so and `depth_m` is unchanged.
 pub fn realign_in_place(
     store: &AnchorStore,
-    rgb: ArrayView3<'_, u8>,
+    grey: &GreyHalf,
     space: AlignSpace,
     config: &RealignConfig,
     depth_m: &mut ArrayViewMut2<'_, f32>,
@@ -1098,7 +1028,7 @@ pub fn realign_in_place(
                 .into(),
         ));
     }
-    let anchors = find_anchors(store, rgb, &config.thresholds)?;
+    let anchors = find_anchors(store, grey, &config.thresholds)?;
     let mut report = empty_report(&anchors, config.model);
     let obs: Vec<Obs> = anchors
         .pixels
@@ -1284,7 +1214,7 @@ impl PredAffine {
 }
 
 /// The `prediction-affine` re-alignment of a frame (module documentation): finds the anchors of
-/// the frame with RGB `rgb` `(height, width, 3)`, fits ẑ' = a·ẑ + b of the frame's normalised
+/// the frame with grey `grey` (from its RGB), fits ẑ' = a·ẑ + b of the frame's normalised
 /// prediction `normalised` so that it reproduces the calibration frame's normalised prediction
 /// at the anchors, and decides on held-out anchors, measured in metres through `model` (the
 /// calibration's alignment model, in `space`). Returns the report and `(a, b)` when accepted;
@@ -1295,7 +1225,7 @@ impl PredAffine {
 /// normalised prediction ([`AnchorStore::with_normalised`]), target `ground-truth`.
 pub fn realign_prediction_affine(
     store: &AnchorStore,
-    rgb: ArrayView3<'_, u8>,
+    grey: &GreyHalf,
     model: &AlignmentModel,
     space: AlignSpace,
     config: &RealignConfig,
@@ -1321,7 +1251,7 @@ pub fn realign_prediction_affine(
                 .into(),
         )
     })?;
-    let anchors = find_anchors(store, rgb, &config.thresholds)?;
+    let anchors = find_anchors(store, grey, &config.thresholds)?;
     let mut report = empty_report(&anchors, CorrectionModel::PredictionAffine);
     // R: the range of the calibration's normalised prediction, the scale over which the
     // correction is extrapolated from the anchors to the rest of the image
@@ -1392,31 +1322,4 @@ pub fn realign_prediction_affine(
     report.prediction_affine = Some([a, b]);
     report.reason = accepted_reason(&report, obs.len());
     Ok((report, Some((a as f32, b as f32))))
-}
-
-#[cfg(test)]
-mod base64_tests {
-    use super::{b64_decode, b64_encode};
-
-    #[test]
-    fn standard_base64_with_padding_and_canonical_decoding() {
-        // RFC 4648 §10 test vectors.
-        for (plain, coded) in [
-            ("", ""),
-            ("f", "Zg=="),
-            ("fo", "Zm8="),
-            ("foo", "Zm9v"),
-            ("foob", "Zm9vYg=="),
-            ("fooba", "Zm9vYmE="),
-            ("foobar", "Zm9vYmFy"),
-        ] {
-            assert_eq!(b64_encode(plain.as_bytes()), coded);
-            assert_eq!(b64_decode(coded).unwrap(), plain.as_bytes());
-        }
-        let all: Vec<u8> = (0..=255).collect();
-        assert_eq!(b64_decode(&b64_encode(&all)).unwrap(), all);
-        for bad in ["Zg=", "Zg", "Z===", "Zm9v!A==", "Zg==Zg=="] {
-            assert!(b64_decode(bad).is_err(), "{bad}");
-        }
-    }
 }

@@ -109,7 +109,7 @@ fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
     let pred = disparity(g, 2.0, 0.0);
     calibrate(&[CalibrationFrame::new(&pred, g)], &config)
         .unwrap()
-        .with_anchors(rgb(false, 1.0, 0, 1).view(), g, &pred)
+        .with_anchors(&grey(rgb(false, 1.0, 0, 1).view()), g, &pred)
         .unwrap()
 }
 
@@ -276,12 +276,17 @@ fn planar_correction_recovers_a_tilt() {
 fn brightness_and_vibration_keep_the_anchors() {
     let cal = calibration();
     let store = cal.anchor_store().unwrap();
-    let base = find_anchors(store, test_rgb().view(), &Default::default())
+    let base = find_anchors(store, &grey(test_rgb().view()), &Default::default())
         .unwrap()
         .pixels
         .len();
     for (gain, shift) in [(0.8f32, 0usize), (1.2, 0), (1.0, 2), (0.8, 1)] {
-        let a = find_anchors(store, rgb(true, gain, shift, 5).view(), &Default::default()).unwrap();
+        let a = find_anchors(
+            store,
+            &grey(rgb(true, gain, shift, 5).view()),
+            &Default::default(),
+        )
+        .unwrap();
         assert!(
             a.pixels.len() * 10 >= base * 8,
             "gain {gain}, shift {shift}: {} anchors vs {base}",
@@ -374,11 +379,31 @@ fn rejected_when_the_correction_does_not_help() {
     }
 }
 
+/// The calibration as its file holds it (moma-io writes the anchor store as `anchors`).
+fn file_json(cal: &Calibration) -> serde_json::Value {
+    let file = moma_io::CalibrationFile::new(cal.clone(), None, moma_io::CreationInfo::now());
+    serde_json::to_value(file).unwrap()["calibration"].clone()
+}
+
+/// [`file_json`] read back through the calibration file.
+fn from_file_json(json: serde_json::Value) -> Result<Calibration, String> {
+    let mut v = serde_json::to_value(moma_io::CalibrationFile::new(
+        calibration(),
+        None,
+        moma_io::CreationInfo::now(),
+    ))
+    .unwrap();
+    v["calibration"] = json;
+    serde_json::from_value::<moma_io::CalibrationFile>(v)
+        .map(|f| f.calibration)
+        .map_err(|e| e.to_string())
+}
+
 #[test]
-fn anchor_store_serde_round_trip_and_bad_input() {
+fn anchor_store_file_round_trip_and_bad_input() {
     let cal = calibration();
-    let json = serde_json::to_string(&cal).unwrap();
-    let back: Calibration = serde_json::from_str(&json).unwrap();
+    let json = file_json(&cal);
+    let back = from_file_json(json.clone()).unwrap();
     assert_eq!(back, cal);
     back.validate().unwrap();
     let store = cal.anchor_store().unwrap();
@@ -386,38 +411,41 @@ fn anchor_store_serde_round_trip_and_bad_input() {
     // per half-resolution pixel
     assert!(store.has_normalised());
     assert_eq!(store.stored_bytes(), (W / 2) * (H / 2) * 9);
-    // at 640×480: 320·240·3 bytes
+    // at 640×480: 320·240·3 bytes, ≈ 4/3 of that in base64
     let big = AnchorStore::new(
-        Array3::<u8>::zeros((480, 640, 3)).view(),
+        &grey(Array3::<u8>::zeros((480, 640, 3)).view()),
         &MetricDepth::new(Array2::from_elem((480, 640), 1.0)),
     )
     .unwrap();
     assert_eq!(big.stored_bytes(), 230_400);
-    let big_json = serde_json::to_string(&big).unwrap();
-    assert!(big_json.len() < 310_000, "{}", big_json.len());
-    // a calibration without anchors writes no `anchors` key and reads back without one
+    let mut with_big = cal.clone();
+    with_big.anchors = Some(std::sync::Arc::new(big));
+    let big_json = file_json(&with_big)["anchors"].to_string();
+    assert!(
+        (307_000..310_000).contains(&big_json.len()),
+        "{}",
+        big_json.len()
+    );
+    // the core calibration serialises no anchors itself; without a store the file has no
+    // `anchors` key and reads back without one
+    assert!(!serde_json::to_string(&cal).unwrap().contains("grey_b64"));
     let mut plain = cal.clone();
     plain.anchors = None;
-    let pj = serde_json::to_string(&plain).unwrap();
-    assert!(!pj.contains("anchors"));
-    assert_eq!(serde_json::from_str::<Calibration>(&pj).unwrap(), plain);
+    let pj = file_json(&plain);
+    assert!(pj.get("anchors").is_none());
+    assert_eq!(from_file_json(pj).unwrap(), plain);
     // corrupted stores are refused with a message naming the field
-    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
-    let mut bad = v.clone();
+    let mut bad = json.clone();
     bad["anchors"]["grey_b64"] = "AAAA".into();
-    let e = serde_json::from_value::<Calibration>(bad)
-        .unwrap_err()
-        .to_string();
+    let e = from_file_json(bad).unwrap_err();
     assert!(e.contains("grey_b64"), "{e}");
-    let mut bad = v.clone();
+    let mut bad = json.clone();
     bad["anchors"]["depth_mm_b64"] = "A*==".into();
-    let e = serde_json::from_value::<Calibration>(bad)
-        .unwrap_err()
-        .to_string();
+    let e = from_file_json(bad).unwrap_err();
     assert!(e.contains("depth_mm_b64"), "{e}");
-    let mut bad = v;
+    let mut bad = json;
     bad["anchors"]["extra"] = 1.into();
-    assert!(serde_json::from_value::<Calibration>(bad).is_err());
+    assert!(from_file_json(bad).is_err());
 }
 
 #[test]
@@ -445,7 +473,7 @@ fn no_anchor_store_is_a_clear_error() {
     // a store without the calibration's own result cannot serve the calibration-output target
     let mut gt_only = cal.clone();
     gt_only.anchors = Some(std::sync::Arc::new(
-        AnchorStore::new(rgb(false, 1.0, 0, 1).view(), &gt(false)).unwrap(),
+        AnchorStore::new(&grey(rgb(false, 1.0, 0, 1).view()), &gt(false)).unwrap(),
     ));
     let e = align_realigned(
         &gt_only,
@@ -523,7 +551,7 @@ fn prediction_affine_is_exact_for_every_method() {
     let r = cal
         .align(
             PredictionInput::normalised(&normalised, changed.kind),
-            &AlignOptions::realigned(test_rgb().view(), &config),
+            &AlignOptions::realigned(&grey(test_rgb().view()), &config),
             &mut buf.depth_m.view_mut(),
         )
         .unwrap();
@@ -556,7 +584,7 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
     let store = cal.anchor_store().unwrap();
     let e = moma_core::realign::realign_in_place(
         store,
-        test_rgb().view(),
+        &grey(test_rgb().view()),
         cal.space(),
         &pa,
         &mut d.depth_m.view_mut(),
@@ -565,13 +593,13 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
     assert!(e.to_string().contains("normalised prediction"), "{e}");
     // a store written before the prediction-affine correction (no normalised_b64) still reads,
     // serves scale-shift, and refuses prediction-affine with a clear message
-    let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
+    let mut v = file_json(&cal);
     assert!(v["anchors"]["normalised_b64"].is_string());
     v["anchors"]
         .as_object_mut()
         .unwrap()
         .remove("normalised_b64");
-    let old: Calibration = serde_json::from_value(v).unwrap();
+    let old = from_file_json(v).unwrap();
     assert!(!old.anchor_store().unwrap().has_normalised());
     let e = align_realigned(&old, &pred, test_rgb().view(), &pa).unwrap_err();
     assert!(e.to_string().contains("calibrate again"), "{e}");
@@ -591,11 +619,9 @@ fn prediction_affine_needs_the_stored_prediction_and_the_normalised_map() {
     .unwrap_err();
     assert!(e.to_string().contains("ground-truth"), "{e}");
     // a corrupted normalised_b64 is refused naming the field
-    let mut v: serde_json::Value = serde_json::to_value(&cal).unwrap();
+    let mut v = file_json(&cal);
     v["anchors"]["normalised_b64"] = "AAAA".into();
-    let e = serde_json::from_value::<Calibration>(v)
-        .unwrap_err()
-        .to_string();
+    let e = from_file_json(v).unwrap_err();
     assert!(e.contains("normalised_b64"), "{e}");
     // a fully covered background falls back with the reason, depth = one-shot
     let covered = Array3::from_shape_fn((H, W, 3), |(v, u, _)| {
@@ -639,13 +665,19 @@ fn acceptance_margin_rejects_with_the_gain_in_the_report() {
 
 /// One frame aligned and re-aligned through the one path ([`Calibration::aligned`]): metres and
 /// the re-alignment report.
+/// The grey that re-alignment compares, of an RGB image (`moma_io::grey_half`).
+fn grey(rgb: ArrayView3<'_, u8>) -> moma_core::realign::GreyHalf {
+    moma_io::grey_half(rgb).unwrap()
+}
+
 fn align_realigned(
     cal: &Calibration,
     pred: &Prediction,
     rgb: ArrayView3<'_, u8>,
     config: &RealignConfig,
 ) -> moma_core::Result<(MetricDepth, RealignReport)> {
-    let a = cal.aligned(pred, &AlignOptions::realigned(rgb, config))?;
+    let grey = moma_io::grey_half(rgb)?;
+    let a = cal.aligned(pred, &AlignOptions::realigned(&grey, config))?;
     let report = a.realign.expect("re-alignment was asked for");
     Ok((a.depth, report))
 }

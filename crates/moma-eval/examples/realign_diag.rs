@@ -7,7 +7,7 @@
 
 use moma_core::align::Method;
 use moma_core::normalise::NormalisationConfig;
-use moma_core::realign::{CorrectionModel, RealignConfig};
+use moma_core::realign::{CorrectionModel, GreyHalf, RealignConfig};
 use moma_core::{AlignOptions, PredictionInput, PredictionKind};
 use moma_eval::protocol::{EvalConfig, Prepared};
 use moma_eval::simulate::{SimulatorConfig, TransparencySource, simulated_predictions};
@@ -36,16 +36,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let norm: NormalisationConfig =
         prep.normalisation_for(&method, moma_core::normalise::Normalisation::Minmax);
     let method = prep.method(&method);
-    let rgb = |i: usize| -> Result<ArrayView3<'_, u8>, Box<dyn std::error::Error>> {
+    let grey = |i: usize| -> Result<GreyHalf, Box<dyn std::error::Error>> {
         let f = &set.frames[i];
         let img = f
             .rgb
             .as_ref()
             .ok_or_else(|| format!("frame '{}' has no rgb.png", f.id))?;
-        Ok(ArrayView3::from_shape(
+        Ok(moma_io::grey_half(ArrayView3::from_shape(
             (img.height() as usize, img.width() as usize, 3),
             img.as_raw(),
-        )?)
+        )?)?)
     };
     let cmap = prep.normalised(prep.calib, &norm)?;
     println!(
@@ -60,7 +60,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let cal = prep
             .calibrate(&method, &norm, &cmap, 100, seed)?
             .with_anchors(
-                rgb(prep.calib)?,
+                &grey(prep.calib)?,
                 &set.frames[prep.calib].gt,
                 PredictionInput::normalised(&cmap, prep.kind()),
             )?;
@@ -73,11 +73,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 seed,
                 ..Default::default()
             };
-            let realigned = cal.aligned(input, &AlignOptions::realigned(rgb(i)?, &rc))?;
+            let frame_grey = grey(i)?;
+            let realigned = cal.aligned(input, &AlignOptions::realigned(&frame_grey, &rc))?;
             let re = realigned.depth;
             let rep = realigned.realign.ok_or("re-alignment gave no report")?;
             let anchors =
-                moma_core::realign::find_anchors(cal.anchor_store()?, rgb(i)?, &rc.thresholds)?;
+                moma_core::realign::find_anchors(cal.anchor_store()?, &frame_grey, &rc.thresholds)?;
             let objm = &prep.eval_masks[i];
             let on_obj = anchors
                 .pixels

@@ -24,7 +24,7 @@ use moma_core::Prediction;
 use moma_core::align::Method;
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::NormalisationConfig;
-use moma_core::realign::RealignConfig;
+use moma_core::realign::{GreyHalf, RealignConfig};
 use ndarray::{Array3, ArrayView3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -165,12 +165,12 @@ pub fn brightness_response(pred: &Prediction, beta: f64, kappa: f64) -> Predicti
 
 /// What re-aligning the frames of one set needs for one normalisation and brightness: the
 /// normalised maps (the evaluated frames with the brightness response), the evaluated frames'
-/// scaled RGB and the seed-independent anchor store of the calibration frame. Shared by the
+/// grey (from the scaled RGB) and the seed-independent anchor store of the calibration frame. Shared by the
 /// depth evaluation ([`evaluate_realign`]) and the grasp evaluation.
 pub struct RealignSetup {
     /// Normalised maps of every frame.
     pub maps: std::sync::Arc<Vec<moma_core::normalise::NormalisedMap>>,
-    rgbs: Vec<Option<Array3<u8>>>,
+    greys: Vec<Option<GreyHalf>>,
     store: moma_core::realign::AnchorStore,
     realign: RealignEval,
 }
@@ -205,21 +205,26 @@ impl RealignSetup {
                 .map_err(|e| EvalError::core(ctx(i), e))
             })?
         };
-        let rgbs: Vec<Option<Array3<u8>>> = (0..set.frames.len())
+        let grey = |i: usize, rgb: ArrayView3<'_, u8>| {
+            moma_io::grey_half(rgb).map_err(|e| EvalError::core(ctx(i), e))
+        };
+        // each frame's grey once (the anchor rule compares greys), not once per seed
+        let greys: Vec<Option<GreyHalf>> = (0..set.frames.len())
             .map(|i| -> Result<_> {
                 if i == prep.calib {
                     return Ok(None);
                 }
-                Ok(Some(scale_brightness(rgb_view(prep, i)?, beta)))
+                let rgb = scale_brightness(rgb_view(prep, i)?, beta);
+                Ok(Some(grey(i, rgb.view())?))
             })
             .collect::<Result<_>>()?;
-        let calib_rgb = rgb_view(prep, prep.calib)?;
+        let calib_grey = grey(prep.calib, rgb_view(prep, prep.calib)?)?;
         let calib_gt = &set.frames[prep.calib].gt;
-        let store = moma_core::realign::AnchorStore::new(calib_rgb, calib_gt)
+        let store = moma_core::realign::AnchorStore::new(&calib_grey, calib_gt)
             .map_err(|e| EvalError::core(format!("{}: anchor store", ctx(prep.calib)), e))?;
         Ok(Self {
             maps,
-            rgbs,
+            greys,
             store,
             realign: realign.clone(),
         })
@@ -271,14 +276,13 @@ impl RealignSetup {
             ..self.realign.config
         };
         let (_, one) = prep.score(cal, &self.maps[i], i)?;
-        let rgb = self.rgbs[i]
+        let grey = self.greys[i]
             .as_ref()
-            .map(|a| a.view())
             .ok_or_else(|| EvalError::frame(&set.name, &set.frames[i].id, "no RGB"))?;
         let aligned = cal
             .aligned(
                 PredictionInput::normalised(&self.maps[i], prep.kind()),
-                &AlignOptions::realigned(rgb, &config),
+                &AlignOptions::realigned(grey, &config),
             )
             .map_err(|e| {
                 EvalError::core(

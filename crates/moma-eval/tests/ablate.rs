@@ -168,12 +168,13 @@ fn anchor_store_built_once_equals_the_store_built_per_calibration() {
         };
         calibrate(&[CalibrationFrame::new(&preds.maps[0], &f.gt)], &config).unwrap()
     };
-    let store = AnchorStore::new(rgb, &f.gt).unwrap();
+    let grey = moma_io::grey_half(rgb).unwrap();
+    let store = AnchorStore::new(&grey, &f.gt).unwrap();
     for (seed, method) in [(0, Method::Gssa), (5, Method::Ssra(Default::default()))] {
         let c = cal(seed, method);
         let map = c.normalise(&preds.maps[0]).unwrap();
         let map = PredictionInput::normalised(&map, preds.maps[0].kind);
-        let scratch = c.clone().with_anchors(rgb, &f.gt, map).unwrap();
+        let scratch = c.clone().with_anchors(&grey, &f.gt, map).unwrap();
         let shared = c.clone().with_anchor_store(&store, map).unwrap();
         assert!(shared.anchor_store().unwrap().has_one_shot());
         assert_eq!(shared.anchors, scratch.anchors);
@@ -189,7 +190,7 @@ fn anchor_store_built_once_equals_the_store_built_per_calibration() {
     }
     // a store of another size is refused, naming it
     let small = AnchorStore::new(
-        ndarray::Array3::<u8>::zeros((16, 16, 3)).view(),
+        &moma_io::grey_half(ndarray::Array3::<u8>::zeros((16, 16, 3)).view()).unwrap(),
         &MetricDepth::new(ndarray::Array2::from_elem((16, 16), 0.8)),
     )
     .unwrap();

@@ -269,8 +269,10 @@ fn calibration_seeds(dir: &Path) -> anyhow::Result<Vec<Seed>> {
             calibrate(&frames, &config).map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
         if anchors {
             let (gt, pred, rgb) = &scenes[0];
+            let grey =
+                moma_io::grey_half(rgb.view()).map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
             calibration = calibration
-                .with_anchors(rgb.view(), gt, pred)
+                .with_anchors(&grey, gt, pred)
                 .map_err(|e| anyhow::anyhow!("seed {name}: {e}"))?;
         }
         let file =

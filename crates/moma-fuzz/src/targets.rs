@@ -196,6 +196,7 @@ fn apply_calibration(path: &Path, text: &str) -> Result<(), String> {
         let rgb = ndarray::Array3::from_shape_fn((h, w, 3), |(v, u, ch)| {
             (100 + (u * 7 + v * 3 + ch * 11) % 60) as u8
         });
+        let grey = moma_io::grey_half(rgb.view()).map_err(|e| s(&e))?;
         for model in [
             CorrectionModel::ScaleShift,
             CorrectionModel::Planar,
@@ -206,7 +207,7 @@ fn apply_calibration(path: &Path, text: &str) -> Result<(), String> {
                 ..Default::default()
             };
             // A refusal (e.g. a store without the normalised prediction) is fine; a panic is not.
-            if let Ok(a) = c.aligned(&pred, &AlignOptions::realigned(rgb.view(), &config)) {
+            if let Ok(a) = c.aligned(&pred, &AlignOptions::realigned(&grey, &config)) {
                 no_inf(&a.depth, "re-alignment");
             }
         }

@@ -99,7 +99,9 @@ pub struct CalibrationFile {
     pub normalisation: NormalisationConfig,
     /// Kind of prediction the calibration expects.
     pub prediction_kind: PredictionKind,
-    /// The fitted calibration: model parameters, fit report and the samples used.
+    /// The fitted calibration: model parameters, fit report and the samples used, and its
+    /// anchor store (`anchors`, base64: [`crate::anchors`]).
+    #[serde(with = "crate::anchors::calibration_json")]
     pub calibration: Calibration,
     /// Camera intrinsics (pixels), when known.
     pub intrinsics: Option<Intrinsics>,

@@ -43,6 +43,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+mod anchors;
 mod atomic;
 pub mod batch;
 mod calibration;
@@ -51,6 +52,7 @@ mod colormap;
 mod depth;
 mod draw;
 mod error;
+mod grey;
 mod json_files;
 mod limits;
 mod ply;
@@ -78,6 +80,7 @@ pub use depth::{
 };
 pub use draw::draw_segments;
 pub use error::{IoError, Result};
+pub use grey::grey_half;
 pub use json_files::{
     ExtrinsicsFile, MAX_SETTINGS_JSON_BYTES, parse_json, read_extrinsics, read_json,
     write_extrinsics, write_json,

@@ -69,9 +69,10 @@ fn realign_view_into(
     config: &RealignConfig,
     mut out: ndarray::ArrayViewMut2<'_, f32>,
 ) -> Result<moma_core::realign::RealignReport, CoreError> {
+    let grey = moma_io::grey_half(rgb)?;
     let report = cal.align(
         PredictionInput::view(pred, kind),
-        &AlignOptions::realigned(rgb, config),
+        &AlignOptions::realigned(&grey, config),
         &mut out,
     )?;
     report.realign.ok_or_else(|| {
@@ -790,7 +791,7 @@ fn calibrate(
             Ok(match (anchor_view, anchor_path) {
                 (Some(view), _) => {
                     ImageSize::new(view.dim().1, view.dim().0).expect_eq("anchors_rgb", size)?;
-                    calibration.with_anchors(view, &gts[0], preds[0])?
+                    calibration.with_anchors(&moma_io::grey_half(view)?, &gts[0], preds[0])?
                 }
                 (None, Some(path)) => {
                     let img = moma_io::read_rgb_sized(path, size)?;
@@ -799,7 +800,7 @@ fn calibrate(
                         img.as_raw().as_slice(),
                     )
                     .map_err(|e| CoreError::InvalidParameter(format!("{}: {e}", path.display())))?;
-                    calibration.with_anchors(view, &gts[0], preds[0])?
+                    calibration.with_anchors(&moma_io::grey_half(view)?, &gts[0], preds[0])?
                 }
                 (None, None) => calibration,
             })
@@ -977,8 +978,9 @@ fn plan_grasps<'py>(
             let inner = &cal.inner;
             let aligned = py
                 .detach(|| {
+                    let grey = rgb_view.map(moma_io::grey_half).transpose()?;
                     let options = moma_core::AlignOptions {
-                        realign: rgb_view.map(|v| (v, &config)),
+                        realign: grey.as_ref().map(|g| (g, &config)),
                         sigma_map: false,
                     };
                     inner.aligned(&prediction, &options)

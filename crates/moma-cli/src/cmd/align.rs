@@ -322,11 +322,12 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let realign_rgb = args
             .realign
             .rgb_for(i, &input.path, input.rgb.as_ref(), size)?;
+        let realign_grey = realign_rgb
+            .as_ref()
+            .map(super::common::grey_of)
+            .transpose()?;
         let options = AlignOptions {
-            realign: match &realign_rgb {
-                Some(img) => Some((super::common::rgb_view(img)?, &realign_config)),
-                None => None,
-            },
+            realign: realign_grey.as_ref().map(|g| (g, &realign_config)),
             sigma_map: args.sigma_map,
         };
         let Aligned {

@@ -366,7 +366,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             ),
         };
         calibration
-            .with_anchors(super::common::rgb_view(&rgb)?, &gts[0], &first.prediction)
+            .with_anchors(&super::common::grey_of(&rgb)?, &gts[0], &first.prediction)
             .with_context(|| format!("building the anchor store from {}", args.gt[0].display()))?
     } else {
         calibration

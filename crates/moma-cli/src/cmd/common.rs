@@ -523,7 +523,15 @@ pub fn join_paths(paths: &[PathBuf]) -> String {
         .join(", ")
 }
 
-/// An RGB image as an `(height, width, 3)` view (for re-alignment on static anchors).
+/// The grey that re-alignment compares ([`moma_io::grey_half`]) of a decoded RGB image.
+///
+/// # Errors
+/// As [`rgb_view`].
+pub fn grey_of(img: &image::RgbImage) -> Result<moma_core::realign::GreyHalf> {
+    Ok(moma_io::grey_half(rgb_view(img)?)?)
+}
+
+/// An RGB image as an `(height, width, 3)` view.
 ///
 /// # Errors
 /// Never for an `RgbImage` in practice; a shape error is reported rather than unwrapped.

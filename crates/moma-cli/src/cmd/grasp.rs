@@ -227,11 +227,12 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
     let realign_rgb = args
         .realign
         .rgb_for(0, &input.path, input.rgb.as_ref(), calib.image_size)?;
+    let realign_grey = realign_rgb
+        .as_ref()
+        .map(super::common::grey_of)
+        .transpose()?;
     let options = moma_core::AlignOptions {
-        realign: match &realign_rgb {
-            Some(img) => Some((super::common::rgb_view(img)?, &realign_config)),
-            None => None,
-        },
+        realign: realign_grey.as_ref().map(|g| (g, &realign_config)),
         sigma_map: false,
     };
     let aligned = calib
