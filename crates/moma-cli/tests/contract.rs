@@ -93,6 +93,11 @@ fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
     );
 }
 
+/// `args` as the `&[&str]` that [`ok`] and [`fails`] take.
+fn strs(args: &[String]) -> Vec<&str> {
+    args.iter().map(String::as_str).collect()
+}
+
 #[test]
 fn raw_needs_norm_none_and_metric_depth() {
     let tmp = tempfile::tempdir().unwrap();
@@ -133,25 +138,8 @@ fn raw_needs_norm_none_and_metric_depth() {
     ]);
     assert!(e.contains("--norm none") && e.contains("minmax"), "{e}");
     assert!(!calib.exists(), "nothing written on error");
-    ok(&[
-        "calibrate",
-        "--pred",
-        s(&p),
-        "--pred-kind",
-        "metric-depth",
-        "--gt",
-        s(&gt),
-        "--method",
-        "raw",
-        "--norm",
-        "none",
-        "-o",
-        s(&calib),
-    ]);
-    // raw uses the values as metres: refused for relative depth, and for the old name `depth`,
-    // which claims no unit (docs/formats.md "Prediction kinds")
-    for kind in ["relative-depth", "depth"] {
-        let e = fails(&[
+    let raw_none = |kind: &'static str, out: &std::path::Path| {
+        [
             "calibrate",
             "--pred",
             s(&p),
@@ -164,8 +152,17 @@ fn raw_needs_norm_none_and_metric_depth() {
             "--norm",
             "none",
             "-o",
-            s(&tmp.path().join("refused.json")),
-        ]);
+        ]
+        .into_iter()
+        .map(str::to_string)
+        .chain([s(out).to_string()])
+        .collect::<Vec<String>>()
+    };
+    ok(&strs(&raw_none("metric-depth", &calib)));
+    // raw uses the values as metres: refused for relative depth, and for the old name `depth`,
+    // which claims no unit (docs/formats.md "Prediction kinds")
+    for kind in ["relative-depth", "depth"] {
+        let e = fails(&strs(&raw_none(kind, &tmp.path().join("refused.json"))));
         assert!(
             e.contains("'relative-depth'") && e.contains("metric-depth"),
             "{e}"
