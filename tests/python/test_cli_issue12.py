@@ -74,7 +74,7 @@ def cli_align(d, calib, name, *extra):
         # two frames, a local variant with a robust fit
         (dict(frames=2, method="gssa-local", robust="huber", robust_threshold_m=0.05),
          ["--method", "gssa-local", "--robust", "huber", "--robust-threshold-m", "0.05"]),
-        # three frames, ssra-local, inverse space (the default for inverse-depth)
+        # three frames, ssra-local, inverse space (the default for relative-disparity)
         (dict(frames=3, method="ssra-local", space="inverse"),
          ["--method", "ssra-local", "--space", "inverse"]),
         # one frame (the smooth one: the others' ground truth is white noise, all edges),

@@ -419,6 +419,7 @@ fn predict_reproduces_the_official_full_image_output() {
     ]);
     let index: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     assert_eq!(index["prediction_kind"], "relative-disparity");
+    assert_eq!(index["version"], moma_io::PREDICTIONS_VERSION);
     assert_eq!(index["model"]["backbone"], "vits");
     assert!(
         index["runtime"].as_str().unwrap().starts_with("candle"),

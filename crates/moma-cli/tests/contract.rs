@@ -15,6 +15,7 @@ fn the_kind_comes_from_predictions_json_and_a_contradiction_is_an_error() {
             .unwrap();
     assert_eq!(index["format"], "moma-predictions");
     assert_eq!(index["prediction_kind"], "relative-disparity");
+    assert_eq!(index["version"], moma_io::PREDICTIONS_VERSION);
     assert_eq!(index["simulated"], true);
     let gt = scene.join("frames/frame_00/depth.png");
     let calib = tmp.path().join("calib.json");

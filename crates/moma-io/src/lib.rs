@@ -88,9 +88,9 @@ pub use json_files::{
 pub use limits::{DEFLATE_MAX_RATIO, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE_PX, check_image_size};
 pub use ply::{PlyFormat, ply_header, write_depth_ply, write_ply, write_scene_ply};
 pub use predictions::{
-    PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PredictionIndex, PredictionIndexHead,
-    prediction_index_listing, read_prediction_index, read_prediction_index_for,
-    resolve_prediction_kind,
+    PREDICTIONS_FORMAT, PREDICTIONS_INDEX_FILE, PREDICTIONS_VERSION, PredictionIndex,
+    PredictionIndexHead, prediction_index_listing, read_prediction_index,
+    read_prediction_index_for, resolve_prediction_kind,
 };
 pub use raster::{
     JPEG_QUALITY, mask_from_bytes, read_mask, read_mask_sized, read_rgb, read_rgb_sized,

@@ -26,6 +26,10 @@ use crate::error::{IoError, Result};
 pub const PREDICTIONS_INDEX_FILE: &str = "predictions.json";
 /// Value of its `format` field.
 pub const PREDICTIONS_FORMAT: &str = "moma-predictions";
+/// Value of its `version` field as this build writes it: 1 (no `version` field) named the kinds
+/// `depth` / `inverse-depth`; 2 names the three kinds `metric-depth`, `relative-depth`,
+/// `relative-disparity`. Both are read; a newer version is refused.
+pub const PREDICTIONS_VERSION: u32 = 2;
 /// The index written by moma versions before `predictions.json` was shared with `moma simulate`.
 const LEGACY_SIMULATED_FILE: &str = "simulated.json";
 
@@ -48,6 +52,9 @@ pub struct PredictionIndex {
 #[derive(Deserialize)]
 struct IndexHead {
     format: String,
+    /// Absent in version 1.
+    #[serde(default)]
+    version: Option<u64>,
     /// A name, new or old: mapped by [`legacy_depth_kind`].
     prediction_kind: String,
     #[serde(default)]
@@ -101,6 +108,8 @@ fn legacy_depth_kind(
 pub struct PredictionIndexHead {
     /// Always [`PREDICTIONS_FORMAT`].
     pub format: &'static str,
+    /// Always [`PREDICTIONS_VERSION`].
+    pub version: u32,
     /// Kind of the maps.
     pub prediction_kind: PredictionKind,
     /// `true` for simulated predictions.
@@ -118,6 +127,7 @@ impl PredictionIndexHead {
     ) -> Self {
         Self {
             format: PREDICTIONS_FORMAT,
+            version: PREDICTIONS_VERSION,
             prediction_kind,
             simulated,
             source: source.into(),
@@ -136,9 +146,6 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
     if path.is_file() {
         let text = std::fs::read_to_string(&path).map_err(|e| IoError::io(&path, "read", e))?;
         let head: IndexHead = serde_json::from_str(&text).map_err(|e| IoError::json(&path, &e))?;
-        let legacy = legacy_depth_kind(head.model.as_ref(), head.simulated, head.source.as_deref());
-        let kind = PredictionKind::from_name(&head.prediction_kind, legacy)
-            .map_err(|e| IoError::invalid(&path, format!("prediction_kind: {e}")))?;
         if head.format != PREDICTIONS_FORMAT {
             return Err(IoError::invalid(
                 &path,
@@ -148,6 +155,21 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
                 ),
             ));
         }
+        if let Some(v) = head
+            .version
+            .filter(|v| !(1..=u64::from(PREDICTIONS_VERSION)).contains(v))
+        {
+            return Err(IoError::invalid(
+                &path,
+                format!(
+                    "version {v}: this moma reads prediction indexes of versions 1 to \
+                     {PREDICTIONS_VERSION} (a newer moma wrote it?)"
+                ),
+            ));
+        }
+        let legacy = legacy_depth_kind(head.model.as_ref(), head.simulated, head.source.as_deref());
+        let kind = PredictionKind::from_name(&head.prediction_kind, legacy)
+            .map_err(|e| IoError::invalid(&path, format!("prediction_kind: {e}")))?;
         let source = head
             .source
             .or_else(|| head.model.map(|m| format!("depth model {m}")))
@@ -395,6 +417,14 @@ mod tests {
         for (fields, want) in cases {
             assert_eq!(kind_of(fields).unwrap(), want, "{fields}");
         }
+        assert_eq!(
+            kind_of(r#""version": 2, "prediction_kind": "metric-depth""#).unwrap(),
+            MetricDepth
+        );
+        let e = kind_of(r#""version": 3, "prediction_kind": "metric-depth""#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("version 3") && e.contains("1 to 2"), "{e}");
         let e = kind_of(r#""prediction_kind": "metres""#)
             .unwrap_err()
             .to_string();

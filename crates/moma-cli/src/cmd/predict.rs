@@ -42,6 +42,8 @@ pub struct PredictArgs {
 struct PredictionsIndex<'a> {
     /// Always "moma-predictions".
     format: &'static str,
+    /// [`moma_io::PREDICTIONS_VERSION`].
+    version: u32,
     /// `metric-depth` (metric head) or `relative-disparity` (relative head).
     prediction_kind: moma_core::PredictionKind,
     model: moma_depth::ModelSpec,
@@ -89,7 +91,8 @@ pub fn run(args: &PredictArgs) -> Result<()> {
     }
     bar.finish_and_clear();
     let index = PredictionsIndex {
-        format: "moma-predictions",
+        format: moma_io::PREDICTIONS_FORMAT,
+        version: moma_io::PREDICTIONS_VERSION,
         prediction_kind: kind,
         model: model.spec(),
         weights: &weights,
