@@ -509,23 +509,26 @@ impl std::fmt::Display for Method {
 
 impl std::str::FromStr for Method {
     type Err = CoreError;
-    /// Parses a name of [`Method::NAMES`] into the method with its default settings (SSRA
-    /// without intrinsics: see [`Method::with_intrinsics`]).
+    /// Parses a name of [`Method::NAMES`] ([`MethodName`]) into the method with its default
+    /// settings (SSRA without intrinsics: see [`Method::with_intrinsics`]).
     fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "ssra" => Ok(Self::Ssra(ssra::SsraConfig::default())),
-            "gssa" => Ok(Self::Gssa),
-            "lwlr" => Ok(Self::Lwlr(lwlr::LwlrConfig::faithful())),
-            "lwlr-exact" => Ok(Self::Lwlr(lwlr::LwlrConfig::exact())),
-            "lwlr-bare" => Ok(Self::Lwlr(lwlr::LwlrConfig::bare_exact())),
-            "ssra-local" => Ok(Self::SsraLocal(local::LocalConfig::default())),
-            "gssa-local" => Ok(Self::GssaLocal(local::LocalConfig::default())),
-            "auto" => Ok(Self::Auto(local::LocalConfig::default())),
-            "raw" => Ok(Self::Raw),
-            other => Err(CoreError::InvalidParameter(format!(
-                "unknown method '{other}' (expected one of: {})",
-                crate::names::join(Self::NAMES)
-            ))),
+        Ok(Self::with_defaults(s.parse()?))
+    }
+}
+
+impl Method {
+    /// The method called `name` with its default settings.
+    pub fn with_defaults(name: MethodName) -> Self {
+        match name {
+            MethodName::Ssra => Self::Ssra(ssra::SsraConfig::default()),
+            MethodName::Gssa => Self::Gssa,
+            MethodName::Lwlr => Self::Lwlr(lwlr::LwlrConfig::faithful()),
+            MethodName::LwlrExact => Self::Lwlr(lwlr::LwlrConfig::exact()),
+            MethodName::LwlrBare => Self::Lwlr(lwlr::LwlrConfig::bare_exact()),
+            MethodName::SsraLocal => Self::SsraLocal(local::LocalConfig::default()),
+            MethodName::GssaLocal => Self::GssaLocal(local::LocalConfig::default()),
+            MethodName::Auto => Self::Auto(local::LocalConfig::default()),
+            MethodName::Raw => Self::Raw,
         }
     }
 }
