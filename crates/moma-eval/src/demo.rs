@@ -168,7 +168,7 @@ pub fn write_grasp_overlay(
         Some(r) => {
             let setup = crate::realign::RealignSetup::new(&prep, &norm, r, 1.0)?;
             let cal = setup.calibrate(&prep, &method, &norm, config.samples, seed)?;
-            let (d, _, report) = setup.realign_frame(&prep, &cal, i, seed)?;
+            let (d, report) = setup.realign_frame(&prep, &cal, i, seed)?;
             (d, cal.frame_error_model(Some(&report)))
         }
         None => {

@@ -749,7 +749,7 @@ pub fn grasp_evaluate(
                     (VariantSpec::Realign { .. }, Some(s)) => {
                         let cal = s.calibrate(&prep, &method, &norm, config.eval.samples, seed)?;
                         for &i in &eval_idx {
-                            let (d, _, report) = s.realign_frame(&prep, &cal, i, seed)?;
+                            let (d, report) = s.realign_frame(&prep, &cal, i, seed)?;
                             frames[i] = Some((d, cal.frame_error_model(Some(&report))));
                         }
                     }

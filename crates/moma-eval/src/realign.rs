@@ -254,8 +254,9 @@ impl RealignSetup {
             .map_err(|e| EvalError::core(ctx, e))
     }
 
-    /// Frame `i` aligned one-shot and then re-aligned on its anchors (the re-alignment seeded by
-    /// the sampling seed `seed`): the re-aligned depth, the one-shot metrics and the report.
+    /// Frame `i` re-aligned on its anchors (the re-alignment seeded by the sampling seed
+    /// `seed`): the re-aligned depth and the report. The one-shot result, where a caller wants
+    /// it, is [`Prepared::score`]'s (the grasp evaluation and the demo do not).
     ///
     /// # Errors
     /// A frame without RGB; alignment errors, naming the frame.
@@ -265,17 +266,12 @@ impl RealignSetup {
         cal: &moma_core::Calibration,
         i: usize,
         seed: u64,
-    ) -> Result<(
-        moma_core::MetricDepth,
-        DepthMetrics,
-        moma_core::realign::RealignReport,
-    )> {
+    ) -> Result<(moma_core::MetricDepth, moma_core::realign::RealignReport)> {
         let set = prep.set;
         let config = RealignConfig {
             seed: self.realign.config.seed.wrapping_add(seed),
             ..self.realign.config
         };
-        let (_, one) = prep.score(cal, &self.maps[i], i)?;
         let grey = self.greys[i]
             .as_ref()
             .ok_or_else(|| EvalError::frame(&set.name, &set.frames[i].id, "no RGB"))?;
@@ -293,7 +289,7 @@ impl RealignSetup {
         let report = aligned.realign.ok_or_else(|| {
             EvalError::frame(&set.name, &set.frames[i].id, "re-alignment gave no report")
         })?;
-        Ok((aligned.depth, one, report))
+        Ok((aligned.depth, report))
     }
 }
 
@@ -352,7 +348,8 @@ pub fn evaluate_realign(
             let frames = eval_idx
                 .iter()
                 .map(|&i| -> Result<PerFrame> {
-                    let (aligned, one, report) = setup.realign_frame(prep, &cal, i, seed)?;
+                    let (_, one) = prep.score(&cal, &setup.maps[i], i)?;
+                    let (aligned, report) = setup.realign_frame(prep, &cal, i, seed)?;
                     let re = DepthMetrics::compute(
                         &aligned,
                         &set.frames[i].gt,
