@@ -1036,9 +1036,9 @@ impl Calibration {
 
 impl Calibration {
     /// Adds the anchor store for per-frame re-alignment ([`crate::realign`]): the calibration
-    /// frame's grey (from its RGB: `moma_io::grey_half`), its ground truth and its prediction (the frame the
-    /// calibration was fitted on, or any frame of the same fixed camera with ground truth); the
-    /// store keeps this calibration's own result on that prediction too.
+    /// frame's grey (from its RGB: `moma_io::grey_half`), its ground truth and its prediction
+    /// (the frame the calibration was fitted on, or any frame of the same fixed camera with
+    /// ground truth); the store keeps this calibration's own result on that prediction too.
     ///
     /// # Errors
     /// Size or kind mismatches with the calibration, no valid static ground-truth depth.
