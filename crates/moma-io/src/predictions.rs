@@ -262,11 +262,14 @@ pub fn resolve_prediction_kind(
         .filter_map(|(w, k)| k.map(|k| (*w, k)))
         .collect();
     let Some(&(first_what, first)) = stated.first().or(calibration.as_ref()) else {
-        return Err("the prediction kind is unknown: pass --pred-kind \
-             metric-depth|relative-depth|relative-disparity (Depth Anything's relative heads \
-             output relative-disparity, metric heads metric-depth), or keep the \
-             predictions.json that `moma predict`/`moma simulate` wrote beside the predictions"
-            .into());
+        return Err(format!(
+            "the prediction kind is unknown: pass --pred-kind {} (Depth Anything's relative \
+             heads output {}, metric heads {}), or keep the predictions.json that `moma \
+             predict`/`moma simulate` wrote beside the predictions",
+            PredictionKind::ALL.map(PredictionKind::name).join("|"),
+            PredictionKind::RelativeDisparity,
+            PredictionKind::MetricDepth
+        ));
     };
     for &(what, k) in stated.iter().skip(1) {
         if k != first {

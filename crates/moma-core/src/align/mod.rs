@@ -269,18 +269,17 @@ pub enum AlignmentModel {
 }
 
 impl Method {
-    /// Every method name [`Method::from_str`](std::str::FromStr) accepts, in documentation order.
-    pub const NAMES: [&'static str; 9] = [
-        "ssra",
-        "gssa",
-        "lwlr",
-        "lwlr-exact",
-        "lwlr-bare",
-        "ssra-local",
-        "gssa-local",
-        "auto",
-        "raw",
-    ];
+    /// Every method name [`Method::from_str`](std::str::FromStr) accepts, in documentation order:
+    /// the names of [`MethodName::ALL`].
+    pub const NAMES: [&'static str; 9] = {
+        let mut names = [""; 9];
+        let mut i = 0;
+        while i < names.len() {
+            names[i] = MethodName::ALL[i].as_str();
+            i += 1;
+        }
+        names
+    };
 
     /// Method name as used on the command line and in files: `ssra`, `gssa`, `raw`, and for
     /// LWLR the preset its settings follow (`lwlr` grid solve, `lwlr-exact` exact solve with
@@ -403,7 +402,7 @@ pub enum MethodName {
 }
 
 impl MethodName {
-    /// Every name, in the order of [`Method::NAMES`].
+    /// Every method, in documentation order ([`Method::NAMES`] are their names).
     pub const ALL: [MethodName; 9] = [
         Self::Ssra,
         Self::Gssa,
