@@ -64,6 +64,14 @@ enum Command {
         about = "The whole idea in one command on a bundled procedural scene (or on a real set)."
     )]
     Demo(cmd::demo::DemoArgs),
+    #[command(
+        about = "Run as a ROS 2 node: RGB (or predictions) in; metric depth, point cloud, grasps out; live calibration."
+    )]
+    Ros2(Box<cmd::ros2::Ros2Args>),
+    #[command(
+        about = "Publish a moma set (or a folder of images) as a ROS 2 camera: image, camera_info, depth_sensor, prediction."
+    )]
+    Ros2Replay(cmd::ros2_replay::Ros2ReplayArgs),
     #[command(about = "Fine-tune Depth Anything V2 with LoRA on moma sets; write an adapter.")]
     #[cfg(feature = "candle")]
     Finetune(cmd::finetune::FinetuneArgs),
@@ -85,6 +93,8 @@ fn main() -> std::process::ExitCode {
         Command::Grasp(args) => cmd::grasp::run(args),
         Command::GraspEval(args) => cmd::grasp_eval::run(args),
         Command::Demo(args) => cmd::demo::run(args),
+        Command::Ros2(args) => cmd::ros2::run(args),
+        Command::Ros2Replay(args) => cmd::ros2_replay::run(args),
         #[cfg(feature = "candle")]
         Command::Finetune(args) => cmd::finetune::run(args),
         #[cfg(feature = "candle")]

@@ -494,3 +494,51 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// One RGB-D frame's calibration with `moma calibrate`'s defaults (random sampling, no robust
+/// fit, no workspace, the prediction kind's own space and normalisation) and the anchor store
+/// when `rgb` is given: what `moma ros2`'s live calibration fits.
+///
+/// # Errors
+/// Settings the method refuses; a failed fit (too few valid samples, degenerate data); anchors
+/// that cannot be built.
+pub fn fit_frame(
+    prediction: &moma_core::Prediction,
+    gt: &moma_core::MetricDepth,
+    rgb: Option<&image::RgbImage>,
+    intrinsics: Option<moma_core::Intrinsics>,
+    method: Method,
+    samples: usize,
+    seed: u64,
+) -> Result<moma_core::Calibration> {
+    let method = CvArgs {
+        protocol: Protocol::default(),
+        cv_loss: None,
+        cv_margin_se: None,
+    }
+    .method(method, None, intrinsics)?;
+    let kind = prediction.kind;
+    let config = CalibrationConfig {
+        normalisation: moma_core::policy::normalisation(&method, None, None, kind),
+        method,
+        sampling: SamplingConfig {
+            strategy: SamplingStrategy::Random,
+            n: samples,
+            seed,
+            edge_margin_px: 0,
+        },
+        robust: None,
+        workspace: None,
+    };
+    config
+        .check(kind)
+        .with_context(|| format!("--calib-method {} on {kind} predictions", config.method))?;
+    let calibration = calibrate(&[CalibrationFrame::new(prediction, gt)], &config)
+        .context("calibration failed")?;
+    match rgb {
+        Some(rgb) => calibration
+            .with_anchors(&super::common::grey_of(rgb)?, gt, prediction)
+            .context("building the anchor store"),
+        None => Ok(calibration),
+    }
+}

@@ -97,6 +97,25 @@ pub struct GraspArgs {
     /// Gripper type.
     #[arg(long, value_enum)]
     pub gripper: GripperArg,
+    #[command(flatten)]
+    pub plan: PlanFlags,
+    #[command(flatten)]
+    pub realign: super::align::RealignArgs,
+    /// A uniform σ of the depth's error, metres: with --depth (which has no calibration), or to
+    /// override the calibration's error model. Gives every grasp a success probability.
+    #[arg(long, value_name = "S")]
+    pub sigma_m: Option<f64>,
+    /// Print the grasps as one JSON array on stdout, best first.
+    #[arg(long)]
+    pub json: bool,
+    /// Output directory for grasps.json, overlay.png and scene.ply (created if missing).
+    #[arg(short, long, value_name = "DIR")]
+    pub output: Option<PathBuf>,
+}
+
+/// How grasps are planned and ranked: shared by `moma grasp` and `moma ros2`.
+#[derive(Debug, Clone, Args)]
+pub struct PlanFlags {
     /// Gripper geometry (JSON, see above); defaults for the rest.
     #[arg(long, value_name = "FILE")]
     pub gripper_config: Option<PathBuf>,
@@ -106,12 +125,6 @@ pub struct GraspArgs {
     /// Seed of the planner's sampling (same inputs and seed → same grasps).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    #[command(flatten)]
-    pub realign: super::align::RealignArgs,
-    /// A uniform σ of the depth's error, metres: with --depth (which has no calibration), or to
-    /// override the calibration's error model. Gives every grasp a success probability.
-    #[arg(long, value_name = "S")]
-    pub sigma_m: Option<f64>,
     /// How grasps are ranked: robust (by their success probability on depth maps drawn from
     /// the error model; the default when there is one) or nominal (by the planner's score on
     /// the depth as if it were exact; success_prob is still reported where it can be).
@@ -128,36 +141,79 @@ pub struct GraspArgs {
     /// the list is empty and the reason is printed.
     #[arg(long, value_name = "P")]
     pub min_success_prob: Option<f64>,
-    /// Print the grasps as one JSON array on stdout, best first.
-    #[arg(long)]
-    pub json: bool,
-    /// Output directory for grasps.json, overlay.png and scene.ply (created if missing).
-    #[arg(short, long, value_name = "DIR")]
-    pub output: Option<PathBuf>,
 }
 
-fn read_extrinsics(path: &Path) -> Result<Extrinsics> {
+impl PlanFlags {
+    /// The gripper geometry (validated), from `--gripper-config` or the defaults.
+    ///
+    /// # Errors
+    /// An unreadable or invalid gripper file.
+    pub fn gripper(&self, gripper: GripperArg) -> Result<Gripper> {
+        let what = "gripper config";
+        let g = match (gripper, &self.gripper_config) {
+            (GripperArg::Parallel, None) => Gripper::Parallel(ParallelJaw::default()),
+            (GripperArg::Suction, None) => Gripper::Suction(SuctionCup::default()),
+            (GripperArg::Parallel, Some(p)) => Gripper::Parallel(moma_io::read_json(p, what)?),
+            (GripperArg::Suction, Some(p)) => Gripper::Suction(moma_io::read_json(p, what)?),
+        };
+        if let Err(e) = g.validate() {
+            let origin = self.gripper_config.as_ref().map_or_else(
+                || "default gripper".to_string(),
+                |p| p.display().to_string(),
+            );
+            return Err(anyhow::Error::new(e).context(format!("{what} {origin}")));
+        }
+        Ok(g)
+    }
+
+    /// Checks what needs no input.
+    ///
+    /// # Errors
+    /// `--top 0`.
+    pub fn check(&self) -> Result<()> {
+        if self.top == 0 {
+            bail!("--top must be at least 1");
+        }
+        Ok(())
+    }
+
+    /// The planning request for `gripper` with `error_model`, checked.
+    ///
+    /// # Errors
+    /// `--top 0`, `--grasp-draws 0`, a probability outside [0, 1], robust ranking without an
+    /// error model.
+    pub fn request(
+        &self,
+        gripper: Gripper,
+        error_model: Option<moma_core::DepthErrorModel>,
+        scene: SceneConfig,
+    ) -> Result<GraspRequest> {
+        self.check()?;
+        let mut request = GraspRequest::new(gripper).with_error_model(error_model);
+        request.top_k = self.top;
+        request.seed = self.seed;
+        request.draws = self.grasp_draws;
+        request.tie_tolerance = self.grasp_tie_tolerance;
+        request.min_success_prob = self.min_success_prob;
+        request.scene = scene;
+        if let Some(q) = self.grasp_quality {
+            request.quality = q;
+        }
+        request.validate().map_err(|e| {
+            anyhow::Error::new(e)
+                .context("--grasp-quality / --grasp-draws / --min-success-prob / --sigma-m")
+        })?;
+        Ok(request)
+    }
+}
+
+/// Reads and checks an extrinsics file (camera → robot base).
+///
+/// # Errors
+/// An unreadable file or a transform that is not rigid.
+pub fn read_extrinsics(path: &Path) -> Result<Extrinsics> {
     Extrinsics::new(moma_io::read_extrinsics(path)?)
         .with_context(|| format!("extrinsics file {}", path.display()))
-}
-
-/// The gripper geometry (validated), from `--gripper-config` or the defaults.
-fn read_gripper(args: &GraspArgs) -> Result<Gripper> {
-    let what = "gripper config";
-    let g = match (args.gripper, &args.gripper_config) {
-        (GripperArg::Parallel, None) => Gripper::Parallel(ParallelJaw::default()),
-        (GripperArg::Suction, None) => Gripper::Suction(SuctionCup::default()),
-        (GripperArg::Parallel, Some(p)) => Gripper::Parallel(moma_io::read_json(p, what)?),
-        (GripperArg::Suction, Some(p)) => Gripper::Suction(moma_io::read_json(p, what)?),
-    };
-    if let Err(e) = g.validate() {
-        let origin = args.gripper_config.as_ref().map_or_else(
-            || "default gripper".to_string(),
-            |p| p.display().to_string(),
-        );
-        return Err(anyhow::Error::new(e).context(format!("{what} {origin}")));
-    }
-    Ok(g)
 }
 
 /// The frame to plan on.
@@ -260,15 +316,13 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
 }
 
 pub fn run(args: &GraspArgs) -> Result<()> {
-    if args.top == 0 {
-        bail!("--top must be at least 1");
-    }
+    args.plan.check()?;
     let extrinsics = args
         .extrinsics
         .as_deref()
         .map(read_extrinsics)
         .transpose()?;
-    let gripper = read_gripper(args)?;
+    let gripper = args.plan.gripper(args.gripper)?;
     let LoadedFrame {
         depth,
         error_model,
@@ -314,23 +368,14 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         Some(sigma) => Some(moma_core::DepthErrorModel::uniform(sigma).context("--sigma-m")?),
         None => error_model,
     };
-    let mut request = GraspRequest::new(gripper).with_error_model(error_model);
-    request.top_k = args.top;
-    request.seed = args.seed;
-    request.draws = args.grasp_draws;
-    request.tie_tolerance = args.grasp_tie_tolerance;
-    request.min_success_prob = args.min_success_prob;
-    request.scene = SceneConfig {
-        keep_border_objects: args.keep_border_objects,
-        ..SceneConfig::default()
-    };
-    if let Some(q) = args.grasp_quality {
-        request.quality = q;
-    }
-    request.validate().map_err(|e| {
-        anyhow::Error::new(e)
-            .context("--grasp-quality / --grasp-draws / --min-success-prob / --sigma-m")
-    })?;
+    let request = args.plan.request(
+        gripper,
+        error_model,
+        SceneConfig {
+            keep_border_objects: args.keep_border_objects,
+            ..SceneConfig::default()
+        },
+    )?;
     let (scene, mut outcome) =
         plan_grasps(&depth, &camera, mask.as_ref(), &request).map_err(|e| {
             let about = match (&e, &args.mask) {

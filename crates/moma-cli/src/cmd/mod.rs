@@ -14,4 +14,6 @@ pub mod grasp_eval;
 pub mod lora;
 pub mod metrics;
 pub mod predict;
+pub mod ros2;
+pub mod ros2_replay;
 pub mod simulate;

@@ -1,0 +1,1019 @@
+//! `moma ros2`: the node. RGB (or a depth model's raw output) in; metric depth, an organised
+//! point cloud, grasps and diagnostics out; live calibration from an RGB-D frame through the
+//! `calibrate` service. docs/ros2.md describes the topics, QoS and frames.
+//!
+//! One thread: it drains every subscription, keeps the newest frame (counting the ones it drops,
+//! so that a slow model never builds a queue), aligns it through the same library call as
+//! `moma align` (`Calibration::aligned`), and publishes. Bad frames are skipped with a
+//! diagnostic naming the reason; the node never stops on input.
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use moma_core::align::Method;
+use moma_core::realign::RealignConfig;
+use moma_core::{AlignOptions, Intrinsics, MetricDepth, Prediction};
+use moma_grasp::{Extrinsics, GraspRequest, SceneConfig};
+use moma_io::{CalibrationFile, CreationInfo};
+use moma_ros2::convert;
+use moma_ros2::dds::{self, Network};
+use moma_ros2::msg::{
+    self, CameraInfo, DiagnosticArray, DiagnosticStatus, Header, Image, KeyValue, PointCloud2,
+    PoseArray, StringMsg, Time, TriggerResponse,
+};
+use ros2_client::{Publisher, Subscription};
+use rustdds::mio1::{Events, Interest, Poll, Token};
+
+use super::align::{RealignArg, RealignFlags};
+use super::common::ModelArgs;
+use super::grasp::{GripperArg, PlanFlags};
+
+/// `--input` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum InputArg {
+    /// RGB on `image`, through the depth model (--weights / --hub).
+    Image,
+    /// A depth model's raw output on `prediction` (32FC1; its kind is the calibration's), for a
+    /// model that runs elsewhere, and for tests without weights.
+    Prediction,
+}
+
+/// Topic and service names (each remappable with `--remap NAME:=TOPIC`).
+#[derive(Debug, Clone)]
+pub struct Topics {
+    /// Input RGB.
+    pub image: String,
+    /// Input intrinsics.
+    pub camera_info: String,
+    /// Input raw prediction (`--input prediction`).
+    pub prediction: String,
+    /// The depth sensor, for live calibration.
+    pub depth_sensor: String,
+    /// Output metric depth.
+    pub depth: String,
+    /// Output point cloud.
+    pub points: String,
+    /// Output grasp poses.
+    pub grasps: String,
+    /// Output grasps as `moma grasp --json`.
+    pub grasps_json: String,
+    /// Output diagnostics.
+    pub diagnostics: String,
+    /// The live-calibration service.
+    pub calibrate: String,
+}
+
+impl Default for Topics {
+    fn default() -> Self {
+        Self {
+            image: "image".into(),
+            camera_info: "camera_info".into(),
+            prediction: "prediction".into(),
+            depth_sensor: "depth_sensor".into(),
+            depth: "depth".into(),
+            points: "points".into(),
+            grasps: "grasps".into(),
+            grasps_json: "grasps_json".into(),
+            diagnostics: "diagnostics".into(),
+            calibrate: "calibrate".into(),
+        }
+    }
+}
+
+impl Topics {
+    /// The default names with `remaps` (`NAME:=TOPIC`) applied.
+    ///
+    /// # Errors
+    /// A remap without `:=` or of an unknown name.
+    pub fn with_remaps(remaps: &[String]) -> Result<Self> {
+        let mut t = Self::default();
+        for r in remaps {
+            let Some((from, to)) = r.split_once(":=") else {
+                bail!("--remap {r:?}: expected NAME:=TOPIC, e.g. image:=/camera/color/image_raw");
+            };
+            let slot = match from.trim() {
+                "image" => &mut t.image,
+                "camera_info" => &mut t.camera_info,
+                "prediction" => &mut t.prediction,
+                "depth_sensor" => &mut t.depth_sensor,
+                "depth" => &mut t.depth,
+                "points" => &mut t.points,
+                "grasps" => &mut t.grasps,
+                "grasps_json" => &mut t.grasps_json,
+                "diagnostics" => &mut t.diagnostics,
+                "calibrate" => &mut t.calibrate,
+                other => bail!(
+                    "--remap {r:?}: no topic or service {other:?} (image, camera_info, \
+                     prediction, depth_sensor, depth, points, grasps, grasps_json, diagnostics, \
+                     calibrate)"
+                ),
+            };
+            *slot = to.trim().to_string();
+        }
+        Ok(t)
+    }
+}
+
+/// DDS settings shared by `moma ros2` and `moma ros2-replay`.
+#[derive(Debug, Clone, Args)]
+pub struct DdsArgs {
+    /// ROS 2 domain id [default: $ROS_DOMAIN_ID, else 0].
+    #[arg(long, value_name = "ID")]
+    pub domain_id: Option<u16>,
+    /// Keep all DDS traffic on the loopback interface (127.0.0.1) [default: on when
+    /// $ROS_LOCALHOST_ONLY is 1].
+    #[arg(long)]
+    pub localhost_only: bool,
+}
+
+impl DdsArgs {
+    /// A node named `name` with these settings.
+    ///
+    /// # Errors
+    /// A domain id out of range in the environment; DDS could not start.
+    pub fn node(&self, name: &str) -> Result<ros2_client::Node> {
+        let domain = match self.domain_id {
+            Some(d) => d,
+            None => match std::env::var("ROS_DOMAIN_ID") {
+                Ok(s) if !s.trim().is_empty() => s
+                    .trim()
+                    .parse::<u16>()
+                    .with_context(|| format!("ROS_DOMAIN_ID={s:?} is not a domain id (0–232)"))?,
+                _ => 0,
+            },
+        };
+        if domain > 232 {
+            bail!("domain id {domain} is out of range (0–232)");
+        }
+        let localhost = self.localhost_only
+            || std::env::var("ROS_LOCALHOST_ONLY").is_ok_and(|v| v.trim() == "1");
+        let network = if localhost {
+            Network::Loopback
+        } else {
+            Network::All
+        };
+        dds::node(name, domain, network)
+            .with_context(|| format!("starting the ROS 2 node {name} on domain {domain}"))
+    }
+}
+
+/// Run moma as a ROS 2 node: RGB (or raw predictions) in; metric depth, point cloud, grasps and
+/// diagnostics out. No ROS installation is needed (DDS in Rust); any ROS 2 system on the network
+/// sees the topics.
+///
+/// Topics (remap with --remap NAME:=TOPIC): subscribes image, camera_info, prediction
+/// (--input prediction), depth_sensor (live calibration); publishes depth (32FC1 metres),
+/// points (PointCloud2), grasps (PoseArray) and grasps_json (String, with --gripper),
+/// diagnostics; service calibrate (std_srvs/srv/Trigger).
+///
+/// Examples:
+///   moma ros2 --calib calib.json --weights depth_anything_v2_vits.safetensors --gripper suction
+///   moma ros2 --calib calib.json --input prediction --realign anchors --remap image:=/camera/color/image_raw
+#[derive(Debug, Clone, Args)]
+#[command(verbatim_doc_comment)]
+pub struct Ros2Args {
+    /// Calibration file from `moma calibrate` (or written by this node's live calibration).
+    #[arg(long, value_name = "FILE")]
+    pub calib: PathBuf,
+    /// Where the live calibration writes its file (atomically) [default: --calib itself].
+    #[arg(long, value_name = "FILE")]
+    pub calib_out: Option<PathBuf>,
+    /// What the node aligns.
+    #[arg(long, value_enum, default_value_t = InputArg::Image)]
+    pub input: InputArg,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// camera.json intrinsics, instead of the calibration's or camera_info's.
+    #[arg(long, value_name = "FILE")]
+    pub camera: Option<PathBuf>,
+    /// Colour the point cloud with the frame's RGB (a packed `rgb` field).
+    #[arg(long)]
+    pub points_rgb: bool,
+    /// Plan grasps for this gripper on every frame (topics grasps and grasps_json).
+    #[arg(long, value_enum)]
+    pub gripper: Option<GripperArg>,
+    #[command(flatten)]
+    pub plan: PlanFlags,
+    /// Objects to grasp: a mask PNG of the workspace (nonzero = objects may be there).
+    #[arg(long, value_name = "PNG", requires = "gripper")]
+    pub mask: Option<PathBuf>,
+    /// Camera → robot base transform: grasps are published in the base frame.
+    #[arg(long, value_name = "FILE", requires = "gripper")]
+    pub extrinsics: Option<PathBuf>,
+    /// Frame id of the base frame for grasps with --extrinsics.
+    #[arg(long, default_value = "base_link", value_name = "FRAME")]
+    pub base_frame: String,
+    /// Per-frame re-alignment on static anchors (a calibration made with --anchors): the
+    /// frame's RGB (image, or the image of the same stamp with --input prediction).
+    #[arg(long, value_enum, value_name = "MODE")]
+    pub realign: Option<RealignArg>,
+    #[command(flatten)]
+    pub realign_flags: RealignFlags,
+    /// Live calibration: the method [default: the loaded calibration's].
+    #[arg(long, value_name = "METHOD")]
+    pub calib_method: Option<Method>,
+    /// Live calibration: number of samples.
+    #[arg(long, default_value_t = 100, value_name = "N")]
+    pub calib_samples: usize,
+    /// Live calibration: seed of the sampling.
+    #[arg(long, default_value_t = 0)]
+    pub calib_seed: u64,
+    /// Live calibration: how long a request waits for a depth_sensor frame (with its image,
+    /// and its prediction with --input prediction) before it fails, seconds.
+    #[arg(long, default_value_t = 5.0, value_name = "S")]
+    pub calib_timeout_s: f64,
+    /// With --input prediction: how long a frame waits for the image of the same stamp when
+    /// it needs one (--realign, --points-rgb), seconds.
+    #[arg(long, default_value_t = 0.5, value_name = "S")]
+    pub sync_timeout_s: f64,
+    /// Rename a topic or the service: NAME:=TOPIC (repeatable), e.g. image:=/camera/color/image_raw.
+    #[arg(long, value_name = "NAME:=TOPIC")]
+    pub remap: Vec<String>,
+    #[command(flatten)]
+    pub dds: DdsArgs,
+    /// Stop after this many processed frames (tests, benchmarks); default: run until killed.
+    #[arg(long, value_name = "N")]
+    pub max_frames: Option<u64>,
+    /// Stop after this many seconds (tests); default: run until killed.
+    #[arg(long, value_name = "S")]
+    pub max_seconds: Option<f64>,
+}
+
+/// How many recent messages per input the node keeps to pair topics by stamp.
+const PAIR_BUFFER: usize = 8;
+
+/// Per-frame publishers.
+struct Outputs {
+    depth: Publisher<Image>,
+    points: Publisher<PointCloud2>,
+    grasps: Publisher<PoseArray>,
+    grasps_json: Publisher<StringMsg>,
+    diagnostics: Publisher<DiagnosticArray>,
+}
+
+/// A frame waiting to be processed.
+struct Pending {
+    msg: Image,
+    received: Instant,
+}
+
+/// A calibration request waiting for its RGB-D pair.
+struct CalibRequest {
+    id: ros2_client::RmwRequestId,
+    since: Instant,
+    /// Only depth_sensor frames newer than the newest one seen at the request count.
+    after: Option<Time>,
+}
+
+/// The node's state between frames.
+struct NodeState {
+    args: Ros2Args,
+    calib: CalibrationFile,
+    calib_out: PathBuf,
+    model: Option<Box<dyn moma_depth::DepthModel>>,
+    realign: Option<RealignConfig>,
+    camera_override: Option<Intrinsics>,
+    camera_info: Option<Intrinsics>,
+    grasp: Option<(GraspRequest, Option<Extrinsics>, Option<moma_core::Mask>)>,
+    images: VecDeque<Image>,
+    predictions: VecDeque<Image>,
+    depth_sensor: VecDeque<Image>,
+    processed: u64,
+    dropped: u64,
+    skipped: u64,
+}
+
+fn push_bounded(buf: &mut VecDeque<Image>, msg: Image) {
+    if buf.len() == PAIR_BUFFER {
+        buf.pop_front();
+    }
+    buf.push_back(msg);
+}
+
+fn find_stamp(buf: &VecDeque<Image>, stamp: Time) -> Option<&Image> {
+    buf.iter().rev().find(|m| m.header.stamp == stamp)
+}
+
+fn kv(key: &str, value: impl ToString) -> KeyValue {
+    KeyValue {
+        key: key.to_string(),
+        value: value.to_string(),
+    }
+}
+
+/// Takes every sample waiting on `sub`; a sample that does not decode is reported by `bad`.
+fn drain<M: 'static + serde::de::DeserializeOwned>(
+    sub: &Subscription<M>,
+    mut bad: impl FnMut(String),
+) -> Vec<M> {
+    let mut out = Vec::new();
+    loop {
+        match sub.take() {
+            Ok(Some((m, _))) => out.push(m),
+            Ok(None) => break,
+            Err(e) => bad(format!("{e:?}")),
+        }
+    }
+    out
+}
+
+pub fn run(args: &Ros2Args) -> Result<()> {
+    let topics = Topics::with_remaps(&args.remap)?;
+    let calib = moma_io::read_calibration(&args.calib)?;
+    let realign = match args.realign {
+        Some(RealignArg::Anchors) => {
+            calib
+                .calibration
+                .anchor_store()
+                .with_context(|| format!("--realign anchors with {}", args.calib.display()))?;
+            Some(args.realign_flags.config()?)
+        }
+        None => None,
+    };
+    let model = match args.input {
+        InputArg::Image => {
+            let loaded = args.model.load().context(
+                "--input image runs the depth model: give --weights or --hub (or use --input \
+                 prediction)",
+            )?;
+            Some(loaded.model)
+        }
+        InputArg::Prediction => {
+            if args.model.weights.is_some() || args.model.hub.is_some() {
+                bail!("--input prediction takes no model: drop --weights / --hub");
+            }
+            None
+        }
+    };
+    let camera_override = args.camera.as_ref().map(moma_io::read_camera).transpose()?;
+    if let Some(k) = &camera_override {
+        calib
+            .image_size
+            .expect_eq("camera.json", k.size())
+            .with_context(|| {
+                format!(
+                    "--camera vs calibration {} (one camera)",
+                    args.calib.display()
+                )
+            })?;
+    }
+    let grasp = match args.gripper {
+        None => None,
+        Some(g) => {
+            args.plan.check()?;
+            let gripper = args.plan.gripper(g)?;
+            let request = args.plan.request(
+                gripper,
+                calib.calibration.error_model.clone(),
+                SceneConfig::default(),
+            )?;
+            let extrinsics = args
+                .extrinsics
+                .as_deref()
+                .map(super::grasp::read_extrinsics)
+                .transpose()?;
+            let mask = args
+                .mask
+                .as_ref()
+                .map(|p| moma_io::read_mask_sized(p, calib.image_size))
+                .transpose()?;
+            Some((request, extrinsics, mask))
+        }
+    };
+    for (flag, v) in [
+        ("--calib-timeout-s", args.calib_timeout_s),
+        ("--sync-timeout-s", args.sync_timeout_s),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            bail!("{flag} {v} must be a number of seconds >= 0");
+        }
+    }
+    if calib.created.simulated_predictions {
+        eprintln!(
+            "note: {} was fitted on SIMULATED predictions: the depth it gives is not a depth \
+             model's",
+            args.calib.display()
+        );
+    }
+
+    let mut node = args.dds.node("moma")?;
+    let sensor = dds::sensor_qos();
+    let reader = dds::sensor_reader_qos();
+    let image_sub: Subscription<Image> =
+        dds::subscription(&mut node, &topics.image, msg::types::image(), &reader)?;
+    let info_sub: Subscription<CameraInfo> = dds::subscription(
+        &mut node,
+        &topics.camera_info,
+        msg::types::camera_info(),
+        &reader,
+    )?;
+    let pred_sub: Option<Subscription<Image>> = match args.input {
+        InputArg::Prediction => Some(dds::subscription(
+            &mut node,
+            &topics.prediction,
+            msg::types::image(),
+            &reader,
+        )?),
+        InputArg::Image => None,
+    };
+    let depth_sensor_sub: Subscription<Image> = dds::subscription(
+        &mut node,
+        &topics.depth_sensor,
+        msg::types::image(),
+        &reader,
+    )?;
+    let outputs = Outputs {
+        depth: dds::publisher(&mut node, &topics.depth, msg::types::image(), &sensor)?,
+        points: dds::publisher(
+            &mut node,
+            &topics.points,
+            msg::types::point_cloud2(),
+            &sensor,
+        )?,
+        grasps: dds::publisher(&mut node, &topics.grasps, msg::types::pose_array(), &sensor)?,
+        grasps_json: dds::publisher(
+            &mut node,
+            &topics.grasps_json,
+            msg::types::string(),
+            &sensor,
+        )?,
+        diagnostics: dds::publisher(
+            &mut node,
+            &topics.diagnostics,
+            msg::types::diagnostic_array(),
+            &sensor,
+        )?,
+    };
+    let mut server = dds::trigger_server(&mut node, &topics.calibrate)?;
+
+    let mut poll = Poll::new().context("creating the event poll")?;
+    let registry = poll.registry();
+    let mut image_sub = image_sub;
+    let mut info_sub = info_sub;
+    let mut depth_sensor_sub = depth_sensor_sub;
+    registry.register(&mut image_sub, Token(0), Interest::READABLE)?;
+    registry.register(&mut info_sub, Token(1), Interest::READABLE)?;
+    registry.register(&mut depth_sensor_sub, Token(2), Interest::READABLE)?;
+    registry.register(&mut server, Token(3), Interest::READABLE)?;
+    let mut pred_sub = pred_sub;
+    if let Some(s) = pred_sub.as_mut() {
+        registry.register(s, Token(4), Interest::READABLE)?;
+    }
+
+    let calib_out = args.calib_out.clone().unwrap_or_else(|| args.calib.clone());
+    let mut state = NodeState {
+        args: args.clone(),
+        calib,
+        calib_out,
+        model,
+        realign,
+        camera_override,
+        camera_info: None,
+        grasp,
+        images: VecDeque::new(),
+        predictions: VecDeque::new(),
+        depth_sensor: VecDeque::new(),
+        processed: 0,
+        dropped: 0,
+        skipped: 0,
+    };
+    eprintln!(
+        "moma ros2: node /moma on domain {}, input {} on {}, publishing {} and {}{}",
+        node.domain_id(),
+        match args.input {
+            InputArg::Image => "RGB",
+            InputArg::Prediction => "predictions",
+        },
+        match args.input {
+            InputArg::Image => &topics.image,
+            InputArg::Prediction => &topics.prediction,
+        },
+        topics.depth,
+        topics.points,
+        if state.grasp.is_some() {
+            format!(", {} and {}", topics.grasps, topics.grasps_json)
+        } else {
+            String::new()
+        }
+    );
+
+    let started = Instant::now();
+    let mut events = Events::with_capacity(16);
+    let mut pending: Option<Pending> = None;
+    let mut calib_request: Option<CalibRequest> = None;
+    loop {
+        if let Some(limit) = args.max_seconds
+            && started.elapsed().as_secs_f64() >= limit
+        {
+            break;
+        }
+        if let Some(n) = args.max_frames
+            && state.processed >= n
+        {
+            break;
+        }
+        // Wake at least every 20 ms: calibration and pairing time-outs.
+        poll.poll(&mut events, Some(Duration::from_millis(20)))
+            .context("polling DDS")?;
+        let mut malformed = Vec::new();
+
+        for info in drain(&info_sub, |e| malformed.push(format!("camera_info: {e}"))) {
+            match convert::camera_info_to_intrinsics(&info) {
+                Ok(k) if k.size() == state.calib.image_size => state.camera_info = Some(k),
+                Ok(k) => malformed.push(format!(
+                    "camera_info is for {} images, the calibration for {}: ignored",
+                    k.size(),
+                    state.calib.image_size
+                )),
+                Err(e) => malformed.push(format!("camera_info ignored: {e}")),
+            }
+        }
+        let images = drain(&image_sub, |e| malformed.push(format!("image: {e}")));
+        let now = Instant::now();
+        for m in images {
+            push_bounded(&mut state.images, m.clone());
+            if args.input == InputArg::Image {
+                if pending
+                    .replace(Pending {
+                        msg: m,
+                        received: now,
+                    })
+                    .is_some()
+                {
+                    state.dropped += 1;
+                }
+            }
+        }
+        if let Some(sub) = &pred_sub {
+            for m in drain(sub, |e| malformed.push(format!("prediction: {e}"))) {
+                push_bounded(&mut state.predictions, m.clone());
+                if pending
+                    .replace(Pending {
+                        msg: m,
+                        received: now,
+                    })
+                    .is_some()
+                {
+                    state.dropped += 1;
+                }
+            }
+        }
+        for m in drain(&depth_sensor_sub, |e| {
+            malformed.push(format!("depth_sensor: {e}"))
+        }) {
+            push_bounded(&mut state.depth_sensor, m);
+        }
+        for e in malformed {
+            state.skipped += 1;
+            state.diagnose(&outputs, None, DiagnosticStatus::ERROR, &e, Vec::new());
+        }
+
+        // Live calibration.
+        loop {
+            match server.receive_request() {
+                Ok(Some((id, _req))) => {
+                    if calib_request.is_some() {
+                        let _ = server.send_response(
+                            id,
+                            TriggerResponse {
+                                success: false,
+                                message: "a calibration is already waiting for its frame".into(),
+                            },
+                        );
+                        continue;
+                    }
+                    calib_request = Some(CalibRequest {
+                        id,
+                        since: Instant::now(),
+                        after: state.depth_sensor.back().map(|m| m.header.stamp),
+                    });
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    state.diagnose(
+                        &outputs,
+                        None,
+                        DiagnosticStatus::ERROR,
+                        &format!("calibrate request: {e:?}"),
+                        Vec::new(),
+                    );
+                    break;
+                }
+            }
+        }
+        if let Some(req) = &calib_request
+            && let Some(response) = state.try_calibrate(req, &outputs)
+        {
+            if let Some(req) = calib_request.take() {
+                let _ = server.send_response(req.id, response);
+            }
+        }
+
+        // The newest frame.
+        if let Some(p) = pending.take() {
+            match state.process(&p, &outputs) {
+                Step::Done => state.processed += 1,
+                Step::Skipped => state.skipped += 1,
+                Step::Wait => pending = Some(p),
+            }
+        }
+    }
+    eprintln!(
+        "moma ros2: stopped after {} frames ({} dropped as stale, {} skipped)",
+        state.processed, state.dropped, state.skipped
+    );
+    Ok(())
+}
+
+/// What became of a frame.
+enum Step {
+    Done,
+    Skipped,
+    /// Waiting for the image of the same stamp.
+    Wait,
+}
+
+impl NodeState {
+    /// Publishes one diagnostic status (with the frame's header when there is one).
+    fn diagnose(
+        &self,
+        out: &Outputs,
+        header: Option<&Header>,
+        level: u8,
+        message: &str,
+        mut values: Vec<KeyValue>,
+    ) {
+        if level != DiagnosticStatus::OK {
+            eprintln!("moma ros2: {message}");
+        }
+        values.extend([
+            kv("frames_processed", self.processed),
+            kv("frames_dropped_stale", self.dropped),
+            kv("frames_skipped", self.skipped),
+        ]);
+        let header = header.cloned().unwrap_or_default();
+        let status = DiagnosticStatus {
+            level,
+            name: "moma: frame".into(),
+            message: message.to_string(),
+            hardware_id: header.frame_id.clone(),
+            values,
+        };
+        let _ = dds::publish(
+            &out.diagnostics,
+            DiagnosticArray {
+                header,
+                status: vec![status],
+            },
+        );
+    }
+
+    /// The intrinsics for points and grasps: --camera, the calibration's, then camera_info.
+    fn intrinsics(&self) -> Option<Intrinsics> {
+        self.camera_override
+            .or(self.calib.intrinsics)
+            .or(self.camera_info)
+    }
+
+    /// The frame's RGB: the input image, or the image of the same stamp.
+    fn rgb_for(&self, frame: &Image) -> Option<std::result::Result<image::RgbImage, String>> {
+        let img = match self.args.input {
+            InputArg::Image => Some(frame),
+            InputArg::Prediction => find_stamp(&self.images, frame.header.stamp),
+        }?;
+        Some(convert::image_to_rgb(img).map_err(|e| format!("image: {e}")))
+    }
+
+    fn process(&mut self, p: &Pending, out: &Outputs) -> Step {
+        let header = p.msg.header.clone();
+        let needs_rgb = self.realign.is_some() || self.args.points_rgb;
+        let rgb = if needs_rgb || self.args.input == InputArg::Image {
+            match self.rgb_for(&p.msg) {
+                Some(Ok(rgb)) => Some(rgb),
+                Some(Err(e)) => {
+                    self.diagnose(
+                        out,
+                        Some(&header),
+                        DiagnosticStatus::ERROR,
+                        &format!("frame skipped: {e}"),
+                        Vec::new(),
+                    );
+                    return Step::Skipped;
+                }
+                None if p.received.elapsed().as_secs_f64() < self.args.sync_timeout_s => {
+                    return Step::Wait;
+                }
+                None => {
+                    let why = format!(
+                        "frame skipped: no image of the same stamp within {} s (needed for {})",
+                        self.args.sync_timeout_s,
+                        if self.realign.is_some() {
+                            "--realign"
+                        } else {
+                            "--points-rgb"
+                        }
+                    );
+                    self.diagnose(
+                        out,
+                        Some(&header),
+                        DiagnosticStatus::ERROR,
+                        &why,
+                        Vec::new(),
+                    );
+                    return Step::Skipped;
+                }
+            }
+        } else {
+            None
+        };
+        match self.align_and_publish(p, rgb, out) {
+            Ok(()) => Step::Done,
+            Err(e) => {
+                let why = format!("frame skipped: {}", crate::error_chain(&e));
+                self.diagnose(
+                    out,
+                    Some(&header),
+                    DiagnosticStatus::ERROR,
+                    &why,
+                    Vec::new(),
+                );
+                Step::Skipped
+            }
+        }
+    }
+
+    /// The frame's prediction: the model's on the RGB, or the received map.
+    fn prediction(&mut self, msg: &Image, rgb: Option<&image::RgbImage>) -> Result<Prediction> {
+        match (&mut self.model, rgb) {
+            (Some(model), Some(rgb)) => {
+                let size = moma_core::ImageSize::new(rgb.width() as usize, rgb.height() as usize);
+                self.calib
+                    .image_size
+                    .expect_eq("image", size)
+                    .context("the image vs the calibration (one camera)")?;
+                let pred = model.predict(rgb).context("the depth model")?;
+                Ok(pred)
+            }
+            _ => {
+                let values = convert::image_to_f32(msg).context("prediction")?;
+                let pred = Prediction::new(values, self.calib.prediction_kind);
+                self.calib
+                    .image_size
+                    .expect_eq("prediction", pred.size())
+                    .context("the prediction vs the calibration (one camera)")?;
+                Ok(pred)
+            }
+        }
+    }
+
+    fn align_and_publish(
+        &mut self,
+        p: &Pending,
+        rgb: Option<image::RgbImage>,
+        out: &Outputs,
+    ) -> Result<()> {
+        let header = p.msg.header.clone();
+        let t_model = Instant::now();
+        let prediction = self.prediction(&p.msg, rgb.as_ref())?;
+        let model_ms = if self.model.is_some() {
+            Some(t_model.elapsed().as_secs_f64() * 1e3)
+        } else {
+            None
+        };
+        let grey = match (&self.realign, &rgb) {
+            (Some(_), Some(rgb)) => Some(super::common::grey_of(rgb)?),
+            _ => None,
+        };
+        let options = AlignOptions {
+            realign: grey.as_ref().zip(self.realign.as_ref()),
+            sigma_map: false,
+        };
+        let t_align = Instant::now();
+        let aligned = self
+            .calib
+            .calibration
+            .aligned(&prediction, &options)
+            .context("aligning")?;
+        let align_ms = t_align.elapsed().as_secs_f64() * 1e3;
+        dds::publish(
+            &out.depth,
+            convert::depth_to_image(&aligned.depth, header.clone()),
+        )?;
+        let depth_ms = p.received.elapsed().as_secs_f64() * 1e3;
+
+        let mut values = vec![
+            kv("latency_depth_ms", format!("{depth_ms:.3}")),
+            kv("align_ms", format!("{align_ms:.3}")),
+            kv("valid_pixels", aligned.depth.valid_count()),
+        ];
+        if let Some(ms) = model_ms {
+            values.push(kv("model_ms", format!("{ms:.1}")));
+        }
+        if let Some(r) = &aligned.realign {
+            values.extend([
+                kv("realign_accepted", r.accepted),
+                kv("realign_anchors", r.anchors),
+                kv("realign_reason", &r.reason),
+            ]);
+        }
+        let mut level = DiagnosticStatus::OK;
+        let mut message = "ok".to_string();
+        match self.intrinsics() {
+            Some(k) => {
+                let colours = rgb.as_ref().filter(|_| self.args.points_rgb);
+                let cloud = convert::depth_to_cloud(&aligned.depth, &k, colours, header.clone())?;
+                dds::publish(&out.points, cloud)?;
+                values.push(kv(
+                    "latency_points_ms",
+                    format!("{:.3}", p.received.elapsed().as_secs_f64() * 1e3),
+                ));
+                if let Some((request, extrinsics, mask)) = &self.grasp {
+                    let t = Instant::now();
+                    let (n, why) = publish_grasps(
+                        &aligned.depth,
+                        &k,
+                        request,
+                        extrinsics.as_ref(),
+                        mask.as_ref(),
+                        &header,
+                        &self.args.base_frame,
+                        out,
+                    )?;
+                    values.push(kv("grasps", n));
+                    values.push(kv(
+                        "grasp_ms",
+                        format!("{:.1}", t.elapsed().as_secs_f64() * 1e3),
+                    ));
+                    if let Some(why) = why {
+                        values.push(kv("no_grasp_reason", why));
+                    }
+                }
+            }
+            None => {
+                level = DiagnosticStatus::WARN;
+                message = "no intrinsics (calibrate with --camera, give --camera, or publish \
+                           camera_info): depth only, no points or grasps"
+                    .to_string();
+            }
+        }
+        if aligned.realign.as_ref().is_some_and(|r| !r.accepted) {
+            level = level.max(DiagnosticStatus::WARN);
+            message = "re-alignment not accepted (one-shot depth published)".to_string();
+        }
+        self.diagnose(out, Some(&header), level, &message, values);
+        Ok(())
+    }
+
+    /// Answers a waiting calibration request when its RGB-D pair is there (or it timed out).
+    fn try_calibrate(&mut self, req: &CalibRequest, out: &Outputs) -> Option<TriggerResponse> {
+        let newer = |m: &&Image| req.after.is_none_or(|a| m.header.stamp > a);
+        let pair = self.depth_sensor.iter().rev().filter(newer).find_map(|d| {
+            let stamp = d.header.stamp;
+            let img = find_stamp(&self.images, stamp)?;
+            let pred = match self.args.input {
+                InputArg::Prediction => Some(find_stamp(&self.predictions, stamp)?.clone()),
+                InputArg::Image => None,
+            };
+            Some((d.clone(), img.clone(), pred))
+        });
+        let Some((depth_msg, image_msg, pred_msg)) = pair else {
+            if req.since.elapsed().as_secs_f64() >= self.args.calib_timeout_s {
+                let why = format!(
+                    "calibration failed: no {} frame with an image{} of the same stamp within {} s",
+                    "depth_sensor",
+                    if self.args.input == InputArg::Prediction {
+                        " and a prediction"
+                    } else {
+                        ""
+                    },
+                    self.args.calib_timeout_s
+                );
+                self.diagnose(out, None, DiagnosticStatus::ERROR, &why, Vec::new());
+                return Some(TriggerResponse {
+                    success: false,
+                    message: why,
+                });
+            }
+            return None;
+        };
+        let header = depth_msg.header.clone();
+        let result = self.calibrate_on(&depth_msg, &image_msg, pred_msg.as_ref());
+        Some(match result {
+            Ok(text) => {
+                self.diagnose(out, Some(&header), DiagnosticStatus::OK, &text, Vec::new());
+                TriggerResponse {
+                    success: true,
+                    message: text,
+                }
+            }
+            Err(e) => {
+                let why = format!("calibration failed: {}", crate::error_chain(&e));
+                self.diagnose(
+                    out,
+                    Some(&header),
+                    DiagnosticStatus::ERROR,
+                    &why,
+                    Vec::new(),
+                );
+                TriggerResponse {
+                    success: false,
+                    message: why,
+                }
+            }
+        })
+    }
+
+    fn calibrate_on(
+        &mut self,
+        depth: &Image,
+        image: &Image,
+        pred: Option<&Image>,
+    ) -> Result<String> {
+        let gt = convert::depth_image_to_metres(depth).context("depth_sensor")?;
+        let rgb = convert::image_to_rgb(image).context("image")?;
+        let prediction = match pred {
+            Some(p) => self.prediction(p, None)?,
+            None => self.prediction(image, Some(&rgb))?,
+        };
+        prediction
+            .size()
+            .expect_eq("depth_sensor", gt.size())
+            .context("the depth sensor vs the image")?;
+        let intrinsics = self.intrinsics();
+        let method = match &self.args.calib_method {
+            Some(m) => m.clone(),
+            None => Method::with_defaults(self.calib.method),
+        };
+        let calibration = super::calibrate::fit_frame(
+            &prediction,
+            &gt,
+            Some(&rgb),
+            intrinsics,
+            method,
+            self.args.calib_samples,
+            self.args.calib_seed,
+        )?;
+        let mut created = CreationInfo::now();
+        created.simulated_predictions = self.calib.created.simulated_predictions;
+        let stamp = depth.header.stamp;
+        let created = created.with_source(
+            "live calibration (moma ros2)",
+            format!(
+                "depth_sensor frame stamped {}.{:09}",
+                stamp.sec, stamp.nanosec
+            ),
+        );
+        let file = CalibrationFile::new(calibration, intrinsics, created);
+        moma_io::write_calibration(&self.calib_out, &file)?;
+        let text = format!(
+            "calibrated {} on {} samples (RMS residual {:.2} mm) from the frame stamped {}.{:09}; \
+             wrote {} and switched to it",
+            file.method,
+            file.calibration.report.n_used,
+            file.calibration.report.rms_residual_m * 1e3,
+            stamp.sec,
+            stamp.nanosec,
+            self.calib_out.display()
+        );
+        eprintln!("moma ros2: {text}");
+        if let Some((request, _, _)) = &mut self.grasp {
+            let mut r = request.clone();
+            r.error_model = file.calibration.error_model.clone();
+            *request = r;
+        }
+        self.calib = file;
+        Ok(text)
+    }
+}
+
+/// Plans on `depth` and publishes the poses and the JSON; returns the number of grasps and why
+/// there are none.
+#[allow(clippy::too_many_arguments)]
+fn publish_grasps(
+    depth: &MetricDepth,
+    k: &Intrinsics,
+    request: &GraspRequest,
+    extrinsics: Option<&Extrinsics>,
+    mask: Option<&moma_core::Mask>,
+    header: &Header,
+    base_frame: &str,
+    out: &Outputs,
+) -> Result<(usize, Option<String>)> {
+    let (_, mut outcome) = moma_grasp::plan_grasps(depth, k, mask, request).context("grasps")?;
+    let mut pose_header = header.clone();
+    if let Some(e) = extrinsics {
+        outcome.set_base(e);
+        pose_header.frame_id = base_frame.to_string();
+    }
+    let poses = convert::grasps_to_pose_array(&outcome.grasps, extrinsics.is_some(), pose_header)?;
+    dds::publish(&out.grasps, poses)?;
+    let json = serde_json::to_string(&outcome.grasps).context("grasps as JSON")?;
+    dds::publish(&out.grasps_json, StringMsg { data: json })?;
+    Ok((
+        outcome.grasps.len(),
+        outcome.no_grasp_reason.map(|r| r.to_string()),
+    ))
+}

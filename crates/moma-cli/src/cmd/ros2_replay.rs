@@ -1,0 +1,254 @@
+//! `moma ros2-replay`: a camera from files. Publishes a moma set's frames (or a folder of images)
+//! as `image` + `camera_info` (+ `depth_sensor` where the set has depth, + `prediction` from a
+//! folder of `.npy` maps), all topics of one frame with the same stamp, at a given rate.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant, SystemTime};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use moma_core::Intrinsics;
+use moma_ros2::convert;
+use moma_ros2::dds;
+use moma_ros2::msg::{self, CameraInfo, Header, Image, Time};
+
+use super::ros2::DdsArgs;
+
+/// Publish recorded frames as a ROS 2 camera: image (rgb8), camera_info, depth_sensor (16UC1
+/// millimetres, the set's depth.png) and prediction (32FC1, from --pred), one stamp per frame.
+/// Prints one line per published frame: `frame NAME stamp SEC.NANOSEC`.
+///
+/// Examples:
+///   moma ros2-replay --set ../shared/data/gqcnn-primesense --rate 2 --loop
+///   moma ros2-replay --set SET --pred preds/ --rate 5     (then: moma ros2 --input prediction …)
+#[derive(Debug, Clone, Args)]
+#[command(verbatim_doc_comment)]
+pub struct Ros2ReplayArgs {
+    /// A moma set: frames/*/rgb.png, depth.png and camera.json.
+    #[arg(
+        long,
+        value_name = "DIR",
+        required_unless_present = "images",
+        conflicts_with = "images"
+    )]
+    pub set: Option<PathBuf>,
+    /// A folder of RGB images (.png, .jpg), published in name order.
+    #[arg(long, value_name = "DIR")]
+    pub images: Option<PathBuf>,
+    /// camera.json for --images (camera_info is published only when intrinsics are known).
+    #[arg(long, value_name = "FILE")]
+    pub camera: Option<PathBuf>,
+    /// Predictions to publish on `prediction`: NAME.npy per frame, in this folder or in its
+    /// sub-folder named after the set (`moma simulate` / `moma predict` output).
+    #[arg(long, value_name = "DIR")]
+    pub pred: Option<PathBuf>,
+    /// Frames per second.
+    #[arg(long, default_value_t = 5.0, value_name = "HZ")]
+    pub rate: f64,
+    /// Start over after the last frame (until killed).
+    #[arg(long = "loop")]
+    pub repeat: bool,
+    /// Stop after publishing this many frames in all (with --loop).
+    #[arg(long, value_name = "N")]
+    pub max_frames: Option<u64>,
+    /// Wait this long after starting before the first frame, seconds (discovery).
+    #[arg(long, default_value_t = 1.0, value_name = "S")]
+    pub warmup_s: f64,
+    /// Frame id of the camera's optical frame.
+    #[arg(long, default_value = "camera_optical_frame", value_name = "FRAME")]
+    pub frame_id: String,
+    /// Rename a topic: NAME:=TOPIC (image, camera_info, depth_sensor, prediction).
+    #[arg(long, value_name = "NAME:=TOPIC")]
+    pub remap: Vec<String>,
+    #[command(flatten)]
+    pub dds: DdsArgs,
+}
+
+/// One frame's messages, ready to stamp.
+struct ReplayFrame {
+    name: String,
+    image: Image,
+    depth_sensor: Option<Image>,
+    prediction: Option<Image>,
+}
+
+fn find_prediction(dir: &Path, set_name: Option<&str>, name: &str) -> Option<PathBuf> {
+    let direct = dir.join(format!("{name}.npy"));
+    if direct.is_file() {
+        return Some(direct);
+    }
+    let nested = dir.join(set_name?).join(format!("{name}.npy"));
+    nested.is_file().then_some(nested)
+}
+
+fn load_frames(args: &Ros2ReplayArgs) -> Result<(Vec<ReplayFrame>, Option<Intrinsics>)> {
+    let mut frames = Vec::new();
+    let header = Header::default();
+    let camera;
+    let mut set_name = None;
+    let mut inputs: Vec<(String, PathBuf, Option<PathBuf>)> = Vec::new();
+    if let Some(root) = &args.set {
+        let set = moma_io::MomaSet::open(root)?;
+        camera = Some(set.camera);
+        set_name = Some(set.name());
+        for f in &set.frames {
+            inputs.push((f.id.clone(), f.rgb.clone(), Some(f.depth.clone())));
+        }
+    } else if let Some(dir) = &args.images {
+        camera = args.camera.as_ref().map(moma_io::read_camera).transpose()?;
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .with_context(|| format!("reading {}", dir.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                ["png", "jpg", "jpeg"]
+                    .iter()
+                    .any(|x| super::common::has_extension(p, x))
+            })
+            .collect();
+        files.sort();
+        if files.is_empty() {
+            bail!("{} holds no .png or .jpg image", dir.display());
+        }
+        for p in files {
+            let name = p
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            inputs.push((name, p, None));
+        }
+    } else {
+        bail!("give --set DIR or --images DIR");
+    }
+    for (name, rgb_path, depth_path) in inputs {
+        let rgb = moma_io::read_rgb(&rgb_path)?;
+        if let Some(k) = &camera {
+            let size = moma_core::ImageSize::new(rgb.width() as usize, rgb.height() as usize);
+            k.size()
+                .expect_eq("image", size)
+                .with_context(|| format!("{} vs the camera", rgb_path.display()))?;
+        }
+        let depth_sensor = depth_path
+            .map(|p| -> Result<Image> {
+                let depth = moma_io::read_depth(&p)?;
+                Ok(convert::depth_to_mm_image(&depth, header.clone()))
+            })
+            .transpose()?;
+        let prediction = match &args.pred {
+            None => None,
+            Some(dir) => {
+                let path = find_prediction(dir, set_name.as_deref(), &name).with_context(|| {
+                    format!(
+                        "no prediction for frame {name} in {} (NAME.npy or SET/NAME.npy)",
+                        dir.display()
+                    )
+                })?;
+                let values: ndarray::Array2<f32> = moma_io::read_npy_f32(&path)?;
+                Some(convert::f32_to_image(&values, header.clone()))
+            }
+        };
+        frames.push(ReplayFrame {
+            name,
+            image: convert::rgb_to_image(&rgb, header.clone()),
+            depth_sensor,
+            prediction,
+        });
+    }
+    Ok((frames, camera))
+}
+
+fn now_stamp() -> Time {
+    let d = SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .unwrap_or_default();
+    Time {
+        sec: i32::try_from(d.as_secs()).unwrap_or(i32::MAX),
+        nanosec: d.subsec_nanos(),
+    }
+}
+
+pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
+    if !(args.rate.is_finite() && args.rate > 0.0) {
+        bail!(
+            "--rate {} must be a positive number of frames per second",
+            args.rate
+        );
+    }
+    if !(args.warmup_s.is_finite() && args.warmup_s >= 0.0) {
+        bail!("--warmup-s {} must be >= 0", args.warmup_s);
+    }
+    let mut names = [
+        ("image", "image".to_string()),
+        ("camera_info", "camera_info".to_string()),
+        ("depth_sensor", "depth_sensor".to_string()),
+        ("prediction", "prediction".to_string()),
+    ];
+    for r in &args.remap {
+        let Some((from, to)) = r.split_once(":=") else {
+            bail!("--remap {r:?}: expected NAME:=TOPIC");
+        };
+        let Some(slot) = names.iter_mut().find(|(n, _)| *n == from.trim()) else {
+            bail!(
+                "--remap {r:?}: no topic {from:?} (image, camera_info, depth_sensor, prediction)"
+            );
+        };
+        slot.1 = to.trim().to_string();
+    }
+    let (frames, camera) = load_frames(args)?;
+    let mut node = args.dds.node("moma_replay")?;
+    let qos = dds::sensor_qos();
+    let image_pub = dds::publisher::<Image>(&mut node, &names[0].1, msg::types::image(), &qos)?;
+    let info_pub =
+        dds::publisher::<CameraInfo>(&mut node, &names[1].1, msg::types::camera_info(), &qos)?;
+    let depth_pub = dds::publisher::<Image>(&mut node, &names[2].1, msg::types::image(), &qos)?;
+    let pred_pub = dds::publisher::<Image>(&mut node, &names[3].1, msg::types::image(), &qos)?;
+
+    std::thread::sleep(Duration::from_secs_f64(args.warmup_s));
+    let period = Duration::from_secs_f64(1.0 / args.rate);
+    let mut next = Instant::now();
+    let mut published = 0u64;
+    'outer: loop {
+        for f in &frames {
+            if args.max_frames.is_some_and(|n| published >= n) {
+                break 'outer;
+            }
+            let now = Instant::now();
+            if next > now {
+                std::thread::sleep(next - now);
+            }
+            next += period;
+            let header = Header {
+                stamp: now_stamp(),
+                frame_id: args.frame_id.clone(),
+            };
+            // The prediction last: a node that waits for the image of the same stamp has it.
+            let stamped = |m: &Image| Image {
+                header: header.clone(),
+                ..m.clone()
+            };
+            if let Some(k) = &camera {
+                dds::publish(
+                    &info_pub,
+                    convert::intrinsics_to_camera_info(k, header.clone()),
+                )?;
+            }
+            dds::publish(&image_pub, stamped(&f.image))?;
+            if let Some(d) = &f.depth_sensor {
+                dds::publish(&depth_pub, stamped(d))?;
+            }
+            if let Some(p) = &f.prediction {
+                dds::publish(&pred_pub, stamped(p))?;
+            }
+            println!(
+                "frame {} stamp {}.{:09}",
+                f.name, header.stamp.sec, header.stamp.nanosec
+            );
+            published += 1;
+        }
+        if !args.repeat {
+            break;
+        }
+    }
+    // Let the last samples leave before the participant goes.
+    std::thread::sleep(Duration::from_millis(300));
+    Ok(())
+}

@@ -1,0 +1,452 @@
+//! Conversions between ROS 2 messages and moma's types, each checked: a message that does not
+//! hold what its header fields promise is an error naming the field, never a panic or a guess.
+
+use image::RgbImage;
+use moma_core::{ImageSize, Intrinsics, MetricDepth};
+use moma_grasp::Grasp;
+use ndarray::Array2;
+use serde_bytes::ByteBuf;
+
+use crate::error::{Result, RosError};
+use crate::msg::{
+    CameraInfo, Header, Image, Point, PointCloud2, PointField, Pose, PoseArray, Quaternion,
+};
+
+/// The most pixels one image may claim (a 16k × 16k frame); a larger `width × height` is a
+/// corrupt or hostile header, refused before any allocation.
+pub const MAX_PIXELS: u64 = 1 << 28;
+
+/// Encodings of colour images the node takes.
+pub const COLOUR_ENCODINGS: [&str; 5] = ["rgb8", "bgr8", "rgba8", "bgra8", "mono8"];
+
+/// Size and row layout of `img` checked against its data: `(size, step)`.
+fn checked_layout(img: &Image, bytes_per_pixel: usize) -> Result<(ImageSize, usize)> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    if w == 0 || h == 0 {
+        return Err(RosError::malformed(format!(
+            "image is {w}×{h} pixels (empty)"
+        )));
+    }
+    if u64::from(img.width) * u64::from(img.height) > MAX_PIXELS {
+        return Err(RosError::malformed(format!(
+            "image claims {w}×{h} pixels, more than {MAX_PIXELS}"
+        )));
+    }
+    let step = img.step as usize;
+    if step < w * bytes_per_pixel {
+        return Err(RosError::malformed(format!(
+            "step {step} bytes is less than width {w} × {bytes_per_pixel} bytes per pixel ({})",
+            img.encoding
+        )));
+    }
+    let needed = step * (h - 1) + w * bytes_per_pixel;
+    if img.data.len() < needed {
+        return Err(RosError::malformed(format!(
+            "data holds {} bytes, {w}×{h} {} with step {step} needs {needed} (truncated)",
+            img.data.len(),
+            img.encoding
+        )));
+    }
+    Ok((ImageSize::new(w, h), step))
+}
+
+/// A colour image (`rgb8`, `bgr8`, `rgba8`, `bgra8` or `mono8`) as RGB.
+///
+/// # Errors
+/// [`RosError::Encoding`] for any other encoding; [`RosError::Malformed`] when the data do not
+/// hold the announced image.
+pub fn image_to_rgb(img: &Image) -> Result<RgbImage> {
+    // (bytes per pixel, index of r, g, b)
+    let (bpp, idx) = match img.encoding.as_str() {
+        "rgb8" => (3, [0, 1, 2]),
+        "bgr8" => (3, [2, 1, 0]),
+        "rgba8" => (4, [0, 1, 2]),
+        "bgra8" => (4, [2, 1, 0]),
+        "mono8" | "8UC1" => (1, [0, 0, 0]),
+        other => {
+            return Err(RosError::Encoding {
+                encoding: other.to_string(),
+                expected: COLOUR_ENCODINGS.join(", "),
+            });
+        }
+    };
+    let (size, step) = checked_layout(img, bpp)?;
+    let mut out = Vec::with_capacity(size.width * size.height * 3);
+    for row in img.data.chunks(step).take(size.height) {
+        for px in row[..size.width * bpp].chunks_exact(bpp) {
+            out.extend_from_slice(&[px[idx[0]], px[idx[1]], px[idx[2]]]);
+        }
+    }
+    RgbImage::from_raw(size.width as u32, size.height as u32, out)
+        .ok_or_else(|| RosError::malformed("RGB buffer size".to_string()))
+}
+
+/// A single-channel float image (`32FC1`) as a `(height, width)` array, values as sent.
+///
+/// # Errors
+/// Another encoding; data that do not hold the image.
+pub fn image_to_f32(img: &Image) -> Result<Array2<f32>> {
+    if img.encoding != "32FC1" {
+        return Err(RosError::Encoding {
+            encoding: img.encoding.clone(),
+            expected: "32FC1".to_string(),
+        });
+    }
+    let (size, step) = checked_layout(img, 4)?;
+    let big = img.is_bigendian != 0;
+    let mut out = Vec::with_capacity(size.width * size.height);
+    for row in img.data.chunks(step).take(size.height) {
+        out.extend(row[..size.width * 4].chunks_exact(4).map(|b| {
+            let b = [b[0], b[1], b[2], b[3]];
+            if big {
+                f32::from_be_bytes(b)
+            } else {
+                f32::from_le_bytes(b)
+            }
+        }));
+    }
+    Array2::from_shape_vec((size.height, size.width), out)
+        .map_err(|e| RosError::malformed(format!("32FC1 buffer: {e}")))
+}
+
+/// A depth sensor's image as metres: `16UC1` (millimetres, 0 = no depth, read as a depth PNG is) or `32FC1` (metres,
+/// NaN or ≤ 0 = no depth); invalid pixels become NaN.
+///
+/// # Errors
+/// Another encoding; data that do not hold the image.
+pub fn depth_image_to_metres(img: &Image) -> Result<MetricDepth> {
+    match img.encoding.as_str() {
+        "32FC1" => Ok(MetricDepth::new(image_to_f32(img)?.mapv(|z| {
+            if z.is_finite() && z > 0.0 {
+                z
+            } else {
+                f32::NAN
+            }
+        }))),
+        "16UC1" | "mono16" => {
+            let (size, step) = checked_layout(img, 2)?;
+            let big = img.is_bigendian != 0;
+            let mut out = Vec::with_capacity(size.width * size.height);
+            for row in img.data.chunks(step).take(size.height) {
+                out.extend(row[..size.width * 2].chunks_exact(2).map(|b| {
+                    let mm = if big {
+                        u16::from_be_bytes([b[0], b[1]])
+                    } else {
+                        u16::from_le_bytes([b[0], b[1]])
+                    };
+                    // as a depth PNG is read (moma_io::read_depth)
+                    if mm == 0 {
+                        f32::NAN
+                    } else {
+                        (f64::from(mm) / moma_io::PNG_DEPTH_UNITS_PER_M) as f32
+                    }
+                }));
+            }
+            Array2::from_shape_vec((size.height, size.width), out)
+                .map(MetricDepth::new)
+                .map_err(|e| RosError::malformed(format!("16UC1 buffer: {e}")))
+        }
+        other => Err(RosError::Encoding {
+            encoding: other.to_string(),
+            expected: "16UC1 (millimetres) or 32FC1 (metres)".to_string(),
+        }),
+    }
+}
+
+/// A `(height, width)` float map as a `32FC1` image (little-endian, rows packed).
+pub fn f32_to_image(values: &Array2<f32>, header: Header) -> Image {
+    f32_image_with(values, header, |v| v)
+}
+
+/// `values` mapped by `f`, as `32FC1`, in one pass over the pixels (no intermediate map).
+fn f32_image_with(values: &Array2<f32>, header: Header, f: impl Fn(f32) -> f32) -> Image {
+    let (h, w) = values.dim();
+    let mut data = vec![0u8; h * w * 4];
+    for (out, &v) in data.chunks_exact_mut(4).zip(values.iter()) {
+        out.copy_from_slice(&f(v).to_le_bytes());
+    }
+    Image {
+        header,
+        height: h as u32,
+        width: w as u32,
+        encoding: "32FC1".to_string(),
+        is_bigendian: 0,
+        step: (w * 4) as u32,
+        data: ByteBuf::from(data),
+    }
+}
+
+/// Metric depth as a `32FC1` image in metres, NaN where there is no depth (REP 118).
+pub fn depth_to_image(depth: &MetricDepth, header: Header) -> Image {
+    f32_image_with(&depth.depth_m, header, |z| {
+        if moma_core::is_valid_depth(z) {
+            z
+        } else {
+            f32::NAN
+        }
+    })
+}
+
+/// An RGB image as `rgb8`.
+pub fn rgb_to_image(rgb: &RgbImage, header: Header) -> Image {
+    Image {
+        header,
+        height: rgb.height(),
+        width: rgb.width(),
+        encoding: "rgb8".to_string(),
+        is_bigendian: 0,
+        step: rgb.width() * 3,
+        data: ByteBuf::from(rgb.as_raw().clone()),
+    }
+}
+
+/// Metric depth in millimetres as `16UC1` (0 = no depth; depths beyond 65.535 m are 0), as a
+/// RealSense driver publishes it: the millimetres a depth PNG holds (`moma_io::depth_to_mm`).
+pub fn depth_to_mm_image(depth: &MetricDepth, header: Header) -> Image {
+    let (mm, _) = moma_io::depth_to_mm(depth.depth_m.view());
+    let (h, w) = mm.dim();
+    let mut data = Vec::with_capacity(h * w * 2);
+    for v in &mm {
+        data.extend_from_slice(&v.to_le_bytes());
+    }
+    Image {
+        header,
+        height: h as u32,
+        width: w as u32,
+        encoding: "16UC1".to_string(),
+        is_bigendian: 0,
+        step: (w * 2) as u32,
+        data: ByteBuf::from(data),
+    }
+}
+
+/// Intrinsics from a `CameraInfo` (its `k` matrix).
+///
+/// # Errors
+/// [`RosError::Malformed`] for an empty size or a focal length that is not positive and finite.
+pub fn camera_info_to_intrinsics(info: &CameraInfo) -> Result<Intrinsics> {
+    let k = Intrinsics {
+        width: info.width as usize,
+        height: info.height as usize,
+        fx: info.k[0],
+        fy: info.k[4],
+        cx: info.k[2],
+        cy: info.k[5],
+    };
+    k.validate()
+        .map_err(|e| RosError::malformed(format!("CameraInfo: {e}")))?;
+    Ok(k)
+}
+
+/// Intrinsics as a `CameraInfo` (no distortion: rectified images).
+pub fn intrinsics_to_camera_info(k: &Intrinsics, header: Header) -> CameraInfo {
+    CameraInfo {
+        header,
+        height: k.height as u32,
+        width: k.width as u32,
+        distortion_model: "plumb_bob".to_string(),
+        d: vec![0.0; 5],
+        k: [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
+        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: [
+            k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
+        ],
+        binning_x: 0,
+        binning_y: 0,
+        roi: Default::default(),
+    }
+}
+
+/// An organised point cloud (`height × width` of the depth map) with float32 `x`, `y`, `z` in
+/// metres (camera frame: x right, y down, z forward), NaN where there is no depth, and a packed
+/// `rgb` float field when `rgb` is given (PCL's layout: 0x00RRGGBB in the float's bits).
+///
+/// # Errors
+/// [`RosError::Size`] when the intrinsics or `rgb` are of another size than `depth`.
+pub fn depth_to_cloud(
+    depth: &MetricDepth,
+    k: &Intrinsics,
+    rgb: Option<&RgbImage>,
+    header: Header,
+) -> Result<PointCloud2> {
+    let size = depth.size();
+    if k.size() != size {
+        return Err(RosError::Size {
+            what: "camera intrinsics".to_string(),
+            got: k.size(),
+            expected: size,
+        });
+    }
+    if let Some(img) = rgb {
+        let got = ImageSize::new(img.width() as usize, img.height() as usize);
+        if got != size {
+            return Err(RosError::Size {
+                what: "RGB image for the point colours".to_string(),
+                got,
+                expected: size,
+            });
+        }
+    }
+    let field = |name: &str, offset: u32| PointField {
+        name: name.to_string(),
+        offset,
+        datatype: PointField::FLOAT32,
+        count: 1,
+    };
+    let mut fields = vec![field("x", 0), field("y", 4), field("z", 8)];
+    let point_step: usize = if rgb.is_some() {
+        fields.push(field("rgb", 12));
+        16
+    } else {
+        12
+    };
+    let mut data = vec![0u8; size.width * size.height * point_step];
+    // The same arithmetic as `Intrinsics::backproject` (f64), per pixel.
+    for ((v, u), &z) in depth.depth_m.indexed_iter() {
+        let at = (v * size.width + u) * point_step;
+        let xyz = if moma_core::is_valid_depth(z) {
+            let [x, y, z] = k.backproject(u as f64, v as f64, f64::from(z));
+            [x as f32, y as f32, z as f32]
+        } else {
+            [f32::NAN; 3]
+        };
+        for (i, c) in xyz.iter().enumerate() {
+            data[at + 4 * i..at + 4 * i + 4].copy_from_slice(&c.to_le_bytes());
+        }
+        if let Some(img) = rgb {
+            let p = img.get_pixel(u as u32, v as u32).0;
+            let packed = (u32::from(p[0]) << 16) | (u32::from(p[1]) << 8) | u32::from(p[2]);
+            data[at + 12..at + 16].copy_from_slice(&packed.to_le_bytes());
+        }
+    }
+    Ok(PointCloud2 {
+        header,
+        height: size.height as u32,
+        width: size.width as u32,
+        fields,
+        is_bigendian: false,
+        point_step: point_step as u32,
+        row_step: (point_step * size.width) as u32,
+        data: ByteBuf::from(data),
+        is_dense: false,
+    })
+}
+
+/// The pose of a grasp, in metres: position `p`, and an orientation whose x axis is `approach`
+/// and whose y axis is `closing` made orthogonal to it (for suction, any axis orthogonal to the
+/// approach: the camera's x or, when the approach is along it, its y).
+pub fn grasp_pose(p: [f32; 3], approach: [f32; 3], closing: Option<[f32; 3]>) -> Pose {
+    let a = normalised(approach.map(f64::from)).unwrap_or([0.0, 0.0, 1.0]);
+    let seed = closing.map(|c| c.map(f64::from)).unwrap_or_else(|| {
+        if a[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        }
+    });
+    // Gram–Schmidt: y = seed − (seed·a) a
+    let d = dot(seed, a);
+    let y = normalised([seed[0] - d * a[0], seed[1] - d * a[1], seed[2] - d * a[2]])
+        .or_else(|| normalised(cross(a, [0.0, 0.0, 1.0])))
+        .unwrap_or([0.0, 1.0, 0.0]);
+    let z = cross(a, y);
+    Pose {
+        position: Point {
+            x: f64::from(p[0]),
+            y: f64::from(p[1]),
+            z: f64::from(p[2]),
+        },
+        orientation: quaternion_from_columns(a, y, z),
+    }
+}
+
+/// A `PoseArray` of grasps, best first: in the camera frame, or in the robot base frame
+/// (`base`) when `base` is true and every grasp carries one.
+///
+/// # Errors
+/// [`RosError::Malformed`] when `base` is asked for and a grasp has no base pose.
+pub fn grasps_to_pose_array(grasps: &[Grasp], base: bool, header: Header) -> Result<PoseArray> {
+    let poses = grasps
+        .iter()
+        .map(|g| {
+            let (point, approach, closing) = match (g, base) {
+                (Grasp::Parallel(p), false) => {
+                    (p.pose.center_m, p.pose.approach, Some(p.pose.closing))
+                }
+                (Grasp::Suction(s), false) => (s.pose.point_m, s.pose.approach, None),
+                (Grasp::Parallel(p), true) => {
+                    let b = p
+                        .base
+                        .ok_or_else(|| RosError::malformed("grasp without a base pose"))?;
+                    (b.center_m, b.approach, Some(b.closing))
+                }
+                (Grasp::Suction(s), true) => {
+                    let b = s
+                        .base
+                        .ok_or_else(|| RosError::malformed("grasp without a base pose"))?;
+                    (b.point_m, b.approach, None)
+                }
+            };
+            Ok(grasp_pose(point, approach, closing))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(PoseArray { header, poses })
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn normalised(v: [f64; 3]) -> Option<[f64; 3]> {
+    let n = dot(v, v).sqrt();
+    (n.is_finite() && n > 1e-9).then(|| [v[0] / n, v[1] / n, v[2] / n])
+}
+
+/// The unit quaternion of the rotation whose matrix has columns `x`, `y`, `z` (Shepperd's method:
+/// the largest of the four candidates, for accuracy).
+fn quaternion_from_columns(x: [f64; 3], y: [f64; 3], z: [f64; 3]) -> Quaternion {
+    let (m00, m01, m02) = (x[0], y[0], z[0]);
+    let (m10, m11, m12) = (x[1], y[1], z[1]);
+    let (m20, m21, m22) = (x[2], y[2], z[2]);
+    let trace = m00 + m11 + m22;
+    let (qx, qy, qz, qw);
+    if trace > 0.0 {
+        let s = (trace + 1.0).sqrt() * 2.0;
+        qw = 0.25 * s;
+        qx = (m21 - m12) / s;
+        qy = (m02 - m20) / s;
+        qz = (m10 - m01) / s;
+    } else if m00 > m11 && m00 > m22 {
+        let s = (1.0 + m00 - m11 - m22).sqrt() * 2.0;
+        qw = (m21 - m12) / s;
+        qx = 0.25 * s;
+        qy = (m01 + m10) / s;
+        qz = (m02 + m20) / s;
+    } else if m11 > m22 {
+        let s = (1.0 + m11 - m00 - m22).sqrt() * 2.0;
+        qw = (m02 - m20) / s;
+        qx = (m01 + m10) / s;
+        qy = 0.25 * s;
+        qz = (m12 + m21) / s;
+    } else {
+        let s = (1.0 + m22 - m00 - m11).sqrt() * 2.0;
+        qw = (m10 - m01) / s;
+        qx = (m02 + m20) / s;
+        qy = (m12 + m21) / s;
+        qz = 0.25 * s;
+    }
+    Quaternion {
+        x: qx,
+        y: qy,
+        z: qz,
+        w: qw,
+    }
+}
