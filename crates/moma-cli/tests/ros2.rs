@@ -663,7 +663,9 @@ fn bad_input_is_skipped_with_a_reason() {
     };
     let good_img = |sec: i32| moma_ros2::convert::f32_to_image(&good, header(sec));
     // (what is sent, what the diagnostic must say)
-    let mut cases: Vec<(Box<dyn Fn()>, &str)> = Vec::new();
+    /// What is sent, and what the diagnostic must say.
+    type Case<'a> = (Box<dyn Fn() + 'a>, &'static str);
+    let mut cases: Vec<Case> = Vec::new();
     cases.push((
         Box::new(|| {
             let mut m = good_img(1);
@@ -745,4 +747,194 @@ fn bad_input_is_skipped_with_a_reason() {
         assert!(said, "case {i}: no diagnostic saying {reason:?}");
         assert!(processed, "case {i}: the next good frame was not processed");
     }
+}
+
+/// The tiny random-weight metric model of ../shared/reference/dav2 (random weights: plumbing,
+/// not depth quality).
+const TINY: &str = r#"{"embed_dim":64,"depth":4,"num_heads":2,"intermediate_layers":[0,1,2,3],"features":16,"out_channels":[8,16,32,64],"head":"metric","max_depth":20}"#;
+
+/// `--input image`: the node runs the depth model on the RGB it receives, re-aligns on the
+/// calibration's anchors and plans suction grasps. Its depth equals `moma align --rgb … --realign
+/// anchors` bit for bit on every frame, its coloured cloud has one finite point per valid pixel,
+/// and the grasps it publishes for a frame are `moma grasp --json`'s for the same frame (same
+/// flags), as JSON and as poses.
+#[test]
+#[cfg(feature = "candle")]
+#[ignore = "needs ../shared and root (a network namespace): run with --include-ignored (CI does)"]
+fn node_with_a_depth_model_equals_align_and_grasp() {
+    let tmp = tempfile::tempdir().unwrap();
+    let shared = shared();
+    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    assert!(weights.is_file(), "{} is missing", weights.display());
+    let config = tmp.path().join("tiny.json");
+    std::fs::write(&config, TINY).unwrap();
+    let set = shared.join("data/graspnet6dof-table");
+    let mut names: Vec<String> = std::fs::read_dir(set.join("frames"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    let model = [
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "266",
+    ];
+    let frame = |n: &str| set.join("frames").join(n);
+    let calib = tmp.path().join("calib.json");
+    let mut args = vec!["calibrate", "--rgb"];
+    let rgb0 = frame(&names[0]).join("rgb.png");
+    let gt0 = frame(&names[0]).join("depth.png");
+    let camera = set.join("camera.json");
+    args.extend([
+        s(&rgb0),
+        "--gt",
+        s(&gt0),
+        "--camera",
+        s(&camera),
+        "--anchors",
+        "-o",
+        s(&calib),
+    ]);
+    args.extend(model);
+    ok(&args);
+    let aligned = tmp.path().join("aligned");
+    let rgbs: Vec<PathBuf> = names.iter().map(|n| frame(n).join("rgb.png")).collect();
+    let mut args = vec![
+        "align",
+        "--calib",
+        s(&calib),
+        "--realign",
+        "anchors",
+        "-o",
+        s(&aligned),
+        "--rgb",
+    ];
+    args.extend(rgbs.iter().map(|p| s(p)));
+    args.extend(model);
+    ok(&args);
+    let grasp_frame = &names[1];
+    let rgb1 = frame(grasp_frame).join("rgb.png");
+    let mut args = vec![
+        "grasp",
+        "--calib",
+        s(&calib),
+        "--rgb",
+        s(&rgb1),
+        "--realign",
+        "anchors",
+        "--gripper",
+        "suction",
+        "--top",
+        "3",
+        "--json",
+    ];
+    args.extend(model);
+    let by_cli: serde_json::Value = serde_json::from_str(&ok(&args)).unwrap();
+
+    enter_private_network();
+    let mut node_args = vec![
+        "ros2",
+        "--calib",
+        s(&calib),
+        "--realign",
+        "anchors",
+        "--points-rgb",
+        "--gripper",
+        "suction",
+        "--top",
+        "3",
+        "--localhost-only",
+        "--domain-id",
+        "14",
+        "--max-seconds",
+        "150",
+    ];
+    node_args.extend(model);
+    let _node = spawn("node", &node_args);
+    let mut c = checker(14);
+    let qos = dds::sensor_reader_qos();
+    let grasps: Subscription<msg::PoseArray> =
+        dds::subscription(&mut c.node, "grasps", msg::types::pose_array(), &qos).unwrap();
+    let grasps_json: Subscription<msg::StringMsg> =
+        dds::subscription(&mut c.node, "grasps_json", msg::types::string(), &qos).unwrap();
+    let mut replay = spawn(
+        "replay",
+        &[
+            "ros2-replay",
+            "--set",
+            s(&set),
+            "--rate",
+            "1",
+            "--loop",
+            "--max-frames",
+            "40",
+            "--warmup-s",
+            "2",
+            "--localhost-only",
+            "--domain-id",
+            "14",
+        ],
+    );
+    let stamps = stamps_of(&mut replay);
+    let mut matched: HashMap<String, usize> = HashMap::new();
+    let (mut json_seen, mut poses_seen, mut clouds) = (false, false, 0);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while (matched.len() < names.len() || !json_seen || !poses_seen || clouds == 0)
+        && Instant::now() < deadline
+    {
+        std::thread::sleep(Duration::from_millis(5));
+        while let Ok(Some((img, _))) = c.depth.take() {
+            let name = name_of(&stamps, img.header.stamp);
+            if let Err(e) = same_bits(&img, &reference_depth(&aligned, &name)) {
+                panic!("frame {name}: the node's depth differs from moma align --rgb: {e}");
+            }
+            *matched.entry(name).or_default() += 1;
+        }
+        while let Ok(Some((cloud, _))) = c.points.take() {
+            assert_eq!(cloud.point_step, 16, "x, y, z, rgb");
+            let name = name_of(&stamps, cloud.header.stamp);
+            let want = reference_depth(&aligned, &name);
+            let valid = want.iter().filter(|z| z.is_finite() && **z > 0.0).count();
+            assert_eq!(valid_points(&cloud), valid, "frame {name}");
+            clouds += 1;
+        }
+        while let Ok(Some((m, _))) = grasps_json.take() {
+            let v: serde_json::Value = serde_json::from_str(&m.data).unwrap();
+            json_seen |= v == by_cli;
+        }
+        while let Ok(Some((poses, _))) = grasps.take() {
+            if name_of(&stamps, poses.header.stamp) != *grasp_frame {
+                continue;
+            }
+            let want = by_cli.as_array().unwrap();
+            assert_eq!(poses.poses.len(), want.len());
+            for (pose, g) in poses.poses.iter().zip(want) {
+                let p = &g["point_m"];
+                let at = [pose.position.x, pose.position.y, pose.position.z];
+                for (i, x) in at.iter().enumerate() {
+                    assert_eq!(*x as f32, p[i].as_f64().unwrap() as f32);
+                }
+            }
+            poses_seen = true;
+        }
+        while let Ok(Some((d, _))) = c.diagnostics.take() {
+            for st in &d.status {
+                assert!(st.level <= 1, "a frame was skipped: {}", diag_text(&d));
+            }
+        }
+    }
+    assert_eq!(
+        matched.len(),
+        names.len(),
+        "every frame as depth: {matched:?}"
+    );
+    assert!(clouds > 0, "no point cloud");
+    assert!(
+        json_seen,
+        "moma grasp's JSON for {grasp_frame} never came on grasps_json"
+    );
+    assert!(poses_seen, "no PoseArray for {grasp_frame}");
 }

@@ -176,7 +176,8 @@ fn main() {
         .stdout(Stdio::null())
         .spawn()
         .unwrap();
-    let (mut depth_ms, mut points_ms) = (Vec::new(), Vec::new());
+    let (mut depth_ms, mut points_ms, mut align_ms, mut cloud_ms) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let deadline = Instant::now() + Duration::from_secs(30 + frames as u64 / 5);
     while depth_ms.len() < frames.saturating_sub(5) && Instant::now() < deadline {
         while let Ok(Some((d, _))) = diag.take() {
@@ -184,6 +185,8 @@ fn main() {
                 match kv.key.as_str() {
                     "latency_depth_ms" => depth_ms.push(kv.value.parse().unwrap()),
                     "latency_points_ms" => points_ms.push(kv.value.parse().unwrap()),
+                    "align_ms" => align_ms.push(kv.value.parse().unwrap()),
+                    "cloud_ms" => cloud_ms.push(kv.value.parse().unwrap()),
                     _ => {}
                 }
             }
@@ -198,4 +201,8 @@ fn main() {
     println!("| moma ros2: prediction taken → depth published | {m:.2} ms | {p:.2} ms | {n} |");
     let (m, p, n) = quantiles(points_ms);
     println!("| moma ros2: prediction taken → points published | {m:.2} ms | {p:.2} ms | {n} |");
+    let (m, p, n) = quantiles(align_ms);
+    println!("| of which the alignment (`Calibration::aligned`) | {m:.2} ms | {p:.2} ms | {n} |");
+    let (m, p, n) = quantiles(cloud_ms);
+    println!("| of which building the cloud | {m:.2} ms | {p:.2} ms | {n} |");
 }

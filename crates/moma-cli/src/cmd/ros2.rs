@@ -264,8 +264,6 @@ struct Pending {
 struct CalibRequest {
     id: ros2_client::RmwRequestId,
     since: Instant,
-    /// Only depth_sensor frames newer than the newest one seen at the request count.
-    after: Option<Time>,
 }
 
 /// The node's state between frames.
@@ -320,7 +318,20 @@ fn drain<M: 'static + serde::de::DeserializeOwned>(
     out
 }
 
+/// Keeps freed large buffers in the heap for reuse: without it glibc maps every buffer of more
+/// than 128 kB afresh, and a frame's messages (1.2 MB depth, 3.7 MB cloud, their CDR copies)
+/// page-fault on every frame.
+fn keep_large_buffers() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only changes allocator thresholds; called before the node's threads start.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 64 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+    }
+}
+
 pub fn run(args: &Ros2Args) -> Result<()> {
+    keep_large_buffers();
     let topics = Topics::with_remaps(&args.remap)?;
     let calib = moma_io::read_calibration(&args.calib)?;
     let realign = match args.realign {
@@ -367,7 +378,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             let gripper = args.plan.gripper(g)?;
             let request = args.plan.request(
                 gripper,
-                calib.calibration.error_model.clone(),
+                calib.calibration.error_model,
                 SceneConfig::default(),
             )?;
             let extrinsics = args
@@ -531,25 +542,32 @@ pub fn run(args: &Ros2Args) -> Result<()> {
                 Err(e) => malformed.push(format!("camera_info ignored: {e}")),
             }
         }
-        let images = drain(&image_sub, |e| malformed.push(format!("image: {e}")));
+        // Recent messages are kept (bounded) only where a pairing by stamp needs them: the
+        // frame's image with --input prediction when the RGB is used, and everything while a
+        // calibration waits for its pair (which must come after the request).
+        let calibrating = calib_request.is_some();
+        let keep_images = calibrating || (args.input == InputArg::Prediction && state.needs_rgb());
         let now = Instant::now();
-        for m in images {
-            push_bounded(&mut state.images, m.clone());
-            if args.input == InputArg::Image {
-                if pending
+        for m in drain(&image_sub, |e| malformed.push(format!("image: {e}"))) {
+            if keep_images {
+                push_bounded(&mut state.images, m.clone());
+            }
+            if args.input == InputArg::Image
+                && pending
                     .replace(Pending {
                         msg: m,
                         received: now,
                     })
                     .is_some()
-                {
-                    state.dropped += 1;
-                }
+            {
+                state.dropped += 1;
             }
         }
         if let Some(sub) = &pred_sub {
             for m in drain(sub, |e| malformed.push(format!("prediction: {e}"))) {
-                push_bounded(&mut state.predictions, m.clone());
+                if calibrating {
+                    push_bounded(&mut state.predictions, m.clone());
+                }
                 if pending
                     .replace(Pending {
                         msg: m,
@@ -564,7 +582,9 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         for m in drain(&depth_sensor_sub, |e| {
             malformed.push(format!("depth_sensor: {e}"))
         }) {
-            push_bounded(&mut state.depth_sensor, m);
+            if calibrating {
+                push_bounded(&mut state.depth_sensor, m);
+            }
         }
         for e in malformed {
             state.skipped += 1;
@@ -588,7 +608,6 @@ pub fn run(args: &Ros2Args) -> Result<()> {
                     calib_request = Some(CalibRequest {
                         id,
                         since: Instant::now(),
-                        after: state.depth_sensor.back().map(|m| m.header.stamp),
                     });
                 }
                 Ok(None) => break,
@@ -606,10 +625,12 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         }
         if let Some(req) = &calib_request
             && let Some(response) = state.try_calibrate(req, &outputs)
+            && let Some(req) = calib_request.take()
         {
-            if let Some(req) = calib_request.take() {
-                let _ = server.send_response(req.id, response);
-            }
+            let _ = server.send_response(req.id, response);
+            // The pairing buffers are for the next request's frames only.
+            state.predictions.clear();
+            state.depth_sensor.clear();
         }
 
         // The newest frame.
@@ -687,9 +708,14 @@ impl NodeState {
         Some(convert::image_to_rgb(img).map_err(|e| format!("image: {e}")))
     }
 
+    /// Whether a frame's RGB is used (re-alignment, coloured points).
+    fn needs_rgb(&self) -> bool {
+        self.realign.is_some() || self.args.points_rgb
+    }
+
     fn process(&mut self, p: &Pending, out: &Outputs) -> Step {
         let header = p.msg.header.clone();
-        let needs_rgb = self.realign.is_some() || self.args.points_rgb;
+        let needs_rgb = self.needs_rgb();
         let rgb = if needs_rgb || self.args.input == InputArg::Image {
             match self.rgb_for(&p.msg) {
                 Some(Ok(rgb)) => Some(rgb),
@@ -824,8 +850,11 @@ impl NodeState {
         match self.intrinsics() {
             Some(k) => {
                 let colours = rgb.as_ref().filter(|_| self.args.points_rgb);
+                let t_cloud = Instant::now();
                 let cloud = convert::depth_to_cloud(&aligned.depth, &k, colours, header.clone())?;
+                let cloud_ms = t_cloud.elapsed().as_secs_f64() * 1e3;
                 dds::publish(&out.points, cloud)?;
+                values.push(kv("cloud_ms", format!("{cloud_ms:.3}")));
                 values.push(kv(
                     "latency_points_ms",
                     format!("{:.3}", p.received.elapsed().as_secs_f64() * 1e3),
@@ -869,8 +898,8 @@ impl NodeState {
 
     /// Answers a waiting calibration request when its RGB-D pair is there (or it timed out).
     fn try_calibrate(&mut self, req: &CalibRequest, out: &Outputs) -> Option<TriggerResponse> {
-        let newer = |m: &&Image| req.after.is_none_or(|a| m.header.stamp > a);
-        let pair = self.depth_sensor.iter().rev().filter(newer).find_map(|d| {
+        // Only frames received since the request are buffered: the pair is the next one.
+        let pair = self.depth_sensor.iter().rev().find_map(|d| {
             let stamp = d.header.stamp;
             let img = find_stamp(&self.images, stamp)?;
             let pred = match self.args.input {
@@ -980,9 +1009,7 @@ impl NodeState {
         );
         eprintln!("moma ros2: {text}");
         if let Some((request, _, _)) = &mut self.grasp {
-            let mut r = request.clone();
-            r.error_model = file.calibration.error_model.clone();
-            *request = r;
+            request.error_model = file.calibration.error_model;
         }
         self.calib = file;
         Ok(text)
