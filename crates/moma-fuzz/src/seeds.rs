@@ -373,6 +373,41 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
             moma_io::write_json(p("suction.json"), &moma_grasp::SuctionCup::default())?;
             seeds.push(gen_seed("suction.json", &p("suction.json"))?);
         }
+        Target::Ros2Image => {
+            use moma_ros2::convert::{depth_to_mm_image, f32_to_image, rgb_to_image};
+            use moma_ros2::msg::{Header, to_cdr_payload};
+            let h = || Header {
+                stamp: moma_ros2::msg::Time { sec: 1, nanosec: 2 },
+                frame_id: "camera_optical_frame".into(),
+            };
+            let rgb = image::RgbImage::from_fn(3, 2, |u, v| image::Rgb([u as u8, v as u8, 9]));
+            let mut bgr = rgb_to_image(&rgb, h());
+            bgr.encoding = "bgr8".into();
+            let depth = depth_map(3, 2);
+            for (name, msg) in [
+                ("rgb8-3x2.cdr", rgb_to_image(&rgb, h())),
+                ("bgr8-3x2.cdr", bgr),
+                ("32fc1-3x2.cdr", f32_to_image(&depth.depth_m, h())),
+                ("16uc1-3x2.cdr", depth_to_mm_image(&depth, h())),
+            ] {
+                seeds.push(bytes_seed(name, to_cdr_payload(&msg)?));
+            }
+        }
+        Target::Ros2CameraInfo => {
+            let k = Intrinsics {
+                width: 640,
+                height: 480,
+                fx: 525.0,
+                fy: 525.5,
+                cx: 319.5,
+                cy: 239.5,
+            };
+            let info = moma_ros2::convert::intrinsics_to_camera_info(&k, Default::default());
+            seeds.push(bytes_seed(
+                "camera-info.cdr",
+                moma_ros2::msg::to_cdr_payload(&info)?,
+            ));
+        }
         Target::Safetensors => {
             let header = r#"{"__metadata__":{"format":"pt"},"a.weight":{"dtype":"F32","shape":[2,2],"data_offsets":[0,16]},"a.bias":{"dtype":"F16","shape":[2],"data_offsets":[16,20]}}"#;
             let file_len = 8 + header.len() as u64 + 20;
@@ -443,7 +478,9 @@ fn shared_seeds(target: Target, root: &Path) -> Vec<Seed> {
         | Target::Calibration
         | Target::CalibrationApply
         | Target::Extrinsics
-        | Target::Gripper => vec![],
+        | Target::Gripper
+        | Target::Ros2Image
+        | Target::Ros2CameraInfo => vec![],
         Target::Safetensors => ["tiny-metric.safetensors", "tiny-metric-392.safetensors"]
             .iter()
             .filter_map(|n| {

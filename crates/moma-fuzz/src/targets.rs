@@ -33,11 +33,17 @@ pub enum Target {
     /// `moma_io::parse_json` of a parallel-jaw and of a suction-cup configuration, then their
     /// validation: `moma grasp --gripper-config`.
     Gripper,
+    /// A `sensor_msgs/msg/Image` RTPS payload decoded (`moma_ros2::msg::from_cdr_payload`), then
+    /// converted as `moma ros2` converts what it receives: as a colour image, a prediction and a
+    /// depth sensor's image.
+    Ros2Image,
+    /// A `sensor_msgs/msg/CameraInfo` RTPS payload decoded, then its intrinsics checked.
+    Ros2CameraInfo,
 }
 
 impl Target {
     /// Every target, in the order `all` runs them.
-    pub const ALL: [Target; 11] = [
+    pub const ALL: [Target; 13] = [
         Target::DepthPng,
         Target::Npy,
         Target::Pfm,
@@ -49,6 +55,8 @@ impl Target {
         Target::Safetensors,
         Target::Extrinsics,
         Target::Gripper,
+        Target::Ros2Image,
+        Target::Ros2CameraInfo,
     ];
 
     /// The target's name on the command line and in findings.
@@ -65,6 +73,8 @@ impl Target {
             Target::Safetensors => "safetensors-header",
             Target::Extrinsics => "extrinsics-json",
             Target::Gripper => "gripper-json",
+            Target::Ros2Image => "ros2-image",
+            Target::Ros2CameraInfo => "ros2-camera-info",
         }
     }
 
@@ -138,6 +148,21 @@ impl Target {
                     .map_err(|e| s(&e))
                     .and_then(|c| c.validate().map_err(|e| s(&e)));
                 jaw.or(cup)
+            }
+            Target::Ros2Image => {
+                let img: moma_ros2::msg::Image =
+                    moma_ros2::msg::from_cdr_payload(data).map_err(|e| s(&e))?;
+                let rgb = moma_ros2::convert::image_to_rgb(&img).map(drop);
+                let pred = moma_ros2::convert::image_to_f32(&img).map(drop);
+                let depth = moma_ros2::convert::depth_image_to_metres(&img).map(drop);
+                rgb.or(pred).or(depth).map_err(|e| s(&e))
+            }
+            Target::Ros2CameraInfo => {
+                let info: moma_ros2::msg::CameraInfo =
+                    moma_ros2::msg::from_cdr_payload(data).map_err(|e| s(&e))?;
+                moma_ros2::convert::camera_info_to_intrinsics(&info)
+                    .map(drop)
+                    .map_err(|e| s(&e))
             }
             Target::Safetensors => {
                 let (len, prefix) = data.split_at_checked(8).ok_or("shorter than 8 bytes")?;

@@ -298,3 +298,42 @@ pub mod types {
         ServiceTypeName::new("std_srvs", "Trigger")
     }
 }
+
+/// A message from an RTPS serialized payload: the 4-byte encapsulation header (`CDR_BE` 0x0000
+/// or `CDR_LE` 0x0001, two option bytes) and the CDR body, decoded as RustDDS decodes what the
+/// node receives (the fuzzer's entry point).
+///
+/// # Errors
+/// [`crate::RosError::Malformed`]: a payload shorter than its header, another representation,
+/// or a body that does not decode as `T`.
+pub fn from_cdr_payload<T: serde::de::DeserializeOwned>(payload: &[u8]) -> crate::Result<T> {
+    use byteorder::{BigEndian, LittleEndian};
+    let (head, body) = payload
+        .split_at_checked(4)
+        .ok_or_else(|| crate::RosError::malformed("payload shorter than its 4-byte header"))?;
+    let decoded = match [head[0], head[1]] {
+        [0x00, 0x00] => cdr_encoding::from_bytes::<T, BigEndian>(body),
+        [0x00, 0x01] => cdr_encoding::from_bytes::<T, LittleEndian>(body),
+        other => {
+            return Err(crate::RosError::malformed(format!(
+                "representation {other:02x?} is not plain CDR"
+            )));
+        }
+    };
+    decoded
+        .map(|(m, _)| m)
+        .map_err(|e| crate::RosError::malformed(format!("CDR: {e}")))
+}
+
+/// `message` as an RTPS serialized payload (`CDR_LE` header and body).
+///
+/// # Errors
+/// [`crate::RosError::Malformed`] when serde refuses the value.
+pub fn to_cdr_payload<T: Serialize>(message: &T) -> crate::Result<Vec<u8>> {
+    let mut out = vec![0x00, 0x01, 0x00, 0x00];
+    out.extend(
+        cdr_encoding::to_vec::<T, byteorder::LittleEndian>(message)
+            .map_err(|e| crate::RosError::malformed(format!("CDR: {e}")))?,
+    );
+    Ok(out)
+}
