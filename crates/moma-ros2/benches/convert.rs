@@ -49,6 +49,24 @@ fn bench(c: &mut Criterion) {
     c.bench_function("cdr encode cloud (3.7 MB)", |b| {
         b.iter(|| cdr_encoding::to_vec::<_, LittleEndian>(&cloud).unwrap())
     });
+    // ros2-client's publish with no subscriber (nothing is sent): encoding and the writer's
+    // admission, what the node pays per message before DDS's own thread takes over. The node is
+    // loopback-only: its discovery announcements stay on this machine.
+    let mut node = moma_ros2::dds::node("bench", 199, moma_ros2::dds::Network::Loopback).unwrap();
+    let publ = moma_ros2::dds::publisher::<moma_ros2::msg::PointCloud2>(
+        &mut node,
+        "bench_points",
+        moma_ros2::msg::types::point_cloud2(),
+        &moma_ros2::dds::sensor_qos(),
+    )
+    .unwrap();
+    c.bench_function("publish cloud, no subscriber (3.7 MB)", |b| {
+        b.iter_batched(
+            || cloud.clone(),
+            |m| moma_ros2::dds::publish(&publ, m).unwrap(),
+            criterion::BatchSize::LargeInput,
+        )
+    });
 }
 
 criterion_group!(benches, bench);
