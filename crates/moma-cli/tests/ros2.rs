@@ -938,3 +938,116 @@ fn node_with_a_depth_model_equals_align_and_grasp() {
     );
     assert!(poses_seen, "no PoseArray for {grasp_frame}");
 }
+
+/// Newest first: with a depth model slower than the camera, the node drops stale frames (counted
+/// in diagnostics) instead of queueing them, so every depth it publishes is of a recent frame.
+#[test]
+#[cfg(feature = "candle")]
+#[ignore = "needs ../shared and root (a network namespace): run with --include-ignored (CI does)"]
+fn a_slow_model_drops_stale_frames_instead_of_queueing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let shared = shared();
+    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let config = tmp.path().join("tiny.json");
+    std::fs::write(&config, TINY).unwrap();
+    let set = shared.join("data/graspnet6dof-table");
+    let f0 = set.join("frames/blue_mug");
+    let calib = tmp.path().join("calib.json");
+    let model = [
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "518",
+    ];
+    let rgb0 = f0.join("rgb.png");
+    let gt0 = f0.join("depth.png");
+    let mut args = vec![
+        "calibrate",
+        "--rgb",
+        s(&rgb0),
+        "--gt",
+        s(&gt0),
+        "-o",
+        s(&calib),
+    ];
+    args.extend(model);
+    ok(&args);
+
+    enter_private_network();
+    let mut node_args = vec![
+        "ros2",
+        "--calib",
+        s(&calib),
+        "--localhost-only",
+        "--domain-id",
+        "15",
+        "--max-seconds",
+        "90",
+    ];
+    node_args.extend(model);
+    let _node = spawn("node", &node_args);
+    let c = checker(15);
+    let mut replay = spawn(
+        "replay",
+        &[
+            "ros2-replay",
+            "--set",
+            s(&set),
+            "--rate",
+            "30",
+            "--loop",
+            "--max-frames",
+            "600",
+            "--warmup-s",
+            "2",
+            "--localhost-only",
+            "--domain-id",
+            "15",
+        ],
+    );
+    let _stamps = stamps_of(&mut replay);
+    let (mut processed, mut dropped, mut model_ms) = (0usize, 0u64, Vec::new());
+    let mut ages = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while (processed < 8 || dropped == 0) && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(5));
+        while let Ok(Some((img, _))) = c.depth.take() {
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+                .as_secs_f64();
+            ages.push(now - img.header.stamp.as_secs_f64());
+            processed += 1;
+        }
+        while let Ok(Some((d, _))) = c.diagnostics.take() {
+            for kv in d.status.iter().flat_map(|s| &s.values) {
+                match kv.key.as_str() {
+                    "frames_dropped_stale" => dropped = dropped.max(kv.value.parse().unwrap()),
+                    "model_ms" => model_ms.push(kv.value.parse::<f64>().unwrap()),
+                    _ => {}
+                }
+            }
+        }
+    }
+    assert!(processed >= 8, "only {processed} frames processed");
+    assert!(
+        dropped > 0,
+        "a camera faster than the model must make the node drop frames"
+    );
+    model_ms.sort_by(f64::total_cmp);
+    let model_s = model_ms[model_ms.len() / 2] / 1e3;
+    // A queue would make the age grow frame after frame; newest first keeps it near the model's
+    // time (one frame in inference, at most one waiting, plus the transport).
+    let worst = ages.iter().copied().fold(0.0, f64::max);
+    assert!(
+        worst < 3.0 * model_s + 0.5,
+        "a depth frame was {worst:.2} s old (model {model_s:.3} s): frames are queueing"
+    );
+    eprintln!(
+        "newest first: {processed} frames processed, {dropped} dropped as stale, model {:.0} ms, \
+         oldest published frame {worst:.2} s",
+        model_s * 1e3
+    );
+}
