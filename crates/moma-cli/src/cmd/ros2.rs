@@ -413,8 +413,20 @@ pub fn run(args: &Ros2Args) -> Result<()> {
     let mut node = args.dds.node("moma")?;
     let sensor = dds::sensor_qos();
     let reader = dds::sensor_reader_qos();
-    let image_sub: Subscription<Image> =
-        dds::subscription(&mut node, &topics.image, msg::types::image(), &reader)?;
+    // The image is read on every frame with --input image, --realign or --points-rgb; else (and
+    // the depth sensor always) only while a calibration waits for its pair: a camera's 0.6–1 MB
+    // frames that the node would drop still cost the DDS thread their reassembly.
+    let image_always = args.input == InputArg::Image || args.realign.is_some() || args.points_rgb;
+    let image_sub: Option<Subscription<Image>> = if image_always {
+        Some(dds::subscription(
+            &mut node,
+            &topics.image,
+            msg::types::image(),
+            &reader,
+        )?)
+    } else {
+        None
+    };
     let info_sub: Subscription<CameraInfo> = dds::subscription(
         &mut node,
         &topics.camera_info,
@@ -430,12 +442,8 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         )?),
         InputArg::Image => None,
     };
-    let depth_sensor_sub: Subscription<Image> = dds::subscription(
-        &mut node,
-        &topics.depth_sensor,
-        msg::types::image(),
-        &reader,
-    )?;
+    let mut depth_sensor_sub: Option<Subscription<Image>> = None;
+    let mut image_sub_calib: Option<Subscription<Image>> = None;
     let outputs = Outputs {
         depth: dds::publisher(&mut node, &topics.depth, msg::types::image(), &sensor)?,
         points: dds::publisher(
@@ -464,10 +472,10 @@ pub fn run(args: &Ros2Args) -> Result<()> {
     let registry = poll.registry();
     let mut image_sub = image_sub;
     let mut info_sub = info_sub;
-    let mut depth_sensor_sub = depth_sensor_sub;
-    registry.register(&mut image_sub, Token(0), Interest::READABLE)?;
+    if let Some(s) = image_sub.as_mut() {
+        registry.register(s, Token(0), Interest::READABLE)?;
+    }
     registry.register(&mut info_sub, Token(1), Interest::READABLE)?;
-    registry.register(&mut depth_sensor_sub, Token(2), Interest::READABLE)?;
     registry.register(&mut server, Token(3), Interest::READABLE)?;
     let mut pred_sub = pred_sub;
     if let Some(s) = pred_sub.as_mut() {
@@ -548,7 +556,11 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         let calibrating = calib_request.is_some();
         let keep_images = calibrating || (args.input == InputArg::Prediction && state.needs_rgb());
         let now = Instant::now();
-        for m in drain(&image_sub, |e| malformed.push(format!("image: {e}"))) {
+        let image_source = image_sub.as_ref().or(image_sub_calib.as_ref());
+        let images = image_source
+            .map(|sub| drain(sub, |e| malformed.push(format!("image: {e}"))))
+            .unwrap_or_default();
+        for m in images {
             if keep_images {
                 push_bounded(&mut state.images, m.clone());
             }
@@ -579,9 +591,11 @@ pub fn run(args: &Ros2Args) -> Result<()> {
                 }
             }
         }
-        for m in drain(&depth_sensor_sub, |e| {
-            malformed.push(format!("depth_sensor: {e}"))
-        }) {
+        let depth_frames = depth_sensor_sub
+            .as_ref()
+            .map(|sub| drain(sub, |e| malformed.push(format!("depth_sensor: {e}"))))
+            .unwrap_or_default();
+        for m in depth_frames {
             if calibrating {
                 push_bounded(&mut state.depth_sensor, m);
             }
@@ -609,6 +623,21 @@ pub fn run(args: &Ros2Args) -> Result<()> {
                         id,
                         since: Instant::now(),
                     });
+                    // Subscribed while the request waits (drained every turn, not polled).
+                    depth_sensor_sub = Some(dds::subscription(
+                        &mut node,
+                        &topics.depth_sensor,
+                        msg::types::image(),
+                        &reader,
+                    )?);
+                    if image_sub.is_none() {
+                        image_sub_calib = Some(dds::subscription(
+                            &mut node,
+                            &topics.image,
+                            msg::types::image(),
+                            &reader,
+                        )?);
+                    }
                 }
                 Ok(None) => break,
                 Err(e) => {
@@ -628,9 +657,11 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             && let Some(req) = calib_request.take()
         {
             let _ = server.send_response(req.id, response);
-            // The pairing buffers are for the next request's frames only.
+            // The pairing buffers and subscriptions are for the next request's frames only.
             state.predictions.clear();
             state.depth_sensor.clear();
+            depth_sensor_sub = None;
+            image_sub_calib = None;
         }
 
         // The newest frame.
