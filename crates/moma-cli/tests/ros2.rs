@@ -82,6 +82,37 @@ fn spawn(what: &'static str, args: &[&str]) -> Proc {
     Proc(child, what)
 }
 
+/// `moma ros2 ARGS` on `domain`, loopback only, stopping by itself after `seconds`.
+fn start_node(domain: &str, seconds: &str, args: &[&str]) -> Proc {
+    let mut all = vec![
+        "ros2",
+        "--localhost-only",
+        "--domain-id",
+        domain,
+        "--max-seconds",
+        seconds,
+    ];
+    all.extend_from_slice(args);
+    spawn("node", &all)
+}
+
+/// `moma ros2-replay --set SET --loop ARGS` on `domain`, loopback only, at most `frames` frames.
+fn start_replay(domain: &str, set: &Path, frames: &str, args: &[&str]) -> Proc {
+    let mut all = vec![
+        "ros2-replay",
+        "--set",
+        s(set),
+        "--loop",
+        "--max-frames",
+        frames,
+        "--localhost-only",
+        "--domain-id",
+        domain,
+    ];
+    all.extend_from_slice(args);
+    spawn("replay", &all)
+}
+
 /// Reads the replay's `frame NAME stamp SEC.NANOSEC` lines into a stamp → name map.
 fn stamps_of(p: &mut Proc) -> Arc<Mutex<HashMap<Time, String>>> {
     let map = Arc::new(Mutex::new(HashMap::new()));
@@ -258,41 +289,17 @@ fn node_output_equals_moma_align_bit_for_bit() {
     let p = prepare(tmp.path(), "graspnet6dof-table");
     enter_private_network();
     let domain = "11";
-    let _node = spawn(
-        "node",
-        &[
-            "ros2",
-            "--calib",
-            s(&p.calib),
-            "--input",
-            "prediction",
-            "--localhost-only",
-            "--domain-id",
-            domain,
-            "--max-seconds",
-            "90",
-        ],
+    let _node = start_node(
+        domain,
+        "90",
+        &["--calib", s(&p.calib), "--input", "prediction"],
     );
     let c = checker(11);
-    let mut replay = spawn(
-        "replay",
-        &[
-            "ros2-replay",
-            "--set",
-            s(&p.set),
-            "--pred",
-            s(&p.preds),
-            "--rate",
-            "3",
-            "--loop",
-            "--max-frames",
-            "60",
-            "--warmup-s",
-            "2",
-            "--localhost-only",
-            "--domain-id",
-            domain,
-        ],
+    let mut replay = start_replay(
+        domain,
+        &p.set,
+        "60",
+        &["--pred", s(&p.preds), "--rate", "3", "--warmup-s", "2"],
     );
     let stamps = stamps_of(&mut replay);
     let mut matched: HashMap<String, usize> = HashMap::new();
@@ -442,21 +449,16 @@ fn live_calibration_through_the_service() {
     let live = tmp.path().join("live.json");
     enter_private_network();
     let domain = "12";
-    let _node = spawn(
-        "node",
+    let _node = start_node(
+        domain,
+        "120",
         &[
-            "ros2",
             "--calib",
             s(&p.calib),
             "--calib-out",
             s(&live),
             "--input",
             "prediction",
-            "--localhost-only",
-            "--domain-id",
-            domain,
-            "--max-seconds",
-            "120",
             "--calib-timeout-s",
             "3",
         ],
@@ -464,24 +466,17 @@ fn live_calibration_through_the_service() {
     let mut c = checker(12);
 
     // 1. No depth sensor: the replay sends its depth elsewhere; the request times out.
-    let mut replay = spawn(
-        "replay without depth",
+    let mut replay = start_replay(
+        domain,
+        &p.set,
+        "30",
         &[
-            "ros2-replay",
-            "--set",
-            s(&p.set),
             "--pred",
             s(&p.preds),
             "--rate",
             "3",
-            "--loop",
-            "--max-frames",
-            "30",
             "--warmup-s",
             "1",
-            "--localhost-only",
-            "--domain-id",
-            domain,
             "--remap",
             "depth_sensor:=not_the_depth_sensor",
         ],
@@ -514,25 +509,11 @@ fn live_calibration_through_the_service() {
     drop(replay);
 
     // 2. With the depth sensor: calibrate on the next frame.
-    let mut replay = spawn(
-        "replay",
-        &[
-            "ros2-replay",
-            "--set",
-            s(&p.set),
-            "--pred",
-            s(&p.preds),
-            "--rate",
-            "3",
-            "--loop",
-            "--max-frames",
-            "60",
-            "--warmup-s",
-            "1",
-            "--localhost-only",
-            "--domain-id",
-            domain,
-        ],
+    let mut replay = start_replay(
+        domain,
+        &p.set,
+        "60",
+        &["--pred", s(&p.preds), "--rate", "3", "--warmup-s", "1"],
     );
     let stamps = stamps_of(&mut replay);
     // The node receives this replay's frames before the request is sent.
@@ -627,20 +608,10 @@ fn bad_input_is_skipped_with_a_reason() {
     let good: ndarray::Array2<f32> =
         ndarray_npy::read_npy(p.preds.join(format!("{}.npy", p.names[1]))).unwrap();
     enter_private_network();
-    let _node = spawn(
-        "node",
-        &[
-            "ros2",
-            "--calib",
-            s(&p.calib),
-            "--input",
-            "prediction",
-            "--localhost-only",
-            "--domain-id",
-            "13",
-            "--max-seconds",
-            "60",
-        ],
+    let _node = start_node(
+        "13",
+        "60",
+        &["--calib", s(&p.calib), "--input", "prediction"],
     );
     let c = checker(13);
     let mut pnode = dds::node("bad_camera", 13, Network::Loopback).unwrap();
@@ -836,7 +807,6 @@ fn node_with_a_depth_model_equals_align_and_grasp() {
 
     enter_private_network();
     let mut node_args = vec![
-        "ros2",
         "--calib",
         s(&calib),
         "--realign",
@@ -846,38 +816,16 @@ fn node_with_a_depth_model_equals_align_and_grasp() {
         "suction",
         "--top",
         "3",
-        "--localhost-only",
-        "--domain-id",
-        "14",
-        "--max-seconds",
-        "150",
     ];
     node_args.extend(model);
-    let _node = spawn("node", &node_args);
+    let _node = start_node("14", "150", &node_args);
     let mut c = checker(14);
     let qos = dds::sensor_reader_qos();
     let grasps: Subscription<msg::PoseArray> =
         dds::subscription(&mut c.node, "grasps", msg::types::pose_array(), &qos).unwrap();
     let grasps_json: Subscription<msg::StringMsg> =
         dds::subscription(&mut c.node, "grasps_json", msg::types::string(), &qos).unwrap();
-    let mut replay = spawn(
-        "replay",
-        &[
-            "ros2-replay",
-            "--set",
-            s(&set),
-            "--rate",
-            "1",
-            "--loop",
-            "--max-frames",
-            "40",
-            "--warmup-s",
-            "2",
-            "--localhost-only",
-            "--domain-id",
-            "14",
-        ],
-    );
+    let mut replay = start_replay("14", &set, "40", &["--rate", "1", "--warmup-s", "2"]);
     let stamps = stamps_of(&mut replay);
     let mut matched: HashMap<String, usize> = HashMap::new();
     let (mut json_seen, mut poses_seen, mut clouds) = (false, false, 0);
@@ -976,37 +924,11 @@ fn a_slow_model_drops_stale_frames_instead_of_queueing() {
     ok(&args);
 
     enter_private_network();
-    let mut node_args = vec![
-        "ros2",
-        "--calib",
-        s(&calib),
-        "--localhost-only",
-        "--domain-id",
-        "15",
-        "--max-seconds",
-        "90",
-    ];
+    let mut node_args = vec!["--calib", s(&calib)];
     node_args.extend(model);
-    let _node = spawn("node", &node_args);
+    let _node = start_node("15", "90", &node_args);
     let c = checker(15);
-    let mut replay = spawn(
-        "replay",
-        &[
-            "ros2-replay",
-            "--set",
-            s(&set),
-            "--rate",
-            "30",
-            "--loop",
-            "--max-frames",
-            "600",
-            "--warmup-s",
-            "2",
-            "--localhost-only",
-            "--domain-id",
-            "15",
-        ],
-    );
+    let mut replay = start_replay("15", &set, "600", &["--rate", "30", "--warmup-s", "2"]);
     let _stamps = stamps_of(&mut replay);
     let (mut processed, mut dropped, mut model_ms) = (0usize, 0u64, Vec::new());
     let mut ages = Vec::new();

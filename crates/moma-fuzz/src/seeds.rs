@@ -345,14 +345,7 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
             seeds.push(gen_seed("be-4x3.pfm", &p("be.pfm"))?);
         }
         Target::Camera => {
-            let k = Intrinsics {
-                width: 640,
-                height: 480,
-                fx: 525.0,
-                fy: 525.5,
-                cx: 319.5,
-                cy: 239.5,
-            };
+            let k = seed_intrinsics();
             moma_io::write_camera(p("camera.json"), &k)?;
             seeds.push(gen_seed("camera.json", &p("camera.json"))?);
         }
@@ -394,14 +387,7 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
             }
         }
         Target::Ros2CameraInfo => {
-            let k = Intrinsics {
-                width: 640,
-                height: 480,
-                fx: 525.0,
-                fy: 525.5,
-                cx: 319.5,
-                cy: 239.5,
-            };
+            let k = seed_intrinsics();
             let info = moma_ros2::convert::intrinsics_to_camera_info(&k, Default::default());
             seeds.push(bytes_seed(
                 "camera-info.cdr",
@@ -418,6 +404,18 @@ fn generated(target: Target, dir: &Path) -> anyhow::Result<Vec<Seed>> {
         }
     }
     Ok(seeds)
+}
+
+/// The intrinsics of the `camera.json` and `CameraInfo` seeds.
+fn seed_intrinsics() -> Intrinsics {
+    Intrinsics {
+        width: 640,
+        height: 480,
+        fx: 525.0,
+        fy: 525.5,
+        cx: 319.5,
+        cy: 239.5,
+    }
 }
 
 /// Frames per set used as seeds (the first ones, in name order).
