@@ -171,7 +171,8 @@ impl DdsArgs {
 ///
 /// Examples:
 ///   moma ros2 --calib calib.json --weights depth_anything_v2_vits.safetensors --gripper suction
-///   moma ros2 --calib calib.json --input prediction --realign anchors --remap image:=/camera/color/image_raw
+///   moma ros2 --calib calib.json --input prediction --realign anchors \
+///       --remap image:=/camera/color/image_raw
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct Ros2Args {
