@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 mod common;
-use common::{fails, ok, s};
+use common::{fails, ok, s, tiny_metric_model};
 
 fn shared() -> Option<PathBuf> {
     let shared = std::env::var_os("MOMA_SHARED_DIR")
@@ -24,16 +24,12 @@ fn shared() -> Option<PathBuf> {
     Some(shared)
 }
 
-const TINY: &str = r#"{"embed_dim":64,"depth":4,"num_heads":2,"intermediate_layers":[0,1,2,3],"features":16,"out_channels":[8,16,32,64],"head":"metric","max_depth":20}"#;
-
 #[test]
 #[ignore = "needs ../shared: run with --include-ignored (CI does)"]
 fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     let Some(shared) = shared() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    let config = tmp.path().join("tiny-metric.json");
-    std::fs::write(&config, TINY).unwrap();
-    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
     let set = shared.join("data/gqcnn-primesense");
     let adapter = tmp.path().join("a.safetensors");
     let common = [
@@ -267,9 +263,7 @@ fn silog_vs_png(pred: &ndarray::Array2<f32>, gt_png: &Path) -> f64 {
 fn trained_head_reaches_inference_and_lr_1e3_trains_without_nan() {
     let Some(shared) = shared() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    let config = tmp.path().join("tiny-metric.json");
-    std::fs::write(&config, TINY).unwrap();
-    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
     let set = shared.join("data/graspnet6dof-table");
     let model: Vec<&str> = vec![
         "--weights",
@@ -373,9 +367,7 @@ fn trained_head_reaches_inference_and_lr_1e3_trains_without_nan() {
 fn resume_continues_bit_for_bit_and_crops_are_checked() {
     let Some(shared) = shared() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    let config = tmp.path().join("tiny-metric.json");
-    std::fs::write(&config, TINY).unwrap();
-    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
     let set = shared.join("data/gqcnn-primesense");
     // Non-square frames (640×480 → the whole network-size frame, 4:3), batch 2 with gradient
     // accumulation, LoRA dropout, augmentation, a trained head and clipping: every random draw

@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 
 mod common;
-use common::{fails, moma, ok, s};
+use common::{fails, moma, ok, s, tiny_metric_model};
 
 fn shared() -> PathBuf {
     let shared = std::env::var_os("MOMA_SHARED_DIR")
@@ -25,8 +25,6 @@ fn shared() -> PathBuf {
     shared
 }
 
-const TINY: &str = r#"{"embed_dim":64,"depth":4,"num_heads":2,"intermediate_layers":[0,1,2,3],"features":16,"out_channels":[8,16,32,64],"head":"metric","max_depth":20}"#;
-
 /// The `.npy` that `moma predict -o out` wrote.
 fn npy_in(out: &Path) -> PathBuf {
     std::fs::read_dir(out)
@@ -41,9 +39,7 @@ fn npy_in(out: &Path) -> PathBuf {
 fn grasp_with_lora_runs_the_adapted_model() {
     let shared = shared();
     let tmp = tempfile::tempdir().unwrap();
-    let config = tmp.path().join("tiny-metric.json");
-    std::fs::write(&config, TINY).unwrap();
-    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
     let set = shared.join("data/gqcnn-primesense");
     let frame = set.join("frames/single_object_0");
     let (rgb, gt, camera) = (

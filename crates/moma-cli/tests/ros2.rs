@@ -20,7 +20,7 @@ use moma_ros2::msg::{self, DiagnosticArray, Image, PointCloud2, Time};
 use ros2_client::Subscription;
 
 mod common;
-use common::{ok, s};
+use common::{ok, s, tiny_metric_model};
 
 fn shared() -> PathBuf {
     let shared = std::env::var_os("MOMA_SHARED_DIR")
@@ -720,10 +720,6 @@ fn bad_input_is_skipped_with_a_reason() {
     }
 }
 
-/// The tiny random-weight metric model of ../shared/reference/dav2 (random weights: plumbing,
-/// not depth quality).
-const TINY: &str = r#"{"embed_dim":64,"depth":4,"num_heads":2,"intermediate_layers":[0,1,2,3],"features":16,"out_channels":[8,16,32,64],"head":"metric","max_depth":20}"#;
-
 /// `--input image`: the node runs the depth model on the RGB it receives, re-aligns on the
 /// calibration's anchors and plans suction grasps. Its depth equals `moma align --rgb … --realign
 /// anchors` bit for bit on every frame, its coloured cloud has one finite point per valid pixel,
@@ -735,10 +731,8 @@ const TINY: &str = r#"{"embed_dim":64,"depth":4,"num_heads":2,"intermediate_laye
 fn node_with_a_depth_model_equals_align_and_grasp() {
     let tmp = tempfile::tempdir().unwrap();
     let shared = shared();
-    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
     assert!(weights.is_file(), "{} is missing", weights.display());
-    let config = tmp.path().join("tiny.json");
-    std::fs::write(&config, TINY).unwrap();
     let set = shared.join("data/graspnet6dof-table");
     let mut names: Vec<String> = std::fs::read_dir(set.join("frames"))
         .unwrap()
@@ -895,9 +889,7 @@ fn node_with_a_depth_model_equals_align_and_grasp() {
 fn a_slow_model_drops_stale_frames_instead_of_queueing() {
     let tmp = tempfile::tempdir().unwrap();
     let shared = shared();
-    let weights = shared.join("reference/dav2/tiny-metric.safetensors");
-    let config = tmp.path().join("tiny.json");
-    std::fs::write(&config, TINY).unwrap();
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
     let set = shared.join("data/graspnet6dof-table");
     let f0 = set.join("frames/blue_mug");
     let calib = tmp.path().join("calib.json");

@@ -43,6 +43,21 @@ pub fn calibrate_frame_00(scene: &Path, pred: &Path, out: &Path, extra: &[&str])
     ok(&args)
 }
 
+/// The configuration of the tiny random-weight metric Depth Anything V2 of
+/// `../shared/reference/dav2` (random weights: plumbing, not depth quality).
+pub const TINY_METRIC_CONFIG: &str = r#"{"embed_dim":64,"depth":4,"num_heads":2,"intermediate_layers":[0,1,2,3],"features":16,"out_channels":[8,16,32,64],"head":"metric","max_depth":20}"#;
+
+/// The tiny metric model: writes its configuration into `dir` and returns (its weights under
+/// `shared`, the configuration file), for `--weights W --model CONFIG`.
+pub fn tiny_metric_model(shared: &Path, dir: &Path) -> (PathBuf, PathBuf) {
+    let config = dir.join("tiny-metric.json");
+    std::fs::write(&config, TINY_METRIC_CONFIG).expect("the configuration is written");
+    (
+        shared.join("reference/dav2/tiny-metric.safetensors"),
+        config,
+    )
+}
+
 /// A path as `&str` for an argument list.
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
