@@ -205,13 +205,11 @@ pub fn rgb_to_image(rgb: &RgbImage, header: Header) -> Image {
     }
 }
 
-/// Metric depth in millimetres as `16UC1` (0 = no depth; depths beyond 65.535 m are 0), as a
-/// RealSense driver publishes it: the millimetres a depth PNG holds (`moma_io::depth_to_mm`).
-pub fn depth_to_mm_image(depth: &MetricDepth, header: Header) -> Image {
-    let (mm, _) = moma_io::depth_to_mm(depth.depth_m.view());
+/// Millimetres (0 = no depth) as `16UC1`, as a RealSense driver publishes them.
+pub fn mm_to_image(mm: &Array2<u16>, header: Header) -> Image {
     let (h, w) = mm.dim();
     let mut data = Vec::with_capacity(h * w * 2);
-    for v in &mm {
+    for v in mm {
         data.extend_from_slice(&v.to_le_bytes());
     }
     Image {
@@ -223,6 +221,12 @@ pub fn depth_to_mm_image(depth: &MetricDepth, header: Header) -> Image {
         step: (w * 2) as u32,
         data: ByteBuf::from(data),
     }
+}
+
+/// Metric depth in millimetres as `16UC1` (0 = no depth; depths beyond 65.535 m are 0): the
+/// millimetres a depth PNG holds (`moma_io::depth_to_mm`).
+pub fn depth_to_mm_image(depth: &MetricDepth, header: Header) -> Image {
+    mm_to_image(&moma_io::depth_to_mm(depth.depth_m.view()).0, header)
 }
 
 /// Intrinsics from a `CameraInfo` (its `k` matrix).

@@ -90,31 +90,46 @@ impl Topics {
     /// A remap without `:=` or of an unknown name.
     pub fn with_remaps(remaps: &[String]) -> Result<Self> {
         let mut t = Self::default();
-        for r in remaps {
-            let Some((from, to)) = r.split_once(":=") else {
-                bail!("--remap {r:?}: expected NAME:=TOPIC, e.g. image:=/camera/color/image_raw");
-            };
-            let slot = match from.trim() {
-                "image" => &mut t.image,
-                "camera_info" => &mut t.camera_info,
-                "prediction" => &mut t.prediction,
-                "depth_sensor" => &mut t.depth_sensor,
-                "depth" => &mut t.depth,
-                "points" => &mut t.points,
-                "grasps" => &mut t.grasps,
-                "grasps_json" => &mut t.grasps_json,
-                "diagnostics" => &mut t.diagnostics,
-                "calibrate" => &mut t.calibrate,
-                other => bail!(
-                    "--remap {r:?}: no topic or service {other:?} (image, camera_info, \
-                     prediction, depth_sensor, depth, points, grasps, grasps_json, diagnostics, \
-                     calibrate)"
-                ),
-            };
-            *slot = to.trim().to_string();
-        }
+        apply_remaps(
+            remaps,
+            &mut [
+                ("image", &mut t.image),
+                ("camera_info", &mut t.camera_info),
+                ("prediction", &mut t.prediction),
+                ("depth_sensor", &mut t.depth_sensor),
+                ("depth", &mut t.depth),
+                ("points", &mut t.points),
+                ("grasps", &mut t.grasps),
+                ("grasps_json", &mut t.grasps_json),
+                ("diagnostics", &mut t.diagnostics),
+                ("calibrate", &mut t.calibrate),
+            ],
+        )?;
         Ok(t)
     }
+}
+
+/// Applies `--remap NAME:=TOPIC` arguments to the named topic slots (`moma ros2` and
+/// `moma ros2-replay`).
+///
+/// # Errors
+/// A remap without `:=`, or of a name that is not a slot.
+pub fn apply_remaps(remaps: &[String], slots: &mut [(&str, &mut String)]) -> Result<()> {
+    for r in remaps {
+        let Some((from, to)) = r.split_once(":=") else {
+            bail!("--remap {r:?}: expected NAME:=TOPIC, e.g. image:=/camera/color/image_raw");
+        };
+        let names: Vec<&str> = slots.iter().map(|(n, _)| *n).collect();
+        let Some((_, slot)) = slots.iter_mut().find(|(n, _)| *n == from.trim()) else {
+            bail!(
+                "--remap {r:?}: no topic or service {:?} ({})",
+                from.trim(),
+                names.join(", ")
+            );
+        };
+        **slot = to.trim().to_string();
+    }
+    Ok(())
 }
 
 /// DDS settings shared by `moma ros2` and `moma ros2-replay`.
@@ -243,6 +258,13 @@ pub struct Ros2Args {
     pub max_seconds: Option<f64>,
 }
 
+impl Ros2Args {
+    /// Whether a frame's RGB is used besides the model's input (re-alignment, coloured points).
+    fn uses_rgb(&self) -> bool {
+        self.realign.is_some() || self.points_rgb
+    }
+}
+
 /// How many recent messages per input the node keeps to pair topics by stamp.
 const PAIR_BUFFER: usize = 8;
 
@@ -334,6 +356,14 @@ fn keep_large_buffers() {
 pub fn run(args: &Ros2Args) -> Result<()> {
     keep_large_buffers();
     let topics = Topics::with_remaps(&args.remap)?;
+    for (flag, v) in [
+        ("--calib-timeout-s", args.calib_timeout_s),
+        ("--sync-timeout-s", args.sync_timeout_s),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            bail!("{flag} {v} must be a number of seconds >= 0");
+        }
+    }
     let calib = moma_io::read_calibration(&args.calib)?;
     let realign = match args.realign {
         Some(RealignArg::Anchors) => {
@@ -375,7 +405,6 @@ pub fn run(args: &Ros2Args) -> Result<()> {
     let grasp = match args.gripper {
         None => None,
         Some(g) => {
-            args.plan.check()?;
             let gripper = args.plan.gripper(g)?;
             let request = args.plan.request(
                 gripper,
@@ -395,14 +424,6 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             Some((request, extrinsics, mask))
         }
     };
-    for (flag, v) in [
-        ("--calib-timeout-s", args.calib_timeout_s),
-        ("--sync-timeout-s", args.sync_timeout_s),
-    ] {
-        if !(v.is_finite() && v >= 0.0) {
-            bail!("{flag} {v} must be a number of seconds >= 0");
-        }
-    }
     if calib.created.simulated_predictions {
         eprintln!(
             "note: {} was fitted on SIMULATED predictions: the depth it gives is not a depth \
@@ -417,7 +438,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
     // The image is read on every frame with --input image, --realign or --points-rgb; else (and
     // the depth sensor always) only while a calibration waits for its pair: a camera's 0.6–1 MB
     // frames that the node would drop still cost the DDS thread their reassembly.
-    let image_always = args.input == InputArg::Image || args.realign.is_some() || args.points_rgb;
+    let image_always = args.input == InputArg::Image || args.uses_rgb();
     let image_sub: Option<Subscription<Image>> = if image_always {
         Some(dds::subscription(
             &mut node,
@@ -555,25 +576,26 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         // frame's image with --input prediction when the RGB is used, and everything while a
         // calibration waits for its pair (which must come after the request).
         let calibrating = calib_request.is_some();
-        let keep_images = calibrating || (args.input == InputArg::Prediction && state.needs_rgb());
+        let keep_images = calibrating || (args.input == InputArg::Prediction && args.uses_rgb());
         let now = Instant::now();
         let image_source = image_sub.as_ref().or(image_sub_calib.as_ref());
         let images = image_source
             .map(|sub| drain(sub, |e| malformed.push(format!("image: {e}"))))
             .unwrap_or_default();
-        for m in images {
-            if keep_images {
-                push_bounded(&mut state.images, m.clone());
+        let mut newest = |msg: Image, dropped: &mut u64| {
+            if pending.replace(Pending { msg, received: now }).is_some() {
+                *dropped += 1;
             }
-            if args.input == InputArg::Image
-                && pending
-                    .replace(Pending {
-                        msg: m,
-                        received: now,
-                    })
-                    .is_some()
-            {
-                state.dropped += 1;
+        };
+        for m in images {
+            match (args.input, keep_images) {
+                (InputArg::Image, true) => {
+                    push_bounded(&mut state.images, m.clone());
+                    newest(m, &mut state.dropped);
+                }
+                (InputArg::Image, false) => newest(m, &mut state.dropped),
+                (InputArg::Prediction, true) => push_bounded(&mut state.images, m),
+                (InputArg::Prediction, false) => {}
             }
         }
         if let Some(sub) = &pred_sub {
@@ -581,15 +603,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
                 if calibrating {
                     push_bounded(&mut state.predictions, m.clone());
                 }
-                if pending
-                    .replace(Pending {
-                        msg: m,
-                        received: now,
-                    })
-                    .is_some()
-                {
-                    state.dropped += 1;
-                }
+                newest(m, &mut state.dropped);
             }
         }
         let depth_frames = depth_sensor_sub
@@ -740,14 +754,9 @@ impl NodeState {
         Some(convert::image_to_rgb(img).map_err(|e| format!("image: {e}")))
     }
 
-    /// Whether a frame's RGB is used (re-alignment, coloured points).
-    fn needs_rgb(&self) -> bool {
-        self.realign.is_some() || self.args.points_rgb
-    }
-
     fn process(&mut self, p: &Pending, out: &Outputs) -> Step {
         let header = p.msg.header.clone();
-        let needs_rgb = self.needs_rgb();
+        let needs_rgb = self.args.uses_rgb();
         let rgb = if needs_rgb || self.args.input == InputArg::Image {
             match self.rgb_for(&p.msg) {
                 Some(Ok(rgb)) => Some(rgb),

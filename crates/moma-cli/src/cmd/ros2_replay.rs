@@ -64,12 +64,56 @@ pub struct Ros2ReplayArgs {
     pub dds: DdsArgs,
 }
 
-/// One frame's messages, ready to stamp.
+/// One frame's files, checked up front and decoded when the frame is published (memory stays
+/// one frame's, whatever the folder holds).
 struct ReplayFrame {
     name: String,
-    image: Image,
-    depth_sensor: Option<Image>,
-    prediction: Option<Image>,
+    rgb: PathBuf,
+    depth: Option<PathBuf>,
+    prediction: Option<PathBuf>,
+}
+
+impl ReplayFrame {
+    /// (image, depth_sensor, prediction) with `header`; the image checked against `camera`.
+    fn messages(
+        &self,
+        camera: Option<&Intrinsics>,
+        header: &Header,
+    ) -> Result<(Image, Option<Image>, Option<Image>)> {
+        let rgb = moma_io::read_rgb(&self.rgb)?;
+        if let Some(k) = camera {
+            let size = moma_core::ImageSize::new(rgb.width() as usize, rgb.height() as usize);
+            k.size()
+                .expect_eq("image", size)
+                .with_context(|| format!("{} vs the camera", self.rgb.display()))?;
+        }
+        // The PNG's millimetres as they are: a depth sensor's 16UC1.
+        let depth = self
+            .depth
+            .as_ref()
+            .map(|p| -> Result<Image> {
+                Ok(convert::mm_to_image(
+                    &moma_io::read_png16(p)?,
+                    header.clone(),
+                ))
+            })
+            .transpose()?;
+        let prediction = self
+            .prediction
+            .as_ref()
+            .map(|p| -> Result<Image> {
+                Ok(convert::f32_to_image(
+                    &moma_io::read_npy_f32(p)?,
+                    header.clone(),
+                ))
+            })
+            .transpose()?;
+        Ok((
+            convert::rgb_to_image(&rgb, header.clone()),
+            depth,
+            prediction,
+        ))
+    }
 }
 
 fn find_prediction(dir: &Path, set_name: Option<&str>, name: &str) -> Option<PathBuf> {
@@ -83,7 +127,6 @@ fn find_prediction(dir: &Path, set_name: Option<&str>, name: &str) -> Option<Pat
 
 fn load_frames(args: &Ros2ReplayArgs) -> Result<(Vec<ReplayFrame>, Option<Intrinsics>)> {
     let mut frames = Vec::new();
-    let header = Header::default();
     let camera;
     let mut set_name = None;
     let mut inputs: Vec<(String, PathBuf, Option<PathBuf>)> = Vec::new();
@@ -119,37 +162,22 @@ fn load_frames(args: &Ros2ReplayArgs) -> Result<(Vec<ReplayFrame>, Option<Intrin
     } else {
         bail!("give --set DIR or --images DIR");
     }
-    for (name, rgb_path, depth_path) in inputs {
-        let rgb = moma_io::read_rgb(&rgb_path)?;
-        if let Some(k) = &camera {
-            let size = moma_core::ImageSize::new(rgb.width() as usize, rgb.height() as usize);
-            k.size()
-                .expect_eq("image", size)
-                .with_context(|| format!("{} vs the camera", rgb_path.display()))?;
-        }
-        let depth_sensor = depth_path
-            .map(|p| -> Result<Image> {
-                let depth = moma_io::read_depth(&p)?;
-                Ok(convert::depth_to_mm_image(&depth, header.clone()))
-            })
-            .transpose()?;
+    for (name, rgb, depth) in inputs {
         let prediction = match &args.pred {
             None => None,
-            Some(dir) => {
-                let path = find_prediction(dir, set_name.as_deref(), &name).with_context(|| {
+            Some(dir) => Some(
+                find_prediction(dir, set_name.as_deref(), &name).with_context(|| {
                     format!(
                         "no prediction for frame {name} in {} (NAME.npy or SET/NAME.npy)",
                         dir.display()
                     )
-                })?;
-                let values: ndarray::Array2<f32> = moma_io::read_npy_f32(&path)?;
-                Some(convert::f32_to_image(&values, header.clone()))
-            }
+                })?,
+            ),
         };
         frames.push(ReplayFrame {
             name,
-            image: convert::rgb_to_image(&rgb, header.clone()),
-            depth_sensor,
+            rgb,
+            depth,
             prediction,
         });
     }
@@ -176,31 +204,29 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
     if !(args.warmup_s.is_finite() && args.warmup_s >= 0.0) {
         bail!("--warmup-s {} must be >= 0", args.warmup_s);
     }
-    let mut names = [
-        ("image", "image".to_string()),
-        ("camera_info", "camera_info".to_string()),
-        ("depth_sensor", "depth_sensor".to_string()),
-        ("prediction", "prediction".to_string()),
-    ];
-    for r in &args.remap {
-        let Some((from, to)) = r.split_once(":=") else {
-            bail!("--remap {r:?}: expected NAME:=TOPIC");
-        };
-        let Some(slot) = names.iter_mut().find(|(n, _)| *n == from.trim()) else {
-            bail!(
-                "--remap {r:?}: no topic {from:?} (image, camera_info, depth_sensor, prediction)"
-            );
-        };
-        slot.1 = to.trim().to_string();
-    }
+    let (mut image, mut camera_info, mut depth_sensor, mut prediction) = (
+        "image".to_string(),
+        "camera_info".to_string(),
+        "depth_sensor".to_string(),
+        "prediction".to_string(),
+    );
+    super::ros2::apply_remaps(
+        &args.remap,
+        &mut [
+            ("image", &mut image),
+            ("camera_info", &mut camera_info),
+            ("depth_sensor", &mut depth_sensor),
+            ("prediction", &mut prediction),
+        ],
+    )?;
     let (frames, camera) = load_frames(args)?;
     let mut node = args.dds.node("moma_replay")?;
     let qos = dds::sensor_qos();
-    let image_pub = dds::publisher::<Image>(&mut node, &names[0].1, msg::types::image(), &qos)?;
+    let image_pub = dds::publisher::<Image>(&mut node, &image, msg::types::image(), &qos)?;
     let info_pub =
-        dds::publisher::<CameraInfo>(&mut node, &names[1].1, msg::types::camera_info(), &qos)?;
-    let depth_pub = dds::publisher::<Image>(&mut node, &names[2].1, msg::types::image(), &qos)?;
-    let pred_pub = dds::publisher::<Image>(&mut node, &names[3].1, msg::types::image(), &qos)?;
+        dds::publisher::<CameraInfo>(&mut node, &camera_info, msg::types::camera_info(), &qos)?;
+    let depth_pub = dds::publisher::<Image>(&mut node, &depth_sensor, msg::types::image(), &qos)?;
+    let pred_pub = dds::publisher::<Image>(&mut node, &prediction, msg::types::image(), &qos)?;
 
     std::thread::sleep(Duration::from_secs_f64(args.warmup_s));
     let period = Duration::from_secs_f64(1.0 / args.rate);
@@ -220,23 +246,20 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
                 stamp: now_stamp(),
                 frame_id: args.frame_id.clone(),
             };
-            // The prediction last: a node that waits for the image of the same stamp has it.
-            let stamped = |m: &Image| Image {
-                header: header.clone(),
-                ..m.clone()
-            };
+            let (image, depth, prediction) = f.messages(camera.as_ref(), &header)?;
             if let Some(k) = &camera {
                 dds::publish(
                     &info_pub,
                     convert::intrinsics_to_camera_info(k, header.clone()),
                 )?;
             }
-            dds::publish(&image_pub, stamped(&f.image))?;
-            if let Some(d) = &f.depth_sensor {
-                dds::publish(&depth_pub, stamped(d))?;
+            dds::publish(&image_pub, image)?;
+            if let Some(d) = depth {
+                dds::publish(&depth_pub, d)?;
             }
-            if let Some(p) = &f.prediction {
-                dds::publish(&pred_pub, stamped(p))?;
+            // The prediction last: a node that waits for the image of the same stamp has it.
+            if let Some(p) = prediction {
+                dds::publish(&pred_pub, p)?;
             }
             println!(
                 "frame {} stamp {}.{:09}",
