@@ -94,18 +94,26 @@ pub fn image_to_f32(img: &Image) -> Result<Array2<f32>> {
     }
     let (size, step) = checked_layout(img, 4)?;
     let mut out = Vec::with_capacity(size.width * size.height);
-    // The byte order decided once, outside the pixel loop (which then vectorises).
-    let decode: fn([u8; 4]) -> f32 = if img.is_bigendian != 0 {
-        f32::from_be_bytes
+    // The byte order decided once, outside the pixel loop, by two loops with the conversion
+    // inlined (through a `fn` pointer it is an indirect call per pixel and nothing vectorises:
+    // 9 % of the node's time in a profile).
+    let rows = img.data.chunks(step).take(size.height);
+    if img.is_bigendian != 0 {
+        for row in rows {
+            out.extend(
+                row[..size.width * 4]
+                    .chunks_exact(4)
+                    .map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]])),
+            );
+        }
     } else {
-        f32::from_le_bytes
-    };
-    for row in img.data.chunks(step).take(size.height) {
-        out.extend(
-            row[..size.width * 4]
-                .chunks_exact(4)
-                .map(|b| decode([b[0], b[1], b[2], b[3]])),
-        );
+        for row in rows {
+            out.extend(
+                row[..size.width * 4]
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+            );
+        }
     }
     Array2::from_shape_vec((size.height, size.width), out)
         .map_err(|e| RosError::malformed(format!("32FC1 buffer: {e}")))
@@ -309,29 +317,47 @@ pub fn depth_to_cloud(
     } else {
         12
     };
-    // x = z·(u − cx)/fx and y = z·(v − cy)/fy with the factors per column and per row (f64),
-    // then f32: within one f32 rounding of `Intrinsics::backproject`, without two f64
-    // divisions per pixel (2.5 → 1.1 ms at 640×480, `cargo bench -p moma-ros2`).
-    let kx: Vec<f64> = (0..size.width).map(|u| (u as f64 - k.cx) / k.fx).collect();
+    // x = z·(u − cx)/fx and y = z·(v − cy)/fy with the factors per column and per row, in
+    // f32: within two f32 roundings of `Intrinsics::backproject`, without two divisions per
+    // pixel, and in a form that vectorises: one pass computes a row's points (NaN propagates
+    // through the products), a second writes their bytes (2.5 → 1.1 → 0.71 → 0.46 ms at
+    // 640×480, `cargo bench -p moma-ros2`).
+    let kx: Vec<f32> = (0..size.width)
+        .map(|u| ((u as f64 - k.cx) / k.fx) as f32)
+        .collect();
+    let depth_m = depth.depth_m.as_standard_layout();
+    // a standard-layout array is one slice; `None` cannot happen
+    let depth_m = depth_m
+        .as_slice()
+        .ok_or_else(|| RosError::Malformed("depth map is not contiguous".to_string()))?;
     let mut data = vec![0u8; size.width * size.height * point_step];
-    let rows = data.chunks_exact_mut(size.width * point_step);
-    for (v, (row, out)) in depth.depth_m.rows().into_iter().zip(rows).enumerate() {
-        let ky = (v as f64 - k.cy) / k.fy;
-        let points = out.chunks_exact_mut(point_step);
-        for (u, ((&z, kx), p)) in row.iter().zip(&kx).zip(points).enumerate() {
-            let [x, y, z] = if moma_core::is_valid_depth(z) {
-                let zz = f64::from(z);
-                [(zz * kx) as f32, (zz * ky) as f32, z]
+    let mut points = vec![[0f32; 3]; size.width];
+    let colours = rgb.map(|img| img.as_raw().as_slice());
+    let out_rows = data.chunks_exact_mut(size.width * point_step);
+    for (v, (row, out)) in depth_m.chunks_exact(size.width).zip(out_rows).enumerate() {
+        let ky = ((v as f64 - k.cy) / k.fy) as f32;
+        for ((&z, &kx), p) in row.iter().zip(&kx).zip(points.iter_mut()) {
+            let z = if moma_core::is_valid_depth(z) {
+                z
             } else {
-                [f32::NAN; 3]
+                f32::NAN
             };
-            p[0..4].copy_from_slice(&x.to_le_bytes());
-            p[4..8].copy_from_slice(&y.to_le_bytes());
-            p[8..12].copy_from_slice(&z.to_le_bytes());
-            if let Some(img) = rgb {
-                let c = img.get_pixel(u as u32, v as u32).0;
-                let packed = (u32::from(c[0]) << 16) | (u32::from(c[1]) << 8) | u32::from(c[2]);
-                p[12..16].copy_from_slice(&packed.to_le_bytes());
+            *p = [z * kx, z * ky, z];
+        }
+        let out = out.chunks_exact_mut(point_step);
+        match colours {
+            None => {
+                for (p, o) in points.iter().zip(out) {
+                    write_point(o, p);
+                }
+            }
+            Some(c) => {
+                let row_rgb = &c[v * size.width * 3..(v + 1) * size.width * 3];
+                for ((p, o), c) in points.iter().zip(out).zip(row_rgb.chunks_exact(3)) {
+                    write_point(o, p);
+                    let packed = (u32::from(c[0]) << 16) | (u32::from(c[1]) << 8) | u32::from(c[2]);
+                    o[12..16].copy_from_slice(&packed.to_le_bytes());
+                }
             }
         }
     }
@@ -346,6 +372,13 @@ pub fn depth_to_cloud(
         data: ByteBuf::from(data),
         is_dense: false,
     })
+}
+
+/// Writes x, y, z as little-endian f32 into the first 12 bytes of `out`.
+fn write_point(out: &mut [u8], p: &[f32; 3]) {
+    out[0..4].copy_from_slice(&p[0].to_le_bytes());
+    out[4..8].copy_from_slice(&p[1].to_le_bytes());
+    out[8..12].copy_from_slice(&p[2].to_le_bytes());
 }
 
 /// The pose of a grasp, in metres: position `p`, and an orientation whose x axis is `approach`

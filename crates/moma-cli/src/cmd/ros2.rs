@@ -343,13 +343,17 @@ fn drain<M: 'static + serde::de::DeserializeOwned>(
 
 /// Keeps freed large buffers in the heap for reuse: without it glibc maps every buffer of more
 /// than 128 kB afresh, and a frame's messages (1.2 MB depth, 3.7 MB cloud, their CDR copies)
-/// page-fault on every frame.
+/// page-fault on every frame. 32 MiB is glibc's largest mmap threshold on 64-bit
+/// (`HEAP_MAX_SIZE / 2`): a larger value is refused (mallopt returns 0), and the trim threshold
+/// alone would switch off glibc's own raising of the mmap threshold, leaving every large buffer
+/// mapped afresh.
 fn keep_large_buffers() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only changes allocator thresholds; called before the node's threads start.
     unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 64 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+        if libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20) == 1 {
+            libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
+        }
     }
 }
 
