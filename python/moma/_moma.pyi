@@ -428,7 +428,7 @@ class DepthModel:
         *,
         max_depth: float = 20.0,
         input_size: int = 518,
-        dtype: Literal["f32", "f16", "bf16"] = "f32",
+        dtype: Literal["f32", "f16", "bf16", "int8"] = "f32",
         config: Optional[dict[str, Any]] = None,
     ) -> "DepthModel":
         """``weights``: official checkpoint (.pth / .safetensors; candle) or .onnx (onnx builds);

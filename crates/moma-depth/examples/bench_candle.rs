@@ -2,8 +2,12 @@
 //!
 //! ```text
 //! cargo run --release -p moma-depth --example bench_candle -- \
-//!     [--weights W.safetensors] [--model vits|vitb|vitl] [--height 518] [--width 686] [--runs 5]
+//!     [--weights W.safetensors] [--model vits|vitb|vitl] [--height 518] [--width 686] [--runs 5] \
+//!     [--dtype f32,int8]
 //! ```
+//! With several `--dtype`s the models run side by side, alternating run by run; each one's
+//! output is compared with the first's (max and mean absolute difference over the first's
+//! output range).
 //! Without `--weights` it loads `$MOMA_SHARED_DIR/reference/dav2/vits-rel.safetensors` (random
 //! ViT-S weights; latency does not depend on the values). Prints every run (wall and CPU seconds),
 //! the medians of the runs after one warm-up, and the process's peak RSS (`VmHWM` of
@@ -41,6 +45,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut weights: Option<PathBuf> = None;
     let mut model = "vits".to_string();
     let (mut height, mut width, mut runs) = (518usize, 686usize, 5usize);
+    let mut dtypes = vec![moma_depth::Precision::F32];
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut val = || args.next().ok_or(format!("{a} needs a value"));
@@ -50,6 +55,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--height" => height = val()?.parse()?,
             "--width" => width = val()?.parse()?,
             "--runs" => runs = val()?.parse()?,
+            "--dtype" => {
+                dtypes = val()?
+                    .split(',')
+                    .map(str::parse)
+                    .collect::<Result<_, String>>()?
+            }
             other => return Err(format!("unknown argument {other}").into()),
         }
     }
@@ -66,38 +77,80 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         other => return Err(format!("unknown model {other}").into()),
     };
     let device = open_device(moma_depth::DeviceRequest::Auto)?;
-    let t = Instant::now();
-    let mut net = CandleDepthModel::load(&weights, config, &device, candle_core::DType::F32, None)?;
-    println!(
-        "loaded {} on {device:?} in {:.2} s",
-        weights.display(),
-        t.elapsed().as_secs_f64()
-    );
+    let mut nets = vec![];
+    for &p in &dtypes {
+        let t = Instant::now();
+        let net =
+            CandleDepthModel::load_with_precision(&weights, config.clone(), &device, p, None)?;
+        println!(
+            "loaded {} ({p:?}) on {device:?} in {:.2} s",
+            weights.display(),
+            t.elapsed().as_secs_f64()
+        );
+        nets.push(net);
+    }
     let input = Array3::<f32>::from_shape_fn((3, height, width), |(c, y, x)| {
         ((c * 7 + y * 3 + x) % 17) as f32 / 17.0 - 0.5
     });
-    let mut times = vec![];
-    let mut cpu = vec![];
+    let mut times = vec![vec![]; nets.len()];
+    let mut cpu = vec![vec![]; nets.len()];
+    let mut outs = vec![None; nets.len()];
     for i in 0..=runs {
-        let (t, c) = (Instant::now(), cpu_seconds());
-        let out = net.forward_net(&input)?;
-        let (s, cs) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
-        println!(
-            "run {i}{}: {s:.3} s, {cs:.2} CPU-s (out {:?})",
-            if i == 0 { " (warm-up)" } else { "" },
-            out.dim()
-        );
-        if i > 0 {
-            times.push(s);
-            cpu.push(cs);
+        for (d, net) in nets.iter_mut().enumerate() {
+            let (t, c) = (Instant::now(), cpu_seconds());
+            let out = net.forward_net(&input)?;
+            let (s, cs) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
+            println!(
+                "run {i} {:?}{}: {s:.3} s, {cs:.2} CPU-s (out {:?})",
+                dtypes[d],
+                if i == 0 { " (warm-up)" } else { "" },
+                out.dim()
+            );
+            if i > 0 {
+                times[d].push(s);
+                cpu[d].push(cs);
+            }
+            outs[d] = Some(out);
         }
     }
-    times.sort_by(f64::total_cmp);
-    cpu.sort_by(f64::total_cmp);
-    let median = times[times.len() / 2];
-    let median_cpu = cpu[cpu.len() / 2];
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let anchor = median(&mut times[0].clone());
+    for d in 0..nets.len() {
+        let (m, mc) = (median(&mut times[d]), median(&mut cpu[d]));
+        let err = match (&outs[0], &outs[d]) {
+            (Some(a), Some(b)) if d > 0 => {
+                let (lo, hi) = a
+                    .iter()
+                    .fold((f32::MAX, f32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+                let range = f64::from(hi - lo).max(1e-12);
+                let diffs: Vec<f64> = a
+                    .iter()
+                    .zip(b)
+                    .map(|(x, y)| f64::from((x - y).abs()))
+                    .collect();
+                let max = diffs.iter().copied().fold(0.0, f64::max);
+                let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+                format!(
+                    ", vs {:?}: max {:.2e}, mean {:.2e} of the output range",
+                    dtypes[0],
+                    max / range,
+                    mean / range
+                )
+            }
+            _ => String::new(),
+        };
+        println!(
+            "{model} {height}x{width} {:?}: median {m:.3} s ({:.2}× the {:?} time), {mc:.2} CPU-s over {runs} runs{err}",
+            dtypes[d],
+            m / anchor,
+            dtypes[0]
+        );
+    }
     println!(
-        "{model} {height}x{width}: median {median:.3} s, {median_cpu:.2} CPU-s over {runs} runs, peak RSS {:.0} MiB, {} rayon threads",
+        "peak RSS {:.0} MiB (all models), {} rayon threads",
         peak_rss_mib().unwrap_or(f64::NAN),
         rayon::current_num_threads()
     );

@@ -83,19 +83,23 @@ pub enum Precision {
     F16,
     /// bfloat16 (GPU only: candle's CPU matmul has no bf16).
     Bf16,
+    /// int8 linear layers in the ViT encoder (qkv, proj, MLP), the rest f32: CPU only (candle).
+    /// Weights per output channel, activations per token, AVX512-VNNI where the CPU has it.
+    Int8,
 }
 
 impl FromStr for Precision {
     type Err = String;
 
-    /// `f32`/`float32`, `f16`/`float16`, `bf16`/`bfloat16`, case-insensitive.
+    /// `f32`/`float32`, `f16`/`float16`, `bf16`/`bfloat16`, `int8`/`i8`, case-insensitive.
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         match s.trim().to_ascii_lowercase().as_str() {
             "f32" | "float32" => Ok(Self::F32),
             "f16" | "float16" => Ok(Self::F16),
             "bf16" | "bfloat16" => Ok(Self::Bf16),
+            "int8" | "i8" => Ok(Self::Int8),
             _ => Err(format!(
-                "unknown dtype '{s}' (expected one of: f32, f16, bf16)"
+                "unknown dtype '{s}' (expected one of: f32, f16, bf16, int8)"
             )),
         }
     }
@@ -174,14 +178,15 @@ pub fn load(spec: &LoadSpec) -> Result<Box<dyn DepthModel>> {
         #[cfg(feature = "candle")]
         Backend::Candle => {
             let device = crate::candle::open_device(options.device)?;
-            let dtype = crate::candle::precision_dtype(options.precision, &device)?;
-            Ok(Box::new(crate::candle::CandleDepthModel::load(
-                weights,
-                crate::candle::DepthAnythingConfig::from_spec(&spec.model),
-                &device,
-                dtype,
-                spec.adapter.as_deref(),
-            )?))
+            Ok(Box::new(
+                crate::candle::CandleDepthModel::load_with_precision(
+                    weights,
+                    crate::candle::DepthAnythingConfig::from_spec(&spec.model),
+                    &device,
+                    options.precision,
+                    spec.adapter.as_deref(),
+                )?,
+            ))
         }
         #[cfg(not(feature = "candle"))]
         Backend::Candle => Err(DepthError::Unavailable(

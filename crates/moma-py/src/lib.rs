@@ -1148,10 +1148,9 @@ fn load_depth_model(
                 });
             }
             let dev = moma_depth::candle::open_device(device)?;
-            let dtype = moma_depth::candle::precision_dtype(precision, &dev)?;
             // The adapter is merged into the weights once, here: no per-frame cost.
-            Box::new(moma_depth::candle::CandleDepthModel::load(
-                weights, config, &dev, dtype, lora,
+            Box::new(moma_depth::candle::CandleDepthModel::load_with_precision(
+                weights, config, &dev, precision, lora,
             )?)
         }
         _ => moma_depth::load(&moma_depth::LoadSpec {

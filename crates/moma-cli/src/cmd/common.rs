@@ -61,6 +61,8 @@ pub enum DtypeArg {
     F16,
     /// bfloat16 (GPU only).
     Bf16,
+    /// int8 linear layers in the ViT encoder, the rest f32 (CPU only, candle).
+    Int8,
 }
 
 /// Which Depth Anything V2 network to run, and from which weights.
@@ -96,7 +98,7 @@ pub struct ModelArgs {
     /// metal[:N].
     #[arg(long, default_value = "auto", value_name = "DEVICE")]
     pub device: DeviceRequest,
-    /// Arithmetic precision of the candle backend (f16/bf16 are for GPUs).
+    /// Arithmetic precision of the candle backend (f16/bf16 are for GPUs, int8 for CPUs).
     #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
     pub dtype: DtypeArg,
     /// A LoRA adapter (`moma finetune` output) merged into the weights at load (candle backend;
@@ -204,6 +206,7 @@ impl ModelArgs {
                 DtypeArg::F32 => Precision::F32,
                 DtypeArg::F16 => Precision::F16,
                 DtypeArg::Bf16 => Precision::Bf16,
+                DtypeArg::Int8 => Precision::Int8,
             },
         };
         let model = moma_depth::load(&moma_depth::LoadSpec {

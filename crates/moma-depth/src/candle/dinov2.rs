@@ -45,6 +45,8 @@ pub(crate) struct Linear {
     /// `(in, out)`, stored transposed and contiguous once at load time.
     weight_t: Tensor,
     bias: Tensor,
+    /// The same layer in int8 (`--dtype int8`), used instead of `weight_t` when present.
+    int8: Option<std::sync::Arc<super::int8::QuantLinear>>,
 }
 
 impl Linear {
@@ -53,7 +55,19 @@ impl Linear {
         Ok(Self {
             weight_t: weight.t()?.contiguous()?,
             bias: vb.get(out_dim, "bias")?,
+            int8: None,
         })
+    }
+
+    /// Quantises the layer to int8 ([`super::int8`]); f32 weights on the CPU only.
+    fn quantise_int8(&mut self) -> Result<()> {
+        let (k, n) = self.weight_t.dims2()?;
+        let w = self.weight_t.flatten_all()?.to_vec1::<f32>()?;
+        let b = self.bias.to_vec1::<f32>()?;
+        self.int8 = Some(std::sync::Arc::new(super::int8::QuantLinear::new(
+            &w, k, n, &b,
+        )?));
+        Ok(())
     }
 }
 
@@ -63,6 +77,7 @@ impl Linear {
         Ok(Self {
             weight_t: self.weight_t.broadcast_mul(gamma)?.contiguous()?,
             bias: (self.bias * gamma)?,
+            int8: None,
         })
     }
 
@@ -73,6 +88,9 @@ impl Linear {
         residual: Option<&Tensor>,
         act: super::ops::Activation,
     ) -> Result<Tensor> {
+        if let Some(q) = &self.int8 {
+            return super::ops::linear_int8(xs, q, residual, act);
+        }
         super::ops::linear(xs, &self.weight_t, &self.bias, residual, act)
     }
 }
@@ -91,6 +109,8 @@ struct Attention {
     proj: Linear,
     num_heads: usize,
     scale: f64,
+    /// Both attention products in int8 (`--dtype int8`).
+    int8: bool,
 }
 
 impl Attention {
@@ -100,6 +120,7 @@ impl Attention {
             proj: Linear::new(dim, dim, vb.pp("proj"))?,
             num_heads,
             scale: 1.0 / ((dim / num_heads) as f64).sqrt(),
+            int8: false,
         })
     }
 
@@ -107,7 +128,11 @@ impl Attention {
     fn forward(&self, xs: &Tensor, residual: &Tensor) -> Result<Tensor> {
         let qkv = self.qkv.forward(xs)?;
         // softmax((q·scale)·kᵀ) is computed as softmax(scale·(q·kᵀ)).
-        let out = super::ops::attention(&qkv, self.num_heads, self.scale as f32)?;
+        let out = if self.int8 {
+            super::ops::attention_int8(&qkv, self.num_heads, self.scale as f32)?
+        } else {
+            super::ops::attention(&qkv, self.num_heads, self.scale as f32)?
+        };
         self.proj
             .forward_fused(&out, Some(residual), super::ops::Activation::None)
     }
@@ -189,6 +214,26 @@ pub struct DinoV2 {
 }
 
 impl DinoV2 {
+    /// Quantises every block's linear layers (qkv, proj, MLP) and attention products to int8
+    /// ([`super::int8`]); the patch embedding, LayerNorms, softmax and GELU stay f32.
+    ///
+    /// # Errors
+    /// Weights that are not f32 on the CPU.
+    pub(crate) fn quantise_int8(&mut self) -> Result<()> {
+        for b in &mut self.blocks {
+            for l in [
+                &mut b.attn.qkv,
+                &mut b.attn.proj,
+                &mut b.mlp.fc1,
+                &mut b.mlp.fc2,
+            ] {
+                l.quantise_int8()?;
+            }
+            b.attn.int8 = true;
+        }
+        Ok(())
+    }
+
     /// Builds the encoder from `vb` = `pretrained`.
     ///
     /// # Errors

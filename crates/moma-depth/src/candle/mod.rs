@@ -19,6 +19,7 @@
 
 pub mod dinov2;
 pub mod dpt;
+mod int8;
 mod ops;
 pub mod train;
 
@@ -552,10 +553,17 @@ pub fn open_checkpoint(
 /// The candle dtype of `precision` on `device`.
 ///
 /// # Errors
-/// [`DepthError::Unavailable`] for bf16 on the CPU (candle's CPU matmul has no bf16).
+/// [`DepthError::Unavailable`] for bf16 on the CPU (candle's CPU matmul has no bf16), int8 on
+/// a GPU.
 pub fn precision_dtype(precision: Precision, device: &Device) -> Result<DType> {
     match precision {
         Precision::F32 => Ok(DType::F32),
+        // f32 everywhere but the encoder's linear layers, quantised after loading
+        // ([`CandleDepthModel::quantise_int8`])
+        Precision::Int8 if device.is_cpu() => Ok(DType::F32),
+        Precision::Int8 => Err(DepthError::Unavailable(
+            "int8 is a CPU precision (AVX512-VNNI kernels); on a GPU use f16 or bf16".into(),
+        )),
         Precision::F16 => Ok(DType::F16),
         Precision::Bf16 if device.is_cpu() => Err(DepthError::Unavailable(
             "bf16 needs a GPU: candle's CPU matmul has no bf16 (use f32 on the CPU)".into(),
@@ -623,6 +631,59 @@ impl CandleDepthModel {
             device,
             dtype,
         })
+    }
+
+    /// [`Self::load`] in `precision` on `device`: the candle dtype of [`precision_dtype`], and
+    /// for [`Precision::Int8`] the f32 model then [`Self::quantise_int8`]. The one constructor
+    /// of `moma_depth::load` and of the Python package.
+    ///
+    /// # Errors
+    /// As [`precision_dtype`], [`Self::load`] and [`Self::quantise_int8`].
+    pub fn load_with_precision(
+        path: impl AsRef<Path>,
+        config: DepthAnythingConfig,
+        device: &Device,
+        precision: Precision,
+        adapter: Option<&Path>,
+    ) -> Result<Self> {
+        let dtype = precision_dtype(precision, device)?;
+        let mut model = Self::load(path, config, device, dtype, adapter)?;
+        if precision == Precision::Int8 {
+            model.quantise_int8()?;
+        }
+        Ok(model)
+    }
+
+    /// Quantises the encoder's linear layers (qkv, proj, MLP) to int8: per-output-channel
+    /// weight scales, per-token activation scales at run time (`--dtype int8`). On a CPU without
+    /// AVX512-VNNI a portable kernel gives the same results, slower, and this says so once on
+    /// stderr.
+    ///
+    /// # Errors
+    /// [`DepthError::Unavailable`] unless the model is f32 on the CPU.
+    pub fn quantise_int8(&mut self) -> Result<()> {
+        if !(self.device.is_cpu() && self.dtype == DType::F32) {
+            return Err(DepthError::Unavailable(format!(
+                "int8 layers are made from f32 weights on the CPU (this model is {:?} on {:?})",
+                self.dtype,
+                self.device.location()
+            )));
+        }
+        if !int8::has_vnni() {
+            static SAID: std::sync::Once = std::sync::Once::new();
+            SAID.call_once(|| {
+                eprintln!(
+                    "note: this CPU has no AVX512-VNNI: --dtype int8 runs a portable kernel \
+                     (same results, slower than f32)"
+                );
+            });
+        }
+        self.encoder
+            .quantise_int8()
+            .map_err(|source| DepthError::Candle {
+                context: "quantising the encoder's linear layers to int8".into(),
+                source,
+            })
     }
 
     /// The architecture.

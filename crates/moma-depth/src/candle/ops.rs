@@ -375,6 +375,78 @@ impl LinearOp<'_> {
 
 residual_op!(LinearOp, "fused-linear", "fused-linear-residual");
 
+/// `[residual +] act(xs · W + b)` with the int8 layer `q` ([`super::int8`]): `xs (m, k)` f32 on
+/// the CPU, `residual (m, n)`.
+///
+/// # Errors
+/// Shape errors; another device or dtype than f32 on the CPU.
+pub(crate) fn linear_int8(
+    xs: &Tensor,
+    q: &super::int8::QuantLinear,
+    residual: Option<&Tensor>,
+    act: Activation,
+) -> Result<Tensor> {
+    if !(xs.device().is_cpu() && xs.dtype() == candle_core::DType::F32) {
+        candle_core::bail!("int8 linear layers run on the CPU in f32");
+    }
+    let op = Int8LinearOp { q, act };
+    let xs = xs.contiguous()?;
+    match residual {
+        Some(r) => xs.apply_op2_no_bwd(&r.contiguous()?, &op),
+        None => xs.apply_op1_no_bwd(&op),
+    }
+}
+
+struct Int8LinearOp<'a> {
+    q: &'a super::int8::QuantLinear,
+    act: Activation,
+}
+
+impl Int8LinearOp<'_> {
+    fn run(&self, x: &[f32], lx: &Layout, residual: Option<&[f32]>) -> Result<(CpuStorage, Shape)> {
+        let (m, k) = lx.shape().dims2()?;
+        let n = self.q.out_features();
+        if k != self.q.in_features() || residual.is_some_and(|r| r.len() != m * n) {
+            candle_core::bail!(
+                "int8 linear: x {:?} for a {}×{n} layer",
+                lx.dims(),
+                self.q.in_features()
+            );
+        }
+        let mut dst = self.q.forward(x, m, residual);
+        if self.act == Activation::GeluErf {
+            dst.par_chunks_mut(16 * 1024).for_each(gelu_in_place);
+        }
+        Ok((CpuStorage::F32(dst), Shape::from_dims(&[m, n])))
+    }
+}
+
+impl CustomOp1 for Int8LinearOp<'_> {
+    fn name(&self) -> &'static str {
+        "int8-linear"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        self.run(contiguous(s, l)?, l, None)
+    }
+}
+
+impl candle_core::CustomOp2 for Int8LinearOp<'_> {
+    fn name(&self) -> &'static str {
+        "int8-linear-residual"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        self.run(contiguous(s1, l1)?, l1, Some(contiguous(s2, l2)?))
+    }
+}
+
 /// `w · x + bias` with the bias per output row: `w (m, k)`, `x (k, n)` (or, with `x_t`, `x` given
 /// as `(n, k)` and read transposed), `bias (m)`. The 1×1 convolutions of the DPT head. CPU f32:
 /// one `gemm` accumulating into the bias rows; other devices: candle ops.
@@ -606,6 +678,97 @@ impl CustomOp1 for AttentionOp {
                     };
                     for v in o {
                         *v *= f;
+                    }
+                }
+            });
+        });
+        Ok((CpuStorage::F32(dst), Shape::from_dims(&[n, c])))
+    }
+}
+
+/// [`attention`] with both products in int8 ([`super::int8`]) on the CPU: per head, `kᵀ` is
+/// quantised per key (the "output channel" of `q·kᵀ`) and `v` per feature, the query rows and
+/// the unnormalised probabilities (`exp(s − max)`, in (0, 1]) per row at run time.
+///
+/// # Errors
+/// Shape errors; another device or dtype than f32 on the CPU.
+pub(crate) fn attention_int8(qkv: &Tensor, num_heads: usize, scale: f32) -> Result<Tensor> {
+    if !(qkv.device().is_cpu() && qkv.dtype() == candle_core::DType::F32) {
+        candle_core::bail!("int8 attention runs on the CPU in f32");
+    }
+    qkv.contiguous()?
+        .apply_op1_no_bwd(&AttentionInt8Op { num_heads, scale })
+}
+
+struct AttentionInt8Op {
+    num_heads: usize,
+    scale: f32,
+}
+
+impl CustomOp1 for AttentionInt8Op {
+    fn name(&self) -> &'static str {
+        "int8-attention"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        use super::int8::QuantLinear;
+        let qkv = contiguous(storage, layout)?;
+        let (n, c3) = layout.shape().dims2()?;
+        let c = c3 / 3;
+        let heads = self.num_heads;
+        if c3 % 3 != 0 || heads == 0 || c % heads != 0 || n == 0 {
+            candle_core::bail!("attention: qkv {:?}, {heads} heads", layout.dims());
+        }
+        let hd = c / heads;
+        let column = |off: usize, j: usize| qkv[j * c3 + off];
+        // per head: kᵀ (hd × n) and v (n × hd), quantised
+        let layers: Vec<(QuantLinear, QuantLinear)> = (0..heads)
+            .into_par_iter()
+            .map(|h| {
+                let kt: Vec<f32> = (0..hd)
+                    .flat_map(|d| (0..n).map(move |j| (c + h * hd + d, j)))
+                    .map(|(off, j)| column(off, j))
+                    .collect();
+                let v: Vec<f32> = (0..n)
+                    .flat_map(|j| (0..hd).map(move |d| (j, 2 * c + h * hd + d)))
+                    .map(|(j, off)| qkv[j * c3 + off])
+                    .collect();
+                Ok((
+                    QuantLinear::new(&kt, hd, n, &vec![0.0; n])?,
+                    QuantLinear::new(&v, n, hd, &vec![0.0; hd])?,
+                ))
+            })
+            .collect::<Result<_>>()?;
+        let mut dst = vec![0f32; n * c];
+        let out = SendPtr(dst.as_mut_ptr());
+        let blocks = n.div_ceil(ATTN_ROWS);
+        let scale = self.scale;
+        (0..heads * blocks).into_par_iter().for_each(|t| {
+            let (h, b) = (t / blocks, t % blocks);
+            let r0 = b * ATTN_ROWS;
+            let rows = ATTN_ROWS.min(n - r0);
+            let (kt, v) = &layers[h];
+            let q: Vec<f32> = (r0..r0 + rows)
+                .flat_map(|i| qkv[i * c3 + h * hd..i * c3 + (h + 1) * hd].iter().copied())
+                .collect();
+            SCORES.with(|cell| {
+                let mut s = cell.borrow_mut();
+                if s.len() < rows * n {
+                    s.resize(rows * n, 0.0);
+                }
+                let s = &mut s[..rows * n];
+                kt.forward_serial(&q, rows, s);
+                let mut inv = [0f32; ATTN_ROWS];
+                exp_rows(s, n, scale, &mut inv[..rows]);
+                let mut o = vec![0f32; rows * hd];
+                v.forward_serial(s, rows, &mut o);
+                for (i, (o, &f)) in o.chunks_exact(hd).zip(&inv[..rows]).enumerate() {
+                    // SAFETY: row r0 + i, columns h·hd..(h+1)·hd of dst: this task's block.
+                    let d = unsafe {
+                        std::slice::from_raw_parts_mut(out.get().add((r0 + i) * c + h * hd), hd)
+                    };
+                    for (d, &o) in d.iter_mut().zip(o) {
+                        *d = o * f;
                     }
                 }
             });

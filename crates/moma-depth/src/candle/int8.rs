@@ -1,0 +1,576 @@
+//! int8 linear layers on the CPU (`--dtype int8`): `y = x·W + b` with per-output-channel
+//! symmetric weight scales (fixed at load time) and dynamic per-token asymmetric activation
+//! scales (each row of `x` at run time), products accumulated exactly in `i32`.
+//!
+//! Weights `q_w = round(W / s_w[j])` in [−127, 127] with `s_w[j] = max_k |W[k, j]| / 127`;
+//! activations `q_x = round(x / s_x[i]) + z[i]` in [0, 255] (unsigned bytes, as `vpdpbusd`
+//! wants) with `s_x[i] = (max(x_i, 0) − min(x_i, 0)) / 255` and the zero point
+//! `z[i] = round(−min(x_i, 0) / s_x[i])`: the whole byte range covers the row's values, which
+//! matters after a GELU (almost no negative values), where a symmetric range would waste half
+//! of it (2.9 % of the output range against 1.1 % on the ViT-S reference). The zero point is
+//! removed with the weights' column sums: `Σ_k q_x·q_w − z[i]·Σ_k q_w`, and
+//! `y[i, j] = s_x[i]·s_w[j]·(Σ_k q_x·q_w − z[i]·Σ_k q_w) + b[j]`.
+//!
+//! Kernel: AVX512-VNNI `vpdpbusd` (64 multiply-adds of bytes per instruction) where the CPU has
+//! it, found at run time; a portable loop otherwise. Both give the same `i32` sums (integer
+//! arithmetic is exact) and share the `f32` epilogue, so every CPU and every thread count gives
+//! the same bits. Written here because neither of the crates moma builds on has such a kernel:
+//! `gemm` multiplies floats only, and candle's quantised matmuls (ggml's `Q8_0`) quantise the
+//! activations in blocks of 32 along `k` and multiply with AVX2 (`cargo bench -p moma-depth
+//! --bench int8` measures them side by side).
+
+use rayon::prelude::*;
+
+/// Rows of `x` per micro-kernel call.
+const MR: usize = 8;
+/// Output columns per micro-kernel call (two 16-lane `i32` vectors).
+const NR: usize = 32;
+/// Rows of `x` per parallel task: each quantises its rows once and runs them against every
+/// column block, so that a column block's packed weights are reused from cache `CHUNK / MR`
+/// times.
+const CHUNK: usize = 64;
+
+/// A linear layer quantised to int8 (module documentation).
+#[derive(Debug, Clone)]
+pub(crate) struct QuantLinear {
+    /// Input features.
+    k: usize,
+    /// Output features.
+    n: usize,
+    /// `k` rounded up to a multiple of 4 (one `vpdpbusd` lane takes 4 bytes).
+    kp: usize,
+    /// `n` rounded up to a multiple of [`NR`].
+    np: usize,
+    /// `q_w` in blocks of 16 columns: block `jb` holds, for each group of 4 rows `kb`, 16 × 4
+    /// bytes (`[j][kk]` = `q_w[4·kb + kk, 16·jb + j]`); zero outside `k × n`.
+    packed: Vec<i8>,
+    /// `s_w`, one per output column (`np`; 0 in the padding).
+    scale: Vec<f32>,
+    /// `Σ_k q_w[k, j]` (`np`).
+    colsum: Vec<i32>,
+    /// `b` (`n`).
+    bias: Vec<f32>,
+}
+
+impl QuantLinear {
+    /// Quantises `weight_t` (`k × n`, row-major: `x·weight_t`) and keeps `bias` (`n`).
+    ///
+    /// # Errors
+    /// Sizes that do not match; a weight that is not finite.
+    pub(crate) fn new(
+        weight_t: &[f32],
+        k: usize,
+        n: usize,
+        bias: &[f32],
+    ) -> candle_core::Result<Self> {
+        if weight_t.len() != k * n || bias.len() != n || k == 0 || n == 0 {
+            candle_core::bail!(
+                "int8 linear: weight of {} values for {k}×{n}, bias of {}",
+                weight_t.len(),
+                bias.len()
+            );
+        }
+        if weight_t.iter().any(|w| !w.is_finite()) {
+            candle_core::bail!("int8 linear: the weights hold a value that is not finite");
+        }
+        let kp = k.div_ceil(4) * 4;
+        let np = n.div_ceil(NR) * NR;
+        // column maxima row by row (contiguous, vectorises; the weights are finite)
+        let mut amax = vec![0f32; n];
+        for row in weight_t.chunks_exact(n) {
+            for (m, &w) in amax.iter_mut().zip(row) {
+                let a = w.abs();
+                *m = if a > *m { a } else { *m };
+            }
+        }
+        let mut scale = vec![0f32; np];
+        for (s, &a) in scale.iter_mut().zip(&amax) {
+            *s = if a > 0.0 { a / 127.0 } else { 1.0 };
+        }
+        let inv: Vec<f32> = scale[..n].iter().map(|s| 1.0 / s).collect();
+        let mut packed = vec![0i8; np * kp];
+        let mut colsum = vec![0i32; np];
+        let mut q = vec![0i8; n];
+        for (i, row) in weight_t.chunks_exact(n).enumerate() {
+            for ((q, &w), &inv) in q.iter_mut().zip(row).zip(&inv) {
+                // |w · inv| ≤ 127 by the scale; round half away from zero by truncation
+                let v = w * inv;
+                *q = (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8;
+            }
+            let at = (i / 4) * 64 + i % 4;
+            for (j, &q) in q.iter().enumerate() {
+                colsum[j] += i32::from(q);
+                packed[(j / 16) * kp * 16 + at + (j % 16) * 4] = q;
+            }
+        }
+        Ok(Self {
+            k,
+            n,
+            kp,
+            np,
+            packed,
+            scale,
+            colsum,
+            bias: bias.to_vec(),
+        })
+    }
+
+    /// Input features.
+    pub(crate) fn in_features(&self) -> usize {
+        self.k
+    }
+
+    /// Output features.
+    pub(crate) fn out_features(&self) -> usize {
+        self.n
+    }
+
+    /// `[residual +] x·W + b` for `x` (`m × k`, row-major) and `residual` (`m × n`): `m × n`.
+    /// A row of `x` holding a value that is not finite gives a row of NaN.
+    pub(crate) fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        debug_assert_eq!(x.len(), m * self.k);
+        let (k, n) = (self.k, self.n);
+        let vnni = has_vnni();
+        let mut out = vec![0f32; m * n];
+        out.par_chunks_mut(CHUNK * n)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let rows = out.len() / n;
+                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
+                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
+                self.run_chunk(x, rows, residual, out, vnni);
+            });
+        out
+    }
+
+    /// [`Self::forward`] on the calling thread (for callers that are already parallel), into
+    /// `out` (`m × n`).
+    pub(crate) fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
+        let (k, n) = (self.k, self.n);
+        let vnni = has_vnni();
+        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
+            let rows = out.len() / n;
+            self.run_chunk(
+                &x[c * CHUNK * k..(c * CHUNK + rows) * k],
+                rows,
+                None,
+                out,
+                vnni,
+            );
+        }
+    }
+
+    /// [`Self::forward`] on at most [`CHUNK`] rows.
+    fn run_chunk(
+        &self,
+        x: &[f32],
+        rows: usize,
+        residual: Option<&[f32]>,
+        out: &mut [f32],
+        vnni: bool,
+    ) {
+        let (k, n, kp, np) = (self.k, self.n, self.kp, self.np);
+        let padded = rows.div_ceil(MR) * MR;
+        QUANT.with(|cell| {
+            let mut buf = cell.borrow_mut();
+            let (q, acc) = buf.parts(padded * kp, rows * np);
+            // Quantised rows (0 in the padding: the weights there are 0 too), their scales
+            // and zero points.
+            let mut sx = [0f32; CHUNK];
+            let mut zx = [0i32; CHUNK];
+            q[rows * kp..].fill(0);
+            for (i, (row, q)) in x.chunks_exact(k).zip(q.chunks_exact_mut(kp)).enumerate() {
+                (sx[i], zx[i]) = quantise_row(row, &mut q[..k]);
+                q[k..].fill(0);
+            }
+            let mut tile = [[0i32; NR]; MR];
+            for jb2 in 0..np / NR {
+                let w = &self.packed[jb2 * 2 * kp * 16..(jb2 + 1) * 2 * kp * 16];
+                for r0 in (0..rows).step_by(MR) {
+                    let a = &q[r0 * kp..(r0 + MR) * kp];
+                    if vnni {
+                        #[cfg(target_arch = "x86_64")]
+                        // SAFETY: `has_vnni` found the features; `a` holds MR rows of `kp`
+                        // bytes and `w` two column blocks of `kp · 16` bytes.
+                        unsafe {
+                            kernel_vnni(a, w, kp, &mut tile);
+                        }
+                    } else {
+                        kernel_portable(a, w, kp, &mut tile);
+                    }
+                    for (r, t) in tile.iter().enumerate().take(rows - r0.min(rows)).take(MR) {
+                        let at = (r0 + r) * np + jb2 * NR;
+                        acc[at..at + NR].copy_from_slice(t);
+                    }
+                }
+            }
+            let (scale, colsum, bias) = (&self.scale[..n], &self.colsum[..n], &self.bias[..]);
+            for (i, (o, a)) in out
+                .chunks_exact_mut(n)
+                .zip(acc.chunks_exact(np))
+                .enumerate()
+            {
+                let res = residual.map(|r| &r[i * n..(i + 1) * n]);
+                dequantise_row(o, &a[..n], sx[i], zx[i], colsum, scale, bias, res);
+            }
+        });
+    }
+}
+
+/// Defines `fn $name(args) -> R` whose body is compiled for baseline x86-64 and for AVX2, and
+/// dispatched at run time (the crate is built for baseline x86-64). Both give the same bits:
+/// Rust never contracts `a·b + c` into an FMA, and the integer and rounding steps are exact.
+macro_rules! avx2_dispatch {
+    ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),*) -> $ret:ty $body:block) => {
+        $(#[$m])*
+        #[allow(clippy::too_many_arguments)]
+        fn $name($($arg: $ty),*) -> $ret {
+            #[inline(always)]
+            #[allow(clippy::too_many_arguments)]
+            fn generic($($arg: $ty),*) -> $ret $body
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                #[allow(clippy::too_many_arguments)]
+                fn avx2($($arg: $ty),*) -> $ret {
+                    generic($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has the feature `avx2` was compiled for.
+                    return unsafe { avx2($($arg),*) };
+                }
+            }
+            generic($($arg),*)
+        }
+    };
+}
+
+avx2_dispatch! {
+    /// `o = (a − z·colsum)·s·scale + bias [+ residual]` over one row (slices of one length,
+    /// which vectorises).
+    fn dequantise_row(
+        o: &mut [f32],
+        a: &[i32],
+        s: f32,
+        z: i32,
+        colsum: &[i32],
+        scale: &[f32],
+        bias: &[f32],
+        residual: Option<&[f32]>
+    ) -> () {
+        let n = o.len();
+        let (a, colsum, scale, bias) = (&a[..n], &colsum[..n], &scale[..n], &bias[..n]);
+        for j in 0..n {
+            o[j] = (a[j] - z * colsum[j]) as f32 * (s * scale[j]) + bias[j];
+        }
+        if let Some(res) = residual {
+            for (o, &r) in o.iter_mut().zip(&res[..n]) {
+                *o += r;
+            }
+        }
+    }
+}
+
+/// A thread's scratch of [`QuantLinear::run_chunk`]: the quantised rows and the `i32` sums,
+/// kept between calls (a layer runs ~30 chunks per frame and per thread).
+#[derive(Default)]
+struct Scratch {
+    q: Vec<u8>,
+    acc: Vec<i32>,
+}
+
+impl Scratch {
+    /// The two buffers, of at least these lengths.
+    fn parts(&mut self, q: usize, acc: usize) -> (&mut [u8], &mut [i32]) {
+        if self.q.len() < q {
+            self.q.resize(q, 0);
+        }
+        if self.acc.len() < acc {
+            self.acc.resize(acc, 0);
+        }
+        (&mut self.q[..q], &mut self.acc[..acc])
+    }
+}
+
+thread_local! {
+    static QUANT: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+avx2_dispatch! {
+/// Quantises `row` into `q` and returns its scale `s_x` and zero point `z`; a NaN scale when
+/// a value is not finite (the row's outputs are then NaN, as in f32).
+fn quantise_row(row: &[f32], q: &mut [u8]) -> (f32, i32) {
+    // min, max and NaN in 16 lanes (`<`/`>` selects vectorise; `f32::min` does not)
+    let (mut lo, mut hi, mut nan) = ([0f32; 16], [0f32; 16], [false; 16]);
+    let mut chunks = row.chunks_exact(16);
+    for c in &mut chunks {
+        for l in 0..16 {
+            let v = c[l];
+            lo[l] = if v < lo[l] { v } else { lo[l] };
+            hi[l] = if v > hi[l] { v } else { hi[l] };
+            nan[l] |= v.is_nan();
+        }
+    }
+    for &v in chunks.remainder() {
+        lo[0] = if v < lo[0] { v } else { lo[0] };
+        hi[0] = if v > hi[0] { v } else { hi[0] };
+        nan[0] |= v.is_nan();
+    }
+    let lo = lo.iter().fold(0f32, |a, &v| if v < a { v } else { a });
+    let hi = hi.iter().fold(0f32, |a, &v| if v > a { v } else { a });
+    if nan.contains(&true) || !(lo.is_finite() && hi.is_finite()) {
+        q.fill(0);
+        return (f32::NAN, 0);
+    }
+    let s = if hi > lo { (hi - lo) / 255.0 } else { 1.0 };
+    let inv = 1.0 / s;
+    let z = (-lo * inv).round().clamp(0.0, 255.0);
+    for (q, &v) in q.iter_mut().zip(row) {
+        // round half up of a value clamped to [0, 255] (= `round` there), by truncation:
+        // `f32::round` is a libm call per value on baseline x86-64
+        *q = ((v * inv + z).clamp(0.0, 255.0) + 0.5) as u8;
+    }
+    (s, z as i32)
+}
+}
+
+/// Whether the CPU has AVX512-VNNI (with AVX512F), checked once.
+pub(crate) fn has_vnni() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        static VNNI: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *VNNI.get_or_init(|| {
+            std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("avx512vnni")
+        })
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// `acc[r][j] = Σ_k a[r, k] · w[k, j]` over [`MR`] rows of `a` (`kp` unsigned bytes each) and
+/// two packed column blocks `w` (module layout), without VNNI.
+fn kernel_portable(a: &[u8], w: &[i8], kp: usize, acc: &mut [[i32; NR]; MR]) {
+    for (r, acc) in acc.iter_mut().enumerate() {
+        *acc = [0; NR];
+        let row = &a[r * kp..(r + 1) * kp];
+        for (half, acc) in acc.chunks_exact_mut(16).enumerate() {
+            let w = &w[half * kp * 16..(half + 1) * kp * 16];
+            for (kb, a4) in row.chunks_exact(4).enumerate() {
+                let w = &w[kb * 64..kb * 64 + 64];
+                for (j, acc) in acc.iter_mut().enumerate() {
+                    let w4 = &w[j * 4..j * 4 + 4];
+                    *acc += (0..4)
+                        .map(|kk| i32::from(a4[kk]) * i32::from(w4[kk]))
+                        .sum::<i32>();
+                }
+            }
+        }
+    }
+}
+
+/// [`kernel_portable`] with `vpdpbusd`: per group of 4 rows of `w`, one 64-byte load per column
+/// block, and per row of `a` its 4 bytes broadcast and multiplied into 2 × 16 lanes.
+///
+/// # Safety
+/// The CPU must have AVX512F and AVX512-VNNI; `a` must hold [`MR`] · `kp` bytes and `w`
+/// 2 · `kp` · 16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vnni")]
+unsafe fn kernel_vnni(a: &[u8], w: &[i8], kp: usize, acc: &mut [[i32; NR]; MR]) {
+    use std::arch::x86_64::*;
+    debug_assert!(a.len() >= MR * kp && w.len() >= 2 * kp * 16);
+    let mut s = [[_mm512_setzero_si512(); 2]; MR];
+    let a = a.as_ptr();
+    let w0 = w.as_ptr();
+    // SAFETY: every read is inside `a` (row r < MR, byte 4·kb + 3 < kp) and `w` (two blocks of
+    // kp · 16 bytes), as the caller guarantees.
+    unsafe {
+        let w1 = w0.add(kp * 16);
+        for kb in 0..kp / 4 {
+            let b0 = _mm512_loadu_si512(w0.add(kb * 64).cast());
+            let b1 = _mm512_loadu_si512(w1.add(kb * 64).cast());
+            for (r, s) in s.iter_mut().enumerate() {
+                let x = _mm512_set1_epi32(a.add(r * kp + kb * 4).cast::<i32>().read_unaligned());
+                s[0] = _mm512_dpbusd_epi32(s[0], x, b0);
+                s[1] = _mm512_dpbusd_epi32(s[1], x, b1);
+            }
+        }
+        for (acc, s) in acc.iter_mut().zip(&s) {
+            _mm512_storeu_si512(acc.as_mut_ptr().cast(), s[0]);
+            _mm512_storeu_si512(acc.as_mut_ptr().add(16).cast(), s[1]);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A seeded uniform value in [-1, 1).
+    fn uniform(state: &mut u64) -> f32 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+
+    fn reference(x: &[f32], m: usize, w: &[f32], k: usize, n: usize, b: &[f32]) -> Vec<f64> {
+        let mut y = vec![0f64; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                y[i * n + j] = f64::from(b[j])
+                    + (0..k)
+                        .map(|t| f64::from(x[i * k + t]) * f64::from(w[t * n + j]))
+                        .sum::<f64>();
+            }
+        }
+        y
+    }
+
+    #[test]
+    fn integer_sums_equal_the_exact_product_of_the_quantised_values() {
+        // sizes that are not multiples of the blocks (k % 4, n % 32, m % 8)
+        let (m, k, n) = (13, 37, 45);
+        let mut st = 7;
+        let x: Vec<f32> = (0..m * k).map(|_| uniform(&mut st)).collect();
+        let w: Vec<f32> = (0..k * n).map(|_| uniform(&mut st)).collect();
+        let b: Vec<f32> = (0..n).map(|_| uniform(&mut st)).collect();
+        let q = QuantLinear::new(&w, k, n, &b).unwrap();
+        let y = q.forward(&x, m, None);
+        // independent expectation: quantise by the formulas, multiply in f64
+        for i in 0..m {
+            let row = &x[i * k..(i + 1) * k];
+            let lo = row.iter().fold(0f32, |a, &v| a.min(v));
+            let hi = row.iter().fold(0f32, |a, &v| a.max(v));
+            let sx = (hi - lo) / 255.0;
+            let z = (-lo / sx).round();
+            for j in 0..n {
+                let sw = (0..k).fold(0f32, |a, t| a.max(w[t * n + j].abs())) / 127.0;
+                let dot: f64 = (0..k)
+                    .map(|t| {
+                        let qx = (row[t] / sx + z).round().clamp(0.0, 255.0) - z;
+                        let qw = (w[t * n + j] / sw).round().clamp(-127.0, 127.0);
+                        f64::from(qx) * f64::from(qw)
+                    })
+                    .sum();
+                let want = dot * f64::from(sx) * f64::from(sw) + f64::from(b[j]);
+                let got = f64::from(y[i * n + j]);
+                assert!(
+                    (got - want).abs() < 1e-5 * (1.0 + want.abs()),
+                    "{i},{j}: {got} vs {want}"
+                );
+            }
+        }
+        // and close to the float product: per-channel / per-token int8 loses ~1 % of a row's
+        // range at most
+        let exact = reference(&x, m, &w, k, n, &b);
+        let worst = y
+            .iter()
+            .zip(&exact)
+            .map(|(a, e)| (f64::from(*a) - e).abs())
+            .fold(0.0, f64::max);
+        assert!(worst < 0.05 * (k as f64).sqrt(), "worst error {worst}");
+    }
+
+    #[test]
+    fn vnni_and_portable_kernels_agree_bit_for_bit_on_any_thread_count() {
+        let (m, k, n) = (150, 384, 96);
+        let mut st = 11;
+        let x: Vec<f32> = (0..m * k).map(|_| uniform(&mut st) * 3.0).collect();
+        let w: Vec<f32> = (0..k * n).map(|_| uniform(&mut st) * 0.1).collect();
+        let b: Vec<f32> = (0..n).map(|_| uniform(&mut st)).collect();
+        let r: Vec<f32> = (0..m * n).map(|_| uniform(&mut st)).collect();
+        let q = QuantLinear::new(&w, k, n, &b).unwrap();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| q.forward(&x, m, Some(&r)))
+        };
+        let one = run(1);
+        assert_eq!(one, run(3));
+        // the portable kernel on the same rows
+        let mut portable = vec![0f32; m * n];
+        for (c, out) in portable.chunks_mut(CHUNK * n).enumerate() {
+            let rows = out.len() / n;
+            q.run_chunk(
+                &x[c * CHUNK * k..(c * CHUNK + rows) * k],
+                rows,
+                Some(&r[c * CHUNK * n..(c * CHUNK + rows) * n]),
+                out,
+                false,
+            );
+        }
+        assert_eq!(one, portable, "VNNI on this CPU: {}", has_vnni());
+    }
+
+    /// `|y − y_f32| ≤ Σ_k (|Δx_k|·|w_k| + |x_k|·|Δw_k| + |Δx_k|·|Δw_k|)` with the rounding
+    /// steps `|Δx| ≤ s_x/2`, `|Δw| ≤ s_w/2`: the bound, written from the scales alone.
+    fn bound(row: &[f32], w: &[f32], k: usize, n: usize, j: usize) -> f64 {
+        let lo = row.iter().fold(0f32, |a, &v| a.min(v));
+        let hi = row.iter().fold(0f32, |a, &v| a.max(v));
+        let dx = f64::from((hi - lo) / 255.0) / 2.0;
+        let sw = (0..k).fold(0f32, |a, t| a.max(w[t * n + j].abs())) / 127.0;
+        let dw = f64::from(sw) / 2.0;
+        (0..k)
+            .map(|t| dx * f64::from(w[t * n + j].abs()) + f64::from(row[t].abs()) * dw + dx * dw)
+            .sum::<f64>()
+            * 1.001
+            + 1e-6
+    }
+
+    #[test]
+    fn outlier_channels_widen_the_error_of_every_other_channel() {
+        // Trained ViTs carry a few activation channels 10–100× larger than the rest; random
+        // weights do not. A per-token scale is set by them, so the other channels lose
+        // resolution: the error grows with the outliers' size, and stays within the bound.
+        let (m, k, n) = (16, 384, 64);
+        let mut st = 5;
+        let x: Vec<f32> = (0..m * k).map(|_| uniform(&mut st)).collect();
+        let w: Vec<f32> = (0..k * n).map(|_| uniform(&mut st) * 0.05).collect();
+        let b = vec![0f32; n];
+        let q = QuantLinear::new(&w, k, n, &b).unwrap();
+        let error = |x: &[f32]| {
+            let y = q.forward(x, m, None);
+            let exact = reference(x, m, &w, k, n, &b);
+            let mut worst = 0f64;
+            for i in 0..m {
+                for j in 0..n {
+                    let e = (f64::from(y[i * n + j]) - exact[i * n + j]).abs();
+                    assert!(
+                        e <= bound(&x[i * k..(i + 1) * k], &w, k, n, j),
+                        "{i},{j}: {e}"
+                    );
+                    worst = worst.max(e);
+                }
+            }
+            worst
+        };
+        let plain = error(&x);
+        let mut outliers = x.clone();
+        for row in outliers.chunks_exact_mut(k) {
+            row[7] *= 60.0;
+            row[200] *= -60.0;
+        }
+        // the outlier channels' own contribution is exact to within their step: compare the
+        // error against the same input's f32 product
+        let with = error(&outliers);
+        assert!(
+            with > 10.0 * plain,
+            "outliers: {with:.3e}, without: {plain:.3e}"
+        );
+    }
+
+    #[test]
+    fn bad_rows_and_weights() {
+        let q = QuantLinear::new(&[1.0, 2.0, 3.0, 4.0], 2, 2, &[0.0, 0.0]).unwrap();
+        let y = q.forward(&[f32::NAN, 1.0, 0.0, 0.0], 2, None);
+        assert!(y[0].is_nan() && y[1].is_nan());
+        assert_eq!(&y[2..], &[0.0, 0.0], "a zero row gives the bias");
+        assert!(QuantLinear::new(&[1.0, f32::INFINITY], 1, 2, &[0.0, 0.0]).is_err());
+        assert!(QuantLinear::new(&[1.0, 2.0], 1, 2, &[0.0]).is_err());
+        assert_eq!((q.in_features(), q.out_features()), (2, 2));
+    }
+}
