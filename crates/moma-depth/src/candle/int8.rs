@@ -16,8 +16,8 @@
 //! arithmetic is exact) and share the `f32` epilogue, so every CPU and every thread count gives
 //! the same bits. Written here because neither of the crates moma builds on has such a kernel:
 //! `gemm` multiplies floats only, and candle's quantised matmuls (ggml's `Q8_0`) quantise the
-//! activations in blocks of 32 along `k` and multiply with AVX2 (`cargo bench -p moma-depth
-//! --bench int8` measures them side by side).
+//! activations in blocks of 32 along `k` with AVX2 dot products (not yet measured against this
+//! kernel).
 
 use rayon::prelude::*;
 
