@@ -169,11 +169,11 @@ impl QuantLinear {
         out: &mut [f32],
         vnni: bool,
     ) {
-        let (k, n, kp, np) = (self.k, self.n, self.kp, self.np);
+        let (k, kp) = (self.k, self.kp);
         let padded = rows.div_ceil(MR) * MR;
         QUANT.with(|cell| {
             let mut buf = cell.borrow_mut();
-            let (q, acc) = buf.parts(padded * kp, rows * np);
+            let (q, acc) = buf.parts(padded * kp, rows * self.np);
             // Quantised rows (0 in the padding: the weights there are 0 too), their scales
             // and zero points.
             let mut sx = [0f32; CHUNK];
@@ -183,37 +183,80 @@ impl QuantLinear {
                 (sx[i], zx[i]) = quantise_row(row, &mut q[..k]);
                 q[k..].fill(0);
             }
-            let mut tile = [[0i32; NR]; MR];
-            for jb2 in 0..np / NR {
-                let w = &self.packed[jb2 * 2 * kp * 16..(jb2 + 1) * 2 * kp * 16];
-                for r0 in (0..rows).step_by(MR) {
-                    let a = &q[r0 * kp..(r0 + MR) * kp];
-                    if vnni {
-                        #[cfg(target_arch = "x86_64")]
-                        // SAFETY: `has_vnni` found the features; `a` holds MR rows of `kp`
-                        // bytes and `w` two column blocks of `kp · 16` bytes.
-                        unsafe {
-                            kernel_vnni(a, w, kp, &mut tile);
-                        }
-                    } else {
-                        kernel_portable(a, w, kp, &mut tile);
+            self.multiply(q, &sx, &zx, rows, acc, residual, out, vnni);
+        });
+    }
+
+    /// `out` (`rows × n`) from rows already quantised: `q` holds `rows` rounded up to a
+    /// multiple of 8 rows of `kp` bytes (`q_x`, zero in the padding), `sx` and `zx` their
+    /// scales and zero points; at most [`CHUNK`] rows. For producers that know their rows'
+    /// range in advance (the attention's probabilities, in [0, 1]).
+    pub(crate) fn forward_quantised(
+        &self,
+        q: &[u8],
+        sx: &[f32],
+        zx: &[i32],
+        rows: usize,
+        out: &mut [f32],
+    ) {
+        debug_assert!(rows <= CHUNK && q.len() >= rows.div_ceil(MR) * MR * self.kp);
+        QUANT.with(|cell| {
+            let mut buf = cell.borrow_mut();
+            let (_, acc) = buf.parts(0, rows * self.np);
+            self.multiply(q, sx, zx, rows, acc, None, out, has_vnni());
+        });
+    }
+
+    /// The products of quantised rows `q` with the packed weights, then the epilogue.
+    #[allow(clippy::too_many_arguments)]
+    fn multiply(
+        &self,
+        q: &[u8],
+        sx: &[f32],
+        zx: &[i32],
+        rows: usize,
+        acc: &mut [i32],
+        residual: Option<&[f32]>,
+        out: &mut [f32],
+        vnni: bool,
+    ) {
+        let (n, kp, np) = (self.n, self.kp, self.np);
+        let mut tile = [[0i32; NR]; MR];
+        for jb2 in 0..np / NR {
+            let w = &self.packed[jb2 * 2 * kp * 16..(jb2 + 1) * 2 * kp * 16];
+            for r0 in (0..rows).step_by(MR) {
+                let a = &q[r0 * kp..(r0 + MR) * kp];
+                if vnni {
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: `has_vnni` found the features; `a` holds MR rows of `kp` bytes
+                    // and `w` two column blocks of `kp · 16` bytes.
+                    unsafe {
+                        kernel_vnni(a, w, kp, &mut tile);
                     }
-                    for (r, t) in tile.iter().enumerate().take(rows - r0.min(rows)).take(MR) {
-                        let at = (r0 + r) * np + jb2 * NR;
-                        acc[at..at + NR].copy_from_slice(t);
-                    }
+                } else {
+                    kernel_portable(a, w, kp, &mut tile);
+                }
+                for (r, t) in tile.iter().enumerate().take(rows - r0) {
+                    let at = (r0 + r) * np + jb2 * NR;
+                    acc[at..at + NR].copy_from_slice(t);
                 }
             }
-            let (scale, colsum, bias) = (&self.scale[..n], &self.colsum[..n], &self.bias[..]);
-            for (i, (o, a)) in out
-                .chunks_exact_mut(n)
-                .zip(acc.chunks_exact(np))
-                .enumerate()
-            {
-                let res = residual.map(|r| &r[i * n..(i + 1) * n]);
-                dequantise_row(o, &a[..n], sx[i], zx[i], colsum, scale, bias, res);
-            }
-        });
+        }
+        let (scale, colsum, bias) = (&self.scale[..n], &self.colsum[..n], &self.bias[..]);
+        for (i, (o, a)) in out
+            .chunks_exact_mut(n)
+            .zip(acc.chunks_exact(np))
+            .enumerate()
+            .take(rows)
+        {
+            let res = residual.map(|r| &r[i * n..(i + 1) * n]);
+            dequantise_row(o, &a[..n], sx[i], zx[i], colsum, scale, bias, res);
+        }
+    }
+
+    /// `k` rounded up to a multiple of 4: the row length of [`Self::forward_quantised`]'s `q`.
+    pub(crate) fn padded_in_features(&self) -> usize {
+        self.kp
     }
 }
 
@@ -325,10 +368,12 @@ fn quantise_row(row: &[f32], q: &mut [u8]) -> (f32, i32) {
     let s = if hi > lo { (hi - lo) / 255.0 } else { 1.0 };
     let inv = 1.0 / s;
     let z = (-lo * inv).round().clamp(0.0, 255.0);
+    // A value clamped to [0, 255] plus 1.5·2²³ holds it rounded (to nearest, ties to even) in
+    // the low bits of its mantissa: read with a mask, this vectorises, where `f32::round` is a
+    // libm call per value on baseline x86-64 and a cast saturates lane by lane.
+    const ROUND: f32 = 12_582_912.0;
     for (q, &v) in q.iter_mut().zip(row) {
-        // round half up of a value clamped to [0, 255] (= `round` there), by truncation:
-        // `f32::round` is a libm call per value on baseline x86-64
-        *q = ((v * inv + z).clamp(0.0, 255.0) + 0.5) as u8;
+        *q = (((v * inv + z).clamp(0.0, 255.0) + ROUND).to_bits() & 0xFF) as u8;
     }
     (s, z as i32)
 }
@@ -449,7 +494,7 @@ mod tests {
                 let sw = (0..k).fold(0f32, |a, t| a.max(w[t * n + j].abs())) / 127.0;
                 let dot: f64 = (0..k)
                     .map(|t| {
-                        let qx = (row[t] / sx + z).round().clamp(0.0, 255.0) - z;
+                        let qx = (row[t] / sx + z).round_ties_even().clamp(0.0, 255.0) - z;
                         let qw = (w[t * n + j] / sw).round().clamp(-127.0, 127.0);
                         f64::from(qx) * f64::from(qw)
                     })

@@ -225,6 +225,30 @@ simd_dispatch! {
     }
 }
 
+simd_dispatch! {
+    /// The unnormalised probabilities `e` of [`exp_rows`] (in (0, 1], 1 at each row's max: their
+    /// scale is known without a pass over them) as bytes for the int8 `· v` product:
+    /// `q = round(255 · e)` into rows of `kp` bytes (the rest zero), and `inv = 255 / Σ q`
+    /// (the quantised weights then sum to one).
+    fn probabilities_u8(e: &[f32], n: usize, q: &mut [u8], kp: usize, inv: &mut [f32]) {
+        for ((row, q), inv) in e.chunks_exact(n).zip(q.chunks_exact_mut(kp)).zip(inv.iter_mut()) {
+            let (q, pad) = q.split_at_mut(n);
+            pad.fill(0);
+            // 255·e is in [0, 255]: adding 1.5·2²³ rounds it (to nearest, ties to even) into
+            // the low bits of the sum's mantissa, read with a mask; unlike a float-to-int
+            // cast, which Rust saturates lane by lane, this vectorises
+            const ROUND: f32 = 12_582_912.0;
+            let mut sum = 0u32;
+            for (o, &e) in q.iter_mut().zip(row) {
+                let b = (e * 255.0 + ROUND).to_bits() & 0xFF;
+                *o = b as u8;
+                sum += b;
+            }
+            *inv = 255.0 / sum.max(1) as f32;
+        }
+    }
+}
+
 /// Row-wise `softmax(scale · row)` in place on the length-`n` rows of `s` ([`exp_rows`], then
 /// each row times its `1 / Σ`): the probabilities the training attention's backward recomputes.
 pub(crate) fn softmax_rows_in_place(s: &mut [f32], n: usize, scale: f32) {
@@ -758,10 +782,15 @@ impl CustomOp1 for AttentionInt8Op {
                 }
                 let s = &mut s[..rows * n];
                 kt.forward_serial(&q, rows, s);
+                // the probabilities straight into bytes (scale 1/255, zero point 0)
+                let kp = v.padded_in_features();
+                let mut p = vec![0u8; rows.div_ceil(8) * 8 * kp];
                 let mut inv = [0f32; ATTN_ROWS];
                 exp_rows(s, n, scale, &mut inv[..rows]);
+                probabilities_u8(s, n, &mut p, kp, &mut inv[..rows]);
+                let sx = [1.0 / 255.0; ATTN_ROWS];
                 let mut o = vec![0f32; rows * hd];
-                v.forward_serial(s, rows, &mut o);
+                v.forward_quantised(&p, &sx, &[0; ATTN_ROWS], rows, &mut o);
                 for (i, (o, &f)) in o.chunks_exact(hd).zip(&inv[..rows]).enumerate() {
                     // SAFETY: row r0 + i, columns h·hd..(h+1)·hd of dst: this task's block.
                     let d = unsafe {
