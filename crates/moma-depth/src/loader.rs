@@ -81,7 +81,9 @@ pub enum Precision {
     F32,
     /// IEEE half precision (GPU; on the CPU it works but is slower than f32).
     F16,
-    /// bfloat16 (GPU only: candle's CPU matmul has no bf16).
+    /// bfloat16: on a GPU the whole network; on the CPU the ViT encoder's linear layers and
+    /// attention products (bf16 weights and activations, f32 sums, AVX512-BF16 where the CPU
+    /// has it), the rest f32.
     Bf16,
     /// int8 linear layers in the ViT encoder (qkv, proj, MLP), the rest f32: CPU only (candle).
     /// Weights per output channel, activations per token, AVX512-VNNI where the CPU has it.

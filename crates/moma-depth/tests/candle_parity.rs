@@ -116,17 +116,18 @@ fn generic_ops_path_matches_reference_in_f64_and_f16() {
             );
         }
     }
-    // bf16 has no CPU matmul in candle: refused up front, naming the reason.
-    let mut spec = moma_depth::LoadSpec::new(
+    // f16 has no CPU kernel: packing for it is refused, naming the reason.
+    let mut model = CandleDepthModel::load(
         dir.join("tiny-rel.safetensors"),
-        config_for(&dir, "tiny-rel").spec(),
-        moma_depth::Backend::Candle,
-    );
-    spec.options.device = moma_depth::DeviceRequest::Cpu;
-    spec.options.precision = moma_depth::Precision::Bf16;
-    let err = moma_depth::load(&spec)
-        .err()
-        .expect("bf16 on the CPU is refused");
+        config_for(&dir, "tiny-rel"),
+        &candle_core::Device::Cpu,
+        candle_core::DType::F32,
+        None,
+    )
+    .unwrap();
+    let err = model
+        .pack_cpu(moma_depth::Precision::F16)
+        .expect_err("f16 on the CPU is refused");
     assert!(matches!(err, DepthError::Unavailable(_)), "{err:?}");
 }
 

@@ -59,7 +59,7 @@ pub enum DtypeArg {
     F32,
     /// Half precision (GPU).
     F16,
-    /// bfloat16 (GPU only).
+    /// bfloat16 (GPU; on the CPU the ViT encoder's products, the rest f32).
     Bf16,
     /// int8 linear layers in the ViT encoder, the rest f32 (CPU only, candle).
     Int8,
@@ -98,7 +98,8 @@ pub struct ModelArgs {
     /// metal[:N].
     #[arg(long, default_value = "auto", value_name = "DEVICE")]
     pub device: DeviceRequest,
-    /// Arithmetic precision of the candle backend (f16/bf16 are for GPUs, int8 for CPUs).
+    /// Arithmetic precision of the candle backend (f16 is for GPUs, int8 for CPUs, bf16 for
+    /// both).
     #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
     pub dtype: DtypeArg,
     /// A LoRA adapter (`moma finetune` output) merged into the weights at load (candle backend;

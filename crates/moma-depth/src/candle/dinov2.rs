@@ -39,14 +39,26 @@ impl Module for LayerNorm {
     }
 }
 
+/// The precision of the encoder's products on the CPU ([`DinoV2::pack`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum PackedPrecision {
+    /// f32 (`gemm`).
+    F32,
+    /// int8 weights and activations, `i32` sums ([`super::int8`]).
+    Int8,
+    /// bf16 weights and activations, `f32` sums ([`super::bf16`]).
+    Bf16,
+}
+
 /// `nn.Linear` applied to `(tokens, in)` matrices: `x · Wᵀ + b`.
 #[derive(Debug, Clone)]
 pub(crate) struct Linear {
     /// `(in, out)`, stored transposed and contiguous once at load time.
     weight_t: Tensor,
     bias: Tensor,
-    /// The same layer in int8 (`--dtype int8`), used instead of `weight_t` when present.
-    int8: Option<std::sync::Arc<super::int8::QuantLinear>>,
+    /// The same layer packed for a low-precision CPU kernel (`--dtype int8|bf16`), used
+    /// instead of `weight_t` when present.
+    packed: Option<std::sync::Arc<dyn super::ops::PackedLinear>>,
 }
 
 impl Linear {
@@ -55,18 +67,17 @@ impl Linear {
         Ok(Self {
             weight_t: weight.t()?.contiguous()?,
             bias: vb.get(out_dim, "bias")?,
-            int8: None,
+            packed: None,
         })
     }
 
-    /// Quantises the layer to int8 ([`super::int8`]); f32 weights on the CPU only.
-    fn quantise_int8(&mut self) -> Result<()> {
+    /// Packs the layer for the low-precision kernel `L` ([`super::int8`],
+    /// [`super::bf16`]); f32 weights on the CPU only.
+    fn pack<L: super::ops::PackedLinear + 'static>(&mut self) -> Result<()> {
         let (k, n) = self.weight_t.dims2()?;
         let w = self.weight_t.flatten_all()?.to_vec1::<f32>()?;
         let b = self.bias.to_vec1::<f32>()?;
-        self.int8 = Some(std::sync::Arc::new(super::int8::QuantLinear::new(
-            &w, k, n, &b,
-        )?));
+        self.packed = Some(std::sync::Arc::new(L::pack(&w, k, n, &b)?));
         Ok(())
     }
 }
@@ -77,7 +88,7 @@ impl Linear {
         Ok(Self {
             weight_t: self.weight_t.broadcast_mul(gamma)?.contiguous()?,
             bias: (self.bias * gamma)?,
-            int8: None,
+            packed: None,
         })
     }
 
@@ -88,8 +99,8 @@ impl Linear {
         residual: Option<&Tensor>,
         act: super::ops::Activation,
     ) -> Result<Tensor> {
-        if let Some(q) = &self.int8 {
-            return super::ops::linear_int8(xs, q, residual, act);
+        if let Some(layer) = &self.packed {
+            return super::ops::linear_packed(xs, layer.as_ref(), residual, act);
         }
         super::ops::linear(xs, &self.weight_t, &self.bias, residual, act)
     }
@@ -109,8 +120,8 @@ struct Attention {
     proj: Linear,
     num_heads: usize,
     scale: f64,
-    /// Both attention products in int8 (`--dtype int8`).
-    int8: bool,
+    /// The precision of both attention products (`--dtype int8|bf16`; f32 otherwise).
+    packed: PackedPrecision,
 }
 
 impl Attention {
@@ -120,7 +131,7 @@ impl Attention {
             proj: Linear::new(dim, dim, vb.pp("proj"))?,
             num_heads,
             scale: 1.0 / ((dim / num_heads) as f64).sqrt(),
-            int8: false,
+            packed: PackedPrecision::F32,
         })
     }
 
@@ -128,10 +139,15 @@ impl Attention {
     fn forward(&self, xs: &Tensor, residual: &Tensor) -> Result<Tensor> {
         let qkv = self.qkv.forward(xs)?;
         // softmax((q·scale)·kᵀ) is computed as softmax(scale·(q·kᵀ)).
-        let out = if self.int8 {
-            super::ops::attention_int8(&qkv, self.num_heads, self.scale as f32)?
-        } else {
-            super::ops::attention(&qkv, self.num_heads, self.scale as f32)?
+        let (heads, scale) = (self.num_heads, self.scale as f32);
+        let out = match self.packed {
+            PackedPrecision::F32 => super::ops::attention(&qkv, heads, scale)?,
+            PackedPrecision::Int8 => {
+                super::ops::attention_packed::<super::int8::QuantLinear>(&qkv, heads, scale)?
+            }
+            PackedPrecision::Bf16 => {
+                super::ops::attention_packed::<super::bf16::Bf16Linear>(&qkv, heads, scale)?
+            }
         };
         self.proj
             .forward_fused(&out, Some(residual), super::ops::Activation::None)
@@ -214,12 +230,13 @@ pub struct DinoV2 {
 }
 
 impl DinoV2 {
-    /// Quantises every block's linear layers (qkv, proj, MLP) and attention products to int8
-    /// ([`super::int8`]); the patch embedding, LayerNorms, softmax and GELU stay f32.
+    /// Packs every block's linear layers (qkv, proj, MLP) and attention products for a
+    /// low-precision CPU kernel: int8 ([`super::int8`]) or bf16 ([`super::bf16`]); the patch
+    /// embedding, LayerNorms, softmax and GELU stay f32.
     ///
     /// # Errors
     /// Weights that are not f32 on the CPU.
-    pub(crate) fn quantise_int8(&mut self) -> Result<()> {
+    pub(crate) fn pack(&mut self, precision: PackedPrecision) -> Result<()> {
         for b in &mut self.blocks {
             for l in [
                 &mut b.attn.qkv,
@@ -227,17 +244,17 @@ impl DinoV2 {
                 &mut b.mlp.fc1,
                 &mut b.mlp.fc2,
             ] {
-                l.quantise_int8()?;
+                match precision {
+                    PackedPrecision::F32 => l.packed = None,
+                    PackedPrecision::Int8 => l.pack::<super::int8::QuantLinear>()?,
+                    PackedPrecision::Bf16 => l.pack::<super::bf16::Bf16Linear>()?,
+                }
             }
-            b.attn.int8 = true;
+            b.attn.packed = precision;
         }
         Ok(())
     }
 
-    /// Builds the encoder from `vb` = `pretrained`.
-    ///
-    /// # Errors
-    /// Missing or mis-shaped weights.
     pub fn new(cfg: &DepthAnythingConfig, vb: VarBuilder) -> Result<Self> {
         let dim = cfg.embed_dim;
         let p = PATCH_SIZE;

@@ -17,6 +17,7 @@
 //! Not used: candle-transformers' `depth_anything_v2` (square inputs only, nearest-neighbour
 //! upsampling and position-embedding interpolation, LayerNorm eps 1e-5, no metric head).
 
+mod bf16;
 pub mod dinov2;
 pub mod dpt;
 mod int8;
@@ -550,23 +551,18 @@ pub fn open_checkpoint(
     ))
 }
 
-/// The candle dtype of `precision` on `device`.
+/// The candle dtype of `precision` on `device`. On the CPU, int8 and bf16 load f32 weights that
+/// [`CandleDepthModel::pack_cpu`] then packs for their kernels.
 ///
 /// # Errors
-/// [`DepthError::Unavailable`] for bf16 on the CPU (candle's CPU matmul has no bf16), int8 on
-/// a GPU.
+/// [`DepthError::Unavailable`] for int8 on a GPU.
 pub fn precision_dtype(precision: Precision, device: &Device) -> Result<DType> {
     match precision {
         Precision::F32 => Ok(DType::F32),
-        // f32 everywhere but the encoder's linear layers, quantised after loading
-        // ([`CandleDepthModel::quantise_int8`])
-        Precision::Int8 if device.is_cpu() => Ok(DType::F32),
+        Precision::F16 => Ok(DType::F16),
+        Precision::Bf16 | Precision::Int8 if device.is_cpu() => Ok(DType::F32),
         Precision::Int8 => Err(DepthError::Unavailable(
             "int8 is a CPU precision (AVX512-VNNI kernels); on a GPU use f16 or bf16".into(),
-        )),
-        Precision::F16 => Ok(DType::F16),
-        Precision::Bf16 if device.is_cpu() => Err(DepthError::Unavailable(
-            "bf16 needs a GPU: candle's CPU matmul has no bf16 (use f32 on the CPU)".into(),
         )),
         Precision::Bf16 => Ok(DType::BF16),
     }
@@ -634,11 +630,11 @@ impl CandleDepthModel {
     }
 
     /// [`Self::load`] in `precision` on `device`: the candle dtype of [`precision_dtype`], and
-    /// for [`Precision::Int8`] the f32 model then [`Self::quantise_int8`]. The one constructor
+    /// for int8 and bf16 on the CPU the f32 model then [`Self::pack_cpu`]. The one constructor
     /// of `moma_depth::load` and of the Python package.
     ///
     /// # Errors
-    /// As [`precision_dtype`], [`Self::load`] and [`Self::quantise_int8`].
+    /// As [`precision_dtype`], [`Self::load`] and [`Self::pack_cpu`].
     pub fn load_with_precision(
         path: impl AsRef<Path>,
         config: DepthAnythingConfig,
@@ -648,40 +644,52 @@ impl CandleDepthModel {
     ) -> Result<Self> {
         let dtype = precision_dtype(precision, device)?;
         let mut model = Self::load(path, config, device, dtype, adapter)?;
-        if precision == Precision::Int8 {
-            model.quantise_int8()?;
+        if device.is_cpu() && matches!(precision, Precision::Int8 | Precision::Bf16) {
+            model.pack_cpu(precision)?;
         }
         Ok(model)
     }
 
-    /// Quantises the encoder's linear layers (qkv, proj, MLP) to int8: per-output-channel
-    /// weight scales, per-token activation scales at run time (`--dtype int8`). On a CPU without
-    /// AVX512-VNNI a portable kernel gives the same results, slower, and this says so once on
-    /// stderr.
+    /// Packs the encoder's linear layers (qkv, proj, MLP) and attention products for a CPU
+    /// kernel in `precision` (`--dtype int8|bf16` on the CPU): int8 with per-output-channel
+    /// weight scales and per-token activation scales at run time (AVX512-VNNI), or bf16 with
+    /// `f32` sums (AVX512-BF16). On a CPU without those instructions a portable kernel gives
+    /// the same results, slower, and this says so once on stderr. `f32` unpacks.
     ///
     /// # Errors
-    /// [`DepthError::Unavailable`] unless the model is f32 on the CPU.
-    pub fn quantise_int8(&mut self) -> Result<()> {
+    /// [`DepthError::Unavailable`] unless the model is f32 on the CPU; f16.
+    pub fn pack_cpu(&mut self, precision: Precision) -> Result<()> {
+        use dinov2::PackedPrecision;
         if !(self.device.is_cpu() && self.dtype == DType::F32) {
             return Err(DepthError::Unavailable(format!(
-                "int8 layers are made from f32 weights on the CPU (this model is {:?} on {:?})",
+                "int8 and bf16 CPU layers are made from f32 weights on the CPU (this model is {:?} on {:?})",
                 self.dtype,
                 self.device.location()
             )));
         }
-        if !int8::has_vnni() {
+        let (packed, fast, instructions) = match precision {
+            Precision::F32 => (PackedPrecision::F32, true, ""),
+            Precision::Int8 => (PackedPrecision::Int8, int8::has_vnni(), "AVX512-VNNI"),
+            Precision::Bf16 => (PackedPrecision::Bf16, bf16::has_bf16(), "AVX512-BF16"),
+            Precision::F16 => {
+                return Err(DepthError::Unavailable(
+                    "f16 has no CPU kernel (use f32, bf16 or int8 on the CPU)".into(),
+                ));
+            }
+        };
+        if !fast {
             static SAID: std::sync::Once = std::sync::Once::new();
             SAID.call_once(|| {
                 eprintln!(
-                    "note: this CPU has no AVX512-VNNI: --dtype int8 runs a portable kernel \
-                     (same results, slower than f32)"
+                    "note: this CPU has no {instructions}: --dtype {precision:?} runs a portable \
+                     kernel (same results, slower than f32)"
                 );
             });
         }
         self.encoder
-            .quantise_int8()
+            .pack(packed)
             .map_err(|source| DepthError::Candle {
-                context: "quantising the encoder's linear layers to int8".into(),
+                context: format!("packing the encoder's linear layers for {precision:?}"),
                 source,
             })
     }

@@ -399,21 +399,93 @@ impl LinearOp<'_> {
 
 residual_op!(LinearOp, "fused-linear", "fused-linear-residual");
 
-/// `[residual +] act(xs · W + b)` with the int8 layer `q` ([`super::int8`]): `xs (m, k)` f32 on
-/// the CPU, `residual (m, n)`.
+/// A linear layer packed for a low-precision CPU kernel (`--dtype int8|bf16`): weights `W`
+/// (`k × n`) and bias `b` fixed at load time, or at run time for the attention's `kᵀ` and `v`.
+pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
+    /// Packs `weight_t` (`k × n`, row-major: `x·weight_t`) and `bias` (`n`).
+    ///
+    /// # Errors
+    /// Sizes that do not match; weights that are not finite.
+    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self>
+    where
+        Self: Sized;
+    /// `k`.
+    fn in_features(&self) -> usize;
+    /// `n`.
+    fn out_features(&self) -> usize;
+    /// `[residual +] x·W + b` for `x` (`m × k`, row-major), parallel over rows.
+    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32>;
+    /// `x·W + b` on the calling thread into `out` (`m × n`).
+    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]);
+    /// `out = e·W` for rows `e` (`rows × k`) of unnormalised attention probabilities (in
+    /// (0, 1], 1 at each row's max), with `inv` holding each row's `1 / Σ e` on entry and the
+    /// factor that normalises `out`'s row on exit.
+    fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
+        let _ = inv;
+        self.forward_serial(e, rows, out);
+    }
+}
+
+impl PackedLinear for super::int8::QuantLinear {
+    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self> {
+        Self::new(weight_t, k, n, bias)
+    }
+    fn in_features(&self) -> usize {
+        self.in_features()
+    }
+    fn out_features(&self) -> usize {
+        self.out_features()
+    }
+    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        self.forward(x, m, residual)
+    }
+    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
+        self.forward_serial(x, m, out)
+    }
+    /// The probabilities straight into bytes with their known scale (1/255, zero point 0);
+    /// `inv` becomes `255 / Σ q`, so that the quantised weights sum to one.
+    fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
+        let (n, kp) = (self.in_features(), self.padded_in_features());
+        let mut p = vec![0u8; rows.div_ceil(8) * 8 * kp];
+        probabilities_u8(e, n, &mut p, kp, &mut inv[..rows]);
+        let sx = vec![1.0 / 255.0; rows];
+        self.forward_quantised(&p, &sx, &vec![0; rows], rows, out);
+    }
+}
+
+impl PackedLinear for super::bf16::Bf16Linear {
+    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self> {
+        Self::new(weight_t, k, n, bias)
+    }
+    fn in_features(&self) -> usize {
+        self.in_features()
+    }
+    fn out_features(&self) -> usize {
+        self.out_features()
+    }
+    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        self.forward(x, m, residual)
+    }
+    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
+        self.forward_serial(x, m, out)
+    }
+}
+
+/// `[residual +] act(xs · W + b)` with a packed low-precision layer: `xs (m, k)` f32 on the
+/// CPU, `residual (m, n)`.
 ///
 /// # Errors
 /// Shape errors; another device or dtype than f32 on the CPU.
-pub(crate) fn linear_int8(
+pub(crate) fn linear_packed(
     xs: &Tensor,
-    q: &super::int8::QuantLinear,
+    layer: &dyn PackedLinear,
     residual: Option<&Tensor>,
     act: Activation,
 ) -> Result<Tensor> {
     if !(xs.device().is_cpu() && xs.dtype() == candle_core::DType::F32) {
-        candle_core::bail!("int8 linear layers run on the CPU in f32");
+        candle_core::bail!("int8 and bf16 linear layers run on the CPU in f32");
     }
-    let op = Int8LinearOp { q, act };
+    let op = PackedLinearOp { layer, act };
     let xs = xs.contiguous()?;
     match residual {
         Some(r) => xs.apply_op2_no_bwd(&r.contiguous()?, &op),
@@ -421,23 +493,23 @@ pub(crate) fn linear_int8(
     }
 }
 
-struct Int8LinearOp<'a> {
-    q: &'a super::int8::QuantLinear,
+struct PackedLinearOp<'a> {
+    layer: &'a dyn PackedLinear,
     act: Activation,
 }
 
-impl Int8LinearOp<'_> {
+impl PackedLinearOp<'_> {
     fn run(&self, x: &[f32], lx: &Layout, residual: Option<&[f32]>) -> Result<(CpuStorage, Shape)> {
         let (m, k) = lx.shape().dims2()?;
-        let n = self.q.out_features();
-        if k != self.q.in_features() || residual.is_some_and(|r| r.len() != m * n) {
+        let n = self.layer.out_features();
+        if k != self.layer.in_features() || residual.is_some_and(|r| r.len() != m * n) {
             candle_core::bail!(
-                "int8 linear: x {:?} for a {}×{n} layer",
+                "packed linear: x {:?} for a {}×{n} layer",
                 lx.dims(),
-                self.q.in_features()
+                self.layer.in_features()
             );
         }
-        let mut dst = self.q.forward(x, m, residual);
+        let mut dst = self.layer.forward(x, m, residual);
         if self.act == Activation::GeluErf {
             dst.par_chunks_mut(16 * 1024).for_each(gelu_in_place);
         }
@@ -445,9 +517,9 @@ impl Int8LinearOp<'_> {
     }
 }
 
-impl CustomOp1 for Int8LinearOp<'_> {
+impl CustomOp1 for PackedLinearOp<'_> {
     fn name(&self) -> &'static str {
-        "int8-linear"
+        "packed-linear"
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -455,9 +527,9 @@ impl CustomOp1 for Int8LinearOp<'_> {
     }
 }
 
-impl candle_core::CustomOp2 for Int8LinearOp<'_> {
+impl candle_core::CustomOp2 for PackedLinearOp<'_> {
     fn name(&self) -> &'static str {
-        "int8-linear-residual"
+        "packed-linear-residual"
     }
 
     fn cpu_fwd(
@@ -710,32 +782,39 @@ impl CustomOp1 for AttentionOp {
     }
 }
 
-/// [`attention`] with both products in int8 ([`super::int8`]) on the CPU: per head, `kᵀ` is
-/// quantised per key (the "output channel" of `q·kᵀ`) and `v` per feature, the query rows and
-/// the unnormalised probabilities (`exp(s − max)`, in (0, 1]) per row at run time.
+/// [`attention`] with both products in a packed low precision `L` (int8 or bf16) on the CPU:
+/// per head, `kᵀ` and `v` are packed at run time (int8: `kᵀ` quantised per key, `v` per
+/// feature; the query rows and the probabilities per row), the softmax stays f32.
 ///
 /// # Errors
 /// Shape errors; another device or dtype than f32 on the CPU.
-pub(crate) fn attention_int8(qkv: &Tensor, num_heads: usize, scale: f32) -> Result<Tensor> {
-    if !(qkv.device().is_cpu() && qkv.dtype() == candle_core::DType::F32) {
-        candle_core::bail!("int8 attention runs on the CPU in f32");
-    }
-    qkv.contiguous()?
-        .apply_op1_no_bwd(&AttentionInt8Op { num_heads, scale })
-}
-
-struct AttentionInt8Op {
+pub(crate) fn attention_packed<L: PackedLinear>(
+    qkv: &Tensor,
     num_heads: usize,
     scale: f32,
+) -> Result<Tensor> {
+    if !(qkv.device().is_cpu() && qkv.dtype() == candle_core::DType::F32) {
+        candle_core::bail!("int8 and bf16 attention run on the CPU in f32");
+    }
+    qkv.contiguous()?.apply_op1_no_bwd(&AttentionPackedOp::<L> {
+        num_heads,
+        scale,
+        layer: std::marker::PhantomData,
+    })
 }
 
-impl CustomOp1 for AttentionInt8Op {
+struct AttentionPackedOp<L> {
+    num_heads: usize,
+    scale: f32,
+    layer: std::marker::PhantomData<L>,
+}
+
+impl<L: PackedLinear> CustomOp1 for AttentionPackedOp<L> {
     fn name(&self) -> &'static str {
-        "int8-attention"
+        "packed-attention"
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        use super::int8::QuantLinear;
         let qkv = contiguous(storage, layout)?;
         let (n, c3) = layout.shape().dims2()?;
         let c = c3 / 3;
@@ -744,22 +823,23 @@ impl CustomOp1 for AttentionInt8Op {
             candle_core::bail!("attention: qkv {:?}, {heads} heads", layout.dims());
         }
         let hd = c / heads;
-        let column = |off: usize, j: usize| qkv[j * c3 + off];
-        // per head: kᵀ (hd × n) and v (n × hd), quantised
-        let layers: Vec<(QuantLinear, QuantLinear)> = (0..heads)
+        // per head: kᵀ (hd × n) and v (n × hd), packed
+        let layers: Vec<(L, L)> = (0..heads)
             .into_par_iter()
             .map(|h| {
                 let kt: Vec<f32> = (0..hd)
-                    .flat_map(|d| (0..n).map(move |j| (c + h * hd + d, j)))
-                    .map(|(off, j)| column(off, j))
+                    .flat_map(|d| (0..n).map(move |j| qkv[j * c3 + c + h * hd + d]))
                     .collect();
                 let v: Vec<f32> = (0..n)
-                    .flat_map(|j| (0..hd).map(move |d| (j, 2 * c + h * hd + d)))
-                    .map(|(j, off)| qkv[j * c3 + off])
+                    .flat_map(|j| {
+                        qkv[j * c3 + 2 * c + h * hd..j * c3 + 2 * c + (h + 1) * hd]
+                            .iter()
+                            .copied()
+                    })
                     .collect();
                 Ok((
-                    QuantLinear::new(&kt, hd, n, &vec![0.0; n])?,
-                    QuantLinear::new(&v, n, hd, &vec![0.0; hd])?,
+                    L::pack(&kt, hd, n, &vec![0.0; n])?,
+                    L::pack(&v, n, hd, &vec![0.0; hd])?,
                 ))
             })
             .collect::<Result<_>>()?;
@@ -782,15 +862,10 @@ impl CustomOp1 for AttentionInt8Op {
                 }
                 let s = &mut s[..rows * n];
                 kt.forward_serial(&q, rows, s);
-                // the probabilities straight into bytes (scale 1/255, zero point 0)
-                let kp = v.padded_in_features();
-                let mut p = vec![0u8; rows.div_ceil(8) * 8 * kp];
                 let mut inv = [0f32; ATTN_ROWS];
                 exp_rows(s, n, scale, &mut inv[..rows]);
-                probabilities_u8(s, n, &mut p, kp, &mut inv[..rows]);
-                let sx = [1.0 / 255.0; ATTN_ROWS];
                 let mut o = vec![0f32; rows * hd];
-                v.forward_quantised(&p, &sx, &[0; ATTN_ROWS], rows, &mut o);
+                v.weigh_probabilities(s, rows, &mut o, &mut inv[..rows]);
                 for (i, (o, &f)) in o.chunks_exact(hd).zip(&inv[..rows]).enumerate() {
                     // SAFETY: row r0 + i, columns h·hd..(h+1)·hd of dst: this task's block.
                     let d = unsafe {
