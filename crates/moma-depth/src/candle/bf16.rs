@@ -90,44 +90,7 @@ impl Bf16Linear {
         })
     }
 
-    /// Input features.
-    pub(crate) fn in_features(&self) -> usize {
-        self.k
-    }
-
-    /// Output features.
-    pub(crate) fn out_features(&self) -> usize {
-        self.n
-    }
-
-    /// `[residual +] x·W + b` for `x` (`m × k`) and `residual` (`m × n`): `m × n`.
-    pub(crate) fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
-        let (k, n) = (self.k, self.n);
-        let fast = has_bf16();
-        let mut out = vec![0f32; m * n];
-        out.par_chunks_mut(CHUNK * n)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let rows = out.len() / n;
-                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
-                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
-                self.run_chunk(x, rows, residual, out, fast);
-            });
-        out
-    }
-
-    /// [`Self::forward`] on the calling thread, into `out` (`m × n`).
-    pub(crate) fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
-        let (k, n) = (self.k, self.n);
-        let fast = has_bf16();
-        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
-            let rows = out.len() / n;
-            let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
-            self.run_chunk(x, rows, None, out, fast);
-        }
-    }
-
-    /// [`Self::forward`] on at most [`CHUNK`] rows.
+    /// `PackedLinear::forward` on at most [`CHUNK`] rows.
     fn run_chunk(
         &self,
         x: &[f32],
@@ -181,6 +144,49 @@ impl Bf16Linear {
                 }
             }
         });
+    }
+}
+
+impl super::ops::PackedLinear for Bf16Linear {
+    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> candle_core::Result<Self> {
+        Self::new(weight_t, k, n, bias)
+    }
+
+    /// Input features.
+    fn in_features(&self) -> usize {
+        self.k
+    }
+
+    /// Output features.
+    fn out_features(&self) -> usize {
+        self.n
+    }
+
+    /// `[residual +] x·W + b` for `x` (`m × k`) and `residual` (`m × n`): `m × n`.
+    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        let (k, n) = (self.k, self.n);
+        let fast = has_bf16();
+        let mut out = vec![0f32; m * n];
+        out.par_chunks_mut(CHUNK * n)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let rows = out.len() / n;
+                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
+                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
+                self.run_chunk(x, rows, residual, out, fast);
+            });
+        out
+    }
+
+    /// `PackedLinear::forward` on the calling thread, into `out` (`m × n`).
+    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
+        let (k, n) = (self.k, self.n);
+        let fast = has_bf16();
+        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
+            let rows = out.len() / n;
+            let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
+            self.run_chunk(x, rows, None, out, fast);
+        }
     }
 }
 
@@ -284,6 +290,7 @@ unsafe fn kernel_avx512(a: &[u16], w: &[u16], kp: usize, acc: &mut [[f32; NR]; M
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::candle::ops::PackedLinear;
 
     fn uniform(state: &mut u64) -> f32 {
         *state = state

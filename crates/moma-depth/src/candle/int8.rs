@@ -115,52 +115,7 @@ impl QuantLinear {
         })
     }
 
-    /// Input features.
-    pub(crate) fn in_features(&self) -> usize {
-        self.k
-    }
-
-    /// Output features.
-    pub(crate) fn out_features(&self) -> usize {
-        self.n
-    }
-
-    /// `[residual +] x·W + b` for `x` (`m × k`, row-major) and `residual` (`m × n`): `m × n`.
-    /// A row of `x` holding a value that is not finite gives a row of NaN.
-    pub(crate) fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
-        debug_assert_eq!(x.len(), m * self.k);
-        let (k, n) = (self.k, self.n);
-        let vnni = has_vnni();
-        let mut out = vec![0f32; m * n];
-        out.par_chunks_mut(CHUNK * n)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let rows = out.len() / n;
-                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
-                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
-                self.run_chunk(x, rows, residual, out, vnni);
-            });
-        out
-    }
-
-    /// [`Self::forward`] on the calling thread (for callers that are already parallel), into
-    /// `out` (`m × n`).
-    pub(crate) fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
-        let (k, n) = (self.k, self.n);
-        let vnni = has_vnni();
-        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
-            let rows = out.len() / n;
-            self.run_chunk(
-                &x[c * CHUNK * k..(c * CHUNK + rows) * k],
-                rows,
-                None,
-                out,
-                vnni,
-            );
-        }
-    }
-
-    /// [`Self::forward`] on at most [`CHUNK`] rows.
+    /// `PackedLinear::forward` on at most [`CHUNK`] rows.
     fn run_chunk(
         &self,
         x: &[f32],
@@ -253,10 +208,66 @@ impl QuantLinear {
             dequantise_row(o, &a[..n], sx[i], zx[i], colsum, scale, bias, res);
         }
     }
+}
 
-    /// `k` rounded up to a multiple of 4: the row length of [`Self::forward_quantised`]'s `q`.
-    pub(crate) fn padded_in_features(&self) -> usize {
-        self.kp
+impl super::ops::PackedLinear for QuantLinear {
+    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> candle_core::Result<Self> {
+        Self::new(weight_t, k, n, bias)
+    }
+
+    /// Input features.
+    fn in_features(&self) -> usize {
+        self.k
+    }
+
+    /// Output features.
+    fn out_features(&self) -> usize {
+        self.n
+    }
+
+    /// `[residual +] x·W + b` for `x` (`m × k`, row-major) and `residual` (`m × n`): `m × n`.
+    /// A row of `x` holding a value that is not finite gives a row of NaN.
+    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        debug_assert_eq!(x.len(), m * self.k);
+        let (k, n) = (self.k, self.n);
+        let vnni = has_vnni();
+        let mut out = vec![0f32; m * n];
+        out.par_chunks_mut(CHUNK * n)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let rows = out.len() / n;
+                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
+                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
+                self.run_chunk(x, rows, residual, out, vnni);
+            });
+        out
+    }
+
+    /// `PackedLinear::forward` on the calling thread (for callers that are already parallel), into
+    /// `out` (`m × n`).
+    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
+        let (k, n) = (self.k, self.n);
+        let vnni = has_vnni();
+        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
+            let rows = out.len() / n;
+            self.run_chunk(
+                &x[c * CHUNK * k..(c * CHUNK + rows) * k],
+                rows,
+                None,
+                out,
+                vnni,
+            );
+        }
+    }
+
+    /// The probabilities straight into bytes with their known scale (1/255, zero point 0);
+    /// `inv` becomes `255 / Σ q`, so that the quantised weights sum to one.
+    fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
+        let (n, kp) = (self.k, self.kp);
+        let mut p = vec![0u8; rows.div_ceil(MR) * MR * kp];
+        super::ops::probabilities_u8(e, n, &mut p, kp, &mut inv[..rows]);
+        let sx = vec![1.0 / 255.0; rows];
+        self.forward_quantised(&p, &sx, &vec![0; rows], rows, out);
     }
 }
 
@@ -451,6 +462,7 @@ unsafe fn kernel_vnni(a: &[u8], w: &[i8], kp: usize, acc: &mut [[i32; NR]; MR]) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::candle::ops::PackedLinear;
 
     /// A seeded uniform value in [-1, 1).
     fn uniform(state: &mut u64) -> f32 {

@@ -177,9 +177,9 @@ unsafe impl Sync for SendPtr {}
 /// and dispatched at run time (the crate is built for baseline x86-64; the FMA feature does not
 /// change results: Rust never contracts `a·b + c`).
 macro_rules! simd_dispatch {
-    ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),*) $body:block) => {
+    ($(#[$m:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),*) $body:block) => {
         $(#[$m])*
-        fn $name($($arg: $ty),*) {
+        $vis fn $name($($arg: $ty),*) {
             #[inline(always)]
             fn generic($($arg: $ty),*) $body
             #[cfg(target_arch = "x86_64")]
@@ -230,7 +230,7 @@ simd_dispatch! {
     /// scale is known without a pass over them) as bytes for the int8 `· v` product:
     /// `q = round(255 · e)` into rows of `kp` bytes (the rest zero), and `inv = 255 / Σ q`
     /// (the quantised weights then sum to one).
-    fn probabilities_u8(e: &[f32], n: usize, q: &mut [u8], kp: usize, inv: &mut [f32]) {
+    pub(crate) fn probabilities_u8(e: &[f32], n: usize, q: &mut [u8], kp: usize, inv: &mut [f32]) {
         for ((row, q), inv) in e.chunks_exact(n).zip(q.chunks_exact_mut(kp)).zip(inv.iter_mut()) {
             let (q, pad) = q.split_at_mut(n);
             pad.fill(0);
@@ -423,51 +423,6 @@ pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
     fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
         let _ = inv;
         self.forward_serial(e, rows, out);
-    }
-}
-
-impl PackedLinear for super::int8::QuantLinear {
-    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self> {
-        Self::new(weight_t, k, n, bias)
-    }
-    fn in_features(&self) -> usize {
-        self.in_features()
-    }
-    fn out_features(&self) -> usize {
-        self.out_features()
-    }
-    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
-        self.forward(x, m, residual)
-    }
-    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
-        self.forward_serial(x, m, out)
-    }
-    /// The probabilities straight into bytes with their known scale (1/255, zero point 0);
-    /// `inv` becomes `255 / Σ q`, so that the quantised weights sum to one.
-    fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
-        let (n, kp) = (self.in_features(), self.padded_in_features());
-        let mut p = vec![0u8; rows.div_ceil(8) * 8 * kp];
-        probabilities_u8(e, n, &mut p, kp, &mut inv[..rows]);
-        let sx = vec![1.0 / 255.0; rows];
-        self.forward_quantised(&p, &sx, &vec![0; rows], rows, out);
-    }
-}
-
-impl PackedLinear for super::bf16::Bf16Linear {
-    fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self> {
-        Self::new(weight_t, k, n, bias)
-    }
-    fn in_features(&self) -> usize {
-        self.in_features()
-    }
-    fn out_features(&self) -> usize {
-        self.out_features()
-    }
-    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
-        self.forward(x, m, residual)
-    }
-    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
-        self.forward_serial(x, m, out)
     }
 }
 
