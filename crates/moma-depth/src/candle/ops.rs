@@ -631,6 +631,19 @@ pub(crate) fn attention_cpu_f32(
     }
 }
 
+/// Tokens `n`, channels `c` and head size of a fused `(n, 3c)` qkv for `heads` heads.
+///
+/// # Errors
+/// A shape that is not `(n ≥ 1, 3c)` with `c` a multiple of `heads`.
+fn qkv_dims(layout: &Layout, heads: usize) -> Result<(usize, usize, usize)> {
+    let (n, c3) = layout.shape().dims2()?;
+    let c = c3 / 3;
+    if c3 % 3 != 0 || heads == 0 || c % heads != 0 || n == 0 {
+        candle_core::bail!("attention: qkv {:?}, {heads} heads", layout.dims());
+    }
+    Ok((n, c, c / heads))
+}
+
 struct AttentionOp {
     num_heads: usize,
     scale: f32,
@@ -643,13 +656,9 @@ impl CustomOp1 for AttentionOp {
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
         let qkv = contiguous(storage, layout)?;
-        let (n, c3) = layout.shape().dims2()?;
-        let c = c3 / 3;
         let heads = self.num_heads;
-        if c3 % 3 != 0 || heads == 0 || c % heads != 0 {
-            candle_core::bail!("attention: qkv {:?}, {heads} heads", layout.dims());
-        }
-        let hd = c / heads;
+        let (n, c, hd) = qkv_dims(layout, heads)?;
+        let c3 = 3 * c;
         let mut dst = vec![0f32; n * c];
         let out = SendPtr(dst.as_mut_ptr());
         // kᵀ of every head, (heads, hd, n) contiguous: gemm then reads it without repacking it
@@ -771,13 +780,9 @@ impl<L: PackedLinear> CustomOp1 for AttentionPackedOp<L> {
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
         let qkv = contiguous(storage, layout)?;
-        let (n, c3) = layout.shape().dims2()?;
-        let c = c3 / 3;
         let heads = self.num_heads;
-        if c3 % 3 != 0 || heads == 0 || c % heads != 0 || n == 0 {
-            candle_core::bail!("attention: qkv {:?}, {heads} heads", layout.dims());
-        }
-        let hd = c / heads;
+        let (n, c, hd) = qkv_dims(layout, heads)?;
+        let c3 = 3 * c;
         // per head: kᵀ (hd × n) and v (n × hd), packed
         let layers: Vec<(L, L)> = (0..heads)
             .into_par_iter()
