@@ -15,9 +15,9 @@
 //! it, found at run time; a portable loop otherwise. Both give the same `i32` sums (integer
 //! arithmetic is exact) and share the `f32` epilogue, so every CPU and every thread count gives
 //! the same bits. Written here because neither of the crates moma builds on has such a kernel:
-//! `gemm` multiplies floats only, and candle's quantised matmuls (ggml's `Q8_0`) quantise the
-//! activations in blocks of 32 along `k` with AVX2 dot products (not yet measured against this
-//! kernel).
+//! `gemm` multiplies floats only, and candle's quantised matmuls (ggml's `Q8_0`) are slower than
+//! f32 on the encoder's shapes (0.9–7.8× the f32 time, where this kernel takes 0.21–0.56×:
+//! `cargo run --release -p moma-depth --example cpu_kernels`).
 
 use rayon::prelude::*;
 

@@ -551,6 +551,48 @@ pub fn open_checkpoint(
     ))
 }
 
+/// One linear layer packed for the CPU kernels of `--dtype int8|bf16`, outside a model: for
+/// benchmarks against other kernels (`examples/cpu_kernels.rs`), not a stable API.
+#[doc(hidden)]
+pub struct PackedLayer(Box<dyn ops::PackedLinear>);
+
+impl PackedLayer {
+    /// `weight_t` (`k × n`, row-major) and `bias` (`n`) in int8 (per-channel weights).
+    ///
+    /// # Errors
+    /// Sizes that do not match; weights that are not finite.
+    pub fn int8(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self> {
+        Ok(Self(Box::new(
+            <int8::QuantLinear as ops::PackedLinear>::pack(weight_t, k, n, bias).map_err(
+                |source| DepthError::Candle {
+                    context: "int8 layer".into(),
+                    source,
+                },
+            )?,
+        )))
+    }
+
+    /// The same in bf16.
+    ///
+    /// # Errors
+    /// As [`Self::int8`].
+    pub fn bf16(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self> {
+        Ok(Self(Box::new(
+            <bf16::Bf16Linear as ops::PackedLinear>::pack(weight_t, k, n, bias).map_err(
+                |source| DepthError::Candle {
+                    context: "bf16 layer".into(),
+                    source,
+                },
+            )?,
+        )))
+    }
+
+    /// `x·W + b` for `x` (`m × k`, row-major), on the rayon pool.
+    pub fn forward(&self, x: &[f32], m: usize) -> Vec<f32> {
+        self.0.forward(x, m, None)
+    }
+}
+
 /// The candle dtype of `precision` on `device`. On the CPU, int8 and bf16 load f32 weights that
 /// [`CandleDepthModel::pack_cpu`] then packs for their kernels.
 ///
