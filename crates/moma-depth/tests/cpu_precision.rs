@@ -75,6 +75,26 @@ fn int8_and_bf16_errors_on_the_references() {
 }
 
 #[test]
+#[ignore = "needs ../shared/reference/dav2 (run with --include-ignored)"]
+fn a_packed_model_cannot_go_back_to_f32() {
+    // packing frees the f32 weights of the packed layers: asking for f32 again is refused
+    let dir = reference_dir();
+    let mut m = CandleDepthModel::load_with_precision(
+        dir.join("tiny-rel.safetensors"),
+        tiny_config(&dir, "tiny-rel"),
+        &candle_core::Device::Cpu,
+        moma_depth::Precision::Int8,
+        None,
+    )
+    .unwrap();
+    let e = m.pack_cpu(moma_depth::Precision::F32).unwrap_err();
+    let why = std::error::Error::source(&e)
+        .map(|s| s.to_string())
+        .unwrap_or_default();
+    assert!(why.contains("load it again"), "{e}: {why}");
+}
+
+#[test]
 fn int8_is_a_cpu_precision_named_int8() {
     let p: moma_depth::Precision = "int8".parse().unwrap();
     assert_eq!(p, moma_depth::Precision::Int8);

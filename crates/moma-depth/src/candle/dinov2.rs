@@ -78,6 +78,8 @@ impl Linear {
         let w = self.weight_t.flatten_all()?.to_vec1::<f32>()?;
         let b = self.bias.to_vec1::<f32>()?;
         self.packed = Some(std::sync::Arc::new(L::pack(&w, k, n, &b)?));
+        // the f32 weights are not read again: freed (85 MB of a ViT-S, 1.2 GB of a ViT-L)
+        self.weight_t = Tensor::zeros((0, n), candle_core::DType::F32, self.weight_t.device())?;
         Ok(())
     }
 }
@@ -245,7 +247,10 @@ impl DinoV2 {
                 &mut b.mlp.fc2,
             ] {
                 match precision {
-                    PackedPrecision::F32 => l.packed = None,
+                    PackedPrecision::F32 if l.packed.is_some() => candle_core::bail!(
+                        "a packed model's f32 weights were freed: load it again for f32"
+                    ),
+                    PackedPrecision::F32 => {}
                     PackedPrecision::Int8 => l.pack::<super::int8::QuantLinear>()?,
                     PackedPrecision::Bf16 => l.pack::<super::bf16::Bf16Linear>()?,
                 }

@@ -696,7 +696,9 @@ impl CandleDepthModel {
     /// kernel in `precision` (`--dtype int8|bf16` on the CPU): int8 with per-output-channel
     /// weight scales and per-token activation scales at run time (AVX512-VNNI), or bf16 with
     /// `f32` sums (AVX512-BF16). On a CPU without those instructions a portable kernel gives
-    /// the same results, slower, and this says so once on stderr. `f32` unpacks.
+    /// the same results, slower, and this says so once on stderr. The packed layers' f32
+    /// weights are freed; `f32` leaves an unpacked model as it is and refuses a packed one
+    /// (load it again).
     ///
     /// # Errors
     /// [`DepthError::Unavailable`] unless the model is f32 on the CPU; f16.
