@@ -10,14 +10,10 @@
 //! output is summed by one thread in one order. `gemm` has no bf16 kernel and candle's CPU
 //! matmul has none either, hence this one.
 
-use rayon::prelude::*;
-
 /// Rows of `x` per micro-kernel call.
 const MR: usize = 8;
 /// Output columns per micro-kernel call (two 16-lane `f32` vectors).
 const NR: usize = 32;
-/// Rows of `x` per parallel task.
-const CHUNK: usize = 64;
 
 /// `x` rounded to bfloat16 (to nearest, ties to even; NaN stays NaN).
 #[inline(always)]
@@ -90,8 +86,8 @@ impl Bf16Linear {
         })
     }
 
-    /// `PackedLinear::forward` on at most [`CHUNK`] rows.
-    fn run_chunk(
+    /// `PackedLinear::run_chunk` with the fast kernel or (`fast` false) the portable one.
+    fn run_chunk_with(
         &self,
         x: &[f32],
         rows: usize,
@@ -148,6 +144,10 @@ impl Bf16Linear {
 }
 
 impl super::ops::PackedLinear for Bf16Linear {
+    fn run_chunk(&self, x: &[f32], rows: usize, residual: Option<&[f32]>, out: &mut [f32]) {
+        self.run_chunk_with(x, rows, residual, out, has_bf16());
+    }
+
     fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> candle_core::Result<Self> {
         Self::new(weight_t, k, n, bias)
     }
@@ -161,60 +161,19 @@ impl super::ops::PackedLinear for Bf16Linear {
     fn out_features(&self) -> usize {
         self.n
     }
-
-    /// `[residual +] x·W + b` for `x` (`m × k`) and `residual` (`m × n`): `m × n`.
-    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
-        let (k, n) = (self.k, self.n);
-        let fast = has_bf16();
-        let mut out = vec![0f32; m * n];
-        out.par_chunks_mut(CHUNK * n)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let rows = out.len() / n;
-                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
-                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
-                self.run_chunk(x, rows, residual, out, fast);
-            });
-        out
-    }
-
-    /// `PackedLinear::forward` on the calling thread, into `out` (`m × n`).
-    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
-        let (k, n) = (self.k, self.n);
-        let fast = has_bf16();
-        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
-            let rows = out.len() / n;
-            let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
-            self.run_chunk(x, rows, None, out, fast);
-        }
-    }
 }
 
 thread_local! {
     static ROWS: std::cell::RefCell<Vec<u16>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
-/// `row` rounded to bf16 into `a` (integer operations and a blend, which vectorise; compiled
-/// for AVX2 too and chosen at run time: the crate is built for baseline x86-64).
-fn round_row(row: &[f32], a: &mut [u16]) {
-    #[inline(always)]
-    fn generic(row: &[f32], a: &mut [u16]) {
+super::ops::simd_dispatch! {
+    /// `row` rounded to bf16 into `a` (integer operations and a blend, which vectorise).
+    fn round_row(row: &[f32], a: &mut [u16]) {
         for (a, &v) in a.iter_mut().zip(row) {
             *a = to_bf16(v);
         }
     }
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        fn avx2(row: &[f32], a: &mut [u16]) {
-            generic(row, a)
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has the feature `avx2` was compiled for.
-            return unsafe { avx2(row, a) };
-        }
-    }
-    generic(row, a)
 }
 
 /// Whether the CPU has AVX512-BF16 (with AVX512F), checked once.
@@ -290,7 +249,7 @@ unsafe fn kernel_avx512(a: &[u16], w: &[u16], kp: usize, acc: &mut [[f32; NR]; M
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::candle::ops::PackedLinear;
+    use crate::candle::ops::{PACKED_CHUNK as CHUNK, PackedLinear};
 
     fn uniform(state: &mut u64) -> f32 {
         *state = state
@@ -356,7 +315,7 @@ mod tests {
         let mut portable = vec![0f32; m * n];
         for (c, out) in portable.chunks_mut(CHUNK * n).enumerate() {
             let rows = out.len() / n;
-            l.run_chunk(
+            l.run_chunk_with(
                 &x[c * CHUNK * k..(c * CHUNK + rows) * k],
                 rows,
                 Some(&res[c * CHUNK * n..(c * CHUNK + rows) * n]),

@@ -19,16 +19,12 @@
 //! f32 on the encoder's shapes (0.9–7.8× the f32 time, where this kernel takes 0.21–0.56×:
 //! `cargo run --release -p moma-depth --example cpu_kernels`).
 
-use rayon::prelude::*;
-
 /// Rows of `x` per micro-kernel call.
 const MR: usize = 8;
 /// Output columns per micro-kernel call (two 16-lane `i32` vectors).
 const NR: usize = 32;
-/// Rows of `x` per parallel task: each quantises its rows once and runs them against every
-/// column block, so that a column block's packed weights are reused from cache `CHUNK / MR`
-/// times.
-const CHUNK: usize = 64;
+/// Rows of `x` per call of the row loop.
+const CHUNK: usize = super::ops::PACKED_CHUNK;
 
 /// A linear layer quantised to int8 (module documentation).
 #[derive(Debug, Clone)]
@@ -115,8 +111,8 @@ impl QuantLinear {
         })
     }
 
-    /// `PackedLinear::forward` on at most [`CHUNK`] rows.
-    fn run_chunk(
+    /// `PackedLinear::run_chunk` with the VNNI kernel or (`vnni` false) the portable one.
+    fn run_chunk_with(
         &self,
         x: &[f32],
         rows: usize,
@@ -211,6 +207,10 @@ impl QuantLinear {
 }
 
 impl super::ops::PackedLinear for QuantLinear {
+    fn run_chunk(&self, x: &[f32], rows: usize, residual: Option<&[f32]>, out: &mut [f32]) {
+        self.run_chunk_with(x, rows, residual, out, has_vnni());
+    }
+
     fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> candle_core::Result<Self> {
         Self::new(weight_t, k, n, bias)
     }
@@ -225,41 +225,6 @@ impl super::ops::PackedLinear for QuantLinear {
         self.n
     }
 
-    /// `[residual +] x·W + b` for `x` (`m × k`, row-major) and `residual` (`m × n`): `m × n`.
-    /// A row of `x` holding a value that is not finite gives a row of NaN.
-    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
-        debug_assert_eq!(x.len(), m * self.k);
-        let (k, n) = (self.k, self.n);
-        let vnni = has_vnni();
-        let mut out = vec![0f32; m * n];
-        out.par_chunks_mut(CHUNK * n)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let rows = out.len() / n;
-                let x = &x[c * CHUNK * k..(c * CHUNK + rows) * k];
-                let residual = residual.map(|r| &r[c * CHUNK * n..(c * CHUNK + rows) * n]);
-                self.run_chunk(x, rows, residual, out, vnni);
-            });
-        out
-    }
-
-    /// `PackedLinear::forward` on the calling thread (for callers that are already parallel), into
-    /// `out` (`m × n`).
-    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
-        let (k, n) = (self.k, self.n);
-        let vnni = has_vnni();
-        for (c, out) in out[..m * n].chunks_mut(CHUNK * n).enumerate() {
-            let rows = out.len() / n;
-            self.run_chunk(
-                &x[c * CHUNK * k..(c * CHUNK + rows) * k],
-                rows,
-                None,
-                out,
-                vnni,
-            );
-        }
-    }
-
     /// The probabilities straight into bytes with their known scale (1/255, zero point 0);
     /// `inv` becomes `255 / Σ q`, so that the quantised weights sum to one.
     fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
@@ -271,35 +236,7 @@ impl super::ops::PackedLinear for QuantLinear {
     }
 }
 
-/// Defines `fn $name(args) -> R` whose body is compiled for baseline x86-64 and for AVX2, and
-/// dispatched at run time (the crate is built for baseline x86-64). Both give the same bits:
-/// Rust never contracts `a·b + c` into an FMA, and the integer and rounding steps are exact.
-macro_rules! avx2_dispatch {
-    ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),*) -> $ret:ty $body:block) => {
-        $(#[$m])*
-        #[allow(clippy::too_many_arguments)]
-        fn $name($($arg: $ty),*) -> $ret {
-            #[inline(always)]
-            #[allow(clippy::too_many_arguments)]
-            fn generic($($arg: $ty),*) -> $ret $body
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2")]
-                #[allow(clippy::too_many_arguments)]
-                fn avx2($($arg: $ty),*) -> $ret {
-                    generic($($arg),*)
-                }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU has the feature `avx2` was compiled for.
-                    return unsafe { avx2($($arg),*) };
-                }
-            }
-            generic($($arg),*)
-        }
-    };
-}
-
-avx2_dispatch! {
+super::ops::simd_dispatch! {
     /// `o = (a − z·colsum)·s·scale + bias [+ residual]` over one row (slices of one length,
     /// which vectorises).
     fn dequantise_row(
@@ -311,7 +248,7 @@ avx2_dispatch! {
         scale: &[f32],
         bias: &[f32],
         residual: Option<&[f32]>
-    ) -> () {
+    ) {
         let n = o.len();
         let (a, colsum, scale, bias) = (&a[..n], &colsum[..n], &scale[..n], &bias[..n]);
         for j in 0..n {
@@ -350,7 +287,7 @@ thread_local! {
     static QUANT: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
 }
 
-avx2_dispatch! {
+super::ops::simd_dispatch! {
 /// Quantises `row` into `q` and returns its scale `s_x` and zero point `z`; a NaN scale when
 /// a value is not finite (the row's outputs are then NaN, as in f32).
 fn quantise_row(row: &[f32], q: &mut [u8]) -> (f32, i32) {
@@ -552,7 +489,7 @@ mod tests {
         let mut portable = vec![0f32; m * n];
         for (c, out) in portable.chunks_mut(CHUNK * n).enumerate() {
             let rows = out.len() / n;
-            q.run_chunk(
+            q.run_chunk_with(
                 &x[c * CHUNK * k..(c * CHUNK + rows) * k],
                 rows,
                 Some(&r[c * CHUNK * n..(c * CHUNK + rows) * n]),

@@ -177,15 +177,18 @@ unsafe impl Sync for SendPtr {}
 /// and dispatched at run time (the crate is built for baseline x86-64; the FMA feature does not
 /// change results: Rust never contracts `a·b + c`).
 macro_rules! simd_dispatch {
-    ($(#[$m:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),*) $body:block) => {
+    ($(#[$m:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
         $(#[$m])*
-        $vis fn $name($($arg: $ty),*) {
+        #[allow(clippy::too_many_arguments)]
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
             #[inline(always)]
-            fn generic($($arg: $ty),*) $body
+            #[allow(clippy::too_many_arguments)]
+            fn generic($($arg: $ty),*) $(-> $ret)? $body
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx2,fma")]
-                fn avx2($($arg: $ty),*) {
+                #[allow(clippy::too_many_arguments)]
+                fn avx2($($arg: $ty),*) $(-> $ret)? {
                     generic($($arg),*)
                 }
                 if std::arch::is_x86_feature_detected!("avx2")
@@ -199,6 +202,8 @@ macro_rules! simd_dispatch {
         }
     };
 }
+/// For the int8 and bf16 kernels' row loops.
+pub(crate) use simd_dispatch;
 
 simd_dispatch! {
     /// Unnormalised softmax: each length-`n` row of `s` becomes `exp(scale · (row − max row))`
@@ -401,6 +406,10 @@ residual_op!(LinearOp, "fused-linear", "fused-linear-residual");
 
 /// A linear layer packed for a low-precision CPU kernel (`--dtype int8|bf16`): weights `W`
 /// (`k × n`) and bias `b` fixed at load time, or at run time for the attention's `kᵀ` and `v`.
+/// Rows of `x` per task of [`PackedLinear::forward`]: each quantises its rows once and runs
+/// them against every column block, so that a block's packed weights are reused from cache.
+pub(crate) const PACKED_CHUNK: usize = 64;
+
 pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
     /// Packs `weight_t` (`k × n`, row-major: `x·weight_t`) and `bias` (`n`).
     ///
@@ -413,10 +422,37 @@ pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
     fn in_features(&self) -> usize;
     /// `n`.
     fn out_features(&self) -> usize;
-    /// `[residual +] x·W + b` for `x` (`m × k`, row-major), parallel over rows.
-    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32>;
-    /// `x·W + b` on the calling thread into `out` (`m × n`).
-    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]);
+    /// `[residual +] x·W + b` for at most [`PACKED_CHUNK`] rows `x` (`rows × k`) into `out`
+    /// (`rows × n`), on the calling thread, with the CPU's fastest kernel.
+    fn run_chunk(&self, x: &[f32], rows: usize, residual: Option<&[f32]>, out: &mut [f32]);
+    /// `[residual +] x·W + b` for `x` (`m × k`, row-major), parallel over chunks of
+    /// [`PACKED_CHUNK`] rows (each output is summed by one thread in one order: the same bits
+    /// on every thread count).
+    fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        let (k, n) = (self.in_features(), self.out_features());
+        debug_assert_eq!(x.len(), m * k);
+        let mut out = vec![0f32; m * n];
+        out.par_chunks_mut(PACKED_CHUNK * n)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let rows = out.len() / n;
+                let x = &x[c * PACKED_CHUNK * k..(c * PACKED_CHUNK + rows) * k];
+                let residual =
+                    residual.map(|r| &r[c * PACKED_CHUNK * n..(c * PACKED_CHUNK + rows) * n]);
+                self.run_chunk(x, rows, residual, out);
+            });
+        out
+    }
+    /// `x·W + b` on the calling thread (for callers that are already parallel) into `out`
+    /// (`m × n`).
+    fn forward_serial(&self, x: &[f32], m: usize, out: &mut [f32]) {
+        let (k, n) = (self.in_features(), self.out_features());
+        for (c, out) in out[..m * n].chunks_mut(PACKED_CHUNK * n).enumerate() {
+            let rows = out.len() / n;
+            let x = &x[c * PACKED_CHUNK * k..(c * PACKED_CHUNK + rows) * k];
+            self.run_chunk(x, rows, None, out);
+        }
+    }
     /// `out = e·W` for rows `e` (`rows × k`) of unnormalised attention probabilities (in
     /// (0, 1], 1 at each row's max), with `inv` holding each row's `1 / Σ e` on entry and the
     /// factor that normalises `out`'s row on exit.
