@@ -87,11 +87,42 @@ fn a_packed_model_cannot_go_back_to_f32() {
         None,
     )
     .unwrap();
+    // the provenance written to predictions.json names the packed precision
+    assert!(m.runtime().contains("int8"), "{}", m.runtime());
+    assert_eq!(m.packed_precision(), Some(moma_depth::Precision::Int8));
     let e = m.pack_cpu(moma_depth::Precision::F32).unwrap_err();
     let why = std::error::Error::source(&e)
         .map(|s| s.to_string())
         .unwrap_or_default();
     assert!(why.contains("load it again"), "{e}: {why}");
+}
+
+#[test]
+#[ignore = "needs ../shared/reference/dav2 (run with --include-ignored)"]
+fn the_runtime_names_the_precision_it_runs() {
+    let dir = reference_dir();
+    for (precision, name) in [
+        (moma_depth::Precision::F32, None),
+        (moma_depth::Precision::Bf16, Some("bf16")),
+        (moma_depth::Precision::Int8, Some("int8")),
+    ] {
+        let m = CandleDepthModel::load_with_precision(
+            dir.join("tiny-rel.safetensors"),
+            tiny_config(&dir, "tiny-rel"),
+            &candle_core::Device::Cpu,
+            precision,
+            None,
+        )
+        .unwrap();
+        let runtime = m.runtime();
+        match name {
+            Some(n) => assert!(runtime.contains(n), "{precision:?}: {runtime}"),
+            None => assert!(
+                !runtime.contains("int8") && !runtime.contains("bf16"),
+                "{runtime}"
+            ),
+        }
+    }
 }
 
 #[test]

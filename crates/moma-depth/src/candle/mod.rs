@@ -397,6 +397,9 @@ pub struct CandleDepthModel {
     head: DptHead,
     device: Device,
     dtype: DType,
+    /// The precision of the encoder's packed CPU layers ([`Self::pack_cpu`]), `None` when
+    /// unpacked: named in [`DepthModel::runtime`], so that `predictions.json` records it.
+    packed: Option<Precision>,
 }
 
 /// The two checkpoint containers the official weights come in.
@@ -668,6 +671,7 @@ impl CandleDepthModel {
             head,
             device,
             dtype,
+            packed: None,
         })
     }
 
@@ -735,7 +739,16 @@ impl CandleDepthModel {
             .map_err(|source| DepthError::Candle {
                 context: format!("packing the encoder's linear layers for {precision:?}"),
                 source,
-            })
+            })?;
+        if precision != Precision::F32 {
+            self.packed = Some(precision);
+        }
+        Ok(())
+    }
+
+    /// The precision of the encoder's packed CPU layers, `None` when unpacked.
+    pub fn packed_precision(&self) -> Option<Precision> {
+        self.packed
     }
 
     /// The architecture.
@@ -776,7 +789,26 @@ impl DepthModel for CandleDepthModel {
     }
 
     fn runtime(&self) -> String {
-        format!("candle, {:?}, {:?}", self.device.location(), self.dtype)
+        let base = format!("candle, {:?}, {:?}", self.device.location(), self.dtype);
+        match self.packed {
+            Some(Precision::Int8) => format!(
+                "{base}, encoder linear layers and attention in int8 ({})",
+                if int8::has_vnni() {
+                    "AVX512-VNNI"
+                } else {
+                    "portable kernel"
+                }
+            ),
+            Some(Precision::Bf16) => format!(
+                "{base}, encoder linear layers and attention in bf16 ({})",
+                if bf16::has_bf16() {
+                    "AVX512-BF16"
+                } else {
+                    "portable kernel"
+                }
+            ),
+            _ => base,
+        }
     }
 
     fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>> {
