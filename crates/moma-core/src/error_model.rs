@@ -33,20 +33,30 @@
 //!    varies between frames; a zero correction stays within one σ).
 //! 2. The rest `r = truth − aligned − relief_bias·hp − edge_sharpening·step`, divided by `(z / depth_ref_m)^p`
 //!    (`depth_ref_m` the median calibration depth): `σ_flat²` its mean square over flat pixels;
-//!    the offset share its mean squared over that; the field shares from its semivariogram at
-//!    lags 2–64 px on every second row and column (non-negative least squares of `γ(L) = Σ v_k · min(1, L / s_k)`).
+//!    the field variances from its semivariogram at lags 2–64 px on every second row and column
+//!    (non-negative least squares of `γ(L) = Σ v_k · min(1, L / s_k)`); the offset share its
+//!    mean squared over `σ_flat²`, or, when larger, the share the fields leave (variance that
+//!    varies over more than 64 px moves a gripper's footprint as a whole); the fields share the
+//!    rest in the semivariogram's proportions.
 //! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels
 //!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
 //!
 //! With per-frame re-alignment on static anchors, the frame's own held-out anchor RMSE raises
 //! `σ_flat` for that frame ([`DepthErrorModel::for_frame`]).
 //!
+//! # Expected truth
+//! [`DepthErrorModel::expected_truth_map`] is the model's mean of the truth given an aligned
+//! depth: the mean relief correction (`hp` clamped to the range the factor is fitted on), the
+//! mean edge share, and optionally the short-range bumps averaged out. Grasps are planned on
+//! it, and drawn around it with [`DepthErrorModel::deviations`] (the model without those means).
+//!
 //! # Draws
 //! [`DepthErrorModel::draw_into`] adds one seeded sample of all parts to a depth map (a
 //! plausible true scene): the relief factor and the offset are single N(0, 1) numbers, each
 //! field is N(0, 1) on a grid every `s_k` pixels, bilinear between, divided per pixel by the
 //! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px,
-//! the step share one number per draw (clamped to [0, 1]).
+//! the step share one number per draw (clamped to [−1, 1]: around the expected truth,
+//! [`DepthErrorModel::deviations`], it is drawn around 0).
 //! Pixels without depth stay without depth; a draw never leaves a pixel at ≤ 0 m (it keeps the
 //! original there).
 
@@ -420,6 +430,13 @@ impl DepthErrorModel {
                 .collect();
             let v = field_variances(&semi, &m.scales_px);
             let fields: f64 = v.iter().sum();
+            // The semivariogram saturates at the fields' variance within its longest lag
+            // (64 px). What it has not reached there varies over longer distances than any
+            // field: over a gripper's footprint it moves the surface as a whole, so it joins
+            // the offset. Spread over the fields in proportion (as before), it made the coarse
+            // field several times too rough at the scale of a suction cup: m2t2-table's
+            // draws broke seals that the truth keeps (docs/grasping.md).
+            let offset = offset.max(1.0 - fields / total).clamp(0.0, 1.0);
             // the fields share what the offset leaves, in the semivariogram's proportions
             let rest_share = 1.0 - offset;
             m.variance_shares = if fields > 0.0 {
@@ -533,42 +550,148 @@ impl DepthErrorModel {
         }
         let short_sigma = self.sigma_flat_m * (fine + medium).max(0.0).sqrt();
         let tol = |z: f32| (3.0 * short_sigma * self.depth_scale(z) + 0.002) as f32;
-        // the mean of the valid values of `line` within `t` of `z0`, `z0` itself included
-        let mean_near = |z0: f32, t: f32, line: &mut dyn Iterator<Item = f32>| {
-            let (mut sum, mut n) = (0.0f32, 0u32);
-            for z in line {
-                if is_valid_depth(z) && (z - z0).abs() <= t {
-                    sum += z;
-                    n += 1;
-                }
+        // plain row-major slices: a view sliced per pixel cost more than the sums themselves
+        // (half of a robust suction plan's time in a profile)
+        let owned: Vec<f32>;
+        let src: &[f32] = match depth_m.as_slice() {
+            Some(s) => s,
+            None => {
+                owned = depth_m.iter().copied().collect();
+                &owned
             }
-            if n == 0 { z0 } else { sum / n as f32 }
         };
-        // along rows, on the roi's columns and r rows above and below it (what the column pass reads)
-        let (rv0, rv1) = (v0.saturating_sub(r), (v1 + r).min(h));
-        let mut rows = depth_m.slice(ndarray::s![rv0..rv1, u0..u1]).to_owned();
-        for v in rv0..rv1 {
-            for u in u0..u1 {
-                let z0 = depth_m[[v, u]];
-                if is_valid_depth(z0) {
-                    let line =
-                        depth_m.slice(ndarray::s![v, u.saturating_sub(r)..(u + r + 1).min(w)]);
-                    rows[[v - rv0, u - u0]] = mean_near(z0, tol(z0), &mut line.iter().copied());
-                }
+        // Each output is the mean of the valid values within `tol(z0)` of its own `z0` over the
+        // window (`z0` itself included), summed in window order. The sums run one window
+        // offset at a time over a whole row of pixels (branch-free, so they vectorise across
+        // pixels), each pixel's sum still in window order: the same bits as a pixel-by-pixel scan.
+        let rw = u1 - u0;
+        let (mut sum, mut n, mut centre, mut t) = (
+            vec![0.0f32; rw],
+            vec![0u32; rw],
+            vec![0.0f32; rw],
+            vec![0.0f32; rw],
+        );
+        #[inline(always)]
+        fn accumulate(sum: &mut [f32], n: &mut [u32], centre: &[f32], t: &[f32], values: &[f32]) {
+            for (((s, k), (&z0, &tz)), &z) in sum
+                .iter_mut()
+                .zip(n.iter_mut())
+                .zip(centre.iter().zip(t))
+                .zip(values)
+            {
+                // NaN and ±∞ fail the comparisons: not counted
+                let ok = (z > 0.0) & (z < f32::INFINITY) & ((z - z0).abs() <= tz);
+                *s += if ok { z } else { 0.0 };
+                *k += u32::from(ok);
             }
         }
-        // along columns, inside the roi
-        for v in v0..v1 {
-            for u in u0..u1 {
-                let z0 = rows[[v - rv0, u - u0]];
-                if is_valid_depth(z0) {
-                    let (a, b) = (v.saturating_sub(r).max(rv0), (v + r + 1).min(rv1));
-                    let line = rows.slice(ndarray::s![a - rv0..b - rv0, u - u0]);
-                    out[[v, u]] = mean_near(z0, tol(z0), &mut line.iter().copied());
+        let finish = |sum: &[f32], n: &[u32], centre: &[f32], dst: &mut [f32]| {
+            for (((d, &s), &k), &z0) in dst.iter_mut().zip(sum).zip(n).zip(centre) {
+                *d = if is_valid_depth(z0) && k > 0 {
+                    s / k as f32
+                } else {
+                    z0
+                };
+            }
+        };
+        // along rows, on the roi's columns and r rows above and below it (what the column pass
+        // reads); `rows` is row-major, (rv1 − rv0) × rw
+        let (rv0, rv1) = (v0.saturating_sub(r), (v1 + r).min(h));
+        let mut rows = vec![0.0f32; (rv1 - rv0) * rw];
+        for v in rv0..rv1 {
+            let line = &src[v * w..(v + 1) * w];
+            centre.copy_from_slice(&line[u0..u1]);
+            for (tz, &z0) in t.iter_mut().zip(&centre) {
+                *tz = tol(z0);
+            }
+            sum.fill(0.0);
+            n.fill(0);
+            // window offset d = k − r for pixel u reads u + d; the pixels whose window holds
+            // that column are a contiguous run
+            for k in 0..=2 * r {
+                let lo = r.saturating_sub(k).max(u0); // first u with u + k − r ≥ 0
+                let hi = (w + r).saturating_sub(k).min(u1); // u + k − r < w
+                if lo >= hi {
+                    continue;
                 }
+                let (a, b) = (lo - u0, hi - u0);
+                let vals = &line[lo + k - r..hi + k - r];
+                accumulate(&mut sum[a..b], &mut n[a..b], &centre[a..b], &t[a..b], vals);
+            }
+            let dst = &mut rows[(v - rv0) * rw..(v - rv0 + 1) * rw];
+            finish(&sum, &n, &centre, dst);
+        }
+        // along columns, inside the roi
+        let mut column_out = vec![0.0f32; rw];
+        for v in v0..v1 {
+            let (a, b) = (v.saturating_sub(r).max(rv0), (v + r + 1).min(rv1));
+            centre.copy_from_slice(&rows[(v - rv0) * rw..(v - rv0 + 1) * rw]);
+            for (tz, &z0) in t.iter_mut().zip(&centre) {
+                *tz = tol(z0);
+            }
+            sum.fill(0.0);
+            n.fill(0);
+            for vv in a..b {
+                let vals = &rows[(vv - rv0) * rw..(vv - rv0 + 1) * rw];
+                accumulate(&mut sum, &mut n, &centre, &t, vals);
+            }
+            finish(&sum, &n, &centre, &mut column_out);
+            for (u, &z) in (u0..u1).zip(&column_out) {
+                out[[v, u]] = z;
             }
         }
         out
+    }
+
+    /// The expected truth of the whole map `depth_m` under this model, the depth a grasp is
+    /// planned on (Dex-Net plans on the mean estimate and draws the deviations around it): the
+    /// mean relief correction `relief_bias · hp` with `hp` clamped to ±[`MAX_RELIEF_M`] (the
+    /// range the factor is fitted on: never extrapolated), the mean edge share
+    /// `edge_sharpening · step` (silhouettes pulled from ramps towards steps), then, with
+    /// `smooth`, the short-range bumps averaged out ([`Self::expected_truth`]). A model without
+    /// those parts returns the depth unchanged.
+    pub fn expected_truth_map(&self, depth_m: ArrayView2<'_, f32>, smooth: bool) -> Array2<f32> {
+        let mut out = depth_m.to_owned();
+        if self.relief_bias != 0.0 {
+            let hp = high_pass(depth_m, self.relief_radius_px);
+            let c = self.relief_bias as f32;
+            ndarray::Zip::from(&mut out).and(&hp).for_each(|z, &h| {
+                if is_valid_depth(*z) && h.is_finite() {
+                    let t = *z + c * h.clamp(-MAX_RELIEF_M, MAX_RELIEF_M);
+                    if is_valid_depth(t) {
+                        *z = t;
+                    }
+                }
+            });
+        }
+        if self.edge_sharpening > 0.0 {
+            let edges = EdgeMaps::of(depth_m, self.edge_radius_px);
+            let a = self.edge_sharpening as f32;
+            ndarray::Zip::from(&mut out)
+                .and(&edges.step)
+                .for_each(|z, &st| {
+                    let t = *z + a * st;
+                    if is_valid_depth(*z) && is_valid_depth(t) {
+                        *z = t;
+                    }
+                });
+        }
+        if smooth {
+            let (h, w) = out.dim();
+            out = self.expected_truth(out.view(), Roi::full(w, h));
+        }
+        out
+    }
+
+    /// The model of the deviations of the truth from [`Self::expected_truth_map`]: the relief
+    /// factor's mean set to 0 (its σ kept) and the edge share left out (the edge noise
+    /// `edge_gain` kept), everything else unchanged.
+    pub fn deviations(&self) -> Self {
+        Self {
+            relief_bias: 0.0,
+            edge_sharpening: 0.0,
+            ..*self
+        }
     }
 
     /// The RMS (metres) of the flat error's variation within a patch of radius `radius_px`
@@ -731,7 +854,7 @@ impl<'a> Draws<'a> {
         );
         let c = (m.relief_bias + m.relief_sigma * f64::from(normal(&mut rng))) as f32;
         let sharpen = (m.edge_sharpening + m.edge_sharpening_sigma * f64::from(normal(&mut rng)))
-            .clamp(0.0, 1.0) as f32;
+            .clamp(-1.0, 1.0) as f32;
         let shares = m.variance_shares;
         let offset = (shares[0].sqrt() * m.sigma_flat_m) as f32 * normal(&mut rng);
         let fields: Vec<(f32, SmoothField)> = m
@@ -760,7 +883,7 @@ impl<'a> Draws<'a> {
             rest.fill(0.0);
             let (relief, step) = (self.edges.relief.row(vf), self.edges.step.row(vf));
             edges.add_row(v, &mut rest, |u| g * relief[u + du]);
-            if sharpen > 0.0 {
+            if sharpen != 0.0 {
                 for (u, r) in rest.iter_mut().enumerate() {
                     *r += sharpen * step[u + du];
                 }
@@ -1387,16 +1510,24 @@ mod tests {
     fn fit_recovers_flat_sigma_offset_and_edge_gain() {
         // the aligned depth is a clean 50 mm step, so its relief is known in closed form (50 mm
         // within 3 px of the edge, 0 elsewhere); the truth is aligned − e with e = 4 mm offset
-        // + ±2 mm checkerboard (2 × 2 px squares) on flat pixels (σ_flat² = 20 mm², offset share 16/20, the rest at
-        // the finest scale) and ±√(σ_flat² + (0.4 · 50 mm)²) near the edge (no relief
+        // + ±2 mm of seeded random sign per 2 × 2 px block on flat pixels (uncorrelated beyond
+        // a block: the finest scale) and ±√(σ_flat² + (0.4 · 50 mm)²) near the edge (no relief
         // compression: the offset alone leaves a small relief factor where hp has a mean)
         let (w, h) = (90usize, 60usize);
         let aligned = step_scene(w, h);
         let relief = relief_map(aligned.view(), 3);
         let e_edge = (20e-6f32 + (0.4f32 * 0.05).powi(2)).sqrt();
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let signs: Array2<f32> = Array2::from_shape_fn((h / 2 + 1, w / 2 + 1), |_| {
+            if rand::Rng::random::<bool>(&mut rng) {
+                1.0
+            } else {
+                -1.0
+            }
+        });
         let truth = Array2::from_shape_fn((h, w), |(v, u)| {
             // 2 × 2 blocks: the fit reads every second row and column
-            let sign = if (u / 2 + v / 2) % 2 == 0 { 1.0 } else { -1.0 };
+            let sign = signs[[v / 2, u / 2]];
             let e = if relief[[v, u]] > 0.0 {
                 sign * e_edge
             } else {
@@ -1404,16 +1535,33 @@ mod tests {
             };
             aligned[[v, u]] - e
         });
+        // closed form on the fit's grid (every second row and column), flat pixels: mean
+        // square (4 mm + 2 mm·s)² = 20 mm² + 16 mm²·mean(s), mean 4 mm + 2 mm·mean(s)
+        let flat_signs: Vec<f64> = (0..h)
+            .step_by(FIT_STRIDE)
+            .flat_map(|v| (0..w).step_by(FIT_STRIDE).map(move |u| (v, u)))
+            .filter(|&(v, u)| relief[[v, u]] == 0.0)
+            .map(|(v, u)| f64::from(signs[[v / 2, u / 2]]))
+            .collect();
+        let mean_s = flat_signs.iter().sum::<f64>() / flat_signs.len() as f64;
+        let total = 20e-6 + 16e-6 * mean_s;
+        let offset_share = (0.004 + 0.002 * mean_s).powi(2) / total;
         let frame = ResidualFrame {
             aligned_m: aligned.view(),
             truth_m: truth.view(),
         };
         let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
-        assert!((m.sigma_flat_m - 20e-6f64.sqrt()).abs() < 2e-5, "{m:?}");
-        assert!((m.variance_shares[0] - 0.8).abs() < 0.02, "{m:?}");
         assert!(
-            m.variance_shares[1] > 0.15,
-            "the checkerboard is fine-scale: {m:?}"
+            (m.sigma_flat_m - total.sqrt()).abs() < 2e-5,
+            "{m:?} {total}"
+        );
+        assert!(
+            (m.variance_shares[0] - offset_share).abs() < 0.02,
+            "{m:?} {offset_share}"
+        );
+        assert!(
+            m.variance_shares[1] > 0.9 * (1.0 - offset_share),
+            "the block noise is fine-scale: {m:?}"
         );
         assert!((m.edge_gain - 0.4).abs() < 0.01, "{m:?}");
         assert!(m.relief_bias.abs() < 0.1, "{m:?}");
@@ -1447,6 +1595,221 @@ mod tests {
         let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
         // truth − aligned = −0.2·bump and hp ≈ −0.8·bump + its box mean: c ≈ 0.25
         assert!((m.relief_bias - 0.25).abs() < 0.05, "{m:?}");
+    }
+
+    /// The row-at-a-time smoothing of [`DepthErrorModel::expected_truth`] equals a plain
+    /// pixel-by-pixel scan (written here independently), bit for bit: holes, a step, the image
+    /// border, a region of interest.
+    #[test]
+    fn expected_truth_equals_a_pixel_by_pixel_scan() {
+        let (w, h) = (53usize, 41usize);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let depth = Array2::from_shape_fn((h, w), |(v, u)| {
+            let noise: f32 = StandardNormal.sample(&mut rng);
+            if (u * 7 + v * 3) % 23 == 0 {
+                f32::NAN
+            } else if u > 30 {
+                0.9 + 0.003 * noise
+            } else {
+                1.0 + 0.003 * noise
+            }
+        });
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.004,
+            variance_shares: [0.0, 0.0, 0.6, 0.4],
+            ..DepthErrorModel::default()
+        };
+        let r = m.scales_px[1].round() as usize;
+        let t = |z: f32| (3.0 * 0.004 * 0.6f64.sqrt() + 0.002) as f32 + 0.0 * z;
+        let mean = |z0: f32, vals: Vec<f32>| {
+            let (mut s, mut n) = (0.0f32, 0u32);
+            for z in vals {
+                if z.is_finite() && z > 0.0 && (z - z0).abs() <= t(z0) {
+                    s += z;
+                    n += 1;
+                }
+            }
+            if n == 0 { z0 } else { s / n as f32 }
+        };
+        for roi in [
+            Roi::full(w, h),
+            Roi {
+                u0: 5,
+                v0: 9,
+                width: 30,
+                height: 20,
+            },
+        ] {
+            let rows = Array2::from_shape_fn((h, w), |(v, u)| {
+                let z0 = depth[[v, u]];
+                if !(z0.is_finite() && z0 > 0.0) {
+                    return z0;
+                }
+                mean(
+                    z0,
+                    (u.saturating_sub(r)..(u + r + 1).min(w))
+                        .map(|x| depth[[v, x]])
+                        .collect(),
+                )
+            });
+            let mut want = depth.clone();
+            for v in roi.v0..roi.v0 + roi.height {
+                for u in roi.u0..roi.u0 + roi.width {
+                    let z0 = rows[[v, u]];
+                    if z0.is_finite() && z0 > 0.0 {
+                        want[[v, u]] = mean(
+                            z0,
+                            (v.saturating_sub(r)..(v + r + 1).min(h))
+                                .map(|y| rows[[y, u]])
+                                .collect(),
+                        );
+                    }
+                }
+            }
+            let got = m.expected_truth(depth.view(), roi);
+            for (a, b) in got.iter().zip(want.iter()) {
+                assert!(
+                    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
+                    "{a} vs {b}"
+                );
+            }
+        }
+    }
+
+    /// The expected truth of a flattened scene, with the model fitted on it: closer to the
+    /// truth (the compression undone to within half of it), each part alone, and the clamp.
+    #[test]
+    fn expected_truth_map_undoes_the_mean_relief_and_edge_errors() {
+        // the bumps of `fit_measures_relief_compression`, 20 mm tall, flattened to 80 %
+        let (w, h) = (200usize, 150usize);
+        let bump = |u: usize, v: usize| {
+            let (x, y) = ((u % 40) as f32 - 20.0, (v % 40) as f32 - 20.0);
+            0.02 * (-(x * x + y * y) / 50.0).exp()
+        };
+        let truth = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - bump(u, v));
+        let aligned = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - 0.8 * bump(u, v));
+        let m = DepthErrorModel::fit(
+            &[ResidualFrame {
+                aligned_m: aligned.view(),
+                truth_m: truth.view(),
+            }],
+            &[],
+            0.0,
+        )
+        .unwrap();
+        // the least-squares factor lowers the RMS error (the flat table between the bumps moves
+        // by c times the box mean of the bumps: the MAE barely changes), and the error on the
+        // bumps' tops, what a gripper touches
+        let rms = |a: &Array2<f32>| {
+            (a.iter()
+                .zip(truth.iter())
+                .map(|(x, t)| (x - t).powi(2))
+                .sum::<f32>()
+                / a.len() as f32)
+                .sqrt()
+        };
+        let expected = m.expected_truth_map(aligned.view(), false);
+        let (before, after) = (rms(&aligned), rms(&expected));
+        assert!(after < 0.6 * before, "RMS {before} → {after} m ({m:?})");
+        let (top_before, top_after) = (
+            (aligned[[20, 20]] - truth[[20, 20]]).abs(),
+            (expected[[20, 20]] - truth[[20, 20]]).abs(),
+        );
+        assert!(
+            top_after < 0.35 * top_before,
+            "bump top {top_before} → {top_after} m"
+        );
+        // a model without means (and without short-range fields) changes nothing, bit for bit
+        let none = DepthErrorModel::uniform(0.01).unwrap();
+        assert_eq!(none.expected_truth_map(aligned.view(), true), aligned);
+        assert_eq!(
+            m.deviations().expected_truth_map(aligned.view(), false),
+            aligned
+        );
+        // the deviations keep the σ of every part and drop the means
+        let d = m.deviations();
+        assert_eq!((d.relief_bias, d.edge_sharpening), (0.0, 0.0));
+        assert_eq!(
+            (d.relief_sigma, d.sigma_flat_m, d.edge_gain),
+            (m.relief_sigma, m.sigma_flat_m, m.edge_gain)
+        );
+        // the relief correction never goes past the range it was fitted on: a 0.5 m tower
+        // moves by at most relief_bias · MAX_RELIEF_M
+        let tower = Array2::from_shape_fn((h, w), |(v, u)| {
+            if (90..110).contains(&u) && (65..85).contains(&v) {
+                0.5f32
+            } else {
+                1.0
+            }
+        });
+        let strong = DepthErrorModel {
+            relief_bias: 0.5,
+            relief_radius_px: 30,
+            ..DepthErrorModel::default()
+        };
+        let moved = strong.expected_truth_map(tower.view(), false);
+        let most = moved
+            .iter()
+            .zip(tower.iter())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(most <= 0.5 * MAX_RELIEF_M + 1e-6, "moved {most} m");
+        assert!(
+            most >= 0.5 * MAX_RELIEF_M - 1e-6,
+            "the tower is clamped, not ignored"
+        );
+        // the edge share alone: a 6 px ramp with share 1 snaps to the step but for the ramp's
+        // middle (the window's midpoint decides the side)
+        let ramp = Array2::from_shape_fn((40, 100), |(_, u)| {
+            0.96f32 + 0.04 * ((u as f32 - 46.5) / 6.0).clamp(0.0, 1.0)
+        });
+        let sharp = DepthErrorModel {
+            edge_sharpening: 1.0,
+            ..DepthErrorModel::default()
+        }
+        .expected_truth_map(ramp.view(), false);
+        for u in [47usize, 48, 49] {
+            assert!(
+                (sharp[[20, u]] - 0.96).abs() < 1e-6,
+                "u {u}: {}",
+                sharp[[20, u]]
+            );
+        }
+        for u in [50usize, 51, 52] {
+            assert!(
+                (sharp[[20, u]] - 1.0).abs() < 1e-6,
+                "u {u}: {}",
+                sharp[[20, u]]
+            );
+        }
+    }
+
+    /// Residual variance the semivariogram does not reach within its lags (a field varying over
+    /// hundreds of pixels) moves a gripper's footprint as a whole: it joins the offset, and the
+    /// noise within a cup-sized patch stays at the field's own variation there.
+    #[test]
+    fn long_range_residuals_are_an_offset_not_bumps() {
+        // aligned: a flat table at 1 m; truth: aligned + 5 mm · sin(2π u / 600 px)
+        let (w, h) = (600usize, 300usize);
+        let aligned = Array2::from_elem((h, w), 1.0f32);
+        let truth = Array2::from_shape_fn((h, w), |(_, u)| {
+            1.0 + 0.005 * (std::f32::consts::TAU * u as f32 / 600.0).sin()
+        });
+        let m = DepthErrorModel::fit(
+            &[ResidualFrame {
+                aligned_m: aligned.view(),
+                truth_m: truth.view(),
+            }],
+            &[],
+            0.0,
+        )
+        .unwrap();
+        // σ: 5 mm / √2
+        assert!((m.sigma_flat_m - 0.005 / 2f64.sqrt()).abs() < 2e-4, "{m:?}");
+        // within 10 px the sine changes by at most 5 mm · 2π · 10 / 600 = 0.52 mm
+        let within = m.noise_within_m(1.0, 10.0);
+        assert!(within < 0.001, "{within} m within 10 px ({m:?})");
+        assert!(m.variance_shares[0] > 0.5, "{m:?}");
     }
 
     #[test]

@@ -23,7 +23,7 @@ use moma_grasp::{
     DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_TIE_TOLERANCE, FailureReason, Grasp,
     GraspQuality, GraspRequest, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw,
     Scene, SceneConfig, ScoreConfig, SuctionConfig, SuctionCup, mask_components, plan_on_scene,
-    rank, score_grasp,
+    planning_depth, rank, score_grasp,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -344,12 +344,14 @@ fn run_trial(
     request.parallel = config.parallel.clone();
     request.suction = config.suction;
     request.score = config.score;
-    let scene = match Scene::build(planned.depth, &set.intrinsics, mask, &config.scene) {
+    // the path of `plan_grasps`: the scene of the request's planning depth
+    let depth = planning_depth(planned.depth, &request);
+    let scene = match Scene::build(&depth, &set.intrinsics, mask, &config.scene) {
         Ok(s) => s,
         // the planning depth may hold no valid pixel in the object region: no grasp
         Err(_) => return Ok(no_grasp()),
     };
-    let outcome = plan_on_scene(&scene, planned.depth, &set.intrinsics, &request)
+    let outcome = plan_on_scene(&scene, &depth, &set.intrinsics, &request)
         .map_err(|e| EvalError::InvalidParameter(format!("grasp planner: {e}")))?;
     if outcome.grasps.is_empty() {
         return Ok(no_grasp());

@@ -107,7 +107,8 @@ pub use parallel::{ParallelConfig, plan_parallel, plan_parallel_tolerant};
 pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};
 pub use robust::{
     DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_TIE_TOLERANCE, GraspQuality,
-    GraspRequest, draw_region, plan_grasps, plan_on_scene, rank, success_probabilities,
+    GraspRequest, draw_region, plan_grasps, plan_on_scene, planning_depth, rank,
+    success_probabilities,
 };
 pub use scene::{ObjectComponent, Scene, SceneConfig};
 pub use score::{GraspScore, ScoreConfig, no_grasp, score_grasp, score_parallel, score_suction};

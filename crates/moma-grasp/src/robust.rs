@@ -189,7 +189,8 @@ impl GraspRequest {
 }
 
 /// Plans grasps on `depth` (object `mask` if given) as [`GraspRequest`] says (module
-/// documentation); the scene built on `depth` is returned too.
+/// documentation). With an error model the planner works on [`planning_depth`], the error
+/// model's expected truth of `depth`; the scene built on the depth planned on is returned too.
 ///
 /// # Errors
 /// An invalid request or gripper; the errors of [`Scene::build`] on the planning depth.
@@ -200,9 +201,32 @@ pub fn plan_grasps(
     request: &GraspRequest,
 ) -> Result<(Scene, PlanOutcome)> {
     request.validate()?;
-    let scene = Scene::build(depth, intrinsics, mask, &request.scene)?;
-    let outcome = plan_on_scene(&scene, depth, intrinsics, request)?;
+    let planning = planning_depth(depth, request);
+    let scene = Scene::build(&planning, intrinsics, mask, &request.scene)?;
+    let outcome = plan_on_scene(&scene, &planning, intrinsics, request)?;
     Ok((scene, outcome))
+}
+
+/// The depth a request plans on. Without an error model, `depth` itself. With one, its
+/// expected truth ([`DepthErrorModel::expected_truth_map`]): the mean relief correction and
+/// edge share that the calibration measured, and, for suction, the short-range bumps averaged
+/// out. Dex-Net plans on the mean estimate and draws the deviations around it; planning on
+/// the aligned depth as if exact put suction cups 15–25 mm short of objects whose relief the
+/// depth model flattened (`cup_crash`) and closed fingers on blurred silhouette ramps
+/// (`not_antipodal`): docs/grasping.md, "Planning on the expected truth".
+pub fn planning_depth<'a>(
+    depth: &'a MetricDepth,
+    request: &GraspRequest,
+) -> std::borrow::Cow<'a, MetricDepth> {
+    match &request.error_model {
+        Some(model) => {
+            let smooth = matches!(request.gripper, Gripper::Suction(_));
+            std::borrow::Cow::Owned(MetricDepth::new(
+                model.expected_truth_map(depth.depth_m.view(), smooth),
+            ))
+        }
+        None => std::borrow::Cow::Borrowed(depth),
+    }
 }
 
 /// [`SuctionConfig::patch_noise_m`] of `model` at the median object depth of `scene`.
@@ -213,7 +237,7 @@ fn patch_noise(model: &DepthErrorModel, scene: &Scene, cup_radius_m: f32) -> [f3
 }
 
 /// [`plan_grasps`] on a scene already built from `depth` (with `mask` and
-/// `request.scene`).
+/// `request.scene`), `depth` being the request's [`planning_depth`].
 ///
 /// # Errors
 /// As [`plan_grasps`].
@@ -305,11 +329,11 @@ pub fn rank(grasps: &mut [(Grasp, f32)], quality: GraspQuality, tolerance: f32) 
 }
 
 /// The success probability of each grasp: the share of `request.draws` depth maps drawn from
-/// `model`'s long-range part ([`DepthErrorModel::long_range`]: the planning depth already holds
-/// one realisation of the short-range bumps, and a draw that adds another is rougher than the
-/// truth) on which it succeeds by the scorer's rules, drawn around `depth` (whose scene is
-/// `scene`) for the parallel jaw and around its expected truth
-/// ([`DepthErrorModel::expected_truth`]) for suction.
+/// `model`'s deviations around its expected truth ([`DepthErrorModel::deviations`]), long-range
+/// part only ([`DepthErrorModel::long_range`]: the short-range bumps are averaged out of the
+/// suction planning depth and already present once in the parallel jaw's), on which it
+/// succeeds by the scorer's rules, drawn around `depth`, the request's [`planning_depth`]
+/// (whose scene is `scene`).
 /// Each draw covers only the region around the grasps (their image points plus the gripper's
 /// reach at their depth, [`draw_region`]); its scene keeps the planning scene's support plane
 /// and objects ([`Scene::with_depth_in`]).
@@ -335,21 +359,9 @@ pub fn success_probabilities(
         cy: intrinsics.cy - roi.v0 as f64,
         ..*intrinsics
     };
-    // the planning depth already carries one realisation of the short-range error (bumps the
-    // planner has seen and aimed around): draws add what moves or tilts whole patches
-    // the truth is smooth where the aligned depth holds the depth model's short-range bumps;
-    // the suction seal reads the surface at the cup's scale, so its draws are around the
-    // expected truth (Brier of the robust suction rows 0.305 → 0.217; docs/grasping.md). The
-    // parallel jaw's contacts sit on silhouettes, where the smoothing would only blur.
-    let expected;
-    let centre = match request.gripper {
-        Gripper::Suction(_) => {
-            expected = model.expected_truth(depth.depth_m.view(), roi);
-            expected.view()
-        }
-        Gripper::Parallel(_) => depth.depth_m.view(),
-    };
-    let draws = Draws::new(&model.long_range(), centre, roi);
+    // the planning depth is the model's expected truth: draws add its deviations, without the
+    // means that the planning depth already holds (relief correction, edge share)
+    let draws = Draws::new(&model.deviations().long_range(), depth.depth_m.view(), roi);
     let per_draw: Vec<Vec<bool>> = (0..request.draws as u64)
         .into_par_iter()
         .map(|d| -> Result<Vec<bool>> {

@@ -10,7 +10,7 @@ use common::{BoxSpec, H, Scene as Synth, W, intrinsics, v3};
 use moma_core::{DepthErrorModel, MetricDepth};
 use moma_grasp::{
     Grasp, GraspQuality, GraspRequest, Gripper, Scene, SceneConfig, ScoreConfig, SuctionCup,
-    plan_grasps, score_grasp, success_probabilities,
+    plan_grasps, planning_depth, score_grasp, success_probabilities,
 };
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
@@ -161,7 +161,7 @@ fn with_the_error_model_the_cup_is_aimed_along_the_true_surface_under_bumps() {
 
 /// The success probability of a seal on the bumpy box top, where the truth is flat and the
 /// grasp (the one planned on the exact depth) succeeds: the draws are around the expected truth
-/// (the bumps the planning depth holds are smoothed out, [`DepthErrorModel::expected_truth`]),
+/// (the suction planning depth, whose bumps are smoothed out: [`planning_depth`]),
 /// not around the bumps, which alone break the seal's 5 mm gap tolerance at the cup's ring.
 #[test]
 fn a_seal_on_a_flat_top_under_bumps_gets_a_high_success_probability() {
@@ -201,8 +201,19 @@ fn a_seal_on_a_flat_top_under_bumps_gets_a_high_success_probability() {
                 .success,
         );
         request.seed = seed;
-        let p = success_probabilities(&[grasp], &scene, &planning, &intrinsics(), &model, &request)
-            .unwrap()[0];
+        // the draws are around the request's planning depth (the model's expected truth)
+        let expected = planning_depth(&planning, &request);
+        let expected_scene =
+            Scene::build(&expected, &intrinsics(), None, &SceneConfig::default()).unwrap();
+        let p = success_probabilities(
+            &[grasp],
+            &expected_scene,
+            &expected,
+            &intrinsics(),
+            &model,
+            &request,
+        )
+        .unwrap()[0];
         p_sum += p;
     }
     let mean_p = p_sum / seeds as f32;

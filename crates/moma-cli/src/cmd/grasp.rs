@@ -47,8 +47,13 @@ pub enum GripperArg {
 ///      "palm_depth_m":0.02,"contact_to_tip_m":0.01,"opening_clearance_m":0.01}
 ///     or suction {"radius_m":0.01,"compliance_m":0.015,"tool_length_m":0.1}
 ///   -o DIR writes grasps.json (the --json array), overlay.png (grasps drawn on the RGB image or the
-///     colour-mapped depth; best = green, then yellow to red) and scene.ply (the scene points plus
-///     finger/palm or cup boxes of the grasps; binary PLY, opens in MeshLab / Open3D).
+///     colour-mapped depth; best = green, then yellow to red), scene.ply (the scene points plus
+///     finger/palm or cup boxes of the grasps; binary PLY, opens in MeshLab / Open3D) and
+///     depth.npy (the frame's depth in metres, float32, as `moma align` writes it).
+///
+/// With an error model the planner works on its expected truth of the depth: the mean relief
+/// and silhouette corrections the calibration measured (and, for suction, the depth model's
+/// short-range bumps averaged out); docs/grasping.md.
 ///
 /// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane
 /// and does not touch the image border (--keep-border-objects keeps such regions).
@@ -108,7 +113,7 @@ pub struct GraspArgs {
     /// Print the grasps as one JSON array on stdout, best first.
     #[arg(long)]
     pub json: bool,
-    /// Output directory for grasps.json, overlay.png and scene.ply (created if missing).
+    /// Output directory for grasps.json, overlay.png, scene.ply and depth.npy (created if missing).
     #[arg(short, long, value_name = "DIR")]
     pub output: Option<PathBuf>,
 }
@@ -450,8 +455,9 @@ fn print_summary(outcome: &PlanOutcome) {
     }
 }
 
-/// Writes grasps.json (the `--json` array), scene.ply (scene points and gripper boxes) and
-/// overlay.png (grasps drawn on the RGB image, or on the colour-mapped depth) into `dir`.
+/// Writes grasps.json (the `--json` array), scene.ply (scene points and gripper boxes),
+/// overlay.png (grasps drawn on the RGB image, or on the colour-mapped depth) and depth.npy (the
+/// frame's metric depth, as `moma align` writes it) into `dir`.
 fn write_outputs(
     dir: &Path,
     outcome: &PlanOutcome,
@@ -475,6 +481,9 @@ fn write_outputs(
             .0
         }
     };
+    // the frame's depth as `moma align` writes it (before the planner's expected truth)
+    let depth_path = dir.join("depth.npy");
+    moma_io::write_depth(&depth_path, depth)?;
     let ply_path = dir.join("scene.ply");
     moma_io::write_scene_ply(
         &ply_path,
@@ -492,5 +501,5 @@ fn write_outputs(
     );
     let overlay_path = dir.join("overlay.png");
     moma_io::write_rgb(&overlay_path, &overlay)?;
-    Ok(vec![json_path, overlay_path, ply_path])
+    Ok(vec![json_path, overlay_path, ply_path, depth_path])
 }
