@@ -1578,9 +1578,9 @@ mod tests {
         assert!(DepthErrorModel::fit(&[bad], &[], 0.0).is_err());
     }
 
-    #[test]
-    fn fit_measures_relief_compression() {
-        // truth: bumps of 20 mm on a 1 m table; aligned: the same bumps at 80 % height
+    /// Bumps of 20 mm on a 1 m table (every 40 px, 200 × 150 px): the truth, and the same
+    /// bumps at 80 % of their height (a depth model's flattening).
+    fn flattened_bumps() -> (Array2<f32>, Array2<f32>) {
         let (w, h) = (200usize, 150usize);
         let bump = |u: usize, v: usize| {
             let (x, y) = ((u % 40) as f32 - 20.0, (v % 40) as f32 - 20.0);
@@ -1588,6 +1588,13 @@ mod tests {
         };
         let truth = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - bump(u, v));
         let aligned = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - 0.8 * bump(u, v));
+        (truth, aligned)
+    }
+
+    #[test]
+    fn fit_measures_relief_compression() {
+        // truth: bumps of 20 mm on a 1 m table; aligned: the same bumps at 80 % height
+        let (truth, aligned) = flattened_bumps();
         let frame = ResidualFrame {
             aligned_m: aligned.view(),
             truth_m: truth.view(),
@@ -1681,13 +1688,7 @@ mod tests {
     #[test]
     fn expected_truth_map_undoes_the_mean_relief_and_edge_errors() {
         // the bumps of `fit_measures_relief_compression`, 20 mm tall, flattened to 80 %
-        let (w, h) = (200usize, 150usize);
-        let bump = |u: usize, v: usize| {
-            let (x, y) = ((u % 40) as f32 - 20.0, (v % 40) as f32 - 20.0);
-            0.02 * (-(x * x + y * y) / 50.0).exp()
-        };
-        let truth = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - bump(u, v));
-        let aligned = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - 0.8 * bump(u, v));
+        let (truth, aligned) = flattened_bumps();
         let m = DepthErrorModel::fit(
             &[ResidualFrame {
                 aligned_m: aligned.view(),
@@ -1735,6 +1736,7 @@ mod tests {
         );
         // the relief correction never goes past the range it was fitted on: a 0.5 m tower
         // moves by at most relief_bias · MAX_RELIEF_M
+        let (h, w) = aligned.dim();
         let tower = Array2::from_shape_fn((h, w), |(v, u)| {
             if (90..110).contains(&u) && (65..85).contains(&v) {
                 0.5f32
