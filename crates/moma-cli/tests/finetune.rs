@@ -126,6 +126,36 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     assert!(diff(&with_lora, &from_merged) < 1e-5);
     assert!(diff(&with_lora, &base) > 1e-3);
 
+    // issue 26's error budget on a LoRA fine-tuned model: `--dtype int8|bf16` on the CPU (the
+    // adapter merged, then the encoder's linear layers packed) against f32, relative to the
+    // output range: max ≤ 1e-2, mean ≤ 2e-3, as on the random-weight references
+    let range = with_lora.iter().fold(f32::MIN, |a, &b| a.max(b))
+        - with_lora.iter().fold(f32::MAX, |a, &b| a.min(b));
+    assert!(range > 0.0);
+    for dtype in ["int8", "bf16"] {
+        let q = run_predict(
+            &["--lora", s(&adapter), "--dtype", dtype],
+            &weights,
+            &tmp.path().join(format!("q-{dtype}")),
+        );
+        let max = diff(&q, &with_lora) / range;
+        let mean = q
+            .iter()
+            .zip(&with_lora)
+            .map(|(x, y)| (x - y).abs())
+            .sum::<f32>()
+            / q.len() as f32
+            / range;
+        eprintln!(
+            "LoRA fine-tuned tiny model, {dtype} vs f32: max {max:.3e}, mean {mean:.3e} of the range"
+        );
+        assert!(
+            max <= 1e-2 && mean <= 2e-3,
+            "{dtype}: max {max}, mean {mean}"
+        );
+        assert!(max > 0.0, "{dtype}: the same output as f32");
+    }
+
     // Bad input: an adapter for other weights, a corrupt adapter, rank 0, an unknown target.
     let other = shared.join("reference/dav2/tiny-metric-392.safetensors");
     let e = fails(&[
