@@ -137,3 +137,100 @@ fn int8_is_a_cpu_precision_named_int8() {
     let e = "int4".parse::<moma_depth::Precision>().unwrap_err();
     assert!(e.contains("int8"), "{e}");
 }
+
+/// `name`'s weights with two channels of every block's LayerNorm gains (`norm1`, `norm2`) made
+/// `factor`× larger: the few huge activation channels trained ViTs have at the inputs of qkv and
+/// fc1 (random weights have none), written to `dir`.
+fn with_outlier_channels(name: &str, factor: f32, dir: &std::path::Path) -> std::path::PathBuf {
+    use safetensors::SafeTensors;
+    let bytes = std::fs::read(reference_dir().join(format!("{name}.safetensors"))).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let mut owned: Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
+    let mut scaled = 0;
+    for (key, view) in st.tensors() {
+        let mut data = view.data().to_vec();
+        if key.contains(".norm1.weight") || key.contains(".norm2.weight") {
+            assert_eq!(view.dtype(), safetensors::Dtype::F32);
+            for c in [5usize, 40] {
+                let b = &mut data[4 * c..4 * c + 4];
+                let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]) * factor;
+                b.copy_from_slice(&v.to_le_bytes());
+            }
+            scaled += 1;
+        }
+        owned.push((key, view.dtype(), view.shape().to_vec(), data));
+    }
+    assert!(scaled >= 8, "{scaled} LayerNorm gains scaled");
+    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = owned
+        .iter()
+        .map(|(k, d, s, b)| {
+            (
+                k.clone(),
+                safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap(),
+            )
+        })
+        .collect();
+    let out = dir.join(format!("{name}-outliers-{factor}.safetensors"));
+    safetensors::serialize_to_file(views, None, &out).unwrap();
+    out
+}
+
+/// Network-level outlier injection (issue 26 item 3): int8's per-token activation scales against
+/// f32 on the tiny model with two LayerNorm channels 20× and 60× larger than the rest, the
+/// failure mode of per-token int8 on trained ViTs; bf16 (a per-value exponent) for contrast.
+/// Measured (docs/depth-model.md): the budget holds without outliers and **fails with them**
+/// (int8 max 4.4e-2 of the range at ×20, 0.29 at ×60; bf16 7.1e-3 and 0.14). What is asserted:
+/// the budget at ×1, and that int8's error grows with the outliers and stays above bf16's, so
+/// the test notices both a fix (then tighten it) and a change that stops injecting anything.
+#[test]
+#[ignore = "needs ../shared/reference/dav2 (run with --include-ignored)"]
+fn int8_with_outlier_channels_injected_into_the_network() {
+    use moma_depth::Precision;
+    let dir = tempfile::tempdir().unwrap();
+    let name = "tiny-rel";
+    let config = tiny_config(&reference_dir(), name);
+    let input = reference_input(&reference_dir(), name);
+    let run = |path: &std::path::Path, p: Precision| {
+        CandleDepthModel::load_with_precision(
+            path,
+            config.clone(),
+            &candle_core::Device::Cpu,
+            p,
+            None,
+        )
+        .unwrap()
+        .forward_net(&input)
+        .unwrap()
+    };
+    let mut errors = Vec::new();
+    for factor in [1.0f32, 20.0, 60.0] {
+        let path = with_outlier_channels(name, factor, dir.path());
+        let f = run(&path, Precision::F32);
+        for p in [Precision::Int8, Precision::Bf16] {
+            let q = run(&path, p);
+            let (err, range) = max_abs_err(&q, &f);
+            let mean = mean_abs(&q, &f);
+            eprintln!(
+                "{name}, LayerNorm channels ×{factor}: {p:?} vs f32: max {:.3e}, mean {:.3e} of the output range",
+                err / range,
+                mean / range
+            );
+            errors.push((factor, p, err / range, mean / range));
+        }
+    }
+    let max =
+        |factor: f32, p: Precision| errors.iter().find(|e| e.0 == factor && e.1 == p).unwrap().2;
+    for p in [Precision::Int8, Precision::Bf16] {
+        let e = errors.iter().find(|e| e.0 == 1.0 && e.1 == p).unwrap();
+        assert!(e.2 <= 1e-2 && e.3 <= 2e-3, "without outliers: {e:?}");
+    }
+    assert!(
+        max(1.0, Precision::Int8) < max(20.0, Precision::Int8)
+            && max(20.0, Precision::Int8) < max(60.0, Precision::Int8),
+        "{errors:?}"
+    );
+    assert!(
+        max(20.0, Precision::Int8) > 2.0 * max(20.0, Precision::Bf16),
+        "{errors:?}"
+    );
+}
