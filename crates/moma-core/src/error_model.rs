@@ -1786,6 +1786,48 @@ mod tests {
         }
     }
 
+    /// Degenerate maps through the expected truth: no panic, pixels without depth stay without
+    /// depth, and every output is a valid depth or the input's invalid value.
+    #[test]
+    fn expected_truth_map_of_degenerate_maps() {
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.004,
+            variance_shares: [0.0, 0.2, 0.4, 0.4],
+            relief_bias: 0.2,
+            relief_sigma: 0.2,
+            relief_radius_px: 5,
+            edge_sharpening: 0.6,
+            edge_sharpening_sigma: 0.3,
+            ..DepthErrorModel::default()
+        };
+        let maps = [
+            Array2::from_elem((1, 1), 0.7f32),
+            Array2::from_elem((2, 3), f32::NAN),
+            Array2::from_shape_fn(
+                (3, 2),
+                |(v, u)| if (u + v) % 2 == 0 { 0.5 } else { f32::NAN },
+            ),
+            Array2::from_shape_fn((4, 9), |(_, u)| if u < 4 { 0.0 } else { f32::INFINITY }),
+            Array2::from_shape_fn(
+                (7, 5),
+                |(v, u)| if v == 3 { -1.0 } else { 0.6 + 0.01 * u as f32 },
+            ),
+        ];
+        for d in &maps {
+            for smooth in [false, true] {
+                let e = m.expected_truth_map(d.view(), smooth);
+                assert_eq!(e.dim(), d.dim());
+                for (a, b) in e.iter().zip(d.iter()) {
+                    if is_valid_depth(*b) {
+                        assert!(is_valid_depth(*a), "{b} became {a}");
+                    } else {
+                        assert!(a.to_bits() == b.to_bits(), "invalid {b} became {a}");
+                    }
+                }
+            }
+        }
+    }
+
     /// Residual variance the semivariogram does not reach within its lags (a field varying over
     /// hundreds of pixels) moves a gripper's footprint as a whole: it joins the offset, and the
     /// noise within a cup-sized patch stays at the field's own variation there.
