@@ -1578,6 +1578,19 @@ mod tests {
         assert!(DepthErrorModel::fit(&[bad], &[], 0.0).is_err());
     }
 
+    /// The model fitted on one calibration frame (no cross-validated residuals, depth space).
+    fn fit_one(aligned: &Array2<f32>, truth: &Array2<f32>) -> DepthErrorModel {
+        DepthErrorModel::fit(
+            &[ResidualFrame {
+                aligned_m: aligned.view(),
+                truth_m: truth.view(),
+            }],
+            &[],
+            0.0,
+        )
+        .unwrap()
+    }
+
     /// Bumps of 20 mm on a 1 m table (every 40 px, 200 × 150 px): the truth, and the same
     /// bumps at 80 % of their height (a depth model's flattening).
     fn flattened_bumps() -> (Array2<f32>, Array2<f32>) {
@@ -1689,15 +1702,7 @@ mod tests {
     fn expected_truth_map_undoes_the_mean_relief_and_edge_errors() {
         // the bumps of `fit_measures_relief_compression`, 20 mm tall, flattened to 80 %
         let (truth, aligned) = flattened_bumps();
-        let m = DepthErrorModel::fit(
-            &[ResidualFrame {
-                aligned_m: aligned.view(),
-                truth_m: truth.view(),
-            }],
-            &[],
-            0.0,
-        )
-        .unwrap();
+        let m = fit_one(&aligned, &truth);
         // the least-squares factor lowers the RMS error (the flat table between the bumps moves
         // by c times the box mean of the bumps: the MAE barely changes), and the error on the
         // bumps' tops, what a gripper touches
@@ -1839,15 +1844,7 @@ mod tests {
         let truth = Array2::from_shape_fn((h, w), |(_, u)| {
             1.0 + 0.005 * (std::f32::consts::TAU * u as f32 / 600.0).sin()
         });
-        let m = DepthErrorModel::fit(
-            &[ResidualFrame {
-                aligned_m: aligned.view(),
-                truth_m: truth.view(),
-            }],
-            &[],
-            0.0,
-        )
-        .unwrap();
+        let m = fit_one(&aligned, &truth);
         // σ: 5 mm / √2
         assert!((m.sigma_flat_m - 0.005 / 2f64.sqrt()).abs() < 2e-4, "{m:?}");
         // within 10 px the sine changes by at most 5 mm · 2π · 10 / 600 = 0.52 mm
