@@ -579,8 +579,8 @@ impl DepthErrorModel {
                 .zip(centre.iter().zip(t))
                 .zip(values)
             {
-                // NaN and ±∞ fail the comparisons: not counted
-                let ok = (z > 0.0) & (z < f32::INFINITY) & ((z - z0).abs() <= tz);
+                // `is_valid_depth` is branch-free: the loop still vectorises
+                let ok = is_valid_depth(z) & ((z - z0).abs() <= tz);
                 *s += if ok { z } else { 0.0 };
                 *k += u32::from(ok);
             }

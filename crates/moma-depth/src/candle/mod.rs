@@ -402,6 +402,16 @@ pub struct CandleDepthModel {
     packed: Option<Precision>,
 }
 
+/// Whether this CPU has the instructions of `precision`'s packed kernel, and their name
+/// (int8: AVX512-VNNI, bf16: AVX512-BF16; other precisions have no packed kernel).
+fn cpu_instructions(precision: Precision) -> (bool, &'static str) {
+    match precision {
+        Precision::Int8 => (int8::has_vnni(), "AVX512-VNNI"),
+        Precision::Bf16 => (bf16::has_bf16(), "AVX512-BF16"),
+        Precision::F32 | Precision::F16 => (true, ""),
+    }
+}
+
 /// The two checkpoint containers the official weights come in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum WeightsFormat {
@@ -717,8 +727,14 @@ impl CandleDepthModel {
         }
         let (packed, fast, instructions) = match precision {
             Precision::F32 => (PackedPrecision::F32, true, ""),
-            Precision::Int8 => (PackedPrecision::Int8, int8::has_vnni(), "AVX512-VNNI"),
-            Precision::Bf16 => (PackedPrecision::Bf16, bf16::has_bf16(), "AVX512-BF16"),
+            Precision::Int8 => {
+                let (fast, instructions) = cpu_instructions(Precision::Int8);
+                (PackedPrecision::Int8, fast, instructions)
+            }
+            Precision::Bf16 => {
+                let (fast, instructions) = cpu_instructions(Precision::Bf16);
+                (PackedPrecision::Bf16, fast, instructions)
+            }
             Precision::F16 => {
                 return Err(DepthError::Unavailable(
                     "f16 has no CPU kernel (use f32, bf16 or int8 on the CPU)".into(),
@@ -790,25 +806,18 @@ impl DepthModel for CandleDepthModel {
 
     fn runtime(&self) -> String {
         let base = format!("candle, {:?}, {:?}", self.device.location(), self.dtype);
-        match self.packed {
-            Some(Precision::Int8) => format!(
-                "{base}, encoder linear layers and attention in int8 ({})",
-                if int8::has_vnni() {
-                    "AVX512-VNNI"
-                } else {
-                    "portable kernel"
-                }
-            ),
-            Some(Precision::Bf16) => format!(
-                "{base}, encoder linear layers and attention in bf16 ({})",
-                if bf16::has_bf16() {
-                    "AVX512-BF16"
-                } else {
-                    "portable kernel"
-                }
-            ),
-            _ => base,
-        }
+        let name = match self.packed {
+            Some(Precision::Int8) => "int8",
+            Some(Precision::Bf16) => "bf16",
+            _ => return base,
+        };
+        let (fast, instructions) = self.packed.map_or((true, ""), cpu_instructions);
+        let kernel = if fast {
+            instructions
+        } else {
+            "portable kernel"
+        };
+        format!("{base}, encoder linear layers and attention in {name} ({kernel})")
     }
 
     fn forward_net(&mut self, input: &Array3<f32>) -> Result<Array2<f32>> {
