@@ -186,6 +186,21 @@ macro_rules! simd_dispatch {
             fn generic($($arg: $ty),*) $(-> $ret)? $body
             #[cfg(target_arch = "x86_64")]
             {
+                // 16 lanes per instruction; the source fixes every sum's order, so each
+                // variant gives the same bits
+                #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2,fma")]
+                #[allow(clippy::too_many_arguments)]
+                fn avx512($($arg: $ty),*) $(-> $ret)? {
+                    generic($($arg),*)
+                }
+                if std::arch::is_x86_feature_detected!("avx512f")
+                    && std::arch::is_x86_feature_detected!("avx512bw")
+                    && std::arch::is_x86_feature_detected!("avx512vl")
+                {
+                    // SAFETY: the CPU has the features `avx512` was compiled for (AVX-512
+                    // implies AVX2 and FMA).
+                    return unsafe { avx512($($arg),*) };
+                }
                 #[target_feature(enable = "avx2,fma")]
                 #[allow(clippy::too_many_arguments)]
                 fn avx2($($arg: $ty),*) $(-> $ret)? {
@@ -211,10 +226,10 @@ simd_dispatch! {
     fn exp_rows(s: &mut [f32], n: usize, scale: f32, inv: &mut [f32]) {
         for (row, inv) in s.chunks_exact_mut(n).zip(inv.iter_mut()) {
             let max = max8(row);
-            let mut acc = [0f32; 8];
-            let mut chunks = row.chunks_exact_mut(8);
+            let mut acc = [0f32; 16];
+            let mut chunks = row.chunks_exact_mut(16);
             for c in &mut chunks {
-                for i in 0..8 {
+                for i in 0..16 {
                     let e = exp_f32((c[i] - max) * scale);
                     c[i] = e;
                     acc[i] += e;
@@ -1099,7 +1114,7 @@ impl Conv3x3<'_> {
 /// `exp(x)` in `f32` without branches or libm calls, so that loops over slices vectorise:
 /// Cody–Waite reduction `x = n·ln2 + r`, the Cephes `expf` polynomial on `|r| ≤ ln2/2`
 /// (relative error ≈ 2e-7), `2ⁿ` built in the exponent bits. Inputs are clamped to
-/// `[-87.3, 88.7]` (results below `2⁻¹²⁶` are not produced; softmax only sees `x ≤ 0`).
+/// `[-87.3, 88]` (results below `2⁻¹²⁶` are not produced, nor ∞; softmax only sees `x ≤ 0`).
 #[inline(always)]
 fn exp_f32(x: f32) -> f32 {
     const LOG2E: f32 = std::f32::consts::LOG2_E;
@@ -1107,7 +1122,9 @@ fn exp_f32(x: f32) -> f32 {
     const LN2_LO: f32 = -2.121_944_4e-4;
     // 1.5·2²³: adding it rounds to an integer held in the low mantissa bits.
     const ROUND: f32 = 12_582_912.0;
-    let x = x.clamp(-87.3, 88.7);
+    // comparisons, not `f32::clamp`: one min and one max instruction (NaN stays NaN either way)
+    let x = if x < -87.3 { -87.3 } else { x };
+    let x = if x > 88.0 { 88.0 } else { x };
     let t = x * LOG2E + ROUND;
     let n = t - ROUND;
     let r = x - n * LN2_HI - n * LN2_LO;
@@ -1138,21 +1155,24 @@ fn sum8(xs: &[f32]) -> f32 {
     acc.iter().sum::<f32>() + rest.iter().sum::<f32>()
 }
 
-/// Maximum with eight independent lanes (vectorises, unlike a fold with `f32::max`).
+/// Maximum with eight independent lanes (vectorises, unlike a fold with `f32::max`). A
+/// comparison, not `f32::max`: one instruction instead of three per vector (NaN-aware `max`
+/// adds a compare and a blend); NaN values are skipped either way.
 #[inline(always)]
 fn max8(xs: &[f32]) -> f32 {
+    let larger = |m: f32, x: f32| if x > m { x } else { m };
     let mut acc = [f32::NEG_INFINITY; 8];
     let chunks = xs.chunks_exact(8);
     let rest = chunks.remainder();
     for c in chunks {
         for i in 0..8 {
-            acc[i] = acc[i].max(c[i]);
+            acc[i] = larger(acc[i], c[i]);
         }
     }
     acc.iter()
         .chain(rest)
         .copied()
-        .fold(f32::NEG_INFINITY, f32::max)
+        .fold(f32::NEG_INFINITY, larger)
 }
 
 /// `softmax(scale · x)` over the last dimension (`scale > 0`). CPU: rows in parallel, vectorised
@@ -1308,6 +1328,53 @@ impl CustomOp1 for UpsampleBilinearAc {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The comparison-based maximum and clamp keep `f32::max`'s and `f32::clamp`'s values:
+    /// NaN skipped by the maximum, passed through by `exp`, ±∞ and the clamp bounds exact.
+    #[test]
+    fn comparison_max_and_clamp_keep_the_float_semantics() {
+        let rows: [&[f32]; 5] = [
+            &[
+                f32::NAN,
+                1.0,
+                -3.0,
+                f32::NAN,
+                2.5,
+                0.0,
+                -0.0,
+                7.0,
+                6.9,
+                f32::NAN,
+                1e30,
+            ],
+            &[f32::NEG_INFINITY; 9],
+            &[f32::NAN, -1.0],
+            &[
+                -5.0,
+                f32::INFINITY,
+                3.0,
+                1.0,
+                2.0,
+                3.0,
+                4.0,
+                5.0,
+                6.0,
+                f32::NAN,
+                -7.0,
+            ],
+            &[],
+        ];
+        for row in rows {
+            let want = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            assert_eq!(max8(row).to_bits(), want.to_bits(), "{row:?}");
+        }
+        assert!(exp_f32(f32::NAN).is_nan());
+        assert_eq!(exp_f32(-1e9), exp_f32(-87.3));
+        assert_eq!(exp_f32(1e9), exp_f32(88.0));
+        assert_eq!(exp_f32(f32::NEG_INFINITY), exp_f32(-87.3));
+        // the largest input stays finite (88.7, the bound before, made 2¹²⁸ = ∞)
+        assert!(exp_f32(88.0).is_finite() && exp_f32(88.0) > 1.6e38);
+    }
 
     #[test]
     fn fast_exp_and_erf_are_accurate() {
