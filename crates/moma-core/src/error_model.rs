@@ -43,8 +43,9 @@
 //! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels
 //!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
 //!
-//! With per-frame re-alignment on static anchors, the frame's own held-out anchor RMSE raises
-//! `σ_flat` for that frame ([`DepthErrorModel::for_frame`]).
+//! With per-frame re-alignment on static anchors, the frame's own held-out anchor RMSE sets
+//! `σ_flat` for that frame ([`DepthErrorModel::for_frame`]; at least a quarter of the
+//! calibration's).
 //!
 //! # Expected truth
 //! [`DepthErrorModel::expected_truth_map`] is the model's mean of the truth given an aligned
@@ -97,6 +98,10 @@ const EDGE_SCALE_PX: f64 = 2.0;
 /// The smallest variance share of a short-range field that [`DepthErrorModel::expected_truth`]
 /// smooths out.
 const SHORT_SHARE_MIN: f64 = 0.01;
+
+/// The smallest share of the calibration's flat σ that a frame's own residual can set
+/// ([`DepthErrorModel::for_frame`]).
+pub const FRAME_SIGMA_FLOOR: f64 = 0.25;
 
 /// The error model of a calibration's aligned depth (module documentation). Metres.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -494,13 +499,16 @@ impl DepthErrorModel {
         }
     }
 
-    /// The model of one frame: `sigma_flat_m` raised to the frame's own background residual
-    /// (metres at the reference depth, e.g. the held-out anchor RMSE after re-alignment) when
-    /// that is larger.
+    /// The model of one frame: `sigma_flat_m` set to the frame's own background residual
+    /// (metres at the reference depth, e.g. the held-out anchor RMSE after re-alignment), which
+    /// measures this frame's flat error where the calibration frame's only predicts it: larger
+    /// when the frame drifted, smaller when re-alignment removed what the one-shot fit left.
+    /// Never below [`FRAME_SIGMA_FLOOR`] of the calibration's σ (a few anchors can happen to
+    /// agree), nor above 10 m.
     pub fn for_frame(&self, frame_residual_m: Option<f64>) -> Self {
         match frame_residual_m {
-            Some(r) if r.is_finite() && r > self.sigma_flat_m => Self {
-                sigma_flat_m: r.min(10.0),
+            Some(r) if r.is_finite() => Self {
+                sigma_flat_m: r.max(FRAME_SIGMA_FLOOR * self.sigma_flat_m).min(10.0),
                 ..*self
             },
             _ => *self,
@@ -1999,11 +2007,18 @@ mod tests {
     }
 
     #[test]
-    fn a_frame_residual_only_widens() {
-        let m = DepthErrorModel::uniform(0.005).unwrap();
-        assert_eq!(m.for_frame(Some(0.002)).sigma_flat_m, 0.005);
-        assert_eq!(m.for_frame(Some(0.009)).sigma_flat_m, 0.009);
-        assert_eq!(m.for_frame(None).sigma_flat_m, 0.005);
-        assert_eq!(m.for_frame(Some(f64::NAN)).sigma_flat_m, 0.005);
+    fn a_frame_residual_sets_the_flat_sigma_within_bounds() {
+        let m = DepthErrorModel::uniform(0.008).unwrap();
+        // narrower and wider than the calibration's, as the frame's anchors measure
+        assert_eq!(m.for_frame(Some(0.003)).sigma_flat_m, 0.003);
+        assert_eq!(m.for_frame(Some(0.012)).sigma_flat_m, 0.012);
+        // never below a quarter of the calibration's, never above 10 m
+        assert_eq!(m.for_frame(Some(0.0005)).sigma_flat_m, 0.002);
+        assert_eq!(m.for_frame(Some(0.0)).sigma_flat_m, 0.002);
+        assert_eq!(m.for_frame(Some(1e6)).sigma_flat_m, 10.0);
+        // no residual, or a meaningless one: the calibration's
+        assert_eq!(m.for_frame(None).sigma_flat_m, 0.008);
+        assert_eq!(m.for_frame(Some(f64::NAN)).sigma_flat_m, 0.008);
+        assert_eq!(m.for_frame(Some(f64::INFINITY)).sigma_flat_m, 0.008);
     }
 }

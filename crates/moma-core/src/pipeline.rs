@@ -993,9 +993,10 @@ pub struct Aligned {
 
 impl Calibration {
     /// The error model of one frame's aligned depth: the calibration's
-    /// ([`Calibration::error_model`]), with the flat σ raised to the frame's held-out anchor
-    /// RMSE when it was re-aligned (after the correction when accepted, of the one-shot result
-    /// otherwise) and that is larger ([`DepthErrorModel::for_frame`]). `None` without a model.
+    /// ([`Calibration::error_model`]), with the flat σ set to the frame's held-out anchor RMSE
+    /// when it was re-aligned (after the correction when accepted, of the one-shot result
+    /// otherwise; at least a quarter of the calibration's σ: [`DepthErrorModel::for_frame`]).
+    /// `None` without a model.
     pub fn frame_error_model(&self, realign: Option<&RealignReport>) -> Option<DepthErrorModel> {
         let residual = realign.and_then(|r| {
             if r.accepted {

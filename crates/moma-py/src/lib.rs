@@ -366,7 +366,7 @@ impl Calibration {
     /// The per-pixel σ of the error of `depth_m` (this calibration's aligned depth of a frame,
     /// float32 metres) as `moma align --sigma-map` writes it: float32 metres, NaN where there is
     /// no depth. `report`: the re-alignment report of the frame (`align_realigned`'s), whose
-    /// held-out anchor RMSE widens the flat σ. An error when the calibration has no error model.
+    /// held-out anchor RMSE sets the flat σ. An error when the calibration has no error model.
     #[pyo3(signature = (depth_m, report=None))]
     fn sigma_map<'py>(
         &self,
