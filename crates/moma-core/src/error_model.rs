@@ -29,9 +29,7 @@
 //! cross-validated residuals of the calibration samples as a floor of `σ_flat` (the fit has seen
 //! its own samples).
 //! 1. `relief_bias` and `edge_sharpening`: least squares of `truth − aligned = c·hp + a·step`
-//!    over the pixels with `|hp| ≤` [`MAX_RELIEF_M`] (a within [0, 1]), each pixel weighted by
-//!    `(z / depth_ref_m)^(−2p)`, the inverse of its flat error variance (in inverse space a far
-//!    pixel's residual is mostly noise); `relief_sigma = |relief_bias|` (one frame cannot tell how the factor
+//!    over the pixels with `|hp| ≤` [`MAX_RELIEF_M`] (a within [0, 1]); `relief_sigma = |relief_bias|` (one frame cannot tell how the factor
 //!    varies between frames; a zero correction stays within one σ).
 //! 2. The rest `r = truth − aligned − relief_bias·hp − edge_sharpening·step`, divided by `(z / depth_ref_m)^p`
 //!    (`depth_ref_m` the median calibration depth): `σ_flat²` its mean square over flat pixels;
@@ -324,13 +322,11 @@ impl DepthErrorModel {
             {
                 if is_valid_depth(a) && is_valid_depth(t) && h.abs() <= MAX_RELIEF_M {
                     let (x, h, st) = (f64::from(t - a), f64::from(h), f64::from(st));
-                    // weighted by the inverse flat error variance, 1 / depth_scale²
-                    let w = m.depth_scale(a).powi(-2);
-                    normal_eq[0] += w * h * h;
-                    normal_eq[1] += w * h * st;
-                    normal_eq[2] += w * st * st;
-                    normal_eq[3] += w * x * h;
-                    normal_eq[4] += w * x * st;
+                    normal_eq[0] += h * h;
+                    normal_eq[1] += h * st;
+                    normal_eq[2] += st * st;
+                    normal_eq[3] += x * h;
+                    normal_eq[4] += x * st;
                 }
             }
         }
@@ -1627,42 +1623,6 @@ mod tests {
         let m = DepthErrorModel::fit(&[frame], &[], 0.0).unwrap();
         // truth − aligned = −0.2·bump and hp ≈ −0.8·bump + its box mean: c ≈ 0.25
         assert!((m.relief_bias - 0.25).abs() < 0.05, "{m:?}");
-    }
-
-    /// In inverse space (σ ∝ z²) the relief factor is a weighted least squares, each pixel by
-    /// 1/σ² ∝ z⁻⁴: a far calibration frame whose relief is not flattened (and three times
-    /// taller) must not drown the near frame's 20 % flattening, as it does unweighted.
-    #[test]
-    fn relief_fit_weighs_pixels_by_their_error_variance() {
-        let (w, h) = (200usize, 150usize);
-        let bumps = |table_m: f32, height_m: f32| {
-            Array2::from_shape_fn((h, w), |(v, u)| {
-                let (x, y) = ((u % 40) as f32 - 20.0, (v % 40) as f32 - 20.0);
-                table_m - height_m * (-(x * x + y * y) / 50.0).exp()
-            })
-        };
-        // near: bumps of 20 mm at 1 m, flattened to 80 %; far: bumps of 60 mm at 3 m, exact
-        let (near_truth, near_aligned) = (bumps(1.0, 0.02), bumps(1.0, 0.016));
-        let far = bumps(3.0, 0.06);
-        let fit = |exponent: f64| {
-            let frames = [
-                ResidualFrame {
-                    aligned_m: near_aligned.view(),
-                    truth_m: near_truth.view(),
-                },
-                ResidualFrame {
-                    aligned_m: far.view(),
-                    truth_m: far.view(),
-                },
-            ];
-            DepthErrorModel::fit(&frames, &[], exponent).unwrap()
-        };
-        // weights (3 m / 1 m)⁻⁴ = 1/81 against 9× the squared relief: c ≈ 0.25 / (1 + 9/81)
-        let inverse = fit(2.0);
-        assert!((inverse.relief_bias - 0.225).abs() < 0.04, "{inverse:?}");
-        // unweighted (depth space: σ even over depth) the far frame dominates: c ≈ 0.25 / 10
-        let depth = fit(0.0);
-        assert!(depth.relief_bias < 0.06, "{depth:?}");
     }
 
     /// The row-at-a-time smoothing of [`DepthErrorModel::expected_truth`] equals a plain
