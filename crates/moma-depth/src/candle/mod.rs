@@ -725,22 +725,17 @@ impl CandleDepthModel {
                 self.device.location()
             )));
         }
-        let (packed, fast, instructions) = match precision {
-            Precision::F32 => (PackedPrecision::F32, true, ""),
-            Precision::Int8 => {
-                let (fast, instructions) = cpu_instructions(Precision::Int8);
-                (PackedPrecision::Int8, fast, instructions)
-            }
-            Precision::Bf16 => {
-                let (fast, instructions) = cpu_instructions(Precision::Bf16);
-                (PackedPrecision::Bf16, fast, instructions)
-            }
+        let packed = match precision {
+            Precision::F32 => PackedPrecision::F32,
+            Precision::Int8 => PackedPrecision::Int8,
+            Precision::Bf16 => PackedPrecision::Bf16,
             Precision::F16 => {
                 return Err(DepthError::Unavailable(
                     "f16 has no CPU kernel (use f32, bf16 or int8 on the CPU)".into(),
                 ));
             }
         };
+        let (fast, instructions) = cpu_instructions(precision);
         if !fast {
             static SAID: std::sync::Once = std::sync::Once::new();
             SAID.call_once(|| {
@@ -806,12 +801,12 @@ impl DepthModel for CandleDepthModel {
 
     fn runtime(&self) -> String {
         let base = format!("candle, {:?}, {:?}", self.device.location(), self.dtype);
-        let name = match self.packed {
-            Some(Precision::Int8) => "int8",
-            Some(Precision::Bf16) => "bf16",
+        let (name, precision) = match self.packed {
+            Some(p @ Precision::Int8) => ("int8", p),
+            Some(p @ Precision::Bf16) => ("bf16", p),
             _ => return base,
         };
-        let (fast, instructions) = self.packed.map_or((true, ""), cpu_instructions);
+        let (fast, instructions) = cpu_instructions(precision);
         let kernel = if fast {
             instructions
         } else {
