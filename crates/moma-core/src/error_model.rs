@@ -512,14 +512,9 @@ impl DepthErrorModel {
     }
 
     /// The model without the fine and medium fields (their variance dropped; the offset, the
-    /// coarse field, the relief factor and the edge share's σ kept in metres) and without the
-    /// edge noise (`edge_gain` 0): what moves or tilts a whole patch. Robust grasp quality
-    /// draws from it around a planning depth that already holds one realisation of the
-    /// short-range bumps and of the silhouettes' pixel scatter. A draw that adds another
-    /// realisation of the edge noise (σ `edge_gain` × the local depth range: about a centimetre
-    /// on a silhouette) moves every silhouette pixel at random, so that the contacts of nearly
-    /// every edge grasp fail on some draws whatever their true robustness (docs/grasping.md,
-    /// "Draws without the edge noise"). The σ map ([`Self::sigma_map`]) keeps it.
+    /// coarse field, relief and edges kept in metres): what moves or tilts a whole patch.
+    /// Robust grasp quality draws from it around a planning depth that already holds one
+    /// realisation of the short-range bumps.
     pub fn long_range(&self) -> Self {
         let [offset, _, _, coarse] = self.variance_shares;
         let kept = offset + coarse;
@@ -530,7 +525,6 @@ impl DepthErrorModel {
             } else {
                 [0.0, 0.0, 0.0, 1.0]
             },
-            edge_gain: 0.0,
             ..*self
         }
     }
@@ -1361,9 +1355,6 @@ mod tests {
             depth_ref_m: 0.5,
             depth_exponent: 2.0,
             variance_shares: [0.1, 0.2, 0.3, 0.4],
-            relief_sigma: 0.1,
-            edge_sharpening_sigma: 0.2,
-            edge_gain: 0.3,
             ..DepthErrorModel::default()
         };
         let expect = |r: f64| {
@@ -1390,12 +1381,6 @@ mod tests {
         assert_eq!(
             (long.variance_shares[1], long.variance_shares[2]),
             (0.0, 0.0)
-        );
-        // without the edge noise; the relief factor and the edge share's σ kept
-        assert_eq!(long.edge_gain, 0.0);
-        assert_eq!(
-            (long.relief_sigma, long.edge_sharpening_sigma),
-            (m.relief_sigma, m.edge_sharpening_sigma)
         );
         // the offset alone tilts nothing
         let offset_only = DepthErrorModel {

@@ -181,49 +181,6 @@ fn a_grasp_that_survives_a_20mm_offset_gets_a_higher_success_prob() {
 }
 
 #[test]
-fn the_edge_noise_of_the_sigma_map_does_not_break_a_grasp_that_holds_on_the_truth() {
-    // The σ map's edge noise (σ = edge_gain × the local depth range: 18 mm on the 60 mm box's
-    // silhouette) is the pixel scatter that the planning depth already holds once. A draw that
-    // adds another realisation moves the silhouette at random and failed the contacts of a
-    // grasp that succeeds on the truth (docs/grasping.md, "Draws without the edge noise").
-    let tall = BoxSpec {
-        x_m: 0.0,
-        y_m: 0.0,
-        height_m: 0.06,
-        ..BoxSpec::standard()
-    };
-    let s = Synth::top_down(DIST_M, Some(tall));
-    let depth = s.render();
-    let k = intrinsics();
-    let jaw = Gripper::Parallel(ParallelJaw::default());
-    let g = grasp_on(&s, &tall, 0.02);
-    let gt = Scene::build(&depth, &k, None, &SceneConfig::default()).unwrap();
-    let truth = score_grasp(&gt, &g, &jaw, &ScoreConfig::default()).unwrap();
-    assert!(truth.success, "{truth:?}");
-    let model = DepthErrorModel {
-        sigma_flat_m: 0.001,
-        variance_shares: [1.0, 0.0, 0.0, 0.0],
-        edge_gain: 0.3,
-        ..DepthErrorModel::default()
-    };
-    // the σ map has it: at least 15 mm on the box's silhouette
-    let sigma = model.sigma_map(&depth);
-    let most = sigma
-        .iter()
-        .copied()
-        .filter(|x| x.is_finite())
-        .fold(0.0f32, f32::max);
-    assert!(most >= 0.015, "largest σ {most} m");
-    let mut request = GraspRequest::new(jaw).with_error_model(Some(model));
-    request.draws = 32;
-    for seed in 0..3 {
-        request.seed = seed;
-        let p = success_probabilities(&[g], &gt, &depth, &k, &model, &request).unwrap();
-        assert!(p[0] >= 0.9, "seed {seed}: success_prob {}", p[0]);
-    }
-}
-
-#[test]
 fn bad_requests_are_errors_and_an_impossible_minimum_empties_the_list_with_a_reason() {
     let depth = Synth::top_down(DIST_M, Some(BoxSpec::standard())).render();
     let k = intrinsics();
