@@ -20,6 +20,7 @@
 mod bf16;
 pub mod dinov2;
 pub mod dpt;
+mod heap;
 mod int8;
 mod ops;
 pub mod train;
@@ -669,6 +670,9 @@ impl CandleDepthModel {
         config.validate()?;
         let device = vb.device().clone();
         let dtype = vb.dtype();
+        if device.is_cpu() {
+            heap::keep_freed_memory();
+        }
         let building = |source| DepthError::Candle {
             context: "building the network from its variables".into(),
             source,

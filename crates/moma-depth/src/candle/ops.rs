@@ -974,7 +974,132 @@ const IM2COL_CHUNK_BYTES: usize = 4 << 20;
 
 residual_op!(Conv3x3, "conv3x3-im2col", "conv3x3-im2col-residual");
 
+/// Largest input and output channel counts of a stride-1 [`conv3x3`] run by
+/// [`Conv3x3::run_channels_last`] (larger ones: im2col; measured below).
+const CHANNELS_LAST_MAX: usize = 128;
+
 impl Conv3x3<'_> {
+    /// A stride-1 convolution with few channels, row by row, without im2col: the input is
+    /// copied band by band (a few MB of output rows), channels last and padded by one pixel. A
+    /// pixel's three taps of one kernel row are then `3·c_in` contiguous values, and one output
+    /// row is three products `(w × 3·c_in) · (3·c_in × c_out)`, whose left operand is a strided
+    /// view of that copy (row stride `c_in`: consecutive pixels overlap). im2col writes and reads
+    /// 9 × the input for the same product; at the DPT head's shapes (`c_out` 32–64, up to
+    /// 518 × 686 pixels) that traffic, not the multiply-adds, set its time.
+    ///
+    /// Measured on the random-weight ViT-S and ViT-B heads at 518×686, per call, 2 threads
+    /// (`bench_candle`): 32→32 at 518×686 167 → 79–96 ms, 64→32 at 296×392 87 → 47 ms, 64→64 at
+    /// 148×196 33 → 18 ms; ViT-B 64→32 at 518×686 289 → 140 ms, 128→64 at 296×392 228 → 165 ms.
+    /// Slower for many input channels on few pixels (768→768 stride 2 at 37×49: 43 → 113 ms):
+    /// those keep im2col ([`CHANNELS_LAST_MAX`]). Each row is one serial product: the same
+    /// bits on every thread count.
+    fn run_channels_last(
+        &self,
+        src: &[f32],
+        l1: &Layout,
+        wts: &[f32],
+        l2: &Layout,
+        residual: Option<&[f32]>,
+    ) -> Result<(CpuStorage, Shape)> {
+        let bias = self.bias;
+        let (_, c_in, h, w) = l1.shape().dims4()?;
+        let (c_out, k) = l2.shape().dims2()?;
+        let npix = h * w;
+        if wts.len() != c_out * k
+            || bias.len() != c_out
+            || k != 9 * c_in
+            || residual.is_some_and(|r| r.len() != c_out * npix)
+        {
+            candle_core::bail!("conv3x3: weight {:?}, input {:?}", l2.dims(), l1.dims());
+        }
+        // (ky, kx, ci) × c_out: kernel row ky is the contiguous block of rows ky·3·c_in..
+        let wt = conv3x3_weight_t(wts, c_out, c_in);
+        // Bands of output rows whose padded input rows (band + 2) fit in IM2COL_CHUNK_BYTES: the
+        // copy stays small (a whole channels-last copy of a 518×686×32 input is 45 MB more at
+        // the peak) and in cache.
+        let wp = w + 2;
+        let band = (IM2COL_CHUNK_BYTES / (4 * wp * c_in))
+            .saturating_sub(2)
+            .clamp(1, h);
+        let mut hwc = vec![0f32; (band + 2) * wp * c_in];
+        let relu_in = self.relu_in;
+        let mut dst = vec![0f32; c_out * npix];
+        let out_ptr = SendPtr(dst.as_mut_ptr());
+        let relu_out = self.relu_out;
+        for r0 in (0..h).step_by(band) {
+            let r1 = (r0 + band).min(h);
+            // padded row j of the band is input row r0 + j − 1 (zero outside the image)
+            hwc[..(r1 - r0 + 2) * wp * c_in]
+                .par_chunks_mut(wp * c_in)
+                .enumerate()
+                .for_each(|(j, row)| {
+                    let y = (r0 + j).wrapping_sub(1);
+                    if y >= h {
+                        row.fill(0.0);
+                        return;
+                    }
+                    row[..c_in].fill(0.0);
+                    row[(w + 1) * c_in..].fill(0.0);
+                    for ci in 0..c_in {
+                        let plane_row = &src[(ci * h + y) * w..(ci * h + y + 1) * w];
+                        for (x, &v) in plane_row.iter().enumerate() {
+                            row[(x + 1) * c_in + ci] = if relu_in && v < 0.0 { 0.0 } else { v };
+                        }
+                    }
+                });
+            let hwc = &hwc;
+            (r0..r1).into_par_iter().for_each(|oy| {
+                CONV_SCRATCH.with(|cell| {
+                    let out = &mut cell.borrow_mut().out;
+                    out.resize(w * c_out, 0.0);
+                    for ky in 0..3 {
+                        let at = (oy - r0 + ky) * wp * c_in;
+                        // SAFETY: the left operand's rows x·c_in + 0..3·c_in of the band's
+                        // padded row oy − r0 + ky (x < w) lie inside `hwc`; the right one is
+                        // rows ky·3·c_in.. of `wt`; `out` holds w × c_out.
+                        unsafe {
+                            sgemm(
+                                w,
+                                c_out,
+                                3 * c_in,
+                                out.as_mut_ptr(),
+                                c_out as isize,
+                                ky > 0,
+                                MatRef {
+                                    ptr: hwc.as_ptr().add(at),
+                                    rs: c_in as isize,
+                                    cs: 1,
+                                },
+                                MatRef {
+                                    ptr: wt.as_ptr().add(ky * 3 * c_in * c_out),
+                                    rs: c_out as isize,
+                                    cs: 1,
+                                },
+                                false,
+                            );
+                        }
+                    }
+                    let p0 = oy * w;
+                    for (co, &b) in bias.iter().enumerate() {
+                        // SAFETY: row oy of channel co's plane: this task's elements of dst.
+                        let d = unsafe {
+                            std::slice::from_raw_parts_mut(out_ptr.get().add(co * npix + p0), w)
+                        };
+                        let res = residual.map(|r| &r[co * npix + p0..co * npix + p0 + w]);
+                        for (x, d) in d.iter_mut().enumerate() {
+                            let mut v = out[x * c_out + co] + b;
+                            if let Some(res) = res {
+                                v += res[x];
+                            }
+                            *d = if relu_out && v < 0.0 { 0.0 } else { v };
+                        }
+                    }
+                });
+            });
+        }
+        Ok((CpuStorage::F32(dst), Shape::from_dims(&[1, c_out, h, w])))
+    }
+
     fn run(
         &self,
         src: &[f32],
@@ -994,6 +1119,9 @@ impl Conv3x3<'_> {
             || residual.is_some_and(|r| r.len() != c_out * oh * ow)
         {
             candle_core::bail!("conv3x3: weight {:?}, input {:?}", l2.dims(), l1.dims());
+        }
+        if s == 1 && c_out <= CHANNELS_LAST_MAX && k <= 9 * CHANNELS_LAST_MAX {
+            return self.run_channels_last(src, l1, wts, l2, residual);
         }
         let rows_per_chunk = (IM2COL_CHUNK_BYTES / (4 * k * ow)).clamp(1, oh);
         // Output initialised with the bias; each chunk's matmul accumulates into it in place.
@@ -1109,6 +1237,32 @@ impl Conv3x3<'_> {
         }
         Ok((CpuStorage::F32(dst), Shape::from_dims(&[1, c_out, oh, ow])))
     }
+}
+
+/// The weights of a 3×3 convolution `(c_out, c_in, 3, 3)` as the `k × n` right operand of a
+/// product with pixels as rows: `k = 9·c_in` ordered `(ky, kx, ci)`, `n = c_out`.
+fn conv3x3_weight_t(weight: &[f32], c_out: usize, c_in: usize) -> Vec<f32> {
+    let k = 9 * c_in;
+    let mut wt = vec![0f32; k * c_out];
+    for co in 0..c_out {
+        for ci in 0..c_in {
+            for kk in 0..9 {
+                wt[(kk * c_in + ci) * c_out + co] = weight[(co * c_in + ci) * 9 + kk];
+            }
+        }
+    }
+    wt
+}
+
+/// A thread's scratch of [`Conv3x3::run_channels_last`]: one output row's products.
+#[derive(Default)]
+struct ConvScratch {
+    out: Vec<f32>,
+}
+
+thread_local! {
+    static CONV_SCRATCH: std::cell::RefCell<ConvScratch> =
+        std::cell::RefCell::new(ConvScratch::default());
 }
 
 /// `exp(x)` in `f32` without branches or libm calls, so that loops over slices vectorise:
@@ -1415,8 +1569,9 @@ mod tests {
         }
     }
 
-    /// The CPU path of [`conv3x3`] against candle's `conv2d` in f64, with every fusion, on odd
-    /// sizes and both strides.
+    /// The CPU paths of [`conv3x3`] against candle's `conv2d` in f64, with every fusion, on odd
+    /// sizes and both strides: channels last (stride 1, ≤ [`CHANNELS_LAST_MAX`] channels) and
+    /// im2col (stride 2, or more output channels).
     #[test]
     fn conv3x3_matches_candle_conv2d() {
         use candle_core::DType;
@@ -1426,7 +1581,7 @@ mod tests {
                 .map(|i| ((i as f64 * f).sin() * 1.7) as f32)
                 .collect()
         };
-        for (c_in, c_out, h, w) in [(3, 5, 7, 9), (8, 4, 6, 5), (16, 16, 11, 14)] {
+        for (c_in, c_out, h, w) in [(3, 5, 7, 9), (8, 4, 6, 5), (16, 16, 11, 14), (4, 130, 5, 6)] {
             let x = Tensor::from_vec(wave(c_in * h * w, 0.37), (1, c_in, h, w), &dev).unwrap();
             let wt =
                 Tensor::from_vec(wave(c_out * c_in * 9, 0.71), (c_out, c_in, 3, 3), &dev).unwrap();
