@@ -702,6 +702,12 @@ impl DepthErrorModel {
         }
     }
 
+    /// σ of the flat error at depth `z_m` (metres): `sigma_flat_m · (z / depth_ref_m)^p`, the
+    /// offset and the fields together (no relief or edge part).
+    pub fn flat_sigma_m(&self, z_m: f32) -> f64 {
+        self.sigma_flat_m * self.depth_scale(z_m)
+    }
+
     /// The RMS (metres) of the flat error's variation within a patch of radius `radius_px`
     /// pixels at depth `z_m`: the fields' semivariogram at that lag, `σ_flat(z)·√(Σ_k share_k ·
     /// min(1, radius_px / s_k))`. What is left of the error at larger distances (the offset, and

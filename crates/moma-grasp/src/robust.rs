@@ -229,6 +229,12 @@ pub fn planning_depth<'a>(
     }
 }
 
+/// [`ParallelConfig::opening_margin_m`] of `model` at the median object depth of `scene`.
+fn opening_margin(model: &DepthErrorModel, scene: &Scene) -> f32 {
+    let sigma = model.flat_sigma_m(scene.object_depth_m()) as f32;
+    crate::parallel::OPENING_MARGIN_SIGMAS * sigma
+}
+
 /// [`SuctionConfig::patch_noise_m`] of `model` at the median object depth of `scene`.
 fn patch_noise(model: &DepthErrorModel, scene: &Scene, cup_radius_m: f32) -> [f32; 4] {
     let z = scene.object_depth_m();
@@ -259,6 +265,12 @@ pub fn plan_on_scene(
             &ParallelConfig {
                 top_k: k,
                 seed: request.seed,
+                opening_margin_m: request
+                    .error_model
+                    .as_ref()
+                    .map_or(request.parallel.opening_margin_m, |m| {
+                        opening_margin(m, scene)
+                    }),
                 ..request.parallel.clone()
             },
         )?,
