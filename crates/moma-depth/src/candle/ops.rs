@@ -993,25 +993,17 @@ impl Conv3x3<'_> {
     /// Slower for many input channels on few pixels (768→768 stride 2 at 37×49: 43 → 113 ms):
     /// those keep im2col ([`CHANNELS_LAST_MAX`]). Each row is one serial product: the same
     /// bits on every thread count.
+    /// `src` `(c_in, h, w)`, `wts` `(c_out, 9·c_in)` and `residual` as checked by [`Self::run`].
     fn run_channels_last(
         &self,
         src: &[f32],
-        l1: &Layout,
+        (c_in, h, w): (usize, usize, usize),
         wts: &[f32],
-        l2: &Layout,
+        c_out: usize,
         residual: Option<&[f32]>,
     ) -> Result<(CpuStorage, Shape)> {
         let bias = self.bias;
-        let (_, c_in, h, w) = l1.shape().dims4()?;
-        let (c_out, k) = l2.shape().dims2()?;
         let npix = h * w;
-        if wts.len() != c_out * k
-            || bias.len() != c_out
-            || k != 9 * c_in
-            || residual.is_some_and(|r| r.len() != c_out * npix)
-        {
-            candle_core::bail!("conv3x3: weight {:?}, input {:?}", l2.dims(), l1.dims());
-        }
         // (ky, kx, ci) × c_out: kernel row ky is the contiguous block of rows ky·3·c_in..
         let wt = conv3x3_weight_t(wts, c_out, c_in);
         // Bands of output rows whose padded input rows (band + 2) fit in IM2COL_CHUNK_BYTES: the
@@ -1121,7 +1113,7 @@ impl Conv3x3<'_> {
             candle_core::bail!("conv3x3: weight {:?}, input {:?}", l2.dims(), l1.dims());
         }
         if s == 1 && c_out <= CHANNELS_LAST_MAX && k <= 9 * CHANNELS_LAST_MAX {
-            return self.run_channels_last(src, l1, wts, l2, residual);
+            return self.run_channels_last(src, (k / 9, h, w), wts, c_out, residual);
         }
         let rows_per_chunk = (IM2COL_CHUNK_BYTES / (4 * k * ow)).clamp(1, oh);
         // Output initialised with the bias; each chunk's matmul accumulates into it in place.
