@@ -57,7 +57,7 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
     }
     // on aligned (simulated) depth the parallel jaw still finds grasps that hold (nominal
     // ranking: the first row of the method), in about a third of the trials (docs/grasping.md:
-    // 7 of 21 one-shot; the ground truth 21 of 21)
+    // 7 of 21 one-shot; the ground truth, planned once, 7 of 7)
     let (ssra, trials) = rate("ssra", GripperKind::Parallel);
     assert_eq!(trials, 21);
     assert!(ssra >= 0.3, "parallel on SSRA-aligned depth: {ssra}");

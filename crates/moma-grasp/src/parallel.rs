@@ -176,7 +176,7 @@ impl ParallelConfig {
             ));
         }
         if !(self.opening_margin_m.is_finite() && self.opening_margin_m >= 0.0) {
-            return Err(GraspError::InvalidConfig(format!(
+            return Err(e(format!(
                 "opening_margin_m = {} must be >= 0",
                 self.opening_margin_m
             )));

@@ -993,6 +993,7 @@ impl Conv3x3<'_> {
     /// Slower for many input channels on few pixels (768→768 stride 2 at 37×49: 43 → 113 ms):
     /// those keep im2col ([`CHANNELS_LAST_MAX`]). Each row is one serial product: the same
     /// bits on every thread count.
+    ///
     /// `src` `(c_in, h, w)`, `wts` `(c_out, 9·c_in)` and `residual` as checked by [`Self::run`].
     fn run_channels_last(
         &self,
@@ -1041,8 +1042,8 @@ impl Conv3x3<'_> {
                 });
             let hwc = &hwc;
             (r0..r1).into_par_iter().for_each(|oy| {
-                CONV_SCRATCH.with(|cell| {
-                    let out = &mut cell.borrow_mut().out;
+                CONV_ROW.with(|cell| {
+                    let out = &mut *cell.borrow_mut();
                     out.resize(w * c_out, 0.0);
                     for ky in 0..3 {
                         let at = (oy - r0 + ky) * wp * c_in;
@@ -1246,15 +1247,9 @@ fn conv3x3_weight_t(weight: &[f32], c_out: usize, c_in: usize) -> Vec<f32> {
     wt
 }
 
-/// A thread's scratch of [`Conv3x3::run_channels_last`]: one output row's products.
-#[derive(Default)]
-struct ConvScratch {
-    out: Vec<f32>,
-}
-
 thread_local! {
-    static CONV_SCRATCH: std::cell::RefCell<ConvScratch> =
-        std::cell::RefCell::new(ConvScratch::default());
+    /// A thread's scratch of [`Conv3x3::run_channels_last`]: one output row's products.
+    static CONV_ROW: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// `exp(x)` in `f32` without branches or libm calls, so that loops over slices vectorise:
