@@ -29,8 +29,20 @@
 //! cross-validated residuals of the calibration samples as a floor of `σ_flat` (the fit has seen
 //! its own samples).
 //! 1. `relief_bias` and `edge_sharpening`: least squares of `truth − aligned = c·hp + a·step`
-//!    over the pixels with `|hp| ≤` [`MAX_RELIEF_M`] (a within [0, 1]); `relief_sigma = |relief_bias|` (one frame cannot tell how the factor
-//!    varies between frames; a zero correction stays within one σ).
+//!    over the pixels with `|hp| ≤` [`MAX_RELIEF_M`] (a within [0, 1]); `relief_sigma =
+//!    |relief_bias|` (one frame cannot tell how the factor varies between frames; a zero
+//!    correction stays within one σ). A factor outside [[`MIN_RELIEF_FACTOR`],
+//!    [`MAX_RELIEF_FACTOR`]] is no depth model's flattening: the model then has no relief part
+//!    (c = 0, a fitted alone).
+//!
+//!    1b. The relief range [`DepthErrorModel::relief_max_m`]: tall objects (a bottle, a box on
+//!    its end) stand 0.1–0.3 m out of the table, and a depth model flattens them too. Bands of
+//!    larger |hp| (0.1–0.2 m, 0.2–0.4 m, … up to [`MAX_RELIEF_EXTENDED_M`]) join the range while
+//!    the truth follows the same factor in them (its own factor within
+//!    [`RELIEF_BAND_FACTOR_RATIO`] of `c`, explaining ≥ [`RELIEF_BAND_MIN_EXPLAINED`] of the
+//!    band's squared residuals, and lowering its absolute residual to ≤
+//!    [`RELIEF_BAND_MAX_ABS_RATIO`]); with a wider range, `c` is refitted over all of it (a
+//!    kept).
 //! 2. The rest `r = truth − aligned − relief_bias·hp − edge_sharpening·step`, divided by `(z / depth_ref_m)^p`
 //!    (`depth_ref_m` the median calibration depth): `σ_flat²` its mean square over flat pixels;
 //!    the field variances from its semivariogram at lags 2–64 px on every second row and column
@@ -77,10 +89,44 @@ pub const FLAT_RELIEF_M: f32 = 0.005;
 
 /// Largest relief |hp| that counts as a small object's (metres): larger ones are scene
 /// structure (walls, far background) and stay out of the relief factor's fit.
-pub const MAX_RELIEF_M: f32 = 0.1;
+pub const MAX_RELIEF_M: f64 = 0.1;
+
+/// Largest relief range the relief factor may be extended to (metres): bands of |hp| doubling
+/// from [`MAX_RELIEF_M`] (0.1–0.2, 0.2–0.4, … , 0.8–1.6 m) join the range while the truth
+/// keeps the factor in them ([`RELIEF_BAND_FACTOR_RATIO`], [`RELIEF_BAND_MIN_EXPLAINED`]).
+pub const MAX_RELIEF_EXTENDED_M: f64 = 1.6;
+
+/// A relief band joins the range when its own factor is within this ratio of the small-object
+/// factor (either way: 0.5 to 2 times it).
+pub const RELIEF_BAND_FACTOR_RATIO: f64 = 2.0;
+
+/// … and when the relief correction explains at least this share of the band's squared
+/// residuals (`(Σxh)² / (Σh² Σx²)`, x = truth − aligned − edge part). Chosen on the shared sets
+/// over three simulator seeds (docs/grasping.md, "Tall objects: the relief range").
+pub const RELIEF_BAND_MIN_EXPLAINED: f64 = 0.05;
+
+/// … and when the correction by `c` lowers the band's mean absolute residual to at most this
+/// share of it. Least squares alone follows a few large residuals: on the REAL Depth Anything 3
+/// frames of zed-da3-office the bands' factors look like a flattening (5–12 % of the squared
+/// residuals explained) while the absolute residual does not fall (ratios 0.97–1.05), and
+/// extending the range there raised the MAE by 6–8 %; on the simulated shared sets the accepted
+/// bands' ratios are 0.41–0.83.
+pub const RELIEF_BAND_MAX_ABS_RATIO: f64 = 0.9;
+
+/// The relief factors a depth model's flattening (or exaggeration) can have: the truth's relief
+/// between 0.5 and 2 times the aligned one's (`c = 1/k − 1` for a relief kept at k). A fitted
+/// factor outside is not a relief error (REAL Depth Anything 3 frames with a stereo reference
+/// gave 2.7–11.9, and a correction by it doubled their MAE): the model then has none.
+pub const MIN_RELIEF_FACTOR: f64 = -0.5;
+/// See [`MIN_RELIEF_FACTOR`].
+pub const MAX_RELIEF_FACTOR: f64 = 1.0;
 
 /// Correlation lengths of the fine, medium and coarse fields, pixels.
 pub const FIELD_SCALES_PX: [f64; 3] = [2.0, 8.0, 32.0];
+
+fn default_relief_max_m() -> f64 {
+    MAX_RELIEF_M
+}
 
 /// The fit reads every `FIT_STRIDE`-th row and column (the windowed maps are computed at full
 /// resolution first): a quarter of the pixels is plenty for a few numbers, and keeps the fit
@@ -121,6 +167,10 @@ pub struct DepthErrorModel {
     pub relief_sigma: f64,
     /// Radius of the box blur that defines the relief hp, pixels.
     pub relief_radius_px: u32,
+    /// Largest relief |hp| the relief factor was fitted on and is applied to, metres
+    /// ([`MAX_RELIEF_M`] in calibration files before version 6; fit step 1b).
+    #[serde(default = "default_relief_max_m")]
+    pub relief_max_m: f64,
     /// Mean share `a` of the step that the truth takes near a depth edge (module
     /// documentation: `a · step(u, v)`), in [0, 1].
     pub edge_sharpening: f64,
@@ -144,6 +194,7 @@ impl Default for DepthErrorModel {
             relief_bias: 0.0,
             relief_sigma: 0.0,
             relief_radius_px: 48,
+            relief_max_m: MAX_RELIEF_M,
             edge_sharpening: 0.0,
             edge_sharpening_sigma: 0.0,
             edge_gain: 0.0,
@@ -160,6 +211,90 @@ struct FitGrid {
     relief: Array2<f32>,
     step: Array2<f32>,
     hp: Array2<f32>,
+}
+
+/// Sums over the fit grid's pixels with both depths and `lo < |hp| ≤ hi`, with `x = truth −
+/// aligned − a·step` (metres).
+#[derive(Debug, Clone, Copy, Default)]
+struct BandSums {
+    /// Σ x·hp, Σ hp², Σ x²
+    sxh: f64,
+    shh: f64,
+    sxx: f64,
+    /// Σ |x| and Σ |x − c·hp|: the absolute residual without and with the relief correction
+    abs: f64,
+    abs_corrected: f64,
+    n: usize,
+}
+
+impl BandSums {
+    fn of(prepared: &[FitGrid], lo: f64, hi: f64, a: f64, c: f64) -> Self {
+        let mut b = Self::default();
+        for g in prepared {
+            for (((&ad, &t), &h), &st) in g
+                .aligned
+                .iter()
+                .zip(g.truth.iter())
+                .zip(g.hp.iter())
+                .zip(g.step.iter())
+            {
+                let h = f64::from(h);
+                if is_valid_depth(ad) && is_valid_depth(t) && h.abs() > lo && h.abs() <= hi {
+                    let x = f64::from(t - ad) - a * f64::from(st);
+                    b.sxh += x * h;
+                    b.shh += h * h;
+                    b.sxx += x * x;
+                    b.abs += x.abs();
+                    b.abs_corrected += (x - c * h).abs();
+                    b.n += 1;
+                }
+            }
+        }
+        b
+    }
+}
+
+/// The relief range of the factor `c` fitted on `|hp| ≤` [`MAX_RELIEF_M`] (module
+/// documentation, fit step 1b): bands of larger relief join while each is large enough (at
+/// least 100 grid pixels and 0.5 % of the grid), its own factor is within
+/// [`RELIEF_BAND_FACTOR_RATIO`] of `c`, the correction explains at least
+/// [`RELIEF_BAND_MIN_EXPLAINED`] of its squared residuals and lowers its absolute residual to
+/// at most [`RELIEF_BAND_MAX_ABS_RATIO`]. Returns `c` refitted over the whole
+/// range (the edge share `a` kept) and the range, metres. A tall object that the depth model
+/// flattens as it flattens small ones is then corrected over its whole height; a wall or far
+/// background whose error is not a relief factor (as in real models' predictions,
+/// docs/grasping.md) stops the range at the first band that does not follow it.
+fn extend_relief_range(prepared: &[FitGrid], c: f64, a: f64) -> (f64, f64) {
+    let mut range_m = MAX_RELIEF_M;
+    if c <= 0.0 {
+        // no flattening measured: nothing to extend
+        return (c, range_m);
+    }
+    let grid_px: usize = prepared.iter().map(|g| g.hp.len()).sum();
+    let min_band_px = 100.max(grid_px / 200);
+    while range_m < MAX_RELIEF_EXTENDED_M {
+        let band = BandSums::of(prepared, range_m, 2.0 * range_m, a, c);
+        if band.n < min_band_px || band.shh <= 0.0 || band.sxx <= 0.0 || band.abs <= 0.0 {
+            break;
+        }
+        let band_c = band.sxh / band.shh;
+        let explained = band.sxh * band.sxh / (band.shh * band.sxx);
+        let follows = band_c >= c / RELIEF_BAND_FACTOR_RATIO
+            && band_c <= c * RELIEF_BAND_FACTOR_RATIO
+            && explained >= RELIEF_BAND_MIN_EXPLAINED
+            && band.abs_corrected <= RELIEF_BAND_MAX_ABS_RATIO * band.abs;
+        if !follows {
+            break;
+        }
+        range_m *= 2.0;
+    }
+    if range_m > MAX_RELIEF_M {
+        let BandSums { sxh, shh, .. } = BandSums::of(prepared, -1.0, range_m, a, c);
+        if shh > 0.0 {
+            return (sxh / shh, range_m);
+        }
+    }
+    (c, range_m)
 }
 
 /// One calibration frame's residuals for [`DepthErrorModel::fit`].
@@ -232,6 +367,9 @@ impl DepthErrorModel {
         }
         if !within(self.edge_gain, 0.0, 10.0) {
             return bad("edge_gain", self.edge_gain, "finite, in [0, 10]");
+        }
+        if !within(self.relief_max_m, 0.0, 10.0) {
+            return bad("relief_max_m", self.relief_max_m, "finite, in [0, 10] m");
         }
         if self.edge_radius_px > 64 || self.relief_radius_px > 1024 {
             return bad(
@@ -320,7 +458,7 @@ impl DepthErrorModel {
                 .zip(g.hp.iter())
                 .zip(g.step.iter())
             {
-                if is_valid_depth(a) && is_valid_depth(t) && h.abs() <= MAX_RELIEF_M {
+                if is_valid_depth(a) && is_valid_depth(t) && f64::from(h.abs()) <= MAX_RELIEF_M {
                     let (x, h, st) = (f64::from(t - a), f64::from(h), f64::from(st));
                     normal_eq[0] += h * h;
                     normal_eq[1] += h * st;
@@ -343,6 +481,15 @@ impl DepthErrorModel {
             a = a.clamp(0.0, 1.0);
             c = alone(sxh - a * shs, shh);
         }
+        if !(MIN_RELIEF_FACTOR..=MAX_RELIEF_FACTOR).contains(&c) {
+            // not a depth model's flattening or exaggeration (a noisy reference, scene
+            // structure): no relief correction, the edge share alone
+            c = 0.0;
+            a = alone(sxs, sss).clamp(0.0, 1.0);
+        }
+        // 1b. the relief range: wider than MAX_RELIEF_M where the truth keeps the same factor
+        let (c, relief_max_m) = extend_relief_range(&prepared, c, a);
+        m.relief_max_m = relief_max_m;
         m.relief_bias = c.clamp(-10.0, 10.0);
         m.relief_sigma = m.relief_bias.abs();
         m.edge_sharpening = a;
@@ -653,8 +800,8 @@ impl DepthErrorModel {
 
     /// The expected truth of the whole map `depth_m` under this model, the depth a grasp is
     /// planned on (Dex-Net plans on the mean estimate and draws the deviations around it): the
-    /// mean relief correction `relief_bias · hp` with `hp` clamped to ±[`MAX_RELIEF_M`] (the
-    /// range the factor is fitted on: never extrapolated), the mean edge share
+    /// mean relief correction `relief_bias · hp` with `hp` clamped to ±[`Self::relief_max_m`]
+    /// (the range the factor is fitted on: never extrapolated), the mean edge share
     /// `edge_sharpening · step` (silhouettes pulled from ramps towards steps), then, with
     /// `smooth`, the short-range bumps averaged out ([`Self::expected_truth`]). A model without
     /// those parts returns the depth unchanged.
@@ -663,9 +810,10 @@ impl DepthErrorModel {
         if self.relief_bias != 0.0 {
             let hp = high_pass(depth_m, self.relief_radius_px);
             let c = self.relief_bias as f32;
+            let rmax = self.relief_max_m as f32;
             ndarray::Zip::from(&mut out).and(&hp).for_each(|z, &h| {
                 if is_valid_depth(*z) && h.is_finite() {
-                    let t = *z + c * h.clamp(-MAX_RELIEF_M, MAX_RELIEF_M);
+                    let t = *z + c * h.clamp(-rmax, rmax);
                     if is_valid_depth(t) {
                         *z = t;
                     }
@@ -1631,6 +1779,134 @@ mod tests {
         assert!((m.relief_bias - 0.25).abs() < 0.05, "{m:?}");
     }
 
+    /// Mean over the in-image part of a (2r+1)² window, written plainly (rows, then columns).
+    fn window_mean(z: &Array2<f32>, r: usize) -> Array2<f32> {
+        let (h, w) = z.dim();
+        let rows = Array2::from_shape_fn((h, w), |(v, u)| {
+            let (lo, hi) = (u.saturating_sub(r), (u + r + 1).min(w));
+            (lo..hi).map(|x| z[[v, x]]).sum::<f32>() / (hi - lo) as f32
+        });
+        Array2::from_shape_fn((h, w), |(v, u)| {
+            let (lo, hi) = (v.saturating_sub(r), (v + r + 1).min(h));
+            (lo..hi).map(|y| rows[[y, u]]).sum::<f32>() / (hi - lo) as f32
+        })
+    }
+
+    /// A 1 m table (320 × 240 px) with the 20 mm bumps of [`flattened_bumps`] and four 0.25 m
+    /// tall towers (24 × 24 px tops), and the depth model's view: relief against a 41 px window
+    /// mean compressed to 80 %, the towers' included (`towers_flattened`), or the towers at
+    /// their true height (only the bumps compressed).
+    fn bumps_and_towers(towers_flattened: bool) -> (Array2<f32>, Array2<f32>, Vec<[usize; 2]>) {
+        let (w, h) = (320usize, 240usize);
+        let bump = |u: usize, v: usize| {
+            let (x, y) = ((u % 40) as f32 - 20.0, (v % 40) as f32 - 20.0);
+            0.02 * (-(x * x + y * y) / 50.0).exp()
+        };
+        let corners = vec![[40usize, 50usize], [40, 230], [150, 110], [170, 260]];
+        let tower = |u: usize, v: usize| {
+            corners
+                .iter()
+                .any(|&[v0, u0]| (v0..v0 + 24).contains(&v) && (u0..u0 + 24).contains(&u))
+        };
+        let bumps = Array2::from_shape_fn((h, w), |(v, u)| 1.0 - bump(u, v));
+        let truth = Array2::from_shape_fn(
+            (h, w),
+            |(v, u)| {
+                if tower(u, v) { 0.75 } else { bumps[[v, u]] }
+            },
+        );
+        let compressed = |z: &Array2<f32>| {
+            let mean = window_mean(z, 20);
+            Array2::from_shape_fn(z.dim(), |(v, u)| {
+                mean[[v, u]] + 0.8 * (z[[v, u]] - mean[[v, u]])
+            })
+        };
+        let aligned = if towers_flattened {
+            compressed(&truth)
+        } else {
+            let flat_bumps = compressed(&bumps);
+            Array2::from_shape_fn((h, w), |(v, u)| {
+                if tower(u, v) {
+                    0.75
+                } else {
+                    flat_bumps[[v, u]]
+                }
+            })
+        };
+        (truth, aligned, corners)
+    }
+
+    /// Fit step 1b: towers that the depth model flattens as it flattens the bumps extend the
+    /// relief range, and their tops are corrected over their whole height (an independent
+    /// expectation: the truth, ≥ 30 mm off in the aligned depth); towers it shows at their true
+    /// height keep the range at [`MAX_RELIEF_M`].
+    #[test]
+    fn the_relief_range_extends_only_where_tall_objects_follow_the_factor() {
+        let top_error = |depth: &Array2<f32>, truth: &Array2<f32>, corners: &[[usize; 2]]| {
+            let mut errs: Vec<f32> = corners
+                .iter()
+                .flat_map(|&[v0, u0]| {
+                    (v0 + 4..v0 + 20).flat_map(move |v| (u0 + 4..u0 + 20).map(move |u| (v, u)))
+                })
+                .map(|(v, u)| (depth[[v, u]] - truth[[v, u]]).abs())
+                .collect();
+            let k = errs.len() / 2;
+            *errs.select_nth_unstable_by(k, f32::total_cmp).1
+        };
+        let (truth, aligned, corners) = bumps_and_towers(true);
+        let m = fit_one(&aligned, &truth);
+        assert!(m.relief_max_m >= 0.2, "{m:?}");
+        assert!(m.relief_bias > 0.15 && m.relief_bias < 0.4, "{m:?}");
+        let before = top_error(&aligned, &truth, &corners);
+        assert!(
+            before > 0.03,
+            "the premise: tops 30 mm off or more ({before})"
+        );
+        let extended = top_error(
+            &m.expected_truth_map(aligned.view(), false),
+            &truth,
+            &corners,
+        );
+        let clamped_model = DepthErrorModel {
+            relief_max_m: MAX_RELIEF_M,
+            ..m
+        };
+        let clamped = top_error(
+            &clamped_model.expected_truth_map(aligned.view(), false),
+            &truth,
+            &corners,
+        );
+        // measured: 32.7 mm before, 1.7 mm over the extended range, 10.9 mm clamped at 0.1 m
+        assert!(
+            extended < 0.005 && extended < 0.5 * clamped,
+            "tower tops off by {extended} m with the range {} m, {clamped} m with 0.1 m",
+            m.relief_max_m
+        );
+        // towers at their true height: the tower band's own factor is ~0, the range stays 0.1 m
+        let (truth, aligned, _) = bumps_and_towers(false);
+        let m = fit_one(&aligned, &truth);
+        assert_eq!(m.relief_max_m, MAX_RELIEF_M, "{m:?}");
+    }
+
+    /// Fit step 1: a factor within [MIN_RELIEF_FACTOR, MAX_RELIEF_FACTOR] is kept (bumps at
+    /// 60 % of their height: c ≈ 1/0.6 − 1 = 0.67), one outside is no relief error and the
+    /// model has no relief part (bumps at 20 %: c ≈ 4).
+    #[test]
+    fn a_relief_factor_beyond_any_flattening_is_dropped() {
+        let (truth, _) = flattened_bumps();
+        let kept_at = |k: f32| {
+            let aligned = truth.mapv(|z| 1.0 - k * (1.0 - z));
+            fit_one(&aligned, &truth)
+        };
+        let m = kept_at(0.6);
+        assert!((m.relief_bias - 0.67).abs() < 0.15, "{m:?}");
+        assert_eq!(m.relief_sigma, m.relief_bias);
+        let m = kept_at(0.2);
+        assert_eq!((m.relief_bias, m.relief_sigma), (0.0, 0.0), "{m:?}");
+        assert_eq!(m.relief_max_m, MAX_RELIEF_M);
+        m.validate().unwrap();
+    }
+
     /// The row-at-a-time smoothing of [`DepthErrorModel::expected_truth`] equals a plain
     /// pixel-by-pixel scan (written here independently), bit for bit: holes, a step, the image
     /// border, a region of interest.
@@ -1774,9 +2050,12 @@ mod tests {
             .zip(tower.iter())
             .map(|(a, b)| (a - b).abs())
             .fold(0.0f32, f32::max);
-        assert!(most <= 0.5 * MAX_RELIEF_M + 1e-6, "moved {most} m");
         assert!(
-            most >= 0.5 * MAX_RELIEF_M - 1e-6,
+            f64::from(most) <= 0.5 * MAX_RELIEF_M + 1e-6,
+            "moved {most} m"
+        );
+        assert!(
+            f64::from(most) >= 0.5 * MAX_RELIEF_M - 1e-6,
             "the tower is clamped, not ignored"
         );
         // the edge share alone: a 6 px ramp with share 1 snaps to the step but for the ramp's

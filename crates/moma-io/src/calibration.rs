@@ -30,8 +30,10 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// `metric-depth`, `relative-depth`, `relative-disparity` (versions 1–4 wrote `depth` or
 /// `inverse-depth`: `inverse-depth` reads as `relative-disparity`, `depth` as `metric-depth` for
 /// method `raw`, which used the prediction as metres, else as `relative-depth`, which still
-/// aligns a metric model's predictions, [`PredictionKind::accepts`]).
-pub const CALIBRATION_VERSION: u32 = 5;
+/// aligns a metric model's predictions, [`PredictionKind::accepts`]); 6 — the error model's
+/// `relief_max_m`, the relief range its factor is fitted on and applied to (a version-5 file
+/// reads with 0.1 m, the range every earlier build used).
+pub const CALIBRATION_VERSION: u32 = 6;
 
 /// The oldest calibration-file version this build reads (migrated on reading).
 pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
@@ -249,10 +251,18 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        Some(5) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        Some(6) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
+        // Version 6 only added the error model's `relief_max_m`, which reads as 0.1 m without
+        // it: a version-5 document is a version-6 one.
+        Some(5) => {
+            let mut file: CalibrationFile =
+                serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
+            file.version = CALIBRATION_VERSION;
+            file
+        }
         // Versions 3 and 4 only added optional fields, and version 5 renamed the kinds (the old
-        // names still parse): a version-2 to -4 document is a version-5 one once its kind is
-        // mapped.
+        // names still parse): a version-2 to -4 document is a version-5 one (so a version-6
+        // one) once its kind is mapped.
         Some(2..=4) => {
             let mut file: CalibrationFile =
                 serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;

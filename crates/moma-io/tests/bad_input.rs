@@ -467,23 +467,60 @@ mod calibration {
     }
 
     #[test]
-    fn version_2_to_4_files_read_as_version_5() {
-        // Versions 3 and 4 only added optional fields and version 5 renamed the kinds: the same
-        // document (without them) labelled 2, 3 or 4 must read, equal.
+    fn version_2_to_5_files_read_as_version_6() {
+        // Versions 3, 4 and 6 only added optional fields and version 5 renamed the kinds: the
+        // same document (without them) labelled 2, 3, 4 or 5 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let written = read_calibration(&p).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["version"], 5);
-        for old in [2, 3, 4] {
+        assert_eq!(v["version"], 6);
+        for old in [2, 3, 4, 5] {
             v["version"] = old.into();
             std::fs::write(&p, v.to_string()).unwrap();
             let read = read_calibration(&p).unwrap();
             assert_eq!(read.calibration, written.calibration);
-            assert_eq!(read.version, 5);
+            assert_eq!(read.version, 6);
         }
+    }
+
+    /// Version 6 added the error model's `relief_max_m`: a version-5 file's error model (without
+    /// it) reads with the 0.1 m every earlier build used, and a written file carries it.
+    #[test]
+    fn a_version_5_error_model_reads_with_the_old_relief_range() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        let mut f = file();
+        let mut model = moma_core::DepthErrorModel::uniform(0.004).unwrap();
+        model.relief_bias = 0.2;
+        model.relief_max_m = 0.4;
+        f.calibration.error_model = Some(model);
+        write_calibration(&p, &f).unwrap();
+        let mut v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        assert_eq!(v["calibration"]["error_model"]["relief_max_m"], 0.4);
+        assert_eq!(read_calibration(&p).unwrap(), f);
+        v["version"] = 5.into();
+        v["calibration"]["error_model"]
+            .as_object_mut()
+            .unwrap()
+            .remove("relief_max_m");
+        std::fs::write(&p, v.to_string()).unwrap();
+        let read = read_calibration(&p).unwrap();
+        let back = read.calibration.error_model.unwrap();
+        assert_eq!(back.relief_max_m, 0.1);
+        assert_eq!(back.relief_bias, 0.2);
+        // out of range is refused, naming the field
+        v["version"] = 6.into();
+        v["calibration"]["error_model"]["relief_max_m"] = serde_json::json!(-1.0);
+        std::fs::write(&p, v.to_string()).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(
+            m.contains("calib.json") && m.contains("relief_max_m"),
+            "{m}"
+        );
     }
 
     /// docs/formats.md "Prediction kinds": a version-1 to -4 file's `depth` is `metric-depth`
@@ -581,15 +618,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 6.into();
-        // A v6 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 7.into();
+        // A v7 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 6") && m.contains("versions 1 to 5"),
+            m.contains("calib.json") && m.contains("version 7") && m.contains("versions 1 to 6"),
             "{m}"
         );
 

@@ -356,8 +356,8 @@ impl Calibration {
 
     /// The calibration's error model of its aligned depth (a dict: `sigma_flat_m`,
     /// `depth_ref_m`, `depth_exponent`, `variance_shares`, `scales_px`, `relief_bias`,
-    /// `relief_sigma`, `relief_radius_px`, `edge_gain`, `edge_radius_px`), None in files
-    /// written before error models existed.
+    /// `relief_sigma`, `relief_radius_px`, `relief_max_m`, `edge_gain`, `edge_radius_px`),
+    /// None in files written before error models existed.
     #[getter]
     fn error_model<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         to_py_json(py, &self.inner.error_model)
