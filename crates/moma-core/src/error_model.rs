@@ -231,15 +231,9 @@ impl BandSums {
     fn of(prepared: &[FitGrid], lo: f64, hi: f64, a: f64, c: f64) -> Self {
         let mut b = Self::default();
         for g in prepared {
-            for (((&ad, &t), &h), &st) in g
-                .aligned
-                .iter()
-                .zip(g.truth.iter())
-                .zip(g.hp.iter())
-                .zip(g.step.iter())
-            {
+            for (ad, t, h, st) in g.pixels_with_both_depths() {
                 let h = f64::from(h);
-                if is_valid_depth(ad) && is_valid_depth(t) && h.abs() > lo && h.abs() <= hi {
+                if h.abs() > lo && h.abs() <= hi {
                     let x = f64::from(t - ad) - a * f64::from(st);
                     b.sxh += x * h;
                     b.shh += h * h;
@@ -295,6 +289,19 @@ fn extend_relief_range(prepared: &[FitGrid], c: f64, a: f64) -> (f64, f64) {
         }
     }
     (c, range_m)
+}
+
+impl FitGrid {
+    /// `(aligned, truth, hp, step)` of the grid's pixels where both depths are valid.
+    fn pixels_with_both_depths(&self) -> impl Iterator<Item = (f32, f32, f32, f32)> + '_ {
+        self.aligned
+            .iter()
+            .zip(self.truth.iter())
+            .zip(self.hp.iter())
+            .zip(self.step.iter())
+            .filter(|(((a, t), _), _)| is_valid_depth(**a) && is_valid_depth(**t))
+            .map(|(((&a, &t), &h), &st)| (a, t, h, st))
+    }
 }
 
 /// One calibration frame's residuals for [`DepthErrorModel::fit`].
@@ -451,14 +458,8 @@ impl DepthErrorModel {
         // truth − aligned = c·hp + a·step over the pixels of small-object relief
         let mut normal_eq = [0.0f64; 5]; // Σhh, Σhs, Σss, Σxh, Σxs
         for g in &prepared {
-            for (((&a, &t), &h), &st) in g
-                .aligned
-                .iter()
-                .zip(g.truth.iter())
-                .zip(g.hp.iter())
-                .zip(g.step.iter())
-            {
-                if is_valid_depth(a) && is_valid_depth(t) && f64::from(h.abs()) <= MAX_RELIEF_M {
+            for (a, t, h, st) in g.pixels_with_both_depths() {
+                if f64::from(h.abs()) <= MAX_RELIEF_M {
                     let (x, h, st) = (f64::from(t - a), f64::from(h), f64::from(st));
                     normal_eq[0] += h * h;
                     normal_eq[1] += h * st;
