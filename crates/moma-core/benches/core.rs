@@ -83,7 +83,9 @@ fn bench_error_model(c: &mut Criterion) {
         0.8 - 0.03 * (-(x * x + y * y) / 200.0).exp()
     });
     let pred = gt.mapv(|z| 1.0 / (0.9 * z + 0.02));
-    let aligned = gt.mapv(|z| z + 0.003);
+    // the aligned depth: the bumps at 80 % of their height (a relief factor to fit, and the
+    // relief bands of fit step 1b to sum) and 3 mm too far
+    let aligned = gt.mapv(|z| 0.8 - 0.8 * (0.8 - z) + 0.003);
     let gt_m = MetricDepth::new(gt.clone());
     let prediction = Prediction::new(pred, PredictionKind::RelativeDisparity);
     let config = moma_core::CalibrationConfig {

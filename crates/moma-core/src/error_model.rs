@@ -213,8 +213,18 @@ struct FitGrid {
     hp: Array2<f32>,
 }
 
-/// Sums over the fit grid's pixels with both depths and `lo < |hp| ≤ hi`, with `x = truth −
-/// aligned − a·step` (metres).
+/// Upper bounds of the relief bands of fit step 1b, metres: [`MAX_RELIEF_M`] (the factor's own
+/// fit), then doubling up to [`MAX_RELIEF_EXTENDED_M`].
+const RELIEF_BAND_BOUNDS_M: [f64; 5] = [
+    MAX_RELIEF_M,
+    2.0 * MAX_RELIEF_M,
+    4.0 * MAX_RELIEF_M,
+    8.0 * MAX_RELIEF_M,
+    16.0 * MAX_RELIEF_M,
+];
+
+/// Sums over one relief band's pixels (those of the fit grid with both depths), with `x =
+/// truth − aligned − a·step` (metres).
 #[derive(Debug, Clone, Copy, Default)]
 struct BandSums {
     /// Σ x·hp, Σ hp², Σ x²
@@ -228,23 +238,27 @@ struct BandSums {
 }
 
 impl BandSums {
-    fn of(prepared: &[FitGrid], lo: f64, hi: f64, a: f64, c: f64) -> Self {
-        let mut b = Self::default();
+    /// The sums of every band of [`RELIEF_BAND_BOUNDS_M`] in one pass over the grid (band k:
+    /// `bound[k−1] < |hp| ≤ bound[k]`, band 0 from 0); pixels beyond the last bound are left out.
+    fn per_band(prepared: &[FitGrid], a: f64, c: f64) -> [Self; RELIEF_BAND_BOUNDS_M.len()] {
+        let mut bands = [Self::default(); RELIEF_BAND_BOUNDS_M.len()];
         for g in prepared {
             for (ad, t, h, st) in g.pixels_with_both_depths() {
                 let h = f64::from(h);
-                if h.abs() > lo && h.abs() <= hi {
-                    let x = f64::from(t - ad) - a * f64::from(st);
-                    b.sxh += x * h;
-                    b.shh += h * h;
-                    b.sxx += x * x;
-                    b.abs += x.abs();
-                    b.abs_corrected += (x - c * h).abs();
-                    b.n += 1;
-                }
+                let Some(k) = RELIEF_BAND_BOUNDS_M.iter().position(|&hi| h.abs() <= hi) else {
+                    continue;
+                };
+                let b = &mut bands[k];
+                let x = f64::from(t - ad) - a * f64::from(st);
+                b.sxh += x * h;
+                b.shh += h * h;
+                b.sxx += x * x;
+                b.abs += x.abs();
+                b.abs_corrected += (x - c * h).abs();
+                b.n += 1;
             }
         }
-        b
+        bands
     }
 }
 
@@ -259,36 +273,33 @@ impl BandSums {
 /// background whose error is not a relief factor (as in real models' predictions,
 /// docs/grasping.md) stops the range at the first band that does not follow it.
 fn extend_relief_range(prepared: &[FitGrid], c: f64, a: f64) -> (f64, f64) {
-    let mut range_m = MAX_RELIEF_M;
     if c <= 0.0 {
         // no flattening measured: nothing to extend
-        return (c, range_m);
+        return (c, MAX_RELIEF_M);
     }
+    let bands = BandSums::per_band(prepared, a, c);
     let grid_px: usize = prepared.iter().map(|g| g.hp.len()).sum();
     let min_band_px = 100.max(grid_px / 200);
-    while range_m < MAX_RELIEF_EXTENDED_M {
-        let band = BandSums::of(prepared, range_m, 2.0 * range_m, a, c);
+    let follows = |band: &BandSums| {
         if band.n < min_band_px || band.shh <= 0.0 || band.sxx <= 0.0 || band.abs <= 0.0 {
-            break;
+            return false;
         }
         let band_c = band.sxh / band.shh;
         let explained = band.sxh * band.sxh / (band.shh * band.sxx);
-        let follows = band_c >= c / RELIEF_BAND_FACTOR_RATIO
+        band_c >= c / RELIEF_BAND_FACTOR_RATIO
             && band_c <= c * RELIEF_BAND_FACTOR_RATIO
             && explained >= RELIEF_BAND_MIN_EXPLAINED
-            && band.abs_corrected <= RELIEF_BAND_MAX_ABS_RATIO * band.abs;
-        if !follows {
-            break;
-        }
-        range_m *= 2.0;
+            && band.abs_corrected <= RELIEF_BAND_MAX_ABS_RATIO * band.abs
+    };
+    let joined = bands[1..].iter().take_while(|b| follows(b)).count();
+    if joined == 0 {
+        return (c, MAX_RELIEF_M);
     }
-    if range_m > MAX_RELIEF_M {
-        let BandSums { sxh, shh, .. } = BandSums::of(prepared, -1.0, range_m, a, c);
-        if shh > 0.0 {
-            return (sxh / shh, range_m);
-        }
-    }
-    (c, range_m)
+    let (sxh, shh) = bands[..=joined]
+        .iter()
+        .fold((0.0, 0.0), |(sxh, shh), b| (sxh + b.sxh, shh + b.shh));
+    let c = if shh > 0.0 { sxh / shh } else { c };
+    (c, RELIEF_BAND_BOUNDS_M[joined])
 }
 
 impl FitGrid {
