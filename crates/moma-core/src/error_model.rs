@@ -238,25 +238,25 @@ struct BandSums {
 }
 
 impl BandSums {
-    /// The sums of every band of [`RELIEF_BAND_BOUNDS_M`] in one pass over the grid (band k:
-    /// `bound[k−1] < |hp| ≤ bound[k]`, band 0 from 0); pixels beyond the last bound are left out.
-    fn per_band(prepared: &[FitGrid], a: f64, c: f64) -> [Self; RELIEF_BAND_BOUNDS_M.len()] {
+    /// The sums of the bands of [`RELIEF_BAND_BOUNDS_M`] beyond the first (band k: `bound[k−1]
+    /// < |hp| ≤ bound[k]`) over `large`: the `(truth − aligned, hp, step)` of the grid's pixels
+    /// with both depths and `bound[0] < |hp| ≤ bound[last]`, collected by the joint fit's pass.
+    /// Band 0 (the factor's own fit) is left empty.
+    fn per_band(large: &[(f32, f32, f32)], a: f64, c: f64) -> [Self; RELIEF_BAND_BOUNDS_M.len()] {
         let mut bands = [Self::default(); RELIEF_BAND_BOUNDS_M.len()];
-        for g in prepared {
-            for (ad, t, h, st) in g.pixels_with_both_depths() {
-                let h = f64::from(h);
-                let Some(k) = RELIEF_BAND_BOUNDS_M.iter().position(|&hi| h.abs() <= hi) else {
-                    continue;
-                };
-                let b = &mut bands[k];
-                let x = f64::from(t - ad) - a * f64::from(st);
-                b.sxh += x * h;
-                b.shh += h * h;
-                b.sxx += x * x;
-                b.abs += x.abs();
-                b.abs_corrected += (x - c * h).abs();
-                b.n += 1;
-            }
+        for &(x, h, st) in large {
+            let h = f64::from(h);
+            let Some(k) = RELIEF_BAND_BOUNDS_M.iter().position(|&hi| h.abs() <= hi) else {
+                continue;
+            };
+            let b = &mut bands[k];
+            let x = f64::from(x) - a * f64::from(st);
+            b.sxh += x * h;
+            b.shh += h * h;
+            b.sxx += x * x;
+            b.abs += x.abs();
+            b.abs_corrected += (x - c * h).abs();
+            b.n += 1;
         }
         bands
     }
@@ -271,14 +271,22 @@ impl BandSums {
 /// range (the edge share `a` kept) and the range, metres. A tall object that the depth model
 /// flattens as it flattens small ones is then corrected over its whole height; a wall or far
 /// background whose error is not a relief factor (as in real models' predictions,
-/// docs/grasping.md) stops the range at the first band that does not follow it.
-fn extend_relief_range(prepared: &[FitGrid], c: f64, a: f64) -> (f64, f64) {
+/// docs/grasping.md) stops the range at the first band that does not follow it. `large`: as
+/// in [`BandSums::per_band`]; `grid_px`: the fit grids' pixel count; `small`: `Σ x·hp` and
+/// `Σ hp²` over `|hp| ≤` [`MAX_RELIEF_M`] (from the joint fit's normal equations).
+fn extend_relief_range(
+    large: &[(f32, f32, f32)],
+    grid_px: usize,
+    c: f64,
+    a: f64,
+    small: (f64, f64),
+) -> (f64, f64) {
     if c <= 0.0 {
         // no flattening measured: nothing to extend
         return (c, MAX_RELIEF_M);
     }
-    let bands = BandSums::per_band(prepared, a, c);
-    let grid_px: usize = prepared.iter().map(|g| g.hp.len()).sum();
+    let mut bands = BandSums::per_band(large, a, c);
+    (bands[0].sxh, bands[0].shh) = small;
     let min_band_px = 100.max(grid_px / 200);
     let follows = |band: &BandSums| {
         if band.n < min_band_px || band.shh <= 0.0 || band.sxx <= 0.0 || band.abs <= 0.0 {
@@ -468,15 +476,20 @@ impl DepthErrorModel {
         // 1. the relief factor c and the edge step share a, jointly: least squares of
         // truth − aligned = c·hp + a·step over the pixels of small-object relief
         let mut normal_eq = [0.0f64; 5]; // Σhh, Σhs, Σss, Σxh, Σxs
+        // the pixels of larger relief, for the relief range (step 1b)
+        let mut large: Vec<(f32, f32, f32)> = Vec::new();
         for g in &prepared {
             for (a, t, h, st) in g.pixels_with_both_depths() {
-                if f64::from(h.abs()) <= MAX_RELIEF_M {
+                let relief = f64::from(h.abs());
+                if relief <= MAX_RELIEF_M {
                     let (x, h, st) = (f64::from(t - a), f64::from(h), f64::from(st));
                     normal_eq[0] += h * h;
                     normal_eq[1] += h * st;
                     normal_eq[2] += st * st;
                     normal_eq[3] += x * h;
                     normal_eq[4] += x * st;
+                } else if relief <= MAX_RELIEF_EXTENDED_M {
+                    large.push((t - a, h, st));
                 }
             }
         }
@@ -500,7 +513,9 @@ impl DepthErrorModel {
             a = alone(sxs, sss).clamp(0.0, 1.0);
         }
         // 1b. the relief range: wider than MAX_RELIEF_M where the truth keeps the same factor
-        let (c, relief_max_m) = extend_relief_range(&prepared, c, a);
+        // over |hp| ≤ MAX_RELIEF_M: Σ(x − a·step)·hp = Σxh − a·Σhs, and Σhh
+        let grid_px = prepared.iter().map(|g| g.hp.len()).sum();
+        let (c, relief_max_m) = extend_relief_range(&large, grid_px, c, a, (sxh - a * shs, shh));
         m.relief_max_m = relief_max_m;
         m.relief_bias = c.clamp(-10.0, 10.0);
         m.relief_sigma = m.relief_bias.abs();
