@@ -94,7 +94,7 @@ pub const MAX_RELIEF_M: f64 = 0.1;
 /// Largest relief range the relief factor may be extended to (metres): bands of |hp| doubling
 /// from [`MAX_RELIEF_M`] (0.1–0.2, 0.2–0.4, … , 0.8–1.6 m) join the range while the truth
 /// keeps the factor in them ([`RELIEF_BAND_FACTOR_RATIO`], [`RELIEF_BAND_MIN_EXPLAINED`]).
-pub const MAX_RELIEF_EXTENDED_M: f64 = 1.6;
+pub const MAX_RELIEF_EXTENDED_M: f64 = 16.0 * MAX_RELIEF_M;
 
 /// A relief band joins the range when its own factor is within this ratio of the small-object
 /// factor (either way: 0.5 to 2 times it).
@@ -116,7 +116,8 @@ pub const RELIEF_BAND_MAX_ABS_RATIO: f64 = 0.9;
 /// The relief factors a depth model's flattening (or exaggeration) can have: the truth's relief
 /// between 0.5 and 2 times the aligned one's (`c = 1/k − 1` for a relief kept at k). A fitted
 /// factor outside is not a relief error (REAL Depth Anything 3 frames with a stereo reference
-/// gave 2.7–11.9, and a correction by it doubled their MAE): the model then has none.
+/// gave 2.9–11.9, stored clamped at 10, and a correction by it doubled their MAE): the model
+/// then has none.
 pub const MIN_RELIEF_FACTOR: f64 = -0.5;
 /// See [`MIN_RELIEF_FACTOR`].
 pub const MAX_RELIEF_FACTOR: f64 = 1.0;
@@ -220,7 +221,7 @@ const RELIEF_BAND_BOUNDS_M: [f64; 5] = [
     2.0 * MAX_RELIEF_M,
     4.0 * MAX_RELIEF_M,
     8.0 * MAX_RELIEF_M,
-    16.0 * MAX_RELIEF_M,
+    MAX_RELIEF_EXTENDED_M,
 ];
 
 /// Sums over one relief band's pixels (those of the fit grid with both depths), with `x =
