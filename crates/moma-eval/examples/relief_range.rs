@@ -7,8 +7,9 @@
 //! `cargo run --release -p moma-eval --example relief_range -- CALIB.json PRED.npy DEPTH.png [MAX_DEPTH_M]`
 
 use moma_core::error_model::MAX_RELIEF_M;
-use moma_core::image::is_valid_depth;
+use moma_core::metrics::DepthMetrics;
 use moma_core::pipeline::AlignOptions;
+use moma_core::{Mask, MetricDepth};
 use ndarray::Array2;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -29,15 +30,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         relief_max_m: MAX_RELIEF_M,
         ..model
     };
-    let mae_mm = |d: &Array2<f32>| {
-        let (mut s, mut n) = (0.0f64, 0usize);
-        for (&z, &t) in d.iter().zip(gt.depth_m.iter()) {
-            if is_valid_depth(z) && is_valid_depth(t) && t <= max_depth_m {
-                s += f64::from((z - t).abs());
-                n += 1;
-            }
-        }
-        1e3 * s / n.max(1) as f64
+    // the reference's pixels up to max_depth_m (DepthMetrics also skips pixels without depth)
+    let near = Mask::new(gt.depth_m.mapv(|t| t <= max_depth_m));
+    let mae_mm = |d: Array2<f32>| -> Result<f64, moma_core::CoreError> {
+        Ok(1e3 * DepthMetrics::compute(&MetricDepth::new(d), &gt, Some(&near))?.mae)
     };
     let view = aligned.depth.depth_m.view();
     println!(
@@ -45,9 +41,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
          0.1 m {:.1}, over the range {:.1}",
         model.relief_bias,
         model.relief_max_m,
-        mae_mm(&aligned.depth.depth_m),
-        mae_mm(&clamped.expected_truth_map(view, false)),
-        mae_mm(&model.expected_truth_map(view, false)),
+        mae_mm(aligned.depth.depth_m.clone())?,
+        mae_mm(clamped.expected_truth_map(view, false))?,
+        mae_mm(model.expected_truth_map(view, false))?,
     );
     Ok(())
 }
