@@ -158,6 +158,11 @@ pub struct GraspRow {
     pub successes: usize,
     /// successes / trials.
     pub success_rate: f64,
+    /// Trials in which at least one of the planner's candidates (up to
+    /// [`GraspEvalConfig::candidates`], the grasps the ranking chooses from) succeeds on the
+    /// ground truth: the successes a perfect ranking of these candidates would reach. Below
+    /// it, the ranking loses grasps; above it, the candidates do not hold one.
+    pub best_of_candidates: usize,
     /// Failures by reason (`collision`, `no_grasp`, ...).
     pub failures: BTreeMap<String, usize>,
     /// Brier score of the top-1 grasps' `success_prob` against their proxy outcome (trials with
@@ -206,6 +211,8 @@ pub struct GraspJsonRow {
     pub successes: usize,
     /// successes / trials.
     pub success_rate: f64,
+    /// Trials where some candidate of the planner succeeds (what a perfect ranking reaches).
+    pub best_of_candidates: usize,
     /// Brier score of `success_prob` (`null` without probabilities).
     pub brier: Option<f64>,
     /// Reliability table.
@@ -225,6 +232,7 @@ impl From<&GraspRow> for GraspJsonRow {
             trials: r.trials,
             successes: r.successes,
             success_rate: r.success_rate,
+            best_of_candidates: r.best_of_candidates,
         }
     }
 }
@@ -240,6 +248,8 @@ struct Trial {
 struct Tally {
     trials: usize,
     successes: usize,
+    /// Trials where some candidate succeeds on the ground truth.
+    best_of: usize,
     failures: BTreeMap<String, usize>,
     /// (predicted success probability, success) of the top-1 grasps that have one.
     probs: Vec<(f64, bool)>,
@@ -263,6 +273,7 @@ impl Tally {
     fn merge(&mut self, other: Tally) {
         self.trials += other.trials;
         self.successes += other.successes;
+        self.best_of += other.best_of;
         self.probs.extend(other.probs);
         for (k, v) in other.failures {
             *self.failures.entry(k).or_default() += v;
@@ -320,6 +331,8 @@ struct Planned<'a> {
 
 /// Plans on `planned` (object `mask`) through [`plan_on_scene`] (the path of `moma grasp`),
 /// and executes the top-1 grasp of each ranking in `qualities` on the ground-truth scene.
+/// Also returns whether any of the planner's candidates succeeds there
+/// ([`GraspRow::best_of_candidates`]).
 fn run_trial(
     planned: &Planned<'_>,
     gt_scene: &Scene,
@@ -328,15 +341,18 @@ fn run_trial(
     gripper: GripperKind,
     qualities: &[GraspQuality],
     config: &GraspEvalConfig,
-) -> Result<Vec<TrialOutcome>> {
-    let no_grasp = || vec![(Err(FailureReason::NoGrasp), None); qualities.len()];
+) -> Result<(Vec<TrialOutcome>, bool)> {
+    let no_grasp = || {
+        (
+            vec![(Err(FailureReason::NoGrasp), None); qualities.len()],
+            false,
+        )
+    };
     let mut request = GraspRequest::new(gripper.gripper()).with_error_model(planned.error_model);
     request.quality = GraspQuality::Nominal; // every candidate, in the planner's order
-    request.top_k = if planned.error_model.is_some() {
-        config.candidates
-    } else {
-        1
-    };
+    // every candidate, also without an error model (the top-1 is the same: the planner keeps
+    // grasps greedily in its own order), for the best of the candidates
+    request.top_k = config.candidates;
     request.seed = planned.seed;
     request.draws = config.draws;
     request.candidates = config.candidates;
@@ -361,14 +377,24 @@ fn run_trial(
         .iter()
         .map(|g| (*g, g.success_prob().unwrap_or(f32::NAN)))
         .collect();
-    qualities
+    let execute = |grasp: &Grasp| {
+        score_grasp(gt_scene, grasp, &gripper.gripper(), &config.score)
+            .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))
+    };
+    let mut any_succeeds = false;
+    for (g, _) in &candidates {
+        if execute(g)?.success {
+            any_succeeds = true;
+            break;
+        }
+    }
+    let outcomes = qualities
         .iter()
         .map(|&q| {
             let mut ranked = candidates.clone();
             rank(&mut ranked, q, config.tie_tolerance);
             let grasp = ranked[0].0;
-            let score = score_grasp(gt_scene, &grasp, &gripper.gripper(), &config.score)
-                .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))?;
+            let score = execute(&grasp)?;
             let result = match score.failure {
                 None if score.success => Ok(()),
                 Some(r) => Err(r),
@@ -376,7 +402,8 @@ fn run_trial(
             };
             Ok((result, grasp.success_prob()))
         })
-        .collect()
+        .collect::<Result<_>>()?;
+    Ok((outcomes, any_succeeds))
 }
 
 /// Ground-truth scenes of every (evaluated frame, trial) pair, built once.
@@ -629,6 +656,7 @@ pub fn grasp_evaluate(
         },
         trials: t.trials,
         successes: t.successes,
+        best_of_candidates: t.best_of,
         brier: t.brier(),
         mean_success_prob: (!t.probs.is_empty())
             .then(|| t.probs.iter().map(|p| p.0).sum::<f64>() / t.probs.len() as f64),
@@ -643,20 +671,24 @@ pub fn grasp_evaluate(
                     gripper: GripperKind,
                     qualities: &[GraspQuality]|
      -> Result<Vec<Tally>> {
-        let outcomes: Vec<Vec<TrialOutcome>> = trials
+        let outcomes: Vec<(Vec<TrialOutcome>, bool)> = trials
             .par_iter()
             .zip(&gt)
             .map(|(t, g)| {
                 let (Some(g), Some(d)) = (g, depths[t.frame].as_ref()) else {
-                    return Ok(vec![(Err(FailureReason::NoGrasp), None); qualities.len()]);
+                    return Ok((
+                        vec![(Err(FailureReason::NoGrasp), None); qualities.len()],
+                        false,
+                    ));
                 };
                 run_trial(d, g, set, t.mask.as_ref(), gripper, qualities, config)
             })
             .collect::<Result<_>>()?;
         let mut tallies: Vec<Tally> = qualities.iter().map(|_| Tally::default()).collect();
-        for o in outcomes {
+        for (o, any_succeeds) in outcomes {
             for (k, r) in o.into_iter().enumerate() {
                 tallies[k].add(r);
+                tallies[k].best_of += usize::from(any_succeeds);
             }
         }
         Ok(tallies)
@@ -897,6 +929,7 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
             "trials",
             "successes",
             "success rate",
+            "best of candidates",
             "mean success_prob",
             "Brier",
             "failures",
@@ -916,6 +949,10 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
                     r.trials.to_string(),
                     r.successes.to_string(),
                     format!("{:.0} %", 100.0 * r.success_rate),
+                    format!(
+                        "{:.0} %",
+                        100.0 * r.best_of_candidates as f64 / r.trials.max(1) as f64
+                    ),
                     r.mean_success_prob
                         .map_or("-".into(), |p| format!("{:.0} %", 100.0 * p)),
                     r.brier.map_or("-".into(), |b| format!("{b:.3}")),

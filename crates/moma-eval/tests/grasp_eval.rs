@@ -42,6 +42,28 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
         let n: usize = r.reliability.iter().map(|b| b.grasps).sum();
         assert!(n > 0 && n <= r.trials, "{r:?}");
     }
+    // the best of the candidates: no ranking does better than a perfect one, or worse than
+    // none; on the ground truth every suction candidate the planner keeps has passed the
+    // scorer's own rules on that very scene (the same depth, mask and settings), so each trial
+    // with a grasp has one that holds
+    for r in &rows {
+        assert!(
+            r.successes <= r.best_of_candidates && r.best_of_candidates <= r.trials,
+            "{r:?}"
+        );
+    }
+    let gt_suction = rows
+        .iter()
+        .find(|r| r.method == "gt" && r.gripper == GripperKind::Suction)
+        .unwrap();
+    let no_grasp = gt_suction.failures.get("no_grasp").copied().unwrap_or(0);
+    assert_eq!(gt_suction.best_of_candidates, gt_suction.trials - no_grasp);
+    // on aligned depth the ranking loses grasps that another candidate would have won
+    assert!(
+        rows.iter()
+            .any(|r| r.method == "ssra" && r.best_of_candidates > r.successes),
+        "{rows:?}"
+    );
     // the error model's σ covers the true errors in a plausible share (not 0, not all)
     for c in &result.coverage {
         assert!(
