@@ -381,19 +381,15 @@ fn run_trial(
         score_grasp(gt_scene, grasp, &gripper.gripper(), &config.score)
             .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))
     };
-    let mut any_succeeds = false;
-    for (g, _) in &candidates {
-        if execute(g)?.success {
-            any_succeeds = true;
-            break;
-        }
-    }
-    let outcomes = qualities
+    // the top-1 grasp of each ranking, executed once (the best of the candidates reuses it)
+    let mut tops: Vec<Grasp> = Vec::with_capacity(qualities.len());
+    let outcomes: Vec<TrialOutcome> = qualities
         .iter()
         .map(|&q| {
             let mut ranked = candidates.clone();
             rank(&mut ranked, q, config.tie_tolerance);
             let grasp = ranked[0].0;
+            tops.push(grasp);
             let score = execute(&grasp)?;
             let result = match score.failure {
                 None if score.success => Ok(()),
@@ -403,6 +399,15 @@ fn run_trial(
             Ok((result, grasp.success_prob()))
         })
         .collect::<Result<_>>()?;
+    let mut any_succeeds = outcomes.iter().any(|(r, _)| r.is_ok());
+    for (g, _) in &candidates {
+        if any_succeeds {
+            break;
+        }
+        if !tops.contains(g) {
+            any_succeeds = execute(g)?.success;
+        }
+    }
     Ok((outcomes, any_succeeds))
 }
 
