@@ -251,23 +251,17 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        Some(6) => serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?,
-        // Version 6 only added the error model's `relief_max_m`, which reads as 0.1 m without
-        // it: a version-5 document is a version-6 one.
-        Some(5) => {
+        // Versions 3, 4 and 6 only added optional fields (6: the error model's `relief_max_m`,
+        // which reads as 0.1 m without it), and version 5 renamed the kinds (the old names
+        // still parse): a version-2 to -5 document is a version-6 one, once a version-2 to -4
+        // one's kind is mapped.
+        Some(v @ 2..=6) => {
             let mut file: CalibrationFile =
                 serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
             file.version = CALIBRATION_VERSION;
-            file
-        }
-        // Versions 3 and 4 only added optional fields, and version 5 renamed the kinds (the old
-        // names still parse): a version-2 to -4 document is a version-5 one (so a version-6
-        // one) once its kind is mapped.
-        Some(2..=4) => {
-            let mut file: CalibrationFile =
-                serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
-            file.version = CALIBRATION_VERSION;
-            migrate_kind(&mut file);
+            if v < 5 {
+                migrate_kind(&mut file);
+            }
             file
         }
         Some(1) => {
