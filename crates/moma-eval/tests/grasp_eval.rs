@@ -78,11 +78,12 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
         assert!(gt >= 0.9, "{g} on ground truth: {gt}");
     }
     // on aligned (simulated) depth the parallel jaw still finds grasps that hold (nominal
-    // ranking: the first row of the method), in about a third of the trials (docs/grasping.md:
-    // 7 of 21 one-shot; the ground truth, planned once, 7 of 7)
+    // ranking: the first row of the method), in over a quarter of the trials (6 of 21 one-shot
+    // since the error model fits its relief radius, 7 before: docs/grasping.md, "The relief
+    // radius and its fixed point"; the ground truth, planned once, 7 of 7)
     let (ssra, trials) = rate("ssra", GripperKind::Parallel);
     assert_eq!(trials, 21);
-    assert!(ssra >= 0.3, "parallel on SSRA-aligned depth: {ssra}");
+    assert!(ssra >= 0.25, "parallel on SSRA-aligned depth: {ssra}");
     assert!(grasp_table(&rows).title.contains("PROXY"));
     assert!(grasp_table(&rows).title.contains("SIMULATED"));
 }
