@@ -150,7 +150,7 @@ pub const MAX_RELIEF_FACTOR: f64 = 1.0;
 /// against a blur of the wrong width is diluted: on the simulated m2t2-table (SSRA, simulator
 /// seed 1) the factor is 0.38 at 3 % of the width and 0.02 at 7.5 % (the fixed radius before),
 /// and the held-out frames' MAE inside the object masks 14.2 against 19.5 mm (docs/grasping.md,
-/// "The relief radius").
+/// "The relief radius and its fixed point").
 pub const RELIEF_RADIUS_SHARES: [f64; 4] = [0.03, 0.045, 0.06, 0.075];
 /// The radius every fit may keep whatever its factor's sign (the only one before fit step 1c);
 /// a smaller one is kept only with a flattening factor (module documentation, step 1c).
@@ -419,9 +419,10 @@ impl ReliefFit {
         }
     }
 
-    /// The mean squared difference, m², between the truth and the expected truth
-    /// ([`DepthErrorModel::expected_truth_map`] without smoothing, here on the grid) over the
-    /// grids' pixels with both depths (`f64::INFINITY` without one).
+    /// The mean squared difference, m², between the truth and the first-order expected truth
+    /// (`aligned + c·hp + a·step`, the relief clamped at the range, as
+    /// [`DepthErrorModel::expected_truth_map`] before its fixed point) over the grids' pixels
+    /// with both depths (`f64::INFINITY` without one).
     fn grid_mse(&self, prepared: &[FitGrid]) -> f64 {
         let (c, a, rmax) = (
             self.factor as f32,
@@ -458,12 +459,12 @@ impl FitGrid {
     /// hp.
     fn subsampled(&self, step: usize) -> Self {
         let step = step.max(1) as isize;
-        let half = |a: &Array2<f32>| a.slice(ndarray::s![..;step, ..;step]).to_owned();
+        let every = |a: &Array2<f32>| a.slice(ndarray::s![..;step, ..;step]).to_owned();
         Self {
-            aligned: half(&self.aligned),
-            truth: half(&self.truth),
-            relief: half(&self.relief),
-            step: half(&self.step),
+            aligned: every(&self.aligned),
+            truth: every(&self.truth),
+            relief: every(&self.relief),
+            step: every(&self.step),
             hp: Array2::zeros((0, 0)),
         }
     }
