@@ -432,15 +432,9 @@ impl ReliefFit {
         let (mut sum, mut n) = (0.0f64, 0usize);
         for g in prepared {
             for (z, t, h, st) in g.pixels_with_both_depths() {
-                let mut e = z;
-                if c != 0.0 && h.is_finite() {
-                    let r = e + c * h.clamp(-rmax, rmax);
-                    if is_valid_depth(r) {
-                        e = r;
-                    }
-                }
-                if a > 0.0 && is_valid_depth(e + a * st) {
-                    e += a * st;
+                let mut e = add_relief(z, h, c, rmax);
+                if a > 0.0 {
+                    e = add_edge_share(e, st, a);
                 }
                 sum += f64::from(t - e).powi(2);
                 n += 1;
@@ -455,6 +449,20 @@ impl ReliefFit {
 }
 
 impl FitGrid {
+    /// The grid of `frame`: its depths and the filters' outputs on the fit's grid only (the
+    /// full maps' values there), without the relief hp.
+    fn of(frame: &ResidualFrame<'_>, edge_radius_px: u32) -> Self {
+        let edges = EdgeMaps::of_strided(frame.aligned_m, edge_radius_px, FIT_STRIDE);
+        let grid = ndarray::s![..;FIT_STRIDE, ..;FIT_STRIDE];
+        Self {
+            aligned: frame.aligned_m.slice(grid).to_owned(),
+            truth: frame.truth_m.slice(grid).to_owned(),
+            relief: edges.relief,
+            step: edges.step,
+            hp: Array2::zeros((0, 0)),
+        }
+    }
+
     /// Every `step`-th row and column of the grid's depths and edge maps, without the relief
     /// hp.
     fn subsampled(&self, step: usize) -> Self {
@@ -592,17 +600,8 @@ impl DepthErrorModel {
                     ImageSize::of(&f.truth_m)
                 )));
             }
-            // the filters' outputs on the fit's grid only (the full maps' values there); the
-            // relief hp per radius below
-            let edges = EdgeMaps::of_strided(f.aligned_m, m.edge_radius_px, FIT_STRIDE);
-            let grid = ndarray::s![..;FIT_STRIDE, ..;FIT_STRIDE];
-            let sub = FitGrid {
-                aligned: f.aligned_m.slice(grid).to_owned(),
-                truth: f.truth_m.slice(grid).to_owned(),
-                relief: edges.relief,
-                step: edges.step,
-                hp: Array2::zeros((0, 0)),
-            };
+            // the relief hp per radius below
+            let sub = FitGrid::of(f, m.edge_radius_px);
             // the reference depth: the median of the grid's pixels with both depths
             depths.extend(
                 sub.aligned
@@ -994,14 +993,9 @@ impl DepthErrorModel {
             for _ in 0..RELIEF_FIXED_POINT_ITERATIONS {
                 let hp = high_pass(z.view(), self.relief_radius_px);
                 let mut next = depth_m.to_owned();
-                ndarray::Zip::from(&mut next).and(&hp).for_each(|v, &h| {
-                    if is_valid_depth(*v) && h.is_finite() {
-                        let t = *v + c * ((1.0 - c0) * h).clamp(-rmax, rmax);
-                        if is_valid_depth(t) {
-                            *v = t;
-                        }
-                    }
-                });
+                ndarray::Zip::from(&mut next)
+                    .and(&hp)
+                    .for_each(|v, &h| *v = add_relief(*v, (1.0 - c0) * h, c, rmax));
                 z = next;
             }
             out = z;
@@ -1010,26 +1004,16 @@ impl DepthErrorModel {
             let hp = high_pass(depth_m, self.relief_radius_px);
             let c = self.relief_bias as f32;
             let rmax = self.relief_max_m as f32;
-            ndarray::Zip::from(&mut out).and(&hp).for_each(|z, &h| {
-                if is_valid_depth(*z) && h.is_finite() {
-                    let t = *z + c * h.clamp(-rmax, rmax);
-                    if is_valid_depth(t) {
-                        *z = t;
-                    }
-                }
-            });
+            ndarray::Zip::from(&mut out)
+                .and(&hp)
+                .for_each(|z, &h| *z = add_relief(*z, h, c, rmax));
         }
         if self.edge_sharpening > 0.0 {
             let edges = EdgeMaps::of(depth_m, self.edge_radius_px);
             let a = self.edge_sharpening as f32;
             ndarray::Zip::from(&mut out)
                 .and(&edges.step)
-                .for_each(|z, &st| {
-                    let t = *z + a * st;
-                    if is_valid_depth(*z) && is_valid_depth(t) {
-                        *z = t;
-                    }
-                });
+                .for_each(|z, &st| *z = add_edge_share(*z, st, a));
         }
         if smooth {
             let (h, w) = out.dim();
@@ -1281,6 +1265,30 @@ fn no_pixels() -> CoreError {
     CoreError::NoValidPixels(
         "depth error model: no flat pixel with both an aligned and a ground-truth depth".into(),
     )
+}
+
+/// `z + c · clamp(h, ±rmax)`, the relief correction of one pixel (`h` its relief hp, metres),
+/// where `z` is a valid depth, `h` finite and the result a valid depth; `z` otherwise. The one
+/// rule of [`DepthErrorModel::expected_truth_map`] and of fit step 1c's criterion.
+#[inline]
+fn add_relief(z: f32, h: f32, c: f32, rmax: f32) -> f32 {
+    if !(is_valid_depth(z) && h.is_finite()) {
+        return z;
+    }
+    let t = z + c * h.clamp(-rmax, rmax);
+    if is_valid_depth(t) { t } else { z }
+}
+
+/// `z + a · step`, the edge share of one pixel, where `z` and the result are valid depths; `z`
+/// otherwise (as [`add_relief`]).
+#[inline]
+fn add_edge_share(z: f32, step: f32, a: f32) -> f32 {
+    let t = z + a * step;
+    if is_valid_depth(z) && is_valid_depth(t) {
+        t
+    } else {
+        z
+    }
 }
 
 /// The relief blur radius for an image: `share` of its width, at least 4 px.
@@ -2143,16 +2151,9 @@ mod tests {
         }];
         let grids: Vec<FitGrid> = frame
             .iter()
-            .map(|f| {
-                let edges = EdgeMaps::of_strided(f.aligned_m, 3, FIT_STRIDE);
-                let grid = ndarray::s![..;FIT_STRIDE, ..;FIT_STRIDE];
-                FitGrid {
-                    aligned: f.aligned_m.slice(grid).to_owned(),
-                    truth: f.truth_m.slice(grid).to_owned(),
-                    relief: edges.relief,
-                    step: edges.step,
-                    hp: high_pass_strided(f.aligned_m, 19, FIT_STRIDE),
-                }
+            .map(|f| FitGrid {
+                hp: high_pass_strided(f.aligned_m, 19, FIT_STRIDE),
+                ..FitGrid::of(f, m.edge_radius_px)
             })
             .collect();
         let small = ReliefFit::of(&grids);
