@@ -3,6 +3,8 @@
 //! candle's quantised `Q8_0` matmul (ggml's: 8-bit weights and activations in blocks of 32),
 //! and moma's int8 (VNNI) and bf16 layers (`--dtype int8|bf16`). Medians of `--reps` calls,
 //! after one warm-up, and each output's max error against f32 over the f32 output's range.
+//! Then the DPT head's stride-1 3×3 convolutions by im2col and by Winograd F(2×2, 3×3) (what
+//! the model runs), each call including its output's allocation.
 //!
 //! ```text
 //! cargo run --release -p moma-depth --example cpu_kernels -- [--reps 10]
@@ -12,7 +14,7 @@ use std::time::Instant;
 
 use candle_core::quantized::{GgmlDType, QMatMul, QTensor};
 use candle_core::{Device, Module, Tensor};
-use moma_depth::candle::PackedLayer;
+use moma_depth::candle::{ConvPath, PackedLayer, conv3x3_by};
 
 /// A seeded uniform value in [-1, 1).
 fn uniform(state: &mut u64) -> f32 {
@@ -109,5 +111,46 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "{} rayon threads, m = {m} tokens, medians of {reps}",
         rayon::current_num_threads()
     );
+
+    // The DPT head's stride-1 3×3 convolutions (ViT-S at 518×686; ViT-B's widest level)
+    println!();
+    println!(
+        "| convolution (c_in → c_out, h × w) | im2col | Winograd | Winograd max error vs im2col |"
+    );
+    println!("|---|---:|---:|---|");
+    for (c_in, c_out, h, w) in [
+        (32, 32, 518, 686),
+        (64, 32, 296, 392),
+        (64, 64, 148, 196),
+        (48, 64, 148, 196),
+        (64, 64, 74, 98),
+        (64, 64, 37, 49),
+        (128, 128, 148, 196),
+        (768, 128, 19, 25),
+    ] {
+        let x: Vec<f32> = (0..c_in * h * w).map(|_| uniform(&mut st)).collect();
+        let wt: Vec<f32> = (0..c_out * c_in * 9)
+            .map(|_| uniform(&mut st) * 0.1)
+            .collect();
+        let b: Vec<f32> = (0..c_out).map(|_| uniform(&mut st)).collect();
+        let x = Tensor::from_vec(x, (1, c_in, h, w), &dev)?;
+        let wt = Tensor::from_vec(wt, (c_out, c_in, 3, 3), &dev)?;
+        let b = Tensor::from_vec(b, c_out, &dev)?;
+        let run = |path| {
+            time(reps, || {
+                let y = conv3x3_by(&x, &wt, &b, path).unwrap();
+                y.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+            })
+        };
+        let (t_col, y_col) = run(ConvPath::Im2col);
+        let (t_win, y_win) = run(ConvPath::Winograd);
+        println!(
+            "| {c_in} → {c_out}, {h} × {w} | {:.2} ms | {:.2} ms ({:.2}×) | {:.1e} |",
+            t_col * 1e3,
+            t_win * 1e3,
+            t_win / t_col,
+            error(&y_win, &y_col)
+        );
+    }
     Ok(())
 }

@@ -20,6 +20,13 @@ struct Conv3x3 {
 }
 
 impl Conv3x3 {
+    /// The bias, which the output convolutions have.
+    fn bias(&self) -> Result<&Tensor> {
+        self.bias
+            .as_ref()
+            .ok_or_else(|| candle_core::Error::Msg("a DPT output convolution without bias".into()))
+    }
+
     fn forward_fused(&self, xs: &Tensor, fused: super::ops::ConvFusion<'_>) -> Result<Tensor> {
         super::ops::conv3x3(xs, &self.weight, self.bias.as_ref(), self.stride, fused)
     }
@@ -200,6 +207,18 @@ impl FeatureFusionBlock {
         x1: Option<&Tensor>,
         size: Option<(usize, usize)>,
     ) -> Result<Tensor> {
+        let (out, (th, tw)) = self.forward_to_upsample(x0, x1, size)?;
+        super::ops::upsample_bilinear_align_corners(&out, th, tw)
+    }
+
+    /// [`Self::forward`] up to its last step, the upsampling: the map to upsample and the size
+    /// to upsample it to (for a caller that fuses the upsampling into its next layer).
+    fn forward_to_upsample(
+        &self,
+        x0: &Tensor,
+        x1: Option<&Tensor>,
+        size: Option<(usize, usize)>,
+    ) -> Result<(Tensor, (usize, usize))> {
         let mut out = x0.clone();
         if let Some(x1) = x1 {
             out = (out + self.res_conf_unit1.forward(x1)?)?;
@@ -211,8 +230,7 @@ impl FeatureFusionBlock {
         // bilinear weights of every output pixel sum to one, so the 1×1 conv (bias included)
         // commutes with the upsampling: applied first, it runs on a quarter of the pixels. The
         // results differ by f32 round-off only (the parity tests hold them to the reference).
-        let out = self.out_conv.forward(&out)?;
-        super::ops::upsample_bilinear_align_corners(&out, th, tw)
+        Ok((self.out_conv.forward(&out)?, (th, tw)))
     }
 }
 
@@ -293,21 +311,28 @@ impl DptHead {
             self.refinenets[2].forward(&path4, Some(&layers[2]), Some(size(&layers[1])?))?;
         let path2 =
             self.refinenets[1].forward(&path3, Some(&layers[1]), Some(size(&layers[0])?))?;
-        let path1 = self.refinenets[0].forward(&path2, Some(&layers[0]), None)?;
-        let out = self.output_conv1.forward(&path1)?;
-        let out = super::ops::upsample_bilinear_align_corners(
+        // refinenet1's upsampling fused into output_conv1; upsample, output_conv2.0 (+ ReLU)
+        // and output_conv2.2 in one pass
+        let (path1, (th, tw)) =
+            self.refinenets[0].forward_to_upsample(&path2, Some(&layers[0]), None)?;
+        let out = super::ops::upsample_conv3x3(
+            &path1,
+            th,
+            tw,
+            &self.output_conv1.weight,
+            self.output_conv1.bias()?,
+            false,
+            None,
+        )?;
+        let out = super::ops::upsample_conv3x3(
             &out,
             rows * PATCH_SIZE,
             cols * PATCH_SIZE,
+            &self.output_conv2_0.weight,
+            self.output_conv2_0.bias()?,
+            true,
+            Some((&self.output_conv2_2.weight, &self.output_conv2_2.bias)),
         )?;
-        let out = self.output_conv2_0.forward_fused(
-            &out,
-            super::ops::ConvFusion {
-                relu_out: true,
-                ..super::ops::ConvFusion::default()
-            },
-        )?;
-        let out = self.output_conv2_2.forward(&out)?;
         match self.head {
             // output_conv2 ends in ReLU; DepthAnythingV2.forward applies F.relu once more.
             Head::Relative => out.relu(),

@@ -27,7 +27,7 @@ const NR: usize = 32;
 const CHUNK: usize = super::ops::PACKED_CHUNK;
 
 /// A linear layer quantised to int8 (module documentation).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub(crate) struct QuantLinear {
     /// Input features.
     k: usize,
@@ -88,14 +88,9 @@ impl QuantLinear {
         let mut colsum = vec![0i32; np];
         let mut q = vec![0i8; n];
         for (i, row) in weight_t.chunks_exact(n).enumerate() {
-            for ((q, &w), &inv) in q.iter_mut().zip(row).zip(&inv) {
-                // |w · inv| ≤ 127 by the scale; round half away from zero by truncation
-                let v = w * inv;
-                *q = (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8;
-            }
+            quantise_weights(row, &inv, &mut q, &mut colsum[..n]);
             let at = (i / 4) * 64 + i % 4;
             for (j, &q) in q.iter().enumerate() {
-                colsum[j] += i32::from(q);
                 packed[(j / 16) * kp * 16 + at + (j % 16) * 4] = q;
             }
         }
@@ -108,6 +103,89 @@ impl QuantLinear {
             scale,
             colsum,
             bias: bias.to_vec(),
+        })
+    }
+
+    /// [`Self::new`] of `Xᵀ` (`k × n`, zero bias), row `j` of `X` at `src[j·stride..][..k]`
+    /// (an attention head's keys): each column's scale and bytes come from one contiguous row,
+    /// and its groups of 4 bytes are stored as they are packed. The same layer, bit for bit.
+    fn from_transposed_rows(
+        src: &[f32],
+        stride: usize,
+        n: usize,
+        k: usize,
+    ) -> candle_core::Result<Self> {
+        let (kp, np) = (k.div_ceil(4) * 4, n.div_ceil(NR) * NR);
+        let mut packed = vec![0i8; np * kp];
+        let mut scale = vec![0f32; np];
+        let mut colsum = vec![0i32; np];
+        let mut q = vec![0i8; kp];
+        for j in 0..n {
+            let row = &src[j * stride..j * stride + k];
+            let a = abs_max(row).ok_or_else(not_finite)?;
+            let s = if a > 0.0 { a / 127.0 } else { 1.0 };
+            scale[j] = s;
+            colsum[j] = quantise_column(row, 1.0 / s, &mut q[..k]);
+            let base = (j / 16) * kp * 16 + (j % 16) * 4;
+            for (kb, q4) in q.chunks_exact(4).enumerate() {
+                packed[base + kb * 64..base + kb * 64 + 4].copy_from_slice(q4);
+            }
+        }
+        Ok(Self {
+            k,
+            n,
+            kp,
+            np,
+            packed,
+            scale,
+            colsum,
+            bias: vec![0.0; n],
+        })
+    }
+
+    /// [`Self::new`] of `X` (`k × n`, zero bias), row `i` at `src[i·stride..][..n]` (an
+    /// attention head's values): rows quantised four at a time and their bytes interleaved
+    /// as they are packed. The same layer, bit for bit.
+    fn from_rows(src: &[f32], stride: usize, k: usize, n: usize) -> candle_core::Result<Self> {
+        let (kp, np) = (k.div_ceil(4) * 4, n.div_ceil(NR) * NR);
+        let row = |i: usize| &src[i * stride..i * stride + n];
+        let mut amax = vec![0f32; n];
+        for i in 0..k {
+            column_abs_max(row(i), &mut amax).ok_or_else(not_finite)?;
+        }
+        let mut scale = vec![0f32; np];
+        for (s, &a) in scale.iter_mut().zip(&amax) {
+            *s = if a > 0.0 { a / 127.0 } else { 1.0 };
+        }
+        let inv: Vec<f32> = scale[..n].iter().map(|s| 1.0 / s).collect();
+        let mut packed = vec![0i8; np * kp];
+        let mut colsum = vec![0i32; np];
+        let mut q = vec![0i8; 4 * n];
+        for kb in 0..kp / 4 {
+            for (kk, q) in q.chunks_exact_mut(n).enumerate() {
+                let i = 4 * kb + kk;
+                if i < k {
+                    quantise_weights(row(i), &inv, q, &mut colsum[..n]);
+                } else {
+                    q.fill(0);
+                }
+            }
+            for j in 0..n {
+                let at = (j / 16) * kp * 16 + kb * 64 + (j % 16) * 4;
+                for kk in 0..4 {
+                    packed[at + kk] = q[kk * n + j];
+                }
+            }
+        }
+        Ok(Self {
+            k,
+            n,
+            kp,
+            np,
+            packed,
+            scale,
+            colsum,
+            bias: vec![0.0; n],
         })
     }
 
@@ -124,7 +202,7 @@ impl QuantLinear {
         let padded = rows.div_ceil(MR) * MR;
         QUANT.with(|cell| {
             let mut buf = cell.borrow_mut();
-            let (q, acc) = buf.parts(padded * kp, rows * self.np);
+            let q = buf.parts(padded * kp);
             // Quantised rows (0 in the padding: the weights there are 0 too), their scales
             // and zero points.
             let mut sx = [0f32; CHUNK];
@@ -134,7 +212,7 @@ impl QuantLinear {
                 (sx[i], zx[i]) = quantise_row(row, &mut q[..k]);
                 q[k..].fill(0);
             }
-            self.multiply(q, &sx, &zx, rows, acc, residual, out, vnni);
+            self.multiply(q, &sx, &zx, rows, residual, out, vnni);
         });
     }
 
@@ -151,14 +229,11 @@ impl QuantLinear {
         out: &mut [f32],
     ) {
         debug_assert!(rows <= CHUNK && q.len() >= rows.div_ceil(MR) * MR * self.kp);
-        QUANT.with(|cell| {
-            let mut buf = cell.borrow_mut();
-            let (_, acc) = buf.parts(0, rows * self.np);
-            self.multiply(q, sx, zx, rows, acc, None, out, has_vnni());
-        });
+        self.multiply(q, sx, zx, rows, None, out, has_vnni());
     }
 
-    /// The products of quantised rows `q` with the packed weights, then the epilogue.
+    /// The products of quantised rows `q` with the packed weights, each 8 × 32 tile
+    /// dequantised into `out` as soon as its sums are known (while they are in cache).
     #[allow(clippy::too_many_arguments)]
     fn multiply(
         &self,
@@ -166,7 +241,6 @@ impl QuantLinear {
         sx: &[f32],
         zx: &[i32],
         rows: usize,
-        acc: &mut [i32],
         residual: Option<&[f32]>,
         out: &mut [f32],
         vnni: bool,
@@ -175,6 +249,7 @@ impl QuantLinear {
         let mut tile = [[0i32; NR]; MR];
         for jb2 in 0..np / NR {
             let w = &self.packed[jb2 * 2 * kp * 16..(jb2 + 1) * 2 * kp * 16];
+            let cols = jb2 * NR..(jb2 * NR + NR).min(n);
             for r0 in (0..rows).step_by(MR) {
                 let a = &q[r0 * kp..(r0 + MR) * kp];
                 if vnni {
@@ -187,21 +262,62 @@ impl QuantLinear {
                 } else {
                     kernel_portable(a, w, kp, &mut tile);
                 }
-                for (r, t) in tile.iter().enumerate().take(rows - r0) {
-                    let at = (r0 + r) * np + jb2 * NR;
-                    acc[at..at + NR].copy_from_slice(t);
-                }
+                let tile_rows = r0..(r0 + MR).min(rows);
+                dequantise_tile(
+                    &tile,
+                    Epilogue {
+                        sx: &sx[tile_rows.clone()],
+                        zx: &zx[tile_rows.clone()],
+                        colsum: &self.colsum[cols.clone()],
+                        scale: &self.scale[cols.clone()],
+                        bias: &self.bias[cols.clone()],
+                    },
+                    &mut out[r0 * n..],
+                    residual.map(|r| &r[r0 * n..]),
+                    n,
+                    cols.start,
+                );
             }
         }
-        let (scale, colsum, bias) = (&self.scale[..n], &self.colsum[..n], &self.bias[..]);
-        for (i, (o, a)) in out
-            .chunks_exact_mut(n)
-            .zip(acc.chunks_exact(np))
-            .enumerate()
-            .take(rows)
-        {
-            let res = residual.map(|r| &r[i * n..(i + 1) * n]);
-            dequantise_row(o, &a[..n], sx[i], zx[i], colsum, scale, bias, res);
+    }
+}
+
+/// What [`dequantise_tile`] needs of a tile's rows (`sx`, `zx`) and columns (`colsum`,
+/// `scale`, `bias`).
+#[derive(Clone, Copy)]
+struct Epilogue<'a> {
+    sx: &'a [f32],
+    zx: &'a [i32],
+    colsum: &'a [i32],
+    scale: &'a [f32],
+    bias: &'a [f32],
+}
+
+super::ops::simd_dispatch! {
+    /// `out[r·n + j0 + j] = (a − z·colsum)·s·scale + bias [+ residual]` for the tile's
+    /// `e.sx.len()` rows and `e.scale.len()` columns (`out` and `residual` start at the tile's
+    /// first row; row stride `n`).
+    fn dequantise_tile(
+        tile: &[[i32; NR]; MR],
+        e: Epilogue<'_>,
+        out: &mut [f32],
+        residual: Option<&[f32]>,
+        n: usize,
+        j0: usize
+    ) {
+        let w = e.scale.len();
+        let (colsum, scale, bias) = (&e.colsum[..w], &e.scale[..w], &e.bias[..w]);
+        for (r, ((a, &s), &z)) in tile.iter().zip(e.sx).zip(e.zx).enumerate() {
+            let o = &mut out[r * n + j0..r * n + j0 + w];
+            let a = &a[..w];
+            for j in 0..w {
+                o[j] = (a[j] - z * colsum[j]) as f32 * (s * scale[j]) + bias[j];
+            }
+            if let Some(res) = residual {
+                for (o, &r) in o.iter_mut().zip(&res[r * n + j0..r * n + j0 + w]) {
+                    *o += r;
+                }
+            }
         }
     }
 }
@@ -215,6 +331,19 @@ impl super::ops::PackedLinear for QuantLinear {
         Self::new(weight_t, k, n, bias)
     }
 
+    fn pack_transposed_rows(
+        src: &[f32],
+        stride: usize,
+        n: usize,
+        k: usize,
+    ) -> candle_core::Result<Self> {
+        Self::from_transposed_rows(src, stride, n, k)
+    }
+
+    fn pack_rows(src: &[f32], stride: usize, k: usize, n: usize) -> candle_core::Result<Self> {
+        Self::from_rows(src, stride, k, n)
+    }
+
     /// Input features.
     fn in_features(&self) -> usize {
         self.k
@@ -225,61 +354,103 @@ impl super::ops::PackedLinear for QuantLinear {
         self.n
     }
 
-    /// The probabilities straight into bytes with their known scale (1/255, zero point 0);
-    /// `inv` becomes `255 / Σ q`, so that the quantised weights sum to one.
-    fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
+    /// The softmax straight into bytes with its known scale (1/255, zero point 0)
+    /// ([`super::ops::softmax_u8`]); `inv` becomes `255 / Σ q`, so that the quantised weights
+    /// sum to one.
+    fn weigh_scores(
+        &self,
+        s: &mut [f32],
+        rows: usize,
+        scale: f32,
+        out: &mut [f32],
+        inv: &mut [f32],
+    ) {
         let (n, kp) = (self.k, self.kp);
         let mut p = vec![0u8; rows.div_ceil(MR) * MR * kp];
-        super::ops::probabilities_u8(e, n, &mut p, kp, &mut inv[..rows]);
+        super::ops::softmax_u8(s, n, scale, &mut p, kp, &mut inv[..rows]);
         let sx = vec![1.0 / 255.0; rows];
         self.forward_quantised(&p, &sx, &vec![0; rows], rows, out);
     }
 }
 
+/// The error of a weight matrix that holds a value that is not finite.
+fn not_finite() -> candle_core::Error {
+    candle_core::Error::Msg("int8 linear: the weights hold a value that is not finite".into())
+}
+
 super::ops::simd_dispatch! {
-    /// `o = (a − z·colsum)·s·scale + bias [+ residual]` over one row (slices of one length,
-    /// which vectorises).
-    fn dequantise_row(
-        o: &mut [f32],
-        a: &[i32],
-        s: f32,
-        z: i32,
-        colsum: &[i32],
-        scale: &[f32],
-        bias: &[f32],
-        residual: Option<&[f32]>
-    ) {
-        let n = o.len();
-        let (a, colsum, scale, bias) = (&a[..n], &colsum[..n], &scale[..n], &bias[..n]);
-        for j in 0..n {
-            o[j] = (a[j] - z * colsum[j]) as f32 * (s * scale[j]) + bias[j];
-        }
-        if let Some(res) = residual {
-            for (o, &r) in o.iter_mut().zip(&res[..n]) {
-                *o += r;
-            }
+    /// `q[j] = round(w[j] · inv[j])` (half away from zero; `|w · inv| ≤ 127` by the scales),
+    /// added to `colsum[j]`.
+    fn quantise_weights(w: &[f32], inv: &[f32], q: &mut [i8], colsum: &mut [i32]) {
+        for (((q, &w), &inv), c) in q.iter_mut().zip(w).zip(inv).zip(colsum.iter_mut()) {
+            let v = w * inv;
+            *q = (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8;
+            *c += i32::from(*q);
         }
     }
 }
 
-/// A thread's scratch of [`QuantLinear::run_chunk`]: the quantised rows and the `i32` sums,
-/// kept between calls (a layer runs ~30 chunks per frame and per thread).
+super::ops::simd_dispatch! {
+    /// [`quantise_weights`] of one column of `W` (one scale): its bytes and their sum.
+    fn quantise_column(w: &[f32], inv: f32, q: &mut [i8]) -> i32 {
+        let mut sum = 0i32;
+        for (q, &w) in q.iter_mut().zip(w) {
+            let v = w * inv;
+            *q = (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8;
+            sum += i32::from(*q);
+        }
+        sum
+    }
+}
+
+super::ops::simd_dispatch! {
+    /// `max |x|`, or `None` when a value is not finite.
+    fn abs_max(x: &[f32]) -> Option<f32> {
+        let mut m = [0f32; 16];
+        let mut bad = false;
+        let mut chunks = x.chunks_exact(16);
+        for c in &mut chunks {
+            for l in 0..16 {
+                let a = c[l].abs();
+                m[l] = if a > m[l] { a } else { m[l] };
+                bad |= !c[l].is_finite();
+            }
+        }
+        for &v in chunks.remainder() {
+            m[0] = if v.abs() > m[0] { v.abs() } else { m[0] };
+            bad |= !v.is_finite();
+        }
+        (!bad).then(|| m.iter().fold(0f32, |a, &v| if v > a { v } else { a }))
+    }
+}
+
+super::ops::simd_dispatch! {
+    /// `amax[j] = max(amax[j], |row[j]|)`, or `None` when a value is not finite.
+    fn column_abs_max(row: &[f32], amax: &mut [f32]) -> Option<()> {
+        let mut bad = false;
+        for (m, &v) in amax.iter_mut().zip(row) {
+            let a = v.abs();
+            *m = if a > *m { a } else { *m };
+            bad |= !v.is_finite();
+        }
+        (!bad).then_some(())
+    }
+}
+
+/// A thread's scratch of [`QuantLinear::run_chunk`]: the quantised rows, kept between calls
+/// (a layer runs ~30 chunks per frame and per thread).
 #[derive(Default)]
 struct Scratch {
     q: Vec<u8>,
-    acc: Vec<i32>,
 }
 
 impl Scratch {
-    /// The two buffers, of at least these lengths.
-    fn parts(&mut self, q: usize, acc: usize) -> (&mut [u8], &mut [i32]) {
+    /// The buffer, of at least this length.
+    fn parts(&mut self, q: usize) -> &mut [u8] {
         if self.q.len() < q {
             self.q.resize(q, 0);
         }
-        if self.acc.len() < acc {
-            self.acc.resize(acc, 0);
-        }
-        (&mut self.q[..q], &mut self.acc[..acc])
+        &mut self.q[..q]
     }
 }
 
@@ -555,6 +726,32 @@ mod tests {
             with > 10.0 * plain,
             "outliers: {with:.3e}, without: {plain:.3e}"
         );
+    }
+
+    #[test]
+    fn attention_heads_packed_from_the_qkv_rows_equal_the_gathered_matrices() {
+        // one head's keys and values inside wider rows (stride 50, offset 7), head sizes with
+        // and without a multiple of 4, token counts that are not multiples of the blocks
+        let (n, stride, at) = (37, 50, 7);
+        let mut st = 3;
+        let mut src: Vec<f32> = (0..n * stride).map(|_| uniform(&mut st) * 2.0).collect();
+        src[at + 5 * stride] = 0.0;
+        for hd in [10, 16] {
+            let kt: Vec<f32> = (0..hd)
+                .flat_map(|d| (0..n).map(move |j| (j, d)))
+                .map(|(j, d)| src[at + j * stride + d])
+                .collect();
+            let v: Vec<f32> = (0..n)
+                .flat_map(|j| src[at + j * stride..at + j * stride + hd].to_vec())
+                .collect();
+            let keys = QuantLinear::from_transposed_rows(&src[at..], stride, n, hd).unwrap();
+            assert_eq!(keys, QuantLinear::new(&kt, hd, n, &vec![0.0; n]).unwrap());
+            let values = QuantLinear::from_rows(&src[at..], stride, n, hd).unwrap();
+            assert_eq!(values, QuantLinear::new(&v, n, hd, &vec![0.0; hd]).unwrap());
+        }
+        src[at + 3 * stride + 2] = f32::NAN;
+        assert!(QuantLinear::from_transposed_rows(&src[at..], stride, n, 10).is_err());
+        assert!(QuantLinear::from_rows(&src[at..], stride, n, 10).is_err());
     }
 
     #[test]

@@ -24,6 +24,7 @@ mod heap;
 mod int8;
 mod ops;
 pub mod train;
+mod winograd;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -563,6 +564,25 @@ pub fn open_checkpoint(
         dtype,
         device.clone(),
     ))
+}
+
+#[doc(hidden)]
+pub use ops::ConvPath;
+
+/// A stride-1, padding-1 3×3 convolution of `x` `(1, c_in, h, w)` with `weight`
+/// `(c_out, c_in, 3, 3)` and `bias` `(c_out)` by one CPU path: for benchmarks of the DPT head's
+/// convolutions (`examples/cpu_kernels.rs`), not a stable API.
+///
+/// # Errors
+/// Shapes that do not match; a path that has no stride-1 form.
+#[doc(hidden)]
+pub fn conv3x3_by(x: &Tensor, weight: &Tensor, bias: &Tensor, path: ConvPath) -> Result<Tensor> {
+    ops::conv3x3_path(x, weight, Some(bias), 1, ops::ConvFusion::default(), path).map_err(
+        |source| DepthError::Candle {
+            context: "conv3x3".into(),
+            source,
+        },
+    )
 }
 
 /// One linear layer packed for the CPU kernels of `--dtype int8|bf16`, outside a model: for

@@ -121,10 +121,10 @@ macro_rules! residual_op {
 
 /// A strided `f32` matrix operand of [`sgemm`]: element `(i, j)` at `ptr + i·rs + j·cs`.
 #[derive(Clone, Copy)]
-struct MatRef {
-    ptr: *const f32,
-    rs: isize,
-    cs: isize,
+pub(super) struct MatRef {
+    pub(super) ptr: *const f32,
+    pub(super) rs: isize,
+    pub(super) cs: isize,
 }
 
 /// `dst (m×n, row stride dst_rs) = [dst +] lhs (m×k) · rhs (k×n)` with the `gemm` crate
@@ -133,7 +133,7 @@ struct MatRef {
 /// # Safety
 /// Every element addressed by the operands must be valid; `dst` must not alias `lhs`/`rhs`.
 #[allow(clippy::too_many_arguments)]
-unsafe fn sgemm(
+pub(super) unsafe fn sgemm(
     m: usize,
     n: usize,
     k: usize,
@@ -160,10 +160,10 @@ unsafe fn sgemm(
 
 /// A raw output pointer shared by parallel tasks that write disjoint elements.
 #[derive(Clone, Copy)]
-struct SendPtr(*mut f32);
+pub(super) struct SendPtr(pub(super) *mut f32);
 impl SendPtr {
     /// The pointer (a method, so that closures capture the whole `Sync` wrapper).
-    fn get(self) -> *mut f32 {
+    pub(super) fn get(self) -> *mut f32 {
         self.0
     }
 }
@@ -246,21 +246,44 @@ simd_dispatch! {
 }
 
 simd_dispatch! {
-    /// The unnormalised probabilities `e` of [`exp_rows`] (in (0, 1], 1 at each row's max: their
-    /// scale is known without a pass over them) as bytes for the int8 `· v` product:
-    /// `q = round(255 · e)` into rows of `kp` bytes (the rest zero), and `inv = 255 / Σ q`
-    /// (the quantised weights then sum to one).
-    pub(crate) fn probabilities_u8(e: &[f32], n: usize, q: &mut [u8], kp: usize, inv: &mut [f32]) {
-        for ((row, q), inv) in e.chunks_exact(n).zip(q.chunks_exact_mut(kp)).zip(inv.iter_mut()) {
+    /// The int8 attention's softmax, straight into bytes: each length-`n` row of the scores
+    /// `s` becomes `q = round(255 · exp(scale · (row − max row)))` (in [0, 255], 255 at the
+    /// row's max: the scale of the probabilities is known without a pass over them) in rows of
+    /// `kp` bytes (the rest zero), and `inv` receives `255 / Σ q`, so that the quantised
+    /// weights sum to one. One pass after the row maximum: no `f32` probabilities are written.
+    ///
+    /// `255 · exp(x) = 255 · 2ʸ`, `y = x·log₂e = n + f` with `n` an integer and `|f| ≤ ½`:
+    /// `2ⁿ` built in the exponent bits (as [`exp_f32`]) times a degree-4 polynomial for
+    /// `255 · 2ᶠ` (least squares in the relative error at Chebyshev points: ≤ 2.7e-6, 0.0007
+    /// of a level at 255, where [`exp_f32`]'s degree 6 serves f32 outputs). `y` is clamped at
+    /// −16 (`255 · 2⁻¹⁶` rounds to 0; `2ⁿ` stays normal); `y ≤ 0`, and the polynomial keeps
+    /// `255 · 2ᶠ` below 255.5 at `f = 0`, so a byte never wraps.
+    pub(crate) fn softmax_u8(s: &[f32], n: usize, scale: f32, q: &mut [u8], kp: usize, inv: &mut [f32]) {
+        const C: [f32; 5] = [
+            254.999_79,
+            176.746_1,
+            61.2637,
+            14.258_845,
+            2.43793,
+        ];
+        // adding 1.5·2²³ rounds to an integer held in the low mantissa bits (to nearest, ties
+        // to even); read with a mask, unlike a float-to-int cast this vectorises
+        const ROUND: f32 = 12_582_912.0;
+        let k = scale * std::f32::consts::LOG2_E;
+        for ((row, q), inv) in s.chunks_exact(n).zip(q.chunks_exact_mut(kp)).zip(inv.iter_mut()) {
             let (q, pad) = q.split_at_mut(n);
             pad.fill(0);
-            // 255·e is in [0, 255]: adding 1.5·2²³ rounds it (to nearest, ties to even) into
-            // the low bits of the sum's mantissa, read with a mask; unlike a float-to-int
-            // cast, which Rust saturates lane by lane, this vectorises
-            const ROUND: f32 = 12_582_912.0;
+            // v·k ≤ max·k for v ≤ max (rounding is monotone): y ≤ 0, and 0 at the maximum
+            let top = max8(row) * k;
             let mut sum = 0u32;
-            for (o, &e) in q.iter_mut().zip(row) {
-                let b = (e * 255.0 + ROUND).to_bits() & 0xFF;
+            for (o, &v) in q.iter_mut().zip(row) {
+                let y = v * k - top;
+                let y = if y < -16.0 { -16.0 } else { y };
+                let t = y + ROUND;
+                let f = y - (t - ROUND);
+                let p = C[0] + f * (C[1] + f * (C[2] + f * (C[3] + f * C[4])));
+                let pow2n = f32::from_bits(t.to_bits().wrapping_add(127) << 23);
+                let b = (p * pow2n + ROUND).to_bits() & 0xFF;
                 *o = b as u8;
                 sum += b;
             }
@@ -433,6 +456,34 @@ pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
     fn pack(weight_t: &[f32], k: usize, n: usize, bias: &[f32]) -> Result<Self>
     where
         Self: Sized;
+    /// [`Self::pack`] of `Xᵀ` (`k × n`), zero bias, where row `j < n` of `X` is
+    /// `src[j·stride..][..k]`: an attention head's `kᵀ` straight from the `qkv` rows.
+    ///
+    /// # Errors
+    /// As [`Self::pack`].
+    fn pack_transposed_rows(src: &[f32], stride: usize, n: usize, k: usize) -> Result<Self>
+    where
+        Self: Sized,
+    {
+        let xt: Vec<f32> = (0..k)
+            .flat_map(|d| (0..n).map(move |j| src[j * stride + d]))
+            .collect();
+        Self::pack(&xt, k, n, &vec![0.0; n])
+    }
+    /// [`Self::pack`] of `X` (`k × n`), zero bias, where row `i < k` of `X` is
+    /// `src[i·stride..][..n]`: an attention head's `v` straight from the `qkv` rows.
+    ///
+    /// # Errors
+    /// As [`Self::pack`].
+    fn pack_rows(src: &[f32], stride: usize, k: usize, n: usize) -> Result<Self>
+    where
+        Self: Sized,
+    {
+        let x: Vec<f32> = (0..k)
+            .flat_map(|i| src[i * stride..i * stride + n].iter().copied())
+            .collect();
+        Self::pack(&x, k, n, &vec![0.0; n])
+    }
     /// `k`.
     fn in_features(&self) -> usize;
     /// `n`.
@@ -444,6 +495,16 @@ pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
     /// [`PACKED_CHUNK`] rows (each output is summed by one thread in one order: the same bits
     /// on every thread count).
     fn forward(&self, x: &[f32], m: usize, residual: Option<&[f32]>) -> Vec<f32> {
+        self.forward_act(x, m, residual, Activation::None)
+    }
+    /// [`Self::forward`], then `act` on each chunk while it is in cache.
+    fn forward_act(
+        &self,
+        x: &[f32],
+        m: usize,
+        residual: Option<&[f32]>,
+        act: Activation,
+    ) -> Vec<f32> {
         let (k, n) = (self.in_features(), self.out_features());
         debug_assert_eq!(x.len(), m * k);
         let mut out = vec![0f32; m * n];
@@ -455,6 +516,9 @@ pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
                 let residual =
                     residual.map(|r| &r[c * PACKED_CHUNK * n..(c * PACKED_CHUNK + rows) * n]);
                 self.run_chunk(x, rows, residual, out);
+                if act == Activation::GeluErf {
+                    gelu_in_place(out);
+                }
             });
         out
     }
@@ -468,12 +532,19 @@ pub(crate) trait PackedLinear: Send + Sync + std::fmt::Debug {
             self.run_chunk(x, rows, None, out);
         }
     }
-    /// `out = e·W` for rows `e` (`rows × k`) of unnormalised attention probabilities (in
-    /// (0, 1], 1 at each row's max), with `inv` holding each row's `1 / Σ e` on entry and the
-    /// factor that normalises `out`'s row on exit.
-    fn weigh_probabilities(&self, e: &[f32], rows: usize, out: &mut [f32], inv: &mut [f32]) {
-        let _ = inv;
-        self.forward_serial(e, rows, out);
+    /// `out = exp(scale · (s − max s))·W` for rows `s` (`rows × k`) of attention scores, the
+    /// unnormalised softmax ([`exp_rows`]; `s` is overwritten), with `inv` receiving the
+    /// factor that normalises each row of `out`.
+    fn weigh_scores(
+        &self,
+        s: &mut [f32],
+        rows: usize,
+        scale: f32,
+        out: &mut [f32],
+        inv: &mut [f32],
+    ) {
+        exp_rows(s, self.in_features(), scale, inv);
+        self.forward_serial(s, rows, out);
     }
 }
 
@@ -515,10 +586,7 @@ impl PackedLinearOp<'_> {
                 self.layer.in_features()
             );
         }
-        let mut dst = self.layer.forward(x, m, residual);
-        if self.act == Activation::GeluErf {
-            dst.par_chunks_mut(16 * 1024).for_each(gelu_in_place);
-        }
+        let dst = self.layer.forward_act(x, m, residual, self.act);
         Ok((CpuStorage::F32(dst), Shape::from_dims(&[m, n])))
     }
 }
@@ -838,19 +906,9 @@ impl<L: PackedLinear> CustomOp1 for AttentionPackedOp<L> {
         let layers: Vec<(L, L)> = (0..heads)
             .into_par_iter()
             .map(|h| {
-                let kt: Vec<f32> = (0..hd)
-                    .flat_map(|d| (0..n).map(move |j| qkv[j * c3 + c + h * hd + d]))
-                    .collect();
-                let v: Vec<f32> = (0..n)
-                    .flat_map(|j| {
-                        qkv[j * c3 + 2 * c + h * hd..j * c3 + 2 * c + (h + 1) * hd]
-                            .iter()
-                            .copied()
-                    })
-                    .collect();
                 Ok((
-                    L::pack(&kt, hd, n, &vec![0.0; n])?,
-                    L::pack(&v, n, hd, &vec![0.0; hd])?,
+                    L::pack_transposed_rows(&qkv[c + h * hd..], c3, n, hd)?,
+                    L::pack_rows(&qkv[2 * c + h * hd..], c3, n, hd)?,
                 ))
             })
             .collect::<Result<_>>()?;
@@ -874,9 +932,8 @@ impl<L: PackedLinear> CustomOp1 for AttentionPackedOp<L> {
                 let s = &mut s[..rows * n];
                 kt.forward_serial(&q, rows, s);
                 let mut inv = [0f32; ATTN_ROWS];
-                exp_rows(s, n, scale, &mut inv[..rows]);
                 let mut o = vec![0f32; rows * hd];
-                v.weigh_probabilities(s, rows, &mut o, &mut inv[..rows]);
+                v.weigh_scores(s, rows, scale, &mut o, &mut inv[..rows]);
                 for (i, (o, &f)) in o.chunks_exact(hd).zip(&inv[..rows]).enumerate() {
                     // SAFETY: row r0 + i, columns h·hd..(h+1)·hd of dst: this task's block.
                     let d = unsafe {
@@ -908,6 +965,31 @@ pub(crate) fn conv3x3(
     stride: usize,
     fused: ConvFusion<'_>,
 ) -> Result<Tensor> {
+    conv3x3_path(xs, weight, bias, stride, fused, ConvPath::Auto)
+}
+
+/// How the CPU computes a [`conv3x3`]: `Auto` is what the model runs; the others exist for
+/// tests and benchmarks of each path.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[doc(hidden)]
+pub enum ConvPath {
+    /// Winograd F(2×2, 3×3) at stride 1 ([`super::winograd`]), im2col at stride 2.
+    Auto,
+    /// [`super::winograd`] (stride 1 only).
+    Winograd,
+    /// im2col and one product.
+    Im2col,
+}
+
+/// [`conv3x3`] by a chosen CPU path (GPUs ignore it).
+pub(crate) fn conv3x3_path(
+    xs: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: usize,
+    fused: ConvFusion<'_>,
+    path: ConvPath,
+) -> Result<Tensor> {
     if !(xs.device().is_cpu() && xs.dtype() == candle_core::DType::F32) {
         let xs = if fused.relu_in {
             xs.relu()?
@@ -925,9 +1007,15 @@ pub(crate) fn conv3x3(
     }
     let (b, c_in, _, _) = xs.dims4()?;
     let (c_out, wc_in, kh, kw) = weight.dims4()?;
-    if b != 1 || wc_in != c_in || kh != 3 || kw != 3 || stride == 0 {
+    if b != 1
+        || wc_in != c_in
+        || kh != 3
+        || kw != 3
+        || stride == 0
+        || (stride != 1 && path == ConvPath::Winograd)
+    {
         candle_core::bail!(
-            "conv3x3: input {:?}, weight {:?}, stride {stride}",
+            "conv3x3 ({path:?}): input {:?}, weight {:?}, stride {stride}",
             xs.dims(),
             weight.dims()
         );
@@ -940,6 +1028,7 @@ pub(crate) fn conv3x3(
     };
     let op = Conv3x3 {
         stride,
+        path,
         bias: &bias,
         relu_in: fused.relu_in,
         relu_out: fused.relu_out,
@@ -963,6 +1052,7 @@ pub(crate) struct ConvFusion<'a> {
 
 struct Conv3x3<'a> {
     stride: usize,
+    path: ConvPath,
     bias: &'a [f32],
     relu_in: bool,
     relu_out: bool,
@@ -974,125 +1064,7 @@ const IM2COL_CHUNK_BYTES: usize = 4 << 20;
 
 residual_op!(Conv3x3, "conv3x3-im2col", "conv3x3-im2col-residual");
 
-/// Largest input and output channel counts of a stride-1 [`conv3x3`] run by
-/// [`Conv3x3::run_channels_last`] (larger ones: im2col; measured below).
-const CHANNELS_LAST_MAX: usize = 128;
-
 impl Conv3x3<'_> {
-    /// A stride-1 convolution with few channels, row by row, without im2col: the input is
-    /// copied band by band (a few MB of output rows), channels last and padded by one pixel. A
-    /// pixel's three taps of one kernel row are then `3·c_in` contiguous values, and one output
-    /// row is three products `(w × 3·c_in) · (3·c_in × c_out)`, whose left operand is a strided
-    /// view of that copy (row stride `c_in`: consecutive pixels overlap). im2col writes and reads
-    /// 9 × the input for the same product; at the DPT head's shapes (`c_out` 32–64, up to
-    /// 518 × 686 pixels) that traffic, not the multiply-adds, set its time.
-    ///
-    /// Measured on the random-weight ViT-S and ViT-B heads at 518×686, per call, 2 threads
-    /// (`bench_candle`): 32→32 at 518×686 167 → 79–96 ms, 64→32 at 296×392 87 → 47 ms, 64→64 at
-    /// 148×196 33 → 18 ms; ViT-B 64→32 at 518×686 289 → 140 ms, 128→64 at 296×392 228 → 165 ms.
-    /// Slower for many input channels on few pixels (768→768 stride 2 at 37×49: 43 → 113 ms):
-    /// those keep im2col ([`CHANNELS_LAST_MAX`]). Each row is one serial product: the same
-    /// bits on every thread count.
-    ///
-    /// `src` `(c_in, h, w)`, `wts` `(c_out, 9·c_in)` and `residual` as checked by [`Self::run`].
-    fn run_channels_last(
-        &self,
-        src: &[f32],
-        (c_in, h, w): (usize, usize, usize),
-        wts: &[f32],
-        c_out: usize,
-        residual: Option<&[f32]>,
-    ) -> Result<(CpuStorage, Shape)> {
-        let bias = self.bias;
-        let npix = h * w;
-        // (ky, kx, ci) × c_out: kernel row ky is the contiguous block of rows ky·3·c_in..
-        let wt = conv3x3_weight_t(wts, c_out, c_in);
-        // Bands of output rows whose padded input rows (band + 2) fit in IM2COL_CHUNK_BYTES: the
-        // copy stays small (a whole channels-last copy of a 518×686×32 input is 45 MB more at
-        // the peak) and in cache.
-        let wp = w + 2;
-        let band = (IM2COL_CHUNK_BYTES / (4 * wp * c_in))
-            .saturating_sub(2)
-            .clamp(1, h);
-        let mut hwc = vec![0f32; (band + 2) * wp * c_in];
-        let relu_in = self.relu_in;
-        let mut dst = vec![0f32; c_out * npix];
-        let out_ptr = SendPtr(dst.as_mut_ptr());
-        let relu_out = self.relu_out;
-        for r0 in (0..h).step_by(band) {
-            let r1 = (r0 + band).min(h);
-            // padded row j of the band is input row r0 + j − 1 (zero outside the image)
-            hwc[..(r1 - r0 + 2) * wp * c_in]
-                .par_chunks_mut(wp * c_in)
-                .enumerate()
-                .for_each(|(j, row)| {
-                    let y = (r0 + j).wrapping_sub(1);
-                    if y >= h {
-                        row.fill(0.0);
-                        return;
-                    }
-                    row[..c_in].fill(0.0);
-                    row[(w + 1) * c_in..].fill(0.0);
-                    for ci in 0..c_in {
-                        let plane_row = &src[(ci * h + y) * w..(ci * h + y + 1) * w];
-                        for (x, &v) in plane_row.iter().enumerate() {
-                            row[(x + 1) * c_in + ci] = if relu_in && v < 0.0 { 0.0 } else { v };
-                        }
-                    }
-                });
-            let hwc = &hwc;
-            (r0..r1).into_par_iter().for_each(|oy| {
-                CONV_ROW.with(|cell| {
-                    let out = &mut *cell.borrow_mut();
-                    out.resize(w * c_out, 0.0);
-                    for ky in 0..3 {
-                        let at = (oy - r0 + ky) * wp * c_in;
-                        // SAFETY: the left operand's rows x·c_in + 0..3·c_in of the band's
-                        // padded row oy − r0 + ky (x < w) lie inside `hwc`; the right one is
-                        // rows ky·3·c_in.. of `wt`; `out` holds w × c_out.
-                        unsafe {
-                            sgemm(
-                                w,
-                                c_out,
-                                3 * c_in,
-                                out.as_mut_ptr(),
-                                c_out as isize,
-                                ky > 0,
-                                MatRef {
-                                    ptr: hwc.as_ptr().add(at),
-                                    rs: c_in as isize,
-                                    cs: 1,
-                                },
-                                MatRef {
-                                    ptr: wt.as_ptr().add(ky * 3 * c_in * c_out),
-                                    rs: c_out as isize,
-                                    cs: 1,
-                                },
-                                false,
-                            );
-                        }
-                    }
-                    let p0 = oy * w;
-                    for (co, &b) in bias.iter().enumerate() {
-                        // SAFETY: row oy of channel co's plane: this task's elements of dst.
-                        let d = unsafe {
-                            std::slice::from_raw_parts_mut(out_ptr.get().add(co * npix + p0), w)
-                        };
-                        let res = residual.map(|r| &r[co * npix + p0..co * npix + p0 + w]);
-                        for (x, d) in d.iter_mut().enumerate() {
-                            let mut v = out[x * c_out + co] + b;
-                            if let Some(res) = res {
-                                v += res[x];
-                            }
-                            *d = if relu_out && v < 0.0 { 0.0 } else { v };
-                        }
-                    }
-                });
-            });
-        }
-        Ok((CpuStorage::F32(dst), Shape::from_dims(&[1, c_out, h, w])))
-    }
-
     fn run(
         &self,
         src: &[f32],
@@ -1113,8 +1085,17 @@ impl Conv3x3<'_> {
         {
             candle_core::bail!("conv3x3: weight {:?}, input {:?}", l2.dims(), l1.dims());
         }
-        if s == 1 && c_out <= CHANNELS_LAST_MAX && k <= 9 * CHANNELS_LAST_MAX {
-            return self.run_channels_last(src, (k / 9, h, w), wts, c_out, residual);
+        if s == 1 && matches!(self.path, ConvPath::Auto | ConvPath::Winograd) {
+            let fusion = super::winograd::Fusion {
+                bias,
+                relu_in: self.relu_in,
+                residual,
+                relu_out: self.relu_out,
+                project: None,
+            };
+            let planes = super::winograd::Source::Planes(src);
+            let dst = super::winograd::conv3x3(planes, (k / 9, h, w), wts, c_out, &fusion);
+            return Ok((CpuStorage::F32(dst), Shape::from_dims(&[1, c_out, h, w])));
         }
         let rows_per_chunk = (IM2COL_CHUNK_BYTES / (4 * k * ow)).clamp(1, oh);
         // Output initialised with the bias; each chunk's matmul accumulates into it in place.
@@ -1230,26 +1211,6 @@ impl Conv3x3<'_> {
         }
         Ok((CpuStorage::F32(dst), Shape::from_dims(&[1, c_out, oh, ow])))
     }
-}
-
-/// The weights of a 3×3 convolution `(c_out, c_in, 3, 3)` as the `k × n` right operand of a
-/// product with pixels as rows: `k = 9·c_in` ordered `(ky, kx, ci)`, `n = c_out`.
-fn conv3x3_weight_t(weight: &[f32], c_out: usize, c_in: usize) -> Vec<f32> {
-    let k = 9 * c_in;
-    let mut wt = vec![0f32; k * c_out];
-    for co in 0..c_out {
-        for ci in 0..c_in {
-            for kk in 0..9 {
-                wt[(kk * c_in + ci) * c_out + co] = weight[(co * c_in + ci) * 9 + kk];
-            }
-        }
-    }
-    wt
-}
-
-thread_local! {
-    /// A thread's scratch of [`Conv3x3::run_channels_last`]: one output row's products.
-    static CONV_ROW: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// `exp(x)` in `f32` without branches or libm calls, so that loops over slices vectorise:
@@ -1433,9 +1394,147 @@ pub(crate) fn upsample_bilinear_align_corners(
     }
 }
 
+/// A 1×1 convolution to one channel after [`upsample_conv3x3`]: weight `(1, c_out)` and bias
+/// `(1, 1)`.
+pub(crate) type Projection<'a> = (&'a Tensor, &'a Tensor);
+
+/// `project?(relu_out?(conv3x3(upsample(xs, out_h, out_w), weight) + bias))` in one pass, for
+/// `xs` `(1, c_in, h, w)`, `weight` `(c_out, c_in, 3, 3)` and `bias` `(c_out)`: `(1, c_out,
+/// out_h, out_w)`, or `(1, 1, out_h, out_w)` with the projection (the DPT head's output
+/// layers). On the CPU (f32) the upsampled input, and with the projection the `c_out`
+/// channels, exist one band of rows at a time ([`super::winograd`]); at ViT-S 518×686 they
+/// were maps of 30 to 45 MB, written, faulted in and read again. The same arithmetic as the
+/// steps apart, but for the order of the projection's sum (channel order here). Other
+/// devices: the steps apart.
+///
+/// # Errors
+/// Shape or dtype errors.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn upsample_conv3x3(
+    xs: &Tensor,
+    out_h: usize,
+    out_w: usize,
+    weight: &Tensor,
+    bias: &Tensor,
+    relu_out: bool,
+    project: Option<Projection<'_>>,
+) -> Result<Tensor> {
+    let (b, c_in, _, _) = xs.dims4()?;
+    let (c_out, wc_in, kh, kw) = weight.dims4()?;
+    if !(xs.device().is_cpu() && xs.dtype() == candle_core::DType::F32) {
+        let up = upsample_bilinear_align_corners(xs, out_h, out_w)?;
+        let fused = ConvFusion {
+            relu_out,
+            ..ConvFusion::default()
+        };
+        let y = conv3x3(&up, weight, Some(bias), 1, fused)?;
+        return match project {
+            Some((w1, b1)) => matmul_row_bias(w1, &y.reshape((c_out, out_h * out_w))?, b1, false)?
+                .reshape((1, 1, out_h, out_w)),
+            None => Ok(y),
+        };
+    }
+    if b != 1
+        || wc_in != c_in
+        || kh != 3
+        || kw != 3
+        || project.is_some_and(|(w1, b1)| w1.elem_count() != c_out || b1.elem_count() != 1)
+    {
+        candle_core::bail!(
+            "upsample-conv3x3: input {:?}, weight {:?}, projection {:?}",
+            xs.dims(),
+            weight.dims(),
+            project.map(|(w1, _)| w1.dims().to_vec())
+        );
+    }
+    let project = match project {
+        Some((w1, b1)) => Some((
+            w1.flatten_all()?.to_vec1()?,
+            b1.flatten_all()?.to_vec1::<f32>()?[0],
+        )),
+        None => None,
+    };
+    xs.contiguous()?.apply_op1_no_bwd(&UpsampleConvProject {
+        out_h,
+        out_w,
+        weight: weight.flatten_all()?.to_vec1()?,
+        bias: bias.to_vec1()?,
+        relu_out,
+        project,
+    })
+}
+
+struct UpsampleConvProject {
+    out_h: usize,
+    out_w: usize,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    relu_out: bool,
+    project: Option<(Vec<f32>, f32)>,
+}
+
+impl CustomOp1 for UpsampleConvProject {
+    fn name(&self) -> &'static str {
+        "upsample-conv3x3"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let src = contiguous(storage, layout)?;
+        let (_, c_in, h, w) = layout.shape().dims4()?;
+        let (oh, ow) = (self.out_h, self.out_w);
+        let c_out = self.bias.len();
+        if h == 0 || w == 0 || oh == 0 || ow == 0 || self.weight.len() != 9 * c_in * c_out {
+            candle_core::bail!("upsample-conv3x3: input {:?} to {oh}×{ow}", layout.dims());
+        }
+        let fusion = super::winograd::Fusion {
+            bias: &self.bias,
+            relu_in: false,
+            residual: None,
+            relu_out: self.relu_out,
+            project: self.project.as_ref().map(|(w1, b1)| (&w1[..], *b1)),
+        };
+        let source = super::winograd::Source::Upsampled {
+            src,
+            h_s: h,
+            w_s: w,
+        };
+        let dst = super::winograd::conv3x3(source, (c_in, oh, ow), &self.weight, c_out, &fusion);
+        let channels = if self.project.is_some() { 1 } else { c_out };
+        Ok((
+            CpuStorage::F32(dst),
+            Shape::from_dims(&[1, channels, oh, ow]),
+        ))
+    }
+}
+
 struct UpsampleBilinearAc {
     out_h: usize,
     out_w: usize,
+}
+
+/// `out[x] = wx0·r[x0] + wx1·r[x1]` for the taps `(x0, x1, wx0, wx1)` of each output column.
+pub(super) fn interpolate_row(r: &[f32], xt: &[(usize, usize, f32, f32)], out: &mut [f32]) {
+    for (o, &(x0, x1, wx0, wx1)) in out.iter_mut().zip(xt) {
+        *o = wx0 * r[x0] + wx1 * r[x1];
+    }
+}
+
+simd_dispatch! {
+    /// `acc += a·x`, element by element (a product, then a sum: no fused multiply-add).
+    pub(super) fn add_scaled(acc: &mut [f32], a: f32, x: &[f32]) {
+        for (s, &x) in acc.iter_mut().zip(x) {
+            *s += a * x;
+        }
+    }
+}
+
+simd_dispatch! {
+    /// `out = a0·h0 + a1·h1`, element by element.
+    pub(super) fn blend_rows(out: &mut [f32], h0: &[f32], h1: &[f32], a0: f32, a1: f32) {
+        for ((o, &x0), &x1) in out.iter_mut().zip(h0).zip(h1) {
+            *o = a0 * x0 + a1 * x1;
+        }
+    }
 }
 
 impl CustomOp1 for UpsampleBilinearAc {
@@ -1452,16 +1551,35 @@ impl CustomOp1 for UpsampleBilinearAc {
         }
         let yt = crate::preprocess::align_corners_taps(h, oh);
         let xt = crate::preprocess::align_corners_taps(w, ow);
+        // Separable: each source row is interpolated along x once (`hx`), then each output
+        // row blends two of those. `hy0·(wx0·r0[x0] + wx1·r0[x1]) + hy1·(…r1…)` is evaluated
+        // exactly as written (Rust does not contract to FMA): the same bits as a per-pixel
+        // loop, with the gathers done once per source row instead of twice per output row.
+        // Tasks: bands of output rows of one plane, with the source rows they need.
+        const BAND: usize = 32;
         let mut dst = vec![0f32; b * c * oh * ow];
-        dst.par_chunks_mut(ow).enumerate().for_each(|(i, row)| {
-            let (plane, oy) = (i / oh, i % oh);
-            let p = &src[plane * h * w..(plane + 1) * h * w];
-            let (y0, y1, hy0, hy1) = yt[oy];
-            let (r0, r1) = (&p[y0 * w..(y0 + 1) * w], &p[y1 * w..(y1 + 1) * w]);
-            for (o, &(x0, x1, wx0, wx1)) in row.iter_mut().zip(&xt) {
-                *o = hy0 * (wx0 * r0[x0] + wx1 * r0[x1]) + hy1 * (wx0 * r1[x0] + wx1 * r1[x1]);
-            }
-        });
+        dst.par_chunks_mut(oh * ow)
+            .enumerate()
+            .for_each(|(plane, plane_out)| {
+                let p = &src[plane * h * w..(plane + 1) * h * w];
+                plane_out
+                    .par_chunks_mut(BAND * ow)
+                    .enumerate()
+                    .for_each(|(band, out)| {
+                        let taps = &yt[band * BAND..band * BAND + out.len() / ow];
+                        let first = taps[0].0;
+                        let last = taps.iter().map(|t| t.1).max().unwrap_or(first);
+                        let mut hx = vec![0f32; (last - first + 1) * ow];
+                        for (y, hrow) in (first..=last).zip(hx.chunks_exact_mut(ow)) {
+                            interpolate_row(&p[y * w..(y + 1) * w], &xt, hrow);
+                        }
+                        for (row, &(y0, y1, hy0, hy1)) in out.chunks_exact_mut(ow).zip(taps) {
+                            let h0 = &hx[(y0 - first) * ow..(y0 - first + 1) * ow];
+                            let h1 = &hx[(y1 - first) * ow..(y1 - first + 1) * ow];
+                            blend_rows(row, h0, h1, hy0, hy1);
+                        }
+                    });
+            });
         Ok((CpuStorage::F32(dst), Shape::from_dims(&[b, c, oh, ow])))
     }
 }
@@ -1557,8 +1675,8 @@ mod tests {
     }
 
     /// The CPU paths of [`conv3x3`] against candle's `conv2d` in f64, with every fusion, on odd
-    /// sizes and both strides: channels last (stride 1, ≤ [`CHANNELS_LAST_MAX`] channels) and
-    /// im2col (stride 2, or more output channels).
+    /// and even sizes (one-pixel rows and columns included) and both strides: Winograd (what
+    /// stride 1 runs) and im2col (stride 2, and forced at stride 1).
     #[test]
     fn conv3x3_matches_candle_conv2d() {
         use candle_core::DType;
@@ -1568,7 +1686,15 @@ mod tests {
                 .map(|i| ((i as f64 * f).sin() * 1.7) as f32)
                 .collect()
         };
-        for (c_in, c_out, h, w) in [(3, 5, 7, 9), (8, 4, 6, 5), (16, 16, 11, 14), (4, 130, 5, 6)] {
+        for (c_in, c_out, h, w) in [
+            (3, 5, 7, 9),
+            (8, 4, 6, 5),
+            (16, 16, 11, 14),
+            (4, 130, 5, 6),
+            (2, 3, 1, 1),
+            (3, 2, 1, 6),
+            (5, 3, 7, 1),
+        ] {
             let x = Tensor::from_vec(wave(c_in * h * w, 0.37), (1, c_in, h, w), &dev).unwrap();
             let wt =
                 Tensor::from_vec(wave(c_out * c_in * 9, 0.71), (c_out, c_in, 3, 3), &dev).unwrap();
@@ -1605,24 +1731,232 @@ mod tests {
                         residual: with_res.then_some(&res),
                         relu_out,
                     };
-                    let got = conv3x3(&x, &wt, Some(&bias), stride, fused).unwrap();
-                    assert_eq!(got.dims(), &[1, c_out, oh, ow]);
-                    let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
-                    let err = got
-                        .iter()
-                        .zip(&want)
-                        .map(|(&g, &w)| (f64::from(g) - w).abs())
-                        .fold(0.0, f64::max);
-                    // f32 round-off of a 9·c_in-term sum of products of magnitude ≤ 2.9.
-                    let tol = 1e-6 * (9 * c_in) as f64;
-                    assert!(
-                        err < tol,
-                        "c{c_in}->{c_out} {h}x{w} s{stride} relu_in {relu_in} relu_out \
-                         {relu_out} residual {with_res}: max err {err} (tol {tol})"
-                    );
+                    let paths: &[ConvPath] = if stride == 1 {
+                        &[ConvPath::Auto, ConvPath::Winograd, ConvPath::Im2col]
+                    } else {
+                        &[ConvPath::Auto, ConvPath::Im2col]
+                    };
+                    for &path in paths {
+                        let got = conv3x3_path(&x, &wt, Some(&bias), stride, fused, path).unwrap();
+                        assert_eq!(got.dims(), &[1, c_out, oh, ow]);
+                        let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+                        let err = got
+                            .iter()
+                            .zip(&want)
+                            .map(|(&g, &w)| (f64::from(g) - w).abs())
+                            .fold(0.0, f64::max);
+                        // f32 round-off of a 9·c_in-term sum of products of magnitude ≤ 2.9
+                        // (Winograd: of 16 transformed terms per channel, ≤ 4× larger)
+                        let tol = 1e-6 * (9 * c_in) as f64;
+                        assert!(
+                            err < tol,
+                            "{path:?} c{c_in}->{c_out} {h}x{w} s{stride} relu_in {relu_in} \
+                             relu_out {relu_out} residual {with_res}: max err {err} (tol {tol})"
+                        );
+                    }
                 }
             }
         }
+    }
+
+    /// Winograd's output bands are fixed by the shape, each computed serially: the same bits
+    /// on 1 and 3 threads, with several bands (a tall input), and stride 2 refused.
+    #[test]
+    fn winograd_gives_the_same_bits_on_any_thread_count() {
+        let dev = candle_core::Device::Cpu;
+        let (c_in, c_out, h, w) = (24, 40, 301, 23);
+        let mut st = 0.1f32;
+        let mut next = || {
+            st = (st * 3.7 + 0.31).fract();
+            st * 2.0 - 1.0
+        };
+        let x = Tensor::from_vec(
+            (0..c_in * h * w).map(|_| next()).collect(),
+            (1, c_in, h, w),
+            &dev,
+        )
+        .unwrap();
+        let wt = Tensor::from_vec(
+            (0..c_out * c_in * 9).map(|_| next()).collect(),
+            (c_out, c_in, 3, 3),
+            &dev,
+        )
+        .unwrap();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| {
+                    conv3x3_path(&x, &wt, None, 1, ConvFusion::default(), ConvPath::Winograd)
+                        .unwrap()
+                        .flatten_all()
+                        .unwrap()
+                        .to_vec1::<f32>()
+                        .unwrap()
+                })
+        };
+        assert_eq!(run(1), run(3));
+        let stride2 = conv3x3_path(&x, &wt, None, 2, ConvFusion::default(), ConvPath::Winograd);
+        assert!(stride2.is_err());
+    }
+
+    /// The separable bilinear upsampling (`align_corners = true`) against candle's in f64, up
+    /// and down, one-pixel sources and targets included.
+    #[test]
+    fn upsample_matches_candle() {
+        use candle_core::DType;
+        let dev = candle_core::Device::Cpu;
+        for (c, h, w, oh, ow) in [
+            (3, 5, 7, 9, 13),
+            (2, 37, 49, 74, 98),
+            (1, 8, 6, 3, 4),
+            (2, 1, 1, 4, 5),
+            (1, 4, 5, 1, 1),
+            (2, 45, 3, 100, 2),
+        ] {
+            let x: Vec<f32> = (0..c * h * w).map(|i| ((i as f32) * 0.37).sin()).collect();
+            let x = Tensor::from_vec(x, (1, c, h, w), &dev).unwrap();
+            let want: Vec<f64> = x
+                .to_dtype(DType::F64)
+                .unwrap()
+                .upsample_bilinear2d(oh, ow, true)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let got = upsample_bilinear_align_corners(&x, oh, ow).unwrap();
+            assert_eq!(got.dims(), &[1, c, oh, ow]);
+            let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+            let err = got
+                .iter()
+                .zip(&want)
+                .map(|(&g, &w)| (f64::from(g) - w).abs())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-5, "{c}×{h}×{w} → {oh}×{ow}: {err}");
+        }
+    }
+
+    /// [`upsample_conv3x3`] against its steps in candle, in f64: upsample (`align_corners`),
+    /// 3×3 convolution + bias (+ ReLU, 1×1 projection to one channel); odd and even sizes,
+    /// several bands.
+    #[test]
+    fn upsample_conv_project_matches_its_three_steps() {
+        use candle_core::DType;
+        let dev = candle_core::Device::Cpu;
+        let wave = |n: usize, f: f64| -> Vec<f32> {
+            (0..n)
+                .map(|i| ((i as f64 * f).sin() * 1.3) as f32)
+                .collect()
+        };
+        for (c_in, c_out, h, w, oh, ow) in [
+            (4, 6, 5, 7, 9, 13),
+            (8, 5, 37, 9, 301, 17),
+            (3, 2, 2, 2, 1, 5),
+        ] {
+            let x = Tensor::from_vec(wave(c_in * h * w, 0.37), (1, c_in, h, w), &dev).unwrap();
+            let wt =
+                Tensor::from_vec(wave(c_out * c_in * 9, 0.71), (c_out, c_in, 3, 3), &dev).unwrap();
+            let bias = Tensor::from_vec(wave(c_out, 1.3), c_out, &dev).unwrap();
+            let w1 = Tensor::from_vec(wave(c_out, 0.9), (1, c_out), &dev).unwrap();
+            let b1 = Tensor::from_vec(vec![0.25f32], (1, 1), &dev).unwrap();
+            let f = |t: &Tensor| t.to_dtype(DType::F64).unwrap();
+            let y = f(&x)
+                .upsample_bilinear2d(oh, ow, true)
+                .unwrap()
+                .conv2d(&f(&wt), 1, 1, 1, 1)
+                .unwrap()
+                .broadcast_add(&f(&bias).reshape((1, (), 1, 1)).unwrap())
+                .unwrap()
+                .relu()
+                .unwrap()
+                .reshape((c_out, oh * ow))
+                .unwrap();
+            let want: Vec<f64> = f(&w1)
+                .matmul(&y)
+                .unwrap()
+                .broadcast_add(&f(&b1))
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let got = upsample_conv3x3(&x, oh, ow, &wt, &bias, true, Some((&w1, &b1))).unwrap();
+            assert_eq!(got.dims(), &[1, 1, oh, ow]);
+            // without the projection and the ReLU: the convolution's channels
+            let conv: Vec<f64> = f(&x)
+                .upsample_bilinear2d(oh, ow, true)
+                .unwrap()
+                .conv2d(&f(&wt), 1, 1, 1, 1)
+                .unwrap()
+                .broadcast_add(&f(&bias).reshape((1, (), 1, 1)).unwrap())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let plain = upsample_conv3x3(&x, oh, ow, &wt, &bias, false, None).unwrap();
+            assert_eq!(plain.dims(), &[1, c_out, oh, ow]);
+            let plain: Vec<f32> = plain.flatten_all().unwrap().to_vec1().unwrap();
+            let err = plain
+                .iter()
+                .zip(&conv)
+                .map(|(&g, &w)| (f64::from(g) - w).abs())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-6 * (9 * c_in) as f64, "no projection: {err}");
+            let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+            let err = got
+                .iter()
+                .zip(&want)
+                .map(|(&g, &w)| (f64::from(g) - w).abs())
+                .fold(0.0, f64::max);
+            // f32 round-off of 9·c_in products per channel, summed over c_out channels
+            let tol = 1e-6 * (9 * c_in * c_out) as f64;
+            assert!(
+                err < tol,
+                "{c_in}->{c_out} {h}x{w} -> {oh}x{ow}: {err} (tol {tol})"
+            );
+        }
+    }
+
+    /// The int8 attention's softmax in bytes against `round(255·exp(scale·(x − max)))` in f64:
+    /// each byte within one level (the polynomial moves values within 0.0007 of a level across
+    /// a rounding boundary), 255 at each row's maximum, zero padding, and `inv` = 255 / Σ q.
+    #[test]
+    fn softmax_u8_matches_the_rounded_exponential() {
+        let (rows, n, kp) = (5, 1815, 1816);
+        let scale = 0.125f32;
+        let s: Vec<f32> = (0..rows * n)
+            .map(|i| (i as f32 * 0.7131).sin() * 40.0 + (i / n) as f32 * 3.0)
+            .collect();
+        let mut q = vec![7u8; rows * kp];
+        let mut inv = vec![0f32; rows];
+        softmax_u8(&s, n, scale, &mut q, kp, &mut inv);
+        let mut off_by_one = 0;
+        for r in 0..rows {
+            let row = &s[r * n..(r + 1) * n];
+            let max = row.iter().copied().fold(f32::MIN, f32::max);
+            let qr = &q[r * kp..(r + 1) * kp];
+            assert_eq!(qr[n], 0, "padding");
+            let mut sum = 0u32;
+            for (&v, &b) in row.iter().zip(qr) {
+                let want = (255.0 * (f64::from(scale) * (f64::from(v) - f64::from(max))).exp())
+                    .round_ties_even();
+                let d = (f64::from(b) - want).abs();
+                assert!(d <= 1.0, "{v}: {b} vs {want}");
+                off_by_one += usize::from(d > 0.0);
+                sum += u32::from(b);
+                if v == max {
+                    assert_eq!(b, 255);
+                }
+            }
+            assert!((inv[r] - 255.0 / sum as f32).abs() <= 1e-6 * inv[r]);
+        }
+        assert!(
+            off_by_one * 100 < rows * n,
+            "{off_by_one} bytes off by one level"
+        );
     }
 
     #[test]
