@@ -366,10 +366,17 @@ impl super::ops::PackedLinear for QuantLinear {
         inv: &mut [f32],
     ) {
         let (n, kp) = (self.k, self.kp);
-        let mut p = vec![0u8; rows.div_ceil(MR) * MR * kp];
-        super::ops::softmax_u8(s, n, scale, &mut p, kp, &mut inv[..rows]);
-        let sx = vec![1.0 / 255.0; rows];
-        self.forward_quantised(&p, &sx, &vec![0; rows], rows, out);
+        QUANT.with(|cell| {
+            let mut buf = cell.borrow_mut();
+            // softmax_u8 writes every byte of the `rows` rows; the padding rows up to a
+            // multiple of MR are zero
+            let p = buf.parts(rows.div_ceil(MR) * MR * kp);
+            p[rows * kp..].fill(0);
+            super::ops::softmax_u8(s, n, scale, p, kp, &mut inv[..rows]);
+            let sx = [1.0 / 255.0; super::ops::PACKED_CHUNK];
+            let zx = [0i32; super::ops::PACKED_CHUNK];
+            self.forward_quantised(p, &sx[..rows], &zx[..rows], rows, out);
+        });
     }
 }
 

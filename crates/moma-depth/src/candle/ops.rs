@@ -921,9 +921,10 @@ impl<L: PackedLinear> CustomOp1 for AttentionPackedOp<L> {
             let r0 = b * ATTN_ROWS;
             let rows = ATTN_ROWS.min(n - r0);
             let (kt, v) = &layers[h];
-            let q: Vec<f32> = (r0..r0 + rows)
-                .flat_map(|i| qkv[i * c3 + h * hd..i * c3 + (h + 1) * hd].iter().copied())
-                .collect();
+            let mut q = Vec::with_capacity(rows * hd);
+            for i in r0..r0 + rows {
+                q.extend_from_slice(&qkv[i * c3 + h * hd..i * c3 + (h + 1) * hd]);
+            }
             SCORES.with(|cell| {
                 let mut s = cell.borrow_mut();
                 if s.len() < rows * n {

@@ -28,6 +28,9 @@ use super::ops::{MatRef, SendPtr, sgemm};
 /// bounds the scratch memory and keeps it in cache.
 const BAND_BYTES: usize = 2 << 20;
 
+/// Fewest tile rows per band with an upsampled input ([`Source::Upsampled`]).
+const UPSAMPLED_BAND_ROWS: usize = 4;
+
 /// `U[ξ][co][ci] = (G g Gᵀ)[ξ]` for `weight` `(c_out, c_in, 3, 3)`: `(16, c_out, c_in)`.
 fn transform_weights(weight: &[f32], c_out: usize, c_in: usize) -> Vec<f32> {
     const G: [[f64; 3]; 4] = [
@@ -121,6 +124,13 @@ pub(super) fn conv3x3(
     let (tiles_y, tiles_x) = (h.div_ceil(2), w.div_ceil(2));
     let per_tile = 16 * (c_in + c_out) * 4;
     let band_rows = (BAND_BYTES / (per_tile * tiles_x)).clamp(1, tiles_y);
+    // an upsampled input interpolates the source rows a band needs along x: at least
+    // UPSAMPLED_BAND_ROWS tile rows, so that bands share few source rows (each interpolated
+    // by both bands that read it)
+    let band_rows = match src {
+        Source::Planes(_) => band_rows,
+        Source::Upsampled { .. } => band_rows.max(UPSAMPLED_BAND_ROWS).min(tiles_y),
+    };
     let channels = if fusion.project.is_some() { 1 } else { c_out };
     let mut dst = vec![0f32; channels * h * w];
     let out = SendPtr(dst.as_mut_ptr());
