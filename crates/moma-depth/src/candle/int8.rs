@@ -11,6 +11,12 @@
 //! removed with the weights' column sums: `Σ_k q_x·q_w − z[i]·Σ_k q_w`, and
 //! `y[i, j] = s_x[i]·s_w[j]·(Σ_k q_x·q_w − z[i]·Σ_k q_w) + b[j]`.
 //!
+//! Outlier channels (LLM.int8's decomposition): within each chunk of rows, an input channel
+//! whose largest `|x|` exceeds [`OUTLIER_RATIO`] × the median channel's (at most one channel in
+//! [`OUTLIER_SHARE`]) is left out of the quantised rows and multiplied in f32 with its weight
+//! row as quantised, so that it no longer sets every token's scale. Rows without such channels
+//! (every random-weight reference here) give the plain product, bit for bit.
+//!
 //! Kernel: AVX512-VNNI `vpdpbusd` (64 multiply-adds of bytes per instruction) where the CPU has
 //! it, found at run time; a portable loop otherwise. Both give the same `i32` sums (integer
 //! arithmetic is exact) and share the `f32` epilogue, so every CPU and every thread count gives
@@ -200,20 +206,48 @@ impl QuantLinear {
     ) {
         let (k, kp) = (self.k, self.kp);
         let padded = rows.div_ceil(MR) * MR;
+        let outliers = outlier_channels(&x[..rows * k], k);
         QUANT.with(|cell| {
             let mut buf = cell.borrow_mut();
-            let q = buf.parts(padded * kp);
+            let (q, inliers) = buf.parts(padded * kp, k);
             // Quantised rows (0 in the padding: the weights there are 0 too), their scales
-            // and zero points.
+            // and zero points; outlier channels as zeros (their products follow in f32).
             let mut sx = [0f32; CHUNK];
             let mut zx = [0i32; CHUNK];
             q[rows * kp..].fill(0);
             for (i, (row, q)) in x.chunks_exact(k).zip(q.chunks_exact_mut(kp)).enumerate() {
+                let row = if outliers.is_empty() {
+                    row
+                } else {
+                    inliers.copy_from_slice(row);
+                    for &j in &outliers {
+                        inliers[j] = 0.0;
+                    }
+                    &inliers[..]
+                };
                 (sx[i], zx[i]) = quantise_row(row, &mut q[..k]);
                 q[k..].fill(0);
             }
             self.multiply(q, &sx, &zx, rows, residual, out, vnni);
         });
+        self.add_outlier_products(x, rows, &outliers, out);
+    }
+
+    /// `out += x[:, j] · W[j, :]` for the outlier channels `j` of `x` (`rows × k`), with the
+    /// weights' row `j` as quantised (`q_w · s_w`): the activations of those channels keep
+    /// f32, so they no longer set every token's scale.
+    fn add_outlier_products(&self, x: &[f32], rows: usize, outliers: &[usize], out: &mut [f32]) {
+        let (k, n, kp) = (self.k, self.n, self.kp);
+        let mut w = vec![0f32; n];
+        for &j in outliers {
+            for (col, w) in w.iter_mut().enumerate() {
+                let q = self.packed[(col / 16) * kp * 16 + (j / 4) * 64 + (col % 16) * 4 + j % 4];
+                *w = f32::from(q) * self.scale[col];
+            }
+            for (i, o) in out.chunks_exact_mut(n).enumerate().take(rows) {
+                super::ops::add_scaled(o, x[i * k + j], &w);
+            }
+        }
     }
 
     /// `out` (`rows × n`) from rows already quantised: `q` holds `rows` rounded up to a
@@ -370,7 +404,7 @@ impl super::ops::PackedLinear for QuantLinear {
             let mut buf = cell.borrow_mut();
             // softmax_u8 writes every byte of the `rows` rows; the padding rows up to a
             // multiple of MR are zero
-            let p = buf.parts(rows.div_ceil(MR) * MR * kp);
+            let (p, _) = buf.parts(rows.div_ceil(MR) * MR * kp, 0);
             p[rows * kp..].fill(0);
             super::ops::softmax_u8(s, n, scale, p, kp, &mut inv[..rows]);
             let sx = [1.0 / 255.0; super::ops::PACKED_CHUNK];
@@ -444,21 +478,57 @@ super::ops::simd_dispatch! {
     }
 }
 
-/// A thread's scratch of [`QuantLinear::run_chunk`]: the quantised rows, kept between calls
-/// (a layer runs ~30 chunks per frame and per thread).
+/// A thread's scratch of [`QuantLinear::run_chunk`]: the quantised rows and one row without
+/// its outlier channels, kept between calls (a layer runs ~30 chunks per frame and per thread).
 #[derive(Default)]
 struct Scratch {
     q: Vec<u8>,
+    row: Vec<f32>,
 }
 
 impl Scratch {
-    /// The buffer, of at least this length.
-    fn parts(&mut self, q: usize) -> &mut [u8] {
+    /// The buffers, of these lengths (`q` at least).
+    fn parts(&mut self, q: usize, row: usize) -> (&mut [u8], &mut [f32]) {
         if self.q.len() < q {
             self.q.resize(q, 0);
         }
-        &mut self.q[..q]
+        self.row.resize(row, 0.0);
+        (&mut self.q[..q], &mut self.row[..])
     }
+}
+
+/// An input channel is an outlier when its largest `|x|` over a chunk's rows exceeds this
+/// multiple of the median channel's (trained ViTs carry a few channels 10–100× larger than the
+/// rest; in a row quantised as a whole they set the scale and leave every other channel a few
+/// levels: `outlier_channels_widen_the_error_of_every_other_channel`).
+const OUTLIER_RATIO: f32 = 6.0;
+
+/// At most one input channel in this many is treated as an outlier (the largest ones).
+const OUTLIER_SHARE: usize = 32;
+
+/// The outlier channels of the rows `x` (`k` values each), largest first: LLM.int8's
+/// decomposition (Dettmers et al. 2022), with the threshold relative to the median channel
+/// instead of an absolute 6. Empty for rows without outliers (then the int8 product is the
+/// plain one, bit for bit) and for rows with values that are not finite (the quantisation
+/// gives those NaN).
+fn outlier_channels(x: &[f32], k: usize) -> Vec<usize> {
+    let mut amax = vec![0f32; k];
+    for row in x.chunks_exact(k) {
+        if column_abs_max(row, &mut amax).is_none() {
+            return Vec::new();
+        }
+    }
+    let mut sorted = amax.clone();
+    let mid = k / 2;
+    let (_, median, _) = sorted.select_nth_unstable_by(mid, f32::total_cmp);
+    let limit = *median * OUTLIER_RATIO;
+    if limit <= 0.0 {
+        return Vec::new();
+    }
+    let mut out: Vec<usize> = (0..k).filter(|&j| amax[j] > limit).collect();
+    out.sort_by(|&a, &b| amax[b].total_cmp(&amax[a]).then(a.cmp(&b)));
+    out.truncate(k / OUTLIER_SHARE);
+    out
 }
 
 thread_local! {
@@ -649,7 +719,12 @@ mod tests {
     fn vnni_and_portable_kernels_agree_bit_for_bit_on_any_thread_count() {
         let (m, k, n) = (150, 384, 96);
         let mut st = 11;
-        let x: Vec<f32> = (0..m * k).map(|_| uniform(&mut st) * 3.0).collect();
+        let mut x: Vec<f32> = (0..m * k).map(|_| uniform(&mut st) * 3.0).collect();
+        // two outlier channels in the rows of the second chunk only: the split is per chunk
+        for row in x.chunks_exact_mut(k).skip(CHUNK).take(CHUNK) {
+            row[5] *= 50.0;
+            row[300] *= 40.0;
+        }
         let w: Vec<f32> = (0..k * n).map(|_| uniform(&mut st) * 0.1).collect();
         let b: Vec<f32> = (0..n).map(|_| uniform(&mut st)).collect();
         let r: Vec<f32> = (0..m * n).map(|_| uniform(&mut st)).collect();
@@ -679,60 +754,79 @@ mod tests {
     }
 
     /// `|y − y_f32| ≤ Σ_k (|Δx_k|·|w_k| + |x_k|·|Δw_k| + |Δx_k|·|Δw_k|)` with the rounding
-    /// steps `|Δx| ≤ s_x/2`, `|Δw| ≤ s_w/2`: the bound, written from the scales alone.
-    fn bound(row: &[f32], w: &[f32], k: usize, n: usize, j: usize) -> f64 {
-        let lo = row.iter().fold(0f32, |a, &v| a.min(v));
-        let hi = row.iter().fold(0f32, |a, &v| a.max(v));
+    /// steps `|Δw| ≤ s_w/2` and `|Δx| ≤ s_x/2`, where the row's scale `s_x` spans the channels
+    /// that are quantised, and the `outliers` (multiplied in f32) have `Δx = 0`: the bound,
+    /// written from the scales alone.
+    fn bound(row: &[f32], outliers: &[usize], w: &[f32], k: usize, n: usize, j: usize) -> f64 {
+        let quantised = || (0..k).filter(|t| !outliers.contains(t)).map(|t| row[t]);
+        let lo = quantised().fold(0f32, f32::min);
+        let hi = quantised().fold(0f32, f32::max);
         let dx = f64::from((hi - lo) / 255.0) / 2.0;
         let sw = (0..k).fold(0f32, |a, t| a.max(w[t * n + j].abs())) / 127.0;
         let dw = f64::from(sw) / 2.0;
         (0..k)
-            .map(|t| dx * f64::from(w[t * n + j].abs()) + f64::from(row[t].abs()) * dw + dx * dw)
+            .map(|t| {
+                let dx = if outliers.contains(&t) { 0.0 } else { dx };
+                dx * f64::from(w[t * n + j].abs()) + f64::from(row[t].abs()) * dw + dx * dw
+            })
             .sum::<f64>()
             * 1.001
             + 1e-6
     }
 
     #[test]
-    fn outlier_channels_widen_the_error_of_every_other_channel() {
+    fn outlier_channels_are_multiplied_apart() {
         // Trained ViTs carry a few activation channels 10–100× larger than the rest; random
-        // weights do not. A per-token scale is set by them, so the other channels lose
-        // resolution: the error grows with the outliers' size, and stays within the bound.
+        // weights do not. Quantised with the rest, they would set every token's scale and leave
+        // the other channels a few levels (the error grew more than tenfold here). Found per
+        // chunk and multiplied in f32, they leave the error near the plain one, within the
+        // bound of the scale without them.
         let (m, k, n) = (16, 384, 64);
         let mut st = 5;
         let x: Vec<f32> = (0..m * k).map(|_| uniform(&mut st)).collect();
         let w: Vec<f32> = (0..k * n).map(|_| uniform(&mut st) * 0.05).collect();
         let b = vec![0f32; n];
         let q = QuantLinear::new(&w, k, n, &b).unwrap();
-        let error = |x: &[f32]| {
+        let error = |x: &[f32], outliers: &[usize]| {
             let y = q.forward(x, m, None);
             let exact = reference(x, m, &w, k, n, &b);
             let mut worst = 0f64;
             for i in 0..m {
                 for j in 0..n {
                     let e = (f64::from(y[i * n + j]) - exact[i * n + j]).abs();
-                    assert!(
-                        e <= bound(&x[i * k..(i + 1) * k], &w, k, n, j),
-                        "{i},{j}: {e}"
-                    );
+                    let row = &x[i * k..(i + 1) * k];
+                    assert!(e <= bound(row, outliers, &w, k, n, j), "{i},{j}: {e}");
                     worst = worst.max(e);
                 }
             }
             worst
         };
-        let plain = error(&x);
-        let mut outliers = x.clone();
-        for row in outliers.chunks_exact_mut(k) {
+        assert!(outlier_channels(&x, k).is_empty());
+        let plain = error(&x, &[]);
+        let mut with_outliers = x.clone();
+        for row in with_outliers.chunks_exact_mut(k) {
             row[7] *= 60.0;
             row[200] *= -60.0;
         }
-        // the outlier channels' own contribution is exact to within their step: compare the
-        // error against the same input's f32 product
-        let with = error(&outliers);
+        let found = outlier_channels(&with_outliers, k);
+        assert_eq!(found.len(), 2);
+        assert!(found.contains(&7) && found.contains(&200), "{found:?}");
+        let with = error(&with_outliers, &found);
         assert!(
-            with > 10.0 * plain,
+            with < 5.0 * plain,
             "outliers: {with:.3e}, without: {plain:.3e}"
         );
+        // at most one channel in OUTLIER_SHARE, the largest: a row of growing values
+        let ramp: Vec<f32> = (0..k)
+            .map(|t| if t % 50 == 0 { 100.0 + t as f32 } else { 1.0 })
+            .collect();
+        let found = outlier_channels(&ramp, k);
+        assert_eq!(found.len(), (k / 50 + 1).min(k / OUTLIER_SHARE));
+        assert_eq!(found[0], 350);
+        // a non-finite value: no split (the row's outputs are NaN either way)
+        let mut bad = x.clone();
+        bad[3] = f32::NAN;
+        assert!(outlier_channels(&bad, k).is_empty());
     }
 
     #[test]
