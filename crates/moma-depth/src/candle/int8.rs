@@ -100,16 +100,28 @@ impl QuantLinear {
                 packed[(j / 16) * kp * 16 + at + (j % 16) * 4] = q;
             }
         }
-        Ok(Self {
+        Ok(Self::from_parts(k, n, packed, scale, colsum, bias.to_vec()))
+    }
+
+    /// The layer from its packed bytes, scales and column sums (`np` each) and bias (`n`).
+    fn from_parts(
+        k: usize,
+        n: usize,
+        packed: Vec<i8>,
+        scale: Vec<f32>,
+        colsum: Vec<i32>,
+        bias: Vec<f32>,
+    ) -> Self {
+        Self {
             k,
             n,
-            kp,
-            np,
+            kp: k.div_ceil(4) * 4,
+            np: n.div_ceil(NR) * NR,
             packed,
             scale,
             colsum,
-            bias: bias.to_vec(),
-        })
+            bias,
+        }
     }
 
     /// [`Self::new`] of `Xᵀ` (`k × n`, zero bias), row `j` of `X` at `src[j·stride..][..k]`
@@ -137,16 +149,7 @@ impl QuantLinear {
                 packed[base + kb * 64..base + kb * 64 + 4].copy_from_slice(q4);
             }
         }
-        Ok(Self {
-            k,
-            n,
-            kp,
-            np,
-            packed,
-            scale,
-            colsum,
-            bias: vec![0.0; n],
-        })
+        Ok(Self::from_parts(k, n, packed, scale, colsum, vec![0.0; n]))
     }
 
     /// [`Self::new`] of `X` (`k × n`, zero bias), row `i` at `src[i·stride..][..n]` (an
@@ -183,16 +186,7 @@ impl QuantLinear {
                 }
             }
         }
-        Ok(Self {
-            k,
-            n,
-            kp,
-            np,
-            packed,
-            scale,
-            colsum,
-            bias: vec![0.0; n],
-        })
+        Ok(Self::from_parts(k, n, packed, scale, colsum, vec![0.0; n]))
     }
 
     /// `PackedLinear::run_chunk` with the VNNI kernel or (`vnni` false) the portable one.

@@ -1513,8 +1513,38 @@ struct UpsampleBilinearAc {
     out_w: usize,
 }
 
+/// Rows `yt` (the taps of consecutive output rows) of one plane `p` (width `w`) upsampled to
+/// `xt.len()` columns into `out` (`yt.len()` rows): each source row the rows need is
+/// interpolated along x once (into `hx`), then each output row blends two of those.
+/// `hy0·(wx0·r0[x0] + wx1·r0[x1]) + hy1·(…r1…)` is evaluated exactly as written (Rust does not
+/// contract to FMA): the same bits as a per-pixel loop, with the gathers done once per source
+/// row instead of twice per output row.
+pub(super) fn upsample_rows(
+    p: &[f32],
+    w: usize,
+    yt: &[(usize, usize, f32, f32)],
+    xt: &[(usize, usize, f32, f32)],
+    hx: &mut Vec<f32>,
+    out: &mut [f32],
+) {
+    let ow = xt.len();
+    let (Some(first), Some(last)) = (yt.first(), yt.last()) else {
+        return;
+    };
+    let (first, last) = (first.0, last.1.max(last.0));
+    hx.resize((last - first + 1) * ow, 0.0);
+    for (y, hrow) in (first..=last).zip(hx.chunks_exact_mut(ow)) {
+        interpolate_row(&p[y * w..(y + 1) * w], xt, hrow);
+    }
+    for (row, &(y0, y1, hy0, hy1)) in out.chunks_exact_mut(ow).zip(yt) {
+        let h0 = &hx[(y0 - first) * ow..(y0 - first + 1) * ow];
+        let h1 = &hx[(y1 - first) * ow..(y1 - first + 1) * ow];
+        blend_rows(row, h0, h1, hy0, hy1);
+    }
+}
+
 /// `out[x] = wx0·r[x0] + wx1·r[x1]` for the taps `(x0, x1, wx0, wx1)` of each output column.
-pub(super) fn interpolate_row(r: &[f32], xt: &[(usize, usize, f32, f32)], out: &mut [f32]) {
+fn interpolate_row(r: &[f32], xt: &[(usize, usize, f32, f32)], out: &mut [f32]) {
     for (o, &(x0, x1, wx0, wx1)) in out.iter_mut().zip(xt) {
         *o = wx0 * r[x0] + wx1 * r[x1];
     }
@@ -1531,7 +1561,7 @@ simd_dispatch! {
 
 simd_dispatch! {
     /// `out = a0·h0 + a1·h1`, element by element.
-    pub(super) fn blend_rows(out: &mut [f32], h0: &[f32], h1: &[f32], a0: f32, a1: f32) {
+    fn blend_rows(out: &mut [f32], h0: &[f32], h1: &[f32], a0: f32, a1: f32) {
         for ((o, &x0), &x1) in out.iter_mut().zip(h0).zip(h1) {
             *o = a0 * x0 + a1 * x1;
         }
@@ -1552,11 +1582,7 @@ impl CustomOp1 for UpsampleBilinearAc {
         }
         let yt = crate::preprocess::align_corners_taps(h, oh);
         let xt = crate::preprocess::align_corners_taps(w, ow);
-        // Separable: each source row is interpolated along x once (`hx`), then each output
-        // row blends two of those. `hy0·(wx0·r0[x0] + wx1·r0[x1]) + hy1·(…r1…)` is evaluated
-        // exactly as written (Rust does not contract to FMA): the same bits as a per-pixel
-        // loop, with the gathers done once per source row instead of twice per output row.
-        // Tasks: bands of output rows of one plane, with the source rows they need.
+        // Separable ([`upsample_rows`]); tasks: bands of output rows of one plane.
         const BAND: usize = 32;
         let mut dst = vec![0f32; b * c * oh * ow];
         dst.par_chunks_mut(oh * ow)
@@ -1568,17 +1594,7 @@ impl CustomOp1 for UpsampleBilinearAc {
                     .enumerate()
                     .for_each(|(band, out)| {
                         let taps = &yt[band * BAND..band * BAND + out.len() / ow];
-                        let first = taps[0].0;
-                        let last = taps.iter().map(|t| t.1).max().unwrap_or(first);
-                        let mut hx = vec![0f32; (last - first + 1) * ow];
-                        for (y, hrow) in (first..=last).zip(hx.chunks_exact_mut(ow)) {
-                            interpolate_row(&p[y * w..(y + 1) * w], &xt, hrow);
-                        }
-                        for (row, &(y0, y1, hy0, hy1)) in out.chunks_exact_mut(ow).zip(taps) {
-                            let h0 = &hx[(y0 - first) * ow..(y0 - first + 1) * ow];
-                            let h1 = &hx[(y1 - first) * ow..(y1 - first + 1) * ow];
-                            blend_rows(row, h0, h1, hy0, hy1);
-                        }
+                        upsample_rows(p, w, taps, &xt, &mut Vec::new(), out);
                     });
             });
         Ok((CpuStorage::F32(dst), Shape::from_dims(&[b, c, oh, ow])))

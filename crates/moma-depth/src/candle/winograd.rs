@@ -206,7 +206,8 @@ fn band(
             (Source::Upsampled { src, h_s, w_s }, Some((yt, xt))) => {
                 // rows y_lo..y_hi of the upsampled plane, at their places in a plane-sized view
                 let p = &src[ci * h_s * w_s..(ci + 1) * h_s * w_s];
-                upsample_rows(p, w_s, &yt[y_lo..y_hi], xt, &mut s.hx, &mut s.up);
+                s.up.resize((y_hi - y_lo) * w, 0.0);
+                super::ops::upsample_rows(p, w_s, &yt[y_lo..y_hi], xt, &mut s.hx, &mut s.up);
                 &s.up[..]
             }
             (Source::Upsampled { .. }, None) => unreachable!("conv3x3 sets the taps"),
@@ -309,34 +310,6 @@ fn band(
                 w,
             );
         }
-    }
-}
-
-/// Rows `yt` (taps of consecutive output rows) of one plane `p` (width `w_s`) upsampled to
-/// `xt.len()` columns into `up`, by [`super::ops::upsample_bilinear_align_corners`]'s rule:
-/// each source row interpolated along x once (into `hx`), each output row a blend of two.
-fn upsample_rows(
-    p: &[f32],
-    w_s: usize,
-    yt: &[Taps],
-    xt: &[Taps],
-    hx: &mut Vec<f32>,
-    up: &mut Vec<f32>,
-) {
-    let ow = xt.len();
-    let (Some(first), Some(last)) = (yt.first(), yt.last()) else {
-        return;
-    };
-    let (first, last) = (first.0, last.1.max(last.0));
-    hx.resize((last - first + 1) * ow, 0.0);
-    for (y, hrow) in (first..=last).zip(hx.chunks_exact_mut(ow)) {
-        super::ops::interpolate_row(&p[y * w_s..(y + 1) * w_s], xt, hrow);
-    }
-    up.resize(yt.len() * ow, 0.0);
-    for (row, &(y0, y1, hy0, hy1)) in up.chunks_exact_mut(ow).zip(yt) {
-        let h0 = &hx[(y0 - first) * ow..(y0 - first + 1) * ow];
-        let h1 = &hx[(y1 - first) * ow..(y1 - first + 1) * ow];
-        super::ops::blend_rows(row, h0, h1, hy0, hy1);
     }
 }
 
