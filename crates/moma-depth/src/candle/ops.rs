@@ -63,18 +63,44 @@ impl CustomOp3 for TwoPassLayerNorm {
         }
         let mut dst = vec![0f32; src.len()];
         let eps = self.eps;
-        dst.par_chunks_mut(dim)
-            .zip(src.par_chunks(dim))
+        dst.par_chunks_mut(16 * dim)
+            .zip(src.par_chunks(16 * dim))
             .for_each(|(d, s)| {
-                let n = dim as f32;
-                let mean = s.iter().sum::<f32>() / n;
-                let var = s.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / n;
-                let inv = 1.0 / (var + eps).sqrt();
-                for ((o, v), (w, b)) in d.iter_mut().zip(s).zip(weight.iter().zip(bias)) {
-                    *o = (v - mean) * inv * w + b;
+                for (d, s) in d.chunks_exact_mut(dim).zip(s.chunks_exact(dim)) {
+                    layer_norm_row(s, weight, bias, eps, d);
                 }
             });
         Ok((CpuStorage::F32(dst), l1.shape().clone()))
+    }
+}
+
+simd_dispatch! {
+    /// One row of [`layer_norm`]: the mean, then the variance of the deviations (two passes),
+    /// each summed in 16 lanes (vectorises; a sequential sum was 3 % of an int8 ViT-S frame).
+    fn layer_norm_row(s: &[f32], weight: &[f32], bias: &[f32], eps: f32, d: &mut [f32]) {
+        let n = s.len() as f32;
+        let mut acc = [0f32; 16];
+        let mut chunks = s.chunks_exact(16);
+        for c in &mut chunks {
+            for l in 0..16 {
+                acc[l] += c[l];
+            }
+        }
+        let mean = (acc.iter().sum::<f32>() + chunks.remainder().iter().sum::<f32>()) / n;
+        let mut acc = [0f32; 16];
+        let mut chunks = s.chunks_exact(16);
+        for c in &mut chunks {
+            for l in 0..16 {
+                let t = c[l] - mean;
+                acc[l] += t * t;
+            }
+        }
+        let rest: f32 = chunks.remainder().iter().map(|&v| (v - mean) * (v - mean)).sum();
+        let var = (acc.iter().sum::<f32>() + rest) / n;
+        let inv = 1.0 / (var + eps).sqrt();
+        for ((o, v), (w, b)) in d.iter_mut().zip(s).zip(weight.iter().zip(bias)) {
+            *o = (v - mean) * inv * w + b;
+        }
     }
 }
 
