@@ -13,8 +13,9 @@
 //! `conv2d` in f64).
 //!
 //! Written here because neither `gemm` nor candle has a Winograd convolution. Measured at the
-//! DPT head's shapes against the channels-last direct convolution it replaces
-//! (`cargo run --release -p moma-depth --example cpu_kernels`).
+//! DPT head's shapes against im2col (`cargo run --release -p moma-depth --example
+//! cpu_kernels`) and, before its removal, the channels-last direct convolution it replaced
+//! (0.5–0.9× its time; docs/depth-model.md).
 //!
 //! The output is computed in bands of tile rows, each band serially (input transform, 16
 //! products, output transform) and the bands in parallel: a band's bits do not depend on the
@@ -43,7 +44,7 @@ fn transform_weights(weight: &[f32], c_out: usize, c_in: usize) -> Vec<f32> {
     for co in 0..c_out {
         for ci in 0..c_in {
             let g = &weight[(co * c_in + ci) * 9..(co * c_in + ci + 1) * 9];
-            // G g (4 × 3), then (G g) Gᵀ (4 × 4), in f64 (exact: the coefficients are dyadic)
+            // G g (4 × 3), then (G g) Gᵀ (4 × 4), in f64, rounded once to f32
             let mut gg = [[0f64; 3]; 4];
             for (i, row) in gg.iter_mut().enumerate() {
                 for (j, v) in row.iter_mut().enumerate() {
@@ -110,9 +111,10 @@ pub(super) enum Source<'a> {
     },
 }
 
-/// The stride-1, padding-1 3×3 convolution of `src` `(c_in, h, w)` with `weight`
-/// `(c_out, c_in, 3, 3)`: `(c_out, h, w)`. The caller checks the sizes (`src` `c_in·h·w`,
-/// `weight` `9·c_in·c_out`, `bias` `c_out`, `residual` `c_out·h·w`).
+/// The stride-1, padding-1 3×3 convolution of `src` (`(c_in, h, w)` planes, or planes
+/// upsampled to that size) with `weight` `(c_out, c_in, 3, 3)` and what `fusion` adds:
+/// `(c_out, h, w)`, or `(1, h, w)` with [`Fusion::project`]. The caller checks the sizes
+/// (`src`, `weight` `9·c_in·c_out`, `bias` `c_out`, `residual` `c_out·h·w`).
 pub(super) fn conv3x3(
     src: Source<'_>,
     (c_in, h, w): (usize, usize, usize),
@@ -204,7 +206,7 @@ fn band(
         let plane: &[f32] = match (input.src, input.taps) {
             (Source::Planes(src), _) => &src[ci * h * w..(ci + 1) * h * w],
             (Source::Upsampled { src, h_s, w_s }, Some((yt, xt))) => {
-                // rows y_lo..y_hi of the upsampled plane, at their places in a plane-sized view
+                // rows y_lo..y_hi of the upsampled plane, row y at (y − y_lo)·w
                 let p = &src[ci * h_s * w_s..(ci + 1) * h_s * w_s];
                 s.up.resize((y_hi - y_lo) * w, 0.0);
                 super::ops::upsample_rows(p, w_s, &yt[y_lo..y_hi], xt, &mut s.hx, &mut s.up);
