@@ -15,7 +15,7 @@
 //! Written here because neither `gemm` nor candle has a Winograd convolution. Measured at the
 //! DPT head's shapes against im2col (`cargo run --release -p moma-depth --example
 //! cpu_kernels`) and, before its removal, the channels-last direct convolution it replaced
-//! (0.5–0.9× its time; docs/depth-model.md).
+//! (0.5–0.96× its time; docs/depth-model.md).
 //!
 //! The output is computed in bands of tile rows, each band serially (input transform, 16
 //! products, output transform) and the bands in parallel: a band's bits do not depend on the
