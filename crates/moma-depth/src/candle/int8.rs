@@ -72,35 +72,7 @@ impl QuantLinear {
                 bias.len()
             );
         }
-        if weight_t.iter().any(|w| !w.is_finite()) {
-            candle_core::bail!("int8 linear: the weights hold a value that is not finite");
-        }
-        let kp = k.div_ceil(4) * 4;
-        let np = n.div_ceil(NR) * NR;
-        // column maxima row by row (contiguous, vectorises; the weights are finite)
-        let mut amax = vec![0f32; n];
-        for row in weight_t.chunks_exact(n) {
-            for (m, &w) in amax.iter_mut().zip(row) {
-                let a = w.abs();
-                *m = if a > *m { a } else { *m };
-            }
-        }
-        let mut scale = vec![0f32; np];
-        for (s, &a) in scale.iter_mut().zip(&amax) {
-            *s = if a > 0.0 { a / 127.0 } else { 1.0 };
-        }
-        let inv: Vec<f32> = scale[..n].iter().map(|s| 1.0 / s).collect();
-        let mut packed = vec![0i8; np * kp];
-        let mut colsum = vec![0i32; np];
-        let mut q = vec![0i8; n];
-        for (i, row) in weight_t.chunks_exact(n).enumerate() {
-            quantise_weights(row, &inv, &mut q, &mut colsum[..n]);
-            let at = (i / 4) * 64 + i % 4;
-            for (j, &q) in q.iter().enumerate() {
-                packed[(j / 16) * kp * 16 + at + (j % 16) * 4] = q;
-            }
-        }
-        Ok(Self::from_parts(k, n, packed, scale, colsum, bias.to_vec()))
+        Self::from_rows(weight_t, n, k, n, bias.to_vec())
     }
 
     /// The layer from its packed bytes, scales and column sums (`np` each) and bias (`n`).
@@ -140,22 +112,30 @@ impl QuantLinear {
         let mut q = vec![0i8; kp];
         for j in 0..n {
             let row = &src[j * stride..j * stride + k];
-            let a = abs_max(row).ok_or_else(not_finite)?;
-            let s = if a > 0.0 { a / 127.0 } else { 1.0 };
+            let s = weight_scale(abs_max(row).ok_or_else(not_finite)?);
             scale[j] = s;
             colsum[j] = quantise_column(row, 1.0 / s, &mut q[..k]);
-            let base = (j / 16) * kp * 16 + (j % 16) * 4;
             for (kb, q4) in q.chunks_exact(4).enumerate() {
-                packed[base + kb * 64..base + kb * 64 + 4].copy_from_slice(q4);
+                let at = packed_index(kp, 4 * kb, j);
+                packed[at..at + 4].copy_from_slice(q4);
             }
         }
         Ok(Self::from_parts(k, n, packed, scale, colsum, vec![0.0; n]))
     }
 
-    /// [`Self::new`] of `X` (`k × n`, zero bias), row `i` at `src[i·stride..][..n]` (an
-    /// attention head's values): rows quantised four at a time and their bytes interleaved
-    /// as they are packed. The same layer, bit for bit.
-    fn from_rows(src: &[f32], stride: usize, k: usize, n: usize) -> candle_core::Result<Self> {
+    /// The layer `x·X + bias` for `X` (`k × n`) with row `i` at `src[i·stride..][..n]` (a
+    /// weight matrix, `stride = n`; an attention head's values inside the `qkv` rows): rows
+    /// quantised four at a time and their bytes interleaved as they are packed.
+    ///
+    /// # Errors
+    /// A value of `X` that is not finite.
+    fn from_rows(
+        src: &[f32],
+        stride: usize,
+        k: usize,
+        n: usize,
+        bias: Vec<f32>,
+    ) -> candle_core::Result<Self> {
         let (kp, np) = (k.div_ceil(4) * 4, n.div_ceil(NR) * NR);
         let row = |i: usize| &src[i * stride..i * stride + n];
         let mut amax = vec![0f32; n];
@@ -164,7 +144,7 @@ impl QuantLinear {
         }
         let mut scale = vec![0f32; np];
         for (s, &a) in scale.iter_mut().zip(&amax) {
-            *s = if a > 0.0 { a / 127.0 } else { 1.0 };
+            *s = weight_scale(a);
         }
         let inv: Vec<f32> = scale[..n].iter().map(|s| 1.0 / s).collect();
         let mut packed = vec![0i8; np * kp];
@@ -180,13 +160,13 @@ impl QuantLinear {
                 }
             }
             for j in 0..n {
-                let at = (j / 16) * kp * 16 + kb * 64 + (j % 16) * 4;
+                let at = packed_index(kp, 4 * kb, j);
                 for kk in 0..4 {
                     packed[at + kk] = q[kk * n + j];
                 }
             }
         }
-        Ok(Self::from_parts(k, n, packed, scale, colsum, vec![0.0; n]))
+        Ok(Self::from_parts(k, n, packed, scale, colsum, bias))
     }
 
     /// `PackedLinear::run_chunk` with the VNNI kernel or (`vnni` false) the portable one.
@@ -235,8 +215,7 @@ impl QuantLinear {
         let mut w = vec![0f32; n];
         for &j in outliers {
             for (col, w) in w.iter_mut().enumerate() {
-                let q = self.packed[(col / 16) * kp * 16 + (j / 4) * 64 + (col % 16) * 4 + j % 4];
-                *w = f32::from(q) * self.scale[col];
+                *w = f32::from(self.packed[packed_index(kp, j, col)]) * self.scale[col];
             }
             for (i, o) in out.chunks_exact_mut(n).enumerate().take(rows) {
                 super::ops::add_scaled(o, x[i * k + j], &w);
@@ -369,7 +348,7 @@ impl super::ops::PackedLinear for QuantLinear {
     }
 
     fn pack_rows(src: &[f32], stride: usize, k: usize, n: usize) -> candle_core::Result<Self> {
-        Self::from_rows(src, stride, k, n)
+        Self::from_rows(src, stride, k, n, vec![0.0; n])
     }
 
     /// Input features.
@@ -408,6 +387,22 @@ impl super::ops::PackedLinear for QuantLinear {
     }
 }
 
+/// A weight's scale from its column's largest `|w|`: `max / 127`, or 1 for a zero column.
+fn weight_scale(amax: f32) -> f32 {
+    if amax > 0.0 { amax / 127.0 } else { 1.0 }
+}
+
+/// `w / s_w` rounded half away from zero by truncation (`|w / s_w| ≤ 127` by the scale).
+#[inline(always)]
+fn round_weight(v: f32) -> i8 {
+    (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8
+}
+
+/// Where `q_w[i, j]` lies in [`QuantLinear::packed`] (column blocks of 16, groups of 4 rows).
+fn packed_index(kp: usize, i: usize, j: usize) -> usize {
+    (j / 16) * kp * 16 + (i / 4) * 64 + (j % 16) * 4 + i % 4
+}
+
 /// The error of a weight matrix that holds a value that is not finite.
 fn not_finite() -> candle_core::Error {
     candle_core::Error::Msg("int8 linear: the weights hold a value that is not finite".into())
@@ -418,8 +413,7 @@ super::ops::simd_dispatch! {
     /// added to `colsum[j]`.
     fn quantise_weights(w: &[f32], inv: &[f32], q: &mut [i8], colsum: &mut [i32]) {
         for (((q, &w), &inv), c) in q.iter_mut().zip(w).zip(inv).zip(colsum.iter_mut()) {
-            let v = w * inv;
-            *q = (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8;
+            *q = round_weight(w * inv);
             *c += i32::from(*q);
         }
     }
@@ -430,8 +424,7 @@ super::ops::simd_dispatch! {
     fn quantise_column(w: &[f32], inv: f32, q: &mut [i8]) -> i32 {
         let mut sum = 0i32;
         for (q, &w) in q.iter_mut().zip(w) {
-            let v = w * inv;
-            *q = (v + if v < 0.0 { -0.5 } else { 0.5 }) as i8;
+            *q = round_weight(w * inv);
             sum += i32::from(*q);
         }
         sum
@@ -841,12 +834,12 @@ mod tests {
                 .collect();
             let keys = QuantLinear::from_transposed_rows(&src[at..], stride, n, hd).unwrap();
             assert_eq!(keys, QuantLinear::new(&kt, hd, n, &vec![0.0; n]).unwrap());
-            let values = QuantLinear::from_rows(&src[at..], stride, n, hd).unwrap();
+            let values = QuantLinear::from_rows(&src[at..], stride, n, hd, vec![0.0; hd]).unwrap();
             assert_eq!(values, QuantLinear::new(&v, n, hd, &vec![0.0; hd]).unwrap());
         }
         src[at + 3 * stride + 2] = f32::NAN;
         assert!(QuantLinear::from_transposed_rows(&src[at..], stride, n, 10).is_err());
-        assert!(QuantLinear::from_rows(&src[at..], stride, n, 10).is_err());
+        assert!(QuantLinear::from_rows(&src[at..], stride, n, 10, vec![0.0; 10]).is_err());
     }
 
     #[test]
