@@ -118,7 +118,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     ]
     .concat()));
     assert!(with_sigma.iter().all(|g| g["success_prob"].is_number()));
-    // robust (the default): best probability first, up to the tie tolerance
+    // robust (the default): best probability first, up to the suction tie tolerance
     let robust = grasp(&realign);
     let probs: Vec<f64> = robust
         .iter()
@@ -126,7 +126,7 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         .collect();
     let best = probs.iter().copied().fold(0.0, f64::max);
     assert!(
-        probs[0] >= best - f64::from(moma_grasp::DEFAULT_TIE_TOLERANCE) - 1e-9,
+        probs[0] >= best - f64::from(moma_grasp::DEFAULT_SUCTION_TIE_TOLERANCE) - 1e-9,
         "{probs:?}"
     );
     // the same seed: the same probabilities; a minimum above every grasp: empty, with the reason

@@ -20,9 +20,9 @@ use moma_core::align::robust::Robust;
 use moma_core::normalise::NormalisedMap;
 use moma_core::{DepthErrorModel, Mask, MetricDepth};
 use moma_grasp::{
-    DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_TIE_TOLERANCE, FailureReason, Grasp,
-    GraspQuality, GraspRequest, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw,
-    Scene, SceneConfig, ScoreConfig, SuctionConfig, SuctionCup, mask_components, plan_on_scene,
+    DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, FailureReason, Grasp, GraspQuality,
+    GraspRequest, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw, Scene, SceneConfig,
+    ScoreConfig, SuctionConfig, SuctionCup, default_tie_tolerance, mask_components, plan_on_scene,
     planning_depth, rank, score_grasp,
 };
 use rayon::prelude::*;
@@ -115,8 +115,9 @@ pub struct GraspEvalConfig {
     pub draws: usize,
     /// Planner candidates scored on the draws.
     pub candidates: usize,
-    /// Robust ranking's tolerance on the success probability ([`moma_grasp::rank`]).
-    pub tie_tolerance: f32,
+    /// Robust ranking's tolerance on the success probability ([`moma_grasp::rank`]); `None`:
+    /// each gripper's default ([`moma_grasp::default_tie_tolerance`]).
+    pub tie_tolerance: Option<f32>,
 }
 
 impl Default for GraspEvalConfig {
@@ -133,7 +134,7 @@ impl Default for GraspEvalConfig {
             qualities: vec![GraspQuality::Robust],
             draws: DEFAULT_GRASP_DRAWS,
             candidates: DEFAULT_ROBUST_CANDIDATES,
-            tie_tolerance: DEFAULT_TIE_TOLERANCE,
+            tie_tolerance: None,
         }
     }
 }
@@ -387,7 +388,10 @@ fn run_trial(
         .iter()
         .map(|&q| {
             let mut ranked = candidates.clone();
-            rank(&mut ranked, q, config.tie_tolerance);
+            let tolerance = config
+                .tie_tolerance
+                .unwrap_or_else(|| default_tie_tolerance(&gripper.gripper()));
+            rank(&mut ranked, q, tolerance);
             let grasp = ranked[0].0;
             tops.push(grasp);
             let score = execute(&grasp)?;

@@ -106,10 +106,10 @@ pub use objects::{MIN_TRIAL_COMPONENT_PX, components_8, mask_components};
 pub use parallel::{ParallelConfig, plan_parallel, plan_parallel_tolerant};
 pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};
 pub use robust::{
-    DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_TIE_TOLERANCE, GraspQuality,
-    GraspRequest, draw_region, plan_grasps, plan_on_scene, planning_depth, rank,
-    success_probabilities,
+    DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_SUCTION_TIE_TOLERANCE,
+    DEFAULT_TIE_TOLERANCE, GraspQuality, GraspRequest, default_tie_tolerance, draw_region,
+    plan_grasps, plan_on_scene, planning_depth, rank, success_probabilities,
 };
 pub use scene::{ObjectComponent, Scene, SceneConfig};
 pub use score::{GraspScore, ScoreConfig, no_grasp, score_grasp, score_parallel, score_suction};
-pub use suction::{SuctionConfig, plan_suction};
+pub use suction::{DepthUncertainty, SUCTION_EDGE_MARGIN_M, SuctionConfig, plan_suction};

@@ -44,6 +44,60 @@ pub struct SuctionConfig {
     /// ([`moma_core::DepthErrorModel::noise_within_m`]). Default 0.
     #[serde(default)]
     pub patch_noise_m: [f32; 4],
+    /// The planning depth's error where it matters to a cup; `None` (exact depth): the score
+    /// above. Otherwise each candidate's score is also weighted for that error
+    /// ([`DepthUncertainty`]). Set by [`crate::plan_on_scene`] from the error model. Default
+    /// `None`.
+    #[serde(default)]
+    pub uncertainty: Option<DepthUncertainty>,
+}
+
+/// The error of an uncertain planning depth, as the suction score weighs it (metres). With it a
+/// candidate's score is also multiplied by:
+/// - **the ring's clearance**: the edge distance `d` counts less [`Self::edge_margin_m`]
+///   (the aligned silhouettes, and the position the cup reaches on the true surface, are
+///   off by a few millimetres);
+/// - **the wider patch's flatness** `exp(−rms / `[`PATCH_FLATNESS_M`]`)`, `rms` the RMS
+///   distance to its plane of the surface within [`PATCH_RADII`]`[0]` cup radii: a cup that
+///   lands a few millimetres off still seals on a flat neighbourhood;
+/// - **the chance of reaching within the cup's compliance** `c`: `erf(c / (√2 σ_z))`, with
+///   `σ_z = hypot(`[`Self::flat_sigma_m`]`, `[`Self::relief_sigma`]` · h)` at the point's
+///   height `h` above the support plane (depth models flatten objects; the error grows with
+///   the height).
+///
+/// Measured in docs/grasping.md ("Suction candidates for an uncertain depth").
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DepthUncertainty {
+    /// σ of the depth error shared by the frame and its smooth fields, at the objects' depth
+    /// (metres).
+    pub flat_sigma_m: f32,
+    /// σ of the relief factor: the depth error per metre of height above the support plane
+    /// (dimensionless).
+    pub relief_sigma: f32,
+    /// Subtracted from the edge distance of every candidate (metres). Default
+    /// [`SUCTION_EDGE_MARGIN_M`].
+    pub edge_margin_m: f32,
+}
+
+/// Default [`DepthUncertainty::edge_margin_m`]: 8 mm (docs/grasping.md, chosen among 5–15 mm on
+/// SIMULATED predictions).
+pub const SUCTION_EDGE_MARGIN_M: f32 = 0.008;
+
+impl DepthUncertainty {
+    /// The factor of a candidate with edge distance `d_m`, whose wider patch is planar to
+    /// `patch_rms_m`, at `height_m` above the support plane (all metres; the documentation of
+    /// [`DepthUncertainty`]).
+    pub fn weight(&self, d_m: f32, patch_rms_m: f32, height_m: f32, cup: &SuctionCup) -> f32 {
+        let d = (d_m - self.edge_margin_m).max(0.0);
+        let clearance = d / (d + cup.radius_m);
+        let flat = (-patch_rms_m / PATCH_FLATNESS_M).exp();
+        let sigma_z = self
+            .flat_sigma_m
+            .hypot(self.relief_sigma * height_m.max(0.0))
+            .max(1e-4);
+        let reach = libm::erff(cup.compliance_m / (std::f32::consts::SQRT_2 * sigma_z));
+        clearance * flat * reach
+    }
 }
 
 /// Patch radii, in cup radii, tried for the approach normal on a noisy depth (largest first).
@@ -62,6 +116,7 @@ impl Default for SuctionConfig {
             nms_distance_m: 0.02,
             seed: 0,
             patch_noise_m: [0.0; 4],
+            uncertainty: None,
         }
     }
 }
@@ -268,7 +323,14 @@ pub fn plan_suction(
             let d_m = dist_px[i] * cloud.metres_per_px(p.z);
             let edge = d_m / (d_m + cup.radius_m);
             let reach = (1.0 + a.dot(&-up)) / 2.0;
-            Ok((i, quality * flatness * edge * reach, a))
+            let uncertain = config.uncertainty.map_or(1.0, |u| {
+                let rms = cloud
+                    .patch_plane(i, PATCH_RADII[0] * cup.radius_m)
+                    .map_or(f32::INFINITY, |(_, rms)| rms);
+                let h = scene.plane.map_or(0.0, |pl| pl.height_m(&p));
+                u.weight(d_m, rms, h, cup)
+            });
+            Ok((i, quality * flatness * edge * reach * uncertain, a))
         })
         .collect();
     let n_candidates = results.len();
@@ -326,4 +388,43 @@ pub fn plan_suction(
         no_grasp_reason,
         candidates: n_candidates,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f32, b: f32) -> bool {
+        (a - b).abs() <= 1e-5
+    }
+
+    /// Each factor of [`DepthUncertainty::weight`] against its closed form (erf values from
+    /// tables: erf(2.121320) = 0.997300, erf(0.948683) = 0.820288).
+    #[test]
+    fn the_uncertainty_weight_is_its_closed_form() {
+        let cup = SuctionCup::default(); // r = 10 mm, compliance 15 mm
+        let u = DepthUncertainty {
+            flat_sigma_m: 0.005,
+            relief_sigma: 0.0,
+            edge_margin_m: 0.008,
+        };
+        // the ring's clearance: none within the margin; (18 − 8) / (10 + 10) beyond it
+        assert_eq!(u.weight(0.008, 0.0, 0.0, &cup), 0.0);
+        assert_eq!(u.weight(0.005, 0.0, 0.0, &cup), 0.0);
+        let reach = 0.997_300;
+        assert!(close(u.weight(0.018, 0.0, 0.0, &cup), 0.5 * reach));
+        // the wider patch's flatness: exp(−rms / 2 mm)
+        let w = u.weight(0.018, 0.002, 0.0, &cup);
+        assert!(close(w, 0.5 * reach * (-1.0f32).exp()), "{w}");
+        // reaching within the compliance at 0.1 m height with a relief σ of 0.1:
+        // σ_z = hypot(5, 10) mm, erf(15 / (√2 · 11.18)) = erf(0.948683)
+        let tall = DepthUncertainty {
+            relief_sigma: 0.1,
+            ..u
+        };
+        let w = tall.weight(0.018, 0.0, 0.1, &cup);
+        assert!(close(w, 0.5 * 0.820_288), "{w}");
+        // below the plane counts as on it
+        assert!(close(tall.weight(0.018, 0.0, -0.05, &cup), 0.5 * reach));
+    }
 }

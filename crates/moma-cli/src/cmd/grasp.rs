@@ -139,9 +139,10 @@ pub struct PlanFlags {
     #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
     pub grasp_draws: usize,
     /// Robust ranking: success probabilities within this of the best count as tied, and the
-    /// planner's score decides among them (in [0, 1]).
-    #[arg(long, value_name = "P", default_value_t = moma_grasp::DEFAULT_TIE_TOLERANCE)]
-    pub grasp_tie_tolerance: f32,
+    /// planner's score decides among them (in [0, 1]; default 0.2 for the parallel jaw, 0.5
+    /// for suction).
+    #[arg(long, value_name = "P")]
+    pub grasp_tie_tolerance: Option<f32>,
     /// Return only grasps whose success probability is at least P (in [0, 1]); when none is,
     /// the list is empty and the reason is printed.
     #[arg(long, value_name = "P")]
@@ -198,7 +199,9 @@ impl PlanFlags {
         request.top_k = self.top;
         request.seed = self.seed;
         request.draws = self.grasp_draws;
-        request.tie_tolerance = self.grasp_tie_tolerance;
+        if let Some(t) = self.grasp_tie_tolerance {
+            request.tie_tolerance = t;
+        }
         request.min_success_prob = self.min_success_prob;
         request.scene = scene;
         if let Some(q) = self.grasp_quality {

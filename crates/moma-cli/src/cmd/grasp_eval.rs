@@ -83,9 +83,10 @@ pub struct GraspEvalArgs {
     #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
     pub grasp_draws: usize,
     /// Robust ranking: success probabilities within this of the best count as tied, and the
-    /// planner's score decides among them (in [0, 1]).
-    #[arg(long, value_name = "P", default_value_t = moma_grasp::DEFAULT_TIE_TOLERANCE)]
-    pub grasp_tie_tolerance: f32,
+    /// planner's score decides among them (in [0, 1]; default 0.2 for the parallel jaw, 0.5
+    /// for suction).
+    #[arg(long, value_name = "P")]
+    pub grasp_tie_tolerance: Option<f32>,
     /// Print the JSON contract array to stdout (the table goes to stderr).
     #[arg(long)]
     pub json: bool,
@@ -107,11 +108,10 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
     if args.grasp_draws == 0 {
         bail!("--grasp-draws must be at least 1");
     }
-    if !(0.0..=1.0).contains(&args.grasp_tie_tolerance) {
-        bail!(
-            "--grasp-tie-tolerance {} is outside [0, 1]",
-            args.grasp_tie_tolerance
-        );
+    if let Some(t) = args.grasp_tie_tolerance
+        && !(0.0..=1.0).contains(&t)
+    {
+        bail!("--grasp-tie-tolerance {t} is outside [0, 1]");
     }
     if args.eval.norm.len() > 1 {
         bail!(
