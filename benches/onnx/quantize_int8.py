@@ -25,6 +25,19 @@ from onnxruntime.quantization import QuantType, quantize_dynamic
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 
+def quantize(model, out, ops=("MatMul", "Gemm"), all_matmuls=False):
+    """Writes the int8 version of the fp32 ONNX file `model` to `out` (temporary file, then rename)."""
+    model, out = pathlib.Path(model), pathlib.Path(out)
+    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
+        pre = pathlib.Path(tmp) / "pre.onnx"
+        quant_pre_process(str(model), str(pre), skip_symbolic_shape=True)
+        part = pathlib.Path(tmp) / "int8.onnx"
+        quantize_dynamic(str(pre), str(part), weight_type=QuantType.QInt8, per_channel=True,
+                         op_types_to_quantize=list(ops),
+                         extra_options={"MatMulConstBOnly": not all_matmuls})
+        os.replace(part, out)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model", type=pathlib.Path)
@@ -35,14 +48,7 @@ def main():
                     help="also quantise the attention's activation × activation products")
     args = ap.parse_args()
     out = args.out or args.model.with_suffix(".int8.onnx")
-    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
-        pre = pathlib.Path(tmp) / "pre.onnx"
-        quant_pre_process(str(args.model), str(pre), skip_symbolic_shape=True)
-        part = pathlib.Path(tmp) / "int8.onnx"
-        quantize_dynamic(str(pre), str(part), weight_type=QuantType.QInt8, per_channel=True,
-                         op_types_to_quantize=args.ops.split(","),
-                         extra_options={"MatMulConstBOnly": not args.all_matmuls})
-        os.replace(part, out)
+    quantize(args.model, out, args.ops.split(","), args.all_matmuls)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB; {args.model} "
           f"{args.model.stat().st_size / 1e6:.1f} MB)")
 
