@@ -317,9 +317,10 @@ def plan_grasps(
     "score", "success_prob", "point_m", "approach"}``; camera frame x right, y down, z forward,
     metres. ``source``: metric depth (metres; ``cam`` required) or a ``Calibration`` with
     ``pred=`` the frame's prediction (``cam`` defaults to its intrinsics; ``rgb=`` re-aligns on
-    static anchors). ``success_prob`` is the share of depth maps drawn from the error model
-    (the calibration's, or a uniform ``sigma_m``) on which the grasp succeeds, None without one;
-    ``grasp_quality`` ``"robust"`` (the default with an error model) ranks by it, ``"nominal"``
+    static anchors). ``success_prob`` is ``(k + 1) / (N + 2)`` for a grasp that succeeds on k
+    of the N depth maps drawn from the error model (the calibration's, or a uniform
+    ``sigma_m``), None without one; ``grasp_quality`` ``"robust"`` (the default with an error
+    model) ranks by k / N, ``"nominal"``
     by the planner's score. ``mask``: the objects (nonzero = inside); without one, regions over
     10 mm above the support plane that do not touch the image border (unless
     ``keep_border_objects``). An empty list when nothing is graspable."""

@@ -23,7 +23,7 @@ use moma_grasp::{
     DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, FailureReason, Grasp, GraspQuality,
     GraspRequest, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw, Scene, SceneConfig,
     ScoreConfig, SuctionConfig, SuctionCup, default_tie_tolerance, mask_components, plan_on_scene,
-    planning_depth, rank, score_grasp,
+    planning_depth, rank, score_grasp, share_of_draws,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -115,7 +115,7 @@ pub struct GraspEvalConfig {
     pub draws: usize,
     /// Planner candidates scored on the draws.
     pub candidates: usize,
-    /// Robust ranking's tolerance on the success probability ([`moma_grasp::rank`]); `None`:
+    /// Robust ranking's tolerance on the share of successful draws ([`moma_grasp::rank`]); `None`:
     /// each gripper's default ([`moma_grasp::default_tie_tolerance`]).
     pub tie_tolerance: Option<f32>,
 }
@@ -376,7 +376,11 @@ fn run_trial(
     let candidates: Vec<(Grasp, f32)> = outcome
         .grasps
         .iter()
-        .map(|g| (*g, g.success_prob().unwrap_or(f32::NAN)))
+        // ranked by the share of successful draws, as `plan_on_scene` ranks
+        .map(|g| {
+            let share = g.success_prob().map(|p| share_of_draws(p, request.draws));
+            (*g, share.unwrap_or(f32::NAN))
+        })
         .collect();
     let execute = |grasp: &Grasp| {
         score_grasp(gt_scene, grasp, &gripper.gripper(), &config.score)

@@ -32,9 +32,9 @@ pub struct SuctionPose {
 pub struct ParallelGrasp {
     /// Planner score in `[0, 1]`, higher is better.
     pub score: f32,
-    /// Estimated success probability in `[0, 1]` under the depth's error model (the share of
-    /// the error model's depth draws on which the grasp succeeds by the scorer's rules);
-    /// `null` when no error model was given.
+    /// Estimated success probability in `(0, 1)` under the depth's error model (from the error
+    /// model's depth draws on which the grasp succeeds by the scorer's rules: `(successes + 1)
+    /// / (draws + 2)`, [`crate::posterior_success_prob`]); `null` when no error model was given.
     #[serde(default)]
     pub success_prob: Option<f32>,
     /// The pose in the camera frame.
@@ -50,9 +50,9 @@ pub struct ParallelGrasp {
 pub struct SuctionGrasp {
     /// Planner score in `[0, 1]`, higher is better.
     pub score: f32,
-    /// Estimated success probability in `[0, 1]` under the depth's error model (the share of
-    /// the error model's depth draws on which the grasp succeeds by the scorer's rules);
-    /// `null` when no error model was given.
+    /// Estimated success probability in `(0, 1)` under the depth's error model (from the error
+    /// model's depth draws on which the grasp succeeds by the scorer's rules: `(successes + 1)
+    /// / (draws + 2)`, [`crate::posterior_success_prob`]); `null` when no error model was given.
     #[serde(default)]
     pub success_prob: Option<f32>,
     /// The pose in the camera frame.

@@ -8,12 +8,12 @@
 //! count) in the region around the candidates, a scene is made of each with the planning
 //! scene's support plane and objects ([`Scene::with_depth_in`]), and every
 //! candidate is executed on every drawn scene with the scorer's rules ([`score_grasp`], the
-//! rules of the proxy evaluation, unchanged). A candidate's `success_prob` is the share of draws
-//! on which it succeeds. [`GraspQuality::Robust`] ranks by it: the grasps within
-//! [`GraspRequest::tie_tolerance`] of the best probability first, in the planner's order, then
-//! the others by probability ([`rank`]); [`GraspQuality::Nominal`] keeps the planner's order and
-//! only reports it. Without an error model, `success_prob` is `None` and the planner's order
-//! holds.
+//! rules of the proxy evaluation, unchanged). [`GraspQuality::Robust`] ranks by the share of
+//! draws on which a candidate succeeds: the grasps within [`GraspRequest::tie_tolerance`] of the
+//! best share first, in the planner's order, then the others by share ([`rank`]);
+//! [`GraspQuality::Nominal`] keeps the planner's order. Both report as `success_prob` the
+//! posterior mean of the success probability given those draws ([`posterior_success_prob`]).
+//! Without an error model, `success_prob` is `None` and the planner's order holds.
 
 use moma_core::error_model::{Draws, Roi};
 use moma_core::{DepthErrorModel, Intrinsics, Mask, MetricDepth};
@@ -332,9 +332,12 @@ pub fn plan_on_scene(
     if outcome.grasps.is_empty() {
         return Ok(outcome);
     }
-    let probs = success_probabilities(&outcome.grasps, scene, depth, intrinsics, model, request)?;
-    let mut ranked: Vec<(Grasp, f32)> = outcome.grasps.drain(..).zip(probs).collect();
+    let shares = success_probabilities(&outcome.grasps, scene, depth, intrinsics, model, request)?;
+    let mut ranked: Vec<(Grasp, f32)> = outcome.grasps.drain(..).zip(shares).collect();
     rank(&mut ranked, request.quality, request.tie_tolerance);
+    for (_, p) in &mut ranked {
+        *p = posterior_success_prob(*p, request.draws);
+    }
     let min = request.min_success_prob;
     let below = ranked
         .iter()
@@ -362,11 +365,32 @@ pub fn plan_on_scene(
     Ok(outcome)
 }
 
-/// Orders `(grasp, success probability)` pairs, given in the planner's order, by `quality`.
-/// Nominal keeps the planner's order. Robust puts first, in the planner's order, every grasp
-/// whose probability is within `tolerance` of the best one (a Monte-Carlo estimate from a few
+/// The success probability reported for a grasp that succeeded on a `share` of `draws` drawn
+/// depth maps: the posterior mean under a uniform prior, `(successes + 1) / (draws + 2)`
+/// (Laplace's rule of succession). It is the estimate with the least expected squared error,
+/// the Brier score's loss, where the plain share claims certainty from a handful of draws (4 of
+/// 4 is not a sure grasp): over the three opaque shared sets it lowered the mean Brier score of
+/// every gripper and variant, 0.274 → 0.236 re-aligned suction, 0.278 → 0.237 re-aligned
+/// parallel jaw (SIMULATED predictions, PROXY scores; docs/grasping.md, "Success probabilities
+/// from a few draws"). Monotone in the share, so it never reorders grasps.
+pub fn posterior_success_prob(share: f32, draws: usize) -> f32 {
+    let n = draws as f32;
+    (share * n + 1.0) / (n + 2.0)
+}
+
+/// The share of successful draws that [`posterior_success_prob`] reported as `success_prob`
+/// (its inverse, rounded to a whole number of the `draws`): what [`rank`] compares, for a
+/// caller that re-ranks reported grasps with a tie tolerance (`moma grasp-eval`).
+pub fn share_of_draws(success_prob: f32, draws: usize) -> f32 {
+    let n = draws.max(1) as f32;
+    ((success_prob * (n + 2.0) - 1.0).round() / n).clamp(0.0, 1.0)
+}
+
+/// Orders `(grasp, share of successful draws)` pairs, given in the planner's order, by
+/// `quality`. Nominal keeps the planner's order. Robust puts first, in the planner's order, every
+/// grasp whose share is within `tolerance` of the best one (a Monte-Carlo estimate from a few
 /// draws cannot tell those apart, and the planner's score then decides), then the others by
-/// probability, highest first (stable).
+/// share, highest first (stable).
 pub fn rank(grasps: &mut [(Grasp, f32)], quality: GraspQuality, tolerance: f32) {
     if quality == GraspQuality::Robust {
         let best = grasps.iter().map(|g| g.1).fold(0.0f32, f32::max);
@@ -375,7 +399,8 @@ pub fn rank(grasps: &mut [(Grasp, f32)], quality: GraspQuality, tolerance: f32) 
     }
 }
 
-/// The success probability of each grasp: the share of `request.draws` depth maps drawn from
+/// The share of `request.draws` depth maps on which each grasp succeeds (what [`rank`] orders
+/// by; the reported `success_prob` is [`posterior_success_prob`] of it): maps drawn from
 /// `model`'s deviations around its expected truth ([`DepthErrorModel::deviations`]), long-range
 /// part only ([`DepthErrorModel::long_range`]: the short-range bumps are averaged out of the
 /// suction planning depth and already present once in the parallel jaw's), on which it

@@ -8,8 +8,8 @@ use common::{BoxSpec, Scene as Synth, intrinsics};
 use moma_core::{DepthErrorModel, MetricDepth};
 use moma_grasp::{
     FailureReason, Grasp, GraspQuality, GraspRequest, Gripper, ParallelGrasp, ParallelJaw,
-    ParallelPose, Scene, SceneConfig, ScoreConfig, SuctionCup, plan_grasps, score_grasp,
-    success_probabilities,
+    ParallelPose, Scene, SceneConfig, ScoreConfig, SuctionCup, plan_grasps, posterior_success_prob,
+    score_grasp, success_probabilities,
 };
 
 const DIST_M: f64 = 0.7;
@@ -177,7 +177,70 @@ fn a_grasp_that_survives_a_20mm_offset_gets_a_higher_success_prob() {
         .iter()
         .map(|g| g["success_prob"].as_f64().unwrap())
         .collect();
-    assert!(!probs.is_empty() && probs.iter().all(|p| (0.0..=1.0).contains(p)));
+    assert!(!probs.is_empty());
+    // each is (k + 1) / (N + 2) for k of the N draws: strictly inside (0, 1)
+    let n = request.draws as f64;
+    for p in &probs {
+        let k = p * (n + 2.0) - 1.0;
+        assert!(
+            (k - k.round()).abs() < 1e-3 && (0.0..=n).contains(&k.round()),
+            "success_prob {p} is not (k + 1) / ({n} + 2)"
+        );
+    }
+}
+
+/// Expected Brier score of the estimator `estimate(k)` of a grasp's success probability from
+/// `n` draws, when the true probability p is uniform on [0, 1] and k ~ Binomial(n, p):
+/// ∫ Σ_k C(n, k) pᵏ (1 − p)ⁿ⁻ᵏ (e(k)² − 2 e(k) p + p) dp, by the midpoint rule.
+fn expected_brier(n: u32, estimate: impl Fn(u32) -> f64) -> f64 {
+    let steps = 20_000;
+    let choose = |k: u32| (0..k).fold(1.0, |c, i| c * f64::from(n - i) / f64::from(i + 1));
+    (0..steps)
+        .map(|i| {
+            let p = (f64::from(i) + 0.5) / f64::from(steps);
+            (0..=n)
+                .map(|k| {
+                    let w = choose(k) * p.powi(k as i32) * (1.0 - p).powi((n - k) as i32);
+                    let e = estimate(k);
+                    w * (e * e - 2.0 * e * p + p)
+                })
+                .sum::<f64>()
+        })
+        .sum::<f64>()
+        / f64::from(steps)
+}
+
+#[test]
+fn success_prob_is_the_posterior_mean_that_minimises_the_brier_score() {
+    // closed form: Laplace's rule of succession
+    for (share, n, want) in [
+        (1.0, 4, 5.0 / 6.0),
+        (0.0, 4, 1.0 / 6.0),
+        (0.5, 4, 0.5),
+        (0.25, 8, 0.3),
+    ] {
+        let got = f64::from(posterior_success_prob(share, n));
+        assert!(
+            (got - want).abs() < 1e-6,
+            "share {share} of {n}: {got} vs {want}"
+        );
+    }
+    // independently: with an unknown (uniform) true probability, no other estimate from 4 draws
+    // has a lower expected Brier score. Closed forms (k is then uniform on 0..=n): the posterior
+    // mean's is 1/2 − E[e²] = 1/2 − (2n + 3) / (6 (n + 2)) = 7/36; the plain share's is
+    // 1/2 − 2/3 + (2n + 1) / (6n) = 5/24.
+    let n = 4;
+    let post = |k: u32| f64::from(posterior_success_prob(k as f32 / n as f32, n as usize));
+    let best = expected_brier(n, post);
+    let share = expected_brier(n, |k| f64::from(k) / f64::from(n));
+    assert!((best - 7.0 / 36.0).abs() < 1e-6, "posterior mean: {best}");
+    assert!((share - 5.0 / 24.0).abs() < 1e-6, "share: {share}");
+    for k0 in 0..=n {
+        for d in [-0.02, 0.02] {
+            let moved = expected_brier(n, |k| post(k) + if k == k0 { d } else { 0.0 });
+            assert!(moved > best, "k {k0} moved by {d}: {moved} vs {best}");
+        }
+    }
 }
 
 #[test]

@@ -919,8 +919,9 @@ fn depth_to_points<'py>(
 /// `Calibration` with `pred=` (the frame's prediction; `cam` defaults to the calibration's
 /// intrinsics): the depth is then aligned as `moma grasp --calib` does, re-aligned on static
 /// anchors when `rgb=` (uint8 `height × width × 3`) is given, and the calibration's error model
-/// gives every grasp a `success_prob` (the share of depth maps drawn from it on which the grasp
-/// succeeds). With a depth map, `sigma_m=` (a uniform σ, metres) does the same. `grasp_quality`
+/// gives every grasp a `success_prob` (from the depth maps drawn from it on which the grasp
+/// succeeds: `(successes + 1) / (draws + 2)`). With a depth map, `sigma_m=` (a uniform σ,
+/// metres) does the same. `grasp_quality`
 /// is `"robust"` (the default where there is an error model: by success probability) or
 /// `"nominal"` (by the planner's score); `grasp_draws` depth draws (seeded by `seed`);
 /// `min_success_prob` drops grasps below it. Other keywords: `gripper` (`"parallel"` or

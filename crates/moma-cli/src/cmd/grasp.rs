@@ -130,7 +130,7 @@ pub struct PlanFlags {
     /// Seed of the planner's sampling (same inputs and seed → same grasps).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// How grasps are ranked: robust (by their success probability on depth maps drawn from
+    /// How grasps are ranked: robust (by their share of successes on depth maps drawn from
     /// the error model; the default when there is one) or nominal (by the planner's score on
     /// the depth as if it were exact; success_prob is still reported where it can be).
     #[arg(long, value_name = "QUALITY", value_parser = super::grasp_eval::parse_quality)]
@@ -138,13 +138,13 @@ pub struct PlanFlags {
     /// Depth maps drawn from the error model per frame (seeded by --seed).
     #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
     pub grasp_draws: usize,
-    /// Robust ranking: success probabilities within this of the best count as tied, and the
+    /// Robust ranking: shares of successful draws within this of the best count as tied, and the
     /// planner's score decides among them (in [0, 1]; default 0.2 for the parallel jaw, 0.5
     /// for suction).
     #[arg(long, value_name = "P")]
     pub grasp_tie_tolerance: Option<f32>,
-    /// Return only grasps whose success probability is at least P (in [0, 1]); when none is,
-    /// the list is empty and the reason is printed.
+    /// Return only grasps whose success_prob, (successes + 1) / (draws + 2), is at least P (in
+    /// [0, 1]); when none is, the list is empty and the reason is printed.
     #[arg(long, value_name = "P")]
     pub min_success_prob: Option<f64>,
 }

@@ -82,7 +82,7 @@ pub struct GraspEvalArgs {
     /// Depth maps drawn from the error model per trial.
     #[arg(long, value_name = "N", default_value_t = moma_grasp::DEFAULT_GRASP_DRAWS)]
     pub grasp_draws: usize,
-    /// Robust ranking: success probabilities within this of the best count as tied, and the
+    /// Robust ranking: shares of successful draws within this of the best count as tied, and the
     /// planner's score decides among them (in [0, 1]; default 0.2 for the parallel jaw, 0.5
     /// for suction).
     #[arg(long, value_name = "P")]
