@@ -36,6 +36,8 @@ CONFIGS = {  # Depth-Anything-V2/run.py
 
 
 def peak_rss_mib():
+    # not benches/pytorch/torch_common.peak_rss_mib: that module imports torch, and an ONNX
+    # Runtime process here must not hold PyTorch when its memory is measured
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith("VmHWM:"):

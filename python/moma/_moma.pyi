@@ -320,10 +320,9 @@ def plan_grasps(
     static anchors). ``success_prob`` is ``(k + 1) / (N + 2)`` for a grasp that succeeds on k
     of the N depth maps drawn from the error model (the calibration's, or a uniform
     ``sigma_m``), None without one; ``grasp_quality`` ``"robust"`` (the default with an error
-    model) ranks by k / N, ``"nominal"``
-    by the planner's score. ``mask``: the objects (nonzero = inside); without one, regions over
-    10 mm above the support plane that do not touch the image border (unless
-    ``keep_border_objects``). An empty list when nothing is graspable."""
+    model) ranks by k / N, ``"nominal"`` by the planner's score. ``mask``: the objects (nonzero
+    = inside); without one, regions over 10 mm above the support plane that do not touch the
+    image border (unless ``keep_border_objects``). An empty list when nothing is graspable."""
 
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...

@@ -371,8 +371,8 @@ pub fn plan_on_scene(
 /// the Brier score's loss, where the plain share claims certainty from a handful of draws (4 of
 /// 4 is not a sure grasp): over the three opaque shared sets it lowered the mean Brier score of
 /// both grippers, re-aligned and one-shot, e.g. 0.274 → 0.236 re-aligned suction, 0.278 → 0.237
-/// re-aligned parallel jaw (SIMULATED predictions, PROXY scores; docs/grasping.md, "Success probabilities
-/// from a few draws"). Monotone in the share, so it never reorders grasps.
+/// re-aligned parallel jaw (SIMULATED predictions, PROXY scores; docs/grasping.md, "Success
+/// probabilities from a few draws"). Monotone in the share, so it never reorders grasps.
 pub fn posterior_success_prob(share: f32, draws: usize) -> f32 {
     let n = draws as f32;
     (share * n + 1.0) / (n + 2.0)

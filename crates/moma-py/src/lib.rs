@@ -921,13 +921,12 @@ fn depth_to_points<'py>(
 /// anchors when `rgb=` (uint8 `height × width × 3`) is given, and the calibration's error model
 /// gives every grasp a `success_prob` (from the depth maps drawn from it on which the grasp
 /// succeeds: `(successes + 1) / (draws + 2)`). With a depth map, `sigma_m=` (a uniform σ,
-/// metres) does the same. `grasp_quality`
-/// is `"robust"` (the default where there is an error model: by success probability) or
-/// `"nominal"` (by the planner's score); `grasp_draws` depth draws (seeded by `seed`);
-/// `min_success_prob` drops grasps below it. Other keywords: `gripper` (`"parallel"` or
-/// `"suction"`), `mask` (bool/uint8 `height × width`, nonzero = object), `top`, `seed`,
-/// `keep_border_objects`. No grasp found is an empty list, not an error. The GIL is released
-/// while planning.
+/// metres) does the same. `grasp_quality` is `"robust"` (the default where there is an error
+/// model: by the share of successful draws) or `"nominal"` (by the planner's score);
+/// `grasp_draws` depth draws (seeded by `seed`); `min_success_prob` drops grasps below it.
+/// Other keywords: `gripper` (`"parallel"` or `"suction"`), `mask` (bool/uint8 `height ×
+/// width`, nonzero = object), `top`, `seed`, `keep_border_objects`. No grasp found is an empty
+/// list, not an error. The GIL is released while planning.
 #[pyfunction]
 #[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=moma_grasp::DEFAULT_GRASP_DRAWS, min_success_prob=None))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
