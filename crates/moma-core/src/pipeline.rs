@@ -993,19 +993,27 @@ pub struct Aligned {
 
 impl Calibration {
     /// The error model of one frame's aligned depth: the calibration's
-    /// ([`Calibration::error_model`]), with the flat σ set to the frame's held-out anchor RMSE
-    /// when it was re-aligned (after the correction when accepted, of the one-shot result
-    /// otherwise; at least a quarter of the calibration's σ: [`DepthErrorModel::for_frame`]).
+    /// ([`Calibration::error_model`]); when the frame was re-aligned, its flat σ from the
+    /// frame's held-out anchor RMSE (after the correction when accepted, of the one-shot result
+    /// otherwise). Re-aligned onto the calibration's own output (the default target), that
+    /// residual adds to the calibration frames' own error
+    /// ([`DepthErrorModel::with_frame_drift`]); onto the calibration frame's ground truth, it
+    /// replaces it (at least a quarter of the calibration's σ: [`DepthErrorModel::for_frame`]).
     /// `None` without a model.
     pub fn frame_error_model(&self, realign: Option<&RealignReport>) -> Option<DepthErrorModel> {
-        let residual = realign.and_then(|r| {
-            if r.accepted {
-                r.held_out_rmse_after_m
-            } else {
-                r.held_out_rmse_before_m
-            }
-        });
-        self.error_model.map(|m| m.for_frame(residual))
+        let model = self.error_model?;
+        let Some(r) = realign else {
+            return Some(model);
+        };
+        let residual = if r.accepted {
+            r.held_out_rmse_after_m
+        } else {
+            r.held_out_rmse_before_m
+        };
+        Some(match r.target {
+            crate::realign::AnchorTarget::CalibrationOutput => model.with_frame_drift(residual),
+            crate::realign::AnchorTarget::GroundTruth => model.for_frame(residual),
+        })
     }
 }
 

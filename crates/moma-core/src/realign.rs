@@ -642,6 +642,12 @@ pub struct RealignReport {
     /// The correction form that was tried.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub correction: Option<CorrectionModel>,
+    /// What the correction was fitted to at the anchors, and so what the held-out RMSEs
+    /// measure: the frame's change since calibration (`calibration-output`, the default and
+    /// the value of reports written before the field existed) or its error against the
+    /// calibration frame's ground truth.
+    #[serde(default)]
+    pub target: AnchorTarget,
     /// The accepted `prediction-affine` map ẑ' = a·ẑ + b as `[a, b]` (absent otherwise).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub prediction_affine: Option<[f64; 2]>,
@@ -978,7 +984,7 @@ fn subsample<T: Copy>(mut obs: Vec<T>, config: &RealignConfig) -> (Vec<T>, usize
     (obs, n_hold)
 }
 
-fn empty_report(anchors: &Anchors, model: CorrectionModel) -> RealignReport {
+fn empty_report(anchors: &Anchors, model: CorrectionModel, target: AnchorTarget) -> RealignReport {
     RealignReport {
         anchors: anchors.pixels.len(),
         anchors_used: 0,
@@ -988,6 +994,7 @@ fn empty_report(anchors: &Anchors, model: CorrectionModel) -> RealignReport {
         held_out_gain_m: None,
         held_out_gain_se_m: None,
         correction: Some(model),
+        target,
         prediction_affine: None,
         accepted: false,
         reason: String::new(),
@@ -1029,7 +1036,7 @@ pub fn realign_in_place(
         ));
     }
     let anchors = find_anchors(store, grey, &config.thresholds)?;
-    let mut report = empty_report(&anchors, config.model);
+    let mut report = empty_report(&anchors, config.model, config.target);
     let obs: Vec<Obs> = anchors
         .pixels
         .iter()
@@ -1252,7 +1259,11 @@ pub fn realign_prediction_affine(
         )
     })?;
     let anchors = find_anchors(store, grey, &config.thresholds)?;
-    let mut report = empty_report(&anchors, CorrectionModel::PredictionAffine);
+    let mut report = empty_report(
+        &anchors,
+        CorrectionModel::PredictionAffine,
+        AnchorTarget::CalibrationOutput,
+    );
     // R: the range of the calibration's normalised prediction, the scale over which the
     // correction is extrapolated from the anchors to the rest of the image
     let (lo, hi) = stored

@@ -681,3 +681,45 @@ fn align_realigned(
     let report = a.realign.expect("re-alignment was asked for");
     Ok((a.depth, report))
 }
+
+/// The frame's error model follows what the anchors measured (docs/grasping.md, "The re-aligned
+/// frame's σ"): re-aligned onto the calibration's own output, the held-out RMSE is the frame's
+/// change since calibration and adds to the calibration frame's own error; onto the ground
+/// truth, it is the frame's error and replaces it. A report without `target` (written before the
+/// field existed) reads as the default target.
+#[test]
+fn the_frame_error_model_follows_what_the_anchors_measured() {
+    let TestFrame { cal, pred, .. } = test_frame(2.3, 0.2);
+    let model = cal.error_model.expect("calibrate fits an error model");
+    let dense = model
+        .sigma_dense_m
+        .expect("a fitted model records its dense part");
+    assert!(dense <= model.sigma_flat_m);
+    for target in [AnchorTarget::CalibrationOutput, AnchorTarget::GroundTruth] {
+        let config = RealignConfig {
+            ridge: 0.0,
+            target,
+            ..Default::default()
+        };
+        let (_, report) = realigned(&cal, &pred, &config);
+        assert_eq!(report.target, target);
+        assert!(report.accepted, "{report:?}");
+        let after = report.held_out_rmse_after_m.unwrap();
+        let sigma = cal.frame_error_model(Some(&report)).unwrap().sigma_flat_m;
+        let expected = match target {
+            AnchorTarget::CalibrationOutput => (dense * dense + after * after).sqrt(),
+            AnchorTarget::GroundTruth => after.max(0.25 * model.sigma_flat_m),
+        };
+        assert!(
+            (sigma - expected).abs() <= 1e-12 * expected.max(1e-3),
+            "{target:?}: σ {sigma} m, expected {expected} m (dense {dense}, after {after})"
+        );
+        // without re-alignment, the calibration's model
+        assert_eq!(cal.frame_error_model(None), Some(model));
+    }
+    let (_, report) = realigned(&cal, &pred, &RealignConfig::default());
+    let mut json = serde_json::to_value(&report).unwrap();
+    json.as_object_mut().unwrap().remove("target");
+    let old: RealignReport = serde_json::from_value(json).unwrap();
+    assert_eq!(old.target, AnchorTarget::CalibrationOutput);
+}

@@ -32,8 +32,10 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// method `raw`, which used the prediction as metres, else as `relative-depth`, which still
 /// aligns a metric model's predictions, [`PredictionKind::accepts`]); 6 — the error model's
 /// `relief_max_m`, the relief range its factor is fitted on and applied to (a version-5 file
-/// reads with 0.1 m, the range every earlier build used).
-pub const CALIBRATION_VERSION: u32 = 6;
+/// reads with 0.1 m, the range every earlier build used); 7 — the error model's
+/// `sigma_dense_m`, the calibration frames' own part of its flat σ (a version-6 file reads
+/// without it: its `sigma_flat_m` stands in).
+pub const CALIBRATION_VERSION: u32 = 7;
 
 /// The oldest calibration-file version this build reads (migrated on reading).
 pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
@@ -251,11 +253,11 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        // Versions 3, 4 and 6 only added optional fields (6: the error model's `relief_max_m`,
-        // which reads as 0.1 m without it), and version 5 renamed the kinds (the old names
-        // still parse): a version-2 to -5 document is a version-6 one, once a version-2 to -4
-        // one's kind is mapped.
-        Some(v @ 2..=6) => {
+        // Versions 3, 4, 6 and 7 only added optional fields (6: the error model's
+        // `relief_max_m`, which reads as 0.1 m without it; 7: its `sigma_dense_m`), and version
+        // 5 renamed the kinds (the old names still parse): a version-2 to -6 document is a
+        // version-7 one, once a version-2 to -4 one's kind is mapped.
+        Some(v @ 2..=7) => {
             let mut file: CalibrationFile =
                 serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
             file.version = CALIBRATION_VERSION;

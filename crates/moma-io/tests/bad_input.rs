@@ -467,23 +467,62 @@ mod calibration {
     }
 
     #[test]
-    fn version_2_to_5_files_read_as_version_6() {
-        // Versions 3, 4 and 6 only added optional fields and version 5 renamed the kinds: the
-        // same document (without them) labelled 2, 3, 4 or 5 must read, equal.
+    fn version_2_to_6_files_read_as_version_7() {
+        // Versions 3, 4, 6 and 7 only added optional fields and version 5 renamed the kinds:
+        // the same document (without them) labelled 2 to 6 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let written = read_calibration(&p).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["version"], 6);
-        for old in [2, 3, 4, 5] {
+        assert_eq!(v["version"], 7);
+        for old in [2, 3, 4, 5, 6] {
             v["version"] = old.into();
             std::fs::write(&p, v.to_string()).unwrap();
             let read = read_calibration(&p).unwrap();
             assert_eq!(read.calibration, written.calibration);
-            assert_eq!(read.version, 6);
+            assert_eq!(read.version, 7);
         }
+    }
+
+    /// Version 7 added the error model's `sigma_dense_m`: written and read back; a version-6
+    /// file's model (without it) reads with none, so that its `sigma_flat_m` stands in; out of
+    /// range is refused, naming the field.
+    #[test]
+    fn a_version_6_error_model_reads_without_its_dense_sigma() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        let mut f = file();
+        let mut model = moma_core::DepthErrorModel::uniform(0.006).unwrap();
+        model.sigma_dense_m = Some(0.002);
+        f.calibration.error_model = Some(model);
+        write_calibration(&p, &f).unwrap();
+        let mut v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        assert_eq!(v["calibration"]["error_model"]["sigma_dense_m"], 0.002);
+        assert_eq!(read_calibration(&p).unwrap(), f);
+        v["version"] = 6.into();
+        v["calibration"]["error_model"]
+            .as_object_mut()
+            .unwrap()
+            .remove("sigma_dense_m");
+        std::fs::write(&p, v.to_string()).unwrap();
+        let back = read_calibration(&p)
+            .unwrap()
+            .calibration
+            .error_model
+            .unwrap();
+        assert_eq!(back.sigma_dense_m, None);
+        assert_eq!(back.sigma_flat_m, 0.006);
+        v["version"] = 7.into();
+        v["calibration"]["error_model"]["sigma_dense_m"] = serde_json::json!(f64::MAX);
+        std::fs::write(&p, v.to_string()).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(
+            m.contains("calib.json") && m.contains("sigma_dense_m"),
+            "{m}"
+        );
     }
 
     /// Version 6 added the error model's `relief_max_m`: a version-5 file's error model (without
@@ -512,6 +551,7 @@ mod calibration {
         let back = read.calibration.error_model.unwrap();
         assert_eq!(back.relief_max_m, 0.1);
         assert_eq!(back.relief_bias, 0.2);
+        assert_eq!(back.sigma_dense_m, None);
         // out of range is refused, naming the field
         v["version"] = 6.into();
         v["calibration"]["error_model"]["relief_max_m"] = serde_json::json!(-1.0);
@@ -618,15 +658,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 7.into();
-        // A v7 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 8.into();
+        // A v8 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 7") && m.contains("versions 1 to 6"),
+            m.contains("calib.json") && m.contains("version 8") && m.contains("versions 1 to 7"),
             "{m}"
         );
 

@@ -355,9 +355,10 @@ impl Calibration {
     }
 
     /// The calibration's error model of its aligned depth (a dict: `sigma_flat_m`,
-    /// `depth_ref_m`, `depth_exponent`, `variance_shares`, `scales_px`, `relief_bias`,
-    /// `relief_sigma`, `relief_radius_px`, `relief_max_m`, `edge_gain`, `edge_radius_px`),
-    /// None in files written before error models existed.
+    /// `sigma_dense_m` (absent in files before version 7), `depth_ref_m`, `depth_exponent`,
+    /// `variance_shares`, `scales_px`, `relief_bias`, `relief_sigma`, `relief_radius_px`,
+    /// `relief_max_m`, `edge_gain`, `edge_radius_px`), None in files written before error
+    /// models existed.
     #[getter]
     fn error_model<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         to_py_json(py, &self.inner.error_model)
@@ -366,7 +367,9 @@ impl Calibration {
     /// The per-pixel σ of the error of `depth_m` (this calibration's aligned depth of a frame,
     /// float32 metres) as `moma align --sigma-map` writes it: float32 metres, NaN where there is
     /// no depth. `report`: the re-alignment report of the frame (`align_realigned`'s), whose
-    /// held-out anchor RMSE sets the flat σ. An error when the calibration has no error model.
+    /// held-out anchor RMSE sets the flat σ (added to the calibration's own error for the
+    /// default anchor target, `Calibration::frame_error_model`). An error when the calibration
+    /// has no error model.
     #[pyo3(signature = (depth_m, report=None))]
     fn sigma_map<'py>(
         &self,
