@@ -134,7 +134,7 @@ pub(super) fn conv3x3(
         Source::Upsampled { .. } => band_rows.max(UPSAMPLED_BAND_ROWS).min(tiles_y),
     };
     let channels = if fusion.project.is_some() { 1 } else { c_out };
-    let mut dst = vec![0f32; channels * h * w];
+    let mut dst = super::ops::zeroed(channels * h * w);
     let out = SendPtr(dst.as_mut_ptr());
     let bands = tiles_y.div_ceil(band_rows);
     let taps = match src {
