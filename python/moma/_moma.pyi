@@ -83,6 +83,10 @@ class _RealignReport(TypedDict):
     """Standard error of ``held_out_gain_m``, metres."""
     correction: NotRequired[str]
     """The correction form that was tried."""
+    target: str
+    """What the correction was fitted to at the anchors (``"calibration-output"`` or
+    ``"ground-truth"``), so what the held-out RMSEs measure: the frame's change since
+    calibration, or its error against the calibration frame's truth."""
     prediction_affine: NotRequired[list[float]]
     """The accepted ``prediction-affine`` map ``[a, b]`` (absent otherwise)."""
     accepted: bool

@@ -217,8 +217,9 @@ def test_realign_on_the_unchanged_background_corrects_a_fluctuation(anchored):
     depth, report = cal.align_realigned(drifted, rgb)
     assert set(report) == {"anchors", "anchors_used", "brightness_gain",
                            "held_out_rmse_before_m", "held_out_rmse_after_m",
-                           "held_out_gain_m", "held_out_gain_se_m", "correction", "accepted",
-                           "reason"}
+                           "held_out_gain_m", "held_out_gain_se_m", "correction", "target",
+                           "accepted", "reason"}
+    assert report["target"] == "calibration-output"
     assert report["correction"] == "scale-shift"
     assert report["held_out_gain_m"] > report["held_out_gain_se_m"] > 0
     assert report["anchors"] >= 50 and report["anchors_used"] > 0
