@@ -66,7 +66,10 @@
 //!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
 //!
 //! With per-frame re-alignment on static anchors, the frame's own held-out anchor RMSE sets
-//! `σ_flat` for that frame ([`DepthErrorModel::for_frame`]; at least a quarter of the
+//! `σ_flat` for that frame: onto the calibration's own output (the default target) it is the
+//! frame's drift, added to the calibration frames' own dense σ, `sigma_dense_m`
+//! ([`DepthErrorModel::with_frame_drift`]); onto the ground truth it is the frame's error and
+//! replaces `σ_flat` ([`DepthErrorModel::for_frame`]; at least a quarter of the
 //! calibration's).
 //!
 //! # Expected truth
