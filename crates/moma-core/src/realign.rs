@@ -1259,11 +1259,7 @@ pub fn realign_prediction_affine(
         )
     })?;
     let anchors = find_anchors(store, grey, &config.thresholds)?;
-    let mut report = empty_report(
-        &anchors,
-        CorrectionModel::PredictionAffine,
-        AnchorTarget::CalibrationOutput,
-    );
+    let mut report = empty_report(&anchors, CorrectionModel::PredictionAffine, config.target);
     // R: the range of the calibration's normalised prediction, the scale over which the
     // correction is extrapolated from the anchors to the rest of the image
     let (lo, hi) = stored

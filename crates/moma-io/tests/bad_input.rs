@@ -486,39 +486,59 @@ mod calibration {
         }
     }
 
-    /// Version 7 added the error model's `sigma_dense_m`: written and read back; a version-6
-    /// file's model (without it) reads with none, so that its `sigma_flat_m` stands in; out of
-    /// range is refused, naming the field.
-    #[test]
-    fn a_version_6_error_model_reads_without_its_dense_sigma() {
+    /// An error model field added in a file version, across versions: a calibration holding
+    /// `model` is written, the file carries `field` = `written` and reads back equal; labelled
+    /// `old_version` without `field`, the file reads, and that model is returned; at the current
+    /// version with `field` = `bad`, reading fails, and the message is returned.
+    fn error_model_field_across_versions(
+        model: moma_core::DepthErrorModel,
+        field: &str,
+        written: serde_json::Value,
+        old_version: u32,
+        bad: serde_json::Value,
+    ) -> (moma_core::DepthErrorModel, String) {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         let mut f = file();
-        let mut model = moma_core::DepthErrorModel::uniform(0.006).unwrap();
-        model.sigma_dense_m = Some(0.002);
         f.calibration.error_model = Some(model);
         write_calibration(&p, &f).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["calibration"]["error_model"]["sigma_dense_m"], 0.002);
+        assert_eq!(v["calibration"]["error_model"][field], written);
         assert_eq!(read_calibration(&p).unwrap(), f);
-        v["version"] = 6.into();
+        v["version"] = old_version.into();
         v["calibration"]["error_model"]
             .as_object_mut()
             .unwrap()
-            .remove("sigma_dense_m");
+            .remove(field);
         std::fs::write(&p, v.to_string()).unwrap();
         let back = read_calibration(&p)
             .unwrap()
             .calibration
             .error_model
             .unwrap();
+        v["version"] = moma_io::CALIBRATION_VERSION.into();
+        v["calibration"]["error_model"][field] = bad;
+        std::fs::write(&p, v.to_string()).unwrap();
+        (back, msg(&read_calibration(&p).unwrap_err()))
+    }
+
+    /// Version 7 added the error model's `sigma_dense_m`: written and read back; a version-6
+    /// file's model (without it) reads with none, so that its `sigma_flat_m` stands in; out of
+    /// range is refused, naming the field.
+    #[test]
+    fn a_version_6_error_model_reads_without_its_dense_sigma() {
+        let mut model = moma_core::DepthErrorModel::uniform(0.006).unwrap();
+        model.sigma_dense_m = Some(0.002);
+        let (back, m) = error_model_field_across_versions(
+            model,
+            "sigma_dense_m",
+            serde_json::json!(0.002),
+            6,
+            serde_json::json!(f64::MAX),
+        );
         assert_eq!(back.sigma_dense_m, None);
         assert_eq!(back.sigma_flat_m, 0.006);
-        v["version"] = 7.into();
-        v["calibration"]["error_model"]["sigma_dense_m"] = serde_json::json!(f64::MAX);
-        std::fs::write(&p, v.to_string()).unwrap();
-        let m = msg(&read_calibration(&p).unwrap_err());
         assert!(
             m.contains("calib.json") && m.contains("sigma_dense_m"),
             "{m}"
@@ -526,37 +546,23 @@ mod calibration {
     }
 
     /// Version 6 added the error model's `relief_max_m`: a version-5 file's error model (without
-    /// it) reads with the 0.1 m every earlier build used, and a written file carries it.
+    /// it) reads with the 0.1 m every earlier build used, and a written file carries it; out of
+    /// range is refused, naming the field.
     #[test]
     fn a_version_5_error_model_reads_with_the_old_relief_range() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("calib.json");
-        let mut f = file();
         let mut model = moma_core::DepthErrorModel::uniform(0.004).unwrap();
         model.relief_bias = 0.2;
         model.relief_max_m = 0.4;
-        f.calibration.error_model = Some(model);
-        write_calibration(&p, &f).unwrap();
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["calibration"]["error_model"]["relief_max_m"], 0.4);
-        assert_eq!(read_calibration(&p).unwrap(), f);
-        v["version"] = 5.into();
-        v["calibration"]["error_model"]
-            .as_object_mut()
-            .unwrap()
-            .remove("relief_max_m");
-        std::fs::write(&p, v.to_string()).unwrap();
-        let read = read_calibration(&p).unwrap();
-        let back = read.calibration.error_model.unwrap();
+        let (back, m) = error_model_field_across_versions(
+            model,
+            "relief_max_m",
+            serde_json::json!(0.4),
+            5,
+            serde_json::json!(-1.0),
+        );
         assert_eq!(back.relief_max_m, 0.1);
         assert_eq!(back.relief_bias, 0.2);
         assert_eq!(back.sigma_dense_m, None);
-        // out of range is refused, naming the field
-        v["version"] = 6.into();
-        v["calibration"]["error_model"]["relief_max_m"] = serde_json::json!(-1.0);
-        std::fs::write(&p, v.to_string()).unwrap();
-        let m = msg(&read_calibration(&p).unwrap_err());
         assert!(
             m.contains("calib.json") && m.contains("relief_max_m"),
             "{m}"

@@ -272,7 +272,7 @@ simd_dispatch! {
     /// and `inv` receives `1 / Σ row` (applied by the caller after the `· v` product).
     fn exp_rows(s: &mut [f32], n: usize, scale: f32, inv: &mut [f32]) {
         for (row, inv) in s.chunks_exact_mut(n).zip(inv.iter_mut()) {
-            let max = max8(row);
+            let max = row_max(row);
             let mut acc = [0f32; 16];
             let mut chunks = row.chunks_exact_mut(16);
             for c in &mut chunks {
@@ -321,7 +321,7 @@ simd_dispatch! {
             let (q, pad) = q.split_at_mut(n);
             pad.fill(0);
             // v·k ≤ max·k for v ≤ max (rounding is monotone): y ≤ 0, and 0 at the maximum
-            let top = max8(row) * k;
+            let top = row_max(row) * k;
             let mut sum = 0u32;
             for (o, &v) in q.iter_mut().zip(row) {
                 let y = v * k - top;
@@ -1312,7 +1312,7 @@ fn sum8(xs: &[f32]) -> f32 {
 /// vector (NaN-aware `max` adds a compare and a blend); NaN values are skipped either way, and
 /// the maximum of the others does not depend on the order.
 #[inline(always)]
-fn max8(xs: &[f32]) -> f32 {
+fn row_max(xs: &[f32]) -> f32 {
     const LANES: usize = 64;
     let larger = |m: f32, x: f32| if x > m { x } else { m };
     let mut acc = [f32::NEG_INFINITY; LANES];
@@ -1359,7 +1359,7 @@ impl CustomOp1 for SoftmaxLastDim {
         dst.par_chunks_mut(dim)
             .zip(src.par_chunks(dim))
             .for_each(|(d, s)| {
-                let max = max8(s);
+                let max = row_max(s);
                 for (o, v) in d.iter_mut().zip(s) {
                     *o = exp_f32((v - max) * scale);
                 }
@@ -1706,7 +1706,7 @@ mod tests {
         ];
         for row in rows {
             let want = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            assert_eq!(max8(row).to_bits(), want.to_bits(), "{row:?}");
+            assert_eq!(row_max(row).to_bits(), want.to_bits(), "{row:?}");
         }
         // rows through the 64 lanes (below, at and past one chunk, an attention row of 1 814),
         // the maximum in every position and NaN sprinkled in
@@ -1719,7 +1719,7 @@ mod tests {
                         _ => ((i * 7919) % 1000) as f32 * 0.5 - 250.0,
                     })
                     .collect();
-                assert_eq!(max8(&row), 1e3, "len {len}, maximum at {at}");
+                assert_eq!(row_max(&row), 1e3, "len {len}, maximum at {at}");
             }
         }
         assert!(exp_f32(f32::NAN).is_nan());
