@@ -864,16 +864,35 @@ impl DepthErrorModel {
     /// the simulated shared sets 37.5 % of GSSA's re-aligned errors within ±1σ on
     /// gqcnn-primesense; docs/grasping.md, "The re-aligned frame's σ".) Without a finite
     /// residual, the calibration's model unchanged; never above 10 m.
+    ///
+    /// The drift's variance joins the **offset** share: the fine, medium and coarse fields keep
+    /// the variance they have in σ_dense (in metres), and their shares shrink by
+    /// `σ_dense² / σ_flat²`. The short-range part of a frame's error is the depth model's
+    /// per-frame roughness, which the calibration frame already shows at its own level; what
+    /// the anchors add is how this frame as a whole differs from it. Spread over the
+    /// calibration's shares instead, a drift of a few millimetres on a nearly exact
+    /// calibration (whose shares then describe round-off) became short-range noise, and the
+    /// suction planner's guards against noise then cost 13 % of the grasps on an exact
+    /// prediction (docs/grasping.md, "What limits the deployed configuration").
     pub fn with_frame_drift(&self, drift_residual_m: Option<f64>) -> Self {
         match drift_residual_m {
-            Some(r) if r.is_finite() => Self {
-                sigma_flat_m: self
-                    .sigma_dense_m
-                    .unwrap_or(self.sigma_flat_m)
-                    .hypot(r.max(0.0))
-                    .min(10.0),
-                ..*self
-            },
+            Some(r) if r.is_finite() => {
+                let dense = self.sigma_dense_m.unwrap_or(self.sigma_flat_m);
+                let sigma_flat_m = dense.hypot(r.max(0.0)).min(10.0);
+                let mut variance_shares = self.variance_shares;
+                if sigma_flat_m > 0.0 {
+                    let kept = (dense.min(sigma_flat_m) / sigma_flat_m).powi(2);
+                    for share in &mut variance_shares {
+                        *share *= kept;
+                    }
+                    variance_shares[0] += 1.0 - kept;
+                }
+                Self {
+                    sigma_flat_m,
+                    variance_shares,
+                    ..*self
+                }
+            }
             _ => *self,
         }
     }
@@ -2658,6 +2677,53 @@ mod tests {
         // every other part is the calibration's
         assert_eq!(m.sigma_dense_m, fitted.sigma_dense_m);
         assert_eq!(m.relief_bias, fitted.relief_bias);
+    }
+
+    #[test]
+    fn a_drift_residual_moves_whole_frames_and_keeps_the_short_range_noise() {
+        // the calibration's 3 mm: 40 % offset, 30 % fine, 20 % medium, 10 % coarse
+        let fitted = DepthErrorModel {
+            sigma_flat_m: 0.010,
+            sigma_dense_m: Some(0.003),
+            variance_shares: [0.4, 0.3, 0.2, 0.1],
+            ..DepthErrorModel::default()
+        };
+        let m = fitted.with_frame_drift(Some(0.004));
+        // 5 mm in all (3-4-5); each field keeps its variance in metres², the offset takes the
+        // drift's 16 mm²: (0.4·9 + 16) / 25, 0.3·9 / 25, 0.2·9 / 25, 0.1·9 / 25
+        let expected = [19.6 / 25.0, 2.7 / 25.0, 1.8 / 25.0, 0.9 / 25.0];
+        for (got, want) in m.variance_shares.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-12, "{:?}", m.variance_shares);
+        }
+        assert!((m.variance_shares.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        // so the noise within a patch, which tilts a cup, is the calibration frame's own
+        // (σ_dense's), whatever the drift
+        for radius_px in [1.0, 4.0, 10.0, 40.0] {
+            let own = DepthErrorModel {
+                sigma_flat_m: 0.003,
+                ..fitted
+            };
+            let (a, b) = (
+                m.noise_within_m(1.0, radius_px),
+                own.noise_within_m(1.0, radius_px),
+            );
+            assert!((a - b).abs() < 1e-12, "{radius_px}: {a} vs {b}");
+        }
+        // no drift: the shares as fitted
+        assert_eq!(
+            fitted.with_frame_drift(Some(0.0)).variance_shares,
+            fitted.variance_shares
+        );
+        // a zero model stays zero and its shares as they were
+        let zero = DepthErrorModel {
+            sigma_flat_m: 0.0,
+            sigma_dense_m: Some(0.0),
+            ..fitted
+        };
+        assert_eq!(
+            zero.with_frame_drift(Some(0.0)).variance_shares,
+            fitted.variance_shares
+        );
     }
 
     #[test]

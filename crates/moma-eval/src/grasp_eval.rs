@@ -362,7 +362,7 @@ fn run_trial(
     request.suction = config.suction;
     request.score = config.score;
     // the path of `plan_grasps`: the scene of the request's planning depth
-    let depth = planning_depth(planned.depth, &request);
+    let depth = planning_depth(planned.depth, &set.intrinsics, &request);
     let scene = match Scene::build(&depth, &set.intrinsics, mask, &config.scene) {
         Ok(s) => s,
         // the planning depth may hold no valid pixel in the object region: no grasp

@@ -107,9 +107,9 @@ pub use parallel::{ParallelConfig, plan_parallel, plan_parallel_tolerant};
 pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};
 pub use robust::{
     DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, DEFAULT_SUCTION_TIE_TOLERANCE,
-    DEFAULT_TIE_TOLERANCE, GraspQuality, GraspRequest, default_tie_tolerance, draw_region,
-    plan_grasps, plan_on_scene, planning_depth, posterior_success_prob, rank, share_of_draws,
-    success_probabilities,
+    DEFAULT_TIE_TOLERANCE, GraspQuality, GraspRequest, NOISE_GUARD_FROM_M, NOISE_GUARD_FULL_M,
+    default_tie_tolerance, draw_region, plan_grasps, plan_on_scene, planning_depth,
+    posterior_success_prob, rank, share_of_draws, success_probabilities, suction_noise_guard,
 };
 pub use scene::{ObjectComponent, Scene, SceneConfig};
 pub use score::{GraspScore, ScoreConfig, no_grasp, score_grasp, score_parallel, score_suction};

@@ -41,7 +41,8 @@ pub struct SuctionConfig {
     /// normal of the largest patch that is planar within that noise and
     /// [`PATCH_FLATNESS_M`]: a tilt that the depth's bumps put into a small patch breaks the
     /// seal on the true surface. Set by [`crate::plan_on_scene`] from the error model
-    /// ([`moma_core::DepthErrorModel::noise_within_m`]). Default 0.
+    /// ([`moma_core::DepthErrorModel::noise_within_m`]; all 0 where the model's noise needs no
+    /// guard, [`crate::suction_noise_guard`]). Default 0.
     #[serde(default)]
     pub patch_noise_m: [f32; 4],
     /// The planning depth's error where it matters to a cup; `None` (exact depth): the score
@@ -75,7 +76,8 @@ pub struct DepthUncertainty {
     /// (dimensionless).
     pub relief_sigma: f32,
     /// Subtracted from the edge distance of every candidate (metres). Default
-    /// [`SUCTION_EDGE_MARGIN_M`].
+    /// [`SUCTION_EDGE_MARGIN_M`]; [`crate::plan_on_scene`] scales it by
+    /// [`crate::suction_noise_guard`].
     pub edge_margin_m: f32,
 }
 

@@ -95,7 +95,7 @@ fn suction_planned_on_the_expected_truth_reaches_a_flattened_box() {
         // and the depth planned on is within 8 mm of the truth on the box top, 20 mm before
         // (measured 6.4–6.6 mm: one relief factor for the whole frame, fitted with the box's
         // silhouette ramps and the table around it)
-        let planned = planning_depth(&aligned, &robust);
+        let planned = planning_depth(&aligned, &intrinsics(), &robust);
         let top_err = box_top_error_m(&planned.depth_m, &truth.depth_m);
         assert!(top_err < 0.008, "scene {k}: box top {top_err} m off");
         assert!(box_top_error_m(&aligned.depth_m, &truth.depth_m) > 0.019);

@@ -202,7 +202,7 @@ fn a_seal_on_a_flat_top_under_bumps_gets_a_high_success_probability() {
         );
         request.seed = seed;
         // the draws are around the request's planning depth (the model's expected truth)
-        let expected = planning_depth(&planning, &request);
+        let expected = planning_depth(&planning, &intrinsics(), &request);
         let expected_scene =
             Scene::build(&expected, &intrinsics(), None, &SceneConfig::default()).unwrap();
         let p = success_probabilities(
