@@ -872,8 +872,9 @@ impl DepthErrorModel {
     /// the anchors add is how this frame as a whole differs from it. Spread over the
     /// calibration's shares instead, a drift of a few millimetres on a nearly exact
     /// calibration (whose shares then describe round-off) became short-range noise, and the
-    /// suction planner's guards against noise then cost 13 % of the grasps on an exact
-    /// prediction (docs/grasping.md, "What limits the deployed configuration").
+    /// suction planner's guards against noise then cost 13 points of the ground truth's
+    /// success rate on an exact prediction (docs/grasping.md, "What limits the deployed
+    /// configuration").
     pub fn with_frame_drift(&self, drift_residual_m: Option<f64>) -> Self {
         match drift_residual_m {
             Some(r) if r.is_finite() => {
