@@ -109,8 +109,9 @@ def grasp_table(run):
 
 
 def coverage_table(run):
-    """Markdown lines of the error model's coverage (pixels pooled over seeds and grippers'
-    runs of the same seed are the same maps, so only the suction runs are read when present)."""
+    """Markdown lines of the error model's coverage, pixels pooled over the seeds. Both
+    grippers' runs of one seed write the same σ maps, so one gripper's files are read (suction
+    where present)."""
     paths = sorted(glob.glob(os.path.join(run, "suction", "out*", "sigma_coverage.json")))
     if not paths:
         paths = sorted(glob.glob(os.path.join(run, "parallel", "out*", "sigma_coverage.json")))

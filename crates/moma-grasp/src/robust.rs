@@ -302,39 +302,20 @@ fn opening_margin(model: &DepthErrorModel, scene: &Scene) -> f32 {
 }
 
 /// [`SuctionConfig::patch_noise_m`] of `model` at the median object depth of `scene`; all 0
-/// (the pixel's normal) where the depth needs no guard against noise ([`suction_noise_guard`]).
-fn patch_noise(
-    model: &DepthErrorModel,
-    scene: &Scene,
-    cup: &crate::gripper::SuctionCup,
-) -> [f32; 4] {
-    if suction_noise_guard(
-        model,
-        model.depth_ref_m as f32,
-        cup,
-        f64::from(scene.cloud.fx),
-    ) <= 0.0
-    {
+/// (the pixel's normal) where the depth needs no guard against noise (`guard`, the request's
+/// [`suction_noise_guard`]).
+fn patch_noise(model: &DepthErrorModel, scene: &Scene, cup_radius_m: f32, guard: f32) -> [f32; 4] {
+    if guard <= 0.0 {
         return [0.0; 4];
     }
     let z = scene.object_depth_m();
     let px_per_m = scene.cloud.fx / z.max(1e-3);
-    PATCH_RADII.map(|k| model.noise_within_m(z, f64::from(k * cup.radius_m * px_per_m)) as f32)
+    PATCH_RADII.map(|k| model.noise_within_m(z, f64::from(k * cup_radius_m * px_per_m)) as f32)
 }
 
 /// The depth error a suction candidate is weighed for ([`DepthUncertainty`]), from `model` at
-/// the objects' depth; the edge margin in proportion to [`suction_noise_guard`].
-fn suction_uncertainty(
-    model: &DepthErrorModel,
-    scene: &Scene,
-    cup: &crate::gripper::SuctionCup,
-) -> DepthUncertainty {
-    let guard = suction_noise_guard(
-        model,
-        model.depth_ref_m as f32,
-        cup,
-        f64::from(scene.cloud.fx),
-    );
+/// the objects' depth; the edge margin in proportion to `guard` ([`suction_noise_guard`]).
+fn suction_uncertainty(model: &DepthErrorModel, scene: &Scene, guard: f32) -> DepthUncertainty {
     DepthUncertainty {
         flat_sigma_m: model.flat_sigma_m(scene.object_depth_m()) as f32,
         relief_sigma: model.relief_sigma as f32,
@@ -374,27 +355,31 @@ pub fn plan_on_scene(
                 ..request.parallel.clone()
             },
         )?,
-        Gripper::Suction(cup) => plan_suction(
-            scene,
-            cup,
-            &SuctionConfig {
-                top_k: k,
-                seed: request.seed,
-                patch_noise_m: request
-                    .error_model
-                    .as_ref()
-                    .map_or(request.suction.patch_noise_m, |m| {
-                        patch_noise(m, scene, cup)
+        Gripper::Suction(cup) => {
+            // the guard of `planning_depth`, from the same model, depth and focal length
+            let model_guard = request.error_model.as_ref().map(|m| {
+                (
+                    m,
+                    suction_noise_guard(m, m.depth_ref_m as f32, cup, intrinsics.fx),
+                )
+            });
+            plan_suction(
+                scene,
+                cup,
+                &SuctionConfig {
+                    top_k: k,
+                    seed: request.seed,
+                    patch_noise_m: model_guard
+                        .map_or(request.suction.patch_noise_m, |(m, guard)| {
+                            patch_noise(m, scene, cup.radius_m, guard)
+                        }),
+                    uncertainty: model_guard.map_or(request.suction.uncertainty, |(m, guard)| {
+                        Some(suction_uncertainty(m, scene, guard))
                     }),
-                uncertainty: request
-                    .error_model
-                    .as_ref()
-                    .map_or(request.suction.uncertainty, |m| {
-                        Some(suction_uncertainty(m, scene, cup))
-                    }),
-                ..request.suction
-            },
-        )?,
+                    ..request.suction
+                },
+            )?
+        }
     };
     let Some(model) = &request.error_model else {
         outcome.grasps.truncate(request.top_k);
