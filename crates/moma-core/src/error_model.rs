@@ -1054,16 +1054,24 @@ impl DepthErrorModel {
             let c = self.relief_bias as f32;
             let c0 = c / (1.0 + c);
             let rmax = self.relief_max_m as f32;
-            let mut z = depth_m.to_owned();
-            for _ in 0..RELIEF_FIXED_POINT_ITERATIONS {
-                let hp = high_pass(z.view(), self.relief_radius_px);
-                let mut next = depth_m.to_owned();
-                ndarray::Zip::from(&mut next)
-                    .and(&hp)
-                    .for_each(|v, &h| *v = add_relief(*v, (1.0 - c0) * h, c, rmax));
-                z = next;
+            let (h, w) = depth_m.dim();
+            let d0 = row_major(depth_m);
+            // one set of buffers for every iteration
+            let mut z = d0.to_vec();
+            let mut hp = vec![0.0f32; h * w];
+            let mut sums = BoxSums::of_slice(&z, h, w);
+            for k in 0..RELIEF_FIXED_POINT_ITERATIONS {
+                if k > 0 {
+                    sums.refill(&z);
+                }
+                sums.high_pass_into(&z, self.relief_radius_px as usize, &mut hp);
+                for ((v, &d), &hh) in z.iter_mut().zip(d0.iter()).zip(&hp) {
+                    *v = add_relief(d, (1.0 - c0) * hh, c, rmax);
+                }
             }
-            out = z;
+            if let Ok(z) = Array2::from_shape_vec((h, w), z) {
+                out = z;
+            }
         } else if self.relief_bias != 0.0 {
             // an exaggeration: the first-order correction (the fixed point need not converge)
             let hp = high_pass(depth_m, self.relief_radius_px);
@@ -1467,7 +1475,11 @@ impl SmoothField {
 /// `(2r+1)²` box (integral images, so any radius costs the same); NaN where `depth` has no
 /// depth.
 pub fn high_pass(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
-    high_pass_strided(depth, r, 1)
+    let (h, w) = depth.dim();
+    let data = row_major(depth);
+    let mut out = vec![0.0f32; h * w];
+    BoxSums::of_slice(&data, h, w).high_pass_into(&data, r as usize, &mut out);
+    Array2::from_shape_vec((h, w), out).unwrap_or_else(|_| high_pass_strided(depth, r, 1))
 }
 
 /// [`high_pass`] at every `stride`-th pixel of every `stride`-th row only (the full map sliced
@@ -1488,13 +1500,29 @@ struct BoxSums {
 impl BoxSums {
     fn of(depth: ArrayView2<'_, f32>) -> Self {
         let (h, w) = depth.dim();
+        Self::of_slice(&row_major(depth), h, w)
+    }
+
+    /// [`Self::of`] for the `h × w` map `data`, row-major.
+    fn of_slice(data: &[f32], h: usize, w: usize) -> Self {
         let w1 = w + 1;
-        let mut sum = vec![0.0f64; (h + 1) * w1];
-        let mut cnt = vec![0u32; (h + 1) * w1];
-        let data = row_major(depth);
+        let mut sums = Self {
+            sum: vec![0.0f64; (h + 1) * w1],
+            cnt: vec![0u32; (h + 1) * w1],
+            h,
+            w,
+        };
+        sums.refill(data);
+        sums
+    }
+
+    /// The sums of another map of the same size, `data` (row-major), in place: no new
+    /// allocation (the relief's fixed point takes them three times per frame).
+    fn refill(&mut self, data: &[f32]) {
+        let (h, w, w1) = (self.h, self.w, self.w + 1);
         for (v, row) in data.chunks_exact(w.max(1)).take(h).enumerate() {
-            let (above, here) = sum.split_at_mut((v + 1) * w1);
-            let (above_c, here_c) = cnt.split_at_mut((v + 1) * w1);
+            let (above, here) = self.sum.split_at_mut((v + 1) * w1);
+            let (above_c, here_c) = self.cnt.split_at_mut((v + 1) * w1);
             let (above, above_c) = (&above[v * w1..], &above_c[v * w1..]);
             let (mut rs, mut rc) = (0.0f64, 0u32);
             for (u, &z) in row.iter().enumerate() {
@@ -1506,7 +1534,62 @@ impl BoxSums {
                 here_c[u + 1] = above_c[u + 1] + rc;
             }
         }
-        Self { sum, cnt, h, w }
+    }
+
+    /// [`high_pass`] of `data` (row-major, the map these sums are of) into `out`: the
+    /// arithmetic of [`Self::high_pass_strided`] at stride 1, bit for bit, row by row. Away
+    /// from the left and right borders a window's columns are `u − r` and `u + r + 1` for
+    /// every pixel, so that run is plain slices offset from each other and vectorises (the
+    /// per-pixel closure with its clamped bounds did not; with the fixed point's three high
+    /// passes it was the largest part of a robust suction plan's time).
+    fn high_pass_into(&self, data: &[f32], r: usize, out: &mut [f32]) {
+        let (h, w, w1) = (self.h, self.w, self.w + 1);
+        #[inline(always)]
+        fn one(z: f32, s: f64, c: u32) -> f32 {
+            let hp = (f64::from(z) - s / f64::from(c.max(1))) as f32;
+            if is_valid_depth(z) { hp } else { f32::NAN }
+        }
+        // the interior: u − r ≥ 0 and u + r + 1 ≤ w
+        let (lo, hi) = (r.min(w), w.saturating_sub(r).max(r.min(w)));
+        for (v, (row, dst)) in data
+            .chunks_exact(w.max(1))
+            .zip(out.chunks_exact_mut(w.max(1)))
+            .take(h)
+            .enumerate()
+        {
+            let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
+            let (ts, bs) = (&self.sum[v0 * w1..][..w1], &self.sum[v1 * w1..][..w1]);
+            let (tc, bc) = (&self.cnt[v0 * w1..][..w1], &self.cnt[v1 * w1..][..w1]);
+            let edge = |u: usize| {
+                let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
+                let s = bs[u1] - ts[u1] - bs[u0] + ts[u0];
+                let c = bc[u1] + tc[u0] - tc[u1] - bc[u0];
+                one(row[u], s, c)
+            };
+            for u in (0..lo).chain(hi..w) {
+                dst[u] = edge(u);
+            }
+            if hi > lo {
+                let n = hi - lo;
+                let (b1, t1, b0, t0) = (
+                    &bs[lo + r + 1..][..n],
+                    &ts[lo + r + 1..][..n],
+                    &bs[lo - r..][..n],
+                    &ts[lo - r..][..n],
+                );
+                let (cb1, ct1, cb0, ct0) = (
+                    &bc[lo + r + 1..][..n],
+                    &tc[lo + r + 1..][..n],
+                    &bc[lo - r..][..n],
+                    &tc[lo - r..][..n],
+                );
+                for i in 0..n {
+                    let s = b1[i] - t1[i] - b0[i] + t0[i];
+                    let c = cb1[i] + ct0[i] - ct1[i] - cb0[i];
+                    dst[lo + i] = one(row[lo + i], s, c);
+                }
+            }
+        }
     }
 
     /// [`high_pass`] of `depth` (the map these sums are of) at every `stride`-th pixel of every
@@ -1871,6 +1954,76 @@ mod tests {
                 assert_eq!(out, want, "max r {r} n {n}");
             }
         }
+    }
+
+    /// The row-wise high pass (interior run as offset slices) gives the per-pixel closure's
+    /// bits: every radius from 0 to wider than the map, holes of every kind, thin maps.
+    #[test]
+    fn the_row_wise_high_pass_is_the_per_pixel_one_bit_for_bit() {
+        for (h, w) in [(1usize, 1usize), (3, 100), (100, 3), (37, 51), (48, 64)] {
+            let d = Array2::from_shape_fn((h, w), |(v, u)| match (u * 7 + v * 3) % 29 {
+                0 => f32::NAN,
+                1 => 0.0,
+                2 => f32::INFINITY,
+                3 => -0.5,
+                _ => 0.6 + 0.3 * ((u as f32 / 4.0).sin() * (v as f32 / 6.0).cos()).abs(),
+            });
+            for r in [0u32, 1, 2, 5, 25, 60, 200] {
+                let (fast, slow) = (high_pass(d.view(), r), high_pass_strided(d.view(), r, 1));
+                assert_eq!(fast.dim(), slow.dim());
+                for ((i, a), b) in fast.indexed_iter().zip(slow.iter()) {
+                    assert_eq!(
+                        a.to_bits(),
+                        b.to_bits(),
+                        "{h}x{w} r {r} at {i:?}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The relief's fixed point with its buffers reused equals the iteration written out with
+    /// a new high pass (per-pixel closure) and a new map each time, bit for bit.
+    #[test]
+    fn the_relief_fixed_point_reuses_buffers_without_changing_a_bit() {
+        let d = Array2::from_shape_fn((61, 83), |(v, u)| {
+            let bump = if (30..40).contains(&u) && (22..32).contains(&v) {
+                -0.08
+            } else {
+                0.0
+            };
+            if (u * 5 + v * 11) % 41 == 0 {
+                0.0
+            } else {
+                0.9 + 0.02 * (u as f32 / 7.0).sin() + bump
+            }
+        });
+        let m = DepthErrorModel {
+            relief_bias: 0.25,
+            relief_radius_px: 9,
+            relief_max_m: 0.05,
+            edge_sharpening: 0.0,
+            ..DepthErrorModel::uniform(0.004).expect("a valid σ")
+        };
+        let (c, rmax) = (0.25f32, 0.05f32);
+        let c0 = c / (1.0 + c);
+        let mut z = d.clone();
+        for _ in 0..RELIEF_FIXED_POINT_ITERATIONS {
+            let hp = high_pass_strided(z.view(), 9, 1);
+            let mut next = d.clone();
+            ndarray::Zip::from(&mut next)
+                .and(&hp)
+                .for_each(|v, &h| *v = add_relief(*v, (1.0 - c0) * h, c, rmax));
+            z = next;
+        }
+        let got = m.expected_truth_map(d.view(), false);
+        assert!(
+            got.iter()
+                .zip(z.iter())
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
+        // and the correction is there: the box is pulled towards the camera
+        assert!(got[[27, 35]] < d[[27, 35]] - 0.01, "{}", got[[27, 35]]);
     }
 
     /// The fit computes the filters on its grid only: the same values as the full maps there,
