@@ -1544,11 +1544,6 @@ impl BoxSums {
     /// passes it was the largest part of a robust suction plan's time).
     fn high_pass_into(&self, data: &[f32], r: usize, out: &mut [f32]) {
         let (h, w, w1) = (self.h, self.w, self.w + 1);
-        #[inline(always)]
-        fn one(z: f32, s: f64, c: u32) -> f32 {
-            let hp = (f64::from(z) - s / f64::from(c.max(1))) as f32;
-            if is_valid_depth(z) { hp } else { f32::NAN }
-        }
         // the interior: u − r ≥ 0 and u + r + 1 ≤ w
         let (lo, hi) = (r.min(w), w.saturating_sub(r).max(r.min(w)));
         for (v, (row, dst)) in data
@@ -1564,7 +1559,7 @@ impl BoxSums {
                 let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
                 let s = bs[u1] - ts[u1] - bs[u0] + ts[u0];
                 let c = bc[u1] + tc[u0] - tc[u1] - bc[u0];
-                one(row[u], s, c)
+                box_high_pass(row[u], s, c)
             };
             for u in (0..lo).chain(hi..w) {
                 dst[u] = edge(u);
@@ -1586,7 +1581,7 @@ impl BoxSums {
                 for i in 0..n {
                     let s = b1[i] - t1[i] - b0[i] + t0[i];
                     let c = cb1[i] + ct0[i] - ct1[i] - cb0[i];
-                    dst[lo + i] = one(row[lo + i], s, c);
+                    dst[lo + i] = box_high_pass(row[lo + i], s, c);
                 }
             }
         }
@@ -1611,9 +1606,17 @@ impl BoxSums {
                 (at(v1, u1), at(v0, u1), at(v1, u0), at(v0, u0));
             let s = s11 - s01 - s10 + s00;
             let c = c11 + c00 - c01 - c10;
-            (f64::from(z) - s / f64::from(c.max(1))) as f32
+            box_high_pass(z, s, c)
         })
     }
+}
+
+/// One pixel of the box high pass: `z` less the mean `s / c` of the valid depths of its window
+/// (sum `s`, count `c`), NaN where `z` is not a depth. The one formula of every high pass.
+#[inline(always)]
+fn box_high_pass(z: f32, s: f64, c: u32) -> f32 {
+    let hp = (f64::from(z) - s / f64::from(c.max(1))) as f32;
+    if is_valid_depth(z) { hp } else { f32::NAN }
 }
 
 /// The values of `depth` row by row in one slice: borrowed when the view is already contiguous
