@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{GraspError, Result};
 use crate::grasp::{Grasp, NoGraspReason, PlanOutcome};
-use crate::gripper::Gripper;
+use crate::gripper::{Gripper, SuctionCup};
 use crate::parallel::{ParallelConfig, plan_parallel};
 use crate::scene::{Scene, SceneConfig};
 use crate::score::{ScoreConfig, score_grasp};
@@ -244,7 +244,7 @@ pub fn planning_depth<'a>(
     };
     let mut expected = model.expected_truth_map(depth.depth_m.view(), false);
     if let Gripper::Suction(cup) = &request.gripper {
-        let guard = suction_noise_guard(model, model.depth_ref_m as f32, cup, intrinsics.fx);
+        let guard = planning_noise_guard(model, cup, intrinsics);
         if guard > 0.0 {
             let (h, w) = expected.dim();
             let smooth = model.expected_truth(expected.view(), Roi::full(w, h));
@@ -259,6 +259,13 @@ pub fn planning_depth<'a>(
         }
     }
     std::borrow::Cow::Owned(MetricDepth::new(expected))
+}
+
+/// The guard a suction plan with `model` works with: [`suction_noise_guard`] at the model's
+/// reference depth, one value for the planning depth's smoothing ([`planning_depth`]) and for
+/// the candidates' patch normals and edge margin ([`plan_on_scene`]).
+fn planning_noise_guard(model: &DepthErrorModel, cup: &SuctionCup, intrinsics: &Intrinsics) -> f32 {
+    suction_noise_guard(model, model.depth_ref_m as f32, cup, intrinsics.fx)
 }
 
 /// Short-range noise (metres, RMS within one cup radius: [`DepthErrorModel::noise_within_m`])
@@ -279,12 +286,7 @@ pub const NOISE_GUARD_FULL_M: f64 = 0.0015;
 /// prediction, where they flatten curved faces and push cups off small objects
 /// (docs/grasping.md, "What limits the deployed configuration"). A planner with an error
 /// model of no short-range noise now plans suction as on exact depth.
-pub fn suction_noise_guard(
-    model: &DepthErrorModel,
-    z_m: f32,
-    cup: &crate::gripper::SuctionCup,
-    fx_px: f64,
-) -> f32 {
+pub fn suction_noise_guard(model: &DepthErrorModel, z_m: f32, cup: &SuctionCup, fx_px: f64) -> f32 {
     let radius_px = f64::from(cup.radius_m) * fx_px / f64::from(z_m.max(1e-3));
     let noise = model.noise_within_m(z_m, radius_px);
     let guard = (noise - NOISE_GUARD_FROM_M) / (NOISE_GUARD_FULL_M - NOISE_GUARD_FROM_M);
@@ -356,13 +358,11 @@ pub fn plan_on_scene(
             },
         )?,
         Gripper::Suction(cup) => {
-            // the guard of `planning_depth`, from the same model, depth and focal length
-            let model_guard = request.error_model.as_ref().map(|m| {
-                (
-                    m,
-                    suction_noise_guard(m, m.depth_ref_m as f32, cup, intrinsics.fx),
-                )
-            });
+            // the guard of `planning_depth`
+            let model_guard = request
+                .error_model
+                .as_ref()
+                .map(|m| (m, planning_noise_guard(m, cup, intrinsics)));
             plan_suction(
                 scene,
                 cup,
