@@ -218,7 +218,8 @@ def test_realign_on_the_unchanged_background_corrects_a_fluctuation(anchored):
     assert set(report) == {"anchors", "anchors_used", "brightness_gain",
                            "held_out_rmse_before_m", "held_out_rmse_after_m",
                            "held_out_gain_m", "held_out_gain_se_m", "correction", "target",
-                           "accepted", "reason"}
+                           "accepted", "reason", "held_out_truth_rmse_m",
+                           "held_out_truth_inverse_rmse_per_m"}
     assert report["target"] == "calibration-output"
     assert report["correction"] == "scale-shift"
     assert report["held_out_gain_m"] > report["held_out_gain_se_m"] > 0

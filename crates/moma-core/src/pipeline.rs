@@ -994,8 +994,12 @@ pub struct Aligned {
 impl Calibration {
     /// The error model of one frame's aligned depth: the calibration's
     /// ([`Calibration::error_model`]); when the frame was re-aligned, its flat σ from the
-    /// frame's held-out anchor RMSE (after the correction when accepted, of the one-shot result
-    /// otherwise). Re-aligned onto the calibration's own output (the default target), that
+    /// frame's own error on the unchanged background, the held-out anchors' RMSE against the
+    /// calibration frame's ground truth of the depth the frame got
+    /// ([`RealignReport::held_out_truth_rmse_m`], [`DepthErrorModel::for_frame_on_background`]).
+    /// A report without it (written before the field existed) falls back to the held-out RMSE
+    /// of the correction's target (after the correction when accepted, of the one-shot result
+    /// otherwise): re-aligned onto the calibration's own output (the default target), that
     /// residual adds to the calibration frames' own error
     /// ([`DepthErrorModel::with_frame_drift`]); onto the calibration frame's ground truth, it
     /// replaces it (at least a quarter of the calibration's σ: [`DepthErrorModel::for_frame`]).
@@ -1005,6 +1009,11 @@ impl Calibration {
         let Some(r) = realign else {
             return Some(model);
         };
+        if let Some(rmse_m) = r.held_out_truth_rmse_m {
+            return Some(
+                model.for_frame_on_background(rmse_m, r.held_out_truth_inverse_rmse_per_m),
+            );
+        }
         let residual = if r.accepted {
             r.held_out_rmse_after_m
         } else {

@@ -655,6 +655,19 @@ pub struct RealignReport {
     pub accepted: bool,
     /// Why (a warning when not accepted).
     pub reason: String,
+    /// RMSE of the depth this frame gets (the corrected result when accepted, with the
+    /// correction fitted without the held-out anchors; the one-shot result otherwise) against
+    /// the **calibration frame's ground truth** at the held-out anchors, metres, trimmed as the
+    /// other held-out RMSEs: the frame's own error on the unchanged background, whatever the
+    /// `target`. (With target `ground-truth` it equals the held-out RMSE after or before.) The
+    /// frame's error model takes its flat σ from it ([`crate::Calibration::frame_error_model`]);
+    /// absent in reports written before the field existed and where nothing was held out.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_truth_rmse_m: Option<f64>,
+    /// The same errors in inverse depth, `|1/z − 1/z_truth|`, 1/m (trimmed RMSE): what an
+    /// error model whose σ grows as z² in metres needs at its reference depth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_truth_inverse_rmse_per_m: Option<f64>,
 }
 
 /// Anchors of one frame: full-resolution pixels with their calibration depth.
@@ -774,6 +787,8 @@ pub fn find_anchors(
 struct Obs {
     u: f64,
     v: f64,
+    /// The calibration frame's ground truth here, metres (NaN when not stored).
+    gt_m: f64,
     z_m: f64,
     t: f64,
     y: f64,
@@ -887,17 +902,50 @@ fn abs_err_m(z: f64, z_ref: f64) -> f64 {
     }
 }
 
+/// Absolute error of a depth against its reference in inverse depth, 1/m; an invalid depth
+/// counts as infinitely far (the reference's whole inverse depth).
+fn abs_err_inverse_per_m(z: f64, z_ref: f64) -> f64 {
+    if z.is_finite() && z > 0.0 {
+        (1.0 / z - 1.0 / z_ref).abs()
+    } else {
+        1.0 / z_ref
+    }
+}
+
+/// The held-out observations with their depth, metres, of the one-shot result (`corr` None)
+/// or the corrected one.
+fn held_depths_m<'a>(
+    obs: &'a [Obs],
+    space: AlignSpace,
+    corr: Option<&'a Correction>,
+) -> impl Iterator<Item = (f64, &'a Obs)> + 'a {
+    obs.iter().map(move |o| {
+        let t = match corr {
+            Some(c) => o.y + c.delta(o.y, o.u, o.v),
+            None => o.y,
+        };
+        (space.depth_from_target(t), o)
+    })
+}
+
 /// Held-out absolute errors, metres, of the one-shot result (`corr` None) or the corrected one.
 fn errors_m(obs: &[Obs], space: AlignSpace, corr: Option<&Correction>) -> Vec<f64> {
-    obs.iter()
-        .map(|o| {
-            let t = match corr {
-                Some(c) => o.y + c.delta(o.y, o.u, o.v),
-                None => o.y,
-            };
-            abs_err_m(space.depth_from_target(t), o.z_m)
-        })
+    held_depths_m(obs, space, corr)
+        .map(|(z, o)| abs_err_m(z, o.z_m))
         .collect()
+}
+
+/// Fills [`RealignReport::held_out_truth_rmse_m`] and its inverse-depth twin from `(depth,
+/// calibration ground truth)` pairs at the held-out anchors, metres (pairs without a ground
+/// truth are left out; both `None` when none is left).
+fn set_truth_residual(report: &mut RealignReport, pairs: impl Iterator<Item = (f64, f64)>) {
+    let (metres, inverse): (Vec<f64>, Vec<f64>) = pairs
+        .filter(|&(_, gt)| gt.is_finite() && gt > 0.0)
+        .map(|(z, gt)| (abs_err_m(z, gt), abs_err_inverse_per_m(z, gt)))
+        .unzip();
+    let some = !metres.is_empty();
+    report.held_out_truth_rmse_m = some.then(|| trimmed_rmse(&metres));
+    report.held_out_truth_inverse_rmse_per_m = some.then(|| trimmed_rmse(&inverse));
 }
 
 /// The RMSE of absolute errors without the largest [`HELD_OUT_TRIM`] fraction of them (a few
@@ -998,6 +1046,8 @@ fn empty_report(anchors: &Anchors, model: CorrectionModel, target: AnchorTarget)
         prediction_affine: None,
         accepted: false,
         reason: String::new(),
+        held_out_truth_rmse_m: None,
+        held_out_truth_inverse_rmse_per_m: None,
     }
 }
 
@@ -1050,6 +1100,7 @@ pub fn realign_in_place(
             (is_valid_depth(d) && is_valid_depth(z) && y.is_finite()).then(|| Obs {
                 u: u as f64,
                 v: v as f64,
+                gt_m: gt as f64,
                 z_m: z as f64,
                 t: space.target_from_depth(z as f64),
                 y,
@@ -1072,7 +1123,13 @@ pub fn realign_in_place(
     };
     let before = errors_m(held, space, None);
     let after = errors_m(held, space, Some(&trial));
-    if !decide(&mut report, &before, &after, config.acceptance_se) {
+    let accept = decide(&mut report, &before, &after, config.acceptance_se);
+    let kept = if accept { Some(&trial) } else { None };
+    set_truth_residual(
+        &mut report,
+        held_depths_m(held, space, kept).map(|(z, o)| (z, o.gt_m)),
+    );
+    if !accept {
         return Ok(report);
     }
     let Some(fin) = Correction::fit_trimmed(config.model, store.size, &obs, config.ridge) else {
@@ -1140,6 +1197,8 @@ struct PredObs {
     v: f64,
     x_new: f64,
     x_cal: f64,
+    /// The calibration frame's ground truth here, metres (NaN when not stored).
+    gt_m: f64,
     z_m: f64,
 }
 
@@ -1272,7 +1331,7 @@ pub fn realign_prediction_affine(
     let obs: Vec<PredObs> = anchors
         .pixels
         .iter()
-        .filter_map(|&(u, v, _, _)| {
+        .filter_map(|&(u, v, gt, _)| {
             let x_new = normalised[[v as usize, u as usize]] as f64;
             let x_cal = stored[[v as usize / 2, u as usize / 2]] as f64;
             let (uf, vf) = (u as f64, v as f64);
@@ -1283,6 +1342,7 @@ pub fn realign_prediction_affine(
                     v: vf,
                     x_new,
                     x_cal,
+                    gt_m: gt as f64,
                     z_m: z,
                 },
             )
@@ -1316,7 +1376,19 @@ pub fn realign_prediction_affine(
         .iter()
         .map(|o| abs_err_m(depth_at(o, trial.apply(o.x_new)), o.z_m))
         .collect();
-    if !decide(&mut report, &before, &after, config.acceptance_se) {
+    let accept = decide(&mut report, &before, &after, config.acceptance_se);
+    set_truth_residual(
+        &mut report,
+        held.iter().map(|o| {
+            let x = if accept {
+                trial.apply(o.x_new)
+            } else {
+                o.x_new
+            };
+            (depth_at(o, x), o.gt_m)
+        }),
+    );
+    if !accept {
         return Ok((report, None));
     }
     let Some(fin) = PredAffine::fit_trimmed(&obs, r, config.ridge) else {

@@ -92,6 +92,12 @@ fn gt_tilted(with_object: bool) -> MetricDepth {
 }
 
 fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
+    calibration_from(method, g, &disparity(g, 2.0, 0.0))
+}
+
+/// The calibration of `method` on ground truth `g` and the depth model's output `pred`, with
+/// the anchor store of the background's RGB.
+fn calibration_from(method: Method, g: &MetricDepth, pred: &Prediction) -> Calibration {
     let config = CalibrationConfig {
         method,
         normalisation: NormalisationConfig {
@@ -106,10 +112,9 @@ fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
         robust: None,
         workspace: None,
     };
-    let pred = disparity(g, 2.0, 0.0);
-    calibrate(&[CalibrationFrame::new(&pred, g)], &config)
+    calibrate(&[CalibrationFrame::new(pred, g)], &config)
         .unwrap()
-        .with_anchors(&grey(rgb(false, 1.0, 0, 1).view()), g, &pred)
+        .with_anchors(&grey(rgb(false, 1.0, 0, 1).view()), g, pred)
         .unwrap()
 }
 
@@ -683,10 +688,12 @@ fn align_realigned(
 }
 
 /// The frame's error model follows what the anchors measured (docs/grasping.md, "The re-aligned
-/// frame's σ"): re-aligned onto the calibration's own output, the held-out RMSE is the frame's
-/// change since calibration and adds to the calibration frame's own error; onto the ground
-/// truth, it is the frame's error and replaces it. A report without `target` (written before the
-/// field existed) reads as the default target.
+/// frame's σ"): its flat σ is the held-out anchors' error against the calibration frame's ground
+/// truth, at the model's reference depth, whatever the correction's target, with the
+/// calibration's short-range fields kept. A report written before that residual existed falls
+/// back to the target's RMSE: onto the calibration's own output it adds to the calibration
+/// frame's own error; onto the ground truth it replaces it. A report without `target` reads as
+/// the default target.
 #[test]
 fn the_frame_error_model_follows_what_the_anchors_measured() {
     let TestFrame { cal, pred, .. } = test_frame(2.3, 0.2);
@@ -695,6 +702,8 @@ fn the_frame_error_model_follows_what_the_anchors_measured() {
         .sigma_dense_m
         .expect("a fitted model records its dense part");
     assert!(dense <= model.sigma_flat_m);
+    assert_eq!(model.depth_exponent, 2.0, "inverse space: σ grows as z²");
+    let fields2 = dense * dense * model.variance_shares[1..].iter().sum::<f64>();
     for target in [AnchorTarget::CalibrationOutput, AnchorTarget::GroundTruth] {
         let config = RealignConfig {
             ridge: 0.0,
@@ -705,14 +714,38 @@ fn the_frame_error_model_follows_what_the_anchors_measured() {
         assert_eq!(report.target, target);
         assert!(report.accepted, "{report:?}");
         let after = report.held_out_rmse_after_m.unwrap();
+        let truth = report.held_out_truth_rmse_m.unwrap();
+        let inverse = report.held_out_truth_inverse_rmse_per_m.unwrap();
+        if target == AnchorTarget::GroundTruth {
+            assert_eq!(
+                truth, after,
+                "onto the truth, the target's RMSE is the truth's"
+            );
+        }
+        let at_ref = inverse * model.depth_ref_m * model.depth_ref_m;
+        let expected = (at_ref * at_ref)
+            .max(fields2)
+            .max((0.25 * dense).powi(2))
+            .sqrt();
         let sigma = cal.frame_error_model(Some(&report)).unwrap().sigma_flat_m;
+        assert!(
+            (sigma - expected).abs() <= 1e-12 * expected.max(1e-3),
+            "{target:?}: σ {sigma} m, expected {expected} m (dense {dense}, inverse {inverse})"
+        );
+        // a report written before the truth residual existed: the target's RMSE
+        let mut json = serde_json::to_value(&report).unwrap();
+        let fields = json.as_object_mut().unwrap();
+        fields.remove("held_out_truth_rmse_m").unwrap();
+        fields.remove("held_out_truth_inverse_rmse_per_m").unwrap();
+        let old: RealignReport = serde_json::from_value(json).unwrap();
+        let sigma = cal.frame_error_model(Some(&old)).unwrap().sigma_flat_m;
         let expected = match target {
             AnchorTarget::CalibrationOutput => (dense * dense + after * after).sqrt(),
             AnchorTarget::GroundTruth => after.max(0.25 * model.sigma_flat_m),
         };
         assert!(
             (sigma - expected).abs() <= 1e-12 * expected.max(1e-3),
-            "{target:?}: σ {sigma} m, expected {expected} m (dense {dense}, after {after})"
+            "{target:?}, older report: σ {sigma} m, expected {expected} m"
         );
         // without re-alignment, the calibration's model
         assert_eq!(cal.frame_error_model(None), Some(model));
@@ -722,4 +755,86 @@ fn the_frame_error_model_follows_what_the_anchors_measured() {
     json.as_object_mut().unwrap().remove("target");
     let old: RealignReport = serde_json::from_value(json).unwrap();
     assert_eq!(old.target, AnchorTarget::CalibrationOutput);
+}
+
+/// The depth model's output with a ripple that no global fit follows: disparity `a/z + b` plus
+/// 0.02·sin(u/4 + v/7) (about 7 mm at the table's 0.85 m).
+fn rippled(z: &MetricDepth, a: f32, b: f32) -> Prediction {
+    Prediction::new(
+        Array2::from_shape_fn(z.depth_m.dim(), |(v, u)| {
+            a / z.depth_m[[v, u]] + b + 0.02 * (u as f32 / 4.0 + v as f32 / 7.0).sin()
+        }),
+        PredictionKind::RelativeDisparity,
+    )
+}
+
+/// Re-aligned onto the calibration's own output, the held-out RMSE measures only what changed
+/// since calibration; the truth residual measures the frame's error on the background, which
+/// here is the ripple the calibration itself could not fit: checked against the dense error of
+/// the re-aligned depth over the whole background, in metres and in inverse depth, and the
+/// frame's σ map covers those errors as a σ should.
+#[test]
+fn the_held_out_truth_residual_is_the_frames_error_on_the_background() {
+    let table = gt(false);
+    let cal = calibration_from(Method::Gssa, &table, &rippled(&table, 2.0, 0.0));
+    let truth = gt(true);
+    let pred = rippled(&truth, 2.3, 0.2);
+    let (re, report) = realigned(
+        &cal,
+        &pred,
+        &RealignConfig {
+            ridge: 0.0,
+            ..Default::default()
+        },
+    );
+    assert!(report.accepted, "{report:?}");
+    // the background's dense error, away from the object's border
+    let (mut e2, mut i2, mut n) = (0.0, 0.0, 0usize);
+    let mut errors = Vec::new();
+    for ((v, u), &z) in re.depth_m.indexed_iter() {
+        let near_object = (45..105).contains(&u) && (35..85).contains(&v);
+        if near_object {
+            continue;
+        }
+        let t = truth.depth_m[[v, u]] as f64;
+        let e = z as f64 - t;
+        e2 += e * e;
+        i2 += (1.0 / z as f64 - 1.0 / t).powi(2);
+        n += 1;
+        errors.push((v, u, e.abs()));
+    }
+    let (rms_m, rms_inv) = ((e2 / n as f64).sqrt(), (i2 / n as f64).sqrt());
+    assert!(
+        rms_m > 3e-3,
+        "the ripple leaves {rms_m} m on the background"
+    );
+    let truth_m = report.held_out_truth_rmse_m.unwrap();
+    let truth_inv = report.held_out_truth_inverse_rmse_per_m.unwrap();
+    // ~60 held-out anchors, their largest 10 % trimmed
+    for (got, dense) in [(truth_m, rms_m), (truth_inv, rms_inv)] {
+        assert!(
+            (0.6 * dense..=1.1 * dense).contains(&got),
+            "held-out {got} against the background's {dense}"
+        );
+    }
+    let drift = report.held_out_rmse_after_m.unwrap();
+    assert!(
+        drift < 0.3 * truth_m,
+        "the drift residual {drift} m is not the frame's error {truth_m} m"
+    );
+    // the frame's σ map: the background's errors within ±1σ and ±2σ near a Gaussian's shares
+    let model = cal.frame_error_model(Some(&report)).unwrap();
+    let sigma = model.sigma_map(&re);
+    let within = |k: f64| {
+        errors
+            .iter()
+            .filter(|&&(v, u, e)| e <= k * sigma[[v, u]] as f64)
+            .count() as f64
+            / errors.len() as f64
+    };
+    let (one, two) = (within(1.0), within(2.0));
+    assert!(
+        (0.5..=0.85).contains(&one) && two >= 0.9,
+        "±1σ {one}, ±2σ {two}"
+    );
 }
