@@ -229,6 +229,15 @@ def test_realign_on_the_unchanged_background_corrects_a_fluctuation(anchored):
     assert report["held_out_rmse_after_m"] < report["held_out_rmse_before_m"]
     plain = cal.align(drifted)
     assert moma.metrics(depth, gt)["mae"] < 0.5 * moma.metrics(plain, gt)["mae"]
+    # the frame's own error against the calibration's truth (stored in whole millimetres) at
+    # the held-out anchors: the whole scene is static background here, so it is the frame's
+    # dense error against gt
+    ok = np.isfinite(depth) & (gt > 0)
+    rmse_m = float(np.sqrt(np.mean((depth[ok] - gt[ok]) ** 2)))
+    inverse = float(np.sqrt(np.mean((1.0 / depth[ok] - 1.0 / gt[ok]) ** 2)))
+    assert report["held_out_truth_rmse_m"] == pytest.approx(rmse_m, rel=0.5, abs=1e-3)
+    assert report["held_out_truth_inverse_rmse_per_m"] == pytest.approx(inverse, rel=0.5,
+                                                                        abs=2e-3)
     # a global brightness change of the frame does not remove the anchors
     brighter = np.clip(rgb.astype(np.float32) * 1.2, 0, 255).astype(np.uint8)
     _, rep2 = cal.align_realigned(drifted, brighter)
