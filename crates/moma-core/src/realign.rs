@@ -1135,6 +1135,11 @@ pub fn realign_in_place(
     let Some(fin) = Correction::fit_trimmed(config.model, store.size, &obs, config.ridge) else {
         report.reason =
             "kept the one-shot result: the correction is degenerate on all anchors".into();
+        // the frame keeps its one-shot result: its error, not the trial correction's
+        set_truth_residual(
+            &mut report,
+            held_depths_m(held, space, None).map(|(z, o)| (z, o.gt_m)),
+        );
         return Ok(report);
     };
     if fin.model == CorrectionModel::ScaleShift {
@@ -1394,6 +1399,11 @@ pub fn realign_prediction_affine(
     let Some(fin) = PredAffine::fit_trimmed(&obs, r, config.ridge) else {
         report.reason =
             "kept the one-shot result: the correction is degenerate on all anchors".into();
+        // the frame keeps its one-shot result: its error, not the trial correction's
+        set_truth_residual(
+            &mut report,
+            held.iter().map(|o| (depth_at(o, o.x_new), o.gt_m)),
+        );
         return Ok((report, None));
     };
     let (a, b) = fin.ab();
