@@ -66,8 +66,8 @@
 //!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
 //!
 //! With per-frame re-alignment on static anchors, the frame's own error on the unchanged
-//! background sets `σ_flat` for that frame: the held-out anchors' RMSE against the calibration
-//! frame's ground truth, whatever the correction was fitted to, taken to the reference depth by
+//! background sets `σ_flat` for that frame: the RMSE against the calibration frame's ground
+//! truth at anchors that no fit used, whatever the correction was fitted to, taken to the reference depth by
 //! the model's depth law ([`DepthErrorModel::for_frame_on_background`]; the short-range fields
 //! keep the calibration's level). Reports written before that RMSE existed fall back to the
 //! held-out RMSE of the correction's own target: onto the calibration's own output the frame's
@@ -902,7 +902,7 @@ impl DepthErrorModel {
     }
 
     /// The model of one re-aligned frame from its own error on the unchanged background: the
-    /// held-out anchors' RMSE against the calibration frame's ground truth, `rmse_m` in metres
+    /// RMSE against the calibration frame's ground truth at anchors no fit used, `rmse_m` in metres
     /// and `inverse_rmse_per_m` in inverse depth (1/m; `RealignReport::held_out_truth_rmse_m`
     /// and `held_out_truth_inverse_rmse_per_m`). The flat σ at the reference depth is
     /// `inverse_rmse · depth_ref²` for a model whose σ grows as z² (an error δ in inverse depth
@@ -923,8 +923,8 @@ impl DepthErrorModel {
     /// calibration, and `hypot(σ_dense, that RMSE)` ([`DepthErrorModel::with_frame_drift`])
     /// counted the calibration frame's error twice where re-alignment had removed part of it:
     /// 13 of the 18 re-aligned σ-coverage rows of the shared sets were outside 55–80 % /
-    /// ≥ 90 %, eleven of them too wide; with this model, 8 (docs/grasping.md, "The re-aligned
-    /// frame's σ").
+    /// ≥ 90 %, eleven of them too wide; with this model, 6 (docs/grasping.md, "The re-aligned
+    /// frame's σ against the truth").
     pub fn for_frame_on_background(&self, rmse_m: f64, inverse_rmse_per_m: Option<f64>) -> Self {
         let at_ref = match inverse_rmse_per_m {
             Some(i) if self.depth_exponent == 2.0 => i * self.depth_ref_m * self.depth_ref_m,

@@ -994,8 +994,8 @@ pub struct Aligned {
 impl Calibration {
     /// The error model of one frame's aligned depth: the calibration's
     /// ([`Calibration::error_model`]); when the frame was re-aligned, its flat σ from the
-    /// frame's own error on the unchanged background, the held-out anchors' RMSE against the
-    /// calibration frame's ground truth of the depth the frame got
+    /// frame's own error on the unchanged background, the RMSE of the depth the frame got
+    /// against the calibration frame's ground truth at anchors that no fit used
     /// ([`RealignReport::held_out_truth_rmse_m`], [`DepthErrorModel::for_frame_on_background`]).
     /// A report without it (written before the field existed) falls back to the held-out RMSE
     /// of the correction's target (after the correction when accepted, of the one-shot result

@@ -655,13 +655,14 @@ pub struct RealignReport {
     pub accepted: bool,
     /// Why (a warning when not accepted).
     pub reason: String,
-    /// RMSE of the depth this frame gets (the corrected result when accepted, with the
-    /// correction fitted without the held-out anchors; the one-shot result otherwise) against
-    /// the **calibration frame's ground truth** at the held-out anchors, metres, trimmed as the
-    /// other held-out RMSEs: the frame's own error on the unchanged background, whatever the
-    /// `target`. (With target `ground-truth` it equals the held-out RMSE after or before.) The
-    /// frame's error model takes its flat σ from it ([`crate::Calibration::frame_error_model`]);
-    /// absent in reports written before the field existed and where nothing was held out.
+    /// RMSE of the depth this frame gets against the **calibration frame's ground truth** at
+    /// anchors that no fit used, metres, trimmed as the held-out RMSEs: the frame's own error
+    /// on the unchanged background, whatever the `target`. Kept one-shot result: every anchor.
+    /// Corrected: the anchors outside the fitted subsample (`max_anchors`; thousands on a
+    /// 640×480 frame), or, where fewer remain than were held out, the held-out anchors with
+    /// the correction fitted without them. The frame's error model takes its flat σ from it
+    /// ([`crate::Calibration::frame_error_model`]); absent in reports written before the field
+    /// existed and where no correction could be fitted (too few anchors, a degenerate fit).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub held_out_truth_rmse_m: Option<f64>,
     /// The same errors in inverse depth, `|1/z − 1/z_truth|`, 1/m (trimmed RMSE): what an
@@ -936,7 +937,7 @@ fn errors_m(obs: &[Obs], space: AlignSpace, corr: Option<&Correction>) -> Vec<f6
 }
 
 /// Fills [`RealignReport::held_out_truth_rmse_m`] and its inverse-depth twin from `(depth,
-/// calibration ground truth)` pairs at the held-out anchors, metres (pairs without a ground
+/// calibration ground truth)` pairs at anchors no fit used, metres (pairs without a ground
 /// truth are left out; both `None` when none is left).
 fn set_truth_residual(report: &mut RealignReport, pairs: impl Iterator<Item = (f64, f64)>) {
     let (metres, inverse): (Vec<f64>, Vec<f64>) = pairs
@@ -1022,14 +1023,42 @@ fn too_few_reason(have: usize, need: usize) -> String {
 }
 
 /// The seeded subsample of at most `max_anchors` and the number held out (the first ones).
-fn subsample<T: Copy>(mut obs: Vec<T>, config: &RealignConfig) -> (Vec<T>, usize) {
+fn subsample<T: Copy>(mut obs: Vec<T>, config: &RealignConfig) -> Subsample<T> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let take = config.max_anchors.min(obs.len());
-    let (chosen, _) = obs.partial_shuffle(&mut rng, take);
-    let obs = chosen.to_vec();
-    let n_hold = ((obs.len() as f64 * config.holdout_fraction).round() as usize)
-        .clamp(1, obs.len().saturating_sub(4).max(1));
-    (obs, n_hold)
+    let (chosen, rest) = obs.partial_shuffle(&mut rng, take);
+    let (chosen, unused) = (chosen.to_vec(), rest.to_vec());
+    let n_hold = ((chosen.len() as f64 * config.holdout_fraction).round() as usize)
+        .clamp(1, chosen.len().saturating_sub(4).max(1));
+    Subsample {
+        chosen,
+        unused,
+        n_hold,
+    }
+}
+
+/// The anchors a re-alignment works with: `chosen` (at most `max_anchors`, seeded), of which
+/// the first `n_hold` are held out of the trial fit, and the `unused` rest, which no fit sees.
+struct Subsample<T> {
+    chosen: Vec<T>,
+    unused: Vec<T>,
+    n_hold: usize,
+}
+
+impl<T> Subsample<T> {
+    /// The anchors on which to measure the depth the frame gets against the calibration's
+    /// truth: every anchor when no correction is applied; when one is, the anchors no fit used
+    /// (`None` when there are fewer of them than held-out ones: the held-out anchors with the
+    /// trial correction then measure it).
+    fn for_truth(&self, corrected: bool) -> Option<Vec<&T>> {
+        if !corrected {
+            Some(self.chosen.iter().chain(&self.unused).collect())
+        } else if self.unused.len() >= self.n_hold {
+            Some(self.unused.iter().collect())
+        } else {
+            None
+        }
+    }
 }
 
 fn empty_report(anchors: &Anchors, model: CorrectionModel, target: AnchorTarget) -> RealignReport {
@@ -1113,9 +1142,19 @@ pub fn realign_in_place(
         report.reason = too_few_reason(obs.len(), need);
         return Ok(report);
     }
-    let (obs, n_hold) = subsample(obs, config);
+    let sub = subsample(obs, config);
+    let obs = &sub.chosen;
     report.anchors_used = obs.len();
-    let (held, train) = obs.split_at(n_hold);
+    let (held, train) = obs.split_at(sub.n_hold);
+    // the depth the frame gets against the calibration frame's truth (module documentation)
+    let truth_of_one_shot = |report: &mut RealignReport| {
+        let all = sub.for_truth(false).unwrap_or_default();
+        set_truth_residual(
+            report,
+            all.into_iter()
+                .map(|o| (space.depth_from_target(o.y), o.gt_m)),
+        );
+    };
     let Some(trial) = Correction::fit_trimmed(config.model, store.size, train, config.ridge) else {
         report.reason =
             "kept the one-shot result: the correction is degenerate on these anchors".into();
@@ -1123,23 +1162,14 @@ pub fn realign_in_place(
     };
     let before = errors_m(held, space, None);
     let after = errors_m(held, space, Some(&trial));
-    let accept = decide(&mut report, &before, &after, config.acceptance_se);
-    let kept = if accept { Some(&trial) } else { None };
-    set_truth_residual(
-        &mut report,
-        held_depths_m(held, space, kept).map(|(z, o)| (z, o.gt_m)),
-    );
-    if !accept {
+    if !decide(&mut report, &before, &after, config.acceptance_se) {
+        truth_of_one_shot(&mut report);
         return Ok(report);
     }
-    let Some(fin) = Correction::fit_trimmed(config.model, store.size, &obs, config.ridge) else {
+    let Some(fin) = Correction::fit_trimmed(config.model, store.size, obs, config.ridge) else {
         report.reason =
             "kept the one-shot result: the correction is degenerate on all anchors".into();
-        // the frame keeps its one-shot result: its error, not the trial correction's
-        set_truth_residual(
-            &mut report,
-            held_depths_m(held, space, None).map(|(z, o)| (z, o.gt_m)),
-        );
+        truth_of_one_shot(&mut report);
         return Ok(report);
     };
     if fin.model == CorrectionModel::ScaleShift {
@@ -1180,6 +1210,18 @@ pub fn realign_in_place(
     }
     report.accepted = true;
     report.reason = accepted_reason(&report, obs.len());
+    match sub.for_truth(true) {
+        Some(unused) => set_truth_residual(
+            &mut report,
+            unused
+                .into_iter()
+                .map(|o| (f64::from(depth_m[[o.v as usize, o.u as usize]]), o.gt_m)),
+        ),
+        None => set_truth_residual(
+            &mut report,
+            held_depths_m(held, space, Some(&trial)).map(|(z, o)| (z, o.gt_m)),
+        ),
+    }
     Ok(report)
 }
 
@@ -1359,9 +1401,10 @@ pub fn realign_prediction_affine(
         report.reason = too_few_reason(obs.len(), need);
         return Ok((report, None));
     }
-    let (obs, n_hold) = subsample(obs, config);
+    let sub = subsample(obs, config);
+    let obs = &sub.chosen;
     report.anchors_used = obs.len();
-    let (held, train) = obs.split_at(n_hold);
+    let (held, train) = obs.split_at(sub.n_hold);
     let trial = if r.is_finite() && r > 0.0 {
         PredAffine::fit_trimmed(train, r, config.ridge)
     } else {
@@ -1381,31 +1424,34 @@ pub fn realign_prediction_affine(
         .iter()
         .map(|o| abs_err_m(depth_at(o, trial.apply(o.x_new)), o.z_m))
         .collect();
-    let accept = decide(&mut report, &before, &after, config.acceptance_se);
-    set_truth_residual(
-        &mut report,
-        held.iter().map(|o| {
-            let x = if accept {
-                trial.apply(o.x_new)
-            } else {
-                o.x_new
-            };
-            (depth_at(o, x), o.gt_m)
-        }),
-    );
-    if !accept {
+    // the depth the frame gets against the calibration frame's truth (module documentation)
+    let truth_of_one_shot = |report: &mut RealignReport| {
+        let all = sub.for_truth(false).unwrap_or_default();
+        set_truth_residual(
+            report,
+            all.into_iter().map(|o| (depth_at(o, o.x_new), o.gt_m)),
+        );
+    };
+    if !decide(&mut report, &before, &after, config.acceptance_se) {
+        truth_of_one_shot(&mut report);
         return Ok((report, None));
     }
-    let Some(fin) = PredAffine::fit_trimmed(&obs, r, config.ridge) else {
+    let Some(fin) = PredAffine::fit_trimmed(obs, r, config.ridge) else {
         report.reason =
             "kept the one-shot result: the correction is degenerate on all anchors".into();
-        // the frame keeps its one-shot result: its error, not the trial correction's
-        set_truth_residual(
-            &mut report,
-            held.iter().map(|o| (depth_at(o, o.x_new), o.gt_m)),
-        );
+        truth_of_one_shot(&mut report);
         return Ok((report, None));
     };
+    let (measured, map) = match sub.for_truth(true) {
+        Some(unused) => (unused, &fin),
+        None => (held.iter().collect(), &trial),
+    };
+    set_truth_residual(
+        &mut report,
+        measured
+            .into_iter()
+            .map(|o| (depth_at(o, map.apply(o.x_new)), o.gt_m)),
+    );
     let (a, b) = fin.ab();
     report.accepted = true;
     report.prediction_affine = Some([a, b]);

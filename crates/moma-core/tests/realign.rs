@@ -725,12 +725,12 @@ fn the_frame_error_model_follows_what_the_anchors_measured() {
         let after = report.held_out_rmse_after_m.unwrap();
         let truth = report.held_out_truth_rmse_m.unwrap();
         let inverse = report.held_out_truth_inverse_rmse_per_m.unwrap();
-        if target == AnchorTarget::GroundTruth {
-            assert_eq!(
-                truth, after,
-                "onto the truth, the target's RMSE is the truth's"
-            );
-        }
+        // the exact calibration: both measure the truth's whole millimetres (the truth RMSE on
+        // the anchors no fit used, the target's on the held-out ones)
+        assert!(
+            truth < 0.5e-3 && after < 0.5e-3,
+            "{target:?}: {truth} m, {after} m"
+        );
         let at_ref = inverse * model.depth_ref_m * model.depth_ref_m;
         let expected = (at_ref * at_ref)
             .max(fields2)

@@ -404,8 +404,9 @@ impl Calibration {
     /// per-frame report as `moma align --realign anchors --json` prints it (`anchors`,
     /// `anchors_used`, `brightness_gain`, `held_out_rmse_before_m`, `held_out_rmse_after_m`
     /// (metres, None when not measured), `accepted`, `reason`, `held_out_truth_rmse_m`: the
-    /// frame's error against the calibration frame's ground truth at the held-out anchors). When the correction is rejected
-    /// or too few anchors remain (a covered background), the one-shot result is returned and
+    /// frame's error against the calibration frame's ground truth at anchors no fit used). When
+    /// the correction is rejected or too few anchors remain (a covered background), the
+    /// one-shot result is returned and
     /// `report["accepted"]` is False with the reason. `rgb`: uint8 `height × width × 3`, read in
     /// place. Options (keywords, defaults as the CLI's): `correction` (`"scale-shift"`,
     /// `"planar"`), `target` (`"calibration-output"`, `"ground-truth"`), `ridge`, `max_anchors`,
