@@ -882,20 +882,7 @@ impl DepthErrorModel {
         match drift_residual_m {
             Some(r) if r.is_finite() => {
                 let dense = self.sigma_dense_m.unwrap_or(self.sigma_flat_m);
-                let sigma_flat_m = dense.hypot(r.max(0.0)).min(10.0);
-                let mut variance_shares = self.variance_shares;
-                if sigma_flat_m > 0.0 {
-                    let kept = (dense.min(sigma_flat_m) / sigma_flat_m).powi(2);
-                    for share in &mut variance_shares {
-                        *share *= kept;
-                    }
-                    variance_shares[0] += 1.0 - kept;
-                }
-                Self {
-                    sigma_flat_m,
-                    variance_shares,
-                    ..*self
-                }
+                self.with_flat_sigma_keeping_fields(dense, dense.hypot(r.max(0.0)).min(10.0))
             }
             _ => *self,
         }
@@ -940,15 +927,24 @@ impl DepthErrorModel {
         let sigma_flat_m = (at_ref.max(0.0).powi(2).max(fields2).max(floor2))
             .sqrt()
             .min(10.0);
+        self.with_flat_sigma_keeping_fields(dense, sigma_flat_m)
+    }
+
+    /// The model with flat σ `sigma_flat_m` (metres at the reference depth) whose fine, medium
+    /// and coarse fields keep the variance, in metres², they have at σ `dense_m`; the offset
+    /// takes the rest (the rule of [`DepthErrorModel::with_frame_drift`] and
+    /// [`DepthErrorModel::for_frame_on_background`]). Where the fields alone would exceed the
+    /// new σ (only at the 10 m clamp or by rounding), they keep their proportions and the
+    /// offset is 0.
+    fn with_flat_sigma_keeping_fields(&self, dense_m: f64, sigma_flat_m: f64) -> Self {
         let mut variance_shares = self.variance_shares;
         if sigma_flat_m > 0.0 {
-            let kept = dense2 / (sigma_flat_m * sigma_flat_m);
+            let kept = dense_m * dense_m / (sigma_flat_m * sigma_flat_m);
             for share in &mut variance_shares[1..] {
                 *share = (*share * kept).min(1.0);
             }
             let fields: f64 = variance_shares[1..].iter().sum();
             if fields > 1.0 {
-                // only at the 10 m clamp or by rounding: the fields as measured, no offset
                 for share in &mut variance_shares[1..] {
                     *share /= fields;
                 }

@@ -1058,18 +1058,16 @@ struct Subsample<T> {
 }
 
 impl<T> Subsample<T> {
-    /// The anchors on which to measure the depth the frame gets against the calibration's
-    /// truth: every anchor when no correction is applied; when one is, the anchors no fit used
-    /// (`None` when there are fewer of them than held-out ones: the held-out anchors with the
-    /// trial correction then measure it).
-    fn for_truth(&self, corrected: bool) -> Option<Vec<&T>> {
-        if !corrected {
-            Some(self.chosen.iter().chain(&self.unused).collect())
-        } else if self.unused.len() >= self.n_hold {
-            Some(self.unused.iter().collect())
-        } else {
-            None
-        }
+    /// Where a kept one-shot result is measured against the calibration's truth
+    /// ([`RealignReport::held_out_truth_rmse_m`]): every anchor, as no correction is applied.
+    fn all(&self) -> impl Iterator<Item = &T> {
+        self.chosen.iter().chain(&self.unused)
+    }
+
+    /// Where a corrected result is: the anchors no fit used, `None` when there are fewer of
+    /// them than held-out ones (the held-out anchors with the trial correction then measure it).
+    fn unfitted(&self) -> Option<&[T]> {
+        (self.unused.len() >= self.n_hold).then_some(&self.unused[..])
     }
 }
 
@@ -1158,13 +1156,12 @@ pub fn realign_in_place(
     let obs = &sub.chosen;
     report.anchors_used = obs.len();
     let (held, train) = obs.split_at(sub.n_hold);
-    // the depth the frame gets against the calibration frame's truth (module documentation)
+    // the kept one-shot result against the calibration frame's truth
+    // (`RealignReport::held_out_truth_rmse_m`)
     let truth_of_one_shot = |report: &mut RealignReport| {
-        let all = sub.for_truth(false).unwrap_or_default();
         set_truth_residual(
             report,
-            all.into_iter()
-                .map(|o| (space.depth_from_target(o.y), o.gt_m)),
+            sub.all().map(|o| (space.depth_from_target(o.y), o.gt_m)),
         );
     };
     let Some(trial) = Correction::fit_trimmed(config.model, store.size, train, config.ridge) else {
@@ -1222,11 +1219,11 @@ pub fn realign_in_place(
     }
     report.accepted = true;
     report.reason = accepted_reason(&report, obs.len());
-    match sub.for_truth(true) {
+    match sub.unfitted() {
         Some(unused) => set_truth_residual(
             &mut report,
             unused
-                .into_iter()
+                .iter()
                 .map(|o| (f64::from(depth_m[[o.v as usize, o.u as usize]]), o.gt_m)),
         ),
         None => set_truth_residual(
@@ -1436,13 +1433,10 @@ pub fn realign_prediction_affine(
         .iter()
         .map(|o| abs_err_m(depth_at(o, trial.apply(o.x_new)), o.z_m))
         .collect();
-    // the depth the frame gets against the calibration frame's truth (module documentation)
+    // the kept one-shot result against the calibration frame's truth
+    // (`RealignReport::held_out_truth_rmse_m`)
     let truth_of_one_shot = |report: &mut RealignReport| {
-        let all = sub.for_truth(false).unwrap_or_default();
-        set_truth_residual(
-            report,
-            all.into_iter().map(|o| (depth_at(o, o.x_new), o.gt_m)),
-        );
+        set_truth_residual(report, sub.all().map(|o| (depth_at(o, o.x_new), o.gt_m)));
     };
     if !decide(&mut report, &before, &after, config.acceptance_se) {
         truth_of_one_shot(&mut report);
@@ -1454,14 +1448,14 @@ pub fn realign_prediction_affine(
         truth_of_one_shot(&mut report);
         return Ok((report, None));
     };
-    let (measured, map) = match sub.for_truth(true) {
+    let (measured, map) = match sub.unfitted() {
         Some(unused) => (unused, &fin),
-        None => (held.iter().collect(), &trial),
+        None => (held, &trial),
     };
     set_truth_residual(
         &mut report,
         measured
-            .into_iter()
+            .iter()
             .map(|o| (depth_at(o, map.apply(o.x_new)), o.gt_m)),
     );
     let (a, b) = fin.ab();
