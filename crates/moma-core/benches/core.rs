@@ -117,6 +117,34 @@ fn bench_error_model(c: &mut Criterion) {
         };
         p1.install(|| b.iter(|| DepthErrorModel::fit(black_box(&[frame]), &[], 2.0).unwrap()))
     });
+    // the height part a calibration adds (moma_core::height): the object pull on the bench's
+    // table, whose 48 bumps stand 30 mm out of it (the samples on them are its objects), for
+    // the global fit and the local one; and the heights of a frame's σ map and draws
+    for (name, method) in [
+        ("ssra", Method::Ssra(SsraConfig::default())),
+        ("lwlr", Method::Lwlr(LwlrConfig::default())),
+    ] {
+        let config = moma_core::CalibrationConfig {
+            method: method.clone(),
+            ..config.clone()
+        };
+        let cal =
+            moma_core::calibrate(&[CalibrationFrame::new(&prediction, &gt_m)], &config).unwrap();
+        g.bench_function(format!("height_pull_{name}_n100_1thread"), |b| {
+            b.iter(|| {
+                moma_core::height::object_scale_pull(
+                    &method,
+                    &cal.model,
+                    moma_core::AlignSpace::Inverse,
+                    black_box(&cal.samples),
+                    &gt_m,
+                )
+            })
+        });
+    }
+    g.bench_function("height_above_plane_640x480", |b| {
+        b.iter(|| moma_core::height::height_above_plane(black_box(aligned.view())).unwrap())
+    });
     g.finish();
 }
 

@@ -18,10 +18,15 @@
 //!   range and `step` the move that snaps the pixel to the window's near or far side (whichever
 //!   half of the range it lies in). The truth takes `a · step`, `a ~ N(edge_sharpening,
 //!   edge_sharpening_sigma²)` per frame, plus noise of σ `edge_gain · relief`.
+//! - **height**: `−k · h`, h the aligned depth's height above its support plane
+//!   ([`crate::height::height_above_plane`]: the depth a pixel stands in front of the dominant
+//!   plane along its ray, 0 without one) and `k ~ N(0, height_sigma²)` one number per frame: a
+//!   relative error of every height, where the calibration's scale at an object rests on the
+//!   calibration frame's own objects ([`crate::height`]).
 //!
 //! The per-pixel σ ([`DepthErrorModel::sigma_map`]) is the RMS of all parts, the relief bias
 //! included: `σ² = σ_flat(z)² + (relief_bias² + relief_sigma²)·hp² + (edge_sharpening² +
-//! edge_sharpening_sigma²)·step² + (edge_gain·relief)²`.
+//! edge_sharpening_sigma²)·step² + (edge_gain·relief)² + (height_sigma·h)²`.
 //!
 //! # Where the numbers come from
 //! Only from calibration data ([`DepthErrorModel::fit`]): the dense residuals of each
@@ -64,6 +69,10 @@
 //!    rest in the semivariogram's proportions.
 //! 3. `edge_gain`: least squares of `r² − σ_flat(z)²` on `relief²` over the other pixels
 //!    (`edge_sharpening_sigma` is half of `edge_sharpening`).
+//! 4. `height_sigma` is not fitted here but by the calibration, which has the samples and can
+//!    refit ([`crate::height`]: the pull of each calibration object on the fit's scale at its
+//!    own samples, and the cross-validation folds' spread of that scale); 0 for models fitted
+//!    here alone.
 //!
 //! With per-frame re-alignment on static anchors, the frame's own error on the unchanged
 //! background sets `σ_flat` for that frame: the RMSE against the calibration frame's ground
@@ -96,7 +105,8 @@
 //! field is N(0, 1) on a grid every `s_k` pixels, bilinear between, divided per pixel by the
 //! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px,
 //! the step share one number per draw (clamped to [−1, 1]: around the expected truth,
-//! [`DepthErrorModel::deviations`], it is drawn around 0).
+//! [`DepthErrorModel::deviations`], it is drawn around 0), the height factor one number drawn
+//! after all the others (a model without a height part draws what it drew before).
 //! Pixels without depth stay without depth; a draw never leaves a pixel at ≤ 0 m (it keeps the
 //! original there).
 
@@ -238,6 +248,18 @@ pub struct DepthErrorModel {
     pub edge_gain: f64,
     /// Radius of the relief window, pixels.
     pub edge_radius_px: u32,
+    /// σ of a per-frame relative error of the heights above the support plane (dimensionless):
+    /// truth − aligned = −k · h, `k ~ N(0, height_sigma²)`, h the aligned depth's height above
+    /// its support plane ([`crate::height::height_above_plane`]). Set by the calibration
+    /// ([`crate::height`]: how far its scale at an object rests on the calibration frame's own
+    /// objects), not by [`DepthErrorModel::fit`]; 0 (absent) in calibration files before
+    /// version 8.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub height_sigma: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 impl Default for DepthErrorModel {
@@ -258,6 +280,7 @@ impl Default for DepthErrorModel {
             edge_sharpening_sigma: 0.0,
             edge_gain: 0.0,
             edge_radius_px: 3,
+            height_sigma: 0.0,
         }
     }
 }
@@ -581,6 +604,9 @@ impl DepthErrorModel {
         }
         if !within(self.relief_max_m, 0.0, 10.0) {
             return bad("relief_max_m", self.relief_max_m, "finite, in [0, 10] m");
+        }
+        if !within(self.height_sigma, 0.0, 10.0) {
+            return bad("height_sigma", self.height_sigma, "finite, in [0, 10]");
         }
         if self.edge_radius_px > 64 || self.relief_radius_px > 1024 {
             return bad(
@@ -1193,6 +1219,8 @@ impl DepthErrorModel {
         let c2 = (self.relief_bias.powi(2) + self.relief_sigma.powi(2)) as f32;
         let a2 = (self.edge_sharpening.powi(2) + self.edge_sharpening_sigma.powi(2)) as f32;
         let g = self.edge_gain as f32;
+        let height = self.height_part(d);
+        let k = self.height_sigma as f32;
         Array2::from_shape_fn(d.raw_dim(), |(v, u)| {
             let z = d[[v, u]];
             if !is_valid_depth(z) {
@@ -1201,8 +1229,24 @@ impl DepthErrorModel {
             let s = (self.sigma_flat_m * self.depth_scale(z)) as f32;
             let h = hp.as_ref().map_or(0.0, |hp| hp[[v, u]]);
             let st = edges.step[[v, u]];
-            (s * s + c2 * h * h + a2 * st * st + (g * edges.relief[[v, u]]).powi(2)).sqrt()
+            let above = height.as_ref().map_or(0.0, |a| a[[v, u]]);
+            (s * s
+                + c2 * h * h
+                + a2 * st * st
+                + (g * edges.relief[[v, u]]).powi(2)
+                + (k * above).powi(2))
+            .sqrt()
         })
+    }
+
+    /// The height above the support plane of `d` when the model has a height part (`None`
+    /// without one, or without a support plane in `d`).
+    fn height_part(&self, d: ArrayView2<'_, f32>) -> Option<Array2<f32>> {
+        if self.height_sigma > 0.0 {
+            crate::height::height_above_plane(d)
+        } else {
+            None
+        }
     }
 
     /// The relief hp of `d` when the model has a relief part (NaN-free: 0 where undefined).
@@ -1265,6 +1309,8 @@ pub struct Draws<'a> {
     pad_v0: usize,
     edges: EdgeMaps,
     hp: Option<Array2<f32>>,
+    /// The height above the support plane of the region (`roi` sized).
+    height: Option<Array2<f32>>,
 }
 
 impl<'a> Draws<'a> {
@@ -1300,6 +1346,14 @@ impl<'a> Draws<'a> {
             pad_v0: pv0,
             edges: EdgeMaps::of(grown, model.edge_radius_px),
             hp: model.relief_part(grown),
+            // the plane from the whole map, the heights of the region only
+            height: (model.height_sigma > 0.0)
+                .then(|| crate::height::support_plane(depth))
+                .flatten()
+                .map(|plane| {
+                    let region = depth.slice(ndarray::s![v0..v0 + roi.height, u0..u0 + roi.width]);
+                    plane.heights(region, u0, v0)
+                }),
         }
     }
 
@@ -1348,6 +1402,12 @@ impl<'a> Draws<'a> {
             })
             .collect();
         let edges = SmoothField::new(w, h, EDGE_SCALE_PX, &mut rng);
+        // drawn last, and only with a height part: the other parts' draws stay as they were
+        let k_height = if self.height.is_some() {
+            (m.height_sigma * f64::from(normal(&mut rng))) as f32
+        } else {
+            0.0
+        };
         let g = m.edge_gain as f32;
         let inv_ref2 = (1.0 / (m.depth_ref_m * m.depth_ref_m)) as f32;
         let mut flat = vec![0.0f32; w];
@@ -1370,6 +1430,11 @@ impl<'a> Draws<'a> {
                 let hp = hp.row(vf);
                 for (u, r) in rest.iter_mut().enumerate() {
                     *r += c * hp[u + du];
+                }
+            }
+            if let Some(height) = &self.height {
+                for (r, a) in rest.iter_mut().zip(height.row(v)) {
+                    *r -= k_height * a;
                 }
             }
             for (u, z) in out.row_mut(v).iter_mut().enumerate() {

@@ -45,6 +45,7 @@ pub mod camera;
 pub mod error;
 pub mod error_model;
 mod fused;
+pub mod height;
 pub mod image;
 mod kernels;
 pub mod metrics;

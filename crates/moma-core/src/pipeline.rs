@@ -546,7 +546,9 @@ const ERROR_MODEL_FOLDS: usize = 5;
 /// The error model of a fitted calibration ([`DepthErrorModel::fit`]): the dense residuals of
 /// its result on each calibration frame, and, for the global fits (GSSA, SSRA: cheap to refit),
 /// the 5-fold cross-validated residuals of the samples (metres) as the floor of the flat σ; the
-/// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed.
+/// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed. The
+/// height part ([`crate::height`]): the folds' spread of the fit's slope (GSSA, SSRA) and, for a
+/// one-frame least-squares GSSA, SSRA or LWLR calibration, its objects' pull.
 fn fit_error_model(
     calibration: &Calibration,
     normalised: &[&NormalisedMap],
@@ -567,29 +569,56 @@ fn fit_error_model(
         .collect();
     let space = calibration.space();
     let cv = match &config.method {
-        Method::Gssa | Method::Ssra(_) => cv_residuals_m(
+        Method::Gssa | Method::Ssra(_) => cross_validate(
             &config.method,
+            &calibration.model,
             space,
             &calibration.samples,
             config.sampling.seed,
         ),
-        _ => Vec::new(),
+        _ => CrossValidated::default(),
     };
     let exponent = match space {
         AlignSpace::Depth => 0.0,
         AlignSpace::Inverse => 2.0,
     };
-    DepthErrorModel::fit(&residual_frames, &cv, exponent)
+    let mut model = DepthErrorModel::fit(&residual_frames, &cv.residuals_m, exponent)?;
+    // the objects' pull for a one-frame least-squares fit (a robust fit's refits are not least
+    // squares; several frames' samples stand on several frames' objects): none otherwise
+    let pull = match (truths, &config.robust) {
+        ([truth], None) => crate::height::object_scale_pull(
+            &config.method,
+            &calibration.model,
+            space,
+            &calibration.samples,
+            truth,
+        ),
+        _ => 0.0,
+    };
+    model.height_sigma = crate::height::height_sigma(pull, cv.slope_sd);
+    Ok(model)
 }
 
-/// K-fold cross-validated residuals (truth − aligned, metres) of `method` on `samples`, with the
-/// samples' true depths; folds that cannot be fitted (too few samples) are left out.
-fn cv_residuals_m(
+/// What the K-fold refits of [`cross_validate`] give.
+#[derive(Debug, Default)]
+struct CrossValidated {
+    /// The held-out samples' residuals (truth − aligned, metres) with their true depths.
+    residuals_m: Vec<(f64, f64)>,
+    /// The refits' grouped-jackknife relative standard deviation of the fit's slope at the
+    /// samples ([`crate::height::jackknife_relative_sd`]; 0 with fewer than two refits).
+    slope_sd: f64,
+}
+
+/// K-fold cross-validation of `method` on `samples` (`full`: its fit on all of them): the
+/// held-out residuals, and how the refits' slope varies; folds that cannot be fitted (too few
+/// samples) are left out.
+fn cross_validate(
     method: &Method,
+    full: &AlignmentModel,
     space: AlignSpace,
     samples: &SampleSet,
     seed: u64,
-) -> Vec<(f64, f64)> {
+) -> CrossValidated {
     use rand::seq::SliceRandom;
     let n = samples.samples.len();
     let mut order: Vec<usize> = (0..n).collect();
@@ -599,6 +628,7 @@ fn cv_residuals_m(
         ),
     );
     let mut out = Vec::with_capacity(n);
+    let mut fold_slopes = Vec::with_capacity(ERROR_MODEL_FOLDS);
     for k in 0..ERROR_MODEL_FOLDS {
         let held: Vec<usize> = order
             .iter()
@@ -619,6 +649,7 @@ fn cv_residuals_m(
         let Ok((model, _)) = method.fit(&train.in_space(space)) else {
             continue;
         };
+        fold_slopes.push(crate::height::slopes(&model, &samples.samples));
         for i in held {
             let s = &samples.samples[i];
             let z = space.depth_from_target(model.predict_at(s.u, s.v, s.pred));
@@ -627,7 +658,11 @@ fn cv_residuals_m(
             }
         }
     }
-    out
+    let reference = crate::height::slopes(full, &samples.samples);
+    CrossValidated {
+        residuals_m: out,
+        slope_sd: crate::height::jackknife_relative_sd(&reference, &fold_slopes).unwrap_or(0.0),
+    }
 }
 
 /// A fit with too few samples, when the edge margin drew fewer than the `asked` ones: says so,

@@ -89,6 +89,14 @@ fn exact_matches_naive_reference() {
         let m = fit_lwlr(&set, cfg);
         let maps = m.maps();
         assert_eq!(maps.singular_fits, 0);
+        let points = [(3.0, 7.0), (39.0, 29.0), (17.5, 11.0)];
+        for (&(u, v), got) in points.iter().zip(m.scales_at(&points)) {
+            let (want, _) = reference_scale_shift(&m, u, v);
+            assert!(
+                (got - want).abs() < 1e-9 * (1.0 + want.abs()),
+                "({u},{v}) {got} vs {want}"
+            );
+        }
         for v in 0..30 {
             for u in 0..40 {
                 let (s, t) = reference_scale_shift(&m, u as f64, v as f64);
@@ -177,6 +185,21 @@ fn grid_matches_boostingdepth_style_reference() {
     }
     // the f64 single-point path interpolates the same way
     assert!((m.predict(13.0, 40.0, 1.1) - (sm[[40, 13]] * 1.1 + tm[[40, 13]])).abs() < 1e-9);
+    // and so do the local scales at scattered points, from the nodes around them only
+    let points = [
+        (13.0, 40.0),
+        (0.0, 0.0),
+        (69.0, 44.0),
+        (35.0, 3.0),
+        (36.0, 3.0),
+    ];
+    for (&(u, v), got) in points.iter().zip(m.scales_at(&points)) {
+        let want = sm[[v as usize, u as usize]];
+        assert!(
+            (got - want).abs() < 1e-9 * (1.0 + want.abs()),
+            "({u},{v}) {got} vs {want}"
+        );
+    }
 }
 
 #[test]

@@ -467,22 +467,22 @@ mod calibration {
     }
 
     #[test]
-    fn version_2_to_6_files_read_as_version_7() {
-        // Versions 3, 4, 6 and 7 only added optional fields and version 5 renamed the kinds:
-        // the same document (without them) labelled 2 to 6 must read, equal.
+    fn version_2_to_7_files_read_as_version_8() {
+        // Versions 3, 4, 6, 7 and 8 only added optional fields and version 5 renamed the kinds:
+        // the same document (without them) labelled 2 to 7 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let written = read_calibration(&p).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["version"], 7);
-        for old in [2, 3, 4, 5, 6] {
+        assert_eq!(v["version"], 8);
+        for old in [2, 3, 4, 5, 6, 7] {
             v["version"] = old.into();
             std::fs::write(&p, v.to_string()).unwrap();
             let read = read_calibration(&p).unwrap();
             assert_eq!(read.calibration, written.calibration);
-            assert_eq!(read.version, 7);
+            assert_eq!(read.version, 8);
         }
     }
 
@@ -521,6 +521,28 @@ mod calibration {
         v["calibration"]["error_model"][field] = bad;
         std::fs::write(&p, v.to_string()).unwrap();
         (back, msg(&read_calibration(&p).unwrap_err()))
+    }
+
+    /// Version 8 added the error model's `height_sigma`: written and read back; a version-7
+    /// file's model (without it) reads with none (no height part); out of range is refused,
+    /// naming the field.
+    #[test]
+    fn a_version_7_error_model_reads_without_a_height_part() {
+        let mut model = moma_core::DepthErrorModel::uniform(0.005).unwrap();
+        model.height_sigma = 0.12;
+        let (back, m) = error_model_field_across_versions(
+            model,
+            "height_sigma",
+            serde_json::json!(0.12),
+            7,
+            serde_json::json!(-0.5),
+        );
+        assert_eq!(back.height_sigma, 0.0);
+        assert_eq!(back.sigma_flat_m, 0.005);
+        assert!(
+            m.contains("calib.json") && m.contains("height_sigma"),
+            "{m}"
+        );
     }
 
     /// Version 7 added the error model's `sigma_dense_m`: written and read back; a version-6
@@ -664,15 +686,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 8.into();
-        // A v8 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 9.into();
+        // A v9 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 8") && m.contains("versions 1 to 7"),
+            m.contains("calib.json") && m.contains("version 9") && m.contains("versions 1 to 8"),
             "{m}"
         );
 

@@ -357,8 +357,9 @@ impl Calibration {
     /// The calibration's error model of its aligned depth (a dict: `sigma_flat_m`,
     /// `sigma_dense_m` (absent in files before version 7), `depth_ref_m`, `depth_exponent`,
     /// `variance_shares`, `scales_px`, `relief_bias`, `relief_sigma`, `relief_radius_px`,
-    /// `relief_max_m`, `edge_gain`, `edge_radius_px`), None in files written before error
-    /// models existed.
+    /// `relief_max_m`, `edge_gain`, `edge_radius_px`, and `height_sigma` where the calibration
+    /// has a height part: absent otherwise and in files before version 8), None in files
+    /// written before error models existed.
     #[getter]
     fn error_model<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         to_py_json(py, &self.inner.error_model)

@@ -333,6 +333,77 @@ impl LwlrModel {
         scale * pred + shift
     }
 
+    /// The local scales `S(u, v)` (fitted target per unit of ẑ, the slope of
+    /// [`LwlrModel::predict`]) at `points` (pixels), without the full-size maps: the grid's nodes
+    /// solved once and interpolated as the maps are (grid variant), or each point solved (exact).
+    pub fn scales_at(&self, points: &[(f64, f64)]) -> Vec<f64> {
+        let p = self.prepare();
+        match self.config.solve {
+            LwlrSolve::Exact => points
+                .iter()
+                .map(|&(u, v)| {
+                    let (mut s, mut t) = ([0.0f64], [0.0f64]);
+                    solve_lattice(&p, &[u], &[v], &mut s, &mut t);
+                    s[0]
+                })
+                .collect(),
+            LwlrSolve::Grid => {
+                // only the nodes the points interpolate between: each node's local fit is its
+                // own, so the sub-lattice's values are the full lattice's there
+                let (cols, rows) = self.grid_nodes();
+                let (w, h) = (self.image_size.width, self.image_size.height);
+                let sources: Vec<_> = points
+                    .iter()
+                    .map(|&(u, v)| {
+                        (
+                            grid::half_pixel_source(u, cols.len(), w),
+                            grid::half_pixel_source(v, rows.len(), h),
+                        )
+                    })
+                    .collect();
+                // node index → its position in the sub-lattice (usize::MAX: not solved)
+                let pick = |n: usize, used: &mut dyn Iterator<Item = usize>| {
+                    let mut at = vec![usize::MAX; n];
+                    let mut kept = Vec::new();
+                    for i in used {
+                        if at[i] == usize::MAX {
+                            at[i] = 0;
+                            kept.push(i);
+                        }
+                    }
+                    kept.sort_unstable();
+                    for (k, &i) in kept.iter().enumerate() {
+                        at[i] = k;
+                    }
+                    (at, kept)
+                };
+                let (col_at, col_kept) = pick(
+                    cols.len(),
+                    &mut sources.iter().flat_map(|(x, _)| [x.0, x.1]),
+                );
+                let (row_at, row_kept) = pick(
+                    rows.len(),
+                    &mut sources.iter().flat_map(|(_, y)| [y.0, y.1]),
+                );
+                let sub_cols: Vec<f64> = col_kept.iter().map(|&i| cols[i]).collect();
+                let sub_rows: Vec<f64> = row_kept.iter().map(|&i| rows[i]).collect();
+                let nx = sub_cols.len();
+                let mut s = vec![0.0f64; nx * sub_rows.len()];
+                let mut t = vec![0.0f64; nx * sub_rows.len()];
+                solve_lattice(&p, &sub_cols, &sub_rows, &mut s, &mut t);
+                let node = |y: usize, x: usize| s[row_at[y] * nx + col_at[x]];
+                sources
+                    .iter()
+                    .map(|&((x0, x1, fx), (y0, y1, fy))| {
+                        let top = node(y0, x0) * (1.0 - fx) + node(y0, x1) * fx;
+                        let bot = node(y1, x0) * (1.0 - fx) + node(y1, x1) * fx;
+                        top * (1.0 - fy) + bot * fy
+                    })
+                    .collect()
+            }
+        }
+    }
+
     /// RMS residual on the calibration samples, metres (via [`LwlrModel::maps`] at the nearest pixel).
     pub(crate) fn rms_residual_m(&self) -> f64 {
         if self.samples.is_empty() {
