@@ -146,3 +146,35 @@ def test_planning_from_a_calibration_aligns_as_align_does_and_has_a_sigma_map():
         moma.plan_grasps(cal, gripper="suction")
     with pytest.raises(ValueError):
         moma.plan_grasps(depth, cam, pred=pred)
+
+
+def test_an_object_that_pulls_the_calibration_gets_a_height_part(tmp_path):
+    # a table seen obliquely (0.8 m at the top row, 0.6 m at the bottom: a flat table seen from
+    # above alone would not determine a scale) and a box covering 16 % of the image, 50 mm
+    # tall; the prediction flattens the box to half its height (as depth models flatten objects)
+    cam = moma.Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+    v, u = np.mgrid[0:H, 0:W]
+    table = 1.0 / (1.0 / 0.8 + (1.0 / 0.6 - 1.0 / 0.8) * v / (H - 1))
+    box = (np.abs(u - W / 2) < 0.2 * W) & (np.abs(v - H / 2) < 0.2 * H)
+    gt = np.where(box, table - 0.05, table).astype(np.float32)
+    flat = np.where(box, table - 0.025, table)
+    pred = (2.0 / flat + 0.5).astype(np.float32)
+    cal = moma.calibrate(pred, gt, cam, kind="relative-disparity", method="gssa", norm="none", space="inverse", seed=3)
+    s = cal.samples
+    on = box[s[:, 1].astype(int), s[:, 0].astype(int)]
+    assert on.sum() >= 3
+
+    def slope(keep):
+        return np.polyfit(s[keep, 2], 1.0 / s[keep, 3], 1)[0]
+
+    # GSSA's slope with and without the box's samples (the table alone fits exactly)
+    pull = abs(slope(np.ones_like(on)) / slope(~on) - 1.0)
+    assert pull > 0.02
+    hs = cal.error_model["height_sigma"]
+    assert pull * (1 - 1e-6) <= hs <= 1.25 * pull
+    path = tmp_path / "calib.json"
+    cal.save(path)
+    assert moma.Calibration.load(str(path)).error_model["height_sigma"] == hs
+    # a prediction that keeps the box's height: nothing pulls, no height part in the file
+    exact = moma.calibrate((2.0 / gt + 0.5).astype(np.float32), gt, cam, kind="relative-disparity", method="gssa", norm="none", space="inverse", seed=3)
+    assert exact.error_model.get("height_sigma", 0.0) < 1e-6
