@@ -137,7 +137,7 @@ fn bench_error_model(c: &mut Criterion) {
                     &cal.model,
                     moma_core::AlignSpace::Inverse,
                     black_box(&cal.samples),
-                    &gt_m,
+                    &[(0..cal.samples.samples.len(), &gt_m)],
                 )
             })
         });

@@ -24,18 +24,19 @@
 //! measure it from the calibration samples alone, and their quadrature sum is the σ of a
 //! per-frame relative error of every height ([`DepthErrorModel::height_sigma`]):
 //! - **object pull** ([`object_scale_pull`]): the samples above the calibration frame's support
-//!   plane are grouped by the object regions of its ground truth; each object is left out in
-//!   turn, and the RMS relative change of the fit's slope at that object's own samples is its
-//!   pull, less the left-out fit's own jackknife variance there (a fit on a table seen from
-//!   above alone hardly determines its scale, and that noise is not a pull). An object that the
-//!   other objects pull the same way (a clutter of similar objects) has no pull of its own: the
-//!   scale carries to the next one. The RMS over the objects.
+//!   plane are grouped by the object regions of its ground truth (each frame's own, few-shot);
+//!   each object is left out in turn, and the RMS relative change of the fit's slope at that
+//!   object's own samples is its pull, less the left-out fit's own jackknife variance there (a
+//!   fit on a table seen from above alone hardly determines its scale, and that noise is not a
+//!   pull). An object that the other objects pull the same way (a clutter of similar objects)
+//!   has no pull of its own: the scale carries to the next one. The RMS over the objects.
 //! - **parameter noise** ([`jackknife_relative_sd`]): the fit's slope over the K-fold refits of
 //!   the cross-validation, as a grouped jackknife.
 //!
 //! [`DepthErrorModel::height_sigma`]: crate::DepthErrorModel::height_sigma
 
 use std::collections::BTreeMap;
+use std::ops::Range;
 
 use ndarray::{Array2, ArrayView2};
 
@@ -291,14 +292,15 @@ pub fn object_groups(samples: &[Sample], truth: &MetricDepth) -> Vec<Vec<usize>>
 /// for the others) refitted on `samples` (depth space, as a
 /// [`Calibration`](crate::pipeline::Calibration) stores them) without each object of
 /// [`object_groups`] in turn (the [`MAX_OBJECTS`] with the most samples), in `space`; `full` the
-/// fit on every sample. 0 without a support plane or an object sample, and for objects whose
-/// left-out fits fail.
+/// fit on every sample; `frames`: each calibration frame's range in `samples` and its ground
+/// truth, whose objects its samples stand on. 0 without a support plane or an object sample,
+/// and for objects whose left-out fits fail.
 pub fn object_scale_pull(
     method: &Method,
     full: &AlignmentModel,
     space: AlignSpace,
     samples: &SampleSet,
-    truth: &MetricDepth,
+    frames: &[(Range<usize>, &MetricDepth)],
 ) -> f64 {
     let all = &samples.samples;
     let fit_without = |object: &[usize], fold: Option<usize>| -> Option<AlignmentModel> {
@@ -315,7 +317,16 @@ pub fn object_scale_pull(
         };
         refit(method, &set.in_space(space))
     };
-    let mut objects = object_groups(all, truth);
+    // each frame's objects, by that frame's ground truth (a range outside the samples: none)
+    let mut objects: Vec<Vec<usize>> = frames
+        .iter()
+        .filter_map(|(range, truth)| Some((range.start, all.get(range.clone())?, truth)))
+        .flat_map(|(start, on_frame, truth)| {
+            object_groups(on_frame, truth)
+                .into_iter()
+                .map(move |o| o.into_iter().map(|i| start + i).collect())
+        })
+        .collect();
     // the objects with the most samples first (a stable order: ties by their first sample)
     objects.sort_by_key(|o| std::cmp::Reverse(o.len()));
     let (mut sum, mut n) = (0.0, 0usize);

@@ -452,6 +452,8 @@ pub fn calibrate(
         image_size: size,
         samples: Vec::new(),
     };
+    // each frame's samples in `samples`, for the error model's height part
+    let mut frame_ranges = Vec::with_capacity(frames.len());
     for (i, (f, map)) in frames.iter().zip(&normalised).enumerate() {
         let sampling = SamplingConfig {
             seed: frame_seed(config.sampling.seed, i),
@@ -460,7 +462,9 @@ pub fn calibrate(
         let pixels = sample_pixels(f.gt, &sampling, f.sample_region)
             .map_err(|e| in_frame(frames.len(), i, e))?;
         let frame_samples = SampleSet::gather(map, f.gt, &pixels)?;
+        let start = samples.samples.len();
         samples.samples.extend(frame_samples.samples);
+        frame_ranges.push(start..samples.samples.len());
     }
     let space = config.normalisation.space;
     let asked = config.sampling.n.saturating_mul(frames.len());
@@ -493,6 +497,8 @@ pub fn calibrate(
     // both an aligned and a true depth to learn it from; the fit itself stands
     let maps: Vec<&NormalisedMap> = normalised.iter().map(|m| m.as_ref()).collect();
     let truths: Vec<&MetricDepth> = frames.iter().map(|f| f.gt).collect();
+    let truths: Vec<(std::ops::Range<usize>, &MetricDepth)> =
+        frame_ranges.into_iter().zip(truths).collect();
     calibration.error_model = fit_error_model(&calibration, &maps, &truths, config).ok();
     Ok(calibration)
 }
@@ -548,11 +554,12 @@ const ERROR_MODEL_FOLDS: usize = 5;
 /// the 5-fold cross-validated residuals of the samples (metres) as the floor of the flat σ; the
 /// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed. The
 /// height part ([`crate::height`]): the folds' spread of the fit's slope (GSSA, SSRA) and, for a
-/// one-frame least-squares GSSA, SSRA or LWLR calibration, its objects' pull.
+/// least-squares GSSA, SSRA or LWLR calibration, its objects' pull (`truths`: each calibration
+/// frame's range in the samples and its ground truth).
 fn fit_error_model(
     calibration: &Calibration,
     normalised: &[&NormalisedMap],
-    truths: &[&MetricDepth],
+    truths: &[(std::ops::Range<usize>, &MetricDepth)],
     config: &CalibrationConfig,
 ) -> Result<DepthErrorModel> {
     let aligned = normalised
@@ -562,7 +569,7 @@ fn fit_error_model(
     let residual_frames: Vec<ResidualFrame<'_>> = aligned
         .iter()
         .zip(truths)
-        .map(|(a, gt)| ResidualFrame {
+        .map(|(a, (_, gt))| ResidualFrame {
             aligned_m: a.depth_m.view(),
             truth_m: gt.depth_m.view(),
         })
@@ -583,17 +590,17 @@ fn fit_error_model(
         AlignSpace::Inverse => 2.0,
     };
     let mut model = DepthErrorModel::fit(&residual_frames, &cv.residuals_m, exponent)?;
-    // the objects' pull for a one-frame least-squares fit (a robust fit's refits are not least
-    // squares; several frames' samples stand on several frames' objects): none otherwise
-    let pull = match (truths, &config.robust) {
-        ([truth], None) => crate::height::object_scale_pull(
+    // the objects' pull for a least-squares fit (a robust fit's refits would not be least
+    // squares): each frame's samples grouped by that frame's objects
+    let pull = match &config.robust {
+        None => crate::height::object_scale_pull(
             &config.method,
             &calibration.model,
             space,
             &calibration.samples,
-            truth,
+            truths,
         ),
-        _ => 0.0,
+        Some(_) => 0.0,
     };
     model.height_sigma = crate::height::height_sigma(pull, cv.slope_sd);
     Ok(model)
