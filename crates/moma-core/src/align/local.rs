@@ -953,7 +953,8 @@ impl LocalModel {
         self.method_name().as_str()
     }
 
-    /// [`MethodName::SsraLocal`] or [`MethodName::GssaLocal`].
+    /// [`MethodName::SsraLocal`](super::MethodName::SsraLocal) or
+    /// [`MethodName::GssaLocal`](super::MethodName::GssaLocal).
     pub fn method_name(&self) -> super::MethodName {
         match self.global {
             GlobalFit::Gssa(_) => super::MethodName::GssaLocal,
