@@ -1219,7 +1219,7 @@ impl DepthErrorModel {
         let c2 = (self.relief_bias.powi(2) + self.relief_sigma.powi(2)) as f32;
         let a2 = (self.edge_sharpening.powi(2) + self.edge_sharpening_sigma.powi(2)) as f32;
         let g = self.edge_gain as f32;
-        let height = self.height_part(d);
+        let height = self.height_part(d, Roi::full(d.ncols(), d.nrows()));
         let k = self.height_sigma as f32;
         Array2::from_shape_fn(d.raw_dim(), |(v, u)| {
             let z = d[[v, u]];
@@ -1239,14 +1239,12 @@ impl DepthErrorModel {
         })
     }
 
-    /// The height above the support plane of `d` when the model has a height part (`None`
-    /// without one, or without a support plane in `d`).
-    fn height_part(&self, d: ArrayView2<'_, f32>) -> Option<Array2<f32>> {
-        if self.height_sigma > 0.0 {
-            crate::height::height_above_plane(d)
-        } else {
-            None
-        }
+    /// The height above the support plane of `d` (the plane of the whole map) in `roi` when
+    /// the model has a height part (`None` without one, or without a support plane in `d`).
+    fn height_part(&self, d: ArrayView2<'_, f32>, roi: Roi) -> Option<Array2<f32>> {
+        (self.height_sigma > 0.0)
+            .then(|| crate::height::height_above_plane_in(d, roi.u0, roi.v0, roi.width, roi.height))
+            .flatten()
     }
 
     /// The relief hp of `d` when the model has a relief part (NaN-free: 0 where undefined).
@@ -1346,14 +1344,7 @@ impl<'a> Draws<'a> {
             pad_v0: pv0,
             edges: EdgeMaps::of(grown, model.edge_radius_px),
             hp: model.relief_part(grown),
-            // the plane from the whole map, the heights of the region only
-            height: (model.height_sigma > 0.0)
-                .then(|| crate::height::support_plane(depth))
-                .flatten()
-                .map(|plane| {
-                    let region = depth.slice(ndarray::s![v0..v0 + roi.height, u0..u0 + roi.width]);
-                    plane.heights(region, u0, v0)
-                }),
+            height: model.height_part(depth, roi),
         }
     }
 

@@ -41,7 +41,7 @@ use std::ops::Range;
 use ndarray::{Array2, ArrayView2};
 
 use crate::align::{AlignmentModel, Method, Sample, SampleSet};
-use crate::image::{MetricDepth, is_valid_depth};
+use crate::image::{ImageSize, MetricDepth, components_8, is_valid_depth};
 use crate::normalise::AlignSpace;
 
 /// Grid step of the support plane's fit, pixels.
@@ -151,7 +151,27 @@ pub fn support_plane(depth: ArrayView2<'_, f32>) -> Option<SupportPlane> {
 /// `max(0, z_plane − z)`, 0 where `depth` or the plane has no depth; `None` without a support
 /// plane.
 pub fn height_above_plane(depth: ArrayView2<'_, f32>) -> Option<Array2<f32>> {
-    support_plane(depth).map(|plane| plane.heights(depth, 0, 0))
+    let (h, w) = depth.dim();
+    height_above_plane_in(depth, 0, 0, w, h)
+}
+
+/// [`height_above_plane`] of the region of `depth` of `width × height` pixels from pixel `(u0,
+/// v0)` (clipped to the map): the plane fitted on the whole map, the heights of the region only.
+pub fn height_above_plane_in(
+    depth: ArrayView2<'_, f32>,
+    u0: usize,
+    v0: usize,
+    width: usize,
+    height: usize,
+) -> Option<Array2<f32>> {
+    let plane = support_plane(depth)?;
+    let (h, w) = depth.dim();
+    let (u0, v0) = (u0.min(w), v0.min(h));
+    let region = depth.slice(ndarray::s![
+        v0..(v0 + height).min(h),
+        u0..(u0 + width).min(w)
+    ]);
+    Some(plane.heights(region, u0, v0))
 }
 
 impl SupportPlane {
@@ -241,35 +261,16 @@ pub fn object_groups(samples: &[Sample], truth: &MetricDepth) -> Vec<Vec<usize>>
     let (h, w) = t.dim();
     let g = OBJECT_GRID_PX;
     let (gh, gw) = (h.div_ceil(g), w.div_ceil(g));
-    let node_above = |k: usize| {
-        let (v, u) = ((k / gw) * g, (k % gw) * g);
-        let z = t[[v, u]];
-        is_valid_depth(z) && stands(u as f64, v as f64, f64::from(z))
-    };
-    // 8-connected labelling by flood fill
-    let mut label = vec![usize::MAX; gh * gw];
-    let mut regions = 0usize;
-    let mut stack = Vec::new();
-    for start in 0..gh * gw {
-        if label[start] != usize::MAX || !node_above(start) {
-            continue;
-        }
-        label[start] = regions;
-        stack.push(start);
-        while let Some(k) = stack.pop() {
-            let (gv, gu) = (k / gw, k % gw);
-            for nv in gv.saturating_sub(1)..=(gv + 1).min(gh - 1) {
-                for nu in gu.saturating_sub(1)..=(gu + 1).min(gw - 1) {
-                    let nk = nv * gw + nu;
-                    if label[nk] == usize::MAX && node_above(nk) {
-                        label[nk] = regions;
-                        stack.push(nk);
-                    }
-                }
-            }
-        }
-        regions += 1;
-    }
+    let above_grid: Vec<bool> = (0..gh * gw)
+        .map(|k| {
+            let (v, u) = ((k / gw) * g, (k % gw) * g);
+            let z = t[[v, u]];
+            is_valid_depth(z) && stands(u as f64, v as f64, f64::from(z))
+        })
+        .collect();
+    // labels 1..=regions, 0 off every region
+    let (label, counts) = components_8(&above_grid, ImageSize::new(gw, gh));
+    let regions = counts.len();
     let mut groups: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
     for &i in &above {
         let s = &samples[i];
@@ -281,9 +282,12 @@ pub fn object_groups(samples: &[Sample], truth: &MetricDepth) -> Vec<Vec<usize>>
         let l = [(gv, gu), (gv, gu + 1), (gv + 1, gu), (gv + 1, gu + 1)]
             .into_iter()
             .filter(|&(nv, nu)| nv < gh && nu < gw)
-            .map(|(nv, nu)| label[nv * gw + nu])
-            .find(|&l| l != usize::MAX);
-        groups.entry(l.unwrap_or(regions + i)).or_default().push(i);
+            .map(|(nv, nu)| label[nv * gw + nu] as usize)
+            .find(|&l| l != 0);
+        groups
+            .entry(l.unwrap_or(regions + 1 + i))
+            .or_default()
+            .push(i);
     }
     groups.into_values().collect()
 }

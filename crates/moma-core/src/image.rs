@@ -69,6 +69,40 @@ impl std::fmt::Display for ImageSize {
 /// calibration could claim a size no image file of it could have.)
 pub const MAX_IMAGE_PIXELS: usize = 1 << 26;
 
+/// 8-connected components of `pixels` (row-major, `size`): `(labels, counts)` with label 0 for
+/// background and labels `1..=counts.len()` in raster order of each component's first pixel;
+/// `counts[l - 1]` is the pixel count of label `l`.
+pub fn components_8(pixels: &[bool], size: ImageSize) -> (Vec<u32>, Vec<usize>) {
+    let (w, h) = (size.width, size.height);
+    let mut labels = vec![0u32; pixels.len()];
+    let mut counts = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..pixels.len() {
+        if !pixels[start] || labels[start] != 0 {
+            continue;
+        }
+        let label = counts.len() as u32 + 1;
+        labels[start] = label;
+        stack.push(start);
+        let mut count = 0usize;
+        while let Some(i) = stack.pop() {
+            count += 1;
+            let (u, v) = (i % w, i / w);
+            for nv in v.saturating_sub(1)..=(v + 1).min(h - 1) {
+                for nu in u.saturating_sub(1)..=(u + 1).min(w - 1) {
+                    let j = nv * w + nu;
+                    if pixels[j] && labels[j] == 0 {
+                        labels[j] = label;
+                        stack.push(j);
+                    }
+                }
+            }
+        }
+        counts.push(count);
+    }
+    (labels, counts)
+}
+
 /// `true` for a usable metric depth value: finite and strictly positive (metres).
 #[inline]
 pub fn is_valid_depth(z: f32) -> bool {

@@ -496,9 +496,10 @@ pub fn calibrate(
     // absent (no success probabilities later) when the calibration frames give no pixel with
     // both an aligned and a true depth to learn it from; the fit itself stands
     let maps: Vec<&NormalisedMap> = normalised.iter().map(|m| m.as_ref()).collect();
-    let truths: Vec<&MetricDepth> = frames.iter().map(|f| f.gt).collect();
-    let truths: Vec<(std::ops::Range<usize>, &MetricDepth)> =
-        frame_ranges.into_iter().zip(truths).collect();
+    let truths: Vec<(std::ops::Range<usize>, &MetricDepth)> = frame_ranges
+        .into_iter()
+        .zip(frames.iter().map(|f| f.gt))
+        .collect();
     calibration.error_model = fit_error_model(&calibration, &maps, &truths, config).ok();
     Ok(calibration)
 }

@@ -361,17 +361,12 @@ impl LwlrModel {
                         )
                     })
                     .collect();
-                // node index → its position in the sub-lattice (usize::MAX: not solved)
-                let pick = |n: usize, used: &mut dyn Iterator<Item = usize>| {
-                    let mut at = vec![usize::MAX; n];
-                    let mut kept = Vec::new();
-                    for i in used {
-                        if at[i] == usize::MAX {
-                            at[i] = 0;
-                            kept.push(i);
-                        }
-                    }
+                // the nodes used, in order, and each node's position among them (usize::MAX:
+                // not solved)
+                let pick = |n: usize, mut kept: Vec<usize>| {
                     kept.sort_unstable();
+                    kept.dedup();
+                    let mut at = vec![usize::MAX; n];
                     for (k, &i) in kept.iter().enumerate() {
                         at[i] = k;
                     }
@@ -379,11 +374,11 @@ impl LwlrModel {
                 };
                 let (col_at, col_kept) = pick(
                     cols.len(),
-                    &mut sources.iter().flat_map(|(x, _)| [x.0, x.1]),
+                    sources.iter().flat_map(|(x, _)| [x.0, x.1]).collect(),
                 );
                 let (row_at, row_kept) = pick(
                     rows.len(),
-                    &mut sources.iter().flat_map(|(_, y)| [y.0, y.1]),
+                    sources.iter().flat_map(|(_, y)| [y.0, y.1]).collect(),
                 );
                 let sub_cols: Vec<f64> = col_kept.iter().map(|&i| cols[i]).collect();
                 let sub_rows: Vec<f64> = row_kept.iter().map(|&i| rows[i]).collect();
