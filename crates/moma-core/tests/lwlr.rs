@@ -405,3 +405,43 @@ fn grid_vs_exact_difference() {
     );
     assert!(mean > 0.0);
 }
+
+/// A lattice large enough for the thread pool (300 nodes × 100 samples: the maps and the
+/// single-point path) and the few nodes of `scales_at`, solved on the calling thread: both
+/// against the grid reference.
+#[test]
+fn pooled_and_calling_thread_lattices_agree_with_the_reference() {
+    let size = ImageSize::new(640, 480);
+    let set = common::samples(size, 100, 5, 0.001, nonlinear_truth);
+    let m = fit_lwlr(&set, LwlrConfig::default());
+    let (xs, ys) = m.grid_nodes();
+    assert!(
+        xs.len() * ys.len() * 100 >= 1 << 14,
+        "the full lattice goes to the pool"
+    );
+    let (sm, tm) = reference_grid(&m);
+    let maps = m.maps();
+    let points = [(16.0, 16.0), (331.0, 207.0), (639.0, 479.0), (0.0, 300.0)];
+    for (&(u, v), got) in points.iter().zip(m.scales_at(&points)) {
+        let (us, vs) = (u as usize, v as usize);
+        let (s, t) = (sm[[vs, us]], tm[[vs, us]]);
+        assert!(
+            (got - s).abs() < 1e-9 * (1.0 + s.abs()),
+            "({u},{v}) {got} vs {s}"
+        );
+        let (ms, mt) = (maps.scale[[vs, us]], maps.shift[[vs, us]]);
+        assert!(
+            (f64::from(ms) - s).abs() < 1e-5 * (1.0 + s.abs()),
+            "scale {ms} vs {s}"
+        );
+        assert!(
+            (f64::from(mt) - t).abs() < 1e-5 * (1.0 + t.abs()),
+            "shift {mt} vs {t}"
+        );
+        let slope = m.predict(u, v, 1.0) - m.predict(u, v, 0.0);
+        assert!(
+            (slope - s).abs() < 1e-9 * (1.0 + s.abs()),
+            "({u},{v}) {slope} vs {s}"
+        );
+    }
+}

@@ -508,6 +508,11 @@ impl LwlrModel {
     }
 }
 
+/// Below this many node × sample terms [`solve_lattice`] runs on the calling thread: measured
+/// (`cargo bench -p moma-core --bench core -- height_pull_lwlr`, from a thread outside the pool)
+/// the pool's dispatch cost 0.8 ms of the object pull's 1.2 ms on sub-lattices of a few nodes.
+const SEQUENTIAL_LATTICE_WORK: usize = 1 << 14;
+
 /// Solves the local fits on the lattice `cols × rows` (pixels) and writes the folded
 /// `(S, T)` row-major into `out_scale`, `out_shift` (`rows.len() × cols.len()`). Returns the number
 /// of singular local systems.
@@ -523,43 +528,54 @@ fn solve_lattice<T: FromF64>(
     let tables = WeightTables::new(p.uv.iter().copied(), cols, rows, p.inv_2b2);
     let stride = tables.stride;
     let singular = std::sync::atomic::AtomicUsize::new(0);
-    out_scale
-        .par_chunks_mut(nx)
-        .zip(out_shift.par_chunks_mut(nx))
-        .enumerate()
-        .for_each_init(
-            || {
-                (
-                    vec![[0.0f64; 5]; n],
-                    std::array::from_fn::<Vec<f64>, 5, _>(|_| vec![0.0f64; stride]),
-                )
-            },
-            |(coef, sums), (i, (srow, trow))| {
-                let fill = |k: usize, w: f64| {
-                    let (x, y) = p.xy[k];
-                    [w, w * x, w * x * x, w * y, w * x * y]
-                };
-                tables.row_sums(i, fill, coef, sums);
-                let mut bad = 0;
-                for j in 0..nx {
-                    let (a, c) = match local_solve(
-                        p,
-                        [sums[0][j], sums[1][j], sums[2][j], sums[3][j], sums[4][j]],
-                    ) {
-                        Some(ac) => ac,
-                        None => {
-                            bad += 1;
-                            p.fallback
-                        }
-                    };
-                    srow[j] = T::from_f64(a * p.pre.0);
-                    trow[j] = T::from_f64(a * p.pre.1 + c);
+    let init = || {
+        (
+            vec![[0.0f64; 5]; n],
+            std::array::from_fn::<Vec<f64>, 5, _>(|_| vec![0.0f64; stride]),
+        )
+    };
+    let solve_row = |(coef, sums): &mut (Vec<[f64; 5]>, [Vec<f64>; 5]),
+                     (i, (srow, trow)): (usize, (&mut [T], &mut [T]))| {
+        let fill = |k: usize, w: f64| {
+            let (x, y) = p.xy[k];
+            [w, w * x, w * x * x, w * y, w * x * y]
+        };
+        tables.row_sums(i, fill, coef, sums);
+        let mut bad = 0;
+        for j in 0..nx {
+            let (a, c) = match local_solve(
+                p,
+                [sums[0][j], sums[1][j], sums[2][j], sums[3][j], sums[4][j]],
+            ) {
+                Some(ac) => ac,
+                None => {
+                    bad += 1;
+                    p.fallback
                 }
-                if bad > 0 {
-                    singular.fetch_add(bad, std::sync::atomic::Ordering::Relaxed);
-                }
-            },
-        );
+            };
+            srow[j] = T::from_f64(a * p.pre.0);
+            trow[j] = T::from_f64(a * p.pre.1 + c);
+        }
+        if bad > 0 {
+            singular.fetch_add(bad, std::sync::atomic::Ordering::Relaxed);
+        }
+    };
+    if rows.len() * nx * n < SEQUENTIAL_LATTICE_WORK {
+        // a few nodes (a sub-lattice of `scales_at`): handing them to the thread pool costs
+        // more than solving them (a calling thread outside the pool waits on a wake-up)
+        let mut state = init();
+        out_scale
+            .chunks_mut(nx)
+            .zip(out_shift.chunks_mut(nx))
+            .enumerate()
+            .for_each(|row| solve_row(&mut state, row));
+    } else {
+        out_scale
+            .par_chunks_mut(nx)
+            .zip(out_shift.par_chunks_mut(nx))
+            .enumerate()
+            .for_each_init(init, solve_row);
+    }
     singular.into_inner()
 }
 
