@@ -485,6 +485,16 @@ impl ReliefFit {
     }
 }
 
+/// The values of one of the fit's grids (a [`FitGrid`]'s maps, the rests), row by row. Every
+/// such map is built in standard layout (`to_owned` of a view, `map_collect` of standard-layout
+/// inputs), so this never fails; the slices iterate several times faster than the arrays'
+/// element iterators (the relief fit and the rest's pixels: 4.6 → 4.4 ms of the fit,
+/// criterion side by side).
+fn grid_slice(a: &Array2<f32>) -> &[f32] {
+    a.as_slice()
+        .expect("the error model's grids are built in standard layout")
+}
+
 impl FitGrid {
     /// The grid of `frame`: its depths and the filters' outputs on the fit's grid only (the
     /// full maps' values there), without the relief hp.
@@ -516,11 +526,11 @@ impl FitGrid {
 
     /// `(aligned, truth, hp, step)` of the grid's pixels where both depths are valid.
     fn pixels_with_both_depths(&self) -> impl Iterator<Item = (f32, f32, f32, f32)> + '_ {
-        self.aligned
+        grid_slice(&self.aligned)
             .iter()
-            .zip(self.truth.iter())
-            .zip(self.hp.iter())
-            .zip(self.step.iter())
+            .zip(grid_slice(&self.truth))
+            .zip(grid_slice(&self.hp))
+            .zip(grid_slice(&self.step))
             .filter(|(((a, t), _), _)| is_valid_depth(**a) && is_valid_depth(**t))
             .map(|(((&a, &t), &h), &st)| (a, t, h, st))
     }
@@ -649,9 +659,9 @@ impl DepthErrorModel {
             let sub = FitGrid::of(f, m.edge_radius_px);
             // the reference depth: the median of the grid's pixels with both depths
             depths.extend(
-                sub.aligned
+                grid_slice(&sub.aligned)
                     .iter()
-                    .zip(sub.truth.iter())
+                    .zip(grid_slice(&sub.truth))
                     .filter(|(a, t)| is_valid_depth(**a) && is_valid_depth(**t))
                     .map(|(a, _)| *a),
             );
@@ -663,7 +673,7 @@ impl DepthErrorModel {
         // the flat threshold (FLAT_RELIEF_M's documentation), from every fourth relief value
         let mut reliefs: Vec<f32> = prepared
             .iter()
-            .flat_map(|g| g.relief.iter().copied().step_by(4))
+            .flat_map(|g| grid_slice(&g.relief).iter().copied().step_by(4))
             .filter(|r| r.is_finite())
             .collect();
         let flat_relief = if reliefs.is_empty() {
@@ -826,9 +836,10 @@ impl DepthErrorModel {
         // 3. edge noise: (rest·scale)² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
         let edge_pixels = || {
             prepared.iter().zip(&rests).flat_map(|(g, rest)| {
-                rest.iter()
-                    .zip(g.relief.iter())
-                    .zip(g.aligned.iter())
+                grid_slice(rest)
+                    .iter()
+                    .zip(grid_slice(&g.relief))
+                    .zip(grid_slice(&g.aligned))
                     .filter(|((x, r), _)| x.is_finite() && **r >= flat_relief)
                     .map(|((&x, &r), &a)| (f64::from(x), f64::from(r), a))
             })
@@ -1708,22 +1719,32 @@ impl BoxSums {
     fn high_pass_strided(&self, depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array2<f32> {
         let (h, w, w1) = (self.h, self.w, self.w + 1);
         let r = r as usize;
-        let at = |v: usize, u: usize| (self.sum[v * w1 + u], self.cnt[v * w1 + u]);
         let stride = stride.max(1);
-        let grid = depth.slice(ndarray::s![..;stride, ..;stride]);
-        ndarray::Zip::indexed(&grid).map_collect(|(vs, us), &z| {
-            if !is_valid_depth(z) {
-                return f32::NAN;
-            }
-            let (v, u) = (vs * stride, us * stride);
+        let (hs, ws) = (h.div_ceil(stride), w.div_ceil(stride));
+        let data = row_major(depth);
+        let mut out = Array2::<f32>::zeros((hs, ws));
+        // row by row on slices (the same arithmetic per pixel as an indexed closure, which
+        // was a seventh of the error model's fit)
+        for (vs, dst) in out.rows_mut().into_iter().enumerate() {
+            let v = vs * stride;
             let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
-            let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
-            let ((s11, c11), (s01, c01), (s10, c10), (s00, c00)) =
-                (at(v1, u1), at(v0, u1), at(v1, u0), at(v0, u0));
-            let s = s11 - s01 - s10 + s00;
-            let c = c11 + c00 - c01 - c10;
-            box_high_pass(z, s, c)
-        })
+            let (ts, bs) = (&self.sum[v0 * w1..][..w1], &self.sum[v1 * w1..][..w1]);
+            let (tc, bc) = (&self.cnt[v0 * w1..][..w1], &self.cnt[v1 * w1..][..w1]);
+            let row = &data[v * w..][..w];
+            for (us, o) in dst.into_iter().enumerate() {
+                let u = us * stride;
+                let z = row[u];
+                *o = if is_valid_depth(z) {
+                    let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
+                    let s = bs[u1] - ts[u1] - bs[u0] + ts[u0];
+                    let c = bc[u1] + tc[u0] - tc[u1] - bc[u0];
+                    box_high_pass(z, s, c)
+                } else {
+                    f32::NAN
+                };
+            }
+        }
+        out
     }
 }
 
