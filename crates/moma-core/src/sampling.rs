@@ -191,6 +191,17 @@ pub fn depth_edges(gt: &MetricDepth) -> Array2<bool> {
     Array2::from_shape_fn((h, w), |(v, u)| edges[v * w + u])
 }
 
+/// The pixels within `r_px` (Chebyshev distance, pixels) of a depth discontinuity of `gt`
+/// ([`depth_edges`]): the band that calibration sampling keeps clear
+/// ([`SamplingConfig::edge_margin_px`]) and where `moma grasp-eval` reports the error model's
+/// coverage "near depth edges". A slanted surface is no edge however steep its depth runs over
+/// the pixels, as long as neighbours differ by at most [`EDGE_JUMP_REL`].
+pub fn near_depth_edges(gt: &MetricDepth, r_px: u32) -> Array2<bool> {
+    let (h, w) = gt.depth_m.dim();
+    let near = dilate(&depth_edges_flat(gt), h, w, r_px as usize);
+    Array2::from_shape_fn((h, w), |(v, u)| near[v * w + u])
+}
+
 /// [`depth_edges`] in row-major order: one pass over horizontal and one over vertical
 /// neighbour pairs, on contiguous rows.
 fn depth_edges_flat(gt: &MetricDepth) -> Vec<bool> {

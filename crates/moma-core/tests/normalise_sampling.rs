@@ -551,6 +551,17 @@ fn edge_margin_keeps_exactly_the_pixels_away_from_depth_discontinuities() {
         got.sort_by_key(|p| (p.v, p.u));
         let want = interior_by_brute_force(&gt, i64::from(r));
         assert_eq!(got, want, "margin {r}");
+        // the band near the edges is the rest of the valid pixels
+        let near = moma_core::sampling::near_depth_edges(&gt, r);
+        let outside: Vec<Pixel> = near
+            .indexed_iter()
+            .filter(|(_, n)| !**n)
+            .map(|((v, u), _)| Pixel {
+                u: u as u32,
+                v: v as u32,
+            })
+            .collect();
+        assert_eq!(outside, want, "band {r}");
         // the continuous 2 %-per-pixel slope is no edge: its interior pixels stay eligible
         assert!(got.contains(&Pixel { u: 35, v: 3 }), "margin {r}");
         // the 4 % step (box at 0.96 m) is one
