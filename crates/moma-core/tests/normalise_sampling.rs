@@ -536,15 +536,17 @@ fn edge_margin_keeps_exactly_the_pixels_away_from_depth_discontinuities() {
     );
     // the edge map itself: invalid pixels, and both sides of every jump
     let edges = moma_core::sampling::depth_edges(&gt);
-    let not_edge: Vec<Pixel> = edges
-        .indexed_iter()
-        .filter(|(_, e)| !**e)
-        .map(|((v, u), _)| Pixel {
-            u: u as u32,
-            v: v as u32,
-        })
-        .collect();
-    assert_eq!(not_edge, interior_by_brute_force(&gt, 0));
+    // the pixels a map leaves unmarked, row-major
+    let unmarked = |map: &Array2<bool>| -> Vec<Pixel> {
+        map.indexed_iter()
+            .filter(|(_, marked)| !**marked)
+            .map(|((v, u), _)| Pixel {
+                u: u as u32,
+                v: v as u32,
+            })
+            .collect()
+    };
+    assert_eq!(unmarked(&edges), interior_by_brute_force(&gt, 0));
     assert!(edges[[20, 8]] && edges[[20, 9]] && edges[[5, 6]] && edges[[5, 5]]);
     for r in [1u32, 2, 3, 6] {
         let mut got = sample_pixels(&gt, &all(r), None).unwrap();
@@ -553,15 +555,7 @@ fn edge_margin_keeps_exactly_the_pixels_away_from_depth_discontinuities() {
         assert_eq!(got, want, "margin {r}");
         // the band near the edges is the rest of the valid pixels
         let near = moma_core::sampling::near_depth_edges(&gt, r);
-        let outside: Vec<Pixel> = near
-            .indexed_iter()
-            .filter(|(_, n)| !**n)
-            .map(|((v, u), _)| Pixel {
-                u: u as u32,
-                v: v as u32,
-            })
-            .collect();
-        assert_eq!(outside, want, "band {r}");
+        assert_eq!(unmarked(&near), want, "band {r}");
         // the continuous 2 %-per-pixel slope is no edge: its interior pixels stay eligible
         assert!(got.contains(&Pixel { u: 35, v: 3 }), "margin {r}");
         // the 4 % step (box at 0.96 m) is one
