@@ -1670,7 +1670,7 @@ impl BoxSums {
     /// per-pixel closure with its clamped bounds did not; with the fixed point's three high
     /// passes it was the largest part of a robust suction plan's time).
     fn high_pass_into(&self, data: &[f32], r: usize, out: &mut [f32]) {
-        let (h, w, w1) = (self.h, self.w, self.w + 1);
+        let (h, w) = (self.h, self.w);
         // the interior: u − r ≥ 0 and u + r + 1 ≤ w
         let (lo, hi) = (r.min(w), w.saturating_sub(r).max(r.min(w)));
         for (v, (row, dst)) in data
@@ -1679,18 +1679,11 @@ impl BoxSums {
             .take(h)
             .enumerate()
         {
-            let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
-            let (ts, bs) = (&self.sum[v0 * w1..][..w1], &self.sum[v1 * w1..][..w1]);
-            let (tc, bc) = (&self.cnt[v0 * w1..][..w1], &self.cnt[v1 * w1..][..w1]);
-            let edge = |u: usize| {
-                let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
-                let s = bs[u1] - ts[u1] - bs[u0] + ts[u0];
-                let c = bc[u1] + tc[u0] - tc[u1] - bc[u0];
-                box_high_pass(row[u], s, c)
-            };
+            let win = self.window_rows(v, r);
             for u in (0..lo).chain(hi..w) {
-                dst[u] = edge(u);
+                dst[u] = win.high_pass_at(row[u], u);
             }
+            let WindowRows { ts, bs, tc, bc, .. } = win;
             if hi > lo {
                 let n = hi - lo;
                 let (b1, t1, b0, t0) = (
@@ -1717,34 +1710,57 @@ impl BoxSums {
     /// [`high_pass`] of `depth` (the map these sums are of) at every `stride`-th pixel of every
     /// `stride`-th row.
     fn high_pass_strided(&self, depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> Array2<f32> {
-        let (h, w, w1) = (self.h, self.w, self.w + 1);
+        let (h, w) = (self.h, self.w);
         let r = r as usize;
         let stride = stride.max(1);
-        let (hs, ws) = (h.div_ceil(stride), w.div_ceil(stride));
         let data = row_major(depth);
-        let mut out = Array2::<f32>::zeros((hs, ws));
-        // row by row on slices (the same arithmetic per pixel as an indexed closure, which
-        // was a seventh of the error model's fit)
+        let mut out = Array2::<f32>::zeros((h.div_ceil(stride), w.div_ceil(stride)));
+        // row by row on slices (an indexed closure per pixel was a seventh of the error
+        // model's fit)
         for (vs, dst) in out.rows_mut().into_iter().enumerate() {
             let v = vs * stride;
-            let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
-            let (ts, bs) = (&self.sum[v0 * w1..][..w1], &self.sum[v1 * w1..][..w1]);
-            let (tc, bc) = (&self.cnt[v0 * w1..][..w1], &self.cnt[v1 * w1..][..w1]);
-            let row = &data[v * w..][..w];
+            let (win, row) = (self.window_rows(v, r), &data[v * w..][..w]);
             for (us, o) in dst.into_iter().enumerate() {
-                let u = us * stride;
-                let z = row[u];
-                *o = if is_valid_depth(z) {
-                    let (u0, u1) = (u.saturating_sub(r), (u + r + 1).min(w));
-                    let s = bs[u1] - ts[u1] - bs[u0] + ts[u0];
-                    let c = bc[u1] + tc[u0] - tc[u1] - bc[u0];
-                    box_high_pass(z, s, c)
-                } else {
-                    f32::NAN
-                };
+                *o = win.high_pass_at(row[us * stride], us * stride);
             }
         }
         out
+    }
+
+    /// The rows of the sums that bound the `(2r+1)`-row windows of row `v` (clipped to the map).
+    fn window_rows(&self, v: usize, r: usize) -> WindowRows<'_> {
+        let (h, w1) = (self.h, self.w + 1);
+        let (v0, v1) = (v.saturating_sub(r), (v + r + 1).min(h));
+        WindowRows {
+            ts: &self.sum[v0 * w1..][..w1],
+            bs: &self.sum[v1 * w1..][..w1],
+            tc: &self.cnt[v0 * w1..][..w1],
+            bc: &self.cnt[v1 * w1..][..w1],
+            r,
+            w: self.w,
+        }
+    }
+}
+
+/// The top and bottom rows of a [`BoxSums`] around one image row (sums `ts`, `bs`, counts `tc`,
+/// `bc`), for windows of radius `r` on a map `w` pixels wide.
+struct WindowRows<'a> {
+    ts: &'a [f64],
+    bs: &'a [f64],
+    tc: &'a [u32],
+    bc: &'a [u32],
+    r: usize,
+    w: usize,
+}
+
+impl WindowRows<'_> {
+    /// [`box_high_pass`] of the depth `z` at column `u`, its window's columns clipped to the map.
+    #[inline(always)]
+    fn high_pass_at(&self, z: f32, u: usize) -> f32 {
+        let (u0, u1) = (u.saturating_sub(self.r), (u + self.r + 1).min(self.w));
+        let s = self.bs[u1] - self.ts[u1] - self.bs[u0] + self.ts[u0];
+        let c = self.bc[u1] + self.tc[u0] - self.tc[u1] - self.bc[u0];
+        box_high_pass(z, s, c)
     }
 }
 
@@ -1923,12 +1939,6 @@ impl EdgeMaps {
     }
 }
 
-/// The depth range (max − min over valid pixels) of `depth` in a `(2r+1)²` window around each
-/// pixel, metres (0 where the window holds fewer than two valid pixels).
-pub fn relief_map(depth: ArrayView2<'_, f32>, r: u32) -> Array2<f32> {
-    EdgeMaps::of(depth, r).relief
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -2063,7 +2073,7 @@ mod tests {
     #[test]
     fn relief_is_the_step_height_near_the_edge_and_zero_away() {
         let d = step_scene(60, 45);
-        let r = relief_map(d.view(), 3);
+        let r = EdgeMaps::of(d.view(), 3).relief;
         assert!((r[[22, 20]] - 0.05).abs() < 1e-6); // at the box's left edge (u = 20)
         assert_eq!(r[[22, 30]], 0.0); // inside
         assert_eq!(r[[2, 2]], 0.0); // table
@@ -2263,7 +2273,7 @@ mod tests {
         // compression: the offset alone leaves a small relief factor where hp has a mean)
         let (w, h) = (90usize, 60usize);
         let aligned = step_scene(w, h);
-        let relief = relief_map(aligned.view(), 3);
+        let relief = EdgeMaps::of(aligned.view(), 3).relief;
         let e_edge = (20e-6f32 + (0.4f32 * 0.05).powi(2)).sqrt();
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let signs: Array2<f32> = Array2::from_shape_fn((h / 2 + 1, w / 2 + 1), |_| {

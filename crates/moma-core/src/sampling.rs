@@ -151,13 +151,8 @@ pub fn sample_pixels(
     }
     let mut eligible = eligible_mask(gt, restrict);
     if config.edge_margin_px > 0 && eligible.iter().any(|&b| b) {
-        let (h, w) = eligible.dim();
-        let near_edge = dilate(&depth_edges_flat(gt), h, w, config.edge_margin_px as usize);
-        // `iter_mut` walks in logical row-major order, the order of `near_edge`
-        eligible
-            .iter_mut()
-            .zip(&near_edge)
-            .for_each(|(e, &near)| *e &= !near);
+        let near_edge = near_depth_edges(gt, config.edge_margin_px);
+        eligible.zip_mut_with(&near_edge, |e, &near| *e &= !near);
         if !eligible.iter().any(|&b| b) {
             return Err(CoreError::NoValidPixels(format!(
                 "no valid ground-truth pixel (inside the sampling mask, if any) lies more than \
