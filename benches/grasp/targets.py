@@ -10,7 +10,8 @@ seed K) and `<gripper>/out<K>/sigma_coverage.json` (written by `-o`).  For each 
 (variant, grasp quality) the table gives, per set, top-1 successes / best of the candidates /
 trials summed over the simulator seeds; the success rate as a share of the GT row's rate (the
 planner on ground truth, σ = 0), averaged over the sets and its lowest set; the mean Brier score
-of the rows.  Issue 22's targets, re-aligned with robust grasps: ≥ 85 % (suction) and ≥ 75 %
+of the rows and, in brackets, the mean of their base rates' (`brier_base_rate`: one constant
+forecast at the achieved rate; `success_prob` carries information only below it).  Issue 22's targets, re-aligned with robust grasps: ≥ 85 % (suction) and ≥ 75 %
 (parallel jaw) of GT on average, no set under 60 %; the GT row pooled ≥ 90 %.  Then the error
 model's coverage: the rows (set × method × variant × region `all` / `masks`, pixels pooled over
 the seeds) outside 55–80 % within ±1σ or under 90 % within ±2σ.
@@ -46,6 +47,7 @@ def grasp_table(run):
     # (gripper, variant, quality, set) -> [successes, best of candidates, trials]
     sums = defaultdict(lambda: [0, 0, 0])
     briers = defaultdict(list)
+    base_rates = defaultdict(list)
     seeds = defaultdict(set)
     for gripper in ("suction", "parallel"):
         for path in sorted(glob.glob(os.path.join(run, gripper, "s*.json"))):
@@ -61,6 +63,8 @@ def grasp_table(run):
                 s[2] += r["trials"]
                 if r.get("brier") is not None:
                     briers[key[:3]].append(r["brier"])
+                if r.get("brier_base_rate") is not None:
+                    base_rates[key[:3]].append(r["brier_base_rate"])
     if not sums:
         sys.exit(f"{run}: no suction/s*.json or parallel/s*.json")
     sets = sorted({k[3] for k in sums})
@@ -69,7 +73,7 @@ def grasp_table(run):
         + ", ".join(f"{g} {len(s)}" for g, s in sorted(seeds.items()))
         + "). Cells: top-1 successes / best of candidates / trials.",
         "",
-        "| gripper | variant | grasps | " + " | ".join(sets) + " | % of GT (lowest set) | target | mean Brier |",
+        "| gripper | variant | grasps | " + " | ".join(sets) + " | % of GT (lowest set) | target | mean Brier (base rate) |",
         "|---|---|---|" + "---:|" * len(sets) + "---:|---:|---:|",
     ]
     for gripper in ("suction", "parallel"):
@@ -93,6 +97,10 @@ def grasp_table(run):
                 target = f"{TARGETS[gripper]:.0f} % ({SET_FLOOR:.0f} %)"
             b = briers[(gripper, variant, quality)]
             brier = f"{sum(b) / len(b):.3f}" if b else "-"
+            base = base_rates[(gripper, variant, quality)]
+            if b and base:
+                # a success_prob that tells grasps apart scores under its rows' base rates
+                brier += f" ({sum(base) / len(base):.3f})"
             lines.append(
                 f"| {gripper} | {variant} | {quality} | " + " | ".join(cells)
                 + f" | {share} | {target} | {brier} |"

@@ -76,6 +76,46 @@ fn calibrate_align_metrics_end_to_end() {
     .unwrap();
     assert_eq!(summary["method"], "ssra");
     assert_eq!(summary["n_used"], 100);
+
+    // LWLR's parameters hold its 100 samples: the terminal line counts them, the file keeps
+    // them all
+    let lwlr = tmp.path().join("lwlr.json");
+    let text = ok(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--pred-kind",
+        "relative-disparity",
+        "--gt",
+        s(&frames.join("frame_00/depth.png")),
+        "--camera",
+        s(&scene.join("camera.json")),
+        "--method",
+        "lwlr",
+        "--seed",
+        "3",
+        "-o",
+        s(&lwlr),
+    ]);
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("parameters ("))
+        .unwrap_or_else(|| panic!("no parameters line in {text}"));
+    assert!(
+        line.contains("\"samples\":\"[100 entries: in the calibration file]\"")
+            && line.contains("\"bandwidth_px\"")
+            && line.len() < 600,
+        "{line}"
+    );
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&lwlr).unwrap()).unwrap();
+    let samples = file["calibration"]["model"]["samples"].as_array();
+    assert_eq!(
+        samples.map(Vec::len),
+        Some(100),
+        "{:.300}",
+        file.to_string()
+    );
     let rms = summary["rms_residual_m"].as_f64().unwrap();
     assert!(
         rms > 0.0 && rms < 0.05,

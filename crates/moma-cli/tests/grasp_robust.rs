@@ -247,10 +247,13 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
         let rel = r["reliability"].as_array().unwrap();
         if r["method"] == "gt" {
             assert!(r["brier"].is_null() && rel.iter().all(|b| b["grasps"] == 0));
+            assert!(r["brier_base_rate"].is_null(), "{r}");
             continue;
         }
         let b = r["brier"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&b), "{r}");
+        let base = r["brier_base_rate"].as_f64().unwrap();
+        assert!((0.0..=0.25).contains(&base), "{r}");
         assert_eq!(rel.len(), 5);
         let n: u64 = rel.iter().map(|b| b["grasps"].as_u64().unwrap()).sum();
         assert!(n <= trials && n > 0, "{r}");

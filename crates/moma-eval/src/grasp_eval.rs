@@ -169,6 +169,11 @@ pub struct GraspRow {
     /// Brier score of the top-1 grasps' `success_prob` against their proxy outcome (trials with
     /// a grasp that has a probability; `None` when none has).
     pub brier: Option<f64>,
+    /// The Brier score of one constant forecast for the same grasps, their achieved success
+    /// rate `r`: `r (1 − r)` ([`brier_base_rate`]). `brier` below it: `success_prob` tells
+    /// the grasps that hold from those that do not better than one rate for all does.
+    #[serde(default)]
+    pub brier_base_rate: Option<f64>,
     /// Mean `success_prob` of those top-1 grasps (`None` when none has one).
     pub mean_success_prob: Option<f64>,
     /// Reliability table of `success_prob` (5 bins of predicted probability).
@@ -216,6 +221,10 @@ pub struct GraspJsonRow {
     pub best_of_candidates: usize,
     /// Brier score of `success_prob` (`null` without probabilities).
     pub brier: Option<f64>,
+    /// Brier score of a constant forecast at the same grasps' achieved success rate (`null`
+    /// without probabilities): what `brier` must be under for `success_prob` to carry
+    /// information.
+    pub brier_base_rate: Option<f64>,
     /// Reliability table.
     pub reliability: Vec<ReliabilityBin>,
 }
@@ -228,6 +237,7 @@ impl From<&GraspRow> for GraspJsonRow {
             variant: r.variant.clone(),
             grasp_quality: r.grasp_quality,
             brier: r.brier,
+            brier_base_rate: r.brier_base_rate,
             reliability: r.reliability.clone(),
             gripper: r.gripper,
             trials: r.trials,
@@ -294,6 +304,18 @@ impl Tally {
     fn reliability(&self) -> Vec<ReliabilityBin> {
         reliability_table(&self.probs)
     }
+}
+
+/// The Brier score of the constant forecast `r` for every one of `probs`' outcomes, `r` their
+/// achieved success rate: `r (1 − r)` (`None` for no outcomes). It is the Brier score of the
+/// best forecast that cannot tell one grasp from another, so a `success_prob` whose Brier
+/// score is not under it carries no information on which grasps hold (Murphy's decomposition:
+/// Brier = reliability − resolution + this uncertainty term).
+pub fn brier_base_rate(probs: &[(f64, bool)]) -> Option<f64> {
+    (!probs.is_empty()).then(|| {
+        let r = probs.iter().filter(|(_, s)| *s).count() as f64 / probs.len() as f64;
+        r * (1.0 - r)
+    })
 }
 
 /// Bins of the reliability table.
@@ -671,6 +693,7 @@ pub fn grasp_evaluate(
         successes: t.successes,
         best_of_candidates: t.best_of,
         brier: t.brier(),
+        brier_base_rate: brier_base_rate(&t.probs),
         mean_success_prob: (!t.probs.is_empty())
             .then(|| t.probs.iter().map(|p| p.0).sum::<f64>() / t.probs.len() as f64),
         reliability: t.reliability(),
@@ -945,6 +968,7 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
             "best of candidates",
             "mean success_prob",
             "Brier",
+            "Brier of the base rate",
             "failures",
         ]
         .iter()
@@ -968,7 +992,8 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
                     ),
                     r.mean_success_prob
                         .map_or("-".into(), |p| format!("{:.0} %", 100.0 * p)),
-                    r.brier.map_or("-".into(), |b| format!("{b:.3}")),
+                    brier_cell(r.brier),
+                    brier_cell(r.brier_base_rate),
                     r.failures
                         .iter()
                         .map(|(k, v)| format!("{k} {v}"))
@@ -980,14 +1005,27 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
     }
 }
 
+/// A Brier score's table cell.
+fn brier_cell(b: Option<f64>) -> String {
+    b.map_or("-".into(), |b| format!("{b:.3}"))
+}
+
 /// The reliability tables: one row per (set, method, variant, grasps, gripper) with
 /// probabilities, "predicted → achieved (n)" per bin.
 pub fn reliability_table_of(rows: &[GraspRow]) -> Table {
     let simulated = rows.iter().any(|r| r.simulated);
-    let mut headers: Vec<String> = ["set", "method", "variant", "grasps", "gripper", "Brier"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+    let mut headers: Vec<String> = [
+        "set",
+        "method",
+        "variant",
+        "grasps",
+        "gripper",
+        "Brier",
+        "Brier of the base rate",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
     let w = 1.0 / RELIABILITY_BINS as f64;
     headers.extend(
         (0..RELIABILITY_BINS).map(|b| format!("p {:.1}–{:.1}", b as f64 * w, (b + 1) as f64 * w)),
@@ -1012,7 +1050,8 @@ pub fn reliability_table_of(rows: &[GraspRow]) -> Table {
                     r.variant.clone(),
                     r.grasp_quality.to_string(),
                     r.gripper.to_string(),
-                    r.brier.map_or("-".into(), |b| format!("{b:.3}")),
+                    brier_cell(r.brier),
+                    brier_cell(r.brier_base_rate),
                 ];
                 v.extend(
                     r.reliability

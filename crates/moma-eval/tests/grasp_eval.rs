@@ -6,7 +6,9 @@ mod common;
 
 use common::{shared_set, simulated_inverse_depth};
 use moma_core::align::Method;
-use moma_eval::grasp_eval::{GraspEvalConfig, GripperKind, grasp_evaluate, grasp_table};
+use moma_eval::grasp_eval::{
+    GraspEvalConfig, GripperKind, brier_base_rate, grasp_evaluate, grasp_table,
+};
 use moma_eval::protocol::EvalConfig;
 use moma_grasp::GraspQuality;
 
@@ -41,6 +43,18 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
         assert!((0.0..=1.0).contains(&b), "{r:?}");
         let n: usize = r.reliability.iter().map(|b| b.grasps).sum();
         assert!(n > 0 && n <= r.trials, "{r:?}");
+        // the base rate's Brier score from the same grasps, counted through the bins
+        let held: f64 = r
+            .reliability
+            .iter()
+            .filter_map(|b| b.achieved.map(|a| a * b.grasps as f64))
+            .sum();
+        let rate = held / n as f64;
+        let base = r.brier_base_rate.unwrap();
+        assert!((base - rate * (1.0 - rate)).abs() < 1e-9, "{r:?}");
+    }
+    for r in rows.iter().filter(|r| r.method == "gt") {
+        assert!(r.brier.is_none() && r.brier_base_rate.is_none(), "{r:?}");
     }
     // the best of the candidates: no ranking does better than a perfect one, or worse than
     // none; on the ground truth every suction candidate the planner keeps has passed the
@@ -86,4 +100,34 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
     assert!(ssra >= 0.25, "parallel on SSRA-aligned depth: {ssra}");
     assert!(grasp_table(&rows).title.contains("PROXY"));
     assert!(grasp_table(&rows).title.contains("SIMULATED"));
+}
+
+#[test]
+fn the_base_rate_brier_score_is_the_best_constant_forecasts() {
+    // 3 of 5 grasps hold: the constant 0.6 scores 0.6 · 0.4² + 0.4 · 0.6² = 0.24
+    let probs = [
+        (0.9, true),
+        (0.2, false),
+        (0.6, true),
+        (0.5, false),
+        (0.7, true),
+    ];
+    let base = brier_base_rate(&probs).unwrap();
+    assert!((base - 0.24).abs() < 1e-12, "{base}");
+    // no other constant forecast does better on these outcomes
+    let brier_of = |c: f64| {
+        probs
+            .iter()
+            .map(|&(_, s)| (c - if s { 1.0 } else { 0.0 }).powi(2))
+            .sum::<f64>()
+            / probs.len() as f64
+    };
+    assert!((brier_of(0.6) - base).abs() < 1e-12);
+    for c in [0.0, 0.3, 0.55, 0.65, 0.9, 1.0] {
+        assert!(brier_of(c) > base, "{c}");
+    }
+    // outcomes that all agree need no forecast at all; nothing to score gives none
+    assert_eq!(brier_base_rate(&[(0.3, true), (0.8, true)]), Some(0.0));
+    assert_eq!(brier_base_rate(&[(0.3, false)]), Some(0.0));
+    assert_eq!(brier_base_rate(&[]), None);
 }

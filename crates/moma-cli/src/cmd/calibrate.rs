@@ -488,11 +488,33 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         println!(
             "parameters ({space} space, target units {}): {}",
             space.target_unit(),
-            serde_json::to_string(&file.calibration.model)?
+            abridged(serde_json::to_value(&file.calibration.model)?)
         );
         println!("wrote {}", args.output.display());
     }
     Ok(())
+}
+
+/// Lists longer than this are summarised on the terminal ([`abridged`]).
+const LIST_SHOWN_MAX: usize = 8;
+
+/// `value` as one line of JSON for the terminal, with every list of more than
+/// [`LIST_SHOWN_MAX`] entries replaced by a string that counts them: a local fit's samples (100
+/// objects for LWLR) or node grids would fill the screen, and the calibration file holds them
+/// in full.
+fn abridged(value: serde_json::Value) -> String {
+    fn walk(v: serde_json::Value) -> serde_json::Value {
+        use serde_json::Value;
+        match v {
+            Value::Array(a) if a.len() > LIST_SHOWN_MAX => {
+                Value::String(format!("[{} entries: in the calibration file]", a.len()))
+            }
+            Value::Array(a) => Value::Array(a.into_iter().map(walk).collect()),
+            Value::Object(o) => Value::Object(o.into_iter().map(|(k, v)| (k, walk(v))).collect()),
+            other => other,
+        }
+    }
+    walk(value).to_string()
 }
 
 /// One RGB-D frame's calibration with `moma calibrate`'s defaults (random sampling, no robust
