@@ -55,48 +55,29 @@ fn calibrate_align_metrics_end_to_end() {
     let frames = scene.join("frames");
     let calib = tmp.path().join("calib.json");
 
-    let summary: serde_json::Value = serde_json::from_str(&ok(&[
-        "calibrate",
-        "--pred",
-        s(&pred.join("frame_00.npy")),
-        "--pred-kind",
-        "relative-disparity",
-        "--gt",
-        s(&frames.join("frame_00/depth.png")),
-        "--camera",
-        s(&scene.join("camera.json")),
-        "--samples",
-        "100",
-        "--seed",
-        "3",
-        "-o",
-        s(&calib),
-        "--json",
-    ]))
-    .unwrap();
+    let camera = scene.join("camera.json");
+    // frame 00 with the camera, seed 3 and `extra` settings, written to `out`
+    let calibrate = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "--pred-kind",
+            "relative-disparity",
+            "--camera",
+            s(&camera),
+            "--seed",
+            "3",
+        ];
+        args.extend_from_slice(extra);
+        calibrate_frame_00(&scene, &pred, out, &args)
+    };
+    let summary: serde_json::Value =
+        serde_json::from_str(&calibrate(&calib, &["--samples", "100", "--json"])).unwrap();
     assert_eq!(summary["method"], "ssra");
     assert_eq!(summary["n_used"], 100);
 
     // LWLR's parameters hold its 100 samples: the terminal line counts them, the file keeps
     // them all
     let lwlr = tmp.path().join("lwlr.json");
-    let text = ok(&[
-        "calibrate",
-        "--pred",
-        s(&pred.join("frame_00.npy")),
-        "--pred-kind",
-        "relative-disparity",
-        "--gt",
-        s(&frames.join("frame_00/depth.png")),
-        "--camera",
-        s(&scene.join("camera.json")),
-        "--method",
-        "lwlr",
-        "--seed",
-        "3",
-        "-o",
-        s(&lwlr),
-    ]);
+    let text = calibrate(&lwlr, &["--method", "lwlr"]);
     let line = text
         .lines()
         .find(|l| l.starts_with("parameters ("))
