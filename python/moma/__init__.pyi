@@ -10,6 +10,7 @@ from ._moma import calibrate as calibrate
 from ._moma import depth_to_points as depth_to_points
 from ._moma import finetune as finetune
 from ._moma import plan_grasps as plan_grasps
+from ._moma import grasp_check as grasp_check
 from ._moma import has_onnx as has_onnx
 from ._moma import lora_fingerprint as lora_fingerprint
 from ._moma import metrics as metrics
@@ -33,6 +34,7 @@ __all__ = [
     "depth_to_points",
     "finetune",
     "plan_grasps",
+    "grasp_check",
     "has_onnx",
     "lora_fingerprint",
     "metrics",

@@ -328,6 +328,22 @@ def plan_grasps(
     = inside); without one, regions over 10 mm above the support plane that do not touch the
     image border (unless ``keep_border_objects``). An empty list when nothing is graspable."""
 
+def grasp_check(
+    calibration: Calibration,
+    pred: npt.ArrayLike,
+    gt_m: npt.ArrayLike,
+    cam: Optional[Intrinsics] = None,
+    gripper: Literal["parallel", "suction"] = "suction",
+    mask: Optional[_Mask] = None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The grasp check of a frame whose ground truth is known (``moma calibrate
+    --grasp-check``): ``pred`` aligned one-shot by ``calibration``, planned as ``plan_grasps``
+    plans with its error model (``gripper``'s default geometry), every grasp executed on
+    ``gt_m`` (metres) by the proxy's rules. Returns ``{"gripper", "scores": "proxy", "grasps",
+    "successes", "success_rate", "mean_success_prob", "failures", "no_grasp_reason"}``. PROXY
+    scores, not robot trials; on the calibration frame itself it leans optimistic."""
+
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...
 @overload

@@ -178,3 +178,33 @@ def test_an_object_that_pulls_the_calibration_gets_a_height_part(tmp_path):
     # a prediction that keeps the box's height: nothing pulls, no height part in the file
     exact = moma.calibrate((2.0 / gt + 0.5).astype(np.float32), gt, cam, kind="relative-disparity", method="gssa", norm="none", space="inverse", seed=3)
     assert exact.error_model.get("height_sigma", 0.0) < 1e-6
+
+
+def test_grasp_check_executes_the_planned_grasps_on_the_truth():
+    cam, gt, box = box_scene()
+    # an exact prediction (inverse depth, affine): the grasps planned on its alignment hold on
+    # the truth; the same prediction of a scene 30 mm farther off puts every suction cup 30 mm
+    # behind the box top (compliance 15 mm): none holds
+    pred = (2.0 / gt + 0.5).astype(np.float32)
+    cal = moma.calibrate(pred, gt, cam, kind="relative-disparity", method="gssa", norm="none", space="inverse")
+    check = moma.grasp_check(cal, pred, gt, gripper="suction", mask=box)
+    assert set(check) == {
+        "gripper", "scores", "grasps", "successes", "success_rate", "mean_success_prob",
+        "failures", "no_grasp_reason",
+    }
+    assert check["gripper"] == "suction" and check["scores"] == "proxy"
+    assert check["grasps"] > 0 and check["successes"] == check["grasps"], check
+    assert check["success_rate"] == 1.0 and 0.0 < check["mean_success_prob"] < 1.0
+    far = (2.0 / (gt + 0.03) + 0.5).astype(np.float32)
+    missed = moma.grasp_check(cal, far, gt, gripper="suction", mask=box)
+    assert missed["grasps"] > 0 and missed["successes"] == 0, missed
+    assert sum(missed["failures"].values()) == missed["grasps"]
+    # nothing to grasp: no grasp, and why
+    table = np.full_like(gt, TABLE_M)
+    empty = moma.grasp_check(cal, (2.0 / table + 0.5).astype(np.float32), table, gripper="parallel")
+    assert empty["grasps"] == 0 and empty["success_rate"] is None
+    assert "support plane" in empty["no_grasp_reason"]
+    with pytest.raises(ValueError, match="gripper"):
+        moma.grasp_check(cal, pred, gt, gripper="vacuum")
+    with pytest.raises(ValueError):
+        moma.grasp_check(cal, pred, gt[:, :10])

@@ -97,6 +97,50 @@ fn calibrate_align_metrics_end_to_end() {
         "{:.300}",
         file.to_string()
     );
+    // the grasp check of the calibration frame: both grippers, counts that add up, labelled
+    let checked: serde_json::Value = serde_json::from_str(&calibrate(
+        &tmp.path().join("checked.json"),
+        &["--grasp-check", "suction,parallel", "--json"],
+    ))
+    .unwrap();
+    let rows = checked["grasp_check"].as_array().unwrap();
+    let grippers: Vec<&str> = rows
+        .iter()
+        .map(|r| r["gripper"].as_str().unwrap())
+        .collect();
+    assert_eq!(grippers, ["suction", "parallel"]);
+    for r in rows {
+        let (n, k) = (
+            r["grasps"].as_u64().unwrap(),
+            r["successes"].as_u64().unwrap(),
+        );
+        let failed: u64 = r["failures"]
+            .as_object()
+            .unwrap()
+            .values()
+            .map(|v| v.as_u64().unwrap())
+            .sum();
+        assert!(n > 0 && k + failed == n, "{r}");
+        assert_eq!(r["scores"], "proxy");
+        let p = r["mean_success_prob"].as_f64().unwrap();
+        assert!(p > 0.0 && p < 1.0, "{r}");
+    }
+    // without a camera there are no metres to plan in: refused before anything is written
+    let unchecked = tmp.path().join("unchecked.json");
+    let e = fails(&[
+        "calibrate",
+        "--pred",
+        s(&pred.join("frame_00.npy")),
+        "--gt",
+        s(&frames.join("frame_00/depth.png")),
+        "--grasp-check",
+        "suction",
+        "-o",
+        s(&unchecked),
+    ]);
+    assert!(e.contains("--camera"), "{e}");
+    assert!(!unchecked.exists());
+
     let rms = summary["rms_residual_m"].as_f64().unwrap();
     assert!(
         rms > 0.0 && rms < 0.05,

@@ -149,6 +149,14 @@ pub enum Gripper {
 }
 
 impl Gripper {
+    /// `parallel` or `suction` (the JSON `kind`).
+    pub const fn kind_name(&self) -> &'static str {
+        match self {
+            Gripper::Parallel(_) => "parallel",
+            Gripper::Suction(_) => "suction",
+        }
+    }
+
     /// Validates the geometry.
     ///
     /// # Errors

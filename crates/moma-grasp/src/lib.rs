@@ -75,6 +75,7 @@
 //! object, including walls, tote rims, robot parts or hole-filled background at the image border;
 //! pass a mask (or a workspace-cropped depth) on such scenes.
 
+pub mod check;
 pub mod cloud;
 pub mod contact;
 pub mod error;
@@ -92,6 +93,7 @@ pub mod scene;
 pub mod score;
 pub mod suction;
 
+pub use check::{GraspCheck, grasp_check};
 pub use cloud::{CloudConfig, OrganisedCloud, Vec3};
 pub use contact::{ExecConfig, MU_GRID};
 pub use error::{GraspError, Result};

@@ -952,16 +952,8 @@ fn plan_grasps<'py>(
     grasp_draws: usize,
     min_success_prob: Option<f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    use moma_grasp::{GraspRequest, Gripper, ParallelJaw, SceneConfig, SuctionCup};
-    let gripper = match gripper {
-        "parallel" => Gripper::Parallel(ParallelJaw::default()),
-        "suction" => Gripper::Suction(SuctionCup::default()),
-        other => {
-            return Err(value_err(format!(
-                "unknown gripper '{other}' (expected 'parallel' or 'suction')"
-            )));
-        }
-    };
+    use moma_grasp::{GraspRequest, SceneConfig};
+    let gripper = default_gripper(gripper)?;
     let (depth, error_model, k) = match source.cast::<Calibration>() {
         Ok(cal) => {
             let cal = cal.borrow();
@@ -1033,6 +1025,64 @@ fn plan_grasps<'py>(
         .detach(|| moma_grasp::plan_grasps(&depth, &k, mask.as_ref(), &request))
         .map_err(|e| value_err(e.to_string()))?;
     to_py_json(py, &outcome.grasps)
+}
+
+/// The default geometry of gripper `name` (`parallel` or `suction`).
+fn default_gripper(name: &str) -> PyResult<moma_grasp::Gripper> {
+    use moma_grasp::{Gripper, ParallelJaw, SuctionCup};
+    match name {
+        "parallel" => Ok(Gripper::Parallel(ParallelJaw::default())),
+        "suction" => Ok(Gripper::Suction(SuctionCup::default())),
+        other => Err(value_err(format!(
+            "unknown gripper '{other}' (expected 'parallel' or 'suction')"
+        ))),
+    }
+}
+
+/// The grasp check of a frame whose ground truth is known, as `moma calibrate --grasp-check`
+/// runs it on the calibration frame: `pred` (the frame's prediction) aligned one-shot by
+/// `calibration` and planned on with its error model as `plan_grasps` plans (`gripper`,
+/// default geometry; `mask`, `seed`), every grasp executed on `gt_m` (float32 metres, NaN or
+/// ≤ 0 = no depth) by the proxy's rules. Returns a dict: `gripper`, `scores` (`"proxy"`),
+/// `grasps`, `successes`, `success_rate`, `mean_success_prob`, `failures` (by reason) and
+/// `no_grasp_reason`. PROXY scores, not robot trials; on the calibration frame itself it is
+/// in-sample and leans optimistic. The GIL is released while planning.
+#[pyfunction]
+#[pyo3(signature = (calibration, pred, gt_m, cam=None, gripper="suction", mask=None, seed=0))]
+#[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
+fn grasp_check<'py>(
+    py: Python<'py>,
+    calibration: &Calibration,
+    pred: &Bound<'py, PyAny>,
+    gt_m: &Bound<'py, PyAny>,
+    cam: Option<&Intrinsics>,
+    gripper: &str,
+    mask: Option<&Bound<'py, PyAny>>,
+    seed: u64,
+) -> PyResult<Bound<'py, PyAny>> {
+    let gripper = default_gripper(gripper)?;
+    let k = match (cam, calibration.intrinsics) {
+        (Some(c), _) => c.inner,
+        (None, Some(k)) => k,
+        (None, None) => {
+            return Err(value_err(
+                "cam= is needed: the calibration records no intrinsics",
+            ));
+        }
+    };
+    let prediction = Prediction::new(f32_owned(pred, "pred")?, calibration.inner.prediction_kind);
+    let truth = MetricDepth::new(f32_owned(gt_m, "gt_m")?);
+    let mask = opt_mask(mask, "mask")?;
+    let inner = &calibration.inner;
+    let aligned = py
+        .detach(|| inner.aligned(&prediction, &moma_core::AlignOptions::default()))
+        .py()?;
+    let mut request = moma_grasp::GraspRequest::new(gripper).with_error_model(aligned.error_model);
+    request.seed = seed;
+    let check = py
+        .detach(|| moma_grasp::grasp_check(&aligned.depth, &truth, &k, mask.as_ref(), &request))
+        .map_err(|e| value_err(e.to_string()))?;
+    to_py_json(py, &check)
 }
 
 /// Reads metric depth: uint16 PNG (millimetres, 0 = none), `.npy` (metres) or `.pfm` (metres).
@@ -1489,6 +1539,7 @@ fn _moma(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(metrics, m)?)?;
     m.add_function(wrap_pyfunction!(depth_to_points, m)?)?;
     m.add_function(wrap_pyfunction!(plan_grasps, m)?)?;
+    m.add_function(wrap_pyfunction!(grasp_check, m)?)?;
     m.add_function(wrap_pyfunction!(read_depth, m)?)?;
     m.add_function(wrap_pyfunction!(write_depth, m)?)?;
     m.add_function(wrap_pyfunction!(read_prediction, m)?)?;

@@ -12,9 +12,11 @@ use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate};
 use moma_core::policy::{MethodOptions, Protocol};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
+use moma_grasp::{Gripper, ParallelJaw, SuctionCup};
 use moma_io::{CalibrationFile, CreationInfo};
 
 use super::common::{SourceArgs, print_json};
+use super::grasp::GripperArg;
 
 /// Fit an alignment from one frame's prediction and ground truth, or from several frames of the
 /// same camera (few-shot: repeat --pred P --gt G; each frame is normalised on its own, --samples
@@ -97,6 +99,17 @@ pub struct CalibrateArgs {
     /// The calibration frame's RGB for --anchors when calibrating from --pred.
     #[arg(long, value_name = "IMG", requires = "anchors")]
     pub anchors_rgb: Option<PathBuf>,
+    /// Grasp check on the calibration frame (the first), for these grippers (parallel,suction;
+    /// default geometries): grasps planned on its aligned prediction with the calibration's
+    /// error model, as `moma grasp --calib` plans them, executed on its ground truth by the
+    /// proxy's rules (PROXY scores; in-sample, so it leans optimistic). Needs --camera.
+    #[arg(
+        long,
+        value_name = "GRIPPERS",
+        value_delimiter = ',',
+        requires = "camera"
+    )]
+    pub grasp_check: Vec<GripperArg>,
 }
 
 /// What the calibration will align and how `auto` and the local corrections cross-validate
@@ -410,6 +423,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         created = created.with_source("anchors_rgb (embedded)", p);
     }
     let file = CalibrationFile::new(calibration, intrinsics, created);
+    // before the file is written: a check that fails leaves no calibration behind
+    let checks = grasp_checks(&args.grasp_check, &file, &inputs[0], &gts[0], args)?;
     moma_io::write_calibration(&args.output, &file)?;
 
     let report = &file.calibration.report;
@@ -432,9 +447,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 "rms_m": cv.rms_m,
             })),
             "model": file.calibration.model,
+            "simulated_predictions": source.simulated,
         });
         if let (Some(r), Some(obj)) = (&report.robust, summary.as_object_mut()) {
             obj.insert("robust".into(), serde_json::to_value(r)?);
+        }
+        if let (false, Some(obj)) = (checks.is_empty(), summary.as_object_mut()) {
+            obj.insert("grasp_check".into(), serde_json::to_value(&checks)?);
         }
         print_json(&summary)?;
     } else {
@@ -490,9 +509,98 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             space.target_unit(),
             abridged(serde_json::to_value(&file.calibration.model)?)
         );
+        for line in grasp_check_lines(&checks, source.simulated) {
+            println!("{line}");
+        }
         println!("wrote {}", args.output.display());
     }
     Ok(())
+}
+
+/// The grasp check of the calibration frame for each of `grippers` ([`moma_grasp::grasp_check`]):
+/// `frame`'s prediction aligned by the calibration of `file` (one-shot, as `moma grasp --calib`
+/// without --realign) and planned with its error model, executed on `gt`.
+///
+/// # Errors
+/// No --camera; a failed alignment or grasp check.
+fn grasp_checks(
+    grippers: &[GripperArg],
+    file: &CalibrationFile,
+    frame: &super::common::SourcedPrediction,
+    gt: &moma_core::MetricDepth,
+    args: &CalibrateArgs,
+) -> Result<Vec<moma_grasp::GraspCheck>> {
+    if grippers.is_empty() {
+        return Ok(Vec::new());
+    }
+    let Some(intrinsics) = file.intrinsics else {
+        bail!("--grasp-check needs --camera: grasps are planned in metres");
+    };
+    let aligned = file
+        .calibration
+        .aligned(&frame.prediction, &moma_core::AlignOptions::default())
+        .with_context(|| format!("aligning {} for --grasp-check", frame.path.display()))?;
+    grippers
+        .iter()
+        .map(|&g| {
+            let gripper = match g {
+                GripperArg::Parallel => Gripper::Parallel(ParallelJaw::default()),
+                GripperArg::Suction => Gripper::Suction(SuctionCup::default()),
+            };
+            let mut request =
+                moma_grasp::GraspRequest::new(gripper).with_error_model(aligned.error_model);
+            request.seed = args.seed;
+            moma_grasp::grasp_check(&aligned.depth, gt, &intrinsics, None, &request).with_context(
+                || {
+                    format!(
+                        "--grasp-check {} on {} and {}",
+                        gripper.kind_name(),
+                        frame.path.display(),
+                        args.gt[0].display()
+                    )
+                },
+            )
+        })
+        .collect()
+}
+
+/// The terminal lines of the grasp checks: what they are, then one line per gripper.
+fn grasp_check_lines(checks: &[moma_grasp::GraspCheck], simulated: bool) -> Vec<String> {
+    if checks.is_empty() {
+        return Vec::new();
+    }
+    let label = if simulated {
+        "SIMULATED predictions, PROXY scores"
+    } else {
+        "PROXY scores"
+    };
+    let mut lines = vec![format!(
+        "grasp check on the calibration frame ({label}; its aligned prediction planned as `moma \
+         grasp --calib` plans it, each grasp executed on its ground truth; in-sample, so it \
+         leans optimistic):"
+    )];
+    for c in checks {
+        let gripper = &c.gripper;
+        lines.push(if c.grasps == 0 {
+            let why = c.no_grasp_reason.as_deref().unwrap_or("no reason given");
+            format!("  {gripper}: no grasp ({why})")
+        } else {
+            let prob = c
+                .mean_success_prob
+                .map_or(String::new(), |p| format!(", mean success_prob {p:.2}"));
+            let failures = if c.failures.is_empty() {
+                String::new()
+            } else {
+                let f: Vec<String> = c.failures.iter().map(|(k, v)| format!("{k} {v}")).collect();
+                format!(" (failed: {})", f.join(", "))
+            };
+            format!(
+                "  {gripper}: {} of {} grasps hold{prob}{failures}",
+                c.successes, c.grasps
+            )
+        });
+    }
+    lines
 }
 
 /// Lists longer than this are summarised on the terminal ([`abridged`]).

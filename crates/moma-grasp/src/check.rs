@@ -1,0 +1,88 @@
+//! The grasp check of a frame whose truth is known: the grasps planned on its aligned depth, as
+//! [`plan_grasps`] plans them for a robot, executed on its sensor depth by the scorer's rules
+//! ([`score_grasp`], the PROXY of docs/method.md §8).
+//!
+//! The one frame of a fixed cell with both a prediction and a truth is the calibration frame,
+//! so this is what the cell can say, at calibration time, about grasping from RGB there: how many
+//! of the grasps hold and how their `success_prob` compares. It is in-sample for the alignment
+//! (the calibration was fitted on this frame), so it leans optimistic; on the SIMULATED shared
+//! sets the calibration frame's suction rate came within 0.01–0.06 of the re-aligned frames'
+//! (docs/grasping.md, "Does `success_prob` beat one rate for all?").
+
+use std::collections::BTreeMap;
+
+use moma_core::{Intrinsics, Mask, MetricDepth};
+use serde::{Deserialize, Serialize};
+
+use crate::error::Result;
+use crate::grasp::FailureReason;
+use crate::robust::{GraspRequest, plan_grasps};
+use crate::scene::Scene;
+use crate::score::score_grasp;
+
+/// The outcome of [`grasp_check`] (PROXY scores, not robot trials); its JSON is what `moma
+/// calibrate --grasp-check --json` and Python's `grasp_check` give.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GraspCheck {
+    /// `parallel` or `suction`.
+    pub gripper: String,
+    /// Always `proxy`: executed by the scorer's rules on a depth map, not by a robot.
+    pub scores: String,
+    /// Grasps planned on the aligned depth (at most the request's `top_k`).
+    pub grasps: usize,
+    /// Of those, the grasps that succeed on the truth.
+    pub successes: usize,
+    /// successes / grasps (`None` without a grasp).
+    pub success_rate: Option<f64>,
+    /// Mean `success_prob` of the planned grasps (`None` without an error model or a grasp).
+    pub mean_success_prob: Option<f64>,
+    /// The failures on the truth, by reason (`seal_broken`, `collision`, …).
+    pub failures: BTreeMap<String, usize>,
+    /// Why the planner returned no grasp, when it returned none.
+    pub no_grasp_reason: Option<String>,
+}
+
+/// Plans on `aligned` as `request` says ([`plan_grasps`], object `mask` if given) and executes
+/// every returned grasp on `truth` (the same camera and `mask`) with `request.score`.
+///
+/// # Errors
+/// An invalid request; a scene that cannot be built from `aligned` or `truth` (sizes that do
+/// not match `intrinsics`, no valid depth), naming which.
+pub fn grasp_check(
+    aligned: &MetricDepth,
+    truth: &MetricDepth,
+    intrinsics: &Intrinsics,
+    mask: Option<&Mask>,
+    request: &GraspRequest,
+) -> Result<GraspCheck> {
+    let (_, outcome) = plan_grasps(aligned, intrinsics, mask, request)?;
+    let truth_scene = Scene::build(truth, intrinsics, mask, &request.scene)?;
+    let mut successes = 0;
+    let mut failures = BTreeMap::new();
+    for g in &outcome.grasps {
+        let score = score_grasp(&truth_scene, g, &request.gripper, &request.score)?;
+        if score.success {
+            successes += 1;
+        } else {
+            let reason = score.failure.unwrap_or(FailureReason::NoGrasp);
+            *failures.entry(reason.to_string()).or_default() += 1;
+        }
+    }
+    let probs: Vec<f64> = outcome
+        .grasps
+        .iter()
+        .filter_map(|g| g.success_prob().map(f64::from))
+        .collect();
+    let grasps = outcome.grasps.len();
+    Ok(GraspCheck {
+        gripper: request.gripper.kind_name().to_string(),
+        scores: "proxy".to_string(),
+        grasps,
+        successes,
+        success_rate: (grasps > 0).then(|| successes as f64 / grasps as f64),
+        mean_success_prob: (!probs.is_empty())
+            .then(|| probs.iter().sum::<f64>() / probs.len() as f64),
+        failures,
+        no_grasp_reason: outcome.no_grasp_reason.as_ref().map(ToString::to_string),
+    })
+}

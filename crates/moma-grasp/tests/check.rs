@@ -1,0 +1,111 @@
+//! `grasp_check`: grasps planned on one depth, executed on the truth of the same frame. Scenes
+//! are rendered by exact ray casting (tests/common); the expectations are the planner's rules
+//! on exact depth and negative controls with a known error.
+
+mod common;
+
+use common::{BoxSpec, Scene as Synth, intrinsics};
+use moma_core::{DepthErrorModel, MetricDepth};
+use moma_grasp::{GraspRequest, Gripper, ParallelJaw, SuctionCup, grasp_check};
+
+const DIST_M: f64 = 0.7;
+
+/// Two boxes, 40 and 50 mm tall, on a table seen from above.
+fn two_boxes() -> MetricDepth {
+    let b = |y: f64, h: f64| BoxSpec {
+        y_m: y,
+        height_m: h,
+        ..BoxSpec::standard()
+    };
+    let mut s = Synth::top_down(DIST_M, Some(b(0.15, 0.04)));
+    s.boxes[1] = Some(b(-0.15, 0.05));
+    s.render()
+}
+
+fn grippers() -> [Gripper; 2] {
+    [
+        Gripper::Parallel(ParallelJaw::default()),
+        Gripper::Suction(SuctionCup::default()),
+    ]
+}
+
+#[test]
+fn grasps_planned_on_the_truth_hold_and_on_a_shifted_depth_fail() {
+    let truth = two_boxes();
+    let k = intrinsics();
+    // the same depth 30 mm farther: a cup stops 30 mm behind the surface (compliance 15 mm),
+    // fingers close 30 mm lower (into the table or under the boxes' reach)
+    let far = MetricDepth::new(truth.depth_m.mapv(|z| if z > 0.0 { z + 0.03 } else { z }));
+    for gripper in grippers() {
+        for seed in 0..3 {
+            let mut request = GraspRequest::new(gripper);
+            request.seed = seed;
+            let exact = grasp_check(&truth, &truth, &k, None, &request).unwrap();
+            assert!(exact.grasps > 0, "{gripper:?} seed {seed}: {exact:?}");
+            // every grasp the planner returns passed its execution on this very depth with the
+            // scorer's rules, so on the truth they all hold
+            assert_eq!(
+                exact.successes, exact.grasps,
+                "{gripper:?} seed {seed}: {exact:?}"
+            );
+            assert_eq!(exact.success_rate, Some(1.0));
+            assert_eq!(
+                (exact.gripper.as_str(), exact.scores.as_str()),
+                (gripper.kind_name(), "proxy")
+            );
+            // no error model: no probabilities
+            assert_eq!(exact.mean_success_prob, None);
+
+            let shifted = grasp_check(&far, &truth, &k, None, &request).unwrap();
+            let failed: usize = shifted.failures.values().sum();
+            assert_eq!(shifted.successes + failed, shifted.grasps, "{shifted:?}");
+            assert!(
+                3 * shifted.successes <= shifted.grasps,
+                "{gripper:?} seed {seed}: planned 30 mm off, {} of {} grasps still hold",
+                shifted.successes,
+                shifted.grasps
+            );
+        }
+    }
+}
+
+#[test]
+fn an_error_model_gives_the_grasps_probabilities() {
+    let truth = two_boxes();
+    let request = GraspRequest::new(Gripper::Suction(SuctionCup::default()))
+        .with_error_model(Some(DepthErrorModel::uniform(0.003).unwrap()));
+    let c = grasp_check(&truth, &truth, &intrinsics(), None, &request).unwrap();
+    let p = c.mean_success_prob.unwrap();
+    assert!(c.grasps > 0 && p > 0.0 && p < 1.0, "{c:?}");
+}
+
+#[test]
+fn a_bare_table_gives_no_grasp_and_says_why() {
+    let table = Synth::top_down(DIST_M, None).render();
+    for gripper in grippers() {
+        let c = grasp_check(
+            &table,
+            &table,
+            &intrinsics(),
+            None,
+            &GraspRequest::new(gripper),
+        )
+        .unwrap();
+        assert_eq!((c.grasps, c.successes, c.success_rate), (0, 0, None));
+        assert!(c.failures.is_empty());
+        let why = c.no_grasp_reason.as_deref().unwrap_or_default();
+        assert!(
+            why.contains("nothing stands above the support plane"),
+            "{c:?}"
+        );
+    }
+}
+
+#[test]
+fn a_truth_of_another_size_is_an_error() {
+    let truth = two_boxes();
+    let small = MetricDepth::new(ndarray::Array2::from_elem((240, 320), 0.7f32));
+    let request = GraspRequest::new(Gripper::Suction(SuctionCup::default()));
+    let e = grasp_check(&truth, &small, &intrinsics(), None, &request).unwrap_err();
+    assert!(e.to_string().contains("320"), "{e}");
+}
