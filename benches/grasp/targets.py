@@ -48,6 +48,8 @@ def grasp_table(run):
     sums = defaultdict(lambda: [0, 0, 0])
     briers = defaultdict(list)
     base_rates = defaultdict(list)
+    # (gripper, variant, quality, set) -> [check successes, check grasps]
+    checks = defaultdict(lambda: [0, 0])
     seeds = defaultdict(set)
     for gripper in ("suction", "parallel"):
         for path in sorted(glob.glob(os.path.join(run, gripper, "s*.json"))):
@@ -65,6 +67,10 @@ def grasp_table(run):
                     briers[key[:3]].append(r["brier"])
                 if r.get("brier_base_rate") is not None:
                     base_rates[key[:3]].append(r["brier_base_rate"])
+                c = r.get("calibration_frame_check")
+                if c:
+                    checks[key][0] += c["successes"]
+                    checks[key][1] += c["grasps"]
     if not sums:
         sys.exit(f"{run}: no suction/s*.json or parallel/s*.json")
     sets = sorted({k[3] for k in sums})
@@ -113,6 +119,28 @@ def grasp_table(run):
                 + " | ".join(f"{g[0]} / {g[2]}" for g in gt)
                 + f" | pooled {pooled:.1f} % | ≥ {GT_POOLED:.0f} % | |"
             )
+    check_rows = sorted({k[:3] for k in checks})
+    if check_rows:
+        lines += [
+            "",
+            "Calibration frame's grasp check (`moma calibrate --grasp-check`: no mask, summed over"
+            " the calibrations; grasps that hold / planned) beside the rate the row achieved.",
+            "",
+            "| gripper | variant | grasps | "
+            + " | ".join(f"{n}: check | achieved" for n in sets)
+            + " |",
+            "|---|---|---|" + "---:|---:|" * len(sets),
+        ]
+        for gripper, variant, quality in check_rows:
+            cells = []
+            for name in sets:
+                c = checks[(gripper, variant, quality, name)]
+                s = sums[(gripper, variant, quality, name)]
+                if c[1] == 0 or s[2] == 0:
+                    cells.append("- | -")
+                    continue
+                cells.append(f"{c[0]} / {c[1]} ({c[0] / c[1]:.2f}) | {s[0] / s[2]:.2f}")
+            lines.append(f"| {gripper} | {variant} | {quality} | " + " | ".join(cells) + " |")
     return lines
 
 

@@ -342,7 +342,7 @@ def grasp_check(
     plans with its error model (``gripper``'s default geometry), every grasp executed on
     ``gt_m`` (metres) by the proxy's rules. Returns ``{"gripper", "scores": "proxy", "grasps",
     "successes", "success_rate", "mean_success_prob", "failures", "no_grasp_reason"}``. PROXY
-    scores, not robot trials; on the calibration frame itself it leans optimistic."""
+    scores, not robot trials; a gauge of the cell, not a forecast (docs/grasping.md)."""
 
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...

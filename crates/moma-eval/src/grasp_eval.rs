@@ -178,6 +178,13 @@ pub struct GraspRow {
     pub mean_success_prob: Option<f64>,
     /// Reliability table of `success_prob` (5 bins of predicted probability).
     pub reliability: Vec<ReliabilityBin>,
+    /// The calibration frame's grasp check of every calibration of the row, summed
+    /// ([`moma_grasp::grasp_check`], as `moma calibrate --grasp-check` runs it: the calibration
+    /// frame aligned one-shot, planned without a mask, every grasp executed on its ground
+    /// truth): what a cell would have been told at calibration time. `None` for `gt` and
+    /// `sensor`.
+    #[serde(default)]
+    pub calibration_frame_check: Option<CheckSums>,
     /// Prediction source label (`SIMULATED …` for simulated predictions).
     pub source: String,
     /// Whether the depth the grasps were planned on came from simulated predictions.
@@ -196,6 +203,57 @@ pub struct ReliabilityBin {
     pub predicted: Option<f64>,
     /// Their achieved success rate (`null` when empty).
     pub achieved: Option<f64>,
+}
+
+/// Grasp checks summed over calibrations ([`GraspRow::calibration_frame_check`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct CheckSums {
+    /// Grasps planned on the calibration frames' aligned depth.
+    pub grasps: usize,
+    /// Of those, the grasps that hold on the calibration frames' ground truth.
+    pub successes: usize,
+    /// Their mean `success_prob` (`null` without one).
+    pub mean_success_prob: Option<f64>,
+}
+
+/// Grasp checks as they are summed ([`CheckSums`]).
+#[derive(Default, Clone, Copy)]
+struct CheckTally {
+    /// Checks added.
+    runs: usize,
+    grasps: usize,
+    successes: usize,
+    /// Σ success_prob over the grasps that have one, and their number.
+    prob_sum: f64,
+    probs: usize,
+}
+
+impl CheckTally {
+    fn add(&mut self, c: &moma_grasp::GraspCheck) {
+        self.merge(CheckTally {
+            runs: 1,
+            grasps: c.grasps,
+            successes: c.successes,
+            prob_sum: c.mean_success_prob.map_or(0.0, |p| p * c.grasps as f64),
+            probs: c.mean_success_prob.map_or(0, |_| c.grasps),
+        });
+    }
+
+    fn merge(&mut self, o: CheckTally) {
+        self.runs += o.runs;
+        self.grasps += o.grasps;
+        self.successes += o.successes;
+        self.prob_sum += o.prob_sum;
+        self.probs += o.probs;
+    }
+
+    fn sums(&self) -> Option<CheckSums> {
+        (self.runs > 0).then(|| CheckSums {
+            grasps: self.grasps,
+            successes: self.successes,
+            mean_success_prob: (self.probs > 0).then(|| self.prob_sum / self.probs as f64),
+        })
+    }
 }
 
 /// The `--json` contract: one object per (set, method, variant, grasp quality, gripper).
@@ -227,6 +285,8 @@ pub struct GraspJsonRow {
     pub brier_base_rate: Option<f64>,
     /// Reliability table.
     pub reliability: Vec<ReliabilityBin>,
+    /// The calibration frame's grasp check (`null` for `gt` and `sensor`).
+    pub calibration_frame_check: Option<CheckSums>,
 }
 
 impl From<&GraspRow> for GraspJsonRow {
@@ -239,6 +299,7 @@ impl From<&GraspRow> for GraspJsonRow {
             brier: r.brier,
             brier_base_rate: r.brier_base_rate,
             reliability: r.reliability.clone(),
+            calibration_frame_check: r.calibration_frame_check,
             gripper: r.gripper,
             trials: r.trials,
             successes: r.successes,
@@ -264,6 +325,8 @@ struct Tally {
     failures: BTreeMap<String, usize>,
     /// (predicted success probability, success) of the top-1 grasps that have one.
     probs: Vec<(f64, bool)>,
+    /// The calibration frames' grasp checks.
+    check: CheckTally,
 }
 
 /// One trial's result: the top-1 grasp's proxy outcome and its success probability.
@@ -286,6 +349,7 @@ impl Tally {
         self.successes += other.successes;
         self.best_of += other.best_of;
         self.probs.extend(other.probs);
+        self.check.merge(other.check);
         for (k, v) in other.failures {
             *self.failures.entry(k).or_default() += v;
         }
@@ -352,6 +416,65 @@ struct Planned<'a> {
     seed: u64,
 }
 
+/// The request of `config`'s planner settings for `gripper` with `error_model` and `seed` (top
+/// 10, the default ranking of the model).
+fn base_request(
+    gripper: GripperKind,
+    error_model: Option<DepthErrorModel>,
+    seed: u64,
+    config: &GraspEvalConfig,
+) -> GraspRequest {
+    let mut request = GraspRequest::new(gripper.gripper()).with_error_model(error_model);
+    request.seed = seed;
+    request.draws = config.draws;
+    request.candidates = config.candidates;
+    request.scene = config.scene;
+    request.parallel = config.parallel.clone();
+    request.suction = config.suction;
+    request.score = config.score;
+    if let Some(t) = config.tie_tolerance {
+        request.tie_tolerance = t;
+    }
+    request
+}
+
+/// The grasp check of a calibration frame (index `frame`, its aligned depth and error model) for
+/// `gripper`, ranked by `quality` where the model allows it: [`moma_grasp::grasp_check`] as
+/// `moma calibrate --grasp-check` runs it (no mask). A frame whose scenes cannot be built (no
+/// valid depth, no support plane) gives a check without grasps.
+fn calibration_check(
+    set: &LoadedSet,
+    frame: usize,
+    aligned: &(MetricDepth, Option<DepthErrorModel>),
+    gripper: GripperKind,
+    quality: GraspQuality,
+    seed: u64,
+    config: &GraspEvalConfig,
+) -> moma_grasp::GraspCheck {
+    let (depth, model) = aligned;
+    let mut request = base_request(gripper, *model, seed, config);
+    if model.is_some() {
+        request.quality = quality;
+    }
+    moma_grasp::grasp_check(
+        depth,
+        &set.frames[frame].gt,
+        &set.intrinsics,
+        None,
+        &request,
+    )
+    .unwrap_or_else(|e| moma_grasp::GraspCheck {
+        gripper: gripper.gripper().kind_name().to_string(),
+        scores: "proxy".into(),
+        grasps: 0,
+        successes: 0,
+        success_rate: None,
+        mean_success_prob: None,
+        failures: BTreeMap::new(),
+        no_grasp_reason: Some(e.to_string()),
+    })
+}
+
 /// Plans on `planned` (object `mask`) through [`plan_on_scene`] (the path of `moma grasp`),
 /// and executes the top-1 grasp of each ranking in `qualities` on the ground-truth scene.
 /// Also returns whether any of the planner's candidates succeeds there
@@ -371,18 +494,11 @@ fn run_trial(
             false,
         )
     };
-    let mut request = GraspRequest::new(gripper.gripper()).with_error_model(planned.error_model);
+    let mut request = base_request(gripper, planned.error_model, planned.seed, config);
     request.quality = GraspQuality::Nominal; // every candidate, in the planner's order
     // every candidate, also without an error model (the top-1 is the same: the planner keeps
     // grasps greedily in its own order), for the best of the candidates
     request.top_k = config.candidates;
-    request.seed = planned.seed;
-    request.draws = config.draws;
-    request.candidates = config.candidates;
-    request.scene = config.scene;
-    request.parallel = config.parallel.clone();
-    request.suction = config.suction;
-    request.score = config.score;
     // the path of `plan_grasps`: the scene of the request's planning depth
     let depth = planning_depth(planned.depth, &set.intrinsics, &request);
     let scene = match Scene::build(&depth, &set.intrinsics, mask, &config.scene) {
@@ -697,6 +813,7 @@ pub fn grasp_evaluate(
         mean_success_prob: (!t.probs.is_empty())
             .then(|| t.probs.iter().map(|p| p.0).sum::<f64>() / t.probs.len() as f64),
         reliability: t.reliability(),
+        calibration_frame_check: t.check.sums(),
         failures: t.failures,
         source: source.to_string(),
         simulated,
@@ -795,7 +912,20 @@ pub fn grasp_evaluate(
             for &seed in &seeds {
                 let mut frames: Vec<Option<(MetricDepth, Option<DepthErrorModel>)>> =
                     vec![None; set.frames.len()];
-                match (variant, &setup) {
+                // the calibration frame (the first of several) aligned one-shot, for its check
+                let one_shot = |cal: &moma_core::Calibration, i: usize| -> Result<_> {
+                    let input = moma_core::PredictionInput::normalised(&maps[i], prep.kind());
+                    let aligned = cal
+                        .aligned(input, &moma_core::AlignOptions::default())
+                        .map_err(|e| {
+                            EvalError::core(
+                                format!("set '{}', frame '{}'", set.name, set.frames[i].id),
+                                e,
+                            )
+                        })?;
+                    Ok((i, (aligned.depth, cal.frame_error_model(None))))
+                };
+                let calib_frame = match (variant, &setup) {
                     (VariantSpec::Plain { calib, robust, .. }, _) => {
                         let regions = prep.sample_regions(calib);
                         let inputs: Vec<(usize, &NormalisedMap, Option<&Mask>)> = calib
@@ -815,6 +945,7 @@ pub fn grasp_evaluate(
                             let (d, _) = prep.score(&cal, &maps[i], i)?;
                             frames[i] = Some((d, cal.frame_error_model(None)));
                         }
+                        one_shot(&cal, calib[0])?
                     }
                     (VariantSpec::Realign { .. }, Some(s)) => {
                         let cal = s.calibrate(&prep, &method, &norm, config.eval.samples, seed)?;
@@ -822,9 +953,10 @@ pub fn grasp_evaluate(
                             let (d, report) = s.realign_frame(&prep, &cal, i, seed)?;
                             frames[i] = Some((d, cal.frame_error_model(Some(&report))));
                         }
+                        one_shot(&cal, prep.calib)?
                     }
                     (VariantSpec::Realign { .. }, None) => unreachable!("set up above"),
-                }
+                };
                 for &i in &eval_idx {
                     if let (Some((d, Some(model))), Some(edges)) = (&frames[i], &edge_bands[i]) {
                         coverage.add(
@@ -852,6 +984,11 @@ pub fn grasp_evaluate(
                         .enumerate()
                     {
                         per_gq[k][q].merge(t);
+                    }
+                    for (q, &quality) in config.qualities.iter().enumerate() {
+                        let (c0, aligned) = &calib_frame;
+                        let check = calibration_check(set, *c0, aligned, g, quality, seed, config);
+                        per_gq[k][q].check.add(&check);
                     }
                 }
             }
@@ -969,6 +1106,7 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
             "mean success_prob",
             "Brier",
             "Brier of the base rate",
+            "calibration frame check",
             "failures",
         ]
         .iter()
@@ -994,6 +1132,12 @@ pub fn grasp_table(rows: &[GraspRow]) -> Table {
                         .map_or("-".into(), |p| format!("{:.0} %", 100.0 * p)),
                     brier_cell(r.brier),
                     brier_cell(r.brier_base_rate),
+                    r.calibration_frame_check.map_or("-".into(), |c| {
+                        let p = c
+                            .mean_success_prob
+                            .map_or(String::new(), |p| format!(" (p {p:.2})"));
+                        format!("{} / {}{p}", c.successes, c.grasps)
+                    }),
                     r.failures
                         .iter()
                         .map(|(k, v)| format!("{k} {v}"))

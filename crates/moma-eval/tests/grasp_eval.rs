@@ -55,6 +55,19 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
     }
     for r in rows.iter().filter(|r| r.method == "gt") {
         assert!(r.brier.is_none() && r.brier_base_rate.is_none(), "{r:?}");
+        assert!(r.calibration_frame_check.is_none(), "{r:?}");
+    }
+    // every calibration's check of its calibration frame: at most 10 grasps each (3 seeds),
+    // counts that add up, probabilities where the grasps were planned with the error model
+    for r in rows.iter().filter(|r| r.method == "ssra") {
+        let c = r.calibration_frame_check.unwrap();
+        assert!(c.successes <= c.grasps && c.grasps <= 30, "{r:?}");
+        if r.grasp_quality == GraspQuality::Robust && c.grasps > 0 {
+            assert!(
+                c.mean_success_prob.is_some_and(|p| p > 0.0 && p < 1.0),
+                "{r:?}"
+            );
+        }
     }
     // the best of the candidates: no ranking does better than a perfect one, or worse than
     // none; on the ground truth every suction candidate the planner keeps has passed the

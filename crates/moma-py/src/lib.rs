@@ -1045,8 +1045,8 @@ fn default_gripper(name: &str) -> PyResult<moma_grasp::Gripper> {
 /// default geometry; `mask`, `seed`), every grasp executed on `gt_m` (float32 metres, NaN or
 /// ≤ 0 = no depth) by the proxy's rules. Returns a dict: `gripper`, `scores` (`"proxy"`),
 /// `grasps`, `successes`, `success_rate`, `mean_success_prob`, `failures` (by reason) and
-/// `no_grasp_reason`. PROXY scores, not robot trials; on the calibration frame itself it is
-/// in-sample and leans optimistic. The GIL is released while planning.
+/// `no_grasp_reason`. PROXY scores, not robot trials; on the calibration frame it is a gauge
+/// of the cell, not a forecast (docs/grasping.md). The GIL is released while planning.
 #[pyfunction]
 #[pyo3(signature = (calibration, pred, gt_m, cam=None, gripper="suction", mask=None, seed=0))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API

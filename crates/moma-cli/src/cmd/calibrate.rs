@@ -102,7 +102,8 @@ pub struct CalibrateArgs {
     /// Grasp check on the calibration frame (the first), for these grippers (parallel,suction;
     /// default geometries): grasps planned on its aligned prediction with the calibration's
     /// error model, as `moma grasp --calib` plans them, executed on its ground truth by the
-    /// proxy's rules (PROXY scores; in-sample, so it leans optimistic). Needs --camera.
+    /// proxy's rules (PROXY scores; the top 10 grasps without a mask: a gauge of the cell, not a
+    /// forecast). Needs --camera.
     #[arg(
         long,
         value_name = "GRIPPERS",
@@ -576,8 +577,8 @@ fn grasp_check_lines(checks: &[moma_grasp::GraspCheck], simulated: bool) -> Vec<
     };
     let mut lines = vec![format!(
         "grasp check on the calibration frame ({label}; its aligned prediction planned as `moma \
-         grasp --calib` plans it, each grasp executed on its ground truth; in-sample, so it \
-         leans optimistic):"
+         grasp --calib` plans it, each grasp executed on its ground truth; a gauge of the \
+         cell, not a forecast):"
     )];
     for c in checks {
         let gripper = &c.gripper;
