@@ -48,7 +48,7 @@ pub struct GraspCheck {
 ///
 /// # Errors
 /// An invalid request; a scene that cannot be built from `aligned` or `truth` (sizes that do
-/// not match `intrinsics`, no valid depth), naming which.
+/// not match `intrinsics`, no valid depth). Callers name the files (`moma calibrate` does).
 pub fn grasp_check(
     aligned: &MetricDepth,
     truth: &MetricDepth,
