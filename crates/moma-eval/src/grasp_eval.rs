@@ -229,13 +229,16 @@ struct CheckTally {
 }
 
 impl CheckTally {
-    fn add(&mut self, c: &moma_grasp::GraspCheck) {
+    /// One check; `None`: a check that could not plan (no grasps).
+    fn add(&mut self, c: Option<&moma_grasp::GraspCheck>) {
+        let grasps = c.map_or(0, |c| c.grasps);
+        let prob = c.and_then(|c| c.mean_success_prob);
         self.merge(CheckTally {
             runs: 1,
-            grasps: c.grasps,
-            successes: c.successes,
-            prob_sum: c.mean_success_prob.map_or(0.0, |p| p * c.grasps as f64),
-            probs: c.mean_success_prob.map_or(0, |_| c.grasps),
+            grasps,
+            successes: c.map_or(0, |c| c.successes),
+            prob_sum: prob.map_or(0.0, |p| p * grasps as f64),
+            probs: prob.map_or(0, |_| grasps),
         });
     }
 
@@ -440,8 +443,8 @@ fn base_request(
 
 /// The grasp check of a calibration frame (index `frame`, its aligned depth and error model) for
 /// `gripper`, ranked by `quality` where the model allows it: [`moma_grasp::grasp_check`] as
-/// `moma calibrate --grasp-check` runs it (no mask). A frame whose scenes cannot be built (no
-/// valid depth, no support plane) gives a check without grasps.
+/// `moma calibrate --grasp-check` runs it (no mask). `None` where the frame's scenes cannot be
+/// built (no valid depth, no support plane): a check without grasps.
 fn calibration_check(
     set: &LoadedSet,
     frame: usize,
@@ -450,7 +453,7 @@ fn calibration_check(
     quality: GraspQuality,
     seed: u64,
     config: &GraspEvalConfig,
-) -> moma_grasp::GraspCheck {
+) -> Option<moma_grasp::GraspCheck> {
     let (depth, model) = aligned;
     let mut request = base_request(gripper, *model, seed, config);
     if model.is_some() {
@@ -463,16 +466,7 @@ fn calibration_check(
         None,
         &request,
     )
-    .unwrap_or_else(|e| moma_grasp::GraspCheck {
-        gripper: gripper.gripper().kind_name().to_string(),
-        scores: "proxy".into(),
-        grasps: 0,
-        successes: 0,
-        success_rate: None,
-        mean_success_prob: None,
-        failures: BTreeMap::new(),
-        no_grasp_reason: Some(e.to_string()),
-    })
+    .ok()
 }
 
 /// Plans on `planned` (object `mask`) through [`plan_on_scene`] (the path of `moma grasp`),
@@ -914,16 +908,10 @@ pub fn grasp_evaluate(
                     vec![None; set.frames.len()];
                 // the calibration frame (the first of several) aligned one-shot, for its check
                 let one_shot = |cal: &moma_core::Calibration, i: usize| -> Result<_> {
-                    let input = moma_core::PredictionInput::normalised(&maps[i], prep.kind());
-                    let aligned = cal
-                        .aligned(input, &moma_core::AlignOptions::default())
-                        .map_err(|e| {
-                            EvalError::core(
-                                format!("set '{}', frame '{}'", set.name, set.frames[i].id),
-                                e,
-                            )
-                        })?;
-                    Ok((i, (aligned.depth, cal.frame_error_model(None))))
+                    Ok((
+                        i,
+                        (prep.aligned(cal, &maps[i], i)?, cal.frame_error_model(None)),
+                    ))
                 };
                 let calib_frame = match (variant, &setup) {
                     (VariantSpec::Plain { calib, robust, .. }, _) => {
@@ -988,7 +976,7 @@ pub fn grasp_evaluate(
                     for (q, &quality) in config.qualities.iter().enumerate() {
                         let (c0, aligned) = &calib_frame;
                         let check = calibration_check(set, *c0, aligned, g, quality, seed, config);
-                        per_gq[k][q].check.add(&check);
+                        per_gq[k][q].check.add(check.as_ref());
                     }
                 }
             }

@@ -799,18 +799,34 @@ impl<'a> Prepared<'a> {
         map: &NormalisedMap,
         i: usize,
     ) -> Result<(MetricDepth, DepthMetrics)> {
+        let aligned = self.aligned(calibration, map, i)?;
         let f = &self.set.frames[i];
-        let ctx = || format!("set '{}', frame '{}'", self.set.name, f.id);
-        let aligned = calibration
+        let m = DepthMetrics::compute(&aligned, &f.gt, Some(&self.eval_masks[i])).map_err(|e| {
+            EvalError::core(format!("set '{}', frame '{}'", self.set.name, f.id), e)
+        })?;
+        Ok((aligned, m))
+    }
+
+    /// Frame `i`'s normalised prediction `map` aligned one-shot by `calibration` (metres).
+    ///
+    /// # Errors
+    /// The alignment's, naming the set and frame.
+    pub fn aligned(
+        &self,
+        calibration: &Calibration,
+        map: &NormalisedMap,
+        i: usize,
+    ) -> Result<MetricDepth> {
+        calibration
             .aligned(
                 PredictionInput::normalised(map, self.kind()),
                 &AlignOptions::default(),
             )
-            .map_err(|e| EvalError::core(ctx(), e))?
-            .depth;
-        let m = DepthMetrics::compute(&aligned, &f.gt, Some(&self.eval_masks[i]))
-            .map_err(|e| EvalError::core(ctx(), e))?;
-        Ok((aligned, m))
+            .map(|a| a.depth)
+            .map_err(|e| {
+                let id = &self.set.frames[i].id;
+                EvalError::core(format!("set '{}', frame '{id}'", self.set.name), e)
+            })
     }
 
     /// The normalisation a method is evaluated with: RAW always `none` in depth space, the

@@ -247,6 +247,17 @@ impl Calibration {
             .unwrap_or_else(|| CreationInfo::now().with_source("python", "moma.calibrate"));
         CalibrationFile::new(self.inner.clone(), self.intrinsics, created)
     }
+
+    /// The camera to plan with: `cam` where given, else the intrinsics the calibration records.
+    fn camera(&self, cam: Option<&Intrinsics>) -> PyResult<CoreIntrinsics> {
+        match (cam, self.intrinsics) {
+            (Some(c), _) => Ok(c.inner),
+            (None, Some(k)) => Ok(k),
+            (None, None) => Err(value_err(
+                "cam= is needed: the calibration records no intrinsics",
+            )),
+        }
+    }
 }
 
 #[pymethods]
@@ -961,15 +972,7 @@ fn plan_grasps<'py>(
                 value_err("planning from a Calibration needs the frame's prediction: pred=")
             })?;
             let prediction = Prediction::new(f32_owned(pred, "pred")?, cal.inner.prediction_kind);
-            let k = match (cam, cal.intrinsics) {
-                (Some(c), _) => c.inner,
-                (None, Some(k)) => k,
-                (None, None) => {
-                    return Err(value_err(
-                        "cam= is needed: the calibration records no intrinsics",
-                    ));
-                }
-            };
+            let k = cal.camera(cam)?;
             let rgb_ro = rgb.map(|r| arrays::rgb_ro(r, "rgb")).transpose()?;
             let config = RealignConfig::default();
             let rgb_view = rgb_ro.as_ref().map(|r| r.as_array());
@@ -1061,15 +1064,7 @@ fn grasp_check<'py>(
     seed: u64,
 ) -> PyResult<Bound<'py, PyAny>> {
     let gripper = default_gripper(gripper)?;
-    let k = match (cam, calibration.intrinsics) {
-        (Some(c), _) => c.inner,
-        (None, Some(k)) => k,
-        (None, None) => {
-            return Err(value_err(
-                "cam= is needed: the calibration records no intrinsics",
-            ));
-        }
-    };
+    let k = calibration.camera(cam)?;
     let prediction = Prediction::new(f32_owned(pred, "pred")?, calibration.inner.prediction_kind);
     let truth = MetricDepth::new(f32_owned(gt_m, "gt_m")?);
     let mask = opt_mask(mask, "mask")?;

@@ -12,7 +12,6 @@ use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate};
 use moma_core::policy::{MethodOptions, Protocol};
 use moma_core::sampling::{SamplingConfig, SamplingStrategy};
-use moma_grasp::{Gripper, ParallelJaw, SuctionCup};
 use moma_io::{CalibrationFile, CreationInfo};
 
 use super::common::{SourceArgs, print_json};
@@ -544,10 +543,7 @@ fn grasp_checks(
     grippers
         .iter()
         .map(|&g| {
-            let gripper = match g {
-                GripperArg::Parallel => Gripper::Parallel(ParallelJaw::default()),
-                GripperArg::Suction => Gripper::Suction(SuctionCup::default()),
-            };
+            let gripper = g.default_gripper();
             let mut request =
                 moma_grasp::GraspRequest::new(gripper).with_error_model(aligned.error_model);
             request.seed = args.seed;

@@ -23,6 +23,16 @@ pub enum GripperArg {
     Suction,
 }
 
+impl GripperArg {
+    /// The gripper with its default geometry.
+    pub fn default_gripper(self) -> Gripper {
+        match self {
+            GripperArg::Parallel => Gripper::Parallel(ParallelJaw::default()),
+            GripperArg::Suction => Gripper::Suction(SuctionCup::default()),
+        }
+    }
+}
+
 /// Plan grasps on one frame: a parallel jaw or a suction cup, best first.
 ///
 /// The depth comes from --depth (metric: uint16 mm PNG, float32 .npy in metres, PFM), or from a
@@ -157,8 +167,7 @@ impl PlanFlags {
     pub fn gripper(&self, gripper: GripperArg) -> Result<Gripper> {
         let what = "gripper config";
         let g = match (gripper, &self.gripper_config) {
-            (GripperArg::Parallel, None) => Gripper::Parallel(ParallelJaw::default()),
-            (GripperArg::Suction, None) => Gripper::Suction(SuctionCup::default()),
+            (g, None) => g.default_gripper(),
             (GripperArg::Parallel, Some(p)) => Gripper::Parallel(moma_io::read_json(p, what)?),
             (GripperArg::Suction, Some(p)) => Gripper::Suction(moma_io::read_json(p, what)?),
         };
