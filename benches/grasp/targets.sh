@@ -10,7 +10,7 @@
 #
 # Flags after OUT go to every `moma grasp-eval` call. MOMA (default target/release/moma, built by
 # `cargo build --release -p moma-cli`), SHARED (default ../shared) and METHODS (default
-# ssra,gssa,lwlr) may be set. About 3.5 min on the 2-core build machine.
+# ssra,gssa,lwlr) may be set. About 3 min on the 2-core build machine.
 set -euo pipefail
 
 if [[ $# -lt 1 || $1 == -h || $1 == --help ]]; then

@@ -21,9 +21,9 @@ use moma_core::normalise::NormalisedMap;
 use moma_core::{DepthErrorModel, Mask, MetricDepth};
 use moma_grasp::{
     DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, FailureReason, Grasp, GraspQuality,
-    GraspRequest, Gripper, MIN_TRIAL_COMPONENT_PX, ParallelConfig, ParallelJaw, Scene, SceneConfig,
-    ScoreConfig, SuctionConfig, SuctionCup, default_tie_tolerance, mask_components, plan_on_scene,
-    planning_depth, rank, score_grasp, share_of_draws,
+    GraspRequest, MIN_TRIAL_COMPONENT_PX, ParallelConfig, Scene, SceneConfig, ScoreConfig,
+    SuctionConfig, default_tie_tolerance, mask_components, plan_on_scene, planning_depth, rank,
+    score_grasp, share_of_draws,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -38,54 +38,7 @@ use crate::realign::RealignSetup;
 use crate::report::Table;
 
 /// Which gripper a row is for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum GripperKind {
-    /// Two-finger parallel jaw (Robotiq 2F-85 defaults).
-    Parallel,
-    /// Vacuum cup (10 mm radius).
-    Suction,
-}
-
-impl GripperKind {
-    /// Both grippers.
-    pub const ALL: [GripperKind; 2] = [GripperKind::Parallel, GripperKind::Suction];
-
-    /// `parallel` or `suction`.
-    pub const fn name(self) -> &'static str {
-        match self {
-            Self::Parallel => "parallel",
-            Self::Suction => "suction",
-        }
-    }
-
-    fn gripper(self) -> Gripper {
-        match self {
-            Self::Parallel => Gripper::Parallel(ParallelJaw::default()),
-            Self::Suction => Gripper::Suction(SuctionCup::default()),
-        }
-    }
-}
-
-impl std::fmt::Display for GripperKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for GripperKind {
-    type Err = EvalError;
-    fn from_str(s: &str) -> Result<Self> {
-        Self::ALL
-            .into_iter()
-            .find(|g| g.name() == s)
-            .ok_or_else(|| {
-                EvalError::InvalidParameter(format!(
-                    "unknown gripper '{s}' (expected 'parallel' or 'suction')"
-                ))
-            })
-    }
-}
+pub use moma_grasp::GripperKind;
 
 /// Settings of a grasp evaluation (the alignment settings are an [`EvalConfig`]).
 #[derive(Debug, Clone, PartialEq)]
@@ -427,7 +380,7 @@ fn base_request(
     seed: u64,
     config: &GraspEvalConfig,
 ) -> GraspRequest {
-    let mut request = GraspRequest::new(gripper.gripper()).with_error_model(error_model);
+    let mut request = GraspRequest::new(gripper.default_gripper()).with_error_model(error_model);
     request.seed = seed;
     request.draws = config.draws;
     request.candidates = config.candidates;
@@ -441,32 +394,83 @@ fn base_request(
     request
 }
 
-/// The grasp check of a calibration frame (index `frame`, its aligned depth and error model) for
-/// `gripper`, ranked by `quality` where the model allows it: [`moma_grasp::grasp_check`] as
-/// `moma calibrate --grasp-check` runs it (no mask). `None` where the frame's scenes cannot be
-/// built (no valid depth, no support plane): a check without grasps.
-fn calibration_check(
-    set: &LoadedSet,
+/// The grasp checks of a set's calibration frames ([`moma_grasp::grasp_check`] as `moma
+/// calibrate --grasp-check` runs it: no mask), each computed once. A frame's maskless truth
+/// scene is built once, and a check is reused when the same frame comes again with the same
+/// aligned depth and error model (bit for bit), gripper, ranking and seed: the one-shot and the
+/// re-aligned variants of a calibration align its frame alike, but nothing assumes they do.
+#[derive(Default)]
+struct CheckCache {
+    /// Truth scenes by frame index (`None`: cannot be built, e.g. no support plane).
+    truth: BTreeMap<usize, Option<Scene>>,
+    checks: Vec<CheckEntry>,
+}
+
+/// One computed check and what it was computed from.
+struct CheckEntry {
     frame: usize,
-    aligned: &(MetricDepth, Option<DepthErrorModel>),
     gripper: GripperKind,
     quality: GraspQuality,
     seed: u64,
-    config: &GraspEvalConfig,
-) -> Option<moma_grasp::GraspCheck> {
-    let (depth, model) = aligned;
-    let mut request = base_request(gripper, *model, seed, config);
-    if model.is_some() {
-        request.quality = quality;
+    aligned: (MetricDepth, Option<DepthErrorModel>),
+    check: Option<moma_grasp::GraspCheck>,
+}
+
+/// Whether two depth maps are the same bit for bit (NaN included, which `==` never is).
+fn same_bits(a: &MetricDepth, b: &MetricDepth) -> bool {
+    a.depth_m.dim() == b.depth_m.dim()
+        && a.depth_m
+            .iter()
+            .zip(b.depth_m.iter())
+            .all(|(x, y)| x.to_bits() == y.to_bits())
+}
+
+impl CheckCache {
+    /// The check of calibration frame `frame` (its aligned depth and error model) for
+    /// `gripper`, ranked by `quality` where the model allows it. `None` where the frame's scenes
+    /// cannot be built (no valid depth, no support plane): a check without grasps.
+    #[allow(clippy::too_many_arguments)]
+    fn check(
+        &mut self,
+        set: &LoadedSet,
+        frame: usize,
+        aligned: &(MetricDepth, Option<DepthErrorModel>),
+        gripper: GripperKind,
+        quality: GraspQuality,
+        seed: u64,
+        config: &GraspEvalConfig,
+    ) -> Option<moma_grasp::GraspCheck> {
+        if let Some(e) = self.checks.iter().find(|e| {
+            e.frame == frame
+                && e.gripper == gripper
+                && e.quality == quality
+                && e.seed == seed
+                && e.aligned.1 == aligned.1
+                && same_bits(&e.aligned.0, &aligned.0)
+        }) {
+            return e.check.clone();
+        }
+        let truth = self.truth.entry(frame).or_insert_with(|| {
+            Scene::build(&set.frames[frame].gt, &set.intrinsics, None, &config.scene).ok()
+        });
+        let (depth, model) = aligned;
+        let mut request = base_request(gripper, *model, seed, config);
+        if model.is_some() {
+            request.quality = quality;
+        }
+        let check = truth.as_ref().and_then(|t| {
+            moma_grasp::grasp_check_on(depth, t, &set.intrinsics, None, &request).ok()
+        });
+        self.checks.push(CheckEntry {
+            frame,
+            gripper,
+            quality,
+            seed,
+            aligned: aligned.clone(),
+            check: check.clone(),
+        });
+        check
     }
-    moma_grasp::grasp_check(
-        depth,
-        &set.frames[frame].gt,
-        &set.intrinsics,
-        None,
-        &request,
-    )
-    .ok()
 }
 
 /// Plans on `planned` (object `mask`) through [`plan_on_scene`] (the path of `moma grasp`),
@@ -515,7 +519,7 @@ fn run_trial(
         })
         .collect();
     let execute = |grasp: &Grasp| {
-        score_grasp(gt_scene, grasp, &gripper.gripper(), &config.score)
+        score_grasp(gt_scene, grasp, &gripper.default_gripper(), &config.score)
             .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))
     };
     // the top-1 grasp of each ranking, executed once (the best of the candidates reuses it)
@@ -526,7 +530,7 @@ fn run_trial(
             let mut ranked = candidates.clone();
             let tolerance = config
                 .tie_tolerance
-                .unwrap_or_else(|| default_tie_tolerance(&gripper.gripper()));
+                .unwrap_or_else(|| default_tie_tolerance(&gripper.default_gripper()));
             rank(&mut ranked, q, tolerance);
             let grasp = ranked[0].0;
             tops.push(grasp);
@@ -840,6 +844,7 @@ pub fn grasp_evaluate(
         }
         Ok(tallies)
     };
+    let mut checks = CheckCache::default();
     for m in &config.eval.methods {
         let method = prep.method(m);
         let norm = prep.normalisation_for(&method, norm0);
@@ -975,7 +980,7 @@ pub fn grasp_evaluate(
                     }
                     for (q, &quality) in config.qualities.iter().enumerate() {
                         let (c0, aligned) = &calib_frame;
-                        let check = calibration_check(set, *c0, aligned, g, quality, seed, config);
+                        let check = checks.check(set, *c0, aligned, g, quality, seed, config);
                         per_gq[k][q].check.add(check.as_ref());
                     }
                 }
@@ -1237,5 +1242,27 @@ pub fn coverage_table(rows: &[CoverageRow]) -> Table {
                 ]
             })
             .collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The check cache's key: maps equal bit for bit, NaN (no depth) included, which `==` on
+    /// `f32` never calls equal; any other value, a sign of zero or another size is a new map.
+    #[test]
+    fn depth_maps_are_the_same_bit_for_bit_or_not_at_all() {
+        let a = MetricDepth::new(ndarray::array![[0.5, f32::NAN], [0.7, 0.0]]);
+        assert!(same_bits(&a, &a.clone()));
+        assert_ne!(a, a.clone(), "NaN makes `==` false: the reason for same_bits");
+        let mut b = a.clone();
+        b.depth_m[[1, 0]] = 0.7 + f32::EPSILON;
+        assert!(!same_bits(&a, &b));
+        let mut c = a.clone();
+        c.depth_m[[1, 1]] = -0.0;
+        assert!(!same_bits(&a, &c));
+        let d = MetricDepth::new(ndarray::array![[0.5, f32::NAN, 0.7, 0.0]]);
+        assert!(!same_bits(&a, &d));
     }
 }

@@ -56,12 +56,28 @@ pub fn grasp_check(
     mask: Option<&Mask>,
     request: &GraspRequest,
 ) -> Result<GraspCheck> {
-    let (_, outcome) = plan_grasps(aligned, intrinsics, mask, request)?;
     let truth_scene = Scene::build(truth, intrinsics, mask, &request.scene)?;
+    grasp_check_on(aligned, &truth_scene, intrinsics, mask, request)
+}
+
+/// [`grasp_check`] on a truth scene already built (with the same `mask` and `request.scene`),
+/// for a caller that checks one frame many times (`moma grasp-eval`: every calibration of a
+/// set checks its calibration frame).
+///
+/// # Errors
+/// An invalid request; a planning scene that cannot be built from `aligned`.
+pub fn grasp_check_on(
+    aligned: &MetricDepth,
+    truth_scene: &Scene,
+    intrinsics: &Intrinsics,
+    mask: Option<&Mask>,
+    request: &GraspRequest,
+) -> Result<GraspCheck> {
+    let (_, outcome) = plan_grasps(aligned, intrinsics, mask, request)?;
     let mut successes = 0;
     let mut failures = BTreeMap::new();
     for g in &outcome.grasps {
-        let score = score_grasp(&truth_scene, g, &request.gripper, &request.score)?;
+        let score = score_grasp(truth_scene, g, &request.gripper, &request.score)?;
         if score.success {
             successes += 1;
         } else {

@@ -38,6 +38,9 @@ pub enum GraspError {
     /// A gripper size is zero, negative or non-finite, or sizes contradict each other.
     #[error("invalid gripper configuration: {0}")]
     InvalidGripper(String),
+    /// A gripper name that is neither `parallel` nor `suction`.
+    #[error("unknown gripper '{0}' (expected 'parallel' or 'suction')")]
+    UnknownGripper(String),
     /// A grasp handed to the scorer is malformed (zero or non-finite vectors, negative width).
     #[error("invalid grasp: {0}")]
     InvalidGrasp(String),

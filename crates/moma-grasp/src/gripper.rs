@@ -148,13 +148,67 @@ pub enum Gripper {
     Suction(SuctionCup),
 }
 
+/// Which kind of gripper, by the names that the JSON `kind`, `--gripper` and Python's
+/// `gripper=` use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GripperKind {
+    /// Two-finger parallel jaw.
+    Parallel,
+    /// Vacuum cup.
+    Suction,
+}
+
+impl GripperKind {
+    /// Both kinds.
+    pub const ALL: [GripperKind; 2] = [GripperKind::Parallel, GripperKind::Suction];
+
+    /// `parallel` or `suction`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Parallel => "parallel",
+            Self::Suction => "suction",
+        }
+    }
+
+    /// The gripper of this kind with its default geometry ([`ParallelJaw::default`]: Robotiq
+    /// 2F-85; [`SuctionCup::default`]: 10 mm radius, 15 mm compliance).
+    pub fn default_gripper(self) -> Gripper {
+        match self {
+            Self::Parallel => Gripper::Parallel(ParallelJaw::default()),
+            Self::Suction => Gripper::Suction(SuctionCup::default()),
+        }
+    }
+}
+
+impl std::fmt::Display for GripperKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for GripperKind {
+    type Err = GraspError;
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|g| g.name() == s)
+            .ok_or_else(|| GraspError::UnknownGripper(s.to_string()))
+    }
+}
+
 impl Gripper {
+    /// The gripper's kind.
+    pub const fn kind(&self) -> GripperKind {
+        match self {
+            Gripper::Parallel(_) => GripperKind::Parallel,
+            Gripper::Suction(_) => GripperKind::Suction,
+        }
+    }
+
     /// `parallel` or `suction` (the JSON `kind`).
     pub const fn kind_name(&self) -> &'static str {
-        match self {
-            Gripper::Parallel(_) => "parallel",
-            Gripper::Suction(_) => "suction",
-        }
+        self.kind().name()
     }
 
     /// Validates the geometry.

@@ -93,7 +93,7 @@ pub mod scene;
 pub mod score;
 pub mod suction;
 
-pub use check::{GraspCheck, grasp_check};
+pub use check::{GraspCheck, grasp_check, grasp_check_on};
 pub use cloud::{CloudConfig, OrganisedCloud, Vec3};
 pub use contact::{ExecConfig, MU_GRID};
 pub use error::{GraspError, Result};
@@ -103,7 +103,7 @@ pub use grasp::{
     FailureReason, Grasp, NoGraspReason, ParallelGrasp, ParallelPose, PlanOutcome, SuctionGrasp,
     SuctionPose,
 };
-pub use gripper::{Gripper, ParallelJaw, SuctionCup};
+pub use gripper::{Gripper, GripperKind, ParallelJaw, SuctionCup};
 pub use objects::{MIN_TRIAL_COMPONENT_PX, components_8, mask_components};
 pub use parallel::{ParallelConfig, plan_parallel, plan_parallel_tolerant};
 pub use plane::{PlaneConfig, SupportPlane, fit_support_plane};

@@ -6,7 +6,9 @@ mod common;
 
 use common::{BoxSpec, Scene as Synth, intrinsics};
 use moma_core::{DepthErrorModel, MetricDepth};
-use moma_grasp::{GraspRequest, Gripper, ParallelJaw, SuctionCup, grasp_check};
+use moma_grasp::{
+    GraspRequest, Gripper, GripperKind, ParallelJaw, Scene, SuctionCup, grasp_check, grasp_check_on,
+};
 
 const DIST_M: f64 = 0.7;
 
@@ -27,6 +29,44 @@ fn grippers() -> [Gripper; 2] {
         Gripper::Parallel(ParallelJaw::default()),
         Gripper::Suction(SuctionCup::default()),
     ]
+}
+
+#[test]
+fn gripper_kinds_name_their_default_grippers() {
+    for (kind, gripper) in GripperKind::ALL.into_iter().zip(grippers()) {
+        assert_eq!(kind.default_gripper(), gripper);
+        assert_eq!(gripper.kind(), kind);
+        assert_eq!(kind.name().parse::<GripperKind>().unwrap(), kind);
+        assert_eq!(
+            serde_json::to_string(&kind).unwrap(),
+            format!("\"{}\"", gripper.kind_name())
+        );
+    }
+    let err = "vacuum".parse::<GripperKind>().unwrap_err().to_string();
+    assert_eq!(
+        err,
+        "unknown gripper 'vacuum' (expected 'parallel' or 'suction')"
+    );
+}
+
+/// The check on a truth scene built once is the check that builds it: what `moma grasp-eval`
+/// reuses for every calibration of a set is what `moma calibrate --grasp-check` computes.
+#[test]
+fn a_check_on_a_prebuilt_truth_scene_is_the_same_check() {
+    let truth = two_boxes();
+    let k = intrinsics();
+    let near = MetricDepth::new(truth.depth_m.mapv(|z| if z > 0.0 { z - 0.01 } else { z }));
+    for gripper in grippers() {
+        let request = GraspRequest::new(gripper)
+            .with_error_model(Some(DepthErrorModel::uniform(0.004).unwrap()));
+        let scene = Scene::build(&truth, &k, None, &request.scene).unwrap();
+        let built = grasp_check(&near, &truth, &k, None, &request).unwrap();
+        assert!(built.grasps > 0, "{built:?}");
+        assert_eq!(
+            grasp_check_on(&near, &scene, &k, None, &request).unwrap(),
+            built
+        );
+    }
 }
 
 #[test]

@@ -1032,14 +1032,9 @@ fn plan_grasps<'py>(
 
 /// The default geometry of gripper `name` (`parallel` or `suction`).
 fn default_gripper(name: &str) -> PyResult<moma_grasp::Gripper> {
-    use moma_grasp::{Gripper, ParallelJaw, SuctionCup};
-    match name {
-        "parallel" => Ok(Gripper::Parallel(ParallelJaw::default())),
-        "suction" => Ok(Gripper::Suction(SuctionCup::default())),
-        other => Err(value_err(format!(
-            "unknown gripper '{other}' (expected 'parallel' or 'suction')"
-        ))),
-    }
+    name.parse::<moma_grasp::GripperKind>()
+        .map(moma_grasp::GripperKind::default_gripper)
+        .map_err(|e| value_err(e.to_string()))
 }
 
 /// The grasp check of a frame whose ground truth is known, as `moma calibrate --grasp-check`

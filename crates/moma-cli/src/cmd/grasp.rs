@@ -8,8 +8,7 @@ use clap::{Args, ValueEnum};
 use image::RgbImage;
 use moma_core::{Intrinsics, MetricDepth, PredictionKind};
 use moma_grasp::{
-    Extrinsics, Grasp, GraspRequest, Gripper, ParallelJaw, PlanOutcome, SceneConfig, SuctionCup,
-    plan_grasps,
+    Extrinsics, Grasp, GraspRequest, Gripper, GripperKind, PlanOutcome, SceneConfig, plan_grasps,
 };
 
 use super::common::{ModelArgs, SourceArgs, create_dir, print_json};
@@ -24,12 +23,13 @@ pub enum GripperArg {
 }
 
 impl GripperArg {
-    /// The gripper with its default geometry.
+    /// The gripper with its default geometry ([`GripperKind::default_gripper`]).
     pub fn default_gripper(self) -> Gripper {
         match self {
-            GripperArg::Parallel => Gripper::Parallel(ParallelJaw::default()),
-            GripperArg::Suction => Gripper::Suction(SuctionCup::default()),
+            GripperArg::Parallel => GripperKind::Parallel,
+            GripperArg::Suction => GripperKind::Suction,
         }
+        .default_gripper()
     }
 }
 
