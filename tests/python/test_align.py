@@ -127,7 +127,9 @@ def test_sample_mask_restricts_samples(small_scene):
     pred, gt = small_scene
     mask = np.zeros(pred.shape, dtype=np.uint8)
     mask[40:80, 50:120] = 255
-    cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", mask=mask, samples=50)
+    # a small sample region leaves most of the image beyond the samples' reach: said so
+    with pytest.warns(UserWarning, match="reach only part of the image"):
+        cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", mask=mask, samples=50)
     u, v = cal.samples[:, 0], cal.samples[:, 1]
     assert ((u >= 50) & (u < 120) & (v >= 40) & (v < 80)).all()
 
@@ -293,3 +295,19 @@ def test_old_kind_names_read_with_the_documented_mapping():
         moma.calibrate(pred, gt, kind="metres")
     raw = moma.calibrate(gt, gt, kind="metric-depth", method="raw", norm="none")
     assert raw.kind == "metric-depth"
+
+
+def test_calibrate_warns_when_its_samples_reach_part_of_the_image():
+    """The rule of `moma calibrate`: samples drawn in the image's left half leave its right half
+    beyond their reach (a UserWarning that says so); samples spread over it give none."""
+    import warnings
+
+    pred, gt = scene()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        moma.calibrate(pred, gt, kind="relative-disparity", space="depth", seed=0)
+    left = np.zeros(gt.shape, dtype=bool)
+    left[:, : gt.shape[1] // 2] = True
+    with pytest.warns(UserWarning, match="reach only part of the image") as w:
+        moma.calibrate(pred, gt, kind="relative-disparity", space="depth", seed=0, mask=left)
+    assert "mask=" in str(w[0].message)

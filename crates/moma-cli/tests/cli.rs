@@ -1130,3 +1130,61 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
     }
     files
 }
+
+/// `moma calibrate` says how far its samples reach (`sample_reach` in `--json`), and warns when
+/// they leave part of the image beyond reach, where the error model's σ is too narrow: samples
+/// drawn in the left half of the demo scene against samples spread over it.
+#[test]
+fn calibrate_warns_when_its_samples_reach_part_of_the_image() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let calib = tmp.path().join("calib.json");
+    let reach = |out: &str| {
+        let v: serde_json::Value = serde_json::from_str(out).unwrap();
+        let r = &v["sample_reach"];
+        (
+            r["p90_px"].as_f64().unwrap(),
+            r["uniform_p90_px"].as_f64().unwrap(),
+            r["partial"].as_bool().unwrap(),
+        )
+    };
+    let (p90, uniform, partial) = reach(&calibrate_frame_00(&scene, &pred, &calib, &["--json"]));
+    assert!(
+        !partial && p90 < 1.5 * uniform,
+        "{p90} px against {uniform} px"
+    );
+
+    let gt = scene.join("frames/frame_00/depth.png");
+    let (w, h) = image::image_dimensions(&gt).unwrap();
+    let left = tmp.path().join("left.png");
+    image::GrayImage::from_fn(w, h, |u, _| image::Luma([if u < w / 2 { 255 } else { 0 }]))
+        .save(&left)
+        .unwrap();
+    let frame = pred.join("frame_00.npy");
+    let args = [
+        "calibrate",
+        "--pred",
+        s(&frame),
+        "--gt",
+        s(&gt),
+        "--mask",
+        s(&left),
+        "-o",
+        s(&calib),
+        "--json",
+    ];
+    let out = moma(&args);
+    assert!(out.status.success());
+    let (p90, uniform, partial) = reach(&String::from_utf8(out.stdout).unwrap());
+    // the right half lies up to w/2 from the samples: 90 % of the pixels within about 0.4 w
+    assert!(
+        partial && p90 > 0.3 * f64::from(w),
+        "{p90} px against {uniform} px"
+    );
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("warning: the 100 calibration samples reach only part of the image")
+            && err.contains("--mask"),
+        "{err}"
+    );
+}

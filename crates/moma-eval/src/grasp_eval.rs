@@ -1255,7 +1255,11 @@ mod tests {
     fn depth_maps_are_the_same_bit_for_bit_or_not_at_all() {
         let a = MetricDepth::new(ndarray::array![[0.5, f32::NAN], [0.7, 0.0]]);
         assert!(same_bits(&a, &a.clone()));
-        assert_ne!(a, a.clone(), "NaN makes `==` false: the reason for same_bits");
+        assert_ne!(
+            a,
+            a.clone(),
+            "NaN makes `==` false: the reason for same_bits"
+        );
         let mut b = a.clone();
         b.depth_m[[1, 0]] = 0.7 + f32::EPSILON;
         assert!(!same_bits(&a, &b));

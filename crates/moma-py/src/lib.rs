@@ -778,8 +778,8 @@ fn calibrate(
         Some(AnchorRgb::File(p)) => Some(p.as_path()),
         _ => None,
     };
-    let inner = py
-        .detach(|| -> Result<CoreCalibration, PyCalibrateError> {
+    let (inner, reach) = py
+        .detach(|| -> Result<_, PyCalibrateError> {
             let preds: Vec<PredictionInput<'_>> = pred_views
                 .iter()
                 .map(|v| PredictionInput::view(v.view(), kind))
@@ -804,8 +804,12 @@ fn calibrate(
                 .collect();
             let config = config.clone().with_workspace(workspace.as_ref())?;
             let calibration = moma_core::calibrate(&frames, &config)?;
+            let reach = moma_core::sampling::sample_reach_over(
+                &calibration.samples,
+                &gts.iter().collect::<Vec<_>>(),
+            );
             // Anchors for per-frame re-alignment come from the first (calibration) frame.
-            Ok(match (anchor_view, anchor_path) {
+            let calibration = match (anchor_view, anchor_path) {
                 (Some(view), _) => {
                     ImageSize::new(view.dim().1, view.dim().0).expect_eq("anchors_rgb", size)?;
                     calibration.with_anchors(&moma_io::grey_half(view)?, &gts[0], preds[0])?
@@ -820,12 +824,22 @@ fn calibrate(
                     calibration.with_anchors(&moma_io::grey_half(view)?, &gts[0], preds[0])?
                 }
                 (None, None) => calibration,
-            })
+            };
+            Ok((calibration, reach))
         })
         .map_err(|e| match e {
             PyCalibrateError::Core(e) => e.into_py_err(),
             PyCalibrateError::Io(e) => e.into_py_err(),
         })?;
+    if let Some(w) = reach.and_then(|r| r.warning()) {
+        PyErr::warn(
+            py,
+            &py.get_type::<pyo3::exceptions::PyUserWarning>(),
+            &std::ffi::CString::new(w.replace("(a sample mask)", "(mask=)"))
+                .map_err(|e| value_err(e.to_string()))?,
+            1,
+        )?;
+    }
     Ok(Calibration {
         inner,
         intrinsics,

@@ -41,7 +41,9 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "FILE")]
     pub camera: Option<PathBuf>,
     /// Draw calibration samples only inside this mask (8-bit PNG, nonzero = inside). Several
-    /// frames: one mask for all, or one per frame in the order of --gt.
+    /// frames: one mask for all, or one per frame in the order of --gt. A mask that leaves much
+    /// of the image beyond the samples' reach is warned about: the error model's σ is too narrow
+    /// there (`sample_reach` in --json; docs/grasping.md, "σ away from the samples").
     #[arg(long, value_name = "PNG", num_args = 1..)]
     pub mask: Vec<PathBuf>,
     /// Normalise over this workspace mask instead of the whole map (same mask at run time).
@@ -87,7 +89,9 @@ pub struct CalibrateArgs {
     /// Output calibration file (JSON).
     #[arg(short, long, visible_alias = "out", value_name = "FILE")]
     pub output: PathBuf,
-    /// Print the calibration summary as JSON on stdout.
+    /// Print the calibration summary as JSON on stdout: output, method, frames, n_used,
+    /// rms_residual_m, fit_time_s, predicted_error, model, simulated_predictions,
+    /// sample_reach {p90_px, uniform_p90_px, partial}; robust and grasp_check when asked for.
     #[arg(long)]
     pub json: bool,
     /// Store the anchor store for per-frame re-alignment (`moma align --realign anchors`): the
@@ -427,6 +431,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let checks = grasp_checks(&args.grasp_check, &file, &inputs[0], &gts[0], args)?;
     moma_io::write_calibration(&args.output, &file)?;
 
+    let reach = moma_core::sampling::sample_reach_over(
+        &file.calibration.samples,
+        &gts.iter().collect::<Vec<_>>(),
+    );
+    if let Some(w) = reach.and_then(|r| r.warning()) {
+        eprintln!("warning: {}", w.replace("(a sample mask)", "(--mask)"));
+    }
     let report = &file.calibration.report;
     let n_frames = inputs.len();
     let predicted = file
@@ -449,6 +460,16 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             "model": file.calibration.model,
             "simulated_predictions": source.simulated,
         });
+        if let (Some(r), Some(obj)) = (reach, summary.as_object_mut()) {
+            obj.insert(
+                "sample_reach".into(),
+                serde_json::json!({
+                    "p90_px": r.p90_px,
+                    "uniform_p90_px": r.uniform_p90_px,
+                    "partial": r.is_partial(),
+                }),
+            );
+        }
         if let (Some(r), Some(obj)) = (&report.robust, summary.as_object_mut()) {
             obj.insert("robust".into(), serde_json::to_value(r)?);
         }

@@ -1,0 +1,76 @@
+//! `sample_reach`: how far calibration samples reach over an image, against closed forms.
+
+use moma_core::sampling::{PARTIAL_REACH_RATIO, sample_reach};
+use ndarray::Array2;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// One sample at the centre of a disc of radius R: the share of the disc within r is r²/R², so
+/// the 90th percentile is R·√0.9; as many samples spread uniformly (one, over πR²) reach 90 %
+/// within R·√(ln 10).
+#[test]
+fn one_sample_at_a_discs_centre_reaches_its_closed_form() {
+    let r = 150.0;
+    let valid = Array2::from_shape_fn((400, 400), |(v, u)| {
+        (u as f64 - 200.0).hypot(v as f64 - 200.0) <= r
+    });
+    let reach = sample_reach(&[(200.0, 200.0)], &valid).unwrap();
+    assert!((reach.p90_px - r * 0.9f64.sqrt()).abs() < 2.0, "{reach:?}");
+    let uniform = r * std::f64::consts::LN_10.sqrt();
+    assert!(
+        (reach.uniform_p90_px / uniform - 1.0).abs() < 0.005,
+        "{reach:?}"
+    );
+    assert_eq!(reach.samples, 1);
+    assert!(!reach.is_partial());
+}
+
+fn samples(n: usize, u_max: f64, seed: u64) -> Vec<(f64, f64)> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|_| {
+            (
+                rng.random_range(0.0..u_max).floor(),
+                rng.random_range(0.0..480.0f64).floor(),
+            )
+        })
+        .collect()
+}
+
+/// Samples spread over the image reach as a uniform spread does; the same number drawn in its
+/// left half leave the right half beyond reach.
+#[test]
+fn samples_in_half_the_image_are_partial_and_spread_ones_are_not() {
+    let valid = Array2::from_elem((480, 640), true);
+    for seed in 0..3 {
+        let spread = sample_reach(&samples(100, 640.0, seed), &valid).unwrap();
+        let ratio = spread.p90_px / spread.uniform_p90_px;
+        assert!((0.8..1.3).contains(&ratio), "seed {seed}: {spread:?}");
+        assert!(!spread.is_partial());
+
+        let half = sample_reach(&samples(100, 320.0, seed), &valid).unwrap();
+        // the right half's pixels are up to 320 px from the samples' edge, the 90th percentile
+        // of all pixels about 0.8 of that
+        assert!(half.p90_px > 200.0, "seed {seed}: {half:?}");
+        assert!(
+            half.p90_px > 2.0 * PARTIAL_REACH_RATIO * half.uniform_p90_px,
+            "seed {seed}: {half:?}"
+        );
+        assert!(half.is_partial());
+    }
+}
+
+#[test]
+fn no_sample_or_no_valid_pixel_has_no_reach_and_an_off_grid_pixel_is_measured() {
+    let valid = Array2::from_elem((48, 64), true);
+    assert_eq!(sample_reach(&[], &valid), None);
+    assert_eq!(
+        sample_reach(&[(1.0, 1.0)], &Array2::from_elem((48, 64), false)),
+        None
+    );
+    // the only pixel with depth lies between the 8-pixel grid's nodes: 3-4-5 from the sample
+    let mut one = Array2::from_elem((48, 64), false);
+    one[[3, 3]] = true;
+    let reach = sample_reach(&[(6.0, 7.0)], &one).unwrap();
+    assert_eq!(reach.p90_px, 5.0);
+}
