@@ -395,8 +395,8 @@ const REACH_STEP_PX: usize = 8;
 
 /// [`SampleReach::is_partial`]'s bound: samples whose 90th-percentile distance exceeds this
 /// many times that of as many samples spread uniformly leave part of the image beyond their
-/// reach. The shared sets' random samples measure 1.1–1.2 times it; samples drawn in the left
-/// half of the image 6 times (docs/grasping.md, "σ away from the samples").
+/// reach. The shared sets' random samples measure 1.06–1.22 times it; samples drawn in the left
+/// half of the image 5.6 times (docs/grasping.md, "σ away from the samples").
 pub const PARTIAL_REACH_RATIO: f64 = 2.0;
 
 /// How far calibration samples reach over an image ([`sample_reach`]).

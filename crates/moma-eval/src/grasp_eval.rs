@@ -403,17 +403,10 @@ fn base_request(
 struct CheckCache {
     /// Truth scenes by frame index (`None`: cannot be built, e.g. no support plane).
     truth: BTreeMap<usize, Option<Scene>>,
-    checks: Vec<CheckEntry>,
-}
-
-/// One computed check and what it was computed from.
-struct CheckEntry {
-    frame: usize,
-    gripper: GripperKind,
-    quality: GraspQuality,
-    seed: u64,
-    aligned: (MetricDepth, Option<DepthErrorModel>),
-    check: Option<moma_grasp::GraspCheck>,
+    /// The distinct aligned calibration frames met: frame index, depth, error model.
+    aligned: Vec<(usize, MetricDepth, Option<DepthErrorModel>)>,
+    /// Checks by (index into `aligned`, gripper, ranking, seed).
+    checks: BTreeMap<(usize, GripperKind, GraspQuality, u64), Option<moma_grasp::GraspCheck>>,
 }
 
 /// Whether two depth maps are the same bit for bit (NaN included, which `==` never is).
@@ -440,20 +433,24 @@ impl CheckCache {
         seed: u64,
         config: &GraspEvalConfig,
     ) -> Option<moma_grasp::GraspCheck> {
-        if let Some(e) = self.checks.iter().find(|e| {
-            e.frame == frame
-                && e.gripper == gripper
-                && e.quality == quality
-                && e.seed == seed
-                && e.aligned.1 == aligned.1
-                && same_bits(&e.aligned.0, &aligned.0)
-        }) {
-            return e.check.clone();
+        let (depth, model) = aligned;
+        let a = match self
+            .aligned
+            .iter()
+            .position(|(f, d, m)| *f == frame && m == model && same_bits(d, depth))
+        {
+            Some(a) => a,
+            None => {
+                self.aligned.push((frame, depth.clone(), *model));
+                self.aligned.len() - 1
+            }
+        };
+        if let Some(check) = self.checks.get(&(a, gripper, quality, seed)) {
+            return check.clone();
         }
         let truth = self.truth.entry(frame).or_insert_with(|| {
             Scene::build(&set.frames[frame].gt, &set.intrinsics, None, &config.scene).ok()
         });
-        let (depth, model) = aligned;
         let mut request = base_request(gripper, *model, seed, config);
         if model.is_some() {
             request.quality = quality;
@@ -461,14 +458,8 @@ impl CheckCache {
         let check = truth.as_ref().and_then(|t| {
             moma_grasp::grasp_check_on(depth, t, &set.intrinsics, None, &request).ok()
         });
-        self.checks.push(CheckEntry {
-            frame,
-            gripper,
-            quality,
-            seed,
-            aligned: aligned.clone(),
-            check: check.clone(),
-        });
+        self.checks
+            .insert((a, gripper, quality, seed), check.clone());
         check
     }
 }
