@@ -1,6 +1,8 @@
 //! `sample_reach`: how far calibration samples reach over an image, against closed forms.
 
-use moma_core::sampling::{PARTIAL_REACH_RATIO, sample_reach};
+use moma_core::MetricDepth;
+use moma_core::align::SampleSet;
+use moma_core::sampling::{PARTIAL_REACH_RATIO, sample_reach, sample_reach_over};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -57,6 +59,12 @@ fn samples_in_half_the_image_are_partial_and_spread_ones_are_not() {
             "seed {seed}: {half:?}"
         );
         assert!(half.is_partial());
+        assert_eq!(spread.warning("--mask"), None);
+        let w = half.warning("--mask").unwrap();
+        assert!(
+            w.contains("100 calibration samples") && w.contains("(--mask)"),
+            "{w}"
+        );
     }
 }
 
@@ -73,4 +81,33 @@ fn no_sample_or_no_valid_pixel_has_no_reach_and_an_off_grid_pixel_is_measured() 
     one[[3, 3]] = true;
     let reach = sample_reach(&[(6.0, 7.0)], &one).unwrap();
     assert_eq!(reach.p90_px, 5.0);
+}
+
+/// A calibration's reach counts the pixels where any of its frames has depth: two frames with
+/// depth in one half each measure as one frame with depth everywhere.
+#[test]
+fn a_calibrations_reach_is_over_the_union_of_its_frames_depth() {
+    let half = |left: bool| {
+        MetricDepth::new(Array2::from_shape_fn((48, 64), |(_, u)| {
+            if (u < 32) == left { 1.0 } else { f32::NAN }
+        }))
+    };
+    let (left, right, full) = (
+        half(true),
+        half(false),
+        MetricDepth::new(Array2::ones((48, 64))),
+    );
+    let samples: SampleSet = serde_json::from_value(serde_json::json!({
+        "image_size": {"width": 64, "height": 48},
+        "samples": [
+            {"u": 10.0, "v": 10.0, "pred": 0.5, "depth_m": 1.0},
+            {"u": 50.0, "v": 30.0, "pred": 0.5, "depth_m": 1.0},
+        ],
+    }))
+    .unwrap();
+    let both = sample_reach_over(&samples, &[&left, &right]).unwrap();
+    assert_eq!(Some(both), sample_reach_over(&samples, &[&full]));
+    let one = sample_reach_over(&samples, &[&left]).unwrap();
+    assert!((one.uniform_p90_px / both.uniform_p90_px - 0.5f64.sqrt()).abs() < 1e-12);
+    assert_eq!(sample_reach_over(&samples, &[]), None);
 }

@@ -831,12 +831,11 @@ fn calibrate(
             PyCalibrateError::Core(e) => e.into_py_err(),
             PyCalibrateError::Io(e) => e.into_py_err(),
         })?;
-    if let Some(w) = reach.and_then(|r| r.warning()) {
+    if let Some(w) = reach.and_then(|r| r.warning("mask=")) {
         PyErr::warn(
             py,
             &py.get_type::<pyo3::exceptions::PyUserWarning>(),
-            &std::ffi::CString::new(w.replace("(a sample mask)", "(mask=)"))
-                .map_err(|e| value_err(e.to_string()))?,
+            &std::ffi::CString::new(w).map_err(|e| value_err(e.to_string()))?,
             1,
         )?;
     }

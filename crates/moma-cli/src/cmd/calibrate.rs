@@ -435,8 +435,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         &file.calibration.samples,
         &gts.iter().collect::<Vec<_>>(),
     );
-    if let Some(w) = reach.and_then(|r| r.warning()) {
-        eprintln!("warning: {}", w.replace("(a sample mask)", "(--mask)"));
+    if let Some(w) = reach.and_then(|r| r.warning("--mask")) {
+        eprintln!("warning: {w}");
     }
     let report = &file.calibration.report;
     let n_frames = inputs.len();
