@@ -465,27 +465,25 @@ pub fn sample_reach(uv: &[(f64, f64)], valid: &Array2<bool>) -> Option<SampleRea
     if uv.is_empty() || area == 0 {
         return None;
     }
+    // squared distance from pixel (u, v) to the nearest sample
+    let nearest = |(u, v): (usize, usize)| {
+        uv.iter()
+            .map(|&(su, sv)| (u as f64 - su).powi(2) + (v as f64 - sv).powi(2))
+            .fold(f64::INFINITY, f64::min)
+    };
     let (h, w) = valid.dim();
     let mut d2: Vec<f64> = (0..h)
         .step_by(REACH_STEP_PX)
         .flat_map(|v| (0..w).step_by(REACH_STEP_PX).map(move |u| (u, v)))
         .filter(|&(u, v)| valid[[v, u]])
-        .map(|(u, v)| {
-            uv.iter()
-                .map(|&(su, sv)| (u as f64 - su).powi(2) + (v as f64 - sv).powi(2))
-                .fold(f64::INFINITY, f64::min)
-        })
+        .map(nearest)
         .collect();
     if d2.is_empty() {
         // valid pixels, all off the grid: measure on each of them
         d2 = valid
             .indexed_iter()
             .filter(|(_, b)| **b)
-            .map(|((v, u), _)| {
-                uv.iter()
-                    .map(|&(su, sv)| (u as f64 - su).powi(2) + (v as f64 - sv).powi(2))
-                    .fold(f64::INFINITY, f64::min)
-            })
+            .map(|((v, u), _)| nearest((u, v)))
             .collect();
     }
     let k = ((d2.len() as f64 * 0.9).ceil() as usize).clamp(1, d2.len()) - 1;
