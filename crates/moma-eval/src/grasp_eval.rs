@@ -22,8 +22,8 @@ use moma_core::{DepthErrorModel, Mask, MetricDepth};
 use moma_grasp::{
     DEFAULT_GRASP_DRAWS, DEFAULT_ROBUST_CANDIDATES, FailureReason, Grasp, GraspQuality,
     GraspRequest, MIN_TRIAL_COMPONENT_PX, ParallelConfig, Scene, SceneConfig, ScoreConfig,
-    SuctionConfig, default_tie_tolerance, mask_components, plan_on_scene, planning_depth, rank,
-    score_grasp, share_of_draws,
+    SuctionConfig, mask_components, plan_on_scene, planning_depth, rank, score_grasp,
+    share_of_draws,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -448,13 +448,14 @@ impl CheckCache {
         if let Some(check) = self.checks.get(&(a, gripper, quality, seed)) {
             return check.clone();
         }
-        let truth = self.truth.entry(frame).or_insert_with(|| {
-            Scene::build(&set.frames[frame].gt, &set.intrinsics, None, &config.scene).ok()
-        });
         let mut request = base_request(gripper, *model, seed, config);
         if model.is_some() {
             request.quality = quality;
         }
+        // built as `grasp_check` builds it, from the request's scene settings
+        let truth = self.truth.entry(frame).or_insert_with(|| {
+            Scene::build(&set.frames[frame].gt, &set.intrinsics, None, &request.scene).ok()
+        });
         let check = truth.as_ref().and_then(|t| {
             moma_grasp::grasp_check_on(depth, t, &set.intrinsics, None, &request).ok()
         });
@@ -510,7 +511,7 @@ fn run_trial(
         })
         .collect();
     let execute = |grasp: &Grasp| {
-        score_grasp(gt_scene, grasp, &gripper.default_gripper(), &config.score)
+        score_grasp(gt_scene, grasp, &request.gripper, &config.score)
             .map_err(|e| EvalError::InvalidParameter(format!("grasp scoring: {e}")))
     };
     // the top-1 grasp of each ranking, executed once (the best of the candidates reuses it)
@@ -519,10 +520,8 @@ fn run_trial(
         .iter()
         .map(|&q| {
             let mut ranked = candidates.clone();
-            let tolerance = config
-                .tie_tolerance
-                .unwrap_or_else(|| default_tie_tolerance(&gripper.default_gripper()));
-            rank(&mut ranked, q, tolerance);
+            // the request's: --grasp-tie-tolerance, else the gripper's default
+            rank(&mut ranked, q, request.tie_tolerance);
             let grasp = ranked[0].0;
             tops.push(grasp);
             let score = execute(&grasp)?;
