@@ -15,7 +15,7 @@ def test_save_load_round_trip(tmp_path, cam):
     path = tmp_path / "calib.json"
     cal.save(path)
     text = json.loads(path.read_text())
-    assert text["format"] == "moma-calibration" and text["version"] == 8
+    assert text["format"] == "moma-calibration" and text["version"] == 9
     assert text["prediction_kind"] == "relative-disparity" and text["method"] == "ssra"
     back = moma.Calibration.load(str(path))
     assert back.report == cal.report

@@ -1132,7 +1132,7 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
 }
 
 /// `moma calibrate` says how far its samples reach (`sample_reach` in `--json`), and warns when
-/// they leave part of the image beyond reach, where the error model's σ is too narrow: samples
+/// they leave part of the image beyond reach, where the alignment extrapolates: samples
 /// drawn in the left half of the demo scene against samples spread over it.
 #[test]
 fn calibrate_warns_when_its_samples_reach_part_of_the_image() {

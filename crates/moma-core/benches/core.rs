@@ -110,12 +110,59 @@ fn bench_error_model(c: &mut Criterion) {
             })
         })
     });
+    // samples in the left half only: the calibration fits the distance part (fit step 5)
+    let left = moma_core::Mask::from_vec(
+        moma_core::ImageSize::new(640, 480),
+        (0..480 * 640).map(|i| i % 640 < 320).collect(),
+    )
+    .unwrap();
+    g.bench_function("calibrate_ssra_n100_640x480_left_half_1thread", |b| {
+        p1.install(|| {
+            b.iter(|| {
+                moma_core::calibrate(
+                    &[
+                        CalibrationFrame::new(black_box(&prediction), &gt_m)
+                            .sampled_in(Some(&left)),
+                    ],
+                    &config,
+                )
+                .unwrap()
+            })
+        })
+    });
     g.bench_function("fit_640x480_1thread", |b| {
         let frame = ResidualFrame {
             aligned_m: aligned.view(),
             truth_m: gt.view(),
         };
         p1.install(|| b.iter(|| DepthErrorModel::fit(black_box(&[frame]), &[], 2.0).unwrap()))
+    });
+    // what every calibration adds to decide on the distance part, and what the part costs
+    let cal = moma_core::calibrate(&[CalibrationFrame::new(&prediction, &gt_m)], &config).unwrap();
+    g.bench_function("sample_reach_over_640x480_n100", |b| {
+        b.iter(|| moma_core::sampling::sample_reach_over(black_box(&cal.samples), &[&gt_m]))
+    });
+    let uv: Vec<(f64, f64)> = cal.samples.samples.iter().map(|s| (s.u, s.v)).collect();
+    g.bench_function("sample_distance_map_640x480_n100", |b| {
+        b.iter(|| moma_core::sampling::sample_distance_map(480, 640, black_box(&uv)))
+    });
+    let distance = moma_core::sampling::sample_distance_map(480, 640, &uv);
+    g.bench_function("fit_with_sample_distance_640x480_1thread", |b| {
+        let frame = ResidualFrame {
+            aligned_m: aligned.view(),
+            truth_m: gt.view(),
+        };
+        p1.install(|| {
+            b.iter(|| {
+                DepthErrorModel::fit_with_sample_distance(
+                    black_box(&[frame]),
+                    &[],
+                    2.0,
+                    Some(distance.view()),
+                )
+                .unwrap()
+            })
+        })
     });
     // the height part a calibration adds (moma_core::height): the object pull on the bench's
     // table, whose 48 bumps stand 30 mm out of it (the samples on them are its objects), for

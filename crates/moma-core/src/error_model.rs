@@ -23,9 +23,14 @@
 //!   plane along its ray, 0 without one) and `k ~ N(0, height_sigma²)` one number per frame: a
 //!   relative error of every height, where the calibration's scale at an object rests on the
 //!   calibration frame's own objects ([`crate::height`]).
+//! - **distance to the samples**: where the calibration samples reach only part of the image,
+//!   the alignment extrapolates beyond them, and the flat error's level grows with the distance
+//!   d (pixels) to the nearest sample: `σ_flat(z, d) = (z / depth_ref_m)^p · √(sigma_flat_m² +
+//!   (sample_distance_gain · d)²)`, `sigma_flat_m` then the level at the samples. The map of d
+//!   ([`DepthErrorModel::sample_distance_px`]) comes from the calibration's samples.
 //!
 //! The per-pixel σ ([`DepthErrorModel::sigma_map`]) is the RMS of all parts, the relief bias
-//! included: `σ² = σ_flat(z)² + (relief_bias² + relief_sigma²)·hp² + (edge_sharpening² +
+//! included: `σ² = σ_flat(z, d)² + (relief_bias² + relief_sigma²)·hp² + (edge_sharpening² +
 //! edge_sharpening_sigma²)·step² + (edge_gain·relief)² + (height_sigma·h)²`.
 //!
 //! # Where the numbers come from
@@ -73,6 +78,15 @@
 //!    refit ([`crate::height`]: the pull of each calibration object on the fit's scale at its
 //!    own samples, and the cross-validation folds' spread of that scale); 0 for models fitted
 //!    here alone.
+//! 5. `sample_distance_gain`, only with a map of the distance to the nearest sample
+//!    ([`DepthErrorModel::fit_with_sample_distance`]; the calibration gives one when its
+//!    samples reach only part of the image, [`crate::sampling::SampleReach::is_partial`]): least
+//!    squares of the rest's square on `σ0² + gain²·d²` over the flat pixels of step 2, both
+//!    terms non-negative. `σ0²` replaces the flat mean square of step 2 (the cross-validated
+//!    floor, measured at the samples, applies to it); the variance shares keep the whole
+//!    frame's proportions, and step 3 subtracts each pixel's own flat σ. Spread samples get no
+//!    such part: over their image the share of true errors within ±1σ stays level with the
+//!    distance (docs/grasping.md, "σ away from the samples").
 //!
 //! With per-frame re-alignment on static anchors, the frame's own error on the unchanged
 //! background sets `σ_flat` for that frame: the RMSE against the calibration frame's ground
@@ -106,9 +120,13 @@
 //! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px,
 //! the step share one number per draw (clamped to [−1, 1]: around the expected truth,
 //! [`DepthErrorModel::deviations`], it is drawn around 0), the height factor one number drawn
-//! after all the others (a model without a height part draws what it drew before).
+//! after all the others (a model without a height part draws what it drew before). The
+//! distance part scales the offset and the fields together at each pixel by `σ_flat(z, d) /
+//! σ_flat(z)` (the error's shape is the frame's, its level grows away from the samples).
 //! Pixels without depth stay without depth; a draw never leaves a pixel at ≤ 0 m (it keeps the
 //! original there).
+
+use std::sync::Arc;
 
 use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use rand::SeedableRng;
@@ -209,7 +227,10 @@ const SHORT_SHARE_MIN: f64 = 0.01;
 pub const FRAME_SIGMA_FLOOR: f64 = 0.25;
 
 /// The error model of a calibration's aligned depth (module documentation). Metres.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+///
+/// Not `Copy`: a model may carry its calibration's map of the distance to the nearest sample
+/// ([`DepthErrorModel::sample_distance_px`], shared, cheap to clone).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DepthErrorModel {
     /// σ of the flat error at `depth_ref_m` (offset and fields together), metres.
@@ -256,6 +277,21 @@ pub struct DepthErrorModel {
     /// version 8.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub height_sigma: f64,
+    /// σ of the flat error added per pixel of distance to the nearest calibration sample,
+    /// metres at `depth_ref_m` per pixel, in quadrature: the flat σ at depth z and distance d
+    /// (pixels) is `(z / depth_ref_m)^p · √(sigma_flat_m² + (gain · d)²)`. Where the samples
+    /// cover only part of the image the alignment extrapolates beyond them (module
+    /// documentation, fit step 5); fitted only then ([`crate::sampling::SampleReach::is_partial`]),
+    /// 0 otherwise, and absent (0) in calibration files before version 9. It needs the distance
+    /// map [`Self::sample_distance_px`]: without one the part is left out.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub sample_distance_gain: f64,
+    /// The distance (pixels) from each pixel of the calibration's image to its nearest sample
+    /// ([`crate::sampling::sample_distance_map`]), which [`Self::sample_distance_gain`] reads.
+    /// Not stored in the file: the calibration attaches it from its samples
+    /// ([`crate::pipeline::Calibration::frame_error_model`]) when the gain is not 0.
+    #[serde(skip)]
+    pub sample_distance_px: Option<Arc<Array2<f32>>>,
 }
 
 fn is_zero(x: &f64) -> bool {
@@ -281,6 +317,8 @@ impl Default for DepthErrorModel {
             edge_gain: 0.0,
             edge_radius_px: 3,
             height_sigma: 0.0,
+            sample_distance_gain: 0.0,
+            sample_distance_px: None,
         }
     }
 }
@@ -618,6 +656,13 @@ impl DepthErrorModel {
         if !within(self.height_sigma, 0.0, 10.0) {
             return bad("height_sigma", self.height_sigma, "finite, in [0, 10]");
         }
+        if !within(self.sample_distance_gain, 0.0, 1.0) {
+            return bad(
+                "sample_distance_gain",
+                self.sample_distance_gain,
+                "finite, in [0, 1] m per pixel",
+            );
+        }
         if self.edge_radius_px > 64 || self.relief_radius_px > 1024 {
             return bad(
                 "edge_radius_px / relief_radius_px",
@@ -640,6 +685,38 @@ impl DepthErrorModel {
         cv_residuals_m: &[(f64, f64)],
         depth_exponent: f64,
     ) -> Result<Self> {
+        Self::fit_with_sample_distance(frames, cv_residuals_m, depth_exponent, None)
+    }
+
+    /// [`DepthErrorModel::fit`] with the distance part (fit step 5) when `sample_distance_px`
+    /// is given: the distance (pixels) from each pixel of the frames' image to the nearest
+    /// calibration sample ([`crate::sampling::sample_distance_map`]). The calibration gives it
+    /// only when its samples reach part of the image
+    /// ([`crate::sampling::SampleReach::is_partial`]); the model returned carries it
+    /// ([`DepthErrorModel::sample_distance_px`]).
+    ///
+    /// # Errors
+    /// As [`DepthErrorModel::fit`]; a distance map of another size than the frames.
+    pub fn fit_with_sample_distance(
+        frames: &[ResidualFrame<'_>],
+        cv_residuals_m: &[(f64, f64)],
+        depth_exponent: f64,
+        sample_distance_px: Option<ArrayView2<'_, f32>>,
+    ) -> Result<Self> {
+        if let (Some(d), Some(f)) = (sample_distance_px, frames.first())
+            && ImageSize::of(&d) != ImageSize::of(&f.aligned_m)
+        {
+            return Err(CoreError::InvalidParameter(format!(
+                "depth error model: sample distance map {} but calibration frames {}",
+                ImageSize::of(&d),
+                ImageSize::of(&f.aligned_m)
+            )));
+        }
+        // the distance on the fit's grid
+        let grid_distance = sample_distance_px.map(|d| {
+            d.slice(ndarray::s![..;FIT_STRIDE, ..;FIT_STRIDE])
+                .to_owned()
+        });
         let mut m = Self {
             depth_exponent,
             ..Self::default()
@@ -790,6 +867,15 @@ impl DepthErrorModel {
             return Err(no_pixels());
         }
         let dense = sum_sq / n_flat as f64;
+        // 5. the distance part: the rest's mean square over flat pixels as `σ0² + gain²·d²`
+        let near = match &grid_distance {
+            Some(d) => {
+                let (near, gain) = distance_part(&rests, &prepared, d, flat_relief);
+                m.sample_distance_gain = gain.min(1.0);
+                near
+            }
+            None => dense,
+        };
         let cv = if cv_residuals_m.is_empty() {
             0.0
         } else {
@@ -800,8 +886,11 @@ impl DepthErrorModel {
                 / cv_residuals_m.len() as f64
         };
         let total = dense.max(cv);
-        m.sigma_flat_m = total.sqrt().min(10.0);
-        m.sigma_dense_m = Some(dense.sqrt().min(10.0));
+        // with a distance part, the flat σ is its level at the samples (the cross-validated
+        // floor is measured there); the variance shares below keep the whole frame's
+        // proportions
+        m.sigma_flat_m = near.max(cv).sqrt().min(10.0);
+        m.sigma_dense_m = Some(near.sqrt().min(10.0));
         if total > 0.0 {
             let mean = sum / n_flat as f64;
             let offset = (mean * mean / total).clamp(0.0, 1.0);
@@ -834,22 +923,28 @@ impl DepthErrorModel {
             };
         }
         // 3. edge noise: (rest·scale)² − σ_flat(z)² = g²·relief², through the origin, g ≥ 0
+        // (with a distance part, σ_flat at each pixel's distance)
         let edge_pixels = || {
             prepared.iter().zip(&rests).flat_map(|(g, rest)| {
                 grid_slice(rest)
                     .iter()
                     .zip(grid_slice(&g.relief))
                     .zip(grid_slice(&g.aligned))
-                    .filter(|((x, r), _)| x.is_finite() && **r >= flat_relief)
-                    .map(|((&x, &r), &a)| (f64::from(x), f64::from(r), a))
+                    .enumerate()
+                    .filter(|(_, ((x, r), _))| x.is_finite() && **r >= flat_relief)
+                    .map(|(i, ((&x, &r), &a))| (i, f64::from(x), f64::from(r), a))
             })
         };
         let (mut num, mut den) = (0.0f64, 0.0f64);
-        for (x, r, a) in edge_pixels() {
+        for (i, x, r, a) in edge_pixels() {
             let s = m.depth_scale(a);
             let e2 = (x * s).powi(2);
             let r2 = r * r;
-            num += r2 * (e2 - (m.sigma_flat_m * s).powi(2));
+            let level = match &grid_distance {
+                Some(d) => m.flat_level(grid_slice(d).get(i).copied()),
+                None => m.sigma_flat_m,
+            };
+            num += r2 * (e2 - (level * s).powi(2));
             den += r2 * r2;
         }
         m.edge_gain = if den > 0.0 {
@@ -857,8 +952,31 @@ impl DepthErrorModel {
         } else {
             0.0
         };
+        if m.sample_distance_gain > 0.0 {
+            m.sample_distance_px = sample_distance_px.map(|d| Arc::new(d.to_owned()));
+        }
         m.validate()?;
         Ok(m)
+    }
+
+    /// The flat σ's level at a pixel `distance_px` from the nearest calibration sample, metres
+    /// at the reference depth: `√(sigma_flat_m² + (sample_distance_gain · d)²)`;
+    /// `sigma_flat_m` without a distance (`None`, or a non-finite one: no sample at all).
+    fn flat_level(&self, distance_px: Option<f32>) -> f64 {
+        match distance_px {
+            Some(d) if self.sample_distance_gain > 0.0 && d.is_finite() => self
+                .sigma_flat_m
+                .hypot(self.sample_distance_gain * f64::from(d)),
+            _ => self.sigma_flat_m,
+        }
+    }
+
+    /// The distance map when the model has a distance part and one of `size` (the map it is
+    /// applied to); `None` otherwise.
+    fn distance_map(&self, size: ImageSize) -> Option<&Arc<Array2<f32>>> {
+        self.sample_distance_px
+            .as_ref()
+            .filter(|d| self.sample_distance_gain > 0.0 && ImageSize::of(&d.view()) == size)
     }
 
     /// `(z / depth_ref_m)^depth_exponent` (1 for an invalid z).
@@ -886,9 +1004,9 @@ impl DepthErrorModel {
         match frame_residual_m {
             Some(r) if r.is_finite() => Self {
                 sigma_flat_m: r.max(FRAME_SIGMA_FLOOR * self.sigma_flat_m).min(10.0),
-                ..*self
+                ..self.clone()
             },
-            _ => *self,
+            _ => self.clone(),
         }
     }
 
@@ -921,7 +1039,7 @@ impl DepthErrorModel {
                 let dense = self.sigma_dense_m.unwrap_or(self.sigma_flat_m);
                 self.with_flat_sigma_keeping_fields(dense, dense.hypot(r.max(0.0)).min(10.0))
             }
-            _ => *self,
+            _ => self.clone(),
         }
     }
 
@@ -955,7 +1073,7 @@ impl DepthErrorModel {
             _ => rmse_m,
         };
         if !at_ref.is_finite() {
-            return *self;
+            return self.clone();
         }
         let dense = self.sigma_dense_m.unwrap_or(self.sigma_flat_m);
         let dense2 = dense * dense;
@@ -991,7 +1109,7 @@ impl DepthErrorModel {
         Self {
             sigma_flat_m,
             variance_shares,
-            ..*self
+            ..self.clone()
         }
     }
 
@@ -1004,12 +1122,14 @@ impl DepthErrorModel {
         let kept = offset + coarse;
         Self {
             sigma_flat_m: self.sigma_flat_m * kept.max(0.0).sqrt(),
+            // the distance part grows every share alike
+            sample_distance_gain: self.sample_distance_gain * kept.max(0.0).sqrt(),
             variance_shares: if kept > 0.0 {
                 [offset / kept, 0.0, 0.0, coarse / kept]
             } else {
                 [0.0, 0.0, 0.0, 1.0]
             },
-            ..*self
+            ..self.clone()
         }
     }
 
@@ -1199,7 +1319,7 @@ impl DepthErrorModel {
         Self {
             relief_bias: 0.0,
             edge_sharpening: 0.0,
-            ..*self
+            ..self.clone()
         }
     }
 
@@ -1232,12 +1352,17 @@ impl DepthErrorModel {
         let g = self.edge_gain as f32;
         let height = self.height_part(d, Roi::full(d.ncols(), d.nrows()));
         let k = self.height_sigma as f32;
+        let distance = self.distance_map(depth.size());
         Array2::from_shape_fn(d.raw_dim(), |(v, u)| {
             let z = d[[v, u]];
             if !is_valid_depth(z) {
                 return f32::NAN;
             }
-            let s = (self.sigma_flat_m * self.depth_scale(z)) as f32;
+            let level = match distance {
+                Some(dist) => self.flat_level(Some(dist[[v, u]])),
+                None => self.sigma_flat_m,
+            };
+            let s = (level * self.depth_scale(z)) as f32;
             let h = hp.as_ref().map_or(0.0, |hp| hp[[v, u]]);
             let st = edges.step[[v, u]];
             let above = height.as_ref().map_or(0.0, |a| a[[v, u]]);
@@ -1320,6 +1445,9 @@ pub struct Draws<'a> {
     hp: Option<Array2<f32>>,
     /// The height above the support plane of the region (`roi` sized).
     height: Option<Array2<f32>>,
+    /// The distance map of the model's distance part (the whole map's size), when it has one
+    /// and a flat σ it scales.
+    distance: Option<Arc<Array2<f32>>>,
 }
 
 impl<'a> Draws<'a> {
@@ -1348,7 +1476,7 @@ impl<'a> Draws<'a> {
         );
         let grown = depth.slice(ndarray::s![pv0..pv1, pu0..pu1]);
         Self {
-            model: *model,
+            model: model.clone(),
             depth,
             roi,
             pad_u0: pu0,
@@ -1356,6 +1484,10 @@ impl<'a> Draws<'a> {
             edges: EdgeMaps::of(grown, model.edge_radius_px),
             hp: model.relief_part(grown),
             height: model.height_part(depth, roi),
+            distance: model
+                .distance_map(ImageSize::of(&depth))
+                .filter(|_| model.sigma_flat_m > 0.0)
+                .cloned(),
         }
     }
 
@@ -1439,6 +1571,12 @@ impl<'a> Draws<'a> {
                     *r -= k_height * a;
                 }
             }
+            if let Some(dist) = &self.distance {
+                // the distance part: the flat error's level grows away from the samples
+                for (f, &d) in flat.iter_mut().zip(dist.row(v + v0).iter().skip(u0)) {
+                    *f *= (m.flat_level(Some(d)) / m.sigma_flat_m) as f32;
+                }
+            }
             for (u, z) in out.row_mut(v).iter_mut().enumerate() {
                 if !is_valid_depth(*z) {
                     continue;
@@ -1458,6 +1596,56 @@ impl<'a> Draws<'a> {
             }
         }
         out
+    }
+}
+
+/// Fit step 5: least squares of the normalised rest's square on `σ0² + gain²·d²` over the flat
+/// pixels of the grids (`rests`, NaN where there is none; `d` the distance to the nearest
+/// sample on the same grid), both terms non-negative (when one is not, the other alone).
+/// Returns `(σ0², gain)`, metres² and metres per pixel at the reference depth.
+fn distance_part(
+    rests: &[Array2<f32>],
+    prepared: &[FitGrid],
+    d: &Array2<f32>,
+    flat_relief: f32,
+) -> (f64, f64) {
+    // Σ1, Σd², Σd⁴, Σy, Σy·d² over y = rest²
+    let (mut n, mut s2, mut s4, mut sy, mut syd) = (0.0f64, 0.0, 0.0, 0.0, 0.0);
+    for (rest, g) in rests.iter().zip(prepared) {
+        if rest.dim() != d.dim() {
+            continue;
+        }
+        for ((&x, &r), &dist) in grid_slice(rest)
+            .iter()
+            .zip(grid_slice(&g.relief))
+            .zip(grid_slice(d))
+        {
+            if !(x.is_finite() && r < flat_relief && dist.is_finite()) {
+                continue;
+            }
+            let (y, d2) = (f64::from(x).powi(2), f64::from(dist).powi(2));
+            n += 1.0;
+            s2 += d2;
+            s4 += d2 * d2;
+            sy += y;
+            syd += y * d2;
+        }
+    }
+    if n == 0.0 {
+        return (0.0, 0.0);
+    }
+    let det = n * s4 - s2 * s2;
+    let (a, b) = if det > 1e-12 * (n * s4).max(f64::MIN_POSITIVE) {
+        ((sy * s4 - s2 * syd) / det, (n * syd - s2 * sy) / det)
+    } else {
+        (sy / n, 0.0)
+    };
+    if b <= 0.0 {
+        (sy / n, 0.0)
+    } else if a < 0.0 {
+        (0.0, if s4 > 0.0 { (syd / s4).sqrt() } else { 0.0 })
+    } else {
+        (a, b.sqrt())
     }
 }
 
@@ -2020,7 +2208,7 @@ mod tests {
         // no short-range field: the depth as it is
         let coarse = DepthErrorModel {
             variance_shares: [0.5, 0.0, 0.0, 0.5],
-            ..m
+            ..m.clone()
         };
         let rough = m.draw(&truth, 0, 0).depth_m;
         assert_eq!(coarse.expected_truth(rough.view(), Roi::full(w, h)), rough);
@@ -3005,7 +3193,7 @@ mod tests {
         for radius_px in [1.0, 4.0, 10.0, 40.0] {
             let own = DepthErrorModel {
                 sigma_flat_m: 0.003,
-                ..fitted
+                ..fitted.clone()
             };
             let (a, b) = (
                 m.noise_within_m(1.0, radius_px),
@@ -3058,7 +3246,7 @@ mod tests {
         // so the noise within a cup's patch is the calibration frame's own
         let own = DepthErrorModel {
             sigma_flat_m: 0.003,
-            ..fitted
+            ..fitted.clone()
         };
         for radius_px in [1.0, 4.0, 10.0, 40.0] {
             let (a, b) = (
@@ -3077,7 +3265,7 @@ mod tests {
         // a frame with no short-range fields: the floor, a quarter of the dense σ
         let smooth = DepthErrorModel {
             variance_shares: [1.0, 0.0, 0.0, 0.0],
-            ..fitted
+            ..fitted.clone()
         };
         let floored = smooth.for_frame_on_background(0.0, Some(0.0));
         assert!((floored.sigma_flat_m - 0.00075).abs() < 1e-15);
@@ -3085,7 +3273,7 @@ mod tests {
         // σ constant in metres (depth space): the metres RMSE itself
         let metric = DepthErrorModel {
             depth_exponent: 0.0,
-            ..fitted
+            ..fitted.clone()
         };
         let m0 = metric.for_frame_on_background(0.007, Some(0.04));
         assert!((m0.sigma_flat_m - 0.007).abs() < 1e-15);

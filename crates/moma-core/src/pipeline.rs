@@ -590,7 +590,21 @@ fn fit_error_model(
         AlignSpace::Depth => 0.0,
         AlignSpace::Inverse => 2.0,
     };
-    let mut model = DepthErrorModel::fit(&residual_frames, &cv.residuals_m, exponent)?;
+    // where the samples reach only part of the image, the distance part (fit step 5)
+    let gts: Vec<&MetricDepth> = truths.iter().map(|(_, gt)| *gt).collect();
+    let partial = crate::sampling::sample_reach_over(&calibration.samples, &gts)
+        .is_some_and(|r| r.is_partial());
+    let distance = if partial {
+        sample_distance(calibration)
+    } else {
+        None
+    };
+    let mut model = DepthErrorModel::fit_with_sample_distance(
+        &residual_frames,
+        &cv.residuals_m,
+        exponent,
+        distance.as_ref().map(|d| d.view()),
+    )?;
     // the objects' pull for a least-squares fit (a robust fit's refits would not be least
     // squares): each frame's samples grouped by that frame's objects
     let pull = match &config.robust {
@@ -604,7 +618,31 @@ fn fit_error_model(
         Some(_) => 0.0,
     };
     model.height_sigma = crate::height::height_sigma(pull, cv.slope_sd);
+    // the calibration keeps the gain, not the map (as its file does: a calibration equals the
+    // one read back); `Calibration::frame_error_model` attaches the map to each frame's model
+    model.sample_distance_px = None;
     Ok(model)
+}
+
+/// The distance (pixels) from every pixel of `calibration`'s image to its nearest sample (of
+/// any frame: the frames share one camera), for the error model's distance part; `None`
+/// without samples.
+fn sample_distance(calibration: &Calibration) -> Option<Array2<f32>> {
+    let uv: Vec<(f64, f64)> = calibration
+        .samples
+        .samples
+        .iter()
+        .map(|s| (s.u, s.v))
+        .collect();
+    if uv.is_empty() {
+        return None;
+    }
+    let size = calibration.image_size();
+    Some(crate::sampling::sample_distance_map(
+        size.height,
+        size.width,
+        &uv,
+    ))
 }
 
 /// What the K-fold refits of [`cross_validate`] give.
@@ -1046,9 +1084,17 @@ impl Calibration {
     /// residual adds to the calibration frames' own error
     /// ([`DepthErrorModel::with_frame_drift`]); onto the calibration frame's ground truth, it
     /// replaces it (at least a quarter of the calibration's σ: [`DepthErrorModel::for_frame`]).
-    /// `None` without a model.
+    /// A model with a distance part ([`DepthErrorModel::sample_distance_gain`]) gets its map
+    /// from the calibration's samples (built on each call, about a millisecond at 640 × 480;
+    /// only such calibrations pay it) and keeps it on re-aligned frames (the frame's level is
+    /// measured over the background, near and far from the samples alike: conservative where
+    /// re-alignment removed part of the extrapolation). `None` without a model.
     pub fn frame_error_model(&self, realign: Option<&RealignReport>) -> Option<DepthErrorModel> {
-        let model = self.error_model?;
+        let mut model = self.error_model.clone()?;
+        if model.sample_distance_gain > 0.0 && model.sample_distance_px.is_none() {
+            // the distance part's map, from the samples (a model read from a file has none)
+            model.sample_distance_px = sample_distance(self).map(std::sync::Arc::new);
+        }
         let Some(r) = realign else {
             return Some(model);
         };

@@ -92,7 +92,7 @@ fn no_support_plane_where_no_plane_holds_the_scene() {
     };
     let plain = DepthErrorModel {
         height_sigma: 0.0,
-        ..model
+        ..model.clone()
     };
     let d = MetricDepth::new(scattered);
     assert_eq!(model.sigma_map(&d), plain.sigma_map(&d));
@@ -155,7 +155,7 @@ fn the_height_part_of_the_sigma_map_and_of_the_draws() {
     let flat = DepthErrorModel::uniform(0.005).unwrap();
     let both = DepthErrorModel {
         height_sigma: 0.2,
-        ..flat
+        ..flat.clone()
     };
     for k in 0..5 {
         let (x, y) = (both.draw(&d, 7, k).depth_m, flat.draw(&d, 7, k).depth_m);

@@ -706,7 +706,10 @@ fn align_realigned(
 #[test]
 fn the_frame_error_model_follows_what_the_anchors_measured() {
     let TestFrame { cal, pred, .. } = test_frame(2.3, 0.2);
-    let model = cal.error_model.expect("calibrate fits an error model");
+    let model = cal
+        .error_model
+        .clone()
+        .expect("calibrate fits an error model");
     let dense = model
         .sigma_dense_m
         .expect("a fitted model records its dense part");
@@ -757,7 +760,7 @@ fn the_frame_error_model_follows_what_the_anchors_measured() {
             "{target:?}, older report: σ {sigma} m, expected {expected} m"
         );
         // without re-alignment, the calibration's model
-        assert_eq!(cal.frame_error_model(None), Some(model));
+        assert_eq!(cal.frame_error_model(None), Some(model.clone()));
     }
     let (_, report) = realigned(&cal, &pred, &RealignConfig::default());
     let mut json = serde_json::to_value(&report).unwrap();

@@ -1,8 +1,11 @@
-//! `sample_reach`: how far calibration samples reach over an image, against closed forms.
+//! `sample_reach` and `sample_distance_map`: how far calibration samples reach over an image,
+//! against closed forms and brute force.
 
 use moma_core::MetricDepth;
 use moma_core::align::SampleSet;
-use moma_core::sampling::{PARTIAL_REACH_RATIO, sample_reach, sample_reach_over};
+use moma_core::sampling::{
+    PARTIAL_REACH_RATIO, sample_distance_map, sample_reach, sample_reach_over,
+};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -110,4 +113,62 @@ fn a_calibrations_reach_is_over_the_union_of_its_frames_depth() {
     let one = sample_reach_over(&samples, &[&left]).unwrap();
     assert!((one.uniform_p90_px / both.uniform_p90_px - 0.5f64.sqrt()).abs() < 1e-12);
     assert_eq!(sample_reach_over(&samples, &[]), None);
+}
+
+/// The distance transform against the brute-force distance to every sample: random samples
+/// over images of several shapes (one row and one column included), samples on the border and
+/// repeated; exact to f32 rounding.
+#[test]
+fn the_distance_map_is_the_exact_distance_to_the_nearest_sample() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    for (h, w, n) in [
+        (48, 64, 5),
+        (37, 91, 40),
+        (1, 50, 3),
+        (50, 1, 3),
+        (64, 48, 1),
+    ] {
+        for _ in 0..3 {
+            let mut uv: Vec<(f64, f64)> = (0..n)
+                .map(|_| (rng.random_range(0..w) as f64, rng.random_range(0..h) as f64))
+                .collect();
+            uv.push(uv[0]);
+            uv.push((0.0, (h - 1) as f64));
+            let map = sample_distance_map(h, w, &uv);
+            assert_eq!(map.dim(), (h, w));
+            for ((v, u), &d) in map.indexed_iter() {
+                let brute = uv
+                    .iter()
+                    .map(|&(su, sv)| (u as f64 - su).hypot(v as f64 - sv))
+                    .fold(f64::INFINITY, f64::min);
+                assert!(
+                    (f64::from(d) - brute).abs() <= 1e-4 * brute.max(1.0),
+                    "{h}×{w}, pixel ({u}, {v}): {d} against {brute}"
+                );
+            }
+        }
+    }
+}
+
+/// Samples off the pixel grid count at their pixel, those outside the image at its border,
+/// non-finite ones not at all; without a sample every distance is infinite.
+#[test]
+fn the_distance_map_rounds_clamps_and_skips_samples() {
+    let map = sample_distance_map(10, 20, &[(3.4, 2.6)]);
+    assert_eq!(map[[3, 3]], 0.0);
+    assert_eq!(map[[3, 7]], 4.0);
+    let outside = sample_distance_map(10, 20, &[(-50.0, 100.0), (f64::NAN, 1.0)]);
+    assert_eq!(outside[[9, 0]], 0.0);
+    assert_eq!(outside[[0, 0]], 9.0);
+    assert!(
+        sample_distance_map(10, 20, &[])
+            .iter()
+            .all(|d| d.is_infinite())
+    );
+    assert!(
+        sample_distance_map(10, 20, &[(f64::NAN, 0.0)])
+            .iter()
+            .all(|d| d.is_infinite())
+    );
+    assert_eq!(sample_distance_map(0, 20, &[(1.0, 1.0)]).dim(), (0, 20));
 }

@@ -25,10 +25,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let aligned = cal.aligned(&pred, &AlignOptions::default())?;
     let model = cal
         .error_model
+        .clone()
         .ok_or("the calibration has no error model")?;
     let clamped = moma_core::DepthErrorModel {
         relief_max_m: MAX_RELIEF_M,
-        ..model
+        ..model.clone()
     };
     // the reference's pixels up to max_depth_m (DepthMetrics also skips pixels without depth)
     let near = Mask::new(gt.depth_m.mapv(|t| t <= max_depth_m));

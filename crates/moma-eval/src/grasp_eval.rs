@@ -441,14 +441,14 @@ impl CheckCache {
         {
             Some(a) => a,
             None => {
-                self.aligned.push((frame, depth.clone(), *model));
+                self.aligned.push((frame, depth.clone(), model.clone()));
                 self.aligned.len() - 1
             }
         };
         if let Some(check) = self.checks.get(&(a, gripper, quality, seed)) {
             return check.clone();
         }
-        let mut request = base_request(gripper, *model, seed, config);
+        let mut request = base_request(gripper, model.clone(), seed, config);
         if model.is_some() {
             request.quality = quality;
         }
@@ -484,7 +484,7 @@ fn run_trial(
             false,
         )
     };
-    let mut request = base_request(gripper, planned.error_model, planned.seed, config);
+    let mut request = base_request(gripper, planned.error_model.clone(), planned.seed, config);
     request.quality = GraspQuality::Nominal; // every candidate, in the planner's order
     // every candidate, also without an error model (the top-1 is the same: the planner keeps
     // grasps greedily in its own order), for the best of the candidates
@@ -956,7 +956,7 @@ pub fn grasp_evaluate(
                     .map(|f| {
                         f.as_ref().map(|(depth, model)| Planned {
                             depth,
-                            error_model: *model,
+                            error_model: model.clone(),
                             seed,
                         })
                     })

@@ -97,7 +97,7 @@ fn benches(c: &mut Criterion) {
             ("suction", Gripper::Suction(cup)),
             ("parallel", Gripper::Parallel(jaw)),
         ] {
-            let mut request = GraspRequest::new(gripper).with_error_model(Some(model));
+            let mut request = GraspRequest::new(gripper).with_error_model(Some(model.clone()));
             request.top_k = 5;
             request.draws = draws;
             c.bench_function(&format!("robust_{name}_top5_{draws}draws_640x480"), |bch| {

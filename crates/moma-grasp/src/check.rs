@@ -12,11 +12,12 @@
 
 use std::collections::BTreeMap;
 
-use moma_core::{Intrinsics, Mask, MetricDepth};
+use moma_core::{AlignOptions, Calibration, Intrinsics, Mask, MetricDepth, PredictionInput};
 use serde::{Deserialize, Serialize};
 
-use crate::error::Result;
+use crate::error::{GraspError, Result};
 use crate::grasp::FailureReason;
+use crate::gripper::Gripper;
 use crate::robust::{GraspRequest, plan_grasps};
 use crate::scene::Scene;
 use crate::score::score_grasp;
@@ -58,6 +59,33 @@ pub fn grasp_check(
 ) -> Result<GraspCheck> {
     let truth_scene = Scene::build(truth, intrinsics, mask, &request.scene)?;
     grasp_check_on(aligned, &truth_scene, intrinsics, mask, request)
+}
+
+/// The calibration frame's check: `pred` aligned one-shot by `calibration` (no re-alignment:
+/// the calibration frame is its anchors' own frame), planned with `gripper` under the frame's
+/// error model (robust where the calibration has one, nominal otherwise), the default request
+/// otherwise but `seed`, and checked on `truth` ([`grasp_check`]). What `moma calibrate
+/// --grasp-check` and Python's `grasp_check` run.
+///
+/// # Errors
+/// [`GraspError::Align`] when `pred` does not fit the calibration (size, kind); as
+/// [`grasp_check`].
+#[allow(clippy::too_many_arguments)] // the check's inputs, each a different thing
+pub fn calibration_frame_check<'p>(
+    calibration: &Calibration,
+    pred: impl Into<PredictionInput<'p>>,
+    truth: &MetricDepth,
+    intrinsics: &Intrinsics,
+    mask: Option<&Mask>,
+    gripper: Gripper,
+    seed: u64,
+) -> Result<GraspCheck> {
+    let aligned = calibration
+        .aligned(pred, &AlignOptions::default())
+        .map_err(GraspError::Align)?;
+    let mut request = GraspRequest::new(gripper).with_error_model(aligned.error_model);
+    request.seed = seed;
+    grasp_check(&aligned.depth, truth, intrinsics, mask, &request)
 }
 
 /// [`grasp_check`] on a truth scene already built (with the same `mask` and `request.scene`),

@@ -32,6 +32,10 @@ pub enum GraspError {
     /// The camera intrinsics are not usable.
     #[error("invalid camera intrinsics")]
     Intrinsics(#[source] CoreError),
+    /// The calibration could not align the prediction it was asked to check
+    /// ([`crate::calibration_frame_check`]).
+    #[error("aligning the calibration frame: {0}")]
+    Align(#[source] CoreError),
     /// The camera→base matrix is not a rigid transform.
     #[error("the camera-to-base matrix is not a rigid transform: {0}")]
     NonRigidExtrinsics(String),

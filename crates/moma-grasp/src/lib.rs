@@ -93,7 +93,7 @@ pub mod scene;
 pub mod score;
 pub mod suction;
 
-pub use check::{GraspCheck, grasp_check, grasp_check_on};
+pub use check::{GraspCheck, calibration_frame_check, grasp_check, grasp_check_on};
 pub use cloud::{CloudConfig, OrganisedCloud, Vec3};
 pub use contact::{ExecConfig, MU_GRID};
 pub use error::{GraspError, Result};

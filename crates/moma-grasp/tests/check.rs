@@ -149,3 +149,67 @@ fn a_truth_of_another_size_is_an_error() {
     let e = grasp_check(&truth, &small, &intrinsics(), None, &request).unwrap_err();
     assert!(e.to_string().contains("320"), "{e}");
 }
+
+/// The calibration frame's check (`calibration_frame_check`, what `moma calibrate --grasp-check`
+/// and Python's `grasp_check` run) is `grasp_check` of the calibration's one-shot alignment
+/// with the frame's error model and the seed: a prediction that is an affine map of the truth,
+/// which GSSA calibrates exactly, for both grippers and two seeds; every grasp holds. A
+/// prediction of another size is an alignment error.
+#[test]
+fn the_calibration_frames_check_is_the_check_of_its_one_shot_alignment() {
+    use moma_core::align::Method;
+    use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+    use moma_core::pipeline::{AlignOptions, CalibrationConfig, CalibrationFrame, calibrate};
+    use moma_core::{Prediction, PredictionKind};
+    let truth = two_boxes();
+    let k = intrinsics();
+    let pred = Prediction::new(
+        truth
+            .depth_m
+            .mapv(|z| if z > 0.0 { 2.0 * z + 0.1 } else { f32::NAN }),
+        PredictionKind::RelativeDepth,
+    );
+    let config = CalibrationConfig {
+        method: Method::Gssa,
+        normalisation: NormalisationConfig {
+            method: Normalisation::None,
+            space: AlignSpace::Depth,
+        },
+        sampling: Default::default(),
+        robust: None,
+        workspace: None,
+    };
+    let cal = calibrate(&[CalibrationFrame::new(&pred, &truth)], &config).unwrap();
+    let aligned = cal.aligned(&pred, &AlignOptions::default()).unwrap();
+    assert!(aligned.error_model.is_some());
+    for gripper in grippers() {
+        for seed in [0, 5] {
+            let check =
+                moma_grasp::calibration_frame_check(&cal, &pred, &truth, &k, None, gripper, seed)
+                    .unwrap();
+            let mut request =
+                GraspRequest::new(gripper).with_error_model(aligned.error_model.clone());
+            request.seed = seed;
+            assert_eq!(
+                check,
+                grasp_check(&aligned.depth, &truth, &k, None, &request).unwrap()
+            );
+            assert!(
+                check.grasps > 0 && check.successes == check.grasps,
+                "{check:?}"
+            );
+            assert!(check.mean_success_prob.is_some());
+        }
+    }
+    let small = Prediction::new(
+        ndarray::Array2::from_elem((10, 10), 1.0f32),
+        PredictionKind::RelativeDepth,
+    );
+    let e = moma_grasp::calibration_frame_check(&cal, &small, &truth, &k, None, grippers()[1], 0)
+        .unwrap_err();
+    assert!(matches!(e, moma_grasp::GraspError::Align(_)), "{e}: {e:?}");
+    assert!(
+        e.to_string().starts_with("aligning the calibration frame"),
+        "{e}"
+    );
+}

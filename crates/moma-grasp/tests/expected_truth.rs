@@ -88,7 +88,7 @@ fn suction_planned_on_the_expected_truth_reaches_a_flattened_box() {
             "scene {k}: the control, planned on the flattened depth as if exact"
         );
         // on the expected truth: the grasp holds
-        let mut robust = GraspRequest::new(cup).with_error_model(Some(model));
+        let mut robust = GraspRequest::new(cup).with_error_model(Some(model.clone()));
         robust.top_k = 1;
         let (g, s) = top1(&robust);
         assert!(s.success, "scene {k}: {:?} for {g:?}", s.failure);

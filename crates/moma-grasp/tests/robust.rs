@@ -158,7 +158,7 @@ fn a_grasp_that_survives_a_20mm_offset_gets_a_higher_success_prob() {
         variance_shares: [1.0, 0.0, 0.0, 0.0],
         ..DepthErrorModel::default()
     };
-    let mut request = GraspRequest::new(jaw).with_error_model(Some(model));
+    let mut request = GraspRequest::new(jaw).with_error_model(Some(model.clone()));
     request.draws = 64;
     let p = success_probabilities(&[g_tall, g_low], &gt, &depth, &k, &model, &request).unwrap();
     assert!(

@@ -134,7 +134,7 @@ fn with_the_error_model_the_cup_is_aimed_along_the_true_surface_under_bumps() {
         exact_worst = exact_worst.max(a_exact);
         for seed in 0..4u64 {
             let planning = bumpy(&gt_depth, NOISE_M, seed);
-            let (a_with, ok_with) = top1(&s, &planning, &gt, Some(model), seed);
+            let (a_with, ok_with) = top1(&s, &planning, &gt, Some(model.clone()), seed);
             let (a_without, _) = top1(&s, &planning, &gt, None, seed);
             assert!(
                 ok_with,
@@ -187,7 +187,7 @@ fn a_seal_on_a_flat_top_under_bumps_gets_a_high_success_probability() {
             .success,
         "the premise: the exact depth's grasp succeeds on the truth"
     );
-    let mut request = GraspRequest::new(cup).with_error_model(Some(model));
+    let mut request = GraspRequest::new(cup).with_error_model(Some(model.clone()));
     request.draws = 16;
     let (mut rough_seals, mut p_sum) = (0u64, 0.0);
     let seeds = 8u64;
@@ -264,7 +264,7 @@ fn with_an_uncertain_relief_the_cup_goes_to_the_lower_top() {
         DIST_M - f64::from(sg.pose.point_m[2])
     };
     for seed in 0..4u64 {
-        let mut request = GraspRequest::new(cup).with_error_model(Some(model));
+        let mut request = GraspRequest::new(cup).with_error_model(Some(model.clone()));
         request.quality = GraspQuality::Nominal;
         request.top_k = 1;
         request.seed = seed;

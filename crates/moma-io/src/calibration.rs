@@ -36,8 +36,11 @@ pub const CALIBRATION_FORMAT: &str = "moma-calibration";
 /// `sigma_dense_m`, the calibration frames' own part of its flat σ (a version-6 file reads
 /// without it: its `sigma_flat_m` stands in); 8 — the error model's `height_sigma`, the σ of a
 /// per-frame relative error of heights above the support plane (written only when non-zero; a
-/// version-7 file reads without it: no height part).
-pub const CALIBRATION_VERSION: u32 = 8;
+/// version-7 file reads without it: no height part); 9 — the error model's
+/// `sample_distance_gain`, the growth of its flat σ with the distance to the nearest
+/// calibration sample (written only when non-zero; a version-8 file reads without it: no
+/// distance part).
+pub const CALIBRATION_VERSION: u32 = 9;
 
 /// The oldest calibration-file version this build reads (migrated on reading).
 pub const OLDEST_CALIBRATION_VERSION: u32 = 1;
@@ -255,12 +258,12 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
         return Err(version_error());
     }
     let file: CalibrationFile = match version {
-        // Versions 3, 4, 6, 7 and 8 only added optional fields (6: the error model's
+        // Versions 3, 4, 6, 7, 8 and 9 only added optional fields (6: the error model's
         // `relief_max_m`, which reads as 0.1 m without it; 7: its `sigma_dense_m`; 8: its
-        // `height_sigma`, 0 without it), and version 5 renamed the kinds (the old names still
-        // parse): a version-2 to -7 document is a version-8 one, once a version-2 to -4 one's
-        // kind is mapped.
-        Some(v @ 2..=8) => {
+        // `height_sigma`, 0 without it; 9: its `sample_distance_gain`, 0 without it), and
+        // version 5 renamed the kinds (the old names still parse): a version-2 to -8 document
+        // is a version-9 one, once a version-2 to -4 one's kind is mapped.
+        Some(v @ 2..=9) => {
             let mut file: CalibrationFile =
                 serde_json::from_str(text).map_err(|e| IoError::json(path, &e))?;
             file.version = CALIBRATION_VERSION;

@@ -467,22 +467,22 @@ mod calibration {
     }
 
     #[test]
-    fn version_2_to_7_files_read_as_version_8() {
-        // Versions 3, 4, 6, 7 and 8 only added optional fields and version 5 renamed the kinds:
-        // the same document (without them) labelled 2 to 7 must read, equal.
+    fn version_2_to_8_files_read_as_version_9() {
+        // Versions 3, 4, 6, 7, 8 and 9 only added optional fields and version 5 renamed the
+        // kinds: the same document (without them) labelled 2 to 8 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
         write_calibration(&p, &file()).unwrap();
         let written = read_calibration(&p).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        assert_eq!(v["version"], 8);
-        for old in [2, 3, 4, 5, 6, 7] {
+        assert_eq!(v["version"], 9);
+        for old in [2, 3, 4, 5, 6, 7, 8] {
             v["version"] = old.into();
             std::fs::write(&p, v.to_string()).unwrap();
             let read = read_calibration(&p).unwrap();
             assert_eq!(read.calibration, written.calibration);
-            assert_eq!(read.version, 8);
+            assert_eq!(read.version, 9);
         }
     }
 
@@ -521,6 +521,24 @@ mod calibration {
         v["calibration"]["error_model"][field] = bad;
         std::fs::write(&p, v.to_string()).unwrap();
         (back, msg(&read_calibration(&p).unwrap_err()))
+    }
+
+    /// Version 9 added the error model's `sample_distance_gain`: written and read back; a
+    /// version-8 file's model (without it) reads with none (no distance part); out of range is
+    /// refused, naming the field.
+    #[test]
+    fn a_version_8_error_model_reads_without_a_distance_part() {
+        let mut model = moma_core::DepthErrorModel::uniform(0.005).unwrap();
+        model.sample_distance_gain = 1e-4;
+        let (back, m) = error_model_field_across_versions(
+            model,
+            "sample_distance_gain",
+            serde_json::json!(1e-4),
+            8,
+            serde_json::json!(-1e-4),
+        );
+        assert_eq!(back.sample_distance_gain, 0.0);
+        assert!(m.contains("sample_distance_gain"), "{m}");
     }
 
     /// Version 8 added the error model's `height_sigma`: written and read back; a version-7
@@ -686,15 +704,15 @@ mod calibration {
         write_calibration(&p, &file()).unwrap();
         let mut v: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
-        v["version"] = 9.into();
-        // A v9 file may have a different schema: the version error must win over schema errors.
+        v["version"] = 10.into();
+        // A v10 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();
         assert!(matches!(e, IoError::CalibrationVersion { .. }), "{e}");
         let m = msg(&e);
         assert!(
-            m.contains("calib.json") && m.contains("version 9") && m.contains("versions 1 to 8"),
+            m.contains("calib.json") && m.contains("version 10") && m.contains("versions 1 to 9"),
             "{m}"
         );
 

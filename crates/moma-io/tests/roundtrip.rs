@@ -349,7 +349,7 @@ fn calibration_file_roundtrip() {
     // The documented top-level fields are there for scripts.
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
     assert_eq!(v["format"], "moma-calibration");
-    assert_eq!(v["version"], 8);
+    assert_eq!(v["version"], 9);
     assert_eq!(v["method"], "gssa");
     assert_eq!(v["normalisation"]["space"], "inverse");
     assert_eq!(v["calibration"]["workspace"]["inside_px"], 60 * 40);

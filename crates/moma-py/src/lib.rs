@@ -369,8 +369,9 @@ impl Calibration {
     /// `sigma_dense_m` (absent in files before version 7), `depth_ref_m`, `depth_exponent`,
     /// `variance_shares`, `scales_px`, `relief_bias`, `relief_sigma`, `relief_radius_px`,
     /// `relief_max_m`, `edge_gain`, `edge_radius_px`, and `height_sigma` where the calibration
-    /// has a height part: absent otherwise and in files before version 8), None in files
-    /// written before error models existed.
+    /// has a height part: absent otherwise and in files before version 8, and
+    /// `sample_distance_gain` where its samples reach only part of the image: absent otherwise
+    /// and in files before version 9), None in files written before error models existed.
     #[getter]
     fn error_model<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         to_py_json(py, &self.inner.error_model)
@@ -1077,13 +1078,18 @@ fn grasp_check<'py>(
     let truth = MetricDepth::new(f32_owned(gt_m, "gt_m")?);
     let mask = opt_mask(mask, "mask")?;
     let inner = &calibration.inner;
-    let aligned = py
-        .detach(|| inner.aligned(&prediction, &moma_core::AlignOptions::default()))
-        .py()?;
-    let mut request = moma_grasp::GraspRequest::new(gripper).with_error_model(aligned.error_model);
-    request.seed = seed;
     let check = py
-        .detach(|| moma_grasp::grasp_check(&aligned.depth, &truth, &k, mask.as_ref(), &request))
+        .detach(|| {
+            moma_grasp::calibration_frame_check(
+                inner,
+                &prediction,
+                &truth,
+                &k,
+                mask.as_ref(),
+                gripper,
+                seed,
+            )
+        })
         .map_err(|e| value_err(e.to_string()))?;
     to_py_json(py, &check)
 }

@@ -538,9 +538,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     Ok(())
 }
 
-/// The grasp check of the calibration frame for each of `grippers` ([`moma_grasp::grasp_check`]):
-/// `frame`'s prediction aligned by the calibration of `file` (one-shot, as `moma grasp --calib`
-/// without --realign) and planned with its error model, executed on `gt`.
+/// The grasp check of the calibration frame for each of `grippers`
+/// ([`moma_grasp::calibration_frame_check`]): `frame`'s prediction aligned by the calibration of
+/// `file` (one-shot, as `moma grasp --calib` without --realign) and planned with its error
+/// model, executed on `gt`.
 ///
 /// # Errors
 /// No --camera; a failed alignment or grasp check.
@@ -557,27 +558,27 @@ fn grasp_checks(
     let Some(intrinsics) = file.intrinsics else {
         bail!("--grasp-check needs --camera: grasps are planned in metres");
     };
-    let aligned = file
-        .calibration
-        .aligned(&frame.prediction, &moma_core::AlignOptions::default())
-        .with_context(|| format!("aligning {} for --grasp-check", frame.path.display()))?;
     grippers
         .iter()
         .map(|&g| {
             let gripper = g.default_gripper();
-            let mut request =
-                moma_grasp::GraspRequest::new(gripper).with_error_model(aligned.error_model);
-            request.seed = args.seed;
-            moma_grasp::grasp_check(&aligned.depth, gt, &intrinsics, None, &request).with_context(
-                || {
-                    format!(
-                        "--grasp-check {} on {} and {}",
-                        gripper.kind_name(),
-                        frame.path.display(),
-                        args.gt[0].display()
-                    )
-                },
+            moma_grasp::calibration_frame_check(
+                &file.calibration,
+                &frame.prediction,
+                gt,
+                &intrinsics,
+                None,
+                gripper,
+                args.seed,
             )
+            .with_context(|| {
+                format!(
+                    "--grasp-check {} on {} and {}",
+                    gripper.kind_name(),
+                    frame.path.display(),
+                    args.gt[0].display()
+                )
+            })
         })
         .collect()
 }

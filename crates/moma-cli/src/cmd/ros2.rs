@@ -412,7 +412,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             let gripper = args.plan.gripper(g)?;
             let request = args.plan.request(
                 gripper,
-                calib.calibration.error_model,
+                calib.calibration.frame_error_model(None),
                 SceneConfig::default(),
             )?;
             let extrinsics = args
@@ -921,10 +921,16 @@ impl NodeState {
                 ));
                 if let Some((request, extrinsics, mask)) = &self.grasp {
                     let t = Instant::now();
+                    // the error model of this frame's depth (re-aligned: its own background
+                    // error), as `moma grasp` plans with it
+                    let mut request = request.clone();
+                    if request.error_model.is_some() {
+                        request.error_model = aligned.error_model.clone();
+                    }
                     let (n, why) = publish_grasps(
                         &aligned.depth,
                         &k,
-                        request,
+                        &request,
                         extrinsics.as_ref(),
                         mask.as_ref(),
                         &header,
@@ -1069,7 +1075,7 @@ impl NodeState {
         );
         eprintln!("moma ros2: {text}");
         if let Some((request, _, _)) = &mut self.grasp {
-            request.error_model = file.calibration.error_model;
+            request.error_model = file.calibration.frame_error_model(None);
         }
         self.calib = file;
         Ok(text)
