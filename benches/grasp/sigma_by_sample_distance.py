@@ -3,15 +3,15 @@
 from the samples").
 
 Issue 22 asked for a σ that grows near depth edges and away from samples or anchors.  The error
-model has edge parts; it has no part that depends on the distance to the nearest calibration
-sample.  This measures whether one is missing: for each opaque shared set, SIMULATED predictions
+model has edge parts, and a distance part (`sample_distance_gain`) that the calibration fits only
+when its samples reach part of the image.  This measures whether σ holds away from the samples: for each opaque shared set, SIMULATED predictions
 (`moma simulate`, simulator seeds 0–2), SSRA, GSSA and LWLR calibrated on the set's first frame
 (`moma calibrate`, sampling seed 0, 100 samples), every later frame aligned one-shot with its σ
 map (`moma align --sigma-map`), the share of true errors |truth − aligned| within ±1σ in bands of
 the distance (pixels) to the nearest calibration sample: the pixels pooled over the frames and
 the simulator seeds, split at the quartiles and the 90th percentile of that distance.  Where the
-share falls with the distance, σ is too narrow far from the samples and a distance part is
-missing; where it stays level, the model's other parts already carry it.
+share falls with the distance, σ is too narrow far from the samples; where it stays level, the
+model carries the distance.
 
     python3 benches/grasp/sigma_by_sample_distance.py ../shared OUT [--left-half]
 

@@ -82,9 +82,10 @@
 //!    ([`DepthErrorModel::fit_with_sample_distance`]; the calibration gives one when its
 //!    samples reach only part of the image, [`crate::sampling::SampleReach::is_partial`]): least
 //!    squares of the rest's square on `σ0² + gain²·d²` over the flat pixels of step 2, both
-//!    terms non-negative. `σ0²` replaces the flat mean square of step 2 (the cross-validated
-//!    floor, measured at the samples, applies to it); the variance shares keep the whole
-//!    frame's proportions, and step 3 subtracts each pixel's own flat σ. Spread samples get no
+//!    terms non-negative. `σ0²` replaces the flat mean square of step 2 in `sigma_flat_m` (the
+//!    cross-validated floor, measured at the samples, applies to it; `sigma_dense_m` keeps the
+//!    whole frame's); the variance shares keep the whole frame's proportions, and step 3
+//!    subtracts each pixel's own flat σ. Spread samples get no
 //!    such part: over their image the share of true errors within ±1σ stays level with the
 //!    distance (docs/grasping.md, "σ away from the samples").
 //!
@@ -121,8 +122,9 @@
 //! the step share one number per draw (clamped to [−1, 1]: around the expected truth,
 //! [`DepthErrorModel::deviations`], it is drawn around 0), the height factor one number drawn
 //! after all the others (a model without a height part draws what it drew before). The
-//! distance part scales the offset and the fields together at each pixel by `σ_flat(z, d) /
-//! σ_flat(z)` (the error's shape is the frame's, its level grows away from the samples).
+//! distance part draws the offset and the fields at unit level and scales them together at each
+//! pixel by `σ_flat(z, d)` (the error's shape is the frame's, its level grows away from the
+//! samples).
 //! Pixels without depth stay without depth; a draw never leaves a pixel at ≤ 0 m (it keeps the
 //! original there).
 
@@ -703,11 +705,14 @@ impl DepthErrorModel {
         depth_exponent: f64,
         sample_distance_px: Option<ArrayView2<'_, f32>>,
     ) -> Result<Self> {
-        if let (Some(d), Some(f)) = (sample_distance_px, frames.first())
-            && ImageSize::of(&d) != ImageSize::of(&f.aligned_m)
+        if let Some(d) = sample_distance_px
+            && let Some((k, f)) = frames
+                .iter()
+                .enumerate()
+                .find(|(_, f)| ImageSize::of(&f.aligned_m) != ImageSize::of(&d))
         {
             return Err(CoreError::InvalidParameter(format!(
-                "depth error model: sample distance map {} but calibration frames {}",
+                "depth error model: sample distance map {} but calibration frame {k} {}",
                 ImageSize::of(&d),
                 ImageSize::of(&f.aligned_m)
             )));
@@ -868,9 +873,11 @@ impl DepthErrorModel {
         }
         let dense = sum_sq / n_flat as f64;
         // 5. the distance part: the rest's mean square over flat pixels as `σ0² + gain²·d²`
-        let near = match &grid_distance {
-            Some(d) => {
-                let (near, gain) = distance_part(&rests, &prepared, d, flat_relief);
+        let near = match grid_distance
+            .as_ref()
+            .and_then(|d| distance_part(&rests, &prepared, d, flat_relief))
+        {
+            Some((near, gain)) => {
                 m.sample_distance_gain = gain.min(1.0);
                 near
             }
@@ -890,7 +897,9 @@ impl DepthErrorModel {
         // floor is measured there); the variance shares below keep the whole frame's
         // proportions
         m.sigma_flat_m = near.max(cv).sqrt().min(10.0);
-        m.sigma_dense_m = Some(near.sqrt().min(10.0));
+        // the whole frame's dense level: what a re-aligned frame's background σ is compared
+        // with (its anchors lie near and far from the samples alike)
+        m.sigma_dense_m = Some(dense.sqrt().min(10.0));
         if total > 0.0 {
             let mean = sum / n_flat as f64;
             let offset = (mean * mean / total).clamp(0.0, 1.0);
@@ -1445,8 +1454,7 @@ pub struct Draws<'a> {
     hp: Option<Array2<f32>>,
     /// The height above the support plane of the region (`roi` sized).
     height: Option<Array2<f32>>,
-    /// The distance map of the model's distance part (the whole map's size), when it has one
-    /// and a flat σ it scales.
+    /// The distance map of the model's distance part (the whole map's size), when it has one.
     distance: Option<Arc<Array2<f32>>>,
 }
 
@@ -1484,10 +1492,7 @@ impl<'a> Draws<'a> {
             edges: EdgeMaps::of(grown, model.edge_radius_px),
             hp: model.relief_part(grown),
             height: model.height_part(depth, roi),
-            distance: model
-                .distance_map(ImageSize::of(&depth))
-                .filter(|_| model.sigma_flat_m > 0.0)
-                .cloned(),
+            distance: model.distance_map(ImageSize::of(&depth)).cloned(),
         }
     }
 
@@ -1522,7 +1527,14 @@ impl<'a> Draws<'a> {
         let sharpen = (m.edge_sharpening + m.edge_sharpening_sigma * f64::from(normal(&mut rng)))
             .clamp(-1.0, 1.0) as f32;
         let shares = m.variance_shares;
-        let offset = (shares[0].sqrt() * m.sigma_flat_m) as f32 * normal(&mut rng);
+        // with a distance part the flat error is drawn at unit level and scaled per pixel by
+        // its level there (below), which holds where the level at the samples is 0
+        let level = if self.distance.is_some() {
+            1.0
+        } else {
+            m.sigma_flat_m
+        };
+        let offset = (shares[0].sqrt() * level) as f32 * normal(&mut rng);
         let fields: Vec<(f32, SmoothField)> = m
             .scales_px
             .iter()
@@ -1530,7 +1542,7 @@ impl<'a> Draws<'a> {
             .filter(|(_, s)| **s > 0.0)
             .map(|(&scale, &s)| {
                 (
-                    (s.sqrt() * m.sigma_flat_m) as f32,
+                    (s.sqrt() * level) as f32,
                     SmoothField::new(w, h, scale, &mut rng),
                 )
             })
@@ -1574,7 +1586,7 @@ impl<'a> Draws<'a> {
             if let Some(dist) = &self.distance {
                 // the distance part: the flat error's level grows away from the samples
                 for (f, &d) in flat.iter_mut().zip(dist.row(v + v0).iter().skip(u0)) {
-                    *f *= (m.flat_level(Some(d)) / m.sigma_flat_m) as f32;
+                    *f *= m.flat_level(Some(d)) as f32;
                 }
             }
             for (u, z) in out.row_mut(v).iter_mut().enumerate() {
@@ -1602,13 +1614,14 @@ impl<'a> Draws<'a> {
 /// Fit step 5: least squares of the normalised rest's square on `σ0² + gain²·d²` over the flat
 /// pixels of the grids (`rests`, NaN where there is none; `d` the distance to the nearest
 /// sample on the same grid), both terms non-negative (when one is not, the other alone).
-/// Returns `(σ0², gain)`, metres² and metres per pixel at the reference depth.
+/// Returns `(σ0², gain)`, metres² and metres per pixel at the reference depth; `None` without a
+/// flat pixel at a finite distance (the caller keeps the flat mean square, no part).
 fn distance_part(
     rests: &[Array2<f32>],
     prepared: &[FitGrid],
     d: &Array2<f32>,
     flat_relief: f32,
-) -> (f64, f64) {
+) -> Option<(f64, f64)> {
     // Σ1, Σd², Σd⁴, Σy, Σy·d² over y = rest²
     let (mut n, mut s2, mut s4, mut sy, mut syd) = (0.0f64, 0.0, 0.0, 0.0, 0.0);
     for (rest, g) in rests.iter().zip(prepared) {
@@ -1632,7 +1645,7 @@ fn distance_part(
         }
     }
     if n == 0.0 {
-        return (0.0, 0.0);
+        return None;
     }
     let det = n * s4 - s2 * s2;
     let (a, b) = if det > 1e-12 * (n * s4).max(f64::MIN_POSITIVE) {
@@ -1640,13 +1653,13 @@ fn distance_part(
     } else {
         (sy / n, 0.0)
     };
-    if b <= 0.0 {
+    Some(if b <= 0.0 {
         (sy / n, 0.0)
     } else if a < 0.0 {
         (0.0, if s4 > 0.0 { (syd / s4).sqrt() } else { 0.0 })
     } else {
         (a, b.sqrt())
-    }
+    })
 }
 
 fn no_pixels() -> CoreError {

@@ -80,12 +80,34 @@ fn the_fit_gives_back_a_flat_error_that_grows_with_the_distance_to_the_samples()
         m.sigma_flat_m
     );
 
-    // a map of another size is an error naming both
+    // a map without a finite distance (no sample): no part, the fit without a map
+    let none = sample_distance_map(H, W, &[]);
+    let growing = ResidualFrame {
+        aligned_m: aligned.view(),
+        truth_m: truth.view(),
+    };
+    let m =
+        DepthErrorModel::fit_with_sample_distance(&[growing], &[], 0.0, Some(none.view())).unwrap();
+    assert_eq!(m, plain);
+
+    // a map of another size than any frame is an error naming both
     let small = Array2::<f32>::zeros((H, W / 2));
     let e = DepthErrorModel::fit_with_sample_distance(&[frame], &[], 0.0, Some(small.view()))
         .unwrap_err()
         .to_string();
     assert!(e.contains("160") && e.contains("320"), "{e}");
+    let (t2, a2) = (
+        Array2::from_elem((H, W / 2), 1.0f32),
+        small.mapv(|_| 1.01f32),
+    );
+    let other = ResidualFrame {
+        aligned_m: a2.view(),
+        truth_m: t2.view(),
+    };
+    let e = DepthErrorModel::fit_with_sample_distance(&[frame, other], &[], 0.0, Some(d.view()))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("frame 1") && e.contains("160"), "{e}");
 }
 
 /// A uniform model with the part: its σ map is `√(σ0² + (gain·d)²)` at every pixel, and its
@@ -127,6 +149,20 @@ fn the_sigma_map_and_the_draws_grow_with_the_distance() {
             "{px:?}: {sd} against {want}"
         );
     }
+    // a level of 0 at the samples (a fit that passes through them): the draws still carry
+    // the part, `gain · d`, and leave the samples' pixels as they are
+    let mut through = m.clone();
+    through.sigma_flat_m = 0.0;
+    let draws: Vec<Array2<f32>> = (0..400)
+        .map(|k| through.draw(&flat, 3, k).depth_m)
+        .collect();
+    assert!(draws.iter().all(|a| a[near] == 1.0));
+    let x: Vec<f64> = draws.iter().map(|a| f64::from(a[far]) - 1.0).collect();
+    let sd = (x.iter().map(|e| e * e).sum::<f64>() / x.len() as f64).sqrt();
+    let want = GAIN * f64::from(d[far]);
+    assert!((sd / want - 1.0).abs() < 0.12, "{sd} against {want}");
+    assert!((f64::from(through.sigma_map(&flat)[far]) / want - 1.0).abs() < 1e-5);
+
     // a map of another size (not this image's): left out, as without one
     m.sample_distance_px = Some(Arc::new(Array2::zeros((H / 2, W))));
     assert!(

@@ -34,7 +34,7 @@ pub enum GraspError {
     Intrinsics(#[source] CoreError),
     /// The calibration could not align the prediction it was asked to check
     /// ([`crate::calibration_frame_check`]).
-    #[error("aligning the calibration frame: {0}")]
+    #[error("aligning the calibration frame")]
     Align(#[source] CoreError),
     /// The camera→base matrix is not a rigid transform.
     #[error("the camera-to-base matrix is not a rigid transform: {0}")]

@@ -2,7 +2,7 @@
 //!
 //! | Rust | Python |
 //! |---|---|
-//! | [`CoreError`] (bad arrays, parameters, degenerate fits) and array checks of this crate | `moma.InvalidInputError` (`MomaError`, `ValueError`) |
+//! | [`CoreError`] (bad arrays, parameters, degenerate fits), `moma_grasp::GraspError` and array checks of this crate | `moma.InvalidInputError` (`MomaError`, `ValueError`) |
 //! | [`IoError`] (every file problem: missing, unreadable, malformed) | `moma.MomaFileError` (`MomaError`, `OSError`) |
 //! | [`DepthError`]: `Shape` → invalid input, `Weights` → file, `Backend`/`Unavailable` | `moma.BackendError` (`MomaError`, `RuntimeError`) |
 //! | `moma_train::TrainError`: bad options or data → invalid input, files → file, a failed step (non-finite loss) → backend | as the row of its kind |
@@ -75,6 +75,12 @@ impl IntoPyErr for CoreError {
 impl IntoPyErr for IoError {
     fn into_py_err(self) -> PyErr {
         err(Kind::File, chain(&self))
+    }
+}
+
+impl IntoPyErr for moma_grasp::GraspError {
+    fn into_py_err(self) -> PyErr {
+        err(Kind::Value, chain(&self))
     }
 }
 

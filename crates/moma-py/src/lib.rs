@@ -1033,9 +1033,7 @@ fn plan_grasps<'py>(
         ..SceneConfig::default()
     };
     if let Some(q) = grasp_quality {
-        request.quality = q
-            .parse()
-            .map_err(|e: moma_grasp::GraspError| value_err(e.to_string()))?;
+        request.quality = q.parse().py()?;
     }
     request.validate().map_err(|e| value_err(e.to_string()))?;
     let (_, outcome) = py
@@ -1090,7 +1088,7 @@ fn grasp_check<'py>(
                 seed,
             )
         })
-        .map_err(|e| value_err(e.to_string()))?;
+        .py()?;
     to_py_json(py, &check)
 }
 

@@ -42,8 +42,10 @@ pub struct CalibrateArgs {
     pub camera: Option<PathBuf>,
     /// Draw calibration samples only inside this mask (8-bit PNG, nonzero = inside). Several
     /// frames: one mask for all, or one per frame in the order of --gt. A mask that leaves much
-    /// of the image beyond the samples' reach is warned about: the error model's σ is too narrow
-    /// there (`sample_reach` in --json; docs/grasping.md, "σ away from the samples").
+    /// of the image beyond the samples' reach is warned about (`sample_reach` in --json): the
+    /// alignment extrapolates there, and the error model gains a σ that grows with the distance
+    /// to the samples (`sample_distance_gain`), still too narrow on objects far from them
+    /// (docs/grasping.md, "σ away from the samples").
     #[arg(long, value_name = "PNG", num_args = 1..)]
     pub mask: Vec<PathBuf>,
     /// Normalise over this workspace mask instead of the whole map (same mask at run time).
