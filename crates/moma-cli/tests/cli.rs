@@ -1187,4 +1187,16 @@ fn calibrate_warns_when_its_samples_reach_part_of_the_image() {
             && err.contains("--mask"),
         "{err}"
     );
+    // the calibration fitted the error model's distance part, and the warning says how far σ
+    // grows
+    let file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+    let gain = file["calibration"]["error_model"]["sample_distance_gain"]
+        .as_f64()
+        .unwrap_or(0.0);
+    assert!(gain > 0.0, "{}", file["calibration"]["error_model"]);
+    assert!(
+        err.contains("grows from") && err.contains(&format!("{p90:.0} px away")),
+        "{err}"
+    );
 }

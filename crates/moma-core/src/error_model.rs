@@ -968,6 +968,13 @@ impl DepthErrorModel {
         Ok(m)
     }
 
+    /// The flat σ at the reference depth `depth_ref_m` of a pixel `distance_px` (pixels) from
+    /// the nearest calibration sample, metres: `√(sigma_flat_m² + (sample_distance_gain · d)²)`
+    /// (`sigma_flat_m` without a distance part).
+    pub fn flat_sigma_at_distance_m(&self, distance_px: f64) -> f64 {
+        self.flat_level(Some(distance_px as f32))
+    }
+
     /// The flat σ's level at a pixel `distance_px` from the nearest calibration sample, metres
     /// at the reference depth: `√(sigma_flat_m² + (sample_distance_gain · d)²)`;
     /// `sigma_flat_m` without a distance (`None`, or a non-finite one: no sample at all).

@@ -425,20 +425,35 @@ impl SampleReach {
 
     /// The warning `moma calibrate` and Python's `calibrate` give when the reach
     /// [`Self::is_partial`] (`None` otherwise); `mask_option` names how the caller takes a
-    /// sample mask (`--mask`, `mask=`).
-    pub fn warning(&self, mask_option: &str) -> Option<String> {
-        self.is_partial().then(|| {
-            format!(
-                "the {} calibration samples reach only part of the image: 90 % of the pixels \
-                 with depth lie within {:.0} px of one, where as many samples spread evenly \
-                 would reach them within {:.0} px. Beyond them the alignment extrapolates; the \
-                 error model's σ grows with the distance to the samples as this frame's own \
-                 error did, which on objects far from them is still too narrow \
-                 (docs/grasping.md, \"σ away from the samples\"); draw the samples \
-                 ({mask_option}) over where the objects will be",
-                self.samples, self.p90_px, self.uniform_p90_px
-            )
-        })
+    /// sample mask (`--mask`, `mask=`). With the calibration's error `model`, it says how far
+    /// the model's flat σ grows between the samples and [`Self::p90_px`] away from them.
+    pub fn warning(
+        &self,
+        mask_option: &str,
+        model: Option<&crate::error_model::DepthErrorModel>,
+    ) -> Option<String> {
+        if !self.is_partial() {
+            return None;
+        }
+        let growth = match model {
+            Some(m) if m.sample_distance_gain > 0.0 => format!(
+                "; the error model's flat σ (at {:.2} m) grows from {:.1} mm at the samples to \
+                 {:.1} mm {:.0} px away, as this frame's own error did",
+                m.depth_ref_m,
+                1e3 * m.flat_sigma_at_distance_m(0.0),
+                1e3 * m.flat_sigma_at_distance_m(self.p90_px),
+                self.p90_px
+            ),
+            _ => String::new(),
+        };
+        Some(format!(
+            "the {} calibration samples reach only part of the image: 90 % of the pixels with \
+             depth lie within {:.0} px of one, where as many samples spread evenly would reach \
+             them within {:.0} px. Beyond them the alignment extrapolates{growth}; σ is still too \
+             narrow on objects far from the samples (docs/grasping.md, \"σ away from the \
+             samples\"): draw the samples ({mask_option}) over where the objects will be",
+            self.samples, self.p90_px, self.uniform_p90_px
+        ))
     }
 }
 

@@ -62,10 +62,21 @@ fn samples_in_half_the_image_are_partial_and_spread_ones_are_not() {
             "seed {seed}: {half:?}"
         );
         assert!(half.is_partial());
-        assert_eq!(spread.warning("--mask"), None);
-        let w = half.warning("--mask").unwrap();
+        assert_eq!(spread.warning("--mask", None), None);
+        let w = half.warning("--mask", None).unwrap();
         assert!(
             w.contains("100 calibration samples") && w.contains("(--mask)"),
+            "{w}"
+        );
+        assert!(!w.contains("grows"), "{w}");
+        // with a model's distance part: σ at the samples and p90 away, in millimetres
+        let mut model = moma_core::DepthErrorModel::uniform(0.004).unwrap();
+        model.sample_distance_gain = 3e-5;
+        let w = half.warning("--mask", Some(&model)).unwrap();
+        let far = 1e3 * 0.004f64.hypot(3e-5 * half.p90_px);
+        assert!(
+            w.contains("grows from 4.0 mm at the samples")
+                && w.contains(&format!("to {far:.1} mm {:.0} px away", half.p90_px)),
             "{w}"
         );
     }

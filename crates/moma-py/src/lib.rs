@@ -832,7 +832,7 @@ fn calibrate(
             PyCalibrateError::Core(e) => e.into_py_err(),
             PyCalibrateError::Io(e) => e.into_py_err(),
         })?;
-    if let Some(w) = reach.and_then(|r| r.warning("mask=")) {
+    if let Some(w) = reach.and_then(|r| r.warning("mask=", inner.error_model.as_ref())) {
         PyErr::warn(
             py,
             &py.get_type::<pyo3::exceptions::PyUserWarning>(),

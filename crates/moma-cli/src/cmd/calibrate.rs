@@ -437,7 +437,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         &file.calibration.samples,
         &gts.iter().collect::<Vec<_>>(),
     );
-    if let Some(w) = reach.and_then(|r| r.warning("--mask")) {
+    if let Some(w) = reach.and_then(|r| r.warning("--mask", file.calibration.error_model.as_ref()))
+    {
         eprintln!("warning: {w}");
     }
     let report = &file.calibration.report;
