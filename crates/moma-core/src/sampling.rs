@@ -464,11 +464,14 @@ pub fn sample_reach_over(
     truths: &[&MetricDepth],
 ) -> Option<SampleReach> {
     let first = truths.first()?;
-    let valid = Array2::from_shape_fn(first.depth_m.dim(), |ix| {
-        truths
-            .iter()
-            .any(|t| t.depth_m.get(ix).is_some_and(|&z| is_valid_depth(z)))
-    });
+    let mut valid = first.depth_m.mapv(is_valid_depth);
+    for t in &truths[1..] {
+        if t.depth_m.dim() == valid.dim() {
+            ndarray::Zip::from(&mut valid)
+                .and(&t.depth_m)
+                .for_each(|v, &z| *v |= is_valid_depth(z));
+        }
+    }
     let uv: Vec<(f64, f64)> = samples.samples.iter().map(|s| (s.u, s.v)).collect();
     sample_reach(&uv, &valid)
 }
@@ -482,11 +485,17 @@ pub fn sample_reach(uv: &[(f64, f64)], valid: &Array2<bool>) -> Option<SampleRea
     if uv.is_empty() || area == 0 {
         return None;
     }
-    // squared distance from pixel (u, v) to the nearest sample
+    // squared distance from pixel (u, v) to the nearest sample (f32: pixel coordinates and
+    // their squares are exact; a loop the compiler vectorises)
+    let (su, sv): (Vec<f32>, Vec<f32>) = uv.iter().map(|&(u, v)| (u as f32, v as f32)).unzip();
     let nearest = |(u, v): (usize, usize)| {
-        uv.iter()
-            .map(|&(su, sv)| (u as f64 - su).powi(2) + (v as f64 - sv).powi(2))
-            .fold(f64::INFINITY, f64::min)
+        let (u, v) = (u as f32, v as f32);
+        f64::from(
+            su.iter()
+                .zip(&sv)
+                .map(|(&a, &b)| (u - a) * (u - a) + (v - b) * (v - b))
+                .fold(f32::INFINITY, f32::min),
+        )
     };
     let (h, w) = valid.dim();
     let mut d2: Vec<f64> = (0..h)
