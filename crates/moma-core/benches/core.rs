@@ -142,7 +142,7 @@ fn bench_error_model(c: &mut Criterion) {
     g.bench_function("sample_reach_over_640x480_n100", |b| {
         b.iter(|| moma_core::sampling::sample_reach_over(black_box(&cal.samples), &[&gt_m]))
     });
-    let uv: Vec<(f64, f64)> = cal.samples.samples.iter().map(|s| (s.u, s.v)).collect();
+    let uv = cal.samples.pixels_uv();
     g.bench_function("sample_distance_map_640x480_n100", |b| {
         b.iter(|| moma_core::sampling::sample_distance_map(480, 640, black_box(&uv)))
     });

@@ -628,12 +628,7 @@ fn fit_error_model(
 /// any frame: the frames share one camera), for the error model's distance part; `None`
 /// without samples.
 fn sample_distance(calibration: &Calibration) -> Option<Array2<f32>> {
-    let uv: Vec<(f64, f64)> = calibration
-        .samples
-        .samples
-        .iter()
-        .map(|s| (s.u, s.v))
-        .collect();
+    let uv = calibration.samples.pixels_uv();
     if uv.is_empty() {
         return None;
     }

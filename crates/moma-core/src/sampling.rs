@@ -472,8 +472,7 @@ pub fn sample_reach_over(
                 .for_each(|v, &z| *v |= is_valid_depth(z));
         }
     }
-    let uv: Vec<(f64, f64)> = samples.samples.iter().map(|s| (s.u, s.v)).collect();
-    sample_reach(&uv, &valid)
+    sample_reach(&samples.pixels_uv(), &valid)
 }
 
 /// How far the samples at pixels `uv` (column u, row v) reach over the pixels where `valid`

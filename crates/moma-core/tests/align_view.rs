@@ -3,6 +3,8 @@
 //! (NaN where the other is NaN) for every covered combination, the fallback for the others, any
 //! strides of input and output, workspace masks, and the same errors.
 
+mod common;
+
 use moma_core::align::lwlr::LwlrConfig;
 use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{AlignmentModel, Method};
@@ -48,20 +50,7 @@ fn calibration(
     workspace: Option<&Mask>,
 ) -> Option<Calibration> {
     let (gt, pred) = scene(kind);
-    let config = CalibrationConfig {
-        method,
-        normalisation: NormalisationConfig {
-            method: norm,
-            space,
-        },
-        sampling: SamplingConfig {
-            n: 60,
-            seed: 5,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    };
+    let config = common::calibration_config(method, norm, space, 60, 5);
     // Some combinations are refused by design (raw needs depth / none); skip those.
     calibrate(
         &[CalibrationFrame::new(&Prediction::new(pred, kind), &gt)],

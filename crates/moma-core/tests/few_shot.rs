@@ -6,7 +6,7 @@ mod common;
 use moma_core::AlignOptions;
 use moma_core::align::ssra::SsraConfig;
 use moma_core::align::{Method, SampleSet};
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig, normalise};
+use moma_core::normalise::{AlignSpace, Normalisation, normalise};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate, frame_seed};
 use moma_core::sampling::{SamplingConfig, sample_pixels};
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
@@ -32,20 +32,7 @@ fn frame_pred(gt: &MetricDepth, a: f64, b: f64, noise: f64, seed: u64) -> Predic
 }
 
 fn config(method: Method, space: AlignSpace, norm: Normalisation, seed: u64) -> CalibrationConfig {
-    CalibrationConfig {
-        method,
-        normalisation: NormalisationConfig {
-            method: norm,
-            space,
-        },
-        sampling: SamplingConfig {
-            n: 60,
-            seed,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    }
+    common::calibration_config(method, norm, space, 60, seed)
 }
 
 /// One frame gives bit-identical results to `calibrate` and to the one-shot steps written out

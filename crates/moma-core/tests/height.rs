@@ -3,11 +3,12 @@
 //! and the draws of the part, and the calibration's object pull against least squares written
 //! out here.
 
+mod common;
+
 use moma_core::align::Method;
 use moma_core::height::{height_above_plane, support_plane};
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{CalibrationConfig, CalibrationFrame, calibrate};
-use moma_core::sampling::SamplingConfig;
 use moma_core::{DepthErrorModel, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
@@ -166,20 +167,7 @@ fn the_height_part_of_the_sigma_map_and_of_the_draws() {
 
 /// A calibration of `method` in inverse space, 100 samples drawn with `seed`.
 fn inverse_space(method: Method, norm: Normalisation, seed: u64) -> CalibrationConfig {
-    CalibrationConfig {
-        method,
-        normalisation: NormalisationConfig {
-            method: norm,
-            space: AlignSpace::Inverse,
-        },
-        sampling: SamplingConfig {
-            n: 100,
-            seed,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    }
+    common::calibration_config(method, norm, AlignSpace::Inverse, 100, seed)
 }
 
 /// A prediction that does not follow depth at all (a depth model's random weights): the

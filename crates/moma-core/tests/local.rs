@@ -1,6 +1,8 @@
 //! `ssra-local`, `gssa-local` and `auto` (docs/method.md §10) on synthetic scenes with
 //! known answers.
 
+mod common;
+
 use moma_core::ImageSize;
 use moma_core::align::local::{
     LocalBase, LocalConfig, LocalModel, fit as fit_local, min_bandwidth_px,
@@ -484,9 +486,9 @@ fn names_round_trip() {
 
 #[test]
 fn pipeline_calibrates_validates_and_round_trips_local_and_auto() {
-    use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-    use moma_core::pipeline::{Calibration, CalibrationConfig, calibrate};
-    use moma_core::sampling::SamplingConfig;
+    use moma_core::normalise::{AlignSpace, Normalisation};
+    use moma_core::pipeline::{Calibration, calibrate};
+
     use moma_core::{MetricDepth, Prediction, PredictionKind};
     let gt = Array2::from_shape_fn((H, W), |(v, u)| depth_m(u as f64, v as f64) as f32);
     let z = Array2::from_shape_fn((H, W), |(v, u)| zhat(u as f64, v as f64, 0.15) as f32);
@@ -495,20 +497,13 @@ fn pipeline_calibrates_validates_and_round_trips_local_and_auto() {
         Prediction::new(z, PredictionKind::MetricDepth),
     );
     for name in ["ssra-local", "gssa-local", "auto"] {
-        let cfg = CalibrationConfig {
-            method: method(name),
-            normalisation: NormalisationConfig {
-                method: Normalisation::None,
-                space: AlignSpace::Depth,
-            },
-            sampling: SamplingConfig {
-                n: 100,
-                seed: 3,
-                ..Default::default()
-            },
-            robust: None,
-            workspace: None,
-        };
+        let cfg = common::calibration_config(
+            method(name),
+            Normalisation::None,
+            AlignSpace::Depth,
+            100,
+            3,
+        );
         let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).unwrap();
         assert_eq!(cal.report.method, name);
         cal.validate().unwrap();

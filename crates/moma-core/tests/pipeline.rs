@@ -8,7 +8,6 @@ use moma_core::align::{AlignmentModel, Method};
 use moma_core::metrics::DepthMetrics;
 use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
 use moma_core::pipeline::{Calibration, CalibrationConfig, calibrate};
-use moma_core::sampling::SamplingConfig;
 use moma_core::{AlignOptions, CalibrationFrame};
 use moma_core::{CoreError, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
@@ -30,20 +29,7 @@ fn scene() -> (MetricDepth, Prediction) {
 }
 
 fn config(method: Method) -> CalibrationConfig {
-    CalibrationConfig {
-        method,
-        normalisation: NormalisationConfig {
-            method: Normalisation::None,
-            space: AlignSpace::Depth,
-        },
-        sampling: SamplingConfig {
-            n: 100,
-            seed: 3,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    }
+    common::calibration_config(method, Normalisation::None, AlignSpace::Depth, 100, 3)
 }
 
 #[test]

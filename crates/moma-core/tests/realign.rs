@@ -1,16 +1,15 @@
 //! Per-frame re-alignment on static anchors: a synthetic fixed-camera scene whose test frame
 //! adds an object and whose depth model output changes its global scale and shift.
 
+mod common;
+
 use moma_core::align::Method;
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::realign::{
     AnchorStore, AnchorTarget, CorrectionModel, RealignConfig, RealignReport, find_anchors,
 };
-use moma_core::sampling::SamplingConfig;
 use moma_core::{AlignOptions, CalibrationFrame, PredictionInput};
-use moma_core::{
-    Calibration, CalibrationConfig, CoreError, MetricDepth, Prediction, PredictionKind, calibrate,
-};
+use moma_core::{Calibration, CoreError, MetricDepth, Prediction, PredictionKind, calibrate};
 use ndarray::{Array2, Array3, ArrayView3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -98,20 +97,8 @@ fn calibration_on(method: Method, g: &MetricDepth) -> Calibration {
 /// The calibration of `method` on ground truth `g` and the depth model's output `pred`, with
 /// the anchor store of the background's RGB.
 fn calibration_from(method: Method, g: &MetricDepth, pred: &Prediction) -> Calibration {
-    let config = CalibrationConfig {
-        method,
-        normalisation: NormalisationConfig {
-            method: Normalisation::None,
-            space: AlignSpace::Inverse,
-        },
-        sampling: SamplingConfig {
-            n: 100,
-            seed: 3,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    };
+    let config =
+        common::calibration_config(method, Normalisation::None, AlignSpace::Inverse, 100, 3);
     calibrate(&[CalibrationFrame::new(pred, g)], &config)
         .unwrap()
         .with_anchors(&grey(rgb(false, 1.0, 0, 1).view()), g, pred)

@@ -1,6 +1,8 @@
 //! Robust fits (docs/method.md §2): Huber / Tukey IRLS and RANSAC for gssa, ssra, gssa-local and
 //! ssra-local, on synthetic scenes with known answers and injected gross outliers.
 
+mod common;
+
 use moma_core::CalibrationFrame;
 use moma_core::align::gssa::{self, GssaModel};
 use moma_core::align::robust::{
@@ -9,9 +11,8 @@ use moma_core::align::robust::{
 use moma_core::align::ssra::{self, SsraConfig};
 use moma_core::align::{AlignmentModel, Method, Sample, SampleSet};
 use moma_core::error::CoreError;
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
-use moma_core::sampling::SamplingConfig;
-use moma_core::{CalibrationConfig, ImageSize, MetricDepth, Prediction, PredictionKind, calibrate};
+use moma_core::normalise::{AlignSpace, Normalisation};
+use moma_core::{ImageSize, MetricDepth, Prediction, PredictionKind, calibrate};
 use ndarray::Array2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -478,20 +479,8 @@ fn pipeline_calibration_with_robust_fit() {
             truth[[v, u]]
         }
     }));
-    let mut config = CalibrationConfig {
-        method: Method::Gssa,
-        normalisation: NormalisationConfig {
-            method: Normalisation::None,
-            space: AlignSpace::Depth,
-        },
-        sampling: SamplingConfig {
-            n: 100,
-            seed: 1,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    };
+    let mut config =
+        common::calibration_config(Method::Gssa, Normalisation::None, AlignSpace::Depth, 100, 1);
     let plain = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config).unwrap();
     let AlignmentModel::Gssa(p) = plain.model else {
         panic!()

@@ -4,13 +4,15 @@
 //! exactly), the draws' spread, and a calibration whose left-half samples extrapolate a
 //! distortion they do not see.
 
+mod common;
+
 use std::sync::Arc;
 
 use moma_core::align::Method;
 use moma_core::error_model::ResidualFrame;
-use moma_core::normalise::{AlignSpace, Normalisation, NormalisationConfig};
+use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{AlignOptions, CalibrationConfig, CalibrationFrame, calibrate};
-use moma_core::sampling::{SamplingConfig, sample_distance_map};
+use moma_core::sampling::sample_distance_map;
 use moma_core::{DepthErrorModel, ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use ndarray::Array2;
 
@@ -176,20 +178,13 @@ fn the_sigma_map_and_the_draws_grow_with_the_distance() {
 
 /// GSSA in depth space, 100 samples of `seed`.
 fn config(seed: u64) -> CalibrationConfig {
-    CalibrationConfig {
-        method: Method::Gssa,
-        normalisation: NormalisationConfig {
-            method: Normalisation::None,
-            space: AlignSpace::Depth,
-        },
-        sampling: SamplingConfig {
-            n: 100,
-            seed,
-            ..Default::default()
-        },
-        robust: None,
-        workspace: None,
-    }
+    common::calibration_config(
+        Method::Gssa,
+        Normalisation::None,
+        AlignSpace::Depth,
+        100,
+        seed,
+    )
 }
 
 /// The share of the pixels in columns `cols` whose true error is within ±1σ.

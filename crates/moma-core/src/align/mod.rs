@@ -133,6 +133,11 @@ impl SampleSet {
         self.samples.is_empty()
     }
 
+    /// The samples' pixel positions `(u, v)` (column, row), in order.
+    pub fn pixels_uv(&self) -> Vec<(f64, f64)> {
+        self.samples.iter().map(|s| (s.u, s.v)).collect()
+    }
+
     /// Checks every sample: finite pixel position inside the image, finite ẑ, valid depth (> 0 m).
     ///
     /// # Errors

@@ -79,3 +79,28 @@ pub fn distorted_prediction(gt: &Array2<f32>) -> Array2<f32> {
         (1.7 * z * plane * bumps - 0.4) as f32
     })
 }
+
+/// A calibration of `method` with normalisation `norm` in `space`, `n` random samples drawn
+/// with `seed`, no robust fit and no workspace: the configuration most tests calibrate with.
+pub fn calibration_config(
+    method: moma_core::align::Method,
+    norm: moma_core::Normalisation,
+    space: moma_core::AlignSpace,
+    n: usize,
+    seed: u64,
+) -> moma_core::CalibrationConfig {
+    moma_core::CalibrationConfig {
+        method,
+        normalisation: moma_core::NormalisationConfig {
+            method: norm,
+            space,
+        },
+        sampling: moma_core::sampling::SamplingConfig {
+            n,
+            seed,
+            ..Default::default()
+        },
+        robust: None,
+        workspace: None,
+    }
+}
