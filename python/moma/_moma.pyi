@@ -207,7 +207,7 @@ class Calibration:
         aligned depth ``depth_m``, as ``moma align --sigma-map`` writes it; ``report``: the
         frame's re-alignment report (widens the flat σ)."""
     def save(self, path: _Path) -> None:
-        """Writes the CLI's calibration format (``moma-calibration`` v4 JSON, atomic), the
+        """Writes the CLI's calibration format (``moma-calibration`` JSON, the current version, atomic), the
         workspace mask and anchor store (if any) embedded: the file is self-contained."""
     @staticmethod
     def load(path: _Path) -> "Calibration":
@@ -243,6 +243,10 @@ class Calibration:
         for a robust fit."""
     def to_json(self) -> str:
         """The calibration file's JSON text."""
+    @staticmethod
+    def from_json(text: str) -> "Calibration":
+        """A calibration from a calibration file's JSON text (``to_json``'s inverse; checked as
+        ``load`` checks a file). Calibrations pickle through it."""
 
 def calibrate(
     pred: Union[npt.ArrayLike, Sequence[npt.ArrayLike]],
@@ -326,7 +330,9 @@ def plan_grasps(
     ``sigma_m``), None without one; ``grasp_quality`` ``"robust"`` (the default with an error
     model) ranks by k / N, ``"nominal"`` by the planner's score. ``mask``: the objects (nonzero
     = inside); without one, regions over 10 mm above the support plane that do not touch the
-    image border (unless ``keep_border_objects``). An empty list when nothing is graspable."""
+    image border (unless ``keep_border_objects``). An empty list when nothing is graspable,
+    with the reason as a ``UserWarning`` (e.g. every grasp below ``min_success_prob``, which
+    with N draws cannot exceed ``(N + 1) / (N + 2)``)."""
 
 def grasp_check(
     calibration: Calibration,

@@ -109,7 +109,8 @@ def test_bad_intrinsics():
         moma.Intrinsics(-1.0, 100.0, 10.0, 10.0, 20, 20)
     with pytest.raises(moma.InvalidInputError, match="empty"):
         moma.Intrinsics(1.0, 1.0, 0.0, 0.0, 0, 20)
-    with pytest.raises(OverflowError):  # a negative pixel count is not an unsigned integer
+    # a negative pixel count is named (not a bare OverflowError from the binding)
+    with pytest.raises(moma.InvalidInputError, match="width=-5: must be a non-negative integer"):
         moma.Intrinsics(1.0, 1.0, 0.0, 0.0, -5, 20)
 
 
@@ -139,3 +140,87 @@ def test_bad_rgb_for_points():
         moma.depth_to_points(d, cam, rgb=np.zeros((5, 4, 3), np.uint8))
     with pytest.raises(moma.InvalidInputError, match="size mismatch"):
         moma.depth_to_points(np.ones((5, 4), np.float32), cam)
+
+
+def test_negative_counts_and_seeds_name_the_argument():
+    pred, gt = scene()
+    for kw in ("samples", "seed", "edge_margin_px"):
+        with pytest.raises(moma.InvalidInputError, match=f"{kw}=-1: must be a non-negative integer"):
+            moma.calibrate(pred, gt, kind="relative-disparity", **{kw: -1})
+    cam = moma.Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    for kw in ("top", "seed", "grasp_draws"):
+        with pytest.raises(moma.InvalidInputError, match=f"{kw}=-1"):
+            moma.plan_grasps(gt, cam, **{kw: -1})
+    with pytest.raises(moma.InvalidInputError, match="seed=18446744073709551616: too large"):
+        moma.plan_grasps(gt, cam, seed=2**64)
+
+
+def test_millimetres_are_refused_where_metres_are_expected(cal):
+    pred, gt = scene()
+    cam = moma.Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    mm16 = np.nan_to_num(gt * 1000.0).astype(np.uint16)  # what a depth PNG holds
+    mm32 = gt * 1000.0  # the same, cast to float without dividing
+    for mm, says in ((mm16, "dtype uint16: depth in metres is floating point"), (mm32, "looks like millimetres")):
+        with pytest.raises(moma.InvalidInputError, match=says):
+            moma.calibrate(pred, mm, kind="relative-disparity")
+        with pytest.raises(moma.InvalidInputError, match=says):
+            moma.plan_grasps(mm, cam)
+        with pytest.raises(moma.InvalidInputError, match=says):
+            moma.metrics(mm, gt)
+        with pytest.raises(moma.InvalidInputError, match=says):
+            cal.sigma_map(mm)
+    with pytest.raises(moma.InvalidInputError, match="dtype bool"):
+        moma.metrics(np.ones(gt.shape, bool), gt)
+    # metres pass, in any float dtype
+    assert moma.metrics(gt.astype(np.float64), gt)["mae"] == 0.0
+
+
+def test_a_failed_realigned_align_into_leaves_out_as_it_was():
+    pred, gt = scene()
+    rgb = np.random.default_rng(3).integers(0, 255, (*pred.shape, 3), dtype=np.uint8)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=rgb)
+    out = np.full(pred.shape, 7.0, np.float32)
+    with pytest.raises(moma.InvalidInputError, match="rgb"):
+        cal.align_realigned_into(pred, rgb[:60], out)
+    assert (out == 7.0).all()
+    # and the anchors' RGB of another size is named with the sizes the right way round
+    with pytest.raises(moma.InvalidInputError, match=r"anchors_rgb is 160x60 \(WxH\), expected 160x120"):
+        moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=rgb[:60])
+
+
+def test_read_depth_gives_nan_where_there_is_no_depth(tmp_path):
+    p = tmp_path / "z.npy"
+    np.save(p, np.array([[0.0, -1.0, np.inf, 0.5]], np.float32))
+    z = moma.read_depth(str(p))
+    assert np.isnan(z[0, :3]).all() and z[0, 3] == np.float32(0.5)
+    # an empty map is not written (it could not be read back)
+    for name in ("e.npy", "e.pfm", "e.png"):
+        with pytest.raises(moma.MomaError):
+            moma.write_depth(str(tmp_path / name), np.zeros((0, 3), np.float32))
+        assert not (tmp_path / name).exists()
+
+
+def test_calibrations_and_cameras_pickle_and_read_back_from_json(cal):
+    import copy
+    import pickle
+
+    back = pickle.loads(pickle.dumps(cal))
+    assert back.to_json() == cal.to_json()
+    assert moma.Calibration.from_json(cal.to_json()).to_json() == cal.to_json()
+    pred, _ = scene()
+    assert np.array_equal(copy.deepcopy(cal).align(pred), cal.align(pred), equal_nan=True)
+    cam = moma.Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    assert pickle.loads(pickle.dumps(cam)) == cam and copy.deepcopy(cam) == cam
+    with pytest.raises(moma.MomaFileError, match="json text"):
+        moma.Calibration.from_json("{\"format\": \"moma-calibration\"")
+
+
+def test_a_mask_given_as_a_list_is_read_as_numpy_reads_it():
+    pred, gt = scene()
+    inside = np.zeros(pred.shape, bool)
+    inside[5:115, 5:155] = True
+    inside[:, 80] = False  # a column without samples: the mask is used, not ignored
+    a = moma.calibrate(pred, gt, kind="relative-disparity", mask=inside)
+    b = moma.calibrate(pred, gt, kind="relative-disparity", mask=inside.tolist())
+    assert np.array_equal(a.samples, b.samples)
+    assert inside[a.samples[:, 1].astype(int), a.samples[:, 0].astype(int)].all()

@@ -50,7 +50,8 @@ def test_suction_on_the_top_face_and_parallel_across_the_narrow_side():
 def test_nothing_graspable_is_an_empty_list_and_bad_input_raises():
     cam, depth, _ = box_scene()
     table = np.full_like(depth, TABLE_M)
-    assert moma.plan_grasps(table, cam, gripper="suction") == []
+    with pytest.warns(UserWarning, match="no grasp: no object"):  # the reason, as the CLI prints it
+        assert moma.plan_grasps(table, cam, gripper="suction") == []
     with pytest.raises(ValueError, match="gripper"):
         moma.plan_grasps(depth, cam, gripper="vacuum")
     with pytest.raises(ValueError):
@@ -103,8 +104,13 @@ def test_a_uniform_sigma_gives_probabilities_and_a_minimum_filters_them():
     # the same seed draws the same depth maps: the same probabilities
     again = moma.plan_grasps(depth, cam, gripper="suction", mask=box, top=5, sigma_m=0.003)
     assert [g["success_prob"] for g in again] == [g["success_prob"] for g in robust]
-    # a minimum no grasp reaches under a 50 mm σ (compliance 15 mm): an empty list
-    assert moma.plan_grasps(depth, cam, gripper="suction", mask=box, sigma_m=0.05, min_success_prob=1.0) == []
+    # a minimum no grasp reaches under a 50 mm σ (compliance 15 mm): an empty list, with the
+    # reason as a warning (1 is beyond what 4 draws can give: (4 + 1) / (4 + 2))
+    with pytest.warns(UserWarning, match=r"below the minimum 1\.00.*with 4 depth draws no grasp can exceed 0\.83"):
+        assert moma.plan_grasps(depth, cam, gripper="suction", mask=box, sigma_m=0.05, min_success_prob=1.0) == []
+    # a reachable minimum above every grasp: the reason asks for another image
+    with pytest.warns(UserWarning, match="re-image"):
+        assert moma.plan_grasps(depth, cam, gripper="suction", mask=box, sigma_m=0.05, min_success_prob=0.8) == []
     for bad in (dict(grasp_draws=0), dict(min_success_prob=1.5), dict(grasp_quality="best")):
         with pytest.raises(ValueError):
             moma.plan_grasps(depth, cam, gripper="suction", sigma_m=0.003, **bad)

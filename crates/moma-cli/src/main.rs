@@ -6,7 +6,7 @@
 
 mod cmd;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// Metric depth from one RGB camera: calibrate once from one RGB-D frame, align every later frame.
 #[derive(Debug, Parser)]
@@ -80,8 +80,19 @@ enum Command {
     Lora(cmd::lora::LoraArgs),
 }
 
+/// The command line with negative numbers taken as values in every subcommand: without it
+/// `--min-success-prob -0.1` reads `-0` as an unknown flag, and the error names the wrong
+/// problem. With it the value reaches its own check, which says what is out of range.
+fn command() -> clap::Command {
+    fn negative_numbers_as_values(c: clap::Command) -> clap::Command {
+        c.allow_negative_numbers(true)
+            .mut_subcommands(negative_numbers_as_values)
+    }
+    negative_numbers_as_values(Cli::command())
+}
+
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
     let result = match &cli.command {
         Command::Calibrate(args) => cmd::calibrate::run(args),
         Command::Align(args) => cmd::align::run(args),

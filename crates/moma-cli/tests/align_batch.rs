@@ -88,4 +88,74 @@ fn many_frames_give_the_same_files_and_order_on_any_thread_count() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("f07.npy"), "{err}");
+
+    // inputs that do not fit are refused before a frame's files are written: a camera of
+    // another size (named, nothing written), an RGB for the cloud of another size (that
+    // frame's depth and σ maps are not left behind without their cloud)
+    let frame = s(&pred.join("frame_01.npy")).to_string();
+    let camera = |w: usize, h: usize, name: &str| {
+        let path = tmp.path().join(name);
+        let k = moma_core::Intrinsics {
+            width: w,
+            height: h,
+            fx: w as f64,
+            fy: w as f64,
+            cx: w as f64 / 2.0,
+            cy: h as f64 / 2.0,
+        };
+        moma_io::write_camera(&path, &k).unwrap();
+        path
+    };
+    let size = moma_io::read_prediction(&frame, moma_core::PredictionKind::RelativeDisparity)
+        .unwrap()
+        .size();
+    let right = camera(size.width, size.height, "camera.json");
+    let small = camera(size.width / 2, size.height / 2, "camera-small.json");
+    let small_rgb = tmp.path().join("small.png");
+    moma_io::write_rgb(&small_rgb, &image::RgbImage::new(8, 6)).unwrap();
+    for (out, extra, names) in [
+        ("cam", vec!["--camera", s(&small)], "camera-small.json"),
+        (
+            "rgb",
+            vec!["--camera", s(&right), "--ply-rgb", s(&small_rgb)],
+            "small.png",
+        ),
+    ] {
+        let dir = tmp.path().join(out);
+        let mut args = vec![
+            "align",
+            "--calib",
+            s(&calib),
+            "--pred",
+            &frame,
+            "-o",
+            s(&dir),
+        ];
+        args.extend(["--sigma-map", "--ply"]);
+        args.extend(extra);
+        let err = common::fails(&args);
+        assert!(err.contains(names), "{err}");
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .map(|d| d.map(|e| e.unwrap().file_name()).collect())
+            .unwrap_or_default();
+        assert!(left.is_empty(), "{out}: {left:?} written");
+    }
+    // and with both right, every file is written
+    let dir = tmp.path().join("ok");
+    common::ok(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        &frame,
+        "-o",
+        s(&dir),
+        "--sigma-map",
+        "--ply",
+        "--camera",
+        s(&right),
+    ]);
+    for suffix in ["depth.png", "depth.npy", "sigma.npy", "sigma.png", "ply"] {
+        assert!(dir.join(format!("frame_01.{suffix}")).is_file(), "{suffix}");
+    }
 }

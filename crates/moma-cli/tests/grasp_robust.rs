@@ -172,11 +172,20 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     assert!(e.contains("--realign") && e.contains("calibration"), "{e}");
     for (flag, value, says) in [
         ("--grasp-draws", "0", "draws"),
+        ("--grasp-draws", "-1", "--grasp-draws"),
         ("--min-success-prob", "1.5", "[0, 1]"),
+        (
+            "--min-success-prob",
+            "-0.1",
+            "minimum success probability -0.1 is outside [0, 1]",
+        ),
         ("--sigma-m", "-1", "sigma"),
     ] {
+        // `--flag=value` and `--flag value` alike: a negative value is a value, not a flag
         let arg = format!("{flag}={value}");
         let e = fails(&[&on_calib("suction")[..], &[arg.as_str()]].concat());
+        assert!(e.contains(says), "{flag} {value}: {e}");
+        let e = fails(&[&on_calib("suction")[..], &[flag, value]].concat());
         assert!(e.contains(says), "{flag} {value}: {e}");
     }
     let e = fails(&[&depth_args("suction")[..], &["--grasp-quality", "robust"]].concat());
@@ -257,7 +266,13 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
         assert_eq!(rel.len(), 5);
         let n: u64 = rel.iter().map(|b| b["grasps"].as_u64().unwrap()).sum();
         assert!(n <= trials && n > 0, "{r}");
-        assert_eq!(rel[0]["bin"], serde_json::json!([0.0, 0.2]));
+        // the contract's bins, exactly as written (no 0.6000000000000001)
+        let bins: Vec<&serde_json::Value> = rel.iter().map(|b| &b["bin"]).collect();
+        assert_eq!(
+            serde_json::json!(bins),
+            serde_json::json!([[0.0, 0.2], [0.2, 0.4], [0.4, 0.6], [0.6, 0.8], [0.8, 1.0]]),
+            "{r}"
+        );
     }
     assert!(tmp.path().join("ge/sigma_coverage.json").is_file());
     assert!(tmp.path().join("ge/grasp_reliability.md").is_file());

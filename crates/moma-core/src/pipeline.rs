@@ -772,6 +772,24 @@ impl Calibration {
         }
         self.model.validate()?;
         self.samples.validate()?;
+        // the report describes these samples: an edited file whose parts disagree is refused
+        if self.report.n_used != self.samples.len() {
+            return Err(CoreError::InvalidParameter(format!(
+                "the fit report says {} samples were used, but the calibration holds {}",
+                self.report.n_used,
+                self.samples.len()
+            )));
+        }
+        for (what, x) in [
+            ("rms_residual_m", self.report.rms_residual_m),
+            ("fit_time_s", self.report.fit_time_s),
+        ] {
+            if !(x.is_finite() && x >= 0.0) {
+                return Err(CoreError::InvalidParameter(format!(
+                    "the fit report's {what} is {x}, must be finite and ≥ 0"
+                )));
+            }
+        }
         if let Some(w) = &self.workspace {
             size.expect_eq("workspace mask", w.mask().size())?;
         }

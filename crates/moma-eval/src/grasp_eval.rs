@@ -344,10 +344,11 @@ pub const RELIABILITY_BINS: usize = 5;
 /// The reliability table of `(predicted probability, success)` pairs: [`RELIABILITY_BINS`]
 /// equal bins of [0, 1], the last closed.
 pub fn reliability_table(probs: &[(f64, bool)]) -> Vec<ReliabilityBin> {
-    let w = 1.0 / RELIABILITY_BINS as f64;
+    // Edges as b / 5, not b · 0.2: the JSON then reads [0.4, 0.6], not [0.4, 0.6000000000000001].
+    let edge = |b: usize| b as f64 / RELIABILITY_BINS as f64;
     (0..RELIABILITY_BINS)
         .map(|b| {
-            let (lo, hi) = (b as f64 * w, (b + 1) as f64 * w);
+            let (lo, hi) = (edge(b), edge(b + 1));
             let inside: Vec<&(f64, bool)> = probs
                 .iter()
                 .filter(|(p, _)| *p >= lo && (*p < hi || (b + 1 == RELIABILITY_BINS && *p <= 1.0)))

@@ -144,3 +144,30 @@ fn the_base_rate_brier_score_is_the_best_constant_forecasts() {
     assert_eq!(brier_base_rate(&[(0.3, false)]), Some(0.0));
     assert_eq!(brier_base_rate(&[]), None);
 }
+
+#[test]
+fn the_reliability_table_bins_by_fifths_with_the_last_closed() {
+    let probs = [
+        (0.0, false),
+        (0.2, true), // an edge belongs to the bin above it
+        (0.39, false),
+        (0.6, true),
+        (0.6, false),
+        (0.79, true),
+        (1.0, true), // the last bin holds 1
+    ];
+    let t = moma_eval::grasp_eval::reliability_table(&probs);
+    let bins: Vec<[f64; 2]> = t.iter().map(|b| b.bin).collect();
+    assert_eq!(
+        bins,
+        [[0.0, 0.2], [0.2, 0.4], [0.4, 0.6], [0.6, 0.8], [0.8, 1.0]]
+    );
+    let counts: Vec<usize> = t.iter().map(|b| b.grasps).collect();
+    assert_eq!(counts, [1, 2, 0, 3, 1]);
+    assert_eq!(t[2].predicted, None);
+    assert_eq!(t[2].achieved, None);
+    assert!((t[1].predicted.unwrap() - 0.295).abs() < 1e-12);
+    assert!((t[1].achieved.unwrap() - 0.5).abs() < 1e-12);
+    assert!((t[3].achieved.unwrap() - 2.0 / 3.0).abs() < 1e-12);
+    assert_eq!((t[4].predicted, t[4].achieved), (Some(1.0), Some(1.0)));
+}

@@ -153,6 +153,10 @@ pub enum NoGraspReason {
         best_success_prob: f32,
         /// The minimum asked.
         min_success_prob: f32,
+        /// Depth draws per grasp: no probability exceeds `(draws + 1) / (draws + 2)`
+        /// ([`crate::posterior_success_prob`]); 0 in reasons written before it was recorded.
+        #[serde(default)]
+        draws: usize,
     },
     /// Every candidate failed a check; the counts say which.
     AllRejected {
@@ -175,12 +179,25 @@ impl std::fmt::Display for NoGraspReason {
                 candidates,
                 best_success_prob,
                 min_success_prob,
-            } => write!(
-                f,
-                "all {candidates} grasps have a success probability below the minimum \
-                 {min_success_prob:.2} (best {best_success_prob:.2}): re-image the scene, or \
-                 lower --min-success-prob"
-            ),
+                draws,
+            } => {
+                write!(
+                    f,
+                    "all {candidates} grasps have a success probability below the minimum \
+                     {min_success_prob:.2} (best {best_success_prob:.2})"
+                )?;
+                let highest = (*draws as f32 + 1.0) / (*draws as f32 + 2.0);
+                if *draws > 0 && *min_success_prob > highest {
+                    // a minimum no grasp can reach, however good: say so, not "re-image"
+                    write!(
+                        f,
+                        ": with {draws} depth draws no grasp can exceed {highest:.2}; lower the \
+                         minimum or raise the draws (--grasp-draws)"
+                    )
+                } else {
+                    write!(f, ": re-image the scene, or lower --min-success-prob")
+                }
+            }
             NoGraspReason::AllRejected {
                 candidates,
                 failures,

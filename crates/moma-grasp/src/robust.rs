@@ -416,6 +416,7 @@ pub fn plan_on_scene(
             candidates: below,
             best_success_prob: best,
             min_success_prob: m as f32,
+            draws: request.draws,
         });
     }
     Ok(outcome)

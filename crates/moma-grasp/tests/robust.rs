@@ -9,7 +9,7 @@ use moma_core::{DepthErrorModel, MetricDepth};
 use moma_grasp::{
     FailureReason, Grasp, GraspQuality, GraspRequest, Gripper, ParallelGrasp, ParallelJaw,
     ParallelPose, Scene, SceneConfig, ScoreConfig, SuctionCup, plan_grasps, posterior_success_prob,
-    score_grasp, success_probabilities,
+    rank, score_grasp, success_probabilities,
 };
 
 const DIST_M: f64 = 0.7;
@@ -277,4 +277,111 @@ fn bad_requests_are_errors_and_an_impossible_minimum_empties_the_list_with_a_rea
     assert!(out.grasps.is_empty());
     let reason = out.no_grasp_reason.unwrap().to_string();
     assert!(reason.contains("below the minimum"), "{reason}");
+}
+
+/// The robust ranking on given shares: grasps within the tie tolerance of the best share keep the
+/// planner's order, the others follow by share (stable); nominal keeps the planner's order.
+#[test]
+fn the_robust_ranking_ties_within_the_tolerance_and_sorts_the_rest_by_share() {
+    let depth = Synth::top_down(DIST_M, Some(BoxSpec::standard())).render();
+    let request = GraspRequest::new(Gripper::Suction(SuctionCup::default()));
+    let (_, out) = plan_grasps(&depth, &intrinsics(), None, &request).unwrap();
+    // four grasps told apart by their scores (the ranking reads only the shares and the order)
+    let g: Vec<Grasp> = (0..4)
+        .map(|k| {
+            let mut v = serde_json::to_value(out.grasps[0]).unwrap();
+            v["score"] = (0.9 - 0.1 * f64::from(k)).into();
+            serde_json::from_value(v).unwrap()
+        })
+        .collect();
+    assert!(g.windows(2).all(|w| w[0] != w[1]));
+    let order = |shares: [f32; 4], quality: GraspQuality, tol: f32| -> Vec<usize> {
+        let mut v: Vec<(Grasp, f32)> = g.iter().copied().zip(shares).collect();
+        rank(&mut v, quality, tol);
+        v.iter()
+            .map(|(x, _)| g.iter().position(|y| y == x).unwrap())
+            .collect()
+    };
+    let shares = [0.85, 0.9, 0.5, 0.2];
+    // 0.85 is within 0.1 of the best 0.9: the planner's first stays first
+    assert_eq!(order(shares, GraspQuality::Robust, 0.1), [0, 1, 2, 3]);
+    // without a tolerance the higher share wins
+    assert_eq!(order(shares, GraspQuality::Robust, 0.0), [1, 0, 2, 3]);
+    // below the tie the shares order, highest first
+    assert_eq!(
+        order([0.2, 0.5, 0.9, 0.85], GraspQuality::Robust, 0.1),
+        [2, 3, 1, 0]
+    );
+    assert_eq!(
+        order([0.2, 0.5, 0.9, 0.85], GraspQuality::Nominal, 0.1),
+        [0, 1, 2, 3]
+    );
+}
+
+/// `min_success_prob` filters the ranked list (every candidate, before the top-K cut) and
+/// nothing else; when it drops them all, the reason counts them and gives the best probability.
+#[test]
+fn a_minimum_success_probability_keeps_exactly_the_grasps_at_or_above_it() {
+    let depth = Synth::top_down(DIST_M, Some(BoxSpec::standard())).render();
+    let k = intrinsics();
+    let mut base = GraspRequest::new(Gripper::Suction(SuctionCup::default()))
+        .with_error_model(Some(DepthErrorModel::uniform(0.02).unwrap()));
+    base.top_k = 1000;
+    base.draws = 8;
+    let (_, all) = plan_grasps(&depth, &k, None, &base).unwrap();
+    let probs: Vec<f32> = all
+        .grasps
+        .iter()
+        .map(|g| g.success_prob().unwrap())
+        .collect();
+    let (lo, hi) = probs
+        .iter()
+        .fold((1.0f32, 0.0f32), |(a, b), &p| (a.min(p), b.max(p)));
+    assert!(lo < hi, "every grasp at {lo}: no spread to filter");
+    let m = 0.5 * (f64::from(lo) + f64::from(hi));
+    let mut strict = base.clone();
+    strict.min_success_prob = Some(m);
+    let (_, kept) = plan_grasps(&depth, &k, None, &strict).unwrap();
+    let want: Vec<Grasp> = all
+        .grasps
+        .iter()
+        .filter(|g| f64::from(g.success_prob().unwrap()) >= m)
+        .copied()
+        .collect();
+    assert!(!want.is_empty() && want.len() < all.grasps.len());
+    assert_eq!(kept.grasps, want);
+    assert!(kept.no_grasp_reason.is_none());
+    // none reach 1: the reason says how many were dropped and the best probability
+    strict.min_success_prob = Some(1.0);
+    let (_, none) = plan_grasps(&depth, &k, None, &strict).unwrap();
+    assert!(none.grasps.is_empty());
+    match none.no_grasp_reason {
+        Some(moma_grasp::NoGraspReason::BelowMinSuccessProb {
+            candidates,
+            best_success_prob,
+            min_success_prob,
+            draws,
+        }) => {
+            assert_eq!(candidates, all.grasps.len());
+            assert_eq!(best_success_prob, hi);
+            assert_eq!(min_success_prob, 1.0);
+            assert_eq!(draws, 8);
+        }
+        other => panic!("{other:?}"),
+    }
+    // 1 is beyond what 8 draws can give ((8 + 1) / (8 + 2) = 0.9): the reason says so
+    let reason = none.no_grasp_reason.unwrap().to_string();
+    assert!(
+        reason.contains("with 8 depth draws no grasp can exceed 0.90"),
+        "{reason}"
+    );
+    // a reachable minimum that no grasp reaches asks for another image instead
+    let reachable = moma_grasp::NoGraspReason::BelowMinSuccessProb {
+        candidates: 3,
+        best_success_prob: 0.5,
+        min_success_prob: 0.8,
+        draws: 8,
+    }
+    .to_string();
+    assert!(reachable.contains("re-image"), "{reachable}");
 }

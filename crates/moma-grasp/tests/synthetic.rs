@@ -341,17 +341,15 @@ fn mask_restricts_grasps_to_the_masked_object() {
         h > 0.04 && x.abs() < 0.04 && y.abs() < 0.025
     }));
     let scene = Scene::build(&depth, &k, Some(&mask), &SceneConfig::default()).unwrap();
-    for g in plan_suction(&scene, &SuctionCup::default(), &SuctionConfig::default())
+    let suction = plan_suction(&scene, &SuctionCup::default(), &SuctionConfig::default())
         .unwrap()
-        .grasps
-        .iter()
-        .chain(
-            plan_parallel(&scene, &ParallelJaw::default(), &ParallelConfig::default())
-                .unwrap()
-                .grasps
-                .iter(),
-        )
-    {
+        .grasps;
+    let parallel = plan_parallel(&scene, &ParallelJaw::default(), &ParallelConfig::default())
+        .unwrap()
+        .grasps;
+    // the masked box is graspable by both: an empty list would pass the loop below
+    assert!(!suction.is_empty() && !parallel.is_empty());
+    for g in suction.iter().chain(parallel.iter()) {
         let [x, y, _] = synth.box_coords(&b2, Vec3::from(g.point_m()));
         assert!(
             x.abs() < 0.04 && y.abs() < 0.025,

@@ -251,7 +251,11 @@ pub fn parse_calibration(path: &Path, text: &str) -> Result<CalibrationFile> {
     let version_error = || IoError::CalibrationVersion {
         path: path.to_path_buf(),
         format: describe(&header.format),
-        version: describe(&header.version),
+        version: match &header.version {
+            // "9" would read as the supported 9: say it is text
+            Some(serde_json::Value::String(s)) => format!("\"{s}\" (text, not a number)"),
+            other => describe(other),
+        },
         supported: CALIBRATION_VERSION,
     };
     if !format_ok {

@@ -274,7 +274,38 @@ pub fn write_depth_colormap(
     colormap: Colormap,
     range: DepthRange,
 ) -> Result<ColourScale> {
-    let path = path.as_ref();
+    write_colormap_png(path.as_ref(), depth, colormap, range, "depth")
+}
+
+/// Writes a colour-mapped PNG of a per-pixel σ map of the depth error (metres, NaN = no depth;
+/// `moma align --sigma-map`), as [`write_depth_colormap`] does a depth map: the same range
+/// chunks (σ in metres), described as a σ map.
+///
+/// # Errors
+/// As [`write_depth_colormap`].
+pub fn write_sigma_colormap(
+    path: impl AsRef<Path>,
+    sigma: &MetricDepth,
+    colormap: Colormap,
+    range: DepthRange,
+) -> Result<ColourScale> {
+    write_colormap_png(
+        path.as_ref(),
+        sigma,
+        colormap,
+        range,
+        "sigma (1 SD) of the depth error",
+    )
+}
+
+/// A colour-mapped PNG of a map in metres; `what` names the map in its description chunk.
+fn write_colormap_png(
+    path: &Path,
+    depth: &MetricDepth,
+    colormap: Colormap,
+    range: DepthRange,
+    what: &str,
+) -> Result<ColourScale> {
     let (img, scale) =
         colourise_depth(depth, colormap, range).map_err(|e| IoError::core(path, e))?;
     let texts = [
@@ -284,7 +315,7 @@ pub fn write_depth_colormap(
         (
             "Description",
             format!(
-                "moma depth, colour map {} from {} m to {} m (clamped); black = no depth",
+                "moma {what}, colour map {} from {} m to {} m (clamped); black = no depth",
                 scale.colormap, scale.min_m, scale.max_m
             ),
         ),

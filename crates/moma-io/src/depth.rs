@@ -506,9 +506,17 @@ fn squeeze_2d(path: &Path, arr: ArrayD<f32>) -> Result<Array2<f32>> {
 /// Writes a `(height, width)` array atomically as float32 little-endian `.npy` (C order).
 ///
 /// # Errors
-/// Destination not writable ([`IoError::Io`] / [`IoError::Invalid`]).
+/// Destination not writable ([`IoError::Io`] / [`IoError::Invalid`]); an empty array (which
+/// [`read_npy_f32`] would refuse: a file is not written that cannot be read back).
 pub fn write_npy_f32(path: impl AsRef<Path>, values: ArrayView2<'_, f32>) -> Result<()> {
     let path = path.as_ref();
+    let (h, w) = values.dim();
+    if w == 0 || h == 0 {
+        return Err(IoError::invalid(
+            path,
+            format!("cannot write an empty {w}x{h} map as npy"),
+        ));
+    }
     atomic_write(path, |w| {
         values
             .as_standard_layout()

@@ -70,7 +70,7 @@ pub use camera::{parse_camera, read_camera, write_camera};
 pub use colormap::{
     COLORMAP_ENTRIES, Colormap, ColourScale, DepthRange, TEXT_COLORMAP, TEXT_MAX_M, TEXT_MIN_M,
     colormap_index, colour_bar, colourise, colourise_depth, colourise_with, read_colour_scale,
-    resolve_range, write_depth_colormap,
+    resolve_range, write_depth_colormap, write_sigma_colormap,
 };
 pub use depth::{
     DepthFormat, DepthWriteStats, PNG_DEPTH_MAX_M, PNG_DEPTH_UNITS_PER_M, PfmByteOrder,

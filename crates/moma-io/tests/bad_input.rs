@@ -724,6 +724,65 @@ mod calibration {
         std::fs::write(&p, r#"{"width": 640}"#).unwrap();
         let m = msg(&read_calibration(&p).unwrap_err());
         assert!(m.contains("<missing>"), "{m}");
+
+        // the version as text: said to be text, not read as the supported number
+        let mut v: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string({
+                write_calibration(&p, &file()).unwrap();
+                &p
+            })
+            .unwrap(),
+        )
+        .unwrap();
+        v["version"] = "9".into();
+        std::fs::write(&p, v.to_string()).unwrap();
+        let m = msg(&read_calibration(&p).unwrap_err());
+        assert!(m.contains("version \"9\" (text, not a number)"), "{m}");
+    }
+
+    /// Edits that make a file's parts disagree: samples outside the image, a report that
+    /// counts other samples, a negative residual. Each refused naming what is wrong.
+    #[test]
+    fn edited_samples_and_report_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("calib.json");
+        write_calibration(&p, &file()).unwrap();
+        let mut good: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        // two samples inside the 8 × 6 image, counted by the report: a good file
+        good["calibration"]["samples"]["samples"] = serde_json::json!([
+            {"u": 1.0, "v": 1.0, "pred": 0.7, "depth_m": 0.7},
+            {"u": 7.0, "v": 5.0, "pred": 0.9, "depth_m": 0.9}
+        ]);
+        good["calibration"]["report"]["n_used"] = 2.into();
+        std::fs::write(&p, good.to_string()).unwrap();
+        assert_eq!(read_calibration(&p).unwrap().calibration.samples.len(), 2);
+        type Edit = fn(&mut serde_json::Value);
+        let cases: [(&str, Edit); 4] = [
+            (
+                "outside the",
+                (|v| v["calibration"]["samples"]["samples"][0]["u"] = 1e6.into()),
+            ),
+            (
+                "samples were used",
+                (|v| v["calibration"]["samples"]["samples"] = serde_json::json!([])),
+            ),
+            (
+                "rms_residual_m",
+                (|v| v["calibration"]["report"]["rms_residual_m"] = (-5.0).into()),
+            ),
+            (
+                "outside the",
+                (|v| v["calibration"]["samples"]["samples"][0]["v"] = (-1.0).into()),
+            ),
+        ];
+        for (says, edit) in cases {
+            let mut v = good.clone();
+            edit(&mut v);
+            std::fs::write(&p, v.to_string()).unwrap();
+            let m = msg(&read_calibration(&p).unwrap_err());
+            assert!(m.contains(says) && m.contains("calib.json"), "{says}: {m}");
+        }
     }
 
     #[test]
@@ -886,6 +945,29 @@ mod calibration {
         );
         assert!(!p.exists());
     }
+}
+
+/// An empty map is refused by every writer (no reader would take the file back), and nothing
+/// is left behind.
+#[test]
+fn empty_maps_are_not_written() {
+    let dir = tempfile::tempdir().unwrap();
+    for (h, w) in [(0, 0), (0, 3), (3, 0)] {
+        let depth = MetricDepth::new(Array2::<f32>::zeros((h, w)));
+        let pred = Prediction::new(Array2::<f32>::zeros((h, w)), PredictionKind::RelativeDepth);
+        for ext in ["npy", "pfm", "png"] {
+            let p = dir.path().join(format!("d.{ext}"));
+            let e = write_depth(&p, &depth).unwrap_err();
+            assert!(msg(&e).contains(&format!("d.{ext}")), "{e}");
+            assert!(!p.exists(), "{ext} {h}x{w}");
+        }
+        for ext in ["npy", "pfm"] {
+            let p = dir.path().join(format!("p.{ext}"));
+            assert!(write_prediction(&p, &pred).is_err(), "{ext} {h}x{w}");
+            assert!(!p.exists());
+        }
+    }
+    assert!(entries(dir.path()).is_empty());
 }
 
 #[test]

@@ -409,6 +409,18 @@ fn colormap_png_records_its_range() {
         "{s2:?}"
     );
     assert_eq!(read_colour_scale(&p2).unwrap(), Some(s2));
+    // A σ map: the same range chunks, described as what it is (tEXt is stored uncompressed)
+    let p4 = dir.path().join("sigma.png");
+    let s4 = write_sigma_colormap(&p4, &depth, Colormap::Turbo, DepthRange::default()).unwrap();
+    assert_eq!(s4, s2);
+    assert_eq!(read_colour_scale(&p4).unwrap(), Some(s4));
+    let has = |p: &std::path::Path, text: &str| {
+        let bytes = std::fs::read(p).unwrap();
+        bytes.windows(text.len()).any(|w| w == text.as_bytes())
+    };
+    assert!(has(&p4, "moma sigma (1 SD) of the depth error, colour map"));
+    assert!(!has(&p4, "moma depth,"));
+    assert!(has(&p2, "moma depth, colour map"));
     // A PNG without the chunks has no scale.
     let p3 = dir.path().join("plain.png");
     write_rgb(&p3, &colour_bar(Colormap::Turbo, 32, 4)).unwrap();

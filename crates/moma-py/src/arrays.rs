@@ -150,6 +150,13 @@ pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage
 /// # Errors
 /// `moma.InvalidInputError`: not 2-D, or another dtype.
 pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
+    if !obj.is_instance_of::<PyUntypedArray>() {
+        // a nested list of bools or 0/255: as NumPy reads it, then as an array
+        let arr = as_ndarray(obj, what)?;
+        if arr.is_instance_of::<PyArray2<bool>>() || arr.is_instance_of::<PyArray2<u8>>() {
+            return mask(arr.as_any(), what);
+        }
+    }
     if let Ok(a) = obj.cast::<PyArray2<bool>>() {
         let ro = a
             .try_readonly()
@@ -186,4 +193,51 @@ pub fn opt_mask(obj: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Option<M
 /// As [`f32_2d`].
 pub fn f32_owned(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Array2<f32>> {
     Ok(f32_2d(obj, what)?.as_array().to_owned())
+}
+
+/// Depth in metres beyond which a map's median says it was given in millimetres (a raw
+/// RealSense-style PNG, or one cast to float without dividing by 1000). No depth model or
+/// sensor moma serves sees a median of 200 m.
+pub const MILLIMETRE_MEDIAN_M: f32 = 200.0;
+
+/// A 2-D depth map in metres ([`f32_2d`]), refused when it can only be millimetres: an integer
+/// or bool dtype (a uint16 depth PNG holds millimetres), or a median over the valid pixels
+/// (finite, > 0) above [`MILLIMETRE_MEDIAN_M`].
+///
+/// # Errors
+/// As [`f32_2d`]; the two cases above, naming the argument and what to do.
+pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyArray2<'py, f32>> {
+    if !obj.is_instance_of::<PyArray2<f32>>() {
+        let arr = as_ndarray(obj, what)?;
+        if matches!(dtype_kind(&arr)?, 'i' | 'u' | 'b') {
+            return Err(value_err(format!(
+                "{what} has dtype {}: depth in metres is floating point (a uint16 depth PNG \
+                 holds millimetres: divide by 1000, or read it with moma.read_depth)",
+                arr.dtype()
+            )));
+        }
+    }
+    let ro = f32_2d(obj, what)?;
+    let mut valid: Vec<f32> = ro
+        .as_array()
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    if !valid.is_empty() {
+        let mid = valid.len() / 2;
+        let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
+        if *median > MILLIMETRE_MEDIAN_M {
+            return Err(value_err(format!(
+                "{what} has a median depth of {median} m: it looks like millimetres (depth \
+                 arguments are metres: divide by 1000)"
+            )));
+        }
+    }
+    Ok(ro)
+}
+
+/// [`metres_2d`], copied into an owned array.
+pub fn metres_owned(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Array2<f32>> {
+    Ok(metres_2d(obj, what)?.as_array().to_owned())
 }

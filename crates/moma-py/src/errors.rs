@@ -60,6 +60,19 @@ pub fn value_err(message: impl Into<String>) -> PyErr {
     err(Kind::Value, message)
 }
 
+/// The integer argument `name` as the unsigned type `T`. Taken as `T` directly, pyo3 turns a
+/// negative value into a bare `OverflowError` that names neither the argument nor the rule
+/// (and `except ValueError` misses it); this is an `InvalidInputError` naming both.
+pub fn unsigned<T: TryFrom<i128>>(name: &str, value: i128) -> PyResult<T> {
+    T::try_from(value).map_err(|_| {
+        value_err(if value < 0 {
+            format!("{name}={value}: must be a non-negative integer")
+        } else {
+            format!("{name}={value}: too large")
+        })
+    })
+}
+
 /// Conversion of moma's error enums into Python exceptions.
 pub trait IntoPyErr {
     /// The Python exception for this error, with moma's message.

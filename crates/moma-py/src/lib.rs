@@ -36,8 +36,8 @@ use numpy::{IntoPyArray, PyArray2};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 
-use crate::arrays::{f32_2d, f32_owned, opt_mask, rgb_image};
-use crate::errors::{IntoPyErr, Kind, ResultExt, err, value_err};
+use crate::arrays::{f32_2d, f32_owned, metres_2d, metres_owned, opt_mask, rgb_image};
+use crate::errors::{IntoPyErr, Kind, ResultExt, err, unsigned, value_err};
 
 // ---------------------------------------------------------------------------------------------
 // names → moma-core enums (each name is defined once, in moma-core, with FromStr / Display)
@@ -69,6 +69,8 @@ fn realign_view_into(
     config: &RealignConfig,
     mut out: ndarray::ArrayViewMut2<'_, f32>,
 ) -> Result<moma_core::realign::RealignReport, CoreError> {
+    // checked before `out` is written: a failed call leaves it as it was
+    ImageSize::of(&pred).expect_eq("rgb", ImageSize::new(rgb.dim().1, rgb.dim().0))?;
     let grey = moma_io::grey_half(rgb)?;
     let report = cal.align(
         PredictionInput::view(pred, kind),
@@ -151,6 +153,9 @@ fn from_py_json<T: serde::de::DeserializeOwned>(
 // ---------------------------------------------------------------------------------------------
 // Intrinsics
 
+/// `Intrinsics(fx, fy, cx, cy, width, height)`'s arguments.
+type IntrinsicsArgs = (f64, f64, f64, f64, usize, usize);
+
 /// Pinhole camera intrinsics in pixels, for an image of `width × height` pixels.
 #[pyclass(module = "moma", frozen, eq)]
 #[derive(Debug, Clone, PartialEq)]
@@ -162,10 +167,10 @@ struct Intrinsics {
 impl Intrinsics {
     #[new]
     #[pyo3(signature = (fx, fy, cx, cy, width, height))]
-    fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: usize, height: usize) -> PyResult<Self> {
+    fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: i128, height: i128) -> PyResult<Self> {
         let inner = CoreIntrinsics {
-            width,
-            height,
+            width: unsigned("width", width)?,
+            height: unsigned("height", height)?,
             fx,
             fy,
             cx,
@@ -188,26 +193,41 @@ impl Intrinsics {
         moma_io::write_camera(&path, &self.inner).py()
     }
 
+    /// Pickling (multiprocessing, `copy.deepcopy`): the constructor's arguments.
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> (Bound<'py, PyAny>, IntrinsicsArgs) {
+        let k = slf.get().inner;
+        (
+            slf.get_type().into_any(),
+            (k.fx, k.fy, k.cx, k.cy, k.width, k.height),
+        )
+    }
+
+    /// Focal length along u (columns), pixels.
     #[getter]
     fn fx(&self) -> f64 {
         self.inner.fx
     }
+    /// Focal length along v (rows), pixels.
     #[getter]
     fn fy(&self) -> f64 {
         self.inner.fy
     }
+    /// Principal point column, pixels.
     #[getter]
     fn cx(&self) -> f64 {
         self.inner.cx
     }
+    /// Principal point row, pixels.
     #[getter]
     fn cy(&self) -> f64 {
         self.inner.cy
     }
+    /// Image width, pixels.
     #[getter]
     fn width(&self) -> usize {
         self.inner.width
     }
+    /// Image height, pixels.
     #[getter]
     fn height(&self) -> usize {
         self.inner.height
@@ -240,6 +260,14 @@ struct Calibration {
 }
 
 impl Calibration {
+    fn of_file(file: CalibrationFile) -> Self {
+        Self {
+            inner: file.calibration,
+            intrinsics: file.intrinsics,
+            created: Some(file.created),
+        }
+    }
+
     fn file(&self) -> CalibrationFile {
         let created = self
             .created
@@ -302,8 +330,9 @@ impl Calibration {
         .map(drop)
     }
 
-    /// Writes the calibration in the CLI's file format (`moma-calibration` v4, JSON, atomic),
-    /// the workspace mask (if any) embedded: the file is self-contained.
+    /// Writes the calibration in the CLI's file format (`moma-calibration` JSON, the current
+    /// version, atomic), the workspace mask and anchor store (if any) embedded: the file is
+    /// self-contained.
     fn save(&self, path: PathBuf) -> PyResult<()> {
         moma_io::write_calibration(&path, &self.file()).py()
     }
@@ -312,12 +341,21 @@ impl Calibration {
     /// this moma reads; version 1 is migrated).
     #[staticmethod]
     fn load(path: PathBuf) -> PyResult<Self> {
-        let file = moma_io::read_calibration(&path).py()?;
-        Ok(Self {
-            inner: file.calibration,
-            intrinsics: file.intrinsics,
-            created: Some(file.created),
-        })
+        Ok(Self::of_file(moma_io::read_calibration(&path).py()?))
+    }
+
+    /// A calibration from the JSON text of a calibration file (`to_json`'s inverse; checked as
+    /// `load` checks a file).
+    #[staticmethod]
+    fn from_json(text: &str) -> PyResult<Self> {
+        let file = moma_io::parse_calibration(std::path::Path::new("<json text>"), text).py()?;
+        Ok(Self::of_file(file))
+    }
+
+    /// Pickling (multiprocessing, `copy.deepcopy`) goes through the file's JSON text.
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, (String,))> {
+        let from_json = slf.get_type().getattr("from_json")?;
+        Ok((from_json, (slf.borrow().to_json()?,)))
     }
 
     /// The fit summary, as `moma calibrate --json` prints it: `method`, `n_used`,
@@ -390,7 +428,7 @@ impl Calibration {
         depth_m: &Bound<'py, PyAny>,
         report: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+        let depth = MetricDepth::new(metres_owned(depth_m, "depth_m")?);
         self.inner
             .image_size()
             .expect_eq("depth_m", depth.size())
@@ -498,7 +536,8 @@ impl Calibration {
         self.inner.prediction_kind.to_string()
     }
 
-    /// Alignment method name (`ssra`, `gssa`, `lwlr`, `raw`).
+    /// Alignment method name, as in files: `raw`, `gssa`, `ssra`, `lwlr`, `lwlr-exact`, `lwlr-bare`,
+    /// `ssra-local` or `gssa-local` (`auto` records the method it chose).
     #[getter]
     fn method(&self) -> &'static str {
         self.inner.model.name()
@@ -638,10 +677,10 @@ fn calibrate(
     kind: &str,
     method: &str,
     norm: &str,
-    samples: usize,
+    samples: i128,
     sampling: &str,
-    seed: u64,
-    edge_margin_px: u32,
+    seed: i128,
+    edge_margin_px: i128,
     mask: Option<&Bound<'_, PyAny>>,
     workspace: Option<&Bound<'_, PyAny>>,
     space: Option<&str>,
@@ -653,6 +692,11 @@ fn calibrate(
     cv_loss: Option<&str>,
     cv_margin_se: Option<f64>,
 ) -> PyResult<Calibration> {
+    let (samples, seed, edge_margin_px): (usize, u64, u32) = (
+        unsigned("samples", samples)?,
+        unsigned("seed", seed)?,
+        unsigned("edge_margin_px", edge_margin_px)?,
+    );
     let kind = parse_kind(kind)?;
     let intrinsics = cam.map(|c| c.inner);
     let space = space.map(|s| s.parse::<AlignSpace>()).transpose().py()?;
@@ -724,7 +768,7 @@ fn calibrate(
     let gts_ro = gt_items
         .iter()
         .enumerate()
-        .map(|(i, g)| f32_2d(g, &frame_name("gt_m", i, few_shot)))
+        .map(|(i, g)| metres_2d(g, &frame_name("gt_m", i, few_shot)))
         .collect::<PyResult<Vec<_>>>()?;
     // Sample masks: none, one for all frames, or one per frame.
     let sample_masks: Vec<Mask> = match mask.filter(|m| !m.is_none()) {
@@ -812,7 +856,7 @@ fn calibrate(
             // Anchors for per-frame re-alignment come from the first (calibration) frame.
             let calibration = match (anchor_view, anchor_path) {
                 (Some(view), _) => {
-                    ImageSize::new(view.dim().1, view.dim().0).expect_eq("anchors_rgb", size)?;
+                    size.expect_eq("anchors_rgb", ImageSize::new(view.dim().1, view.dim().0))?;
                     calibration.with_anchors(&moma_io::grey_half(view)?, &gts[0], preds[0])?
                 }
                 (None, Some(path)) => {
@@ -833,12 +877,7 @@ fn calibrate(
             PyCalibrateError::Io(e) => e.into_py_err(),
         })?;
     if let Some(w) = reach.and_then(|r| r.warning("mask=", inner.error_model.as_ref())) {
-        PyErr::warn(
-            py,
-            &py.get_type::<pyo3::exceptions::PyUserWarning>(),
-            &std::ffi::CString::new(w).map_err(|e| value_err(e.to_string()))?,
-            1,
-        )?;
+        user_warning(py, &w)?;
     }
     Ok(Calibration {
         inner,
@@ -892,8 +931,8 @@ fn metrics<'py>(
     gt_m: &Bound<'py, PyAny>,
     mask: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let pred = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
-    let gt = MetricDepth::new(f32_owned(gt_m, "gt_m")?);
+    let pred = MetricDepth::new(metres_owned(depth_m, "depth_m")?);
+    let gt = MetricDepth::new(metres_owned(gt_m, "gt_m")?);
     let mask = opt_mask(mask, "mask")?;
     let m = py
         .detach(|| DepthMetrics::compute(&pred, &gt, mask.as_ref()))
@@ -919,7 +958,7 @@ fn depth_to_points<'py>(
     cam: &Intrinsics,
     rgb: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+    let depth = MetricDepth::new(metres_owned(depth_m, "depth_m")?);
     let image = rgb
         .filter(|o| !o.is_none())
         .map(|o| rgb_image(o, "rgb"))
@@ -944,6 +983,10 @@ fn depth_to_points<'py>(
     }
 }
 
+// `grasp_draws=4` is written out in plan_grasps' signature (a path there shows as `...` in
+// `help()`); it is the library's default.
+const _: () = assert!(moma_grasp::DEFAULT_GRASP_DRAWS == 4);
+
 /// Plans grasps on one frame, best first, as a list of dicts (`moma grasp --json`'s array).
 ///
 /// `source` is a metric depth map (float32 metres, NaN or ≤ 0 = no depth; `cam` required) or a
@@ -957,9 +1000,11 @@ fn depth_to_points<'py>(
 /// `grasp_draws` depth draws (seeded by `seed`); `min_success_prob` drops grasps below it.
 /// Other keywords: `gripper` (`"parallel"` or `"suction"`), `mask` (bool/uint8 `height ×
 /// width`, nonzero = object), `top`, `seed`, `keep_border_objects`. No grasp found is an empty
-/// list, not an error. The GIL is released while planning.
+/// list, not an error, with the reason as a `UserWarning` (e.g. every grasp below
+/// `min_success_prob`, which with N draws cannot exceed `(N + 1) / (N + 2)`). The GIL is
+/// released while planning.
 #[pyfunction]
-#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=moma_grasp::DEFAULT_GRASP_DRAWS, min_success_prob=None))]
+#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
 fn plan_grasps<'py>(
     py: Python<'py>,
@@ -967,17 +1012,22 @@ fn plan_grasps<'py>(
     cam: Option<&Intrinsics>,
     gripper: &str,
     mask: Option<&Bound<'py, PyAny>>,
-    top: usize,
-    seed: u64,
+    top: i128,
+    seed: i128,
     keep_border_objects: bool,
     pred: Option<&Bound<'py, PyAny>>,
     rgb: Option<&Bound<'py, PyAny>>,
     sigma_m: Option<f64>,
     grasp_quality: Option<&str>,
-    grasp_draws: usize,
+    grasp_draws: i128,
     min_success_prob: Option<f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
     use moma_grasp::{GraspRequest, SceneConfig};
+    let (top, seed, grasp_draws): (usize, u64, usize) = (
+        unsigned("top", top)?,
+        unsigned("seed", seed)?,
+        unsigned("grasp_draws", grasp_draws)?,
+    );
     let gripper = default_gripper(gripper)?;
     let (depth, error_model, k) = match source.cast::<Calibration>() {
         Ok(cal) => {
@@ -1012,7 +1062,7 @@ fn plan_grasps<'py>(
             let k = cam
                 .ok_or_else(|| value_err("cam= is needed with a depth map"))?
                 .inner;
-            (MetricDepth::new(f32_owned(source, "depth_m")?), None, k)
+            (MetricDepth::new(metres_owned(source, "depth_m")?), None, k)
         }
     };
     let error_model = match sigma_m {
@@ -1039,7 +1089,24 @@ fn plan_grasps<'py>(
     let (_, outcome) = py
         .detach(|| moma_grasp::plan_grasps(&depth, &k, mask.as_ref(), &request))
         .map_err(|e| value_err(e.to_string()))?;
+    // no grasp is an empty list, not an error; the reason (`moma grasp` prints it on stderr)
+    // comes as a UserWarning
+    if outcome.grasps.is_empty()
+        && let Some(reason) = &outcome.no_grasp_reason
+    {
+        user_warning(py, &format!("moma.plan_grasps: no grasp: {reason}"))?;
+    }
     to_py_json(py, &outcome.grasps)
+}
+
+/// Issues a Python `UserWarning` (filtered and caught as Python's warnings are).
+fn user_warning(py: Python<'_>, message: &str) -> PyResult<()> {
+    PyErr::warn(
+        py,
+        &py.get_type::<pyo3::exceptions::PyUserWarning>(),
+        &std::ffi::CString::new(message).map_err(|e| value_err(e.to_string()))?,
+        1,
+    )
 }
 
 /// The default geometry of gripper `name` (`parallel` or `suction`).
@@ -1068,12 +1135,13 @@ fn grasp_check<'py>(
     cam: Option<&Intrinsics>,
     gripper: &str,
     mask: Option<&Bound<'py, PyAny>>,
-    seed: u64,
+    seed: i128,
 ) -> PyResult<Bound<'py, PyAny>> {
+    let seed: u64 = unsigned("seed", seed)?;
     let gripper = default_gripper(gripper)?;
     let k = calibration.camera(cam)?;
     let prediction = Prediction::new(f32_owned(pred, "pred")?, calibration.inner.prediction_kind);
-    let truth = MetricDepth::new(f32_owned(gt_m, "gt_m")?);
+    let truth = MetricDepth::new(metres_owned(gt_m, "gt_m")?);
     let mask = opt_mask(mask, "mask")?;
     let inner = &calibration.inner;
     let check = py
@@ -1093,11 +1161,24 @@ fn grasp_check<'py>(
 }
 
 /// Reads metric depth: uint16 PNG (millimetres, 0 = none), `.npy` (metres) or `.pfm` (metres).
-/// Returns float32 metres, NaN where there is no depth.
+/// Returns float32 metres, NaN where there is no depth (in `.npy` and `.pfm` files too: 0,
+/// negative and infinite values, which moma counts as no depth, read as NaN).
 #[pyfunction]
 fn read_depth(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyArray2<f32>>> {
-    let depth = py.detach(|| moma_io::read_depth(&path)).py()?;
-    Ok(depth.depth_m.into_pyarray(py))
+    let depth = py
+        .detach(|| {
+            moma_io::read_depth(&path).map(|d| {
+                d.depth_m.mapv(|z| {
+                    if moma_core::is_valid_depth(z) {
+                        z
+                    } else {
+                        f32::NAN
+                    }
+                })
+            })
+        })
+        .py()?;
+    Ok(depth.into_pyarray(py))
 }
 
 /// Writes metric depth (metres) by extension: `.png` uint16 millimetres (NaN/≤0/out of range → 0),
@@ -1108,7 +1189,7 @@ fn write_depth<'py>(
     path: PathBuf,
     depth_m: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let depth = MetricDepth::new(f32_owned(depth_m, "depth_m")?);
+    let depth = MetricDepth::new(metres_owned(depth_m, "depth_m")?);
     let stats = py.detach(|| moma_io::write_depth(&path, &depth)).py()?;
     let d = PyDict::new(py);
     d.set_item("pixels", stats.pixels)?;

@@ -259,7 +259,14 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     }
     let size = calib.image_size;
     let intrinsics = match &args.camera {
-        Some(p) => Some(moma_io::read_camera(p)?),
+        Some(p) => {
+            let k = moma_io::read_camera(p)?;
+            // checked before any frame is written: a camera of another size fails every frame
+            size.expect_eq("camera", k.size()).with_context(|| {
+                format!("{} vs calibration {}", p.display(), args.calib.display())
+            })?;
+            Some(k)
+        }
         None => calib.intrinsics,
     };
     if args.ply && intrinsics.is_none() {
@@ -340,6 +347,18 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             .aligned(&input.prediction, &options)
             .with_context(|| format!("aligning {}", input.path.display()))?;
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
+        // every input of this frame's files is read and checked before the first is written:
+        // a frame that fails leaves none of its files
+        let cloud = match intrinsics.filter(|_| args.ply) {
+            Some(k) => Some((
+                k,
+                match args.ply_rgb.get(i) {
+                    Some(p) => Some(moma_io::read_rgb_sized(p, size)?),
+                    None => input.rgb.clone(),
+                },
+            )),
+            None => None,
+        };
 
         let mut outputs = Vec::new();
         let base = args.output.join(&input.name);
@@ -354,7 +373,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             let npy = with_suffix(&base, "sigma.npy");
             moma_io::write_depth(&npy, &sigma)?;
             let png = with_suffix(&base, "sigma.png");
-            moma_io::write_depth_colormap(
+            moma_io::write_sigma_colormap(
                 &png,
                 &sigma,
                 moma_io::Colormap::Turbo,
@@ -367,11 +386,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             moma_io::write_depth_colormap(&path, &depth, cmap.into(), range)?;
             outputs.push(path);
         }
-        if let Some(k) = intrinsics.filter(|_| args.ply) {
-            let rgb = match args.ply_rgb.get(i) {
-                Some(p) => Some(moma_io::read_rgb_sized(p, size)?),
-                None => input.rgb.clone(),
-            };
+        if let Some((k, rgb)) = cloud {
             let path = with_suffix(&base, "ply");
             write_cloud(&path, &depth, &k, rgb.as_ref(), args.ply_ascii)?;
             outputs.push(path);

@@ -153,6 +153,15 @@ impl SampleSet {
                 ))
             } else if !(s.u.is_finite() && s.v.is_finite()) {
                 Some(format!("pixel position ({}, {}) is not finite", s.u, s.v))
+            } else if !(s.u >= 0.0
+                && s.v >= 0.0
+                && s.u < self.image_size.width as f64
+                && s.v < self.image_size.height as f64)
+            {
+                Some(format!(
+                    "pixel position ({}, {}) lies outside the {} image",
+                    s.u, s.v, self.image_size
+                ))
             } else {
                 None
             };
