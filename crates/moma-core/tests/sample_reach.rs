@@ -183,3 +183,19 @@ fn the_distance_map_rounds_clamps_and_skips_samples() {
     );
     assert_eq!(sample_distance_map(0, 20, &[(1.0, 1.0)]).dim(), (0, 20));
 }
+
+/// The threshold itself: partial above twice the uniform spread's reach, not at or below it.
+#[test]
+fn the_partial_reach_threshold_is_twice_the_uniform_reach() {
+    assert_eq!(PARTIAL_REACH_RATIO, 2.0);
+    let reach = |p90_px: f64| moma_core::sampling::SampleReach {
+        p90_px,
+        uniform_p90_px: 12.0,
+        samples: 100,
+    };
+    assert!(!reach(23.9).is_partial());
+    assert!(!reach(24.0).is_partial());
+    assert!(reach(24.1).is_partial());
+    assert_eq!(reach(23.9).warning("--mask", None), None);
+    assert!(reach(24.1).warning("--mask", None).is_some());
+}

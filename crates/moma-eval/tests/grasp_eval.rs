@@ -40,7 +40,10 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
     // and a reliability table whose counts add up to the trials with a probability
     for r in rows.iter().filter(|r| r.method == "ssra") {
         let b = r.brier.unwrap();
-        assert!((0.0..=1.0).contains(&b), "{r:?}");
+        // on this set the probabilities tell grasps apart: every row scores under a forecast
+        // of 0.5 for all (0.25) and under its own base rate (measured 0.149–0.198 against
+        // 0.204–0.236)
+        assert!(b < 0.25 && b < r.brier_base_rate.unwrap(), "{r:?}");
         let n: usize = r.reliability.iter().map(|b| b.grasps).sum();
         assert!(n > 0 && n <= r.trials, "{r:?}");
         // the base rate's Brier score from the same grasps, counted through the bins
@@ -91,10 +94,14 @@ fn grasps_on_aligned_simulated_depth_succeed_by_proxy() {
             .any(|r| r.method == "ssra" && r.best_of_candidates > r.successes),
         "{rows:?}"
     );
-    // the error model's σ covers the true errors in a plausible share (not 0, not all)
+    // the error model's σ covers the true errors in a plausible share: measured 37 / 64 / 53 %
+    // within ±1σ and 89 / 95 / 91 % within ±2σ (all pixels / masks / edges); a σ three times
+    // too wide (> 95 % within ±1σ) or too narrow (< 30 %) fails
     for c in &result.coverage {
         assert!(
-            c.within_1sigma > 0.1 && c.within_2sigma > c.within_1sigma && c.within_2sigma < 1.0,
+            (0.3..=0.85).contains(&c.within_1sigma)
+                && (0.8..=0.995).contains(&c.within_2sigma)
+                && c.within_2sigma > c.within_1sigma,
             "{c:?}"
         );
     }

@@ -105,6 +105,23 @@ fn grasps_planned_on_the_truth_hold_and_on_a_shifted_depth_fail() {
                 shifted.successes,
                 shifted.grasps
             );
+            // and they fail mostly the way a surface 30 mm nearer than planned makes them
+            // fail: a cup pushed past its compliance into it, fingers closed into the table
+            let commonest = shifted
+                .failures
+                .iter()
+                .max_by_key(|(_, n)| **n)
+                .map(|(w, _)| w.as_str());
+            let expected = match gripper {
+                Gripper::Suction(_) => "cup_crash",
+                Gripper::Parallel(_) => "collision",
+            };
+            assert_eq!(
+                commonest,
+                Some(expected),
+                "{gripper:?} seed {seed}: {:?}",
+                shifted.failures
+            );
         }
     }
 }
@@ -117,6 +134,22 @@ fn an_error_model_gives_the_grasps_probabilities() {
     let c = grasp_check(&truth, &truth, &intrinsics(), None, &request).unwrap();
     let p = c.mean_success_prob.unwrap();
     assert!(c.grasps > 0 && p > 0.0 && p < 1.0, "{c:?}");
+    // a wider σ makes the same grasps less likely to hold: the mean probability falls with it
+    let mean_p = |sigma_m: f64| {
+        let mut r = request
+            .clone()
+            .with_error_model(Some(DepthErrorModel::uniform(sigma_m).unwrap()));
+        r.draws = 16;
+        grasp_check(&truth, &truth, &intrinsics(), None, &r)
+            .unwrap()
+            .mean_success_prob
+            .unwrap()
+    };
+    let (p1, p10, p40) = (mean_p(0.001), mean_p(0.01), mean_p(0.04));
+    assert!(
+        p1 > p10 && p10 > p40,
+        "σ 1 / 10 / 40 mm: {p1} / {p10} / {p40}"
+    );
 }
 
 #[test]

@@ -69,6 +69,23 @@ fn the_guard_follows_the_noise_within_a_cup_radius() {
         ..model(0.004)
     };
     assert_eq!(suction_noise_guard(&offset, 0.7, &cup, fx), 0.0);
+    // the bounds, written out: 0.5 mm and 1.5 mm (docs/grasping.md)
+    assert_eq!((NOISE_GUARD_FROM_M, NOISE_GUARD_FULL_M), (0.0005, 0.0015));
+    // a field longer than the cup's radius: only its variation within the radius counts,
+    // σ·√(r / s) with r = 0.01 m · 600 px / 0.7 m = 8.571 px and s = 32 px. At σ = 2 mm that
+    // is 1.035 mm of noise, a guard of 0.535 (a diameter instead of a radius would give 0.964)
+    let long = DepthErrorModel {
+        variance_shares: [0.0, 0.0, 0.0, 1.0],
+        ..model(0.002)
+    };
+    let r_px = 0.01 * fx / 0.7;
+    let noise = 0.002 * (r_px / 32.0).sqrt();
+    let want = ((noise - 0.0005) / 0.001) as f32;
+    let got = suction_noise_guard(&long, 0.7, &cup, fx);
+    assert!(
+        (got - want).abs() < 1e-5 && (got - 0.535).abs() < 1e-3,
+        "{got} vs {want}"
+    );
 }
 
 #[test]
@@ -96,6 +113,20 @@ fn the_suction_planning_depth_is_smoothed_in_proportion_to_the_guard() {
         smooth_full, depth.depth_m,
         "the control: the bumps are smoothed"
     );
+    // against the scene itself: away from the step and the borders the ±2 mm bumps are
+    // averaged to within 0.5 mm of the 0.7 m plane, and the 40 mm step stays where it is
+    let margin = 12;
+    for ((v, u), &z) in smooth_full.indexed_iter() {
+        if v < margin || v + margin >= h || u < margin || u + margin >= w {
+            continue;
+        }
+        let plane = if u > w / 2 { 0.66 } else { 0.7 };
+        if u.abs_diff(w / 2) > margin {
+            assert!((z - plane).abs() < 0.0005, "({u}, {v}): {z}");
+        }
+    }
+    let row = h / 2;
+    assert!(smooth_full[[row, w / 2]] > 0.69 && smooth_full[[row, w / 2 + 1]] < 0.67);
     // between: the blend, with the model's own smoothing at that σ
     let sigma = 0.001;
     let guard = suction_noise_guard(&model(sigma), 0.7, &SuctionCup::default(), intrinsics().fx);

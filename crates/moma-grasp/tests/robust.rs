@@ -249,17 +249,24 @@ fn bad_requests_are_errors_and_an_impossible_minimum_empties_the_list_with_a_rea
     let k = intrinsics();
     let base = GraspRequest::new(Gripper::Suction(SuctionCup::default()))
         .with_error_model(Some(DepthErrorModel::uniform(0.003).unwrap()));
+    // each refused as a bad configuration, naming what is wrong
+    let config_error = |r: &GraspRequest, says: &str| match plan_grasps(&depth, &k, None, r) {
+        Err(e @ moma_grasp::GraspError::InvalidConfig(_)) => {
+            assert!(e.to_string().contains(says), "{e}");
+        }
+        other => panic!("{says}: {other:?}"),
+    };
     let mut zero = base.clone();
     zero.draws = 0;
-    assert!(plan_grasps(&depth, &k, None, &zero).is_err());
+    config_error(&zero, "depth draws must be at least 1");
     for p in [-0.1, 1.5, f64::NAN] {
         let mut r = base.clone();
         r.min_success_prob = Some(p);
-        assert!(plan_grasps(&depth, &k, None, &r).is_err(), "min {p}");
+        config_error(&r, "minimum success probability");
     }
     let mut robust_without_model = GraspRequest::new(Gripper::Suction(SuctionCup::default()));
     robust_without_model.quality = GraspQuality::Robust;
-    assert!(plan_grasps(&depth, &k, None, &robust_without_model).is_err());
+    config_error(&robust_without_model, "needs an error model");
     // without a model: no probability
     let (_, plain) = plan_grasps(
         &depth,
