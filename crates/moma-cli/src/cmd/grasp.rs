@@ -479,8 +479,6 @@ fn write_outputs(
     rgb: Option<RgbImage>,
 ) -> Result<Vec<PathBuf>> {
     create_dir(dir)?;
-    let json_path = dir.join("grasps.json");
-    moma_io::write_json(&json_path, &outcome.grasps)?;
     let background = match rgb {
         Some(img) => img,
         None => {
@@ -513,5 +511,9 @@ fn write_outputs(
     );
     let overlay_path = dir.join("overlay.png");
     moma_io::write_rgb(&overlay_path, &overlay)?;
+    // the result last (each file is written atomically): a grasps.json in DIR means every
+    // other output of the run is there too
+    let json_path = dir.join("grasps.json");
+    moma_io::write_json(&json_path, &outcome.grasps)?;
     Ok(vec![json_path, overlay_path, ply_path, depth_path])
 }
