@@ -619,6 +619,22 @@ fn huge_sample_counts_fail_clearly() {
         );
         assert!(!calib.exists());
     }
+    // a huge seed count is refused by every command that evaluates, not allocated and aborted
+    let set = s(&scene).to_string();
+    let preds = s(&pred).to_string();
+    for cmd in [
+        vec!["eval", "--set", &set, "--pred", &preds],
+        vec!["ablate", "norm", "--set", &set, "--pred", &preds],
+        vec!["grasp-eval", "--set", &set, "--pred", &preds],
+    ] {
+        let mut args = cmd.clone();
+        args.extend(["--methods", "ssra", "--seeds", "1000000000000"]);
+        let err = fails(&args);
+        assert!(
+            err.contains("--seeds 1000000000000 is more than the limit of 10000"),
+            "{cmd:?}: {err}"
+        );
+    }
 }
 
 /// `calibrate --edge-margin-px`: every stored sample lies more than the margin from a depth
@@ -865,6 +881,16 @@ fn every_command_help_prints_its_long_documentation() {
             "`moma {} --help` lacks {marker:?}:\n{long}",
             cmd.join(" ")
         );
+        // examples paste into a shell as printed: none re-wrapped (clap wraps at 100
+        // columns), so no continuation backslash on a line of its own and no example command
+        // line that the wrap split
+        for line in long.lines() {
+            assert!(
+                line.trim() != "\\" && line.chars().count() <= 100,
+                "`moma {} --help` has a wrapped line: {line:?}",
+                cmd.join(" ")
+            );
+        }
     }
     // the overview keeps its one-line summaries
     let overview = ok(&["--help"]);
@@ -1089,7 +1115,8 @@ fn grasp_eval_skips_a_set_without_objects_among_several() {
     assert!(md.contains("skipped: set 'bare'"), "{md}");
     // nothing left: an error naming the set, and no table written
     std::fs::remove_dir_all(&out).unwrap();
-    let none = run(&[&bare, &bare]);
+    let bare2 = linked_copy(&bare, &tmp.path().join("bare2"));
+    let none = run(&[&bare, &bare2]);
     assert!(!none.status.success());
     assert!(String::from_utf8_lossy(&none.stderr).contains("no set has anything to grasp"));
     assert!(!out.exists());
@@ -1199,4 +1226,126 @@ fn calibrate_warns_when_its_samples_reach_part_of_the_image() {
         err.contains("grows from") && err.contains(&format!("{p90:.0} px away")),
         "{err}"
     );
+}
+
+/// What an evaluation would silently mix up is refused, naming it: two sets of one name (their
+/// rows and folders would be one), a prediction file the folder's index does not list (left by
+/// another run, its kind unknown), two sources of predictions, a set's missing predictions
+/// folder, a repeated list value, a negative depth range. (An audit of the commands found each.)
+#[test]
+fn evaluations_refuse_what_they_would_mix_up() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let (sc, pr) = (s(&scene).to_string(), s(&pred).to_string());
+    // a second set folder of the same name
+    let dup = tmp.path().join("dup");
+    std::fs::create_dir(&dup).unwrap();
+    linked_copy(&scene, &dup.join("scene"));
+    let dup_scene = s(&dup.join("scene")).to_string();
+    let out = s(&tmp.path().join("sim")).to_string();
+    let e = fails(&["simulate", "--set", &sc, "--set", &dup_scene, "-o", &out]);
+    assert!(e.contains("both named 'scene'"), "{e}");
+    assert!(!tmp.path().join("sim").exists());
+    for cmd in ["eval", "grasp-eval"] {
+        let e = fails(&[cmd, "--set", &sc, "--set", &dup_scene, "--simulate"]);
+        assert!(e.contains("both named 'scene'"), "{cmd}: {e}");
+    }
+    let e = fails(&[
+        "ablate",
+        "norm",
+        "--set",
+        &sc,
+        "--set",
+        &dup_scene,
+        "--simulate",
+    ]);
+    assert!(e.contains("both named 'scene'"), "{e}");
+
+    let eo = s(&tmp.path().join("eval-bad")).to_string();
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            "--set",
+            &sc,
+            "--methods",
+            "ssra",
+            "--seeds",
+            "1",
+            "-o",
+            &eo,
+        ];
+        a.extend_from_slice(extra);
+        a.iter().map(|x| x.to_string()).collect::<Vec<_>>()
+    };
+    let run = |a: Vec<String>| fails(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    // a frame the index does not list: refused, not read with the index's kind
+    let partial = tmp.path().join("partial");
+    std::fs::create_dir(&partial).unwrap();
+    for f in std::fs::read_dir(&pred).unwrap() {
+        let f = f.unwrap().path();
+        std::fs::copy(&f, partial.join(f.file_name().unwrap())).unwrap();
+    }
+    let index = partial.join("predictions.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&index).unwrap()).unwrap();
+    let frames = v["frames"]
+        .as_array_mut()
+        .expect("the index lists its frames");
+    frames.retain(|f| f.as_str() != Some("frame_01") && f["name"].as_str() != Some("frame_01"));
+    std::fs::write(&index, v.to_string()).unwrap();
+    let e = run(eval(&["--pred", s(&partial)]));
+    assert!(
+        e.contains("frame_01.npy is not listed in") && e.contains("predictions.json"),
+        "{e}"
+    );
+    // two sources of predictions
+    let e = run(eval(&["--pred", &pr, "--weights", "w.safetensors"]));
+    assert!(e.contains("does not combine with --pred"), "{e}");
+    // one --pred root for two sets, one of whose folders is missing
+    let other = linked_copy(&scene, &tmp.path().join("other"));
+    let root = tmp.path().join("root");
+    std::fs::create_dir(&root).unwrap();
+    std::os::unix::fs::symlink(&pred, root.join("scene")).unwrap();
+    // (among several sets the one without predictions is noted and skipped, as eval does)
+    let o = moma(&[
+        "eval",
+        "--set",
+        &sc,
+        "--set",
+        s(&other),
+        "--pred",
+        s(&root),
+        "--methods",
+        "ssra",
+        "--seeds",
+        "1",
+        "-o",
+        s(&tmp.path().join("eval-out")),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("no predictions folder")
+            && e.contains("set 'other'")
+            && e.contains("ROOT/<set name>"),
+        "{e}"
+    );
+    // repeated values and a negative range
+    let e = run(eval(&["--pred", &pr, "--robust", "huber,huber"]));
+    assert!(e.contains("--robust names huber twice"), "{e}");
+    let e = run(eval(&["--pred", &pr, "--max-gt-depth", "-1"]));
+    assert!(
+        e.contains("--max-gt-depth -1 must be a depth in metres"),
+        "{e}"
+    );
+}
+
+/// A set folder `to` of its own name whose entries link to `from`'s (a second set with the
+/// same content; a link to `from` itself would resolve to `from`'s name).
+fn linked_copy(from: &Path, to: &Path) -> PathBuf {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap().path();
+        std::os::unix::fs::symlink(&e, to.join(e.file_name().unwrap())).unwrap();
+    }
+    to.to_path_buf()
 }

@@ -491,8 +491,9 @@ impl DepthModel for OnnxDepthModel {
                 let (fh, fw) = (self.input_shape[2], self.input_shape[3]);
                 return Err(DepthError::Shape(format!(
                     "{} has a fixed input size {fh}x{fw} (H x W) but the pre-processed input is \
-                     {h}x{w} (axis {axis} differs); use ModelSpec.input_size = {} with images of the \
-                     matching aspect ratio, or an export with dynamic height/width",
+                     {h}x{w} (axis {axis} differs); set the input size to {} (`--input-size`, \
+                     `input_size=`) with images of the matching aspect ratio, or use an export \
+                     with dynamic height/width",
                     self.path.display(),
                     fh.min(fw)
                 )));

@@ -134,6 +134,10 @@ impl Default for EvalConfig {
     }
 }
 
+/// Most sampling seeds an evaluation takes: a typo (`--seeds 1000000000000`) is refused rather
+/// than allocating per seed and aborting.
+pub const MAX_SEEDS: usize = 10_000;
+
 /// Mean and standard deviation (over seeds).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Stat {
@@ -362,6 +366,24 @@ impl PredictionSet {
         })?;
         let mut maps = Vec::with_capacity(set.frames.len());
         for f in &set.frames {
+            // a map the index does not list was not written by the run the index describes
+            // (a folder written into twice): its kind is not known, so it is not read as one
+            if let Some(i) = &index
+                && !i.frames.is_empty()
+                && !i.frames.contains(&f.id)
+            {
+                return Err(EvalError::frame(
+                    &set.name,
+                    &f.id,
+                    format!(
+                        "{} is not listed in {} ({} frames): a file left by another run? \
+                         Write the predictions into a folder of their own",
+                        dir.join(format!("{}.npy", f.id)).display(),
+                        i.path.display(),
+                        i.frames.len()
+                    ),
+                ));
+            }
             let values = crate::data::read_prediction(dir, &set.name, &f.id)?;
             maps.push(Prediction::new(values, kind));
         }
@@ -479,6 +501,13 @@ impl<'a> Prepared<'a> {
             return Err(EvalError::InvalidParameter(
                 "--samples and --seeds must be at least 1".into(),
             ));
+        }
+        if config.seeds > MAX_SEEDS {
+            return Err(EvalError::InvalidParameter(format!(
+                "--seeds {} is more than the limit of {MAX_SEEDS} (each seed is a full \
+                 calibration of every method)",
+                config.seeds
+            )));
         }
         let calib = match &config.calib_frame {
             Some(id) => set.frame_index(id).ok_or_else(|| {

@@ -162,6 +162,57 @@ impl SimulatorConfig {
                 )));
             }
         }
+        // Upper bounds: beyond them a component no longer describes a depth model (a focal
+        // length through zero, a principal point off the image, a blur wider than the image),
+        // and a typo in a --sim-config file would hang on a huge blur or write maps of inf or 0.
+        for (name, v, max, why) in [
+            ("view_angle_deg", self.view_angle_deg, 45.0, "degrees"),
+            (
+                "focal_error",
+                self.focal_error,
+                0.9,
+                "a relative error: the focal length stays > 0",
+            ),
+            (
+                "principal_point_error",
+                self.principal_point_error,
+                1.0,
+                "a fraction of the image",
+            ),
+            ("bump_amplitude", self.bump_amplitude, 1.0, "relative"),
+            ("bump_count", self.bump_count as f64, 1000.0, "bumps"),
+            (
+                "relief_sigma_px",
+                self.relief_sigma_px,
+                640.0,
+                "px at 640 px width",
+            ),
+            (
+                "edge_sigma_px",
+                self.edge_sigma_px,
+                640.0,
+                "px at 640 px width",
+            ),
+            (
+                "noise_corr_sigma_px",
+                self.noise_corr_sigma_px,
+                640.0,
+                "px at 640 px width",
+            ),
+            ("noise_std", self.noise_std, 1.0, "relative"),
+            (
+                "inverse_log_scale",
+                self.inverse_log_scale,
+                10.0,
+                "K up to e^10",
+            ),
+        ] {
+            if v > max {
+                return Err(EvalError::InvalidParameter(format!(
+                    "simulator {name} = {v} is above its largest sensible value {max} ({why})"
+                )));
+            }
+        }
         if self.relief_compression > 1.0 || self.transparency_pull > 1.0 {
             return Err(EvalError::InvalidParameter(
                 "simulator relief_compression and transparency_pull must be <= 1".into(),

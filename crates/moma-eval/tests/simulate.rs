@@ -341,3 +341,37 @@ fn simulate_set_writes_npy_and_the_simulated_label() {
         .to_string();
     assert!(e.contains("prediction kind is unknown"), "{e}");
 }
+
+/// Strengths beyond what any depth model does are refused naming the field (a typo in a
+/// --sim-config file used to hang on a huge blur or write maps of inf or 0); the defaults, the
+/// identity and the bounds themselves pass.
+#[test]
+fn strengths_out_of_range_are_refused_by_name() {
+    SimulatorConfig::default().validate().unwrap();
+    SimulatorConfig::identity().validate().unwrap();
+    let with = |f: &dyn Fn(&mut SimulatorConfig)| {
+        let mut c = SimulatorConfig::default();
+        f(&mut c);
+        c.validate()
+    };
+    with(&|c| c.bump_count = 1000).unwrap();
+    with(&|c| c.edge_sigma_px = 640.0).unwrap();
+    type Edit = fn(&mut SimulatorConfig);
+    let cases: [(&str, Edit); 8] = [
+        ("bump_count", |c| c.bump_count = 100_000),
+        ("relief_sigma_px", |c| c.relief_sigma_px = 1e9),
+        ("edge_sigma_px", |c| c.edge_sigma_px = 641.0),
+        ("noise_corr_sigma_px", |c| c.noise_corr_sigma_px = 1e6),
+        ("principal_point_error", |c| c.principal_point_error = 1e6),
+        ("inverse_log_scale", |c| c.inverse_log_scale = 1e6),
+        ("noise_std", |c| c.noise_std = 1e30),
+        ("focal_error", |c| c.focal_error = 1.0),
+    ];
+    for (name, edit) in cases {
+        let e = with(&edit).unwrap_err().to_string();
+        assert!(
+            e.contains(name) && e.contains("largest sensible"),
+            "{name}: {e}"
+        );
+    }
+}

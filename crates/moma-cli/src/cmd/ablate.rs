@@ -21,7 +21,8 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// Examples:
 ///   moma ablate samples --set data/gqcnn-primesense --simulate -o out/ablations
 ///   moma ablate norm --set data/gqcnn-primesense --simulate --norms minmax,median,none
-///   moma ablate source --set data/gqcnn-primesense --source "sim metric:metric-depth:preds/d" --source "sim disp:relative-disparity:preds/i"
+///   moma ablate source --set data/gqcnn-primesense --source "sim metric:metric-depth:preds/d" \
+///       --source "sim disp:relative-disparity:preds/i"
 ///   moma ablate source --set data/gqcnn-primesense      # simulated depth vs simulated inverse depth
 ///   moma ablate transparent --set data/cleargrasp-transparent --simulate
 ///   moma ablate norm --set data/gqcnn-primesense --simulate --calib-frames 3   # few-shot
@@ -155,6 +156,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
         | AblateCommand::Transparent { common } => common,
     };
     check_calib_frame_counts(&[common.calib_frames]).context("--calib-frames")?;
+    super::common::check_unique_set_names(&common.set)?;
     common.eval.one_shot_only("ablate")?;
     let k = common.calib_frames;
     let mut notes = Vec::new();
@@ -162,6 +164,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
     let n = common.set.len();
     match &args.which {
         AblateCommand::Samples { counts, .. } => {
+            super::common::check_no_repeats("--counts", counts)?;
             let mut rows = Vec::new();
             for (i, dir) in common.set.iter().enumerate() {
                 let set = load_set(dir)?;

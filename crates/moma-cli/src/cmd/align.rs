@@ -97,8 +97,10 @@ impl RealignFlags {
 ///   NAME.ply        with --ply: point cloud in metres, camera frame, coloured when RGB is known
 ///
 /// Examples:
-///   moma align --calib calib.json --pred pred/*.npy --pred-kind relative-disparity -o aligned/ --colormap turbo
-///   moma align --calib calib.json --rgb frames/*/rgb.png --weights vits.safetensors -o aligned/ --ply
+///   moma align --calib calib.json --pred pred/*.npy --pred-kind relative-disparity -o aligned/ \
+///       --colormap turbo
+///   moma align --calib calib.json --rgb frames/*/rgb.png --weights vits.safetensors -o aligned/ \
+///       --ply
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct AlignArgs {

@@ -22,10 +22,11 @@ use super::grasp::GripperArg;
 /// are drawn per frame, one fit over all).
 ///
 /// Examples:
-///   moma calibrate --pred pred/0000.npy --pred-kind relative-disparity --gt set/frames/0000/depth.png \
-///       --camera set/camera.json -o calib.json
+///   moma calibrate --pred pred/0000.npy --pred-kind relative-disparity \
+///       --gt set/frames/0000/depth.png --camera set/camera.json -o calib.json
 ///   moma calibrate --rgb set/frames/0000/rgb.png --weights depth_anything_v2_vits.safetensors \
-///       --gt set/frames/0000/depth.png --camera set/camera.json --method ssra --samples 100 --seed 7 -o calib.json
+///       --gt set/frames/0000/depth.png --camera set/camera.json --method ssra --samples 100 \
+///       --seed 7 -o calib.json
 ///   moma calibrate --pred pred/0000.npy --gt set/frames/0000/depth.png \
 ///       --pred pred/0001.npy --gt set/frames/0001/depth.png --camera set/camera.json -o calib.json
 #[derive(Debug, Clone, Args)]

@@ -450,6 +450,41 @@ pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_cor
     Ok(moma_io::read_depth(path)?)
 }
 
+/// Refuses a list flag that names one value twice (it would give duplicate rows), as
+/// `--calib-frames 1,1` is refused.
+pub fn check_no_repeats<T: PartialEq + std::fmt::Display>(flag: &str, values: &[T]) -> Result<()> {
+    for (i, v) in values.iter().enumerate() {
+        if values[..i].contains(v) {
+            bail!("{flag} names {v} twice");
+        }
+    }
+    Ok(())
+}
+
+/// Refuses `--set` folders of the same name (a set is named by its folder): their rows could
+/// not be told apart, and their per-set output and prediction folders would be one.
+pub fn check_unique_set_names(sets: &[PathBuf]) -> Result<()> {
+    let mut seen = std::collections::HashMap::new();
+    for dir in sets {
+        // the name the set is loaded with: its folder's, links resolved
+        let real = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
+        let name = real
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| dir.display().to_string());
+        if let Some(first) = seen.insert(name.clone(), dir) {
+            bail!(
+                "--set {} and --set {} are both named '{name}' (a set is named by its folder): \
+                 their rows, outputs and prediction folders would be one; give each set a folder \
+                 of its own name",
+                first.display(),
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Refuses inputs whose outputs would overwrite each other: two paths with the same
 /// [`frame_name`] (the second's files would silently replace the first's).
 pub fn check_unique_output_names(inputs: &[PathBuf]) -> Result<()> {

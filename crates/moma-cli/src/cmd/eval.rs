@@ -45,11 +45,12 @@ use super::simulate::{SimOptions, TransparencyArg, per_set_dir};
 ///   moma eval --set data/gqcnn-primesense --pred preds/gqcnn
 ///   moma eval --set data/gqcnn-primesense --simulate --seeds 10 --json > results.json
 ///   moma eval --set data/a --set data/b --pred preds/ --methods ssra,gssa --norm minmax,median
-///   moma eval --set data/m2t2-table --simulate --max-gt-depth 2.0 --figures -o out/m2t2  # out/m2t2/m2t2-table/figures/
+///   # figures in out/m2t2/m2t2-table/figures/:
+///   moma eval --set data/m2t2-table --simulate --max-gt-depth 2.0 --figures -o out/m2t2
 ///   moma eval --set data/gqcnn-primesense --weights da2_vits.safetensors --model vits
 ///   moma eval --set data/gqcnn-primesense --simulate --calib-frames 1,2,3  # few-shot
-///   moma eval --set data/zed-da3-office --pred data/zed-da3-office/predictions --protocol per-frame \
-///       --methods gssa,ssra,lwlr,auto --norm none --score-max-gt-depth 5
+///   moma eval --set data/zed-da3-office --pred data/zed-da3-office/predictions \
+///       --protocol per-frame --methods gssa,ssra,lwlr,auto --norm none --score-max-gt-depth 5
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct EvalArgs {
@@ -245,9 +246,16 @@ impl EvalOptions {
         let depth_range_m = match (self.min_gt_depth, self.max_gt_depth) {
             (None, None) => None,
             (lo, hi) => {
+                for (flag, v) in [("--min-gt-depth", lo), ("--max-gt-depth", hi)] {
+                    if let Some(v) = v
+                        && (v < 0.0 || v.is_nan())
+                    {
+                        bail!("{flag} {v} must be a depth in metres, >= 0");
+                    }
+                }
                 let (lo, hi) = (lo.unwrap_or(0.0), hi.unwrap_or(f64::INFINITY));
                 if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
-                    bail!("--max-gt-depth must be larger than --min-gt-depth");
+                    bail!("--max-gt-depth {hi} must be larger than --min-gt-depth {lo}");
                 }
                 Some((lo, hi))
             }
@@ -273,6 +281,8 @@ impl EvalOptions {
             }
             None => None,
         };
+        super::common::check_no_repeats("--robust", &self.robust)?;
+        super::common::check_no_repeats("--brightness", &self.brightness)?;
         let robust: Vec<Robust> = self
             .robust
             .iter()
@@ -327,6 +337,12 @@ impl PredArgs {
         n_sets: usize,
     ) -> Result<PredictionSet> {
         if self.model.weights.is_some() {
+            if !self.pred.is_empty() || self.simulate {
+                bail!(
+                    "--weights runs the depth model on each frame's rgb.png; it does not combine \
+                     with --pred or --simulate (give one source of predictions)"
+                );
+            }
             return model_predictions(set, &self.model);
         }
         if self.simulate || self.pred.is_empty() {
@@ -354,6 +370,19 @@ impl PredArgs {
                 n_sets
             );
         };
+        if !dir.is_dir() {
+            bail!(
+                "no predictions folder {} for set '{}'{}",
+                dir.display(),
+                set.name,
+                if self.pred.len() == 1 && n_sets > 1 {
+                    " (with one --pred root for several sets, each set's predictions are in \
+                     ROOT/<set name>, as `moma simulate` writes them)"
+                } else {
+                    ""
+                }
+            );
+        }
         Ok(PredictionSet::read(set, &dir, self.pred_kind)?)
     }
 }
@@ -398,6 +427,7 @@ pub fn model_predictions(set: &LoadedSet, model: &ModelArgs) -> Result<Predictio
 
 pub fn run(args: &EvalArgs) -> Result<()> {
     let t0 = Instant::now();
+    super::common::check_unique_set_names(&args.set)?;
     let few_shot = !args.calib_frames.is_empty();
     if few_shot {
         check_calib_frame_counts(&args.calib_frames).context("--calib-frames")?;

@@ -21,8 +21,10 @@ use super::common::{ModelArgs, print_json, progress};
 /// that the machinery works.
 ///
 /// Examples:
-///   moma finetune --set data/cleargrasp-transparent --weights depth_anything_v2_metric_hypersim_vits.pth --head metric -o glass.lora.safetensors
-///   moma finetune --set SET --weights tiny-metric.safetensors --model tiny-metric.json --input-size 112 --steps 40 -o a.safetensors --json
+///   moma finetune --set data/cleargrasp-transparent \
+///       --weights depth_anything_v2_metric_hypersim_vits.pth --head metric -o glass.lora.safetensors
+///   moma finetune --set SET --weights tiny-metric.safetensors --model tiny-metric.json \
+///       --input-size 112 --steps 40 -o a.safetensors --json
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
 pub struct FinetuneArgs {

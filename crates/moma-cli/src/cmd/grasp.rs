@@ -38,7 +38,8 @@ impl GripperArg {
 /// The depth comes from --depth (metric: uint16 mm PNG, float32 .npy in metres, PFM), or from a
 /// calibration (`moma calibrate`) applied to --pred, or to --rgb run through the depth model.
 /// Grasps are in the camera frame (x right, y down, z forward, metres):
-///   parallel: {"kind":"parallel","score":s,"success_prob":p,"center_m":[x,y,z],"approach":[..],"closing":[..],"width_m":w}
+///   parallel: {"kind":"parallel","score":s,"success_prob":p,"center_m":[x,y,z],
+///              "approach":[..],"closing":[..],"width_m":w}
 ///   suction:  {"kind":"suction","score":s,"success_prob":p,"point_m":[x,y,z],"approach":[..]}
 /// `success_prob` is the share of depth maps drawn from the depth's error model (the
 /// calibration's, or a uniform --sigma-m) on which the grasp succeeds by the proxy's rules, in
@@ -50,8 +51,10 @@ impl GripperArg {
 /// the same pose fields in the robot base frame under "base".
 ///
 /// Files:
-///   --extrinsics: JSON {"camera_to_base": [[r00,r01,r02,tx],[r10,r11,r12,ty],[r20,r21,r22,tz],[0,0,0,1]]}
-///     (rows; p_base = R p_camera + t, metres; must be rigid: orthonormal R, det +1, last row 0 0 0 1)
+///   --extrinsics: JSON {"camera_to_base":
+///                         [[r00,r01,r02,tx],[r10,r11,r12,ty],[r20,r21,r22,tz],[0,0,0,1]]}
+///     (rows; p_base = R p_camera + t, metres; must be rigid: orthonormal R, det +1,
+///     last row 0 0 0 1)
 ///   --gripper-config: JSON with any of the gripper's fields, e.g. parallel
 ///     {"stroke_m":0.085,"finger_height_m":0.02,"finger_thickness_m":0.01,"finger_length_m":0.04,
 ///      "palm_depth_m":0.02,"contact_to_tip_m":0.01,"opening_clearance_m":0.01}

@@ -98,6 +98,7 @@ pub fn parse_quality(s: &str) -> std::result::Result<moma_grasp::GraspQuality, S
 }
 
 pub fn run(args: &GraspEvalArgs) -> Result<()> {
+    super::common::check_unique_set_names(&args.set)?;
     if args.gripper.is_empty() {
         bail!("--gripper needs at least one of parallel, suction");
     }

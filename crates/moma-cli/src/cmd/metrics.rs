@@ -15,7 +15,8 @@ use super::common::print_json;
 /// RMSE = sqrt(mean (p−g)²) and MAE = mean |p−g| in metres.
 ///
 /// Examples:
-///   moma metrics --pred aligned/0001.depth.png --gt set/frames/0001/depth.png --mask set/frames/0001/mask.png
+///   moma metrics --pred aligned/0001.depth.png --gt set/frames/0001/depth.png \
+///       --mask set/frames/0001/mask.png
 ///   moma metrics --pred aligned/0001.depth.npy --gt set/frames/0001/depth.png --json
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
@@ -56,6 +57,19 @@ pub fn run(args: &MetricsArgs) -> Result<()> {
             args.gt.display()
         )
     })?;
+    // the per-pixel sums are f32 (single precision is exact enough for depths of metres and
+    // fast): only depths beyond ~1e18 m overflow them, which no depth map holds
+    if ![m.rel, m.rmse, m.mae].iter().all(|x| x.is_finite()) {
+        anyhow::bail!(
+            "scoring {} against {}: the errors overflow (REL {}, RMSE {} m, MAE {} m): depths \
+             of that size are not metres",
+            args.pred.display(),
+            args.gt.display(),
+            m.rel,
+            m.rmse,
+            m.mae
+        );
+    }
     if args.json {
         print_json(&m)?;
     } else {

@@ -20,7 +20,8 @@ use super::common::{ModelArgs, create_dir, frame_name, print_json, progress};
 /// Examples:
 ///   moma predict --weights depth_anything_v2_vits.pth --model vits set/frames/*/rgb.png -o pred/
 ///   moma predict --weights depth_anything_v2_vits.onnx --backend onnx img.png -o pred/
-///   moma predict --weights depth_anything_v2_metric_hypersim_vits.pth --head metric --max-depth 20 img.png -o pred/
+///   moma predict --weights depth_anything_v2_metric_hypersim_vits.pth --head metric \
+///       --max-depth 20 img.png -o pred/
 ///   moma predict --hub metric-hypersim-vits --device cuda --dtype f16 img.png -o pred/
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
@@ -67,6 +68,15 @@ pub fn run(args: &PredictArgs) -> Result<()> {
     let super::common::LoadedModel { mut model, weights } = args.model.load()?;
     let kind = model.spec().head.prediction_kind();
     create_dir(&args.output)?;
+    // an index left by an earlier run would describe the files this one writes (perhaps of
+    // another kind) if this run stopped before writing its own: no index until the end
+    let index_path = args.output.join("predictions.json");
+    match std::fs::remove_file(&index_path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            return Err(e).with_context(|| format!("removing the old {}", index_path.display()));
+        }
+        _ => {}
+    }
     let bar = progress(args.images.len(), "predicting", args.json);
     let mut frames = Vec::new();
     for path in &args.images {
@@ -99,7 +109,6 @@ pub fn run(args: &PredictArgs) -> Result<()> {
         runtime: model.runtime(),
         frames,
     };
-    let index_path = args.output.join("predictions.json");
     write_json(&index_path, &index)?;
     if args.json {
         print_json(&index)?;

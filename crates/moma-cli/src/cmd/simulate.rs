@@ -153,6 +153,7 @@ pub fn per_set_dir(out: &Path, set_name: &str, n: usize) -> PathBuf {
 }
 
 pub fn run(args: &SimulateArgs) -> Result<()> {
+    super::common::check_unique_set_names(&args.set)?;
     let config = args.sim.config()?;
     for dir in &args.set {
         let set = moma_eval::data::load_set(dir)
