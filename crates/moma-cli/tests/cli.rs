@@ -1306,7 +1306,6 @@ fn evaluations_refuse_what_they_would_mix_up() {
     let root = tmp.path().join("root");
     std::fs::create_dir(&root).unwrap();
     std::os::unix::fs::symlink(&pred, root.join("scene")).unwrap();
-    // (among several sets the one without predictions is noted and skipped, as eval does)
     let o = moma(&[
         "eval",
         "--set",
@@ -1323,6 +1322,7 @@ fn evaluations_refuse_what_they_would_mix_up() {
         s(&tmp.path().join("eval-out")),
     ]);
     let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
     assert!(
         e.contains("no predictions folder")
             && e.contains("set 'other'")

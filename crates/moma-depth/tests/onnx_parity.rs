@@ -152,8 +152,8 @@ fn onnx_fixed_shape_mismatch_is_a_clear_error() {
                 "message names the fixed size: {msg}"
             );
             assert!(
-                msg.contains("input_size = 392"),
-                "message suggests the input size: {msg}"
+                msg.contains("set the input size to 392 (`--input-size`, `input_size=`)"),
+                "message suggests the input size, as the user gives it: {msg}"
             );
         }
         other => panic!("expected a shape error, got {other:?}"),
