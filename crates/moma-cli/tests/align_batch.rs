@@ -113,6 +113,24 @@ fn many_frames_give_the_same_files_and_order_on_any_thread_count() {
     let small = camera(size.width / 2, size.height / 2, "camera-small.json");
     let small_rgb = tmp.path().join("small.png");
     moma_io::write_rgb(&small_rgb, &image::RgbImage::new(8, 6)).unwrap();
+    // `moma align` of frame_01 into `dir` with its σ map and cloud, and `extra`
+    let args = |dir: &Path, extra: &[&str]| -> Vec<String> {
+        let mut a: Vec<String> = [
+            "align",
+            "--calib",
+            s(&calib),
+            "--pred",
+            &frame,
+            "-o",
+            s(dir),
+        ]
+        .iter()
+        .map(|x| x.to_string())
+        .collect();
+        a.extend(["--sigma-map", "--ply"].iter().map(|x| x.to_string()));
+        a.extend(extra.iter().map(|x| x.to_string()));
+        a
+    };
     for (out, extra, names) in [
         ("cam", vec!["--camera", s(&small)], "camera-small.json"),
         (
@@ -122,18 +140,7 @@ fn many_frames_give_the_same_files_and_order_on_any_thread_count() {
         ),
     ] {
         let dir = tmp.path().join(out);
-        let mut args = vec![
-            "align",
-            "--calib",
-            s(&calib),
-            "--pred",
-            &frame,
-            "-o",
-            s(&dir),
-        ];
-        args.extend(["--sigma-map", "--ply"]);
-        args.extend(extra);
-        let err = common::fails(&args);
+        let err = common::fails(&strs(&args(&dir, &extra)));
         assert!(err.contains(names), "{err}");
         let left: Vec<_> = std::fs::read_dir(&dir)
             .map(|d| d.map(|e| e.unwrap().file_name()).collect())
@@ -142,20 +149,13 @@ fn many_frames_give_the_same_files_and_order_on_any_thread_count() {
     }
     // and with both right, every file is written
     let dir = tmp.path().join("ok");
-    common::ok(&[
-        "align",
-        "--calib",
-        s(&calib),
-        "--pred",
-        &frame,
-        "-o",
-        s(&dir),
-        "--sigma-map",
-        "--ply",
-        "--camera",
-        s(&right),
-    ]);
+    common::ok(&strs(&args(&dir, &["--camera", s(&right)])));
     for suffix in ["depth.png", "depth.npy", "sigma.npy", "sigma.png", "ply"] {
         assert!(dir.join(format!("frame_01.{suffix}")).is_file(), "{suffix}");
     }
+}
+
+/// `&str`s of owned arguments, for `common::ok` and `common::fails`.
+fn strs(a: &[String]) -> Vec<&str> {
+    a.iter().map(String::as_str).collect()
 }
