@@ -557,6 +557,13 @@ const ERROR_MODEL_FOLDS: usize = 5;
 /// height part ([`crate::height`]): the folds' spread of the fit's slope (GSSA, SSRA) and, for a
 /// least-squares GSSA, SSRA or LWLR calibration, its objects' pull (`truths`: each calibration
 /// frame's range in the samples and its ground truth).
+/// What `moma calibrate` and Python's `calibrate` warn when a calibration has no error model
+/// (its fit found too little to measure on the calibration frames): what the user then lacks.
+pub const NO_ERROR_MODEL_WARNING: &str = "the calibration has no error model (its fit found too \
+     little to measure on these frames): `moma align --sigma-map` is refused, and grasps planned \
+     with it carry no success_prob (null) and are ranked nominal; calibrate on a frame with more \
+     valid ground truth";
+
 fn fit_error_model(
     calibration: &Calibration,
     normalised: &[&NormalisedMap],

@@ -480,10 +480,35 @@ pub fn sample_reach_over(
 /// distance to the nearest sample, against as many samples spread uniformly. `None` without
 /// samples or without a valid pixel.
 pub fn sample_reach(uv: &[(f64, f64)], valid: &Array2<bool>) -> Option<SampleReach> {
-    let area = valid.iter().filter(|&&b| b).count();
-    if uv.is_empty() || area == 0 {
+    // the valid pixels' count and bounding box, a row at a time
+    let (mut count, mut v0, mut v1, mut u0, mut u1) = (0usize, usize::MAX, 0, usize::MAX, 0);
+    for (v, row) in valid.rows().into_iter().enumerate() {
+        let n = row.iter().filter(|&&b| b).count();
+        if n > 0 {
+            count += n;
+            (v0, v1) = (v0.min(v), v);
+            u0 = u0.min(row.iter().position(|&b| b).unwrap_or(usize::MAX));
+            u1 = u1.max(row.iter().rposition(|&b| b).unwrap_or(0));
+        }
+    }
+    if uv.is_empty() || count == 0 {
         return None;
     }
+    // A sparse ground truth (a few hundred measured points, a LiDAR's rows: under 30 % of the
+    // pixels of their bounding box) covers that box although few of its pixels have depth:
+    // the reach is then measured over the box, and the uniform spread compared with is over
+    // its area. Measured over the valid pixels alone, samples among those very points looked
+    // as if they reached only part of the image. A dense ground truth is measured as before.
+    let box_area = (v1 - v0 + 1) * (u1 - u0 + 1);
+    let sparse = 10 * count < 3 * box_area;
+    let area = if sparse { box_area } else { count };
+    let measured = |u: usize, v: usize| {
+        if sparse {
+            (u0..=u1).contains(&u) && (v0..=v1).contains(&v)
+        } else {
+            valid[[v, u]]
+        }
+    };
     // squared distance from pixel (u, v) to the nearest sample (f32: pixel coordinates and
     // their squares are exact; a loop the compiler vectorises)
     let (su, sv): (Vec<f32>, Vec<f32>) = uv.iter().map(|&(u, v)| (u as f32, v as f32)).unzip();
@@ -500,7 +525,7 @@ pub fn sample_reach(uv: &[(f64, f64)], valid: &Array2<bool>) -> Option<SampleRea
     let mut d2: Vec<f64> = (0..h)
         .step_by(REACH_STEP_PX)
         .flat_map(|v| (0..w).step_by(REACH_STEP_PX).map(move |u| (u, v)))
-        .filter(|&(u, v)| valid[[v, u]])
+        .filter(|&(u, v)| measured(u, v))
         .map(nearest)
         .collect();
     if d2.is_empty() {

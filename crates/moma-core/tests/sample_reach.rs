@@ -199,3 +199,40 @@ fn the_partial_reach_threshold_is_twice_the_uniform_reach() {
     assert_eq!(reach(23.9).warning("--mask", None), None);
     assert!(reach(24.1).warning("--mask", None).is_some());
 }
+
+/// A sparse ground truth (150 measured points scattered over the image, or every 4th row of a
+/// LiDAR) covers the image although few pixels have depth: samples among those points reach it
+/// as a uniform spread over the image would, not "part of the image". Samples confined to the
+/// left half of the same points still do not.
+#[test]
+fn samples_among_a_sparse_ground_truth_reach_the_image_it_covers() {
+    let (h, w) = (480, 640);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut points = Array2::from_elem((h, w), false);
+    let mut all = Vec::new();
+    while all.len() < 150 {
+        let (u, v) = (rng.random_range(0..w), rng.random_range(0..h));
+        if !points[[v, u]] {
+            points[[v, u]] = true;
+            all.push((u as f64, v as f64));
+        }
+    }
+    let spread = sample_reach(&all[..100], &points).unwrap();
+    assert!(!spread.is_partial(), "{spread:?}");
+    // the reference is about the image's: as many samples over 640 × 480 (the points' box)
+    let image = (std::f64::consts::LN_10 / std::f64::consts::PI * (h * w) as f64 / 100.0).sqrt();
+    assert!(
+        (spread.uniform_p90_px / image - 1.0).abs() < 0.05,
+        "{spread:?} vs {image}"
+    );
+    assert!(spread.p90_px > 0.5 * image, "{spread:?}");
+    let left: Vec<(f64, f64)> = all.iter().copied().filter(|p| p.0 < 320.0).collect();
+    assert!(sample_reach(&left, &points).unwrap().is_partial());
+
+    let rows = Array2::from_shape_fn((h, w), |(v, _)| v % 4 == 0);
+    let on_rows = samples(100, 640.0, 2)
+        .into_iter()
+        .map(|(u, v)| (u, (v / 4.0).floor() * 4.0))
+        .collect::<Vec<_>>();
+    assert!(!sample_reach(&on_rows, &rows).unwrap().is_partial());
+}

@@ -879,6 +879,9 @@ fn calibrate(
     if let Some(w) = reach.and_then(|r| r.warning("mask=", inner.error_model.as_ref())) {
         user_warning(py, &w)?;
     }
+    if inner.error_model.is_none() {
+        user_warning(py, moma_core::pipeline::NO_ERROR_MODEL_WARNING)?;
+    }
     Ok(Calibration {
         inner,
         intrinsics,

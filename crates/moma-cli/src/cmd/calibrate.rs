@@ -442,6 +442,9 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     {
         eprintln!("warning: {w}");
     }
+    if file.calibration.error_model.is_none() {
+        eprintln!("warning: {}", moma_core::pipeline::NO_ERROR_MODEL_WARNING);
+    }
     let report = &file.calibration.report;
     let n_frames = inputs.len();
     let predicted = file
