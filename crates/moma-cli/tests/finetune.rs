@@ -241,6 +241,76 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
         let e = fails(&long);
         assert!(e.contains(want), "{option}: {e}");
     }
+    // Refused before training: an output that is an input, an output folder that does not
+    // exist, a set given twice (its validation frames would be trained on), a learning rate
+    // that moves every weight by more than its size; merging into an input.
+    let copy = tmp.path().join("base.safetensors");
+    std::fs::copy(&weights, &copy).unwrap();
+    let missing = tmp.path().join("no/such/dir/a.safetensors");
+    let run = |w: &Path, out: &Path, extra: &[&str]| {
+        let mut v = vec![
+            "finetune",
+            "--set",
+            s(&set),
+            "--steps",
+            "1",
+            "--weights",
+            s(w),
+        ];
+        v.extend([
+            "--model",
+            s(&config),
+            "--input-size",
+            "56",
+            "--device",
+            "cpu",
+        ]);
+        v.extend(["-o", s(out)]);
+        v.extend_from_slice(extra);
+        fails(&v)
+    };
+    let fresh = tmp.path().join("fresh.safetensors");
+    let onnx = shared.join("reference/dav2/tiny-metric.onnx");
+    for (w, out, extra, want) in [
+        (&copy, &copy, &[][..], "is an input of the run"),
+        (&weights, &missing, &[], "does not exist"),
+        (&weights, &fresh, &["--lr", "1e308"], "is above 1"),
+        (
+            &weights,
+            &fresh,
+            &["--lr", "0.5", "--head-lr-mult", "10"],
+            "is above 1",
+        ),
+        (&weights, &fresh, &["--set", s(&set)], "is given twice"),
+        (
+            &weights,
+            &fresh,
+            &["--dtype", "int8"],
+            "fine-tuning trains in f32",
+        ),
+        (&onnx, &fresh, &[], "an ONNX model cannot be trained"),
+    ] {
+        let e = run(w, out, extra);
+        assert!(e.contains(want), "{extra:?}: {e}");
+    }
+    assert!(!fresh.exists());
+    assert_eq!(
+        std::fs::read(&copy).unwrap(),
+        std::fs::read(&weights).unwrap()
+    );
+    let e = fails(&[
+        "lora",
+        "merge",
+        "--weights",
+        s(&copy),
+        "--model",
+        s(&config),
+        "--lora",
+        s(&adapter),
+        "-o",
+        s(&adapter),
+    ]);
+    assert!(e.contains("is an input"), "{e}");
     // Nothing was written over the corrupt file by the failed runs.
     assert_eq!(std::fs::read(&corrupt).unwrap(), b"not an adapter");
 }

@@ -46,8 +46,9 @@ pub enum TrainError {
     /// Weights, adapters or the network (boxed: the error type stays small).
     #[error(transparent)]
     Depth(Box<moma_depth::DepthError>),
-    /// Training failed; `context` says where (the step and its frames).
-    #[error("{context}: {source}")]
+    /// Training failed; `context` says where (the step and its frames). The cause is the
+    /// source only (the CLI and Python print the chain: in the text too it came out twice).
+    #[error("{context}")]
     Training {
         /// Where: e.g. "training step 11 (frames SET/frames/a)".
         context: String,

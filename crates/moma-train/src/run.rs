@@ -22,6 +22,9 @@ use crate::data::{self, Frame};
 /// Most frames per micro-batch and most micro-batches per step (a huge batch was reserved up
 /// front and aborted; batch × accumulate wrapped): far above what fits on any accelerator.
 pub const MAX_BATCH: usize = 4096;
+
+/// The largest learning rate (and head learning rate) a run takes.
+pub const MAX_LR: f64 = 1.0;
 /// Most optimiser steps of one run (`steps`, or `epochs` turned into steps).
 pub const MAX_STEPS: usize = 100_000_000;
 
@@ -178,6 +181,55 @@ impl FinetuneOptions {
                 "head learning-rate multiplier {} must be positive",
                 self.head_lr_mult
             ));
+        }
+        // AdamW's steps are about the learning rate in size: beyond 1 every weight moves by
+        // more than its own scale at each step (fine-tuning uses 1e-5 to 1e-3)
+        if self.lr > MAX_LR || self.lr * self.head_lr_mult > MAX_LR {
+            return bad(format!(
+                "learning rate {:e} (head {:e}) is above {MAX_LR}: every step would move the weights \
+                 by more than their own size",
+                self.lr,
+                self.lr * self.head_lr_mult
+            ));
+        }
+        // the output is checked before training, not found unwritable after it
+        let inputs = std::iter::once(&self.weights)
+            .chain(self.resume.iter())
+            .chain(self.sets.iter());
+        let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => a == b,
+        };
+        if let Some(p) = inputs.clone().find(|p| same(p, &self.output)) {
+            return bad(format!(
+                "the output {} is an input of the run ({}): it would be overwritten",
+                self.output.display(),
+                p.display()
+            ));
+        }
+        if self.output.is_dir() {
+            return bad(format!(
+                "the output {} is a folder: give the adapter's file name (e.g. {}/adapter.safetensors)",
+                self.output.display(),
+                self.output.display()
+            ));
+        }
+        if let Some(parent) = self.output.parent().filter(|p| !p.as_os_str().is_empty())
+            && !parent.is_dir()
+        {
+            return bad(format!(
+                "the output's folder {} does not exist",
+                parent.display()
+            ));
+        }
+        for (i, a) in self.sets.iter().enumerate() {
+            if let Some(b) = self.sets[..i].iter().find(|b| same(a, b)) {
+                return bad(format!(
+                    "set {} is given twice ({}): its validation frames would be trained on",
+                    a.display(),
+                    b.display()
+                ));
+            }
         }
         if !(self.weight_decay.is_finite() && self.weight_decay >= 0.0) {
             return bad(format!("weight decay {} must be ≥ 0", self.weight_decay));

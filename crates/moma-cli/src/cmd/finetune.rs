@@ -174,6 +174,24 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     if m.lora.is_some() {
         bail!("--lora does not apply to finetune (use --resume to continue an adapter)");
     }
+    // training runs on the candle backend in f32: options that would choose otherwise are
+    // refused rather than ignored
+    if m.backend == super::common::BackendArg::Onnx
+        || weights
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
+    {
+        bail!(
+            "fine-tuning trains the candle backend's network: --weights must be .safetensors or \
+             .pth (an ONNX model cannot be trained), and --backend onnx does not apply"
+        );
+    }
+    if m.dtype != super::common::DtypeArg::F32 {
+        bail!(
+            "fine-tuning trains in f32: --dtype applies to inference (`moma predict --lora \
+             ADAPTER --dtype ...` runs the trained adapter at another precision)"
+        );
+    }
     let mut opts = FinetuneOptions::new(
         args.sets.clone(),
         weights.clone(),

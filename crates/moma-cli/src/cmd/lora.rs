@@ -22,7 +22,8 @@ pub enum LoraCommand {
     /// key names) that any runtime loads without --lora.
     ///
     /// Example:
-    ///   moma lora merge --weights depth_anything_v2_vits.pth --model vits --lora glass.safetensors -o merged.safetensors
+    ///   moma lora merge --weights depth_anything_v2_vits.pth --model vits \
+    ///       --lora glass.safetensors -o merged.safetensors
     #[command(verbatim_doc_comment)]
     Merge(MergeArgs),
 }
@@ -50,6 +51,20 @@ pub fn run(args: &LoraArgs) -> Result<()> {
             let Some(adapter) = &a.model.lora else {
                 bail!("lora merge needs --lora ADAPTER");
             };
+            for input in [weights, adapter] {
+                let same = match (input.canonicalize(), a.output.canonicalize()) {
+                    (Ok(x), Ok(y)) => x == y,
+                    _ => *input == a.output,
+                };
+                if same {
+                    bail!(
+                        "the output {} is an input ({}): it would be overwritten; write the \
+                         merged weights to a file of their own",
+                        a.output.display(),
+                        input.display()
+                    );
+                }
+            }
             let config = DepthAnythingConfig::from_spec(&a.model.spec()?);
             moma_depth::candle::train::write_merged(weights, &config, adapter, &a.output)?;
             eprintln!(

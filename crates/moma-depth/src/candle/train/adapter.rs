@@ -152,7 +152,8 @@ impl Adapter {
     /// Writes the adapter atomically (a temporary file in the same folder, then a rename).
     ///
     /// # Errors
-    /// I/O errors naming the file.
+    /// I/O errors naming the file; a tensor holding NaN or ±inf (a diverged run), which no
+    /// reader takes: an adapter already at `path` is kept rather than replaced by it.
     pub fn save(&self, path: &Path) -> Result<()> {
         let mut views = BTreeMap::new();
         for (k, t) in self.tensors.iter().chain(&self.base) {
@@ -161,6 +162,12 @@ impl Adapter {
                 .and_then(|t| t.flatten_all())
                 .and_then(|t| t.to_vec1())
                 .map_err(backend)?;
+            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+                return Err(aerr(
+                    path,
+                    format!("not written: tensor {k} holds {x} (the training diverged)"),
+                ));
+            }
             views.insert(
                 k.clone(),
                 F32View {
