@@ -112,6 +112,15 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     ok(&m);
     let from_merged = run_predict(&[], &merged, &tmp.path().join("p2"));
     let base = run_predict(&[], &weights, &tmp.path().join("p3"));
+    // the predictions' index records the adapter (and only where there is one)
+    let index = |dir: &str| -> serde_json::Value {
+        serde_json::from_str(
+            &std::fs::read_to_string(tmp.path().join(dir).join("predictions.json")).unwrap(),
+        )
+        .unwrap()
+    };
+    assert_eq!(index("p1")["lora"].as_str(), Some(s(&adapter)));
+    assert!(index("p3").get("lora").is_none());
     let diff = |a: &ndarray::Array2<f32>, b: &ndarray::Array2<f32>| {
         a.iter()
             .zip(b)
@@ -289,6 +298,12 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
             "fine-tuning trains in f32",
         ),
         (&onnx, &fresh, &[], "an ONNX model cannot be trained"),
+        (
+            &weights,
+            &fresh,
+            &["--lora-alpha", "1e30"],
+            "more than 1000 × the rank",
+        ),
     ] {
         let e = run(w, out, extra);
         assert!(e.contains(want), "{extra:?}: {e}");

@@ -49,6 +49,10 @@ struct PredictionsIndex<'a> {
     prediction_kind: moma_core::PredictionKind,
     model: moma_depth::ModelSpec,
     weights: &'a std::path::Path,
+    /// The LoRA adapter merged into the weights (`--lora`), absent without one: predictions of
+    /// a fine-tuned model say so.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    lora: Option<&'a std::path::Path>,
     /// Backend, device and precision (`DepthModel::runtime`).
     runtime: String,
     frames: Vec<FrameRecord>,
@@ -106,6 +110,7 @@ pub fn run(args: &PredictArgs) -> Result<()> {
         prediction_kind: kind,
         model: model.spec(),
         weights: &weights,
+        lora: args.model.lora.as_deref(),
         runtime: model.runtime(),
         frames,
     };

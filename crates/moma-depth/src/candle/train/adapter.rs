@@ -322,7 +322,11 @@ impl Adapter {
     fn check_shapes(&self) -> std::result::Result<(), String> {
         let (d, depth, hidden) = self.arch;
         let r = self.lora.rank;
-        if r == 0 || !(self.lora.alpha.is_finite() && self.lora.alpha > 0.0) {
+        if r == 0
+            || !(self.lora.alpha.is_finite()
+                && self.lora.alpha > 0.0
+                && self.lora.alpha <= super::lora::MAX_ALPHA_PER_RANK * r as f64)
+        {
             return Err(format!("rank {r} / alpha {} out of range", self.lora.alpha));
         }
         let mut want = BTreeMap::new();

@@ -100,6 +100,12 @@ impl FromStr for LoraTarget {
     }
 }
 
+/// The largest LoRA alpha per unit of rank (an update scale alpha / rank of 1000): far above the
+/// 1–2 of practice, and below the scales at which the adapted network's f32 output no longer
+/// survives its own reload (alpha 1e30 trained to a validation loss that the written adapter,
+/// reloaded, did not reproduce).
+pub const MAX_ALPHA_PER_RANK: f64 = 1000.0;
+
 /// LoRA settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LoraConfig {
@@ -157,6 +163,13 @@ impl LoraConfig {
         }
         if !(self.alpha.is_finite() && self.alpha > 0.0) {
             return Err(format!("LoRA alpha {} must be positive", self.alpha));
+        }
+        if self.alpha > MAX_ALPHA_PER_RANK * self.rank as f64 {
+            return Err(format!(
+                "LoRA alpha {:e} is more than {MAX_ALPHA_PER_RANK} × the rank {}: the update \
+                 scale alpha / rank would swamp the base weights (alpha is usually 1–2 × rank)",
+                self.alpha, self.rank
+            ));
         }
         if !(0.0..1.0).contains(&self.dropout) {
             return Err(format!("LoRA dropout {} must be in [0, 1)", self.dropout));
