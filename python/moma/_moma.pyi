@@ -453,13 +453,14 @@ class DepthModel:
         lora: Optional[_Path] = None,
         *,
         max_depth: float = 20.0,
-        input_size: int = 518,
+        input_size: Optional[int] = None,
         dtype: Literal["f32", "f16", "bf16", "int8"] = "f32",
         config: Optional[dict[str, Any]] = None,
     ) -> "DepthModel":
         """``weights``: official checkpoint (.pth / .safetensors; candle) or .onnx (onnx builds);
         ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
-        largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14);
+        largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14;
+        default 518, or the ``config`` dict's own; given, it applies to a ``config`` model too);
         ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields);
         ``lora``: a LoRA adapter file (``moma finetune`` output, ``moma-lora-v2`` safetensors with any
         trained head tensors; ``moma-lora-v1`` files still load)

@@ -123,3 +123,21 @@ def test_bad_model_inputs(tiny_metric):
 def test_onnx_backend_absent_is_a_clear_error():
     with pytest.raises(moma.BackendError, match="without the ONNX Runtime backend"):
         moma.DepthModel(REF / "tiny-metric.onnx", backend="onnx")
+
+
+def test_an_explicit_input_size_applies_to_a_config_model():
+    """`input_size=` wins over the config dict's own, as `finetune(config=…, input_size=…)` and
+    the CLI take it; without it the dict's applies (the reference parity above relies on it)."""
+    cfg = tiny_config("tiny-metric")
+    assert cfg["input_size"] != 56
+    rgb = read_png_rgb()
+    small = moma.DepthModel(REF / "tiny-metric.safetensors", config=cfg, input_size=56).predict(rgb)
+    own = moma.DepthModel(REF / "tiny-metric.safetensors", config=cfg).predict(rgb)
+    same = moma.DepthModel(
+        REF / "tiny-metric.safetensors", config=cfg, input_size=cfg["input_size"]
+    ).predict(rgb)
+    assert small.shape == own.shape == (480, 640)
+    assert np.array_equal(own, same)
+    assert not np.allclose(small, own)
+    with pytest.raises(moma.InvalidInputError, match="input_size=-1"):
+        moma.DepthModel(REF / "tiny-metric.safetensors", config=cfg, input_size=-1)

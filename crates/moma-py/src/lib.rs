@@ -1503,7 +1503,7 @@ fn finetune(
 impl DepthModel {
     #[new]
     #[pyo3(signature = (weights, model="vits", head="relative", backend="candle", device="cpu",
-        lora=None, *, max_depth=20.0, input_size=518, dtype="f32", config=None))]
+        lora=None, *, max_depth=20.0, input_size=None, dtype="f32", config=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -1514,10 +1514,12 @@ impl DepthModel {
         device: &str,
         lora: Option<PathBuf>,
         max_depth: f32,
-        input_size: usize,
+        input_size: Option<i128>,
         dtype: &str,
         config: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        let input_size: Option<usize> =
+            input_size.map(|n| unsigned("input_size", n)).transpose()?;
         if !matches!(backend, "candle" | "onnx" | "auto") {
             return Err(value_err(format!(
                 "unknown backend '{backend}' (expected 'candle' or 'onnx')"
@@ -1528,8 +1530,17 @@ impl DepthModel {
             "auto" => "candle",
             b => b,
         };
+        // A custom architecture (e.g. small test networks): the DepthAnythingConfig fields as a
+        // dict, whose own input size applies unless `input_size=` is given (as the CLI's
+        // `--model PATH.json --input-size` and `finetune(config=…, input_size=…)` take it: the
+        // dict's used to win over an explicit `input_size=`)
+        let config = parse_config(py, config)?;
+        let input_size = input_size
+            .or(config.as_ref().map(|c| c.input_size))
+            .unwrap_or(518);
         moma_depth::preprocess::check_input_size(input_size)
             .map_err(|e| value_err(format!("input_size: {e}")))?;
+        let config = config.map(|c| moma_depth::candle::DepthAnythingConfig { input_size, ..c });
         let spec = ModelSpec {
             backbone: parse_backbone(model)?,
             head: parse_head(head, max_depth)?,
@@ -1537,8 +1548,6 @@ impl DepthModel {
         };
         let device: moma_depth::DeviceRequest = device.parse().map_err(value_err)?;
         let precision = parse_precision(dtype)?;
-        // A custom architecture (e.g. small test networks): the DepthAnythingConfig fields as a dict.
-        let config = parse_config(py, config)?;
         let spec = config.as_ref().map_or(spec, |c| c.spec());
         let (model, runtime) = py
             .detach(|| {

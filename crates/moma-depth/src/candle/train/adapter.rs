@@ -763,7 +763,11 @@ mod tests {
         let odd = Adapter::load(&path).unwrap();
         let e = msg(merge_adapter(base(&metric), &metric, &odd, &path));
         assert!(e.contains("depth_head.scratch.extra.weight"), "{e}");
-        // NaN in a head tensor and in a LoRA matrix: refused at load, naming the tensor.
+        // NaN in a head tensor and in a LoRA matrix: never written (a diverged run keeps the
+        // adapter it saved before), and refused at load from a file made elsewhere, naming the
+        // tensor.
+        loaded.save(&path).unwrap();
+        let good = std::fs::read(&path).unwrap();
         for key in ["depth_head.projects.1.weight", "blocks.0.mlp.fc2.lora_B"] {
             let mut bad = loaded.clone();
             let map = if key.starts_with("blocks.") {
@@ -776,12 +780,28 @@ mod tests {
             v[1] = f32::NAN;
             let nan = Tensor::from_vec(v, t.dims(), &Device::Cpu).unwrap();
             map.insert(key.into(), nan);
-            bad.save(&path).unwrap();
+            let e = bad.save(&path).unwrap_err().to_string();
+            assert!(
+                e.contains("a.safetensors") && e.contains(key) && e.contains("diverged"),
+                "{e}"
+            );
+            assert_eq!(
+                std::fs::read(&path).unwrap(),
+                good,
+                "the saved adapter is kept"
+            );
+            // the same NaN written into the file's bytes (the tensor's second value)
+            let (n, meta) = safetensors::SafeTensors::read_metadata(&good).unwrap();
+            let start = 8 + n + meta.info(key).unwrap().data_offsets.0 + 4;
+            let mut bytes = good.clone();
+            bytes[start..start + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+            std::fs::write(&path, &bytes).unwrap();
             let e = Adapter::load(&path).unwrap_err().to_string();
             assert!(
                 e.contains("a.safetensors") && e.contains(key) && e.contains("non-finite"),
                 "{e}"
             );
+            std::fs::write(&path, &good).unwrap();
         }
     }
 
