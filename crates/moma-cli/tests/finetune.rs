@@ -326,6 +326,51 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
         s(&adapter),
     ]);
     assert!(e.contains("is an input"), "{e}");
+    let e = fails(&[
+        "lora",
+        "merge",
+        "--weights",
+        s(&copy),
+        "--model",
+        s(&config),
+        "--lora",
+        s(&adapter),
+        "-o",
+        s(&copy),
+    ]);
+    assert!(e.contains("is an input"), "{e}");
+    assert_eq!(
+        std::fs::read(&copy).unwrap(),
+        std::fs::read(&weights).unwrap()
+    );
+    // a predict run into a folder that holds an older index, stopped by an unreadable image,
+    // leaves no index describing its files
+    let stale = tmp.path().join("stale");
+    std::fs::create_dir(&stale).unwrap();
+    std::fs::copy(
+        tmp.path().join("p1").join("predictions.json"),
+        stale.join("predictions.json"),
+    )
+    .unwrap();
+    let truncated = tmp.path().join("truncated.png");
+    std::fs::write(&truncated, &std::fs::read(&rgb).unwrap()[..100]).unwrap();
+    let e = fails(&[
+        "predict",
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "56",
+        "--device",
+        "cpu",
+        "-o",
+        s(&stale),
+        s(&rgb),
+        s(&truncated),
+    ]);
+    assert!(e.contains("truncated.png"), "{e}");
+    assert!(!stale.join("predictions.json").exists());
     // Nothing was written over the corrupt file by the failed runs.
     assert_eq!(std::fs::read(&corrupt).unwrap(), b"not an adapter");
 }

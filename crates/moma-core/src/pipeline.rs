@@ -550,13 +550,6 @@ fn in_frame(n_frames: usize, i: usize, e: CoreError) -> CoreError {
 /// Folds of the cross-validated residuals that floor the error model's flat σ.
 const ERROR_MODEL_FOLDS: usize = 5;
 
-/// The error model of a fitted calibration ([`DepthErrorModel::fit`]): the dense residuals of
-/// its result on each calibration frame, and, for the global fits (GSSA, SSRA: cheap to refit),
-/// the 5-fold cross-validated residuals of the samples (metres) as the floor of the flat σ; the
-/// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed. The
-/// height part ([`crate::height`]): the folds' spread of the fit's slope (GSSA, SSRA) and, for a
-/// least-squares GSSA, SSRA or LWLR calibration, its objects' pull (`truths`: each calibration
-/// frame's range in the samples and its ground truth).
 /// What `moma calibrate` and Python's `calibrate` warn when a calibration has no error model
 /// (its fit found too little to measure on the calibration frames): what the user then lacks.
 pub const NO_ERROR_MODEL_WARNING: &str = "the calibration has no error model (its fit found too \
@@ -564,6 +557,13 @@ pub const NO_ERROR_MODEL_WARNING: &str = "the calibration has no error model (it
      with it carry no success_prob (null) and are ranked nominal; calibrate on a frame with more \
      valid ground truth";
 
+/// The error model of a fitted calibration ([`DepthErrorModel::fit`]): the dense residuals of
+/// its result on each calibration frame, and, for the global fits (GSSA, SSRA: cheap to refit),
+/// the 5-fold cross-validated residuals of the samples (metres) as the floor of the flat σ; the
+/// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed. The
+/// height part ([`crate::height`]): the folds' spread of the fit's slope (GSSA, SSRA) and, for a
+/// least-squares GSSA, SSRA or LWLR calibration, its objects' pull (`truths`: each calibration
+/// frame's range in the samples and its ground truth).
 fn fit_error_model(
     calibration: &Calibration,
     normalised: &[&NormalisedMap],

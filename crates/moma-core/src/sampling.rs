@@ -448,7 +448,8 @@ impl SampleReach {
         };
         Some(format!(
             "the {} calibration samples reach only part of the image: 90 % of the pixels with \
-             depth lie within {:.0} px of one, where as many samples spread evenly would reach \
+             depth (for a sparse ground truth, of the region it spans) lie within {:.0} px of \
+             one, where as many samples spread evenly would reach \
              them within {:.0} px. Beyond them the alignment extrapolates{growth}; σ is still too \
              narrow on objects far from the samples (docs/grasping.md, \"σ away from the \
              samples\"): draw the samples ({mask_option}) over where the objects will be",

@@ -368,9 +368,20 @@ impl PredictionSet {
         for f in &set.frames {
             // a map the index does not list was not written by the run the index describes
             // (a folder written into twice): its kind is not known, so it is not read as one
+            // (a missing file is reported as missing, below; an entry may name the map, its
+            // file or a path to it)
+            let listed = |i: &moma_io::PredictionIndex| {
+                i.frames.iter().any(|n| {
+                    *n == f.id
+                        || std::path::Path::new(n)
+                            .file_stem()
+                            .is_some_and(|s| s.to_string_lossy() == f.id)
+                })
+            };
             if let Some(i) = &index
                 && !i.frames.is_empty()
-                && !i.frames.contains(&f.id)
+                && dir.join(format!("{}.npy", f.id)).is_file()
+                && !listed(i)
             {
                 return Err(EvalError::frame(
                     &set.name,

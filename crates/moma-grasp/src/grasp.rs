@@ -152,7 +152,7 @@ pub enum NoGraspReason {
         /// The best success probability found.
         best_success_prob: f32,
         /// The minimum asked.
-        min_success_prob: f32,
+        min_success_prob: f64,
         /// Depth draws per grasp: no probability exceeds `(draws + 1) / (draws + 2)`
         /// ([`crate::posterior_success_prob`]); 0 in reasons written before it was recorded.
         #[serde(default)]
@@ -186,7 +186,9 @@ impl std::fmt::Display for NoGraspReason {
                     "all {candidates} grasps have a success probability below the minimum \
                      {min_success_prob:.2} (best {best_success_prob:.2})"
                 )?;
-                let highest = (*draws as f32 + 1.0) / (*draws as f32 + 2.0);
+                // in f64, as the grasps are compared with the minimum (a minimum of 5/6 with 4
+                // draws is not reached by the f32 5/6 that a grasp holding on every draw has)
+                let highest = f64::from(crate::posterior_success_prob(1.0, *draws));
                 if *draws > 0 && *min_success_prob > highest {
                     // a minimum no grasp can reach, however good: say so, not "re-image"
                     write!(

@@ -415,7 +415,7 @@ pub fn plan_on_scene(
         outcome.no_grasp_reason = Some(NoGraspReason::BelowMinSuccessProb {
             candidates: below,
             best_success_prob: best,
-            min_success_prob: m as f32,
+            min_success_prob: m,
             draws: request.draws,
         });
     }

@@ -391,4 +391,15 @@ fn a_minimum_success_probability_keeps_exactly_the_grasps_at_or_above_it() {
     }
     .to_string();
     assert!(reachable.contains("re-image"), "{reachable}");
+    // 5/6 with 4 draws: the f32 5/6 a grasp holding on every draw gets is below the f64 5/6
+    // asked, so no grasp can reach it, and the reason says so
+    let edge = moma_grasp::NoGraspReason::BelowMinSuccessProb {
+        candidates: 3,
+        best_success_prob: moma_grasp::posterior_success_prob(1.0, 4),
+        min_success_prob: 5.0 / 6.0,
+        draws: 4,
+    }
+    .to_string();
+    assert!(edge.contains("no grasp can exceed"), "{edge}");
+    assert!(f64::from(moma_grasp::posterior_success_prob(1.0, 4)) < 5.0 / 6.0);
 }

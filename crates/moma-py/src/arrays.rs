@@ -151,7 +151,8 @@ pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage
 /// `moma.InvalidInputError`: not 2-D, or another dtype.
 pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
     if !obj.is_instance_of::<PyUntypedArray>() {
-        // a nested list of bools or 0/255: as NumPy reads it, then as an array
+        // a nested list of bools: as NumPy reads it, then as an array (a list of integers
+        // reads as int64 and is refused with the dtype named, as an int64 array is)
         let arr = as_ndarray(obj, what)?;
         if arr.is_instance_of::<PyArray2<bool>>() || arr.is_instance_of::<PyArray2<u8>>() {
             return mask(arr.as_any(), what);

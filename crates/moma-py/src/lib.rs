@@ -882,10 +882,12 @@ fn calibrate(
     if inner.error_model.is_none() {
         user_warning(py, moma_core::pipeline::NO_ERROR_MODEL_WARNING)?;
     }
+    // stamped when made (not each time it is written): `to_json`, `save` and pickling then
+    // give the same text
     Ok(Calibration {
         inner,
         intrinsics,
-        created: None,
+        created: Some(CreationInfo::now().with_source("python", "moma.calibrate")),
     })
 }
 

@@ -193,9 +193,9 @@ impl FinetuneOptions {
             ));
         }
         // the output is checked before training, not found unwritable after it
-        let inputs = std::iter::once(&self.weights)
-            .chain(self.resume.iter())
-            .chain(self.sets.iter());
+        // (resuming in place, `--resume a -o a`, is safe: the adapter is read whole first and
+        // saved atomically; the base weights and the sets are what must not be written over)
+        let inputs = std::iter::once(&self.weights).chain(self.sets.iter());
         let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
             (Ok(a), Ok(b)) => a == b,
             _ => a == b,

@@ -254,8 +254,9 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         .check(source.len(), &calib.calibration, &args.calib)?;
     if args.sigma_map && calib.calibration.error_model.is_none() {
         bail!(
-            "--sigma-map needs the calibration's error model, which {} does not hold (it was \
-             written before error models existed): run `moma calibrate` again",
+            "--sigma-map needs the calibration's error model, which {} does not hold (written \
+             before error models existed, or its fit failed on the calibration frame: `moma \
+             calibrate` warned of it)",
             args.calib.display()
         );
     }
