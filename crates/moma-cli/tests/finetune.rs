@@ -266,14 +266,8 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
             "--weights",
             s(w),
         ];
-        v.extend([
-            "--model",
-            s(&config),
-            "--input-size",
-            "56",
-            "--device",
-            "cpu",
-        ]);
+        // the model settings of `common`, with other weights
+        v.extend_from_slice(&common[2..]);
         v.extend(["-o", s(out)]);
         v.extend_from_slice(extra);
         fails(&v)
@@ -313,32 +307,21 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
         std::fs::read(&copy).unwrap(),
         std::fs::read(&weights).unwrap()
     );
-    let e = fails(&[
-        "lora",
-        "merge",
-        "--weights",
-        s(&copy),
-        "--model",
-        s(&config),
-        "--lora",
-        s(&adapter),
-        "-o",
-        s(&adapter),
-    ]);
-    assert!(e.contains("is an input"), "{e}");
-    let e = fails(&[
-        "lora",
-        "merge",
-        "--weights",
-        s(&copy),
-        "--model",
-        s(&config),
-        "--lora",
-        s(&adapter),
-        "-o",
-        s(&copy),
-    ]);
-    assert!(e.contains("is an input"), "{e}");
+    for out in [&adapter, &copy] {
+        let e = fails(&[
+            "lora",
+            "merge",
+            "--weights",
+            s(&copy),
+            "--model",
+            s(&config),
+            "--lora",
+            s(&adapter),
+            "-o",
+            s(out),
+        ]);
+        assert!(e.contains("is an input"), "{e}");
+    }
     assert_eq!(
         std::fs::read(&copy).unwrap(),
         std::fs::read(&weights).unwrap()
@@ -354,21 +337,14 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
     .unwrap();
     let truncated = tmp.path().join("truncated.png");
     std::fs::write(&truncated, &std::fs::read(&rgb).unwrap()[..100]).unwrap();
-    let e = fails(&[
-        "predict",
-        "--weights",
-        s(&weights),
-        "--model",
-        s(&config),
-        "--input-size",
-        "56",
-        "--device",
-        "cpu",
-        "-o",
-        s(&stale),
-        s(&rgb),
-        s(&truncated),
-    ]);
+    let e = fails(
+        &[
+            &["predict"][..],
+            &common,
+            &["-o", s(&stale), s(&rgb), s(&truncated)],
+        ]
+        .concat(),
+    );
     assert!(e.contains("truncated.png"), "{e}");
     assert!(!stale.join("predictions.json").exists());
     // Nothing was written over the corrupt file by the failed runs.
