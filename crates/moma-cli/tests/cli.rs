@@ -802,6 +802,16 @@ fn demo_frame_counts_outside_2_to_100_are_refused() {
         assert!(err.contains("--frames") && err.contains("2..=100"), "{err}");
     }
     assert!(!tmp.path().join("d").exists());
+    // the evaluation's settings too are checked before the scene is written
+    for (flag, value, says) in [
+        ("--samples", "0", "--samples"),
+        ("--gt-outliers", "2", "--gt-outliers"),
+        ("--seeds", "1000000", "--seeds"),
+    ] {
+        let err = fails(&["demo", "-o", s(&tmp.path().join("d")), flag, value]);
+        assert!(err.contains(says), "{flag} {value}: {err}");
+        assert!(!tmp.path().join("d").exists(), "{flag} {value}");
+    }
 }
 
 /// `grasp-eval` shares `eval`'s options and variants (re-alignment, robust fits, few-shot; see

@@ -134,6 +134,29 @@ impl Default for EvalConfig {
     }
 }
 
+impl EvalConfig {
+    /// Checks the sample and seed counts (also before anything is built, e.g. `moma demo`'s
+    /// scene).
+    ///
+    /// # Errors
+    /// [`EvalError::InvalidParameter`]: no sample or seed, or more seeds than [`MAX_SEEDS`].
+    pub fn check_counts(&self) -> Result<()> {
+        if self.samples == 0 || self.seeds == 0 {
+            return Err(EvalError::InvalidParameter(
+                "--samples and --seeds must be at least 1".into(),
+            ));
+        }
+        if self.seeds > MAX_SEEDS {
+            return Err(EvalError::InvalidParameter(format!(
+                "--seeds {} is more than the limit of {MAX_SEEDS} (each seed is a full \
+                 calibration of every method)",
+                self.seeds
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Most sampling seeds an evaluation takes: a typo (`--seeds 1000000000000`) is refused rather
 /// than allocating per seed and aborting.
 pub const MAX_SEEDS: usize = 10_000;
@@ -508,18 +531,7 @@ impl<'a> Prepared<'a> {
                 set.frames.len()
             )));
         }
-        if config.samples == 0 || config.seeds == 0 {
-            return Err(EvalError::InvalidParameter(
-                "--samples and --seeds must be at least 1".into(),
-            ));
-        }
-        if config.seeds > MAX_SEEDS {
-            return Err(EvalError::InvalidParameter(format!(
-                "--seeds {} is more than the limit of {MAX_SEEDS} (each seed is a full \
-                 calibration of every method)",
-                config.seeds
-            )));
-        }
+        config.check_counts()?;
         let calib = match &config.calib_frame {
             Some(id) => set.frame_index(id).ok_or_else(|| {
                 set_err(format!(

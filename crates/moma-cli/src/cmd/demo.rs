@@ -68,6 +68,12 @@ const DEMO_GRASP_SEEDS: usize = 3;
 
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
+    if args.set.is_none() {
+        // the evaluation's settings checked before the scene is written (the bundled scene's
+        // predictions are simulated, of --sim-kind): a bad value fails with nothing written
+        args.eval.config(args.pred.sim_kind)?.check_counts()?;
+        args.pred.sim.config()?;
+    }
     create_dir(&args.out)?;
     let (set, preds) = match &args.set {
         Some(dir) => {
