@@ -180,7 +180,7 @@ def test_a_failed_realigned_align_into_leaves_out_as_it_was():
     rgb = np.random.default_rng(3).integers(0, 255, (*pred.shape, 3), dtype=np.uint8)
     cal = moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=rgb)
     out = np.full(pred.shape, 7.0, np.float32)
-    with pytest.raises(moma.InvalidInputError, match="rgb"):
+    with pytest.raises(moma.InvalidInputError, match="frame RGB is 160x60"):
         cal.align_realigned_into(pred, rgb[:60], out)
     assert (out == 7.0).all()
     # and the anchors' RGB of another size is named with the sizes the right way round

@@ -977,6 +977,8 @@ impl Calibration {
         out: &mut ArrayViewMut2<'_, f32>,
     ) -> Result<RealignReport> {
         let store = self.anchor_store()?; // no store: fail before aligning
+        // nor an RGB of another size: `out` is left as it was when the call fails
+        self.image_size().expect_eq("frame RGB", grey.size())?;
         if config.model != CorrectionModel::PredictionAffine {
             self.one_shot_into(pred, out)?;
             return realign_in_place(store, grey, self.space(), config, out);

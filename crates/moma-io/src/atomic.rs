@@ -83,3 +83,13 @@ pub fn atomic_write<T>(
 pub(crate) fn write_err(path: &Path) -> impl Fn(std::io::Error) -> IoError + '_ {
     move |e| IoError::io(path, "write", e)
 }
+
+/// Whether `a` and `b` name the same file: equal once both resolve (links, `..`, relative
+/// parts), or equal as written when either does not exist yet (an output about to be
+/// created). What a command checks before it writes its output over one of its inputs.
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    }
+}

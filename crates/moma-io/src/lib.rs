@@ -61,7 +61,7 @@ mod predictions;
 mod raster;
 mod set;
 
-pub use atomic::atomic_write;
+pub use atomic::{atomic_write, same_file};
 pub use calibration::{
     CALIBRATION_FORMAT, CALIBRATION_VERSION, CalibrationFile, CreationInfo,
     OLDEST_CALIBRATION_VERSION, parse_calibration, read_calibration, write_calibration,
@@ -98,5 +98,5 @@ pub use raster::{
 };
 pub use set::{
     CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, LoadedFrame, LoadedSet, MASK_FILE,
-    MomaSet, MomaSetWriter, RAW_DEPTH_FILE, RGB_FILE,
+    MomaSet, MomaSetWriter, RAW_DEPTH_FILE, RGB_FILE, loaded_set_name,
 };

@@ -217,6 +217,16 @@ impl MomaSet {
     }
 }
 
+/// The name a set folder is loaded with ([`LoadedSet::name`]): its folder's name, links and
+/// relative parts resolved (`.` or a link named otherwise gives the real folder's name); the
+/// path as written when it does not resolve.
+pub fn loaded_set_name(root: &Path) -> String {
+    let real = root.canonicalize().unwrap_or_else(|_| root.to_path_buf());
+    real.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| root.display().to_string())
+}
+
 /// One frame of a [`LoadedSet`], in memory. Invalid depth is `NaN`, as [`crate::read_depth`]
 /// returns it (the one convention of moma; [`moma_core::is_valid_depth`] also accepts 0 as
 /// invalid for maps made elsewhere).
@@ -266,14 +276,8 @@ impl MomaSet {
                 })
             })
             .collect::<Result<Vec<_>>>()?;
-        let name = self
-            .root
-            .canonicalize()
-            .ok()
-            .and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned()))
-            .unwrap_or_else(|| self.name());
         Ok(LoadedSet {
-            name,
+            name: loaded_set_name(&self.root),
             dir: self.root.clone(),
             intrinsics: self.camera,
             frames,

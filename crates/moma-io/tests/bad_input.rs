@@ -305,6 +305,12 @@ mod calibration {
     use moma_core::align::{AlignmentModel, FitReport, SampleSet};
     use moma_core::pipeline::Calibration;
 
+    /// `f` written to `p`, and the JSON it wrote (to edit and write back).
+    fn written_json(p: &Path, f: &CalibrationFile) -> serde_json::Value {
+        write_calibration(p, f).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    }
+
     fn file() -> CalibrationFile {
         let calibration = Calibration {
             normalisation: moma_core::NormalisationConfig {
@@ -472,10 +478,8 @@ mod calibration {
         // kinds: the same document (without them) labelled 2 to 8 must read, equal.
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
-        write_calibration(&p, &file()).unwrap();
+        let mut v = written_json(&p, &file());
         let written = read_calibration(&p).unwrap();
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
         assert_eq!(v["version"], 9);
         for old in [2, 3, 4, 5, 6, 7, 8] {
             v["version"] = old.into();
@@ -501,9 +505,7 @@ mod calibration {
         let p = dir.path().join("calib.json");
         let mut f = file();
         f.calibration.error_model = Some(model);
-        write_calibration(&p, &f).unwrap();
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        let mut v = written_json(&p, &f);
         assert_eq!(v["calibration"]["error_model"][field], written);
         assert_eq!(read_calibration(&p).unwrap(), f);
         v["version"] = old_version.into();
@@ -621,9 +623,7 @@ mod calibration {
             v["calibration"]["prediction_kind"] = kind.into();
         };
         // raw + depth → metric-depth
-        write_calibration(&p, &file()).unwrap();
-        let mut raw: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        let mut raw = written_json(&p, &file());
         assert_eq!(raw["prediction_kind"], "metric-depth");
         raw["version"] = 4.into();
         with_kind(&mut raw, "depth");
@@ -677,10 +677,8 @@ mod calibration {
         let p = dir.path().join("calib.json");
         let mut f = file();
         f.calibration.error_model = Some(moma_core::DepthErrorModel::uniform(0.004).unwrap());
-        write_calibration(&p, &f).unwrap();
+        let mut v = written_json(&p, &f);
         assert_eq!(read_calibration(&p).unwrap(), f);
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
         v["calibration"]["error_model"]["variance_shares"] =
             serde_json::json!([0.5, 0.5, 0.5, 0.5]);
         std::fs::write(&p, v.to_string()).unwrap();
@@ -701,9 +699,7 @@ mod calibration {
     fn unknown_version_or_format() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
-        write_calibration(&p, &file()).unwrap();
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        let mut v = written_json(&p, &file());
         v["version"] = 10.into();
         // A v10 file may have a different schema: the version error must win over schema errors.
         v["calibration"] = serde_json::json!({"something": "new"});
@@ -726,14 +722,7 @@ mod calibration {
         assert!(m.contains("<missing>"), "{m}");
 
         // the version as text: said to be text, not read as the supported number
-        let mut v: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string({
-                write_calibration(&p, &file()).unwrap();
-                &p
-            })
-            .unwrap(),
-        )
-        .unwrap();
+        let mut v = written_json(&p, &file());
         v["version"] = "9".into();
         std::fs::write(&p, v.to_string()).unwrap();
         let m = msg(&read_calibration(&p).unwrap_err());
@@ -746,9 +735,7 @@ mod calibration {
     fn edited_samples_and_report_are_refused() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
-        write_calibration(&p, &file()).unwrap();
-        let mut good: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        let mut good = written_json(&p, &file());
         // two samples inside the 8 × 6 image, counted by the report: a good file
         good["calibration"]["samples"]["samples"] = serde_json::json!([
             {"u": 1.0, "v": 1.0, "pred": 0.7, "depth_m": 0.7},
@@ -789,9 +776,7 @@ mod calibration {
     fn inconsistent_summary_fields() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("calib.json");
-        write_calibration(&p, &file()).unwrap();
-        let mut v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        let mut v = written_json(&p, &file());
         v["prediction_kind"] = "inverse-depth".into();
         std::fs::write(&p, v.to_string()).unwrap();
         let e = read_calibration(&p).unwrap_err();

@@ -208,7 +208,10 @@ pub const MILLIMETRE_MEDIAN_M: f32 = 200.0;
 /// # Errors
 /// As [`f32_2d`]; the two cases above, naming the argument and what to do.
 pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyArray2<'py, f32>> {
-    if !obj.is_instance_of::<PyArray2<f32>>() {
+    let ro = if obj.is_instance_of::<PyArray2<f32>>() {
+        f32_2d(obj, what)?
+    } else {
+        // read as NumPy reads it once, its dtype checked, then converted from that array
         let arr = as_ndarray(obj, what)?;
         if matches!(dtype_kind(&arr)?, 'i' | 'u' | 'b') {
             return Err(value_err(format!(
@@ -217,8 +220,8 @@ pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonl
                 arr.dtype()
             )));
         }
-    }
-    let ro = f32_2d(obj, what)?;
+        f32_2d(arr.as_any(), what)?
+    };
     let mut valid: Vec<f32> = ro
         .as_array()
         .iter()

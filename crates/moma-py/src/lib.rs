@@ -69,8 +69,6 @@ fn realign_view_into(
     config: &RealignConfig,
     mut out: ndarray::ArrayViewMut2<'_, f32>,
 ) -> Result<moma_core::realign::RealignReport, CoreError> {
-    // checked before `out` is written: a failed call leaves it as it was
-    ImageSize::of(&pred).expect_eq("rgb", ImageSize::new(rgb.dim().1, rgb.dim().0))?;
     let grey = moma_io::grey_half(rgb)?;
     let report = cal.align(
         PredictionInput::view(pred, kind),

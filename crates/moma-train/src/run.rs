@@ -195,12 +195,10 @@ impl FinetuneOptions {
         // the output is checked before training, not found unwritable after it
         // (resuming in place, `--resume a -o a`, is safe: the adapter is read whole first and
         // saved atomically; the base weights and the sets are what must not be written over)
-        let inputs = std::iter::once(&self.weights).chain(self.sets.iter());
-        let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
-            (Ok(a), Ok(b)) => a == b,
-            _ => a == b,
-        };
-        if let Some(p) = inputs.clone().find(|p| same(p, &self.output)) {
+        if let Some(p) = std::iter::once(&self.weights)
+            .chain(&self.sets)
+            .find(|p| moma_io::same_file(p, &self.output))
+        {
             return bad(format!(
                 "the output {} is an input of the run ({}): it would be overwritten",
                 self.output.display(),
@@ -223,7 +221,7 @@ impl FinetuneOptions {
             ));
         }
         for (i, a) in self.sets.iter().enumerate() {
-            if let Some(b) = self.sets[..i].iter().find(|b| same(a, b)) {
+            if let Some(b) = self.sets[..i].iter().find(|b| moma_io::same_file(a, b)) {
                 return bad(format!(
                     "set {} is given twice ({}): its validation frames would be trained on",
                     a.display(),

@@ -466,12 +466,7 @@ pub fn check_no_repeats<T: PartialEq + std::fmt::Display>(flag: &str, values: &[
 pub fn check_unique_set_names(sets: &[PathBuf]) -> Result<()> {
     let mut seen = std::collections::HashMap::new();
     for dir in sets {
-        // the name the set is loaded with: its folder's, links resolved
-        let real = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.clone());
-        let name = real
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| dir.display().to_string());
+        let name = moma_io::loaded_set_name(dir);
         if let Some(first) = seen.insert(name.clone(), dir) {
             bail!(
                 "--set {} and --set {} are both named '{name}' (a set is named by its folder): \

@@ -68,14 +68,9 @@ const DEMO_GRASP_SEEDS: usize = 3;
 
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
-    if args.set.is_none() {
-        // the evaluation's settings checked before the scene is written (the bundled scene's
-        // predictions are simulated, of --sim-kind): a bad value fails with nothing written
-        args.eval.config(args.pred.sim_kind)?.check_counts()?;
-        args.pred.sim.config()?;
-    }
-    create_dir(&args.out)?;
-    let (set, preds) = match &args.set {
+    // every setting is checked before anything is written into the output folder (the bundled
+    // scene's predictions are simulated, of --sim-kind): a bad value fails with nothing written
+    let (set, preds, mut config) = match &args.set {
         Some(dir) => {
             let set = load_set(dir)?;
             let mut pred = args.pred.clone();
@@ -83,7 +78,10 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                 pred.simulate = true;
             }
             let preds = pred.predictions(&set, 0, 1)?;
-            (set, preds)
+            let config = args.eval.config(preds.kind()?)?;
+            config.check_counts()?;
+            create_dir(&args.out)?;
+            (set, preds, config)
         }
         None => {
             if args.pred.model.weights.is_some() || !args.pred.pred.is_empty() {
@@ -91,6 +89,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                     "the bundled scene has simulated predictions only: use --set DIR with --weights or --pred"
                 );
             }
+            let config = args.eval.config(args.pred.sim_kind)?;
+            config.check_counts()?;
             let demo = DemoScene {
                 scene: DemoSceneConfig {
                     frames: usize::from(args.frames),
@@ -100,10 +100,12 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                 simulator_seed: args.pred.sim_seed,
                 kind: args.pred.sim_kind,
             };
-            build_demo(&demo, Some(&args.out)).context("building the demo scene")?
+            create_dir(&args.out)?;
+            let (set, preds) =
+                build_demo(&demo, Some(&args.out)).context("building the demo scene")?;
+            (set, preds, config)
         }
     };
-    let mut config = args.eval.config(preds.kind()?)?;
     // what moma adds to the paper: per-frame re-alignment on static anchors, where the frames
     // have RGB (the bundled scene does)
     if config.realign.is_none() && set.frames.iter().all(|f| f.rgb.is_some()) {

@@ -52,11 +52,7 @@ pub fn run(args: &LoraArgs) -> Result<()> {
                 bail!("lora merge needs --lora ADAPTER");
             };
             for input in [weights, adapter] {
-                let same = match (input.canonicalize(), a.output.canonicalize()) {
-                    (Ok(x), Ok(y)) => x == y,
-                    _ => *input == a.output,
-                };
-                if same {
+                if moma_io::same_file(input, &a.output) {
                     bail!(
                         "the output {} is an input ({}): it would be overwritten; write the \
                          merged weights to a file of their own",
