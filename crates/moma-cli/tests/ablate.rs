@@ -4,7 +4,7 @@
 use std::path::Path;
 
 mod common;
-use common::{demo, fails, moma, ok, s};
+use common::{demo, fails, ok, s};
 
 /// `ablate WHICH --set SCENE --pred PRED --seeds 2 -o OUT` followed by `extra`.
 fn ablate<'a>(
@@ -113,20 +113,17 @@ fn ablate_calibrates_on_the_first_k_frames() {
     );
     assert!(rows.iter().all(|r| r["calib_frame"] == "frame_00+frame_01"));
 
-    // K = 3 leaves no frame to score: a row says so, the command succeeds
+    // K = 3 leaves no frame to score: with no other set, nothing is evaluated and the command
+    // fails with the reason (it wrote an empty table and succeeded)
     let mut with_k3 = norms.to_vec();
     with_k3.extend(["--calib-frames", "3"]);
-    let o = moma(&ablate("norm", &scene, &pred, &d3, &with_k3));
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let table = String::from_utf8_lossy(&o.stdout);
+    let e = fails(&ablate("norm", &scene, &pred, &d3, &with_k3));
     assert!(
-        table.contains("| scene | — | — | few-shot-3: too few frames: 3, needs at least 4"),
-        "{table}"
+        e.contains("no set could be evaluated")
+            && e.contains("set 'scene' (few-shot-3): too few frames: 3, needs at least 4"),
+        "{e}"
     );
-    assert!(
-        String::from_utf8_lossy(&o.stderr).contains("skipped"),
-        "the note is said on stderr too"
-    );
+    assert!(!d3.join("ablation_norm.json").exists());
 
     // bad K, and K > 1 with a calibration frame
     let mut zero = norms.to_vec();
@@ -161,4 +158,38 @@ fn ablate_refuses_the_variant_options_of_eval() {
         );
         assert!(!out.exists());
     }
+}
+
+/// The option a sweep replaces is refused, not silently overridden; its default and the sweep's
+/// own repeats are checked too.
+#[test]
+fn ablate_refuses_the_option_its_sweep_replaces() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let out = tmp.path().join("ab");
+    for (which, extra, says) in [
+        (
+            "samples",
+            &["--samples", "20"][..],
+            "--samples 20 does not apply to `moma ablate samples`",
+        ),
+        (
+            "norm",
+            &["--norm", "median"][..],
+            "--norm does not apply to `moma ablate norm`",
+        ),
+        (
+            "norm",
+            &["--norms", "median,median"][..],
+            "--norms names median twice",
+        ),
+    ] {
+        let err = fails(&ablate(which, &scene, &pred, &out, extra));
+        assert!(err.contains(says), "{which} {extra:?}: {err}");
+    }
+    // the defaults given explicitly are what the sweep would use anyway
+    let mut args = ablate("norm", &scene, &pred, &out, &["--norm", "minmax"]);
+    args.extend_from_slice(&["--norms", "none", "--methods", "ssra"]);
+    ok(&args);
+    assert!(out.join("ablation_norm.json").is_file());
 }

@@ -614,7 +614,7 @@ fn huge_sample_counts_fail_clearly() {
             s(&calib),
         ]);
         assert!(
-            err.contains("18446744073709551615") && err.contains("exceeds the limit of 100000"),
+            err.contains("18446744073709551615") && err.contains("exceeds the limit of 10000 ("),
             "{err}"
         );
         assert!(!calib.exists());
@@ -1358,4 +1358,145 @@ fn linked_copy(from: &Path, to: &Path) -> PathBuf {
         std::os::unix::fs::symlink(&e, to.join(e.file_name().unwrap())).unwrap();
     }
     to.to_path_buf()
+}
+
+/// What `calibrate` and `align` would have ignored or misread is refused before anything is
+/// written (an audit found each accepted with exit 0): a calibration whose cross-validation
+/// fails replaced the earlier file; ground truth in millimetres as float `.npy`; depth-model
+/// options beside `--pred`; `--cv-loss` for LWLR; `--realign-rgb` / `--ply-rgb` with `--rgb`;
+/// `--range-m` without `--colormap`, `--camera` without `--ply`; a prediction its folder's index
+/// does not list.
+#[test]
+fn calibrate_and_align_refuse_what_they_would_ignore_or_misread() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let calib = tmp.path().join("calib.json");
+    calibrate_frame_00(&scene, &pred, &calib, &[]);
+    let good = std::fs::read(&calib).unwrap();
+    let (p0, gt0) = (
+        pred.join("frame_00.npy"),
+        scene.join("frames/frame_00/depth.png"),
+    );
+    let calibrate = |extra: &[&str]| {
+        let mut a = vec![
+            "calibrate",
+            "--pred",
+            s(&p0),
+            "--gt",
+            s(&gt0),
+            "-o",
+            s(&calib),
+        ];
+        a.extend_from_slice(extra);
+        fails(&a)
+    };
+    // 4 samples fit SSRA exactly but cannot be cross-validated: the earlier file stays
+    let e = calibrate(&["--samples", "4"]);
+    assert!(
+        e.contains("nothing written") && e.contains("too few"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read(&calib).unwrap(),
+        good,
+        "the earlier calibration is kept"
+    );
+    // ground truth of millimetres in a float .npy
+    let gt = moma_io::read_depth(&gt0).unwrap();
+    let mm = tmp.path().join("gt_mm.npy");
+    moma_io::write_depth(
+        &mm,
+        &moma_core::MetricDepth::new(gt.depth_m.mapv(|z| z * 1000.0)),
+    )
+    .unwrap();
+    let e = fails(&[
+        "calibrate",
+        "--pred",
+        s(&p0),
+        "--gt",
+        s(&mm),
+        "-o",
+        s(&calib),
+    ]);
+    assert!(
+        e.contains("gt_mm.npy") && e.contains("looks like millimetres"),
+        "{e}"
+    );
+    // depth-model options with --pred files, and CV settings for LWLR
+    for (extra, says) in [
+        (
+            &["--weights", "/nonexistent.pth"][..],
+            "--weights: depth-model options",
+        ),
+        (&["--head", "metric"][..], "--head: depth-model options"),
+        (
+            &["--input-size", "56", "--lora", "x"][..],
+            "--input-size, --lora: depth-model",
+        ),
+        (
+            &["--method", "lwlr", "--cv-loss", "rel"][..],
+            "ssra-local, gssa-local and auto only, not lwlr",
+        ),
+    ] {
+        let e = calibrate(extra);
+        assert!(e.contains(says), "{extra:?}: {e}");
+    }
+    assert_eq!(std::fs::read(&calib).unwrap(), good);
+
+    // align: flags that need another flag, or that --rgb inputs replace
+    let out = tmp.path().join("aligned");
+    let p1 = pred.join("frame_01.npy");
+    let align = |extra: &[&str]| {
+        let mut a = vec![
+            "align",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(&p1),
+            "-o",
+            s(&out),
+        ];
+        a.extend_from_slice(extra);
+        fails(&a)
+    };
+    let rgb = scene.join("frames/frame_01/rgb.png");
+    for (extra, says) in [
+        (&["--range-m", "0.4,1.2"][..], "--colormap"),
+        (&["--camera", s(&scene.join("camera.json"))][..], "--ply"),
+        (&["--device", "cpu"][..], "--device: depth-model options"),
+    ] {
+        let e = align(extra);
+        assert!(e.contains(says), "{extra:?}: {e}");
+    }
+    for flag in ["--realign-rgb", "--ply-rgb"] {
+        let mut a = vec![
+            "align",
+            "--calib",
+            s(&calib),
+            "--rgb",
+            s(&rgb),
+            "-o",
+            s(&out),
+        ];
+        a.extend(["--realign", "anchors", "--ply", flag, s(&rgb)]);
+        let e = fails(&a);
+        assert!(e.contains(flag) && e.contains("--rgb"), "{flag}: {e}");
+    }
+    // a prediction beside an index that does not list it
+    let extra = pred.join("zz_extra.npy");
+    std::fs::copy(&p1, &extra).unwrap();
+    let e = fails(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&extra),
+        "-o",
+        s(&out),
+    ]);
+    assert!(
+        e.contains("zz_extra.npy is not listed in") && e.contains("--pred-kind"),
+        "{e}"
+    );
+    assert!(!out.exists(), "nothing written");
 }

@@ -166,19 +166,26 @@ fn eval_calib_frames_variants_and_too_few_frames() {
     let rows = eval_rows(&scene, &pred, &out, &["--methods", "gssa", "--seeds", "2"]);
     assert_eq!(rows[0]["variant"], "one-shot");
 
-    // Too few frames: a row says so, the command succeeds.
-    let o = moma(&eval_args(
+    // Too few frames for every set: nothing is evaluated, the command fails with the reason and
+    // writes nothing (it printed an empty `--json` array and succeeded).
+    let fresh = out.with_file_name("too-few");
+    let mut args = eval_args(
         &scene,
         &pred,
-        &out,
+        &fresh,
         &["--methods", "gssa", "--seeds", "1", "--calib-frames", "1,3"],
-    ));
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        stdout.contains("too few frames: 3, needs at least 4"),
-        "{stdout}"
     );
+    args.push("--json");
+    let o = moma(&args);
+    assert!(!o.status.success());
+    assert!(o.stdout.is_empty(), "no JSON array on stdout");
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("no set could be evaluated")
+            && e.contains("too few frames: 3, needs at least 4"),
+        "{e}"
+    );
+    assert!(!fresh.exists());
 
     // With --calib-frame: refused.
     let err = fails(&eval_args(

@@ -195,6 +195,48 @@ fn suction_with_extrinsics_and_outputs() {
     assert!(text.starts_with("ply\nformat binary_little_endian 1.0"));
     assert!(text.contains(&format!("element vertex {}", W * H + 8 * arr.len())));
     assert!(text.contains(&format!("element face {}", 12 * arr.len())));
+
+    // A second run into the same folder whose overlay cannot be written (a folder stands at its
+    // path) fails, and leaves no grasps.json of the first run beside its own new depth.npy.
+    std::fs::remove_file(out_dir.join("overlay.png")).unwrap();
+    std::fs::create_dir(out_dir.join("overlay.png")).unwrap();
+    let o = moma(&[
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&cam),
+        "--gripper",
+        "suction",
+        "--extrinsics",
+        s(&ext),
+        "-o",
+        s(&out_dir),
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("overlay.png"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(!out_dir.join("grasps.json").exists());
+    // depth-model options with --depth would be ignored: refused by name
+    let o = moma(&[
+        "grasp",
+        "--depth",
+        s(&depth),
+        "--camera",
+        s(&cam),
+        "--weights",
+        "w.pth",
+        "--dtype",
+        "int8",
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("--weights, --dtype: depth-model options"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -302,3 +302,32 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
     ]);
     assert!(e.contains("--grasp-draws"), "{e}");
 }
+
+/// A frame whose mask is empty (every object picked) is named as such, not as a mask "without
+/// valid ground truth".
+#[test]
+fn a_frame_with_an_empty_mask_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let mask = scene.join("frames/frame_02/mask.png");
+    let size = moma_io::read_mask(&mask).unwrap().size();
+    let empty = moma_core::Mask::new(ndarray::Array2::from_elem(size.shape(), false));
+    moma_io::write_mask(&mask, &empty).unwrap();
+    let e = fails(&[
+        "grasp-eval",
+        "--set",
+        s(&scene),
+        "--pred",
+        s(&pred),
+        "-o",
+        s(&tmp.path().join("ge")),
+        "--methods",
+        "gssa",
+        "--seeds",
+        "1",
+    ]);
+    assert!(
+        e.contains("frame_02") && e.contains("its mask is empty (no object in the frame)"),
+        "{e}"
+    );
+}

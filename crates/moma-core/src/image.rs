@@ -326,6 +326,29 @@ impl MetricDepth {
     }
 }
 
+/// Depth in metres beyond which a map's median says it holds millimetres (a raw RealSense-style
+/// PNG cast to float without dividing by 1000). No depth model or sensor moma serves sees a
+/// median of 200 m.
+pub const MILLIMETRE_MEDIAN_M: f32 = 200.0;
+
+/// The median of a depth map's valid pixels ([`is_valid_depth`]) when it is above
+/// [`MILLIMETRE_MEDIAN_M`]: the map can only be millimetres given as metres. `None` for a
+/// plausible map or one without valid pixels. The one rule for every reader of metres (the
+/// CLI's `.npy` / `.pfm` files, Python's arrays).
+pub fn millimetre_median(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
+    let mut valid: Vec<f32> = depth_m
+        .iter()
+        .copied()
+        .filter(|&z| is_valid_depth(z))
+        .collect();
+    if valid.is_empty() {
+        return None;
+    }
+    let mid = valid.len() / 2;
+    let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
+    (*median > MILLIMETRE_MEDIAN_M).then_some(*median)
+}
+
 #[cfg(test)]
 mod valid_depth_tests {
     use super::is_valid_depth;

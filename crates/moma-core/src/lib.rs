@@ -60,7 +60,10 @@ pub mod shapes;
 pub use camera::{CameraPoint, Intrinsics, depth_to_points};
 pub use error::{CoreError, Result};
 pub use error_model::DepthErrorModel;
-pub use image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth};
+pub use image::{
+    ImageSize, MILLIMETRE_MEDIAN_M, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth,
+    millimetre_median,
+};
 pub use normalise::{AlignSpace, Normalisation, NormalisationConfig};
 pub use pipeline::{
     AlignOptions, Aligned, Calibration, CalibrationConfig, CalibrationFrame, FrameReport,

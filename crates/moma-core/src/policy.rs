@@ -205,6 +205,18 @@ pub fn method(method: Method, options: &MethodOptions) -> Result<Method> {
             "a bandwidth applies to the LWLR methods only, not {method}"
         )));
     }
+    if (cv_loss.is_some() || cv_margin_se.is_some())
+        && !matches!(
+            method,
+            Method::SsraLocal(_) | Method::GssaLocal(_) | Method::Auto(_)
+        )
+    {
+        // LWLR too: it has no selection to set (the settings were dropped without a word)
+        return Err(CoreError::InvalidParameter(format!(
+            "a cross-validation loss or margin applies to ssra-local, gssa-local and auto only, \
+             not {method}"
+        )));
+    }
     Ok(match method {
         Method::Lwlr(cfg) => Method::Lwlr(lwlr::LwlrConfig {
             bandwidth_px: bandwidth_px.or(cfg.bandwidth_px),
@@ -213,12 +225,6 @@ pub fn method(method: Method, options: &MethodOptions) -> Result<Method> {
         Method::SsraLocal(c) => Method::SsraLocal(cv(c)),
         Method::GssaLocal(c) => Method::GssaLocal(cv(c)),
         Method::Auto(c) => Method::Auto(cv(c)),
-        other if cv_loss.is_some() || cv_margin_se.is_some() => {
-            return Err(CoreError::InvalidParameter(format!(
-                "a cross-validation loss or margin applies to ssra-local, gssa-local and auto \
-                 only, not {other}"
-            )));
-        }
         other => other,
     })
 }
@@ -340,12 +346,15 @@ mod tests {
             cv_loss: Some(CvLoss::Rel),
             ..Default::default()
         };
-        assert!(
-            method("ssra".parse().unwrap(), &loss)
+        for name in ["ssra", "gssa", "lwlr", "lwlr-exact", "raw"] {
+            let e = method(name.parse().unwrap(), &loss)
                 .unwrap_err()
-                .to_string()
-                .contains("ssra-local, gssa-local and auto only")
-        );
+                .to_string();
+            assert!(
+                e.contains("ssra-local, gssa-local and auto only"),
+                "{name}: {e}"
+            );
+        }
         for bad in [-0.5, f64::NAN, f64::INFINITY] {
             let o = MethodOptions {
                 cv_margin_se: Some(bad),

@@ -85,10 +85,13 @@ impl Default for SamplingConfig {
 /// neighbours).
 pub const EDGE_JUMP_REL: f32 = 0.03;
 
-/// Largest number of calibration samples accepted (`n`): 100 000, 33 times the largest count of
-/// the ablations (3000). A bound on user input: larger values are refused with
-/// [`CoreError::InvalidParameter`] instead of overflowing the grid's `k × k` or allocating for them.
-pub const MAX_SAMPLES: usize = 100_000;
+/// Largest number of calibration samples accepted (`n`): 10 000, 100 times MOMA's ~100 and 3
+/// times the largest count of the ablations (3000). A bound on user input: the calibration's
+/// cross-validation (leave-one-out without the samples within 80 px, exact refits for LWLR)
+/// grows as n², so 10 000 samples of a 640×480 frame take about 1 s (gssa) to 45 s (auto) on
+/// the 2-core build machine, and 100 000 took more than 100 s and 5 GB for gssa alone. Larger
+/// values are refused with [`CoreError::InvalidParameter`].
+pub const MAX_SAMPLES: usize = 10_000;
 
 /// A pixel position: `u` = column, `v` = row (pixels).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -141,7 +144,8 @@ pub fn sample_pixels(
     }
     if config.n > MAX_SAMPLES {
         return Err(CoreError::InvalidParameter(format!(
-            "number of calibration samples n = {} exceeds the limit of {MAX_SAMPLES}",
+            "number of calibration samples n = {} exceeds the limit of {MAX_SAMPLES} (the \
+             calibration's cross-validation grows as n²; MOMA needs about 100)",
             config.n
         )));
     }

@@ -433,7 +433,7 @@ fn huge_sample_counts_are_refused_not_overflowed() {
                 .unwrap_err()
                 .to_string();
             assert!(
-                e.contains(&n.to_string()) && e.contains("exceeds the limit of 100000"),
+                e.contains(&n.to_string()) && e.contains("exceeds the limit of 10000 ("),
                 "{e}"
             );
         }

@@ -304,6 +304,35 @@ fn ransac_with_too_few_points_is_an_error() {
     ));
 }
 
+/// A fixed threshold below the samples' own scatter leaves RANSAC no consensus beyond its
+/// minimal sample: an exact fit through 2 (GSSA) or 4 (SSRA) samples was reported as the
+/// calibration ("2 of 100 samples are inliers"). It is an error naming the threshold; at a
+/// threshold above the scatter the same samples fit.
+#[test]
+fn ransac_threshold_below_the_scatter_is_an_error() {
+    let (noisy, _, _) = scene(100, 3, (0.0, 0.0), 0.002, 0.0);
+    for (name, m) in [("gssa", 2), ("ssra", 4)] {
+        let e = Robust::new(RobustKind::Ransac)
+            .with_threshold_m(1e-9)
+            .fit(&method(name), &noisy, AlignSpace::Depth)
+            .unwrap_err();
+        assert!(matches!(e, CoreError::Degenerate(_)), "{name}: {e}");
+        let e = e.to_string();
+        assert!(
+            e.contains(&format!(
+                "of 100 samples lie within 0.000000001 m of a fit (its minimal sample of {m})"
+            )) && e.contains("threshold is too small"),
+            "{name}: {e}"
+        );
+        let (_, report) = Robust::new(RobustKind::Ransac)
+            .with_threshold_m(0.005)
+            .fit(&method(name), &noisy, AlignSpace::Depth)
+            .unwrap();
+        let inliers = report.robust.unwrap().inliers;
+        assert!(inliers > 90, "{name}: {inliers} inliers");
+    }
+}
+
 #[test]
 fn ransac_is_deterministic_for_a_seed() {
     let (_, bad, _) = scene(100, 5, (1e-4, 0.0), 0.002, 0.2);

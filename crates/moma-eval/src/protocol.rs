@@ -393,18 +393,10 @@ impl PredictionSet {
             // (a folder written into twice): its kind is not known, so it is not read as one
             // (a missing file is reported as missing, below; an entry may name the map, its
             // file or a path to it)
-            let listed = |i: &moma_io::PredictionIndex| {
-                i.frames.iter().any(|n| {
-                    *n == f.id
-                        || std::path::Path::new(n)
-                            .file_stem()
-                            .is_some_and(|s| s.to_string_lossy() == f.id)
-                })
-            };
             if let Some(i) = &index
                 && !i.frames.is_empty()
                 && dir.join(format!("{}.npy", f.id)).is_file()
-                && !listed(i)
+                && !i.lists(&f.id)
             {
                 return Err(EvalError::frame(
                     &set.name,
@@ -582,6 +574,16 @@ impl<'a> Prepared<'a> {
             }
             let region = Mask::new(region);
             if region.count() == 0 {
+                if f.mask.as_ref().is_some_and(|m| m.count() == 0) {
+                    // a frame with nothing in it (every object picked): nothing to score or grasp
+                    return Err(EvalError::frame(
+                        &set.name,
+                        &f.id,
+                        "its mask is empty (no object in the frame): it cannot be scored; leave \
+                         the frame out of the set"
+                            .to_string(),
+                    ));
+                }
                 let what = if f.mask.is_some() {
                     "its mask"
                 } else {

@@ -104,7 +104,9 @@ pub struct DepthWriteStats {
 ///
 /// # Errors
 /// Unsupported extension or pixel type/dtype/shape ([`IoError::Unsupported`]), missing file
-/// ([`IoError::Io`]), truncated or corrupt content ([`IoError::Corrupt`]).
+/// ([`IoError::Io`]), truncated or corrupt content ([`IoError::Corrupt`]), a `.npy` / `.pfm`
+/// whose valid median is above [`moma_core::MILLIMETRE_MEDIAN_M`] (millimetres given as metres;
+/// [`IoError::Invalid`]).
 pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
     let path = path.as_ref();
     let depth_m = match DepthFormat::from_path(path)? {
@@ -118,6 +120,17 @@ pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
         DepthFormat::Npy => read_npy_f32(path)?,
         DepthFormat::Pfm => read_pfm(path)?,
     };
+    // a float map of millimetres (a sensor PNG cast without dividing by 1000) would be taken
+    // as metres: a calibration of 5 km RMS, maps of hundreds of metres
+    if let Some(median) = moma_core::millimetre_median(depth_m.view()) {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "median depth {median} m looks like millimetres: .npy and .pfm depth is in \
+                 metres (divide by 1000, or save millimetres as a uint16 PNG)"
+            ),
+        ));
+    }
     Ok(MetricDepth::new(depth_m))
 }
 

@@ -49,6 +49,19 @@ pub struct PredictionIndex {
     pub frames: Vec<String>,
 }
 
+impl PredictionIndex {
+    /// Whether it lists the map named `name` (a file stem, e.g. `frame_00`): an entry may be the
+    /// name, the map's file or a path to it. A legacy index (no `frames`) lists nothing.
+    pub fn lists(&self, name: &str) -> bool {
+        self.frames.iter().any(|n| {
+            n == name
+                || Path::new(n)
+                    .file_stem()
+                    .is_some_and(|s| s.to_string_lossy() == name)
+        })
+    }
+}
+
 #[derive(Deserialize)]
 struct IndexHead {
     format: String,
@@ -238,7 +251,7 @@ pub fn prediction_index_listing(file: &Path) -> Result<Option<PredictionIndex>> 
     if !is_npy {
         return Ok(None);
     }
-    Ok(read_prediction_index_for(file)?.filter(|i| i.frames.iter().any(|f| f == stem)))
+    Ok(read_prediction_index_for(file)?.filter(|i| i.lists(stem)))
 }
 
 /// The kind of the predictions from every source that states one, which must agree, checked

@@ -175,6 +175,33 @@ fn wrong_dtype_npy_is_unsupported() {
     assert!(msg(&read_prediction(&p, PredictionKind::MetricDepth).unwrap_err()).contains("<u2"));
 }
 
+/// A float map of millimetres (a sensor PNG cast to float without dividing by 1000) is refused
+/// by its median, in both float formats; the same map in metres, and one with a few far
+/// outliers, reads (the bound is the median, not the maximum).
+#[test]
+fn float_depth_in_millimetres_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mm = Array2::from_shape_fn((6, 8), |(r, c)| 600.0 + (r * 8 + c) as f32);
+    for name in ["mm.npy", "mm.pfm"] {
+        let p = dir.path().join(name);
+        moma_io::write_depth(&p, &moma_core::MetricDepth::new(mm.clone())).unwrap();
+        let e = read_depth(&p).unwrap_err();
+        assert!(matches!(e, IoError::Invalid { .. }), "{e}");
+        let m = msg(&e);
+        assert!(
+            m.contains(name) && m.contains("median depth 624 m looks like millimetres"),
+            "{m}"
+        );
+        let metres = mm.mapv(|z| z / 1000.0);
+        moma_io::write_depth(&p, &moma_core::MetricDepth::new(metres.clone())).unwrap();
+        assert_eq!(read_depth(&p).unwrap().depth_m, metres);
+        let mut outliers = metres.clone();
+        outliers.row_mut(0).fill(5000.0);
+        moma_io::write_depth(&p, &moma_core::MetricDepth::new(outliers.clone())).unwrap();
+        assert_eq!(read_depth(&p).unwrap().depth_m, outliers);
+    }
+}
+
 #[test]
 fn unknown_depth_extension() {
     let e = read_depth("/tmp/whatever.exr").unwrap_err();

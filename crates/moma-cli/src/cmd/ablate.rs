@@ -6,13 +6,13 @@ use std::time::Instant;
 use super::common::join_paths;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use moma_core::PredictionKind;
+use moma_core::{Normalisation, PredictionKind};
 use moma_eval::ablate::{self, AblationOutput, SAMPLE_COUNTS};
 use moma_eval::protocol::{EvalNote, PredictionSet, check_calib_frame_counts, few_shot_variant};
 use moma_eval::simulate::{Simulator, simulate_frames};
 
 use super::common::create_dir;
-use super::eval::{EvalOptions, PredArgs, load_set};
+use super::eval::{DEFAULT_SAMPLES, EvalOptions, PredArgs, load_set};
 
 /// Ablations: number of samples (with calibration time), normalisation, prediction source,
 /// transparent objects. Each writes OUT/ablation_<name>.{md,csv,json} and a PNG plot per set
@@ -96,7 +96,7 @@ pub struct AblateCommon {
     /// Few-shot calibration: every ablation calibrates on the first K frames in sorted frame-id
     /// order (one fit, --samples per frame) and scores the frames after K; the tables say so.
     /// 1 (default): the one-shot protocol (--calib-frame, every other frame scored). A set with
-    /// fewer than K + 1 frames gets a row saying so.
+    /// fewer than K + 1 frames gets a row saying so (when no set has enough, the command fails).
     #[arg(long, value_name = "K", default_value_t = 1)]
     pub calib_frames: usize,
 }
@@ -164,6 +164,14 @@ pub fn run(args: &AblateArgs) -> Result<()> {
     let n = common.set.len();
     match &args.which {
         AblateCommand::Samples { counts, .. } => {
+            // The sweep sets the sample count; a --samples would be silently replaced by it.
+            if common.eval.samples != DEFAULT_SAMPLES {
+                bail!(
+                    "--samples {} does not apply to `moma ablate samples`: it sweeps the \
+                     counts of --counts",
+                    common.eval.samples
+                );
+            }
             super::common::check_no_repeats("--counts", counts)?;
             let mut rows = Vec::new();
             for (i, dir) in common.set.iter().enumerate() {
@@ -173,10 +181,19 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let r = ablate::samples(&set, &preds, &config, counts, k);
                 rows.extend(common.noted(&mut notes, r)?);
             }
+            super::common::check_some_rows(&rows, &notes)?;
             let out = ablate::write_samples(&common.out, &rows, &notes)?;
             report(&out, &out.tables[0], t0)
         }
         AblateCommand::Norm { norms, .. } => {
+            // The sweep sets the normalisation; a --norm would be silently replaced by it.
+            if common.eval.norm != [Normalisation::default()] {
+                bail!(
+                    "--norm does not apply to `moma ablate norm`: give the normalisations to \
+                     compare with --norms"
+                );
+            }
+            super::common::check_no_repeats("--norms", norms)?;
             let mut rows = Vec::new();
             for (i, dir) in common.set.iter().enumerate() {
                 let set = load_set(dir)?;
@@ -185,6 +202,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let r = ablate::norms(&set, &preds, &config, norms, k);
                 rows.extend(common.noted(&mut notes, r)?);
             }
+            super::common::check_some_rows(&rows, &notes)?;
             let out = ablate::write_norms(&common.out, &rows, &notes)?;
             report(&out, &out.tables[0], t0)
         }
@@ -220,6 +238,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let r = ablate::sources(&set, &sources, &config, k);
                 rows.extend(common.noted(&mut notes, r)?);
             }
+            super::common::check_some_rows(&rows, &notes)?;
             let out = ablate::write_sources(&common.out, &rows, &notes)?;
             report(&out, &out.tables[0], t0)
         }
@@ -232,6 +251,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
                 let r = ablate::transparent(&set, &preds, &config, k).map(|r| vec![r]);
                 results.extend(common.noted(&mut notes, r)?);
             }
+            super::common::check_some_rows(&results, &notes)?;
             let out = ablate::write_transparent(&common.out, &results, &notes)?;
             report(&out, &out.tables[0], t0)
         }

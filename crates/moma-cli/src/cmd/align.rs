@@ -118,17 +118,18 @@ pub struct AlignArgs {
     /// Write the PLY as ASCII instead of binary little-endian.
     #[arg(long, requires = "ply")]
     pub ply_ascii: bool,
-    /// RGB images to colour the point clouds with (one per input, same order) when the inputs are prediction files.
-    #[arg(long, num_args = 1.., value_name = "IMG", requires = "ply")]
+    /// RGB images to colour the point clouds with (one per input, same order) when the inputs
+    /// are prediction files; not with --rgb inputs, whose own images colour them.
+    #[arg(long, num_args = 1.., value_name = "IMG", requires = "ply", conflicts_with = "rgb")]
     pub ply_rgb: Vec<PathBuf>,
     /// camera.json to use for point clouds instead of the calibration's intrinsics.
-    #[arg(long, value_name = "FILE")]
+    #[arg(long, value_name = "FILE", requires = "ply")]
     pub camera: Option<PathBuf>,
     /// Also write a colour-mapped PNG per frame.
     #[arg(long, value_enum, num_args = 0..=1, default_missing_value = "turbo")]
     pub colormap: Option<ColormapArg>,
     /// Colour-map range in metres, e.g. `0.4,1.2` (default: 2nd–98th percentile per frame).
-    #[arg(long, value_name = "MIN,MAX", value_parser = parse_range_m)]
+    #[arg(long, value_name = "MIN,MAX", value_parser = parse_range_m, requires = "colormap")]
     pub range_m: Option<(f32, f32)>,
     /// Check only: a workspace mask PNG that must equal the one embedded in the calibration file
     /// (which always normalises over its own workspace); a different mask, or one given for a
@@ -155,8 +156,8 @@ pub struct RealignArgs {
     #[arg(long, value_enum, value_name = "MODE")]
     pub realign: Option<RealignArg>,
     /// Each frame's RGB for --realign when the inputs are prediction files (one per input, same
-    /// order); with --rgb inputs their own images are used.
-    #[arg(long, num_args = 1.., value_name = "IMG", requires = "realign")]
+    /// order); not with --rgb inputs, whose own images are used.
+    #[arg(long, num_args = 1.., value_name = "IMG", requires = "realign", conflicts_with = "rgb")]
     pub realign_rgb: Vec<PathBuf>,
     #[command(flatten)]
     pub realign_flags: RealignFlags,
@@ -366,7 +367,17 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let mut outputs = Vec::new();
         let base = args.output.join(&input.name);
         let png = with_suffix(&base, "depth.png");
-        moma_io::write_depth(&png, &depth)?;
+        let stats = moma_io::write_depth(&png, &depth)?;
+        if stats.out_of_range > 0 {
+            // the PNG holds 0.5 mm … 65.535 m; the .npy beside it keeps every depth
+            eprintln!(
+                "warning: {}: {} of {} pixels outside what a millimetre PNG holds (0.5 mm to \
+                 65.535 m) written as 0 (no depth); the .npy keeps them",
+                png.display(),
+                stats.out_of_range,
+                stats.pixels
+            );
+        }
         outputs.push(png);
         let npy = with_suffix(&base, "depth.npy");
         moma_io::write_depth(&npy, &depth)?;

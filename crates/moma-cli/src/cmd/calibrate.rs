@@ -98,8 +98,8 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub json: bool,
     /// Store the anchor store for per-frame re-alignment (`moma align --realign anchors`): the
-    /// calibration frame's grey and ground truth at half resolution (about 384 kB at 640×480,
-    /// base64 in the file). Uses the --rgb image, or --anchors-rgb with --pred.
+    /// calibration frame's grey, ground truth, one-shot result and normalised prediction at half
+    /// resolution (about 920 kB of base64 in the file at 640×480). Uses the --rgb image, or --anchors-rgb with --pred.
     #[arg(long)]
     pub anchors: bool,
     /// The calibration frame's RGB for --anchors when calibrating from --pred.
@@ -430,8 +430,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         created = created.with_source("anchors_rgb (embedded)", p);
     }
     let file = CalibrationFile::new(calibration, intrinsics, created);
-    // before the file is written: a check that fails leaves no calibration behind
+    // before the file is written: a check that fails leaves no calibration behind (nor replaces
+    // an earlier one)
     let checks = grasp_checks(&args.grasp_check, &file, &inputs[0], &gts[0], args)?;
+    let predicted = file
+        .calibration
+        .predicted_error(args.cv.protocol)
+        .context("cross-validating the calibration for its predicted error (nothing written)")?;
     moma_io::write_calibration(&args.output, &file)?;
 
     let reach = moma_core::sampling::sample_reach_over(
@@ -447,10 +452,6 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     }
     let report = &file.calibration.report;
     let n_frames = inputs.len();
-    let predicted = file
-        .calibration
-        .predicted_error(args.cv.protocol)
-        .context("cross-validating the calibration for its predicted error")?;
     if args.json {
         let mut summary = serde_json::json!({
             "output": args.output,

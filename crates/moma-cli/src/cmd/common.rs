@@ -108,6 +108,32 @@ pub struct ModelArgs {
     pub lora: Option<PathBuf>,
 }
 
+impl ModelArgs {
+    /// The depth-model options given on the command line (those not at their defaults), by
+    /// flag: for commands where they apply only to some inputs, to refuse them elsewhere.
+    pub fn given(&self) -> Vec<&'static str> {
+        let mut given = Vec::new();
+        let flags = [
+            ("--weights", self.weights.is_some()),
+            ("--hub", self.hub.is_some()),
+            ("--model", self.model != ModelArg::Preset(Backbone::Vits)),
+            ("--head", self.head.is_some()),
+            ("--max-depth", self.max_depth.is_some()),
+            ("--input-size", self.input_size != 518),
+            ("--backend", self.backend != BackendArg::Auto),
+            ("--device", self.device != DeviceRequest::Auto),
+            ("--dtype", self.dtype != DtypeArg::F32),
+            ("--lora", self.lora.is_some()),
+        ];
+        for (flag, is_given) in flags {
+            if is_given {
+                given.push(flag);
+            }
+        }
+        given
+    }
+}
+
 /// A loaded depth model and the weights file it came from.
 pub struct LoadedModel {
     /// The model.
@@ -296,9 +322,36 @@ impl SourceArgs {
     /// Unknown or contradicting kind, an unreadable index, model loading errors.
     pub fn open(&self, calibration_kind: Option<PredictionKind>) -> Result<Source> {
         if self.rgb.is_empty() {
+            let given = self.model.given();
+            if !given.is_empty() {
+                bail!(
+                    "{}: depth-model options, which apply only to --rgb images (with --pred \
+                     files they would be ignored; the prediction kind is --pred-kind)",
+                    given.join(", ")
+                );
+            }
             let mut indexes = Vec::new();
             for file in &self.pred {
-                if let Some(index) = moma_io::read_prediction_index_for(file)?
+                let index = moma_io::read_prediction_index_for(file)?;
+                // a map its folder's index does not list was not written by the run the index
+                // describes: the index's kind and SIMULATED label say nothing about it (as
+                // `moma eval` refuses it)
+                if let Some(i) = &index
+                    && !i.frames.is_empty()
+                    && !file
+                        .file_stem()
+                        .is_some_and(|s| i.lists(&s.to_string_lossy()))
+                {
+                    bail!(
+                        "{} is not listed in {} ({} frames): its kind and provenance are not \
+                         known (a file left by another run?); give it from a folder of its own \
+                         with --pred-kind",
+                        file.display(),
+                        i.path.display(),
+                        i.frames.len()
+                    );
+                }
+                if let Some(index) = index
                     && !indexes
                         .iter()
                         .any(|i: &moma_io::PredictionIndex| i.path == index.path)
@@ -448,6 +501,20 @@ pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_cor
         );
     }
     Ok(moma_io::read_depth(path)?)
+}
+
+/// Fails when every set was skipped (`rows` is empty and `notes` say why): a table or a `--json`
+/// array with no row would read as a run that measured nothing wrong.
+pub fn check_some_rows<T>(rows: &[T], notes: &[moma_eval::protocol::EvalNote]) -> Result<()> {
+    if rows.is_empty() && !notes.is_empty() {
+        let why = notes
+            .iter()
+            .map(|n| format!("set '{}' ({}): {}", n.set, n.variant, n.note))
+            .collect::<Vec<_>>()
+            .join("; ");
+        bail!("no set could be evaluated: {why}");
+    }
+    Ok(())
 }
 
 /// Refuses a list flag that names one value twice (it would give duplicate rows), as

@@ -79,7 +79,7 @@ pub struct EvalArgs {
     /// Few-shot calibration: calibrate on the first K frames in sorted frame-id order (one fit,
     /// --samples per frame), for each K given (e.g. 1,2,3). Every K scores the same frames: those
     /// after the largest K. Rows are labelled `one-shot` (K = 1) or `few-shot-K`; a set with too
-    /// few frames gets a row saying so.
+    /// few frames gets a row saying so (when no set has enough, the command fails).
     #[arg(
         long,
         value_delimiter = ',',
@@ -120,6 +120,9 @@ pub struct PredArgs {
     pub model: ModelArgs,
 }
 
+/// `--samples`' default: the paper's ~100 sparse ground-truth points.
+pub const DEFAULT_SAMPLES: usize = 100;
+
 /// Protocol options (shared by eval and ablate).
 #[derive(Debug, Clone, Args)]
 pub struct EvalOptions {
@@ -140,7 +143,7 @@ pub struct EvalOptions {
     #[arg(long, value_name = "SPACE")]
     pub space: Option<AlignSpace>,
     /// Number of calibration samples n.
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = DEFAULT_SAMPLES)]
     pub samples: usize,
     /// Number of sampling seeds (seed i = seed-base + i).
     #[arg(long, default_value_t = 10)]
@@ -465,6 +468,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         }
         all.extend(results);
     }
+    super::common::check_some_rows(&all, &notes)?;
     create_dir(&args.out)?;
     let files = write_eval_outputs_with_notes(&args.out, "results", &all, &notes)?;
     let mut table = eval_table_with_notes(&all, &notes, false).to_text();

@@ -120,7 +120,9 @@ pub struct GraspArgs {
     #[command(flatten)]
     pub realign: super::align::RealignArgs,
     /// A uniform σ of the depth's error, metres: with --depth (which has no calibration), or to
-    /// override the calibration's error model. Gives every grasp a success probability.
+    /// override the calibration's error model. Gives every grasp a success probability. Drawn as
+    /// one error field correlated over 32 pixels of the image (smooth across an object at
+    /// 640×480; across a quarter of the distance at 2560×1920).
     #[arg(long, value_name = "S")]
     pub sigma_m: Option<f64>,
     /// Print the grasps as one JSON array on stdout, best first.
@@ -262,6 +264,14 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         )?;
         if args.realign.realign.is_some() {
             bail!("--realign needs a calibration: use --calib with --pred or --rgb, not --depth");
+        }
+        let given = args.model.given();
+        if !given.is_empty() {
+            bail!(
+                "{}: depth-model options, which apply only to --rgb (with --depth they would be \
+                 ignored)",
+                given.join(", ")
+            );
         }
         return Ok(LoadedFrame {
             depth,
@@ -482,6 +492,15 @@ fn write_outputs(
     rgb: Option<RgbImage>,
 ) -> Result<Vec<PathBuf>> {
     create_dir(dir)?;
+    // an earlier run's result goes first: should a write below fail, DIR must not hold that
+    // grasps.json beside this run's depth (grasps.json, written last, vouches for the rest)
+    let json_path = dir.join("grasps.json");
+    match std::fs::remove_file(&json_path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            return Err(e).with_context(|| format!("removing the earlier {}", json_path.display()));
+        }
+        _ => {}
+    }
     let background = match rgb {
         Some(img) => img,
         None => {
@@ -516,7 +535,6 @@ fn write_outputs(
     moma_io::write_rgb(&overlay_path, &overlay)?;
     // the result last (each file is written atomically): a grasps.json in DIR means every
     // other output of the run is there too
-    let json_path = dir.join("grasps.json");
     moma_io::write_json(&json_path, &outcome.grasps)?;
     Ok(vec![json_path, overlay_path, ply_path, depth_path])
 }

@@ -652,13 +652,21 @@ impl Robust {
                 needed = adaptive_bound(score.0, n, m, drawn, self.max_iterations);
             }
         }
-        let (_, model) = best.ok_or_else(|| {
+        let ((count, _), model) = best.ok_or_else(|| {
             CoreError::Degenerate(format!(
                 "ransac: none of {drawn} minimal samples of {m} gave a {} fit (constant ẑ or \
                  collinear pixels)",
                 base.name()
             ))
         })?;
+        // a consensus of the minimal sample alone is an exact fit through it, whatever the
+        // data: the threshold is below the data's own scatter (1e-9 m kept 2 of 100)
+        if count <= m {
+            return Err(CoreError::Degenerate(format!(
+                "ransac: at best {count} of {n} samples lie within {c} m of a fit (its minimal \
+                 sample of {m}); the threshold is too small for these data"
+            )));
+        }
         Ok((consensus_refit(ctx, base, model, c), drawn))
     }
 }
