@@ -379,24 +379,26 @@ def has_onnx() -> bool:
 
 def lora_fingerprint(
     weights: _Path,
-    model: Literal["vits", "vitb", "vitl"] = "vits",
-    head: Literal["relative", "metric"] = "relative",
+    model: Optional[Literal["vits", "vitb", "vitl"]] = None,
+    head: Optional[Literal["relative", "metric"]] = None,
     *,
     config: Optional[dict[str, Any]] = None,
 ) -> str:
     """The fingerprint (16 hex digits) of base weights that a LoRA adapter for them must carry
     in its ``base_fingerprint`` metadata, as ``moma finetune`` writes it: for adapters trained
-    elsewhere and written in moma's ``moma-lora-v1`` layout. Raises ``MomaFileError`` for
-    unreadable weights or ones that do not fit the architecture."""
+    elsewhere and written in moma's ``moma-lora-v1`` layout. ``model`` (default ``vits``) and
+    ``head`` (default ``relative``) name a preset network; ``config`` a custom one, which fixes
+    its head (``model=`` beside it, or a ``head=`` that disagrees, raises ``InvalidInputError``).
+    Raises ``MomaFileError`` for unreadable weights or ones that do not fit the architecture."""
 
 def finetune(
     sets: Sequence[_Path],
     weights: _Path,
     output: _Path,
-    model: Literal["vits", "vitb", "vitl"] = "vits",
-    head: Literal["relative", "metric"] = "relative",
+    model: Optional[Literal["vits", "vitb", "vitl"]] = None,
+    head: Optional[Literal["relative", "metric"]] = None,
     *,
-    max_depth: float = 20.0,
+    max_depth: Optional[float] = None,
     input_size: int = 518,
     config: Optional[dict[str, Any]] = None,
     device: str = "cpu",
@@ -433,8 +435,8 @@ def finetune(
     the written adapter loaded through the inference path, as ``DepthModel(lora=output)`` loads
     it), ``adapter``, ``step_time_s``, ``loss``, ``train_frames``, ``val_frames``, ``note``.
     Writes ``output`` (the adapter, with the trained head when ``train_head``) and its optimiser
-    state ``output`` with ``.optim.safetensors``. ``config``: a custom architecture (as
-    ``DepthModel``). Give ``steps`` or ``epochs``. Releases the GIL while training. Bad options or
+    state ``output`` with ``.optim.safetensors``. ``model``, ``head``, ``max_depth`` (defaults
+    ``vits``, ``relative``, 20 m) or ``config``, a custom architecture, as ``DepthModel``. Give ``steps`` or ``epochs``. Releases the GIL while training. Bad options or
     data raise ``InvalidInputError``, unreadable files ``MomaFileError``, a step with a
     non-finite loss or gradient ``BackendError`` naming the step, frames and tensor. Random-weight
     models learn nothing meaningful: their losses only show that training runs."""
@@ -446,22 +448,25 @@ class DepthModel:
     def __new__(
         cls,
         weights: _Path,
-        model: Literal["vits", "vitb", "vitl"] = "vits",
-        head: Literal["relative", "metric"] = "relative",
+        model: Optional[Literal["vits", "vitb", "vitl"]] = None,
+        head: Optional[Literal["relative", "metric"]] = None,
         backend: Literal["candle", "onnx", "auto"] = "candle",
         device: str = "cpu",
         lora: Optional[_Path] = None,
         *,
-        max_depth: float = 20.0,
+        max_depth: Optional[float] = None,
         input_size: Optional[int] = None,
         dtype: Literal["f32", "f16", "bf16", "int8"] = "f32",
         config: Optional[dict[str, Any]] = None,
     ) -> "DepthModel":
         """``weights``: official checkpoint (.pth / .safetensors; candle) or .onnx (onnx builds);
+        ``model`` (default ``vits``) and ``head`` (default ``relative``): a preset network;
         ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
-        largest depth, metres; ``input_size``: network input lower bound, px (multiple of 14;
+        largest depth, metres (default 20); ``input_size``: network input lower bound, px (multiple of 14;
         default 518, or the ``config`` dict's own; given, it applies to a ``config`` model too);
-        ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields);
+        ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields), which
+        fixes the network and its head as ``moma --model PATH.json`` does: ``model=`` beside it,
+        or a ``head=`` / ``max_depth=`` that disagrees with it, raises ``InvalidInputError``;
         ``lora``: a LoRA adapter file (``moma finetune`` output, ``moma-lora-v2`` safetensors with any
         trained head tensors; ``moma-lora-v1`` files still load)
         merged into the weights at load (candle backend; no per-frame cost). An adapter made for

@@ -141,3 +141,28 @@ def test_an_explicit_input_size_applies_to_a_config_model():
     assert not np.allclose(small, own)
     with pytest.raises(moma.InvalidInputError, match="input_size=-1"):
         moma.DepthModel(REF / "tiny-metric.safetensors", config=cfg, input_size=-1)
+
+
+def test_a_config_fixes_the_network_and_its_head():
+    """A `config` dict is the network, head included, as `--model PATH.json` is for the CLI:
+    `model=` beside it and a disagreeing `head=` / `max_depth=` are refused (they were ignored,
+    and the dict's head ran); agreeing ones are accepted and give the same model."""
+    w = REF / "tiny-metric.safetensors"
+    cfg = tiny_config("tiny-metric")
+    own_max = cfg["head"]["max_depth_m"]
+    for kwargs, says in [
+        ({"model": "vitb"}, "model='vitb' and config= both name the network"),
+        ({"head": "relative"}, "head='relative' disagrees with the metric head of config="),
+        ({"max_depth": own_max + 0.5}, f"max_depth={own_max + 0.5} disagrees with config="),
+    ]:
+        with pytest.raises(moma.InvalidInputError, match=says):
+            moma.DepthModel(w, config=cfg, **kwargs)
+        if "max_depth" not in kwargs:  # lora_fingerprint has no max_depth
+            with pytest.raises(moma.InvalidInputError, match=says):
+                moma.lora_fingerprint(w, config=cfg, **kwargs)
+    rel = tiny_config("tiny-rel")
+    with pytest.raises(moma.InvalidInputError, match="head='metric' disagrees with the relative head"):
+        moma.DepthModel(REF / "tiny-rel.safetensors", config=rel, head="metric")
+    rgb = read_png_rgb()
+    agreeing = moma.DepthModel(w, config=cfg, head="metric", max_depth=own_max).predict(rgb)
+    assert np.array_equal(agreeing, moma.DepthModel(w, config=cfg).predict(rgb))

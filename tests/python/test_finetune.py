@@ -85,6 +85,32 @@ def test_finetune_refuses_bad_options(tmp_path):
         moma.finetune([SET], w, out, config=cfg, input_size=56, steps=1, lora_targets=["q", "x"])
     with pytest.raises(moma.InvalidInputError, match="ssi is for relative heads"):
         moma.finetune([SET], w, out, config=cfg, input_size=56, steps=1, loss="ssi")
+    with pytest.raises(moma.InvalidInputError, match="head='relative' disagrees with the metric head"):
+        moma.finetune([SET], w, out, config=cfg, head="relative", input_size=56, steps=1)
+    with pytest.raises(moma.InvalidInputError, match="model='vits' and config= both name"):
+        moma.finetune([SET], w, out, config=cfg, model="vits", input_size=56, steps=1)
     with pytest.raises(moma.MomaFileError, match="missing.safetensors"):
         moma.finetune([SET], tmp_path / "missing.safetensors", out, config=cfg, input_size=56, steps=1)
     assert not out.exists()
+
+
+def test_ctrl_c_stops_finetune_without_writing(tmp_path):
+    """Ctrl-C (a KeyboardInterrupt raised in the main thread) stops a long run at its next step:
+    it raised only when the run ended, so a user waited out every step. Nothing is written."""
+    import _thread
+    import threading
+    import time
+
+    out = tmp_path / "a.safetensors"
+    cfg = tiny_config("tiny-metric")
+    opts = dict(OPTS, steps=1_000_000)
+    timer = threading.Timer(2.0, _thread.interrupt_main)
+    t0 = time.monotonic()
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            moma.finetune([SET], REF / "tiny-metric.safetensors", out, config=cfg, **opts)
+    finally:
+        timer.cancel()
+    assert time.monotonic() - t0 < 60, "stopped at the next step, not after the run"
+    assert list(tmp_path.iterdir()) == [], "no adapter, no optimiser state"

@@ -196,14 +196,9 @@ pub fn f32_owned(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Array2<f32>> {
     Ok(f32_2d(obj, what)?.as_array().to_owned())
 }
 
-/// Depth in metres beyond which a map's median says it was given in millimetres (a raw
-/// RealSense-style PNG, or one cast to float without dividing by 1000). No depth model or
-/// sensor moma serves sees a median of 200 m.
-pub const MILLIMETRE_MEDIAN_M: f32 = 200.0;
-
 /// A 2-D depth map in metres ([`f32_2d`]), refused when it can only be millimetres: an integer
 /// or bool dtype (a uint16 depth PNG holds millimetres), or a median over the valid pixels
-/// (finite, > 0) above [`MILLIMETRE_MEDIAN_M`].
+/// (finite, > 0) above [`moma_core::MILLIMETRE_MEDIAN_M`].
 ///
 /// # Errors
 /// As [`f32_2d`]; the two cases above, naming the argument and what to do.
@@ -222,21 +217,11 @@ pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonl
         }
         f32_2d(arr.as_any(), what)?
     };
-    let mut valid: Vec<f32> = ro
-        .as_array()
-        .iter()
-        .copied()
-        .filter(|z| z.is_finite() && *z > 0.0)
-        .collect();
-    if !valid.is_empty() {
-        let mid = valid.len() / 2;
-        let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
-        if *median > MILLIMETRE_MEDIAN_M {
-            return Err(value_err(format!(
-                "{what} has a median depth of {median} m: it looks like millimetres (depth \
-                 arguments are metres: divide by 1000)"
-            )));
-        }
+    if let Some(median) = moma_core::millimetre_median(ro.as_array()) {
+        return Err(value_err(format!(
+            "{what} has a median depth of {median} m: it looks like millimetres (depth \
+             arguments are metres: divide by 1000)"
+        )));
     }
     Ok(ro)
 }

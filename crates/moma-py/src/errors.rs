@@ -115,7 +115,9 @@ impl IntoPyErr for moma_train::TrainError {
             TrainError::Invalid(m) | TrainError::Data(m) => err(Kind::Value, m),
             TrainError::Io(e) => e.into_py_err(),
             TrainError::Depth(e) => (*e).into_py_err(),
-            e @ TrainError::Training { .. } => err(Kind::Backend, chain(&e)),
+            e @ (TrainError::Training { .. } | TrainError::Interrupted { .. }) => {
+                err(Kind::Backend, chain(&e))
+            }
         }
     }
 }

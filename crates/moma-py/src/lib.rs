@@ -1262,6 +1262,61 @@ fn parse_head(s: &str, max_depth_m: f32) -> PyResult<Head> {
     Head::from_name(s, max_depth_m).map_err(value_err)
 }
 
+/// The preset network of `model`, `head` and `max_depth` (defaults vits, relative, 20 m).
+fn preset_spec(
+    model: Option<&str>,
+    head: Option<&str>,
+    max_depth: Option<f32>,
+    input_size: usize,
+) -> PyResult<ModelSpec> {
+    Ok(ModelSpec {
+        backbone: parse_backbone(model.unwrap_or("vits"))?,
+        head: parse_head(head.unwrap_or("relative"), max_depth.unwrap_or(20.0))?,
+        input_size,
+    })
+}
+
+/// A `config` dict fixes the network and its head, as the CLI's `--model PATH.json` does:
+/// `model=` beside it, or a `head=` / `max_depth=` that disagrees with it, is refused (they were
+/// ignored, and a model meant to be metric ran as the dict's relative one).
+fn check_config_agrees(
+    config: &moma_depth::candle::DepthAnythingConfig,
+    model: Option<&str>,
+    head: Option<&str>,
+    max_depth: Option<f32>,
+) -> PyResult<()> {
+    if let Some(m) = model {
+        return Err(value_err(format!(
+            "model='{m}' and config= both name the network: give one"
+        )));
+    }
+    let own = match config.head {
+        Head::Relative => ("relative", None),
+        Head::Metric { max_depth_m } => ("metric", Some(max_depth_m)),
+    };
+    if let Some(h) = head {
+        let asked = parse_head(h, max_depth.or(own.1).unwrap_or(20.0))?;
+        if std::mem::discriminant(&asked) != std::mem::discriminant(&config.head) {
+            return Err(value_err(format!(
+                "head='{h}' disagrees with the {} head of config=",
+                own.0
+            )));
+        }
+    }
+    if let Some(m) = max_depth
+        && Some(m) != own.1
+    {
+        return Err(value_err(format!(
+            "max_depth={m} disagrees with config= ({})",
+            own.1
+                .map_or("relative head, no max depth".to_string(), |f| format!(
+                    "max_depth_m {f}"
+                ))
+        )));
+    }
+    Ok(())
+}
+
 fn parse_precision(s: &str) -> PyResult<moma_depth::Precision> {
     s.parse().map_err(value_err)
 }
@@ -1338,21 +1393,22 @@ fn parse_config(
 /// hash of every base tensor (names, shapes, values in f32). For writing adapters trained
 /// elsewhere in moma's `moma-lora-v1` layout.
 #[pyfunction]
-#[pyo3(signature = (weights, model="vits", head="relative", *, config=None))]
+#[pyo3(signature = (weights, model=None, head=None, *, config=None))]
 fn lora_fingerprint(
     py: Python<'_>,
     weights: PathBuf,
-    model: &str,
-    head: &str,
+    model: Option<&str>,
+    head: Option<&str>,
     config: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<String> {
     let config = match parse_config(py, config)? {
-        Some(c) => c,
-        None => moma_depth::candle::DepthAnythingConfig::from_spec(&ModelSpec {
-            backbone: parse_backbone(model)?,
-            head: parse_head(head, 20.0)?,
-            input_size: 518,
-        }),
+        Some(c) => {
+            check_config_agrees(&c, model, head, None)?;
+            c
+        }
+        None => moma_depth::candle::DepthAnythingConfig::from_spec(&preset_spec(
+            model, head, None, 518,
+        )?),
     };
     py.detach(|| {
         if !weights.is_file() {
@@ -1376,7 +1432,7 @@ fn lora_fingerprint(
 /// LoRA fine-tuning on moma sets: the options of `moma finetune` (same names, same defaults),
 /// the same run (`moma_train::finetune`), the same report as `moma finetune --json` (a dict).
 #[pyfunction]
-#[pyo3(signature = (sets, weights, output, model="vits", head="relative", *, max_depth=20.0,
+#[pyo3(signature = (sets, weights, output, model=None, head=None, *, max_depth=None,
     input_size=518, config=None, device="cpu", lora_rank=16, lora_alpha=None,
     lora_targets=vec!["q".to_string(), "v".to_string()], lora_dropout=0.0, train_head=false,
     head_lr_mult=1.0, loss=None, steps=None, epochs=None, batch=1, accumulate=1, lr=5e-4,
@@ -1389,9 +1445,9 @@ fn finetune(
     sets: Vec<PathBuf>,
     weights: PathBuf,
     output: PathBuf,
-    model: &str,
-    head: &str,
-    max_depth: f32,
+    model: Option<&str>,
+    head: Option<&str>,
+    max_depth: Option<f32>,
     input_size: usize,
     config: Option<&Bound<'_, PyDict>>,
     device: &str,
@@ -1430,6 +1486,7 @@ fn finetune(
         // Training builds its network from the spec: a custom architecture travels as
         // `Backbone::Custom` (as `moma finetune --model PATH.json`), and must be one.
         Some(c) => {
+            check_config_agrees(&c, model, head, max_depth)?;
             let arch = moma_depth::CustomArch {
                 embed_dim: c.embed_dim,
                 depth: c.depth,
@@ -1455,11 +1512,7 @@ fn finetune(
             }
             spec
         }
-        None => ModelSpec {
-            backbone: parse_backbone(model)?,
-            head: parse_head(head, max_depth)?,
-            input_size,
-        },
+        None => preset_spec(model, head, max_depth, input_size)?,
     };
     let mut opts = moma_train::FinetuneOptions::new(sets, weights, spec, output);
     opts.device = device.parse().map_err(value_err)?;
@@ -1492,9 +1545,25 @@ fn finetune(
     opts.stop_after = stop_after;
     opts.clip_grad_norm = clip_grad_norm;
     opts.crop = crop;
-    let report = py
-        .detach(|| moma_train::finetune(&opts, &mut |_| {}))
-        .py()?;
+    // Ctrl-C: Python's signal handlers run only when asked; each step asks (taking the GIL for
+    // a moment), and a KeyboardInterrupt stops the run and is raised as itself.
+    let mut interrupt: Option<PyErr> = None;
+    let result = py.detach(|| {
+        moma_train::finetune(
+            &opts,
+            &mut |_| match Python::attach(|py| py.check_signals()) {
+                Ok(()) => std::ops::ControlFlow::Continue(()),
+                Err(e) => {
+                    interrupt = Some(e);
+                    std::ops::ControlFlow::Break(())
+                }
+            },
+        )
+    });
+    if let Some(e) = interrupt {
+        return Err(e);
+    }
+    let report = result.py()?;
     let text = serde_json::to_string(&report).map_err(|e| value_err(format!("report: {e}")))?;
     Ok(py.import("json")?.call_method1("loads", (text,))?.unbind())
 }
@@ -1502,18 +1571,18 @@ fn finetune(
 #[pymethods]
 impl DepthModel {
     #[new]
-    #[pyo3(signature = (weights, model="vits", head="relative", backend="candle", device="cpu",
-        lora=None, *, max_depth=20.0, input_size=None, dtype="f32", config=None))]
+    #[pyo3(signature = (weights, model=None, head=None, backend="candle", device="cpu",
+        lora=None, *, max_depth=None, input_size=None, dtype="f32", config=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         weights: PathBuf,
-        model: &str,
-        head: &str,
+        model: Option<&str>,
+        head: Option<&str>,
         backend: &str,
         device: &str,
         lora: Option<PathBuf>,
-        max_depth: f32,
+        max_depth: Option<f32>,
         input_size: Option<i128>,
         dtype: &str,
         config: Option<&Bound<'_, PyDict>>,
@@ -1535,17 +1604,16 @@ impl DepthModel {
         // `--model PATH.json --input-size` and `finetune(config=…, input_size=…)` take it: the
         // dict's used to win over an explicit `input_size=`)
         let config = parse_config(py, config)?;
+        if let Some(c) = &config {
+            check_config_agrees(c, model, head, max_depth)?;
+        }
         let input_size = input_size
             .or(config.as_ref().map(|c| c.input_size))
             .unwrap_or(518);
         moma_depth::preprocess::check_input_size(input_size)
             .map_err(|e| value_err(format!("input_size: {e}")))?;
         let config = config.map(|c| moma_depth::candle::DepthAnythingConfig { input_size, ..c });
-        let spec = ModelSpec {
-            backbone: parse_backbone(model)?,
-            head: parse_head(head, max_depth)?,
-            input_size,
-        };
+        let spec = preset_spec(model, head, max_depth, input_size)?;
         let device: moma_depth::DeviceRequest = device.parse().map_err(value_err)?;
         let precision = parse_precision(dtype)?;
         let spec = config.as_ref().map_or(spec, |c| c.spec());

@@ -21,7 +21,7 @@
 //! };
 //! let mut opts = FinetuneOptions::new(vec!["SET".into()], "w.safetensors".into(), spec, "a.safetensors".into());
 //! opts.steps = Some(100);
-//! let report = finetune(&opts, &mut |_event| {})?;
+//! let report = finetune(&opts, &mut |_event| std::ops::ControlFlow::Continue(()))?;
 //! println!("{:?} -> {:?}", report.val_loss_before, report.val_loss_after_reload);
 //! # Ok(()) }
 //! ```
@@ -55,6 +55,16 @@ pub enum TrainError {
         /// candle's error (a non-finite loss or gradient names the tensor).
         #[source]
         source: Box<candle_core::Error>,
+    },
+    /// The caller stopped the run (its event callback returned `Break`, e.g. on Ctrl-C) after
+    /// `done` steps; the adapter last saved (`save_every`) is kept, nothing else is written.
+    #[error(
+        "interrupted after step {done}: no adapter written by this run but the last one saved \
+         every --save-every steps (resume from it with --resume)"
+    )]
+    Interrupted {
+        /// Steps done when it stopped.
+        done: usize,
     },
 }
 

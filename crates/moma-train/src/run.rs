@@ -1,5 +1,6 @@
 //! One fine-tuning run, from options to a written adapter and a report.
 
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -381,15 +382,16 @@ pub fn validation_loss_of_model(
 }
 
 /// Runs a fine-tuning: loads and splits the data, trains, writes the adapter (and its optimiser
-/// state, for `resume`), and reports; `on_event` sees every step.
+/// state, for `resume`), and reports; `on_event` sees every step and stops the run by returning
+/// `ControlFlow::Break` (Python's Ctrl-C).
 ///
 /// # Errors
 /// Bad options or data, unreadable weights, a resume that does not match, a non-finite loss or
 /// gradient (the message names the step, the frames and the tensor; the last saved adapter is
-/// kept).
+/// kept), [`TrainError::Interrupted`] when `on_event` stops it.
 pub fn finetune(
     opts: &FinetuneOptions,
-    on_event: &mut dyn FnMut(Event),
+    on_event: &mut dyn FnMut(Event) -> ControlFlow<()>,
 ) -> Result<FinetuneReport, TrainError> {
     opts.check()?;
     let spec = opts.spec;
@@ -596,16 +598,20 @@ pub fn finetune(
         step_times_s.push(t_step.elapsed().as_secs_f64());
         losses.push(l);
         let done = step + 1;
-        on_event(Event::Step {
+        let mut go_on = on_event(Event::Step {
             done,
             total: steps,
             loss: l,
         });
-        if opts.val_every > 0
+        if go_on.is_continue()
+            && opts.val_every > 0
             && done % opts.val_every == 0
             && let Some(v) = validate(&mut trainer, &format!("after step {done}"))?
         {
-            on_event(Event::Validation { done, loss: v });
+            go_on = on_event(Event::Validation { done, loss: v });
+        }
+        if go_on.is_break() {
+            return Err(TrainError::Interrupted { done });
         }
         if opts.save_every > 0 && done % opts.save_every == 0 && done < end {
             save(&trainer, &opts.output)?;

@@ -240,11 +240,13 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
             bar.set_message(format!(
                 "fine-tuning, loss {loss:.4} (random-weight models: not meaningful)"
             ));
+            std::ops::ControlFlow::Continue(())
         }
         Event::Validation { done, loss } => {
             if !args.json {
                 bar.println(format!("step {done}: validation loss {loss:.5}"));
             }
+            std::ops::ControlFlow::Continue(())
         }
     })?;
     bar.finish_and_clear();
