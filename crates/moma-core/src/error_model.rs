@@ -1407,7 +1407,8 @@ impl DepthErrorModel {
     }
 
     /// Adds draw number `draw` (seeded by `seed`) of the error to `depth` in place: a plausible
-    /// true scene (module documentation). With σ = 0 everywhere the depth is unchanged.
+    /// true scene (module documentation). With σ = 0 everywhere the depth is unchanged; a pixel
+    /// whose drawn depth is not positive becomes NaN (no depth).
     pub fn draw_into(&self, depth: &mut ArrayViewMut2<'_, f32>, seed: u64, draw: u64) {
         let (h, w) = depth.dim();
         let drawn = Draws::new(self, depth.view(), Roi::full(w, h)).draw(seed, draw);
@@ -1608,10 +1609,11 @@ impl<'a> Draws<'a> {
                 } else {
                     m.depth_scale(*z) as f32
                 };
+                // a draw that puts the surface at or behind the camera (σ of the order of the
+                // depth) has no depth there: kept as the exact depth, it made a huge σ look
+                // safer than a large one (success probabilities rose again with σ)
                 let t = *z + flat[u] * scale + rest[u];
-                if is_valid_depth(t) {
-                    *z = t;
-                }
+                *z = if is_valid_depth(t) { t } else { f32::NAN };
             }
         }
         out

@@ -416,6 +416,45 @@ impl Scene {
         }
     }
 
+    /// Where the observed surface lies under ring point `q` along the approach `a` (the cup's
+    /// lip meets it there): its height `(s − q) · a` (metres, positive = farther along the
+    /// approach) and the pixel, or `None` when no surface lies within `gap` of `q` along `a`.
+    ///
+    /// The camera ray through `q` meets the surface at `q`'s own footprint only where it runs
+    /// along `a`. So its point is taken only when it lies on `q`'s line within 2.5 pixel
+    /// footprints (the projection's rounding and [`Self::valid_near`]'s neighbour). Otherwise
+    /// (a tilted cup on a steep face, or a ring point over free air beside an object narrower
+    /// than the cup) the line itself is followed from `−gap` to `+gap` in 0.5 mm steps to where
+    /// it enters the observed surface: the ring's surface point, or none. Taken along the camera
+    /// ray, a 10 mm cup "sealed" on 6 mm rods with half its ring over free air.
+    fn ring_surface(&self, q: &Vec3, a: &Vec3, gap: f32) -> Option<(f32, usize)> {
+        let c = &self.cloud;
+        let seen = |x: &Vec3| c.project(x).and_then(|i| self.valid_near(i));
+        let i = seen(q)?;
+        let d = c.points[i] - q;
+        let along = d.dot(a);
+        let lateral = (d - a * along).norm();
+        let s = c.points[i];
+        let ray = s / s.norm().max(f32::MIN_POSITIVE);
+        // a pixel's footprint at the point's depth, seen across the approach
+        let footprint = s.z / c.fx / ray.dot(a).abs().max(0.5);
+        if lateral <= 2.5 * footprint {
+            return Some((along, i));
+        }
+        // the line through q along a enters the surface where a point of it first lies at or
+        // behind the surface the camera sees (the start must be in front of it)
+        const STEP_M: f32 = 0.0005;
+        let steps = (2.0 * gap / STEP_M).ceil() as usize;
+        let behind = |x: &Vec3| seen(x).filter(|&j| x.z >= c.points[j].z);
+        if behind(&(q - a * gap)).is_some() {
+            return None;
+        }
+        (1..=steps).find_map(|k| {
+            let t = -gap + k as f32 * STEP_M;
+            behind(&(q + a * t)).map(|j| (t, j))
+        })
+    }
+
     /// Seal test at surface point `p` for approach `a` (unit, into the surface): `Ok((quality,
     /// flatness))` or `Err(SealBroken)`. Quality = exp(−scale·var(ring heights)); flatness = mean
     /// over the ring of max(0, n · (−a)).
@@ -433,10 +472,11 @@ impl Scene {
         for k in 0..bins {
             let th = std::f32::consts::TAU * k as f32 / bins as f32;
             let q = p + (e1 * th.cos() + e2 * th.sin()) * r;
-            let Some(i) = self.cloud.project(&q).and_then(|i| self.valid_near(i)) else {
+            // (p − q) · a = 0: the ring's height relative to the contact plane
+            let Some((along, i)) = self.ring_surface(&q, a, exec.seal_max_gap_m) else {
                 return Err(FailureReason::SealBroken);
             };
-            let h = (p - self.cloud.points[i]).dot(a);
+            let h = -along;
             if h.abs() > exec.seal_max_gap_m {
                 return Err(FailureReason::SealBroken);
             }

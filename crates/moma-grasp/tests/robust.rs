@@ -167,6 +167,22 @@ fn a_grasp_that_survives_a_20mm_offset_gets_a_higher_success_prob() {
         p[0],
         p[1]
     );
+    // it falls as σ grows, to the end: a draw that puts the surface at or behind the camera
+    // has no depth there (kept as the exact depth, σ = 5 m gave the tall box's grasp about 0.45:
+    // P(offset < −0.7 m), every such draw "succeeding")
+    let tall_at = |sigma_m: f64| {
+        let m = DepthErrorModel {
+            sigma_flat_m: sigma_m,
+            ..model.clone()
+        };
+        let g = [grasp_on(&s, &tall, 0.025)];
+        success_probabilities(&g, &gt, &depth, &k, &m, &request).unwrap()[0]
+    };
+    let falls = [0.02, 0.2, 5.0].map(tall_at);
+    assert!(
+        falls[0] > falls[1] && falls[1] >= falls[2] && falls[2] < 0.05,
+        "success_prob of the tall box's grasp at σ 0.02, 0.2, 5 m: {falls:?}"
+    );
     // a robust request ranks by it and says so in the JSON
     assert_eq!(request.quality, GraspQuality::Robust);
     let (_, out) = plan_grasps(&depth, &k, None, &request).unwrap();

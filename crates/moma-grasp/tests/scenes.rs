@@ -261,3 +261,43 @@ fn table_only_gives_empty_lists_with_the_reason() {
         assert_eq!(out.no_grasp_reason, Some(NoGraspReason::NoObject));
     }
 }
+
+/// A 10 mm-radius cup cannot seal on rods and pens narrower than itself: whatever the suction
+/// planner proposes on them fails on the very depth it was planned on, or it proposes nothing.
+/// (The ring's surface points were found along the camera ray, not along the approach, so
+/// tilted cups "sealed" on 6 mm rods with half the ring in free air: 3 of 4 such grasps
+/// succeeded.) A box top as wide as the cup's diameter plus margin still seals.
+#[test]
+fn a_cup_wider_than_the_object_does_not_seal() {
+    let cup = Gripper::Suction(SuctionCup::default());
+    assert!((SuctionCup::default().radius_m - 0.01).abs() < 1e-6);
+    for (what, solid) in [
+        ("6 mm square rod", standing(0.03, 0.02, 0.006, 0.14, 0.006)),
+        ("10 mm square rod", standing(-0.04, 0.0, 0.14, 0.010, 0.010)),
+        (
+            "10 mm pen",
+            Solid::Lying {
+                r: 0.005,
+                x: 0.02,
+                y0: -0.07,
+                y1: 0.07,
+            },
+        ),
+    ] {
+        let (depth, mask) = render(&[solid], &[0]);
+        let s = scene(&depth, Some(&mask));
+        let out = plan_suction(&s, &SuctionCup::default(), &SuctionConfig::default()).unwrap();
+        for g in &out.grasps {
+            let failure = executes(&s, g, &cup);
+            assert!(failure.is_some(), "{what}: {g:?} succeeds on its own depth");
+        }
+    }
+    let (depth, mask) = render(&[standing(0.0, 0.0, 0.04, 0.06, 0.03)], &[0]);
+    let s = scene(&depth, Some(&mask));
+    let out = plan_suction(&s, &SuctionCup::default(), &SuctionConfig::default()).unwrap();
+    let g = out
+        .grasps
+        .first()
+        .expect("a suction grasp on a 40 mm box top");
+    assert_eq!(executes(&s, g, &cup), None);
+}
