@@ -21,12 +21,14 @@ first=$(ls "$sim"/*.npy | head -1)
 "$moma" calibrate --pred "$first" --gt "$set_dir/frames/$(basename "$first" .npy)/depth.png" \
   --camera "$set_dir/camera.json" -o "$work/calib.json" >/dev/null 2>&1
 n=$(ls "$work"/pred/*.npy | wc -l)
-time_of() { local t0 t1; t0=$(date +%s.%N); "$@" >/dev/null 2>&1; t1=$(date +%s.%N); echo "$t1 - $t0" | bc -l; }
+# a run that fails stops the script (its time would read as a fast run)
+time_of() { local t0 t1; t0=$(date +%s.%N); "$@" >/dev/null 2>&1 || { echo "failed: $*" >&2; exit 1; }; t1=$(date +%s.%N); echo "$t1 - $t0" | bc -l; }
 for round in 1 2 3; do
   rm -rf "$work"/o*
   io=$(time_of target/release/examples/io_only "$work/oio" inverse-depth "$work"/pred/*.npy)
-  plain=$(time_of "$moma" align --calib "$work/calib.json" --pred "$work"/pred/*.npy -o "$work/oplain")
-  full=$(time_of "$moma" align --calib "$work/calib.json" --pred "$work"/pred/*.npy -o "$work/ofull" --colormap turbo --ply)
+  # the copies are not listed in the copied index: their kind is stated
+  plain=$(time_of "$moma" align --calib "$work/calib.json" --pred-kind relative-disparity --pred "$work"/pred/*.npy -o "$work/oplain")
+  full=$(time_of "$moma" align --calib "$work/calib.json" --pred-kind relative-disparity --pred "$work"/pred/*.npy -o "$work/ofull" --colormap turbo --ply)
   printf 'round %d: %d frames, %s threads | io only %.1f fps | align %.1f fps (%.2f × io) | align --colormap --ply %.1f fps\n' \
     "$round" "$n" "${RAYON_NUM_THREADS:-all}" "$(echo "$n / $io" | bc -l)" "$(echo "$n / $plain" | bc -l)" \
     "$(echo "$io / $plain" | bc -l)" "$(echo "$n / $full" | bc -l)"

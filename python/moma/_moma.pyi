@@ -357,7 +357,9 @@ def depth_to_points(
     depth_m: npt.ArrayLike, cam: Intrinsics, rgb: npt.NDArray[np.uint8]
 ) -> Tuple[_F32, npt.NDArray[np.uint8]]: ...
 def read_depth(path: _Path) -> _F32:
-    """Metric depth from uint16 PNG (mm, 0 = none), ``.npy`` or ``.pfm`` (m): float32 metres, NaN = none."""
+    """Metric depth from uint16 PNG (mm, 0 = none), ``.npy`` or ``.pfm`` (m): float32 metres, NaN = none.
+    A ``.npy`` / ``.pfm`` whose median valid depth is above 200 m (millimetres given as metres)
+    raises ``MomaFileError``."""
 
 def write_depth(path: _Path, depth_m: npt.ArrayLike) -> _WriteStats:
     """Writes metric depth by extension: ``.png`` uint16 mm, ``.npy``/``.pfm`` float32 m (atomic)."""
@@ -436,8 +438,10 @@ def finetune(
     it), ``adapter``, ``step_time_s``, ``loss``, ``train_frames``, ``val_frames``, ``note``.
     Writes ``output`` (the adapter, with the trained head when ``train_head``) and its optimiser
     state ``output`` with ``.optim.safetensors``. ``model``, ``head``, ``max_depth`` (defaults
-    ``vits``, ``relative``, 20 m) or ``config``, a custom architecture, as ``DepthModel``. Give ``steps`` or ``epochs``. Releases the GIL while training. Bad options or
-    data raise ``InvalidInputError``, unreadable files ``MomaFileError``, a step with a
+    ``vits``, ``relative``, 20 m) or ``config``, a custom architecture, as ``DepthModel``. Give
+    ``steps`` or ``epochs``. Releases the GIL while training; Ctrl-C stops the run at its next
+    step and raises ``KeyboardInterrupt`` (only adapters of ``save_every`` are left). Bad
+    options or data raise ``InvalidInputError``, unreadable files ``MomaFileError``, a step with a
     non-finite loss or gradient ``BackendError`` naming the step, frames and tensor. Random-weight
     models learn nothing meaningful: their losses only show that training runs."""
 

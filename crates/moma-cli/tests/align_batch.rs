@@ -12,6 +12,8 @@ use common::{calibrate_frame_00, demo, s};
 /// summaries without their timings.
 fn align(threads: usize, calib: &Path, preds: &[String], out: &Path) -> Vec<serde_json::Value> {
     let mut args = vec!["align".to_string(), "--calib".into(), s(calib).into()];
+    // copies beside a copy of the index, which lists the originals: the kind is stated
+    args.extend(["--pred-kind".into(), "relative-disparity".into()]);
     args.push("--pred".into());
     args.extend(preds.iter().cloned());
     args.extend([
@@ -80,7 +82,14 @@ fn many_frames_give_the_same_files_and_order_on_any_thread_count() {
     // a corrupt file among many: the error names it
     std::fs::write(many.join("f07.npy"), b"not a numpy file").unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_moma"))
-        .args(["align", "--calib", s(&calib), "--pred"])
+        .args([
+            "align",
+            "--calib",
+            s(&calib),
+            "--pred-kind",
+            "relative-disparity",
+        ])
+        .arg("--pred")
         .args(&preds)
         .args(["-o", s(&tmp.path().join("bad"))])
         .output()

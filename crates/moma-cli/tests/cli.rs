@@ -1442,6 +1442,28 @@ fn calibrate_and_align_refuse_what_they_would_ignore_or_misread() {
         assert!(e.contains(says), "{extra:?}: {e}");
     }
     assert_eq!(std::fs::read(&calib).unwrap(), good);
+    // raw values in the tens of thousands under the paper's minmax (which adds z_min back):
+    // SSRA's features are degenerate, and the message says which normalisation fits them
+    let raw: ndarray::Array2<f32> = ndarray_npy::read_npy(&p0).unwrap();
+    let big = tmp.path().join("big.npy");
+    ndarray_npy::write_npy(&big, &raw.mapv(|z| z * 30_000.0)).unwrap();
+    let mut big_args = vec![
+        "calibrate",
+        "--pred",
+        s(&big),
+        "--gt",
+        s(&gt0),
+        "-o",
+        s(&calib),
+    ];
+    big_args.extend(["--pred-kind", "relative-disparity", "--method", "ssra"]);
+    let e = fails(&big_args);
+    assert!(
+        e.contains("linearly dependent") && e.contains("minmax-unit"),
+        "{e}"
+    );
+    big_args.extend(["--norm", "minmax-unit"]);
+    ok(&big_args);
 
     // align: flags that need another flag, or that --rgb inputs replace
     let out = tmp.path().join("aligned");
@@ -1499,4 +1521,23 @@ fn calibrate_and_align_refuse_what_they_would_ignore_or_misread() {
         "{e}"
     );
     assert!(!out.exists(), "nothing written");
+    // the kind stated, it is read with a note (tests/align_batch.rs aligns copies that way)
+    let o = moma(&[
+        "align",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&extra),
+        "--pred-kind",
+        "relative-disparity",
+        "-o",
+        s(&out),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(
+        e.contains("zz_extra.npy is not listed in") && e.contains("read as --pred-kind"),
+        "{e}"
+    );
+    assert!(out.join("zz_extra.depth.npy").is_file());
 }

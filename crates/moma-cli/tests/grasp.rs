@@ -227,6 +227,8 @@ fn suction_with_extrinsics_and_outputs() {
         s(&depth),
         "--camera",
         s(&cam),
+        "--gripper",
+        "suction",
         "--weights",
         "w.pth",
         "--dtype",

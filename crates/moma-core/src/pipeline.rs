@@ -447,6 +447,17 @@ pub fn calibrate(
             )));
         }
     }
+    // the limit holds for the samples fitted and cross-validated together: every frame's
+    let total = config.sampling.n.saturating_mul(frames.len());
+    if frames.len() > 1 && total > crate::sampling::MAX_SAMPLES {
+        return Err(CoreError::InvalidParameter(format!(
+            "{} frames × {} samples = {total} calibration samples together exceed the limit of \
+             {} (the calibration's cross-validation grows as n²): give fewer samples per frame",
+            frames.len(),
+            config.sampling.n,
+            crate::sampling::MAX_SAMPLES
+        )));
+    }
     let mut samples = SampleSet {
         space: crate::normalise::AlignSpace::Depth,
         image_size: size,

@@ -250,4 +250,19 @@ fn bad_frames_are_refused_naming_the_frame() {
         .unwrap_err(),
     );
     assert!(e.contains("frame 1"), "{e}");
+
+    // The sample limit holds for the frames' samples together (they are cross-validated
+    // together): 3 × 4000 and 2 × 5001 are refused before any sampling.
+    let many = |n: usize| CalibrationConfig {
+        sampling: SamplingConfig { n, ..cfg.sampling },
+        ..cfg.clone()
+    };
+    let three = [frame(pred, gt), frame(pred, gt), frame(pred, gt)];
+    let e = message(calibrate(&three, &many(4000)).unwrap_err());
+    assert!(
+        e.contains("3 frames × 4000 samples = 12000") && e.contains("limit of 10000"),
+        "{e}"
+    );
+    let e = message(calibrate(&three[..2], &many(5001)).unwrap_err());
+    assert!(e.contains("2 frames × 5001 samples = 10002"), "{e}");
 }

@@ -291,6 +291,24 @@ fn a_cup_wider_than_the_object_does_not_seal() {
             let failure = executes(&s, g, &cup);
             assert!(failure.is_some(), "{what}: {g:?} succeeds on its own depth");
         }
+        // no grasp because the object was seen and every cup on it broke its seal (not
+        // because no object or candidate was found)
+        if out.grasps.is_empty() {
+            match &out.no_grasp_reason {
+                Some(NoGraspReason::AllRejected {
+                    candidates,
+                    failures,
+                }) => {
+                    assert!(*candidates > 0, "{what}");
+                    let sealed = failures
+                        .iter()
+                        .find(|(r, _)| *r == FailureReason::SealBroken)
+                        .map_or(0, |(_, n)| *n);
+                    assert!(2 * sealed > *candidates, "{what}: {failures:?}");
+                }
+                other => panic!("{what}: reason {other:?}"),
+            }
+        }
     }
     let (depth, mask) = render(&[standing(0.0, 0.0, 0.04, 0.06, 0.03)], &[0]);
     let s = scene(&depth, Some(&mask));

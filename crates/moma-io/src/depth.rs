@@ -127,7 +127,8 @@ pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
             path,
             format!(
                 "median depth {median} m looks like millimetres: .npy and .pfm depth is in \
-                 metres (divide by 1000, or save millimetres as a uint16 PNG)"
+                 metres (divide by 1000, or save millimetres as a uint16 PNG; far background \
+                 or sky stored as a large number: write it as NaN or 0, no depth)"
             ),
         ));
     }

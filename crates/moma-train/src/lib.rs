@@ -59,8 +59,8 @@ pub enum TrainError {
     /// The caller stopped the run (its event callback returned `Break`, e.g. on Ctrl-C) after
     /// `done` steps; the adapter last saved (`save_every`) is kept, nothing else is written.
     #[error(
-        "interrupted after step {done}: no adapter written by this run but the last one saved \
-         every --save-every steps (resume from it with --resume)"
+        "interrupted after step {done}: this run wrote no adapter but those of `save_every`, \
+         from which a run can resume"
     )]
     Interrupted {
         /// Steps done when it stopped.

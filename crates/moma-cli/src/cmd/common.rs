@@ -334,22 +334,28 @@ impl SourceArgs {
             for file in &self.pred {
                 let index = moma_io::read_prediction_index_for(file)?;
                 // a map its folder's index does not list was not written by the run the index
-                // describes: the index's kind and SIMULATED label say nothing about it (as
-                // `moma eval` refuses it)
+                // describes: the index's kind says nothing about it (`moma eval` refuses it).
+                // Given --pred-kind, the user vouches for the kind (copies beside a copied
+                // index, as benches and tests make them); else it is refused.
                 if let Some(i) = &index
                     && !i.frames.is_empty()
                     && !file
                         .file_stem()
                         .is_some_and(|s| i.lists(&s.to_string_lossy()))
                 {
-                    bail!(
-                        "{} is not listed in {} ({} frames): its kind and provenance are not \
-                         known (a file left by another run?); give it from a folder of its own \
-                         with --pred-kind",
+                    let why = format!(
+                        "{} is not listed in {} ({} frames)",
                         file.display(),
                         i.path.display(),
                         i.frames.len()
                     );
+                    match self.pred_kind {
+                        Some(k) => eprintln!("note: {why}: read as --pred-kind {k} says"),
+                        None => bail!(
+                            "{why}: its kind is not known (a file left by another run?); give \
+                             --pred-kind if you know what it holds"
+                        ),
+                    }
                 }
                 if let Some(index) = index
                     && !indexes

@@ -664,7 +664,8 @@ impl Robust {
         if count <= m {
             return Err(CoreError::Degenerate(format!(
                 "ransac: at best {count} of {n} samples lie within {c} m of a fit (its minimal \
-                 sample of {m}); the threshold is too small for these data"
+                 sample of {m}); the fixed threshold is too small for these data (the `auto` \
+                 threshold is estimated from them)"
             )));
         }
         Ok((consensus_refit(ctx, base, model, c), drawn))

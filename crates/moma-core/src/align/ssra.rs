@@ -320,7 +320,9 @@ fn fit_with(
     let theta = solve_spd4(&m, &b).ok_or_else(|| {
         CoreError::Degenerate(format!(
             "SSRA features [ẑu, ẑv, ẑ, 1] are linearly dependent on these {n} samples \
-             (sample pixels on one line, constant or zero ẑ, ...); the fit is undetermined"
+             (sample pixels on one line, constant or zero ẑ, or ẑ whose spread is tiny beside \
+             its size, as `minmax` leaves raw values in the thousands: normalise with \
+             minmax-unit or median); the fit is undetermined"
         ))
     })?;
     let alpha = theta[0];
