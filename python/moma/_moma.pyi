@@ -240,7 +240,8 @@ class Calibration:
     ) -> Optional[dict[str, Any]]:
         """The error expected away from the samples, by cross-validation on them (``moma
         calibrate``'s ``predicted_error``): ``{"protocol", "abs_rel", "rms_m"}`` (metres), None
-        for a robust fit."""
+        for a robust fit. ``auto`` and the local corrections report their own cross-validation
+        whatever ``protocol`` asks, labelled with the folds they were calibrated with."""
     def to_json(self) -> str:
         """The calibration file's JSON text."""
     @staticmethod

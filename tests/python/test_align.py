@@ -262,6 +262,9 @@ def test_protocol_decides_the_cross_validation_of_auto_and_local():
     # the predicted error is the chosen candidate's cross-validated score
     pe = per_frame.predicted_error("per-frame")
     assert pe["protocol"] == "per-frame"
+    # auto reports its own cross-validation, labelled with the folds it used, whatever is asked
+    # (the label echoed the question)
+    assert per_frame.predicted_error("fixed-camera") == pe
     # the rule: the first candidate (simplest first) within the margin of the best
     kept = next(c for c in per_frame.report["model"]["candidates"]
                 if c.get("excess_se") is not None and c["excess_se"] <= sel["margin_se"])

@@ -397,6 +397,19 @@ pub fn frame_seed(seed: u64, index: usize) -> u64 {
     seed.wrapping_add((index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
 
+/// RAW uses a metric prediction as metres: one whose median is above
+/// [`crate::MILLIMETRE_MEDIAN_M`] holds millimetres (a uint16 PNG, or a model's output
+/// scaled), and would write kilometres (a median of 2 km and σ maps of 70 m, exit 0).
+fn check_raw_metres(values: ArrayView2<'_, f32>) -> Result<()> {
+    match crate::millimetre_median(values) {
+        Some(median) => Err(CoreError::InvalidParameter(format!(
+            "method raw uses the prediction as metres, but its median is {median} m: it looks \
+             like millimetres (divide it by 1000, or calibrate with a fitted method)"
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// Calibrates from one frame (`&[frame]`) or several of the same camera (few-shot): what
 /// `moma calibrate`, `moma eval` and Python run.
 ///
@@ -421,6 +434,13 @@ pub fn calibrate(
 ) -> Result<Calibration> {
     let (kind, size) = check_frames(frames.iter().map(|f| (f.pred.kind(), f.pred.size())))?;
     config.check(kind)?;
+    if config.method == Method::Raw {
+        for (i, f) in frames.iter().enumerate() {
+            if let PredictionInput::Raw { values, .. } = f.pred {
+                check_raw_metres(values).map_err(|e| in_frame(frames.len(), i, e))?;
+            }
+        }
+    }
     if let Some(w) = &config.workspace {
         size.expect_eq("workspace mask", w.mask().size())?;
     }
@@ -966,6 +986,9 @@ impl Calibration {
     ) -> Result<()> {
         match pred {
             PredictionInput::Raw { values, kind } => {
+                if matches!(self.model, AlignmentModel::Raw) {
+                    check_raw_metres(values)?;
+                }
                 if let Some(pass) = self.fused_pass(values)? {
                     crate::fused::apply(&pass, values, out);
                     return Ok(());
@@ -1271,5 +1294,27 @@ impl Calibration {
             AlignmentModel::Lwlr(m) => Method::Lwlr(m.config),
         };
         local::cv_score(&samples, &method, &plan).map(Some)
+    }
+
+    /// The protocol whose folds [`Calibration::predicted_error`] uses when asked for `asked`:
+    /// `auto` and the local corrections report their own cross-validation, made with the folds
+    /// of the protocol they were calibrated for (spatially buffered: fixed camera; plain
+    /// leave-one-out: per frame), whatever is asked; the other methods use `asked`'s. The label
+    /// of the score (it was `asked` for every method).
+    pub fn predicted_error_protocol(
+        &self,
+        asked: crate::policy::Protocol,
+    ) -> crate::policy::Protocol {
+        use crate::policy::Protocol;
+        let buffered = match &self.model {
+            AlignmentModel::Auto(m) => m.selection.as_ref().map(|s| s.buffer_px > 0.0),
+            AlignmentModel::Local(m) => Some(m.config.cv_buffer_fraction > 0.0),
+            _ => None,
+        };
+        match buffered {
+            Some(true) => Protocol::FixedCamera,
+            Some(false) => Protocol::PerFrame,
+            None => asked,
+        }
     }
 }

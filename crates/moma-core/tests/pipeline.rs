@@ -280,7 +280,29 @@ fn raw_needs_metric_depth_and_no_normalisation() {
         "{e}"
     );
     cfg.normalisation.method = Normalisation::None;
-    assert!(calibrate(&[CalibrationFrame::new(&depth_pred, &gt)], &cfg).is_ok());
+    let cal = calibrate(&[CalibrationFrame::new(&depth_pred, &gt)], &cfg).unwrap();
+    // a metric prediction in millimetres would be written as kilometres: refused at
+    // calibration and at alignment, naming the median
+    let mm = Prediction::new(
+        depth_pred.values.mapv(|z| z * 1000.0),
+        PredictionKind::MetricDepth,
+    );
+    for e in [
+        calibrate(&[CalibrationFrame::new(&mm, &gt)], &cfg).unwrap_err(),
+        cal.aligned(&mm, &AlignOptions::default()).unwrap_err(),
+    ] {
+        assert!(
+            matches!(&e, CoreError::InvalidParameter(m)
+                if m.contains("method raw uses the prediction as metres") && m.contains("millimetres")),
+            "{e}"
+        );
+    }
+    // metres align as they are
+    let out = cal
+        .aligned(&depth_pred, &AlignOptions::default())
+        .unwrap()
+        .depth;
+    assert_eq!(out.depth_m, depth_pred.values);
 }
 
 #[test]
@@ -550,4 +572,38 @@ fn too_few_samples_left_by_the_edge_margin_are_named() {
     // without the margin the same scene calibrates
     cfg.sampling.edge_margin_px = 0;
     assert!(calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).is_ok());
+}
+
+/// `predicted_error`'s label: auto and the local corrections report their own
+/// cross-validation, with the folds of the protocol they were calibrated for, whatever is asked
+/// (the label used to echo the question); the global methods cross-validate as asked.
+#[test]
+fn the_predicted_error_is_labelled_with_the_folds_it_used() {
+    use moma_core::policy::{self, MethodOptions, Protocol};
+    let (gt, pred) = scene();
+    for (name, calibrated_for) in [
+        ("auto", Protocol::PerFrame),
+        ("auto", Protocol::FixedCamera),
+        ("ssra-local", Protocol::PerFrame),
+        ("gssa", Protocol::PerFrame),
+    ] {
+        let options = MethodOptions {
+            protocol: calibrated_for,
+            ..Default::default()
+        };
+        let method = policy::method(name.parse().unwrap(), &options).unwrap();
+        let cal = calibrate(&[CalibrationFrame::new(&pred, &gt)], &config(method)).unwrap();
+        for asked in [Protocol::FixedCamera, Protocol::PerFrame] {
+            let want = if name == "gssa" {
+                asked
+            } else {
+                calibrated_for
+            };
+            assert_eq!(
+                cal.predicted_error_protocol(asked),
+                want,
+                "{name} {asked:?}"
+            );
+        }
+    }
 }

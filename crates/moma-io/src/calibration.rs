@@ -229,7 +229,7 @@ fn describe(v: &Option<serde_json::Value>) -> String {
 /// inconsistent SSRA parameters, a corrupt workspace); [`IoError::Io`] when unreadable.
 pub fn read_calibration(path: impl AsRef<Path>) -> Result<CalibrationFile> {
     let path = path.as_ref();
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
+    let text = crate::json_files::read_json_text(path, "calibration file")?;
     parse_calibration(path, &text)
 }
 

@@ -16,7 +16,7 @@ use crate::error::{IoError, Result};
 /// non-finite principal point ([`Intrinsics::validate`]); [`IoError::Io`] when unreadable.
 pub fn read_camera(path: impl AsRef<Path>) -> Result<Intrinsics> {
     let path = path.as_ref();
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
+    let text = crate::json_files::read_json_text(path, "camera intrinsics (camera.json)")?;
     parse_camera(path, &text)
 }
 

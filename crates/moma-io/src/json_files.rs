@@ -13,6 +13,25 @@ use crate::error::{IoError, Result};
 /// file (a depth map passed by mistake) is refused before it is parsed.
 pub const MAX_SETTINGS_JSON_BYTES: u64 = 1 << 20;
 
+/// The text of a JSON file (`what` names it in errors): a file that is not UTF-8 text (an image
+/// given where a camera.json belongs) is said to be so, not "stream did not contain valid
+/// UTF-8".
+///
+/// # Errors
+/// [`IoError::Io`] when unreadable; [`IoError::Invalid`] when not text.
+pub(crate) fn read_json_text(path: &Path, what: &str) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::InvalidData {
+            IoError::invalid(
+                path,
+                format!("{what}: not a JSON text file (binary content, e.g. an image)"),
+            )
+        } else {
+            IoError::io(path, "read", e)
+        }
+    })
+}
+
 /// Reads a JSON file into `T` (`what` names it in errors, e.g. "gripper config").
 ///
 /// # Errors
@@ -31,7 +50,7 @@ pub fn read_json<T: DeserializeOwned>(path: impl AsRef<Path>, what: &str) -> Res
             ),
         ));
     }
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::io(path, "read", e))?;
+    let text = read_json_text(path, what)?;
     parse_json(path, &text)
 }
 

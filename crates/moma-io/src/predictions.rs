@@ -157,7 +157,7 @@ impl PredictionIndexHead {
 pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
     let path = dir.join(PREDICTIONS_INDEX_FILE);
     if path.is_file() {
-        let text = std::fs::read_to_string(&path).map_err(|e| IoError::io(&path, "read", e))?;
+        let text = crate::json_files::read_json_text(&path, "predictions index")?;
         let head: IndexHead = serde_json::from_str(&text).map_err(|e| IoError::json(&path, &e))?;
         if head.format != PREDICTIONS_FORMAT {
             return Err(IoError::invalid(
@@ -207,7 +207,7 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
     }
     let legacy = dir.join(LEGACY_SIMULATED_FILE);
     if legacy.is_file() {
-        let text = std::fs::read_to_string(&legacy).map_err(|e| IoError::io(&legacy, "read", e))?;
+        let text = crate::json_files::read_json_text(&legacy, "predictions index")?;
         let meta: LegacySimulated =
             serde_json::from_str(&text).map_err(|e| IoError::json(&legacy, &e))?;
         let kind = PredictionKind::from_name(&meta.kind, PredictionKind::MetricDepth)

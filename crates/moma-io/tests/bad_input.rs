@@ -1437,3 +1437,25 @@ fn npy_header_length_beyond_the_file_is_refused_before_allocation() {
     std::fs::write(&p, &b).unwrap();
     assert!(msg(&read_npy_f32(&p).unwrap_err()).contains("header claims 65520 bytes"));
 }
+
+/// An image given where a JSON file belongs is said to be binary, naming the file and what was
+/// expected (it was "cannot read: stream did not contain valid UTF-8").
+#[test]
+fn an_image_where_json_belongs_is_named_as_not_text() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("rgb.png");
+    write_small_png(&png);
+    let camera = moma_io::read_camera(&png).unwrap_err();
+    let calibration = moma_io::read_calibration(&png).unwrap_err();
+    for (e, what) in [
+        (camera, "camera intrinsics (camera.json)"),
+        (calibration, "calibration file"),
+    ] {
+        assert!(matches!(e, IoError::Invalid { .. }), "{e}");
+        let m = msg(&e);
+        assert!(
+            m.contains("rgb.png") && m.contains(what) && m.contains("not a JSON text file"),
+            "{m}"
+        );
+    }
+}

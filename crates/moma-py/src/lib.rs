@@ -388,7 +388,8 @@ impl Calibration {
             py,
             &cv.map(|cv| {
                 serde_json::json!({
-                    "protocol": protocol, "abs_rel": cv.abs_rel, "rms_m": cv.rms_m,
+                    "protocol": self.inner.predicted_error_protocol(protocol),
+                    "abs_rel": cv.abs_rel, "rms_m": cv.rms_m,
                 })
             }),
         )

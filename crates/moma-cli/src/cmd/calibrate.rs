@@ -461,7 +461,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             "rms_residual_m": report.rms_residual_m,
             "fit_time_s": report.fit_time_s,
             "predicted_error": predicted.map(|cv| serde_json::json!({
-                "protocol": args.cv.protocol,
+                "protocol": file.calibration.predicted_error_protocol(args.cv.protocol),
                 "abs_rel": cv.abs_rel,
                 "rms_m": cv.rms_m,
             })),
@@ -522,7 +522,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         if let Some(cv) = predicted {
             println!(
                 "predicted error ({} cross-validation on the samples): AbsRel {:.4}, RMS {:.1} mm",
-                args.cv.protocol,
+                file.calibration.predicted_error_protocol(args.cv.protocol),
                 cv.abs_rel,
                 cv.rms_m * 1e3
             );

@@ -41,9 +41,9 @@ impl GripperArg {
 ///   parallel: {"kind":"parallel","score":s,"success_prob":p,"center_m":[x,y,z],
 ///              "approach":[..],"closing":[..],"width_m":w}
 ///   suction:  {"kind":"suction","score":s,"success_prob":p,"point_m":[x,y,z],"approach":[..]}
-/// `success_prob` is the share of depth maps drawn from the depth's error model (the
-/// calibration's, or a uniform --sigma-m) on which the grasp succeeds by the proxy's rules, in
-/// [0, 1]; null without an error model (--depth without --sigma-m). With --realign anchors the
+/// `success_prob` is (k + 1) / (N + 2) for the k of N depth maps drawn from the depth's error
+/// model (the calibration's, or a uniform --sigma-m) on which the grasp succeeds by the proxy's
+/// rules: in (0, 1); null without an error model (--depth without --sigma-m). With --realign anchors the
 /// frame is re-aligned on static anchors first, exactly as `moma align --realign anchors` does.
 /// `center_m` is the midpoint of the two planned contacts, `approach` the unit vector along which
 /// the gripper moves (for suction: into the surface), `closing` the unit vector along which the
@@ -427,8 +427,16 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     if let Some(e) = &extrinsics {
         outcome.set_base(e);
     }
-    if let Some(reason) = &outcome.no_grasp_reason {
-        eprintln!("no grasp found on {depth_name}: {reason}");
+    match &outcome.no_grasp_reason {
+        // "nothing stands above the support plane" would contradict the note above
+        Some(moma_grasp::NoGraspReason::NoObject) if scene.border_regions_dropped() > 0 => {
+            eprintln!(
+                "no grasp found on {depth_name}: no object but the region(s) touching the image \
+                 border (--keep-border-objects plans on them)"
+            );
+        }
+        Some(reason) => eprintln!("no grasp found on {depth_name}: {reason}"),
+        None => {}
     }
     if let Some(dir) = &args.output {
         let written = write_outputs(dir, &outcome, &gripper, &depth, &camera, rgb)?;

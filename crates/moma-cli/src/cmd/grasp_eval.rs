@@ -126,6 +126,14 @@ pub fn run(args: &GraspEvalArgs) -> Result<()> {
     let mut skipped: Vec<String> = Vec::new();
     for (i, dir) in args.set.iter().enumerate() {
         let set = load_set(dir)?;
+        if set.frames.iter().all(|f| f.mask.is_none()) {
+            // docs/method.md §8's rule, said where its rates are read
+            eprintln!(
+                "note: set '{}' has no object masks: each frame is one trial, won by a grasp on \
+                 anything more than 10 mm above the support plane",
+                set.name
+            );
+        }
         let preds = args.pred.predictions(&set, i, args.set.len())?;
         let config = GraspEvalConfig {
             eval: args.eval.config(preds.kind()?)?,
