@@ -127,6 +127,11 @@ fn parallel_json_closes_across_the_box() {
     assert!(scores.windows(2).all(|w| w[0] >= w[1]));
 }
 
+/// `&str`s of owned arguments.
+fn strs(a: &[String]) -> Vec<&str> {
+    a.iter().map(String::as_str).collect()
+}
+
 #[test]
 fn suction_with_extrinsics_and_outputs() {
     let dir = tempfile::tempdir().unwrap();
@@ -139,14 +144,16 @@ fn suction_with_extrinsics_and_outputs() {
     )
     .unwrap();
     let out_dir = dir.path().join("out");
-    let (out, _) = ok(&[
-        "grasp",
-        "--depth",
-        s(&depth),
-        "--camera",
-        s(&cam),
-        "--gripper",
-        "suction",
+    // `grasp --depth D --camera C --gripper suction` followed by `extra`
+    let suction = |extra: &[&str]| -> Vec<String> {
+        let base = ["grasp", "--depth", s(&depth), "--camera", s(&cam)];
+        base.iter()
+            .chain(&["--gripper", "suction"])
+            .chain(extra)
+            .map(|x| x.to_string())
+            .collect()
+    };
+    let (out, _) = ok(&strs(&suction(&[
         "--extrinsics",
         s(&ext),
         "--top",
@@ -154,7 +161,7 @@ fn suction_with_extrinsics_and_outputs() {
         "--json",
         "-o",
         s(&out_dir),
-    ]);
+    ])));
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     let arr = v.as_array().unwrap();
     assert!(!arr.is_empty() && arr.len() <= 3);
@@ -200,19 +207,12 @@ fn suction_with_extrinsics_and_outputs() {
     // path) fails, and leaves no grasps.json of the first run beside its own new depth.npy.
     std::fs::remove_file(out_dir.join("overlay.png")).unwrap();
     std::fs::create_dir(out_dir.join("overlay.png")).unwrap();
-    let o = moma(&[
-        "grasp",
-        "--depth",
-        s(&depth),
-        "--camera",
-        s(&cam),
-        "--gripper",
-        "suction",
+    let o = moma(&strs(&suction(&[
         "--extrinsics",
         s(&ext),
         "-o",
         s(&out_dir),
-    ]);
+    ])));
     assert!(!o.status.success());
     assert!(
         String::from_utf8_lossy(&o.stderr).contains("overlay.png"),
@@ -221,19 +221,7 @@ fn suction_with_extrinsics_and_outputs() {
     );
     assert!(!out_dir.join("grasps.json").exists());
     // depth-model options with --depth would be ignored: refused by name
-    let o = moma(&[
-        "grasp",
-        "--depth",
-        s(&depth),
-        "--camera",
-        s(&cam),
-        "--gripper",
-        "suction",
-        "--weights",
-        "w.pth",
-        "--dtype",
-        "int8",
-    ]);
+    let o = moma(&strs(&suction(&["--weights", "w.pth", "--dtype", "int8"])));
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success() && e.contains("--weights, --dtype: depth-model options"),

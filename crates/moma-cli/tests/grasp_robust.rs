@@ -192,7 +192,13 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     assert!(e.contains("error model"), "{e}");
 }
 
-fn grasp_eval(scene: &Path, pred: &Path, out: &Path, extra: &[&str]) -> Vec<serde_json::Value> {
+/// `grasp-eval --set SCENE --pred PRED -o OUT --methods gssa --seeds 1` followed by `extra`.
+fn grasp_eval_args<'a>(
+    scene: &'a Path,
+    pred: &'a Path,
+    out: &'a Path,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
     let mut a = vec![
         "grasp-eval",
         "--set",
@@ -201,14 +207,14 @@ fn grasp_eval(scene: &Path, pred: &Path, out: &Path, extra: &[&str]) -> Vec<serd
         s(pred),
         "-o",
         s(out),
-        "--methods",
-        "gssa",
-        "--seeds",
-        "1",
-        "--grasp-draws",
-        "4",
-        "--json",
     ];
+    a.extend(["--methods", "gssa", "--seeds", "1"]);
+    a.extend_from_slice(extra);
+    a
+}
+
+fn grasp_eval(scene: &Path, pred: &Path, out: &Path, extra: &[&str]) -> Vec<serde_json::Value> {
+    let mut a = grasp_eval_args(scene, pred, out, &["--grasp-draws", "4", "--json"]);
     a.extend_from_slice(extra);
     json(&ok(&a))
 }
@@ -289,17 +295,13 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
         .map(|r| r["variant"].as_str().unwrap())
         .collect();
     assert_eq!(variants, ["one-shot", "few-shot-2", "-"]);
-    let e = fails(&[
-        "grasp-eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "-o",
-        s(&tmp.path().join("ge3")),
-        "--grasp-draws",
-        "0",
-    ]);
+    let ge3 = tmp.path().join("ge3");
+    let e = fails(&grasp_eval_args(
+        &scene,
+        &pred,
+        &ge3,
+        &["--grasp-draws", "0"],
+    ));
     assert!(e.contains("--grasp-draws"), "{e}");
 }
 
@@ -313,19 +315,8 @@ fn a_frame_with_an_empty_mask_is_named() {
     let size = moma_io::read_mask(&mask).unwrap().size();
     let empty = moma_core::Mask::new(ndarray::Array2::from_elem(size.shape(), false));
     moma_io::write_mask(&mask, &empty).unwrap();
-    let e = fails(&[
-        "grasp-eval",
-        "--set",
-        s(&scene),
-        "--pred",
-        s(&pred),
-        "-o",
-        s(&tmp.path().join("ge")),
-        "--methods",
-        "gssa",
-        "--seeds",
-        "1",
-    ]);
+    let out = tmp.path().join("ge");
+    let e = fails(&grasp_eval_args(&scene, &pred, &out, &[]));
     assert!(
         e.contains("frame_02") && e.contains("its mask is empty (no object in the frame)"),
         "{e}"
