@@ -718,6 +718,38 @@ fn bad_input_is_skipped_with_a_reason() {
         assert!(said, "case {i}: no diagnostic saying {reason:?}");
         assert!(processed, "case {i}: the next good frame was not processed");
     }
+    // a camera_info with distortion: used (its K), and warned about once (moma does not undo
+    // distortion), frames go on
+    let k = moma_core::Intrinsics {
+        width: 640,
+        height: 480,
+        fx: 600.0,
+        fy: 600.0,
+        cx: 320.0,
+        cy: 240.0,
+    };
+    let mut distorted = moma_ros2::convert::intrinsics_to_camera_info(&k, header(50));
+    distorted.d = vec![0.1, -0.05, 0.0, 0.0, 0.0];
+    let (mut warned, mut processed) = (false, false);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !(warned && processed) && Instant::now() < deadline {
+        dds::publish(&info, distorted.clone()).unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        dds::publish(&pred, good_img(200)).unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        while let Ok(Some((d, _))) = c.diagnostics.take() {
+            warned |= d.status.iter().any(|s| {
+                s.level == 1
+                    && s.message
+                        .contains("distortion coefficients (5) that moma does not undo")
+            });
+        }
+        while let Ok(Some((img, _))) = c.depth.take() {
+            processed |= img.header.stamp.sec == 200;
+        }
+    }
+    assert!(warned, "no warning of the camera_info's distortion");
+    assert!(processed, "frames stop after a distorted camera_info");
 }
 
 /// `--input image`: the node runs the depth model on the RGB it receives, re-aligns on the

@@ -298,6 +298,8 @@ struct NodeState {
     realign: Option<RealignConfig>,
     camera_override: Option<Intrinsics>,
     camera_info: Option<Intrinsics>,
+    /// A `camera_info` with distortion was warned about (once: it comes at camera rate).
+    distortion_warned: bool,
     grasp: Option<(GraspRequest, Option<Extrinsics>, Option<moma_core::Mask>)>,
     images: VecDeque<Image>,
     predictions: VecDeque<Image>,
@@ -517,6 +519,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         realign,
         camera_override,
         camera_info: None,
+        distortion_warned: false,
         grasp,
         images: VecDeque::new(),
         predictions: VecDeque::new(),
@@ -567,7 +570,27 @@ pub fn run(args: &Ros2Args) -> Result<()> {
 
         for info in drain(&info_sub, |e| malformed.push(format!("camera_info: {e}"))) {
             match convert::camera_info_to_intrinsics(&info) {
-                Ok(k) if k.size() == state.calib.image_size => state.camera_info = Some(k),
+                Ok(k) if k.size() == state.calib.image_size => {
+                    // the node uses K on the image as it comes: with distortion, points and
+                    // grasps drift off towards the edges (docs/ros2.md, "Frames and units")
+                    if !state.distortion_warned && info.d.iter().any(|&c| c != 0.0) {
+                        state.distortion_warned = true;
+                        state.diagnose(
+                            &outputs,
+                            Some(&info.header),
+                            DiagnosticStatus::WARN,
+                            &format!(
+                                "camera_info has {} distortion coefficients ({}) that moma does \
+                                 not undo: it uses K on the image as it comes; subscribe to a \
+                                 rectified image (image_proc's image_rect) and its camera_info",
+                                info.distortion_model,
+                                info.d.len()
+                            ),
+                            Vec::new(),
+                        );
+                    }
+                    state.camera_info = Some(k);
+                }
                 Ok(k) => malformed.push(format!(
                     "camera_info is for {} images, the calibration for {}: ignored",
                     k.size(),
