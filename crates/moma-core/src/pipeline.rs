@@ -69,7 +69,7 @@ use crate::realign::{
     AnchorStore, CorrectionModel, GreyHalf, RealignConfig, RealignReport, realign_in_place,
     realign_prediction_affine,
 };
-use crate::sampling::{SamplingConfig, sample_pixels};
+use crate::sampling::{SamplingConfig, SamplingStrategy, sample_pixels};
 
 /// Everything a calibration decides.
 #[derive(Debug, Clone, PartialEq)]
@@ -504,7 +504,7 @@ pub fn calibrate(
             None => config.method.fit(targets),
             Some(r) => r.fit(&config.method, targets, space),
         }
-        .map_err(|e| explain_edge_margin(e, config.sampling.edge_margin_px, asked))
+        .map_err(|e| explain_few_samples(e, &config.sampling, asked))
     };
     let (model, report) = match space {
         AlignSpace::Depth => fit(&samples)?,
@@ -746,13 +746,24 @@ fn cross_validate(
 
 /// A fit with too few samples, when the edge margin drew fewer than the `asked` ones: says so,
 /// since the margin is what the user can change ([`SamplingConfig::edge_margin_px`]).
-fn explain_edge_margin(e: CoreError, edge_margin_px: u32, asked: usize) -> CoreError {
+fn explain_few_samples(e: CoreError, sampling: &SamplingConfig, asked: usize) -> CoreError {
+    let edge_margin_px = sampling.edge_margin_px;
     match e {
         CoreError::TooFewSamples { got, .. } if edge_margin_px > 0 && got < asked => {
             CoreError::NoValidPixels(format!(
                 "{e}: only {got} ground-truth pixel(s) lie more than the edge margin of \
                  {edge_margin_px} px from a depth discontinuity ({asked} asked); lower the edge \
                  margin"
+            ))
+        }
+        // grid nodes in a small region snap to the same few pixels: say why there are so few
+        CoreError::TooFewSamples { got, .. }
+            if sampling.strategy == SamplingStrategy::Grid && got < asked =>
+        {
+            CoreError::NoValidPixels(format!(
+                "{e}: grid sampling found only {got} distinct pixel(s) with ground truth for \
+                 {asked} grid nodes (nodes outside the sample region snap to the same nearest \
+                 pixels); sample at random, or give a larger region"
             ))
         }
         e => e,

@@ -574,6 +574,26 @@ fn too_few_samples_left_by_the_edge_margin_are_named() {
     assert!(calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).is_ok());
 }
 
+/// Grid sampling inside a region smaller than its node spacing: every node snaps to the same
+/// pixel, and the fit's "too few samples" says why (it said only the count).
+#[test]
+fn grid_nodes_collapsing_in_a_small_region_are_named() {
+    let (gt, pred) = scene();
+    let corner = Mask::new(Array2::from_shape_fn(SIZE.shape(), |(v, u)| u < 2 && v < 2));
+    let mut cfg = config(Method::Gssa);
+    cfg.sampling.strategy = moma_core::sampling::SamplingStrategy::Grid;
+    let frame = CalibrationFrame::new(&pred, &gt).sampled_in(Some(&corner));
+    let e = calibrate(&[frame], &cfg).unwrap_err();
+    assert!(matches!(e, CoreError::NoValidPixels(_)), "{e:?}");
+    let msg = e.to_string();
+    assert!(
+        msg.contains("grid sampling found only") && msg.contains("100 grid nodes"),
+        "{msg}"
+    );
+    // over the whole frame the same grid calibrates
+    assert!(calibrate(&[CalibrationFrame::new(&pred, &gt)], &cfg).is_ok());
+}
+
 /// `predicted_error`'s label: auto and the local corrections report their own
 /// cross-validation, with the folds of the protocol they were calibrated for, whatever is asked
 /// (the label used to echo the question); the global methods cross-validate as asked.
