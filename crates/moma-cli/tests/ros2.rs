@@ -673,24 +673,6 @@ fn bad_input_is_skipped_with_a_reason() {
         }),
         "prediction:",
     ));
-    cases.push((
-        Box::new(|| {
-            let k = moma_core::Intrinsics {
-                width: 640,
-                height: 480,
-                fx: 0.0,
-                fy: 500.0,
-                cx: 320.0,
-                cy: 240.0,
-            };
-            dds::publish(
-                &info,
-                moma_ros2::convert::intrinsics_to_camera_info(&k, header(5)),
-            )
-            .unwrap();
-        }),
-        "camera_info ignored",
-    ));
     for (i, (send, reason)) in cases.iter().enumerate() {
         let mut said = false;
         let mut processed = false;
@@ -750,6 +732,53 @@ fn bad_input_is_skipped_with_a_reason() {
     }
     assert!(warned, "no warning of the camera_info's distortion");
     assert!(processed, "frames stop after a distorted camera_info");
+
+    // a bad camera_info (an uncalibrated driver's K = 0, at camera rate) while the calibration
+    // gives the intrinsics: unused, so neither an error nor a skipped frame (it was both, for
+    // every message)
+    let skipped_in = |d: &DiagnosticArray| {
+        d.status
+            .iter()
+            .flat_map(|s| &s.values)
+            .find(|v| v.key == "frames_skipped")
+            .and_then(|v| v.value.parse::<u64>().ok())
+    };
+    let mut bad_k = moma_ros2::convert::intrinsics_to_camera_info(&k, header(60));
+    bad_k.k[0] = 0.0;
+    let (mut before, mut after, mut error) = (None, None, false);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while after.is_none() && Instant::now() < deadline {
+        if before.is_none() {
+            dds::publish(&pred, good_img(300)).unwrap();
+        } else {
+            for _ in 0..5 {
+                dds::publish(&info, bad_k.clone()).unwrap();
+            }
+            std::thread::sleep(Duration::from_millis(100));
+            dds::publish(&pred, good_img(301)).unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(100));
+        while let Ok(Some((d, _))) = c.diagnostics.take() {
+            error |= d
+                .status
+                .iter()
+                .any(|s| s.level == 2 && s.message.contains("camera_info"));
+            match d.header.stamp.sec {
+                300 if before.is_none() => before = skipped_in(&d),
+                301 => after = skipped_in(&d),
+                _ => {}
+            }
+        }
+    }
+    assert!(
+        before.is_some() && after.is_some(),
+        "frames 300 and 301 not both processed"
+    );
+    assert!(!error, "an unused camera_info gave an error");
+    assert_eq!(
+        after, before,
+        "an unused camera_info counted as skipped frames"
+    );
 }
 
 /// `--input image`: the node runs the depth model on the RGB it receives, re-aligns on the

@@ -568,29 +568,39 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             .context("polling DDS")?;
         let mut malformed = Vec::new();
 
-        for info in drain(&info_sub, |e| malformed.push(format!("camera_info: {e}"))) {
+        // camera_info gives the intrinsics only when neither --camera nor the calibration
+        // does: otherwise a bad one (an uncalibrated driver's K = 0, at camera rate) is not an
+        // error nor a skipped frame; its distortion is still worth a warning
+        let info_used = state.camera_override.is_none() && state.calib.intrinsics.is_none();
+        let infos = drain(&info_sub, |e| {
+            if info_used {
+                malformed.push(format!("camera_info: {e}"));
+            }
+        });
+        for info in infos {
+            // the node uses K on the image as it comes: with distortion, points and grasps
+            // drift off towards the edges (docs/ros2.md, "Frames and units")
+            if !state.distortion_warned && info.d.iter().any(|&c| c != 0.0) {
+                state.distortion_warned = true;
+                state.diagnose(
+                    &outputs,
+                    Some(&info.header),
+                    DiagnosticStatus::WARN,
+                    &format!(
+                        "camera_info has {} distortion coefficients ({}) that moma does not \
+                         undo: it uses K on the image as it comes; subscribe to a rectified \
+                         image (image_proc's image_rect) and its camera_info",
+                        info.distortion_model,
+                        info.d.len()
+                    ),
+                    Vec::new(),
+                );
+            }
+            if !info_used {
+                continue;
+            }
             match convert::camera_info_to_intrinsics(&info) {
-                Ok(k) if k.size() == state.calib.image_size => {
-                    // the node uses K on the image as it comes: with distortion, points and
-                    // grasps drift off towards the edges (docs/ros2.md, "Frames and units")
-                    if !state.distortion_warned && info.d.iter().any(|&c| c != 0.0) {
-                        state.distortion_warned = true;
-                        state.diagnose(
-                            &outputs,
-                            Some(&info.header),
-                            DiagnosticStatus::WARN,
-                            &format!(
-                                "camera_info has {} distortion coefficients ({}) that moma does \
-                                 not undo: it uses K on the image as it comes; subscribe to a \
-                                 rectified image (image_proc's image_rect) and its camera_info",
-                                info.distortion_model,
-                                info.d.len()
-                            ),
-                            Vec::new(),
-                        );
-                    }
-                    state.camera_info = Some(k);
-                }
+                Ok(k) if k.size() == state.calib.image_size => state.camera_info = Some(k),
                 Ok(k) => malformed.push(format!(
                     "camera_info is for {} images, the calibration for {}: ignored",
                     k.size(),
