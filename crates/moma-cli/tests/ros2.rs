@@ -1026,3 +1026,91 @@ fn a_slow_model_drops_stale_frames_instead_of_queueing() {
         model_s * 1e3
     );
 }
+
+/// A live calibration on depth that is not registered to the image (another `frame_id`, e.g. a
+/// RealSense `depth/image_rect_raw` of the colour image's size) is refused with the reason and
+/// writes nothing; the same frames with one `frame_id` calibrate.
+#[test]
+#[ignore = "needs ../shared and root (a network namespace): run with --include-ignored (CI does)"]
+fn live_calibration_refuses_depth_of_another_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prepare(tmp.path(), "graspnet6dof-table");
+    let live = tmp.path().join("live.json");
+    let name = &p.names[1];
+    let frame = p.set.join("frames").join(name);
+    let rgb = moma_io::read_rgb(frame.join("rgb.png")).unwrap();
+    let depth = moma_io::read_depth(frame.join("depth.png")).unwrap();
+    let pred: ndarray::Array2<f32> =
+        ndarray_npy::read_npy(p.preds.join(format!("{name}.npy"))).unwrap();
+    enter_private_network();
+    let _node = start_node(
+        "14",
+        "90",
+        &[
+            "--calib",
+            s(&p.calib),
+            "--calib-out",
+            s(&live),
+            "--input",
+            "prediction",
+            "--calib-timeout-s",
+            "5",
+        ],
+    );
+    let mut c = checker(14);
+    let mut camera = dds::node("unregistered_camera", 14, Network::Loopback).unwrap();
+    let qos = dds::sensor_qos();
+    let image_t = msg::types::image();
+    let image = dds::publisher::<Image>(&mut camera, "image", image_t.clone(), &qos).unwrap();
+    let depth_sensor =
+        dds::publisher::<Image>(&mut camera, "depth_sensor", image_t.clone(), &qos).unwrap();
+    let prediction = dds::publisher::<Image>(&mut camera, "prediction", image_t, &qos).unwrap();
+    let client = dds::trigger_client(&mut c.node, "calibrate").unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    // frames published while the request waits for its pair (the pair must follow it)
+    let mut sec = 10;
+    let mut ask = |depth_frame: &str| -> msg::TriggerResponse {
+        client
+            .send_request(msg::TriggerRequest::default())
+            .expect("request sent");
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < deadline {
+            sec += 1;
+            let header = |frame_id: &str| msg::Header {
+                stamp: Time { sec, nanosec: 0 },
+                frame_id: frame_id.into(),
+            };
+            let d = moma_ros2::convert::depth_to_mm_image(&depth, header(depth_frame));
+            dds::publish(&depth_sensor, d).unwrap();
+            let colour = "camera_color_optical_frame";
+            dds::publish(
+                &image,
+                moma_ros2::convert::rgb_to_image(&rgb, header(colour)),
+            )
+            .unwrap();
+            dds::publish(
+                &prediction,
+                moma_ros2::convert::f32_to_image(&pred, header(colour)),
+            )
+            .unwrap();
+            std::thread::sleep(Duration::from_millis(200));
+            if let Ok(Some((_, resp))) = client.receive_response() {
+                return resp;
+            }
+        }
+        panic!("no answer from the calibrate service");
+    };
+    let resp = ask("camera_depth_optical_frame");
+    assert!(!resp.success, "{resp:?}");
+    assert!(
+        resp.message.contains("'camera_depth_optical_frame'")
+            && resp.message.contains("'camera_color_optical_frame'")
+            && resp.message.contains("registered"),
+        "{}",
+        resp.message
+    );
+    assert!(!live.exists(), "nothing written");
+    let resp = ask("camera_color_optical_frame");
+    assert!(resp.success, "{}", resp.message);
+    assert!(live.is_file());
+}

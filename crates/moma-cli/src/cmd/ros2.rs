@@ -1060,6 +1060,15 @@ impl NodeState {
         image: &Image,
         pred: Option<&Image>,
     ) -> Result<String> {
+        // the depth is compared with the image pixel by pixel: it must be registered to it
+        // (unregistered depth of the same size calibrated wrong metres without a word)
+        let (df, imf) = (&depth.header.frame_id, &image.header.frame_id);
+        if !df.is_empty() && !imf.is_empty() && df != imf {
+            bail!(
+                "depth_sensor is in frame '{df}' but the image in '{imf}': the depth must be \
+                 registered to the colour image (e.g. realsense-ros aligned_depth_to_color)"
+            );
+        }
         let gt = convert::depth_image_to_metres(depth).context("depth_sensor")?;
         let rgb = convert::image_to_rgb(image).context("image")?;
         let prediction = match pred {
