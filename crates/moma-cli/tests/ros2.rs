@@ -1029,7 +1029,8 @@ fn a_slow_model_drops_stale_frames_instead_of_queueing() {
 
 /// A live calibration on depth that is not registered to the image (another `frame_id`, e.g. a
 /// RealSense `depth/image_rect_raw` of the colour image's size) is refused with the reason and
-/// writes nothing; the same frames with one `frame_id` calibrate.
+/// writes nothing; the same frames with one `frame_id` calibrate, the depth stamped a few
+/// milliseconds after its image included (it waited for an identical stamp until it timed out).
 #[test]
 #[ignore = "needs ../shared and root (a network namespace): run with --include-ignored (CI does)"]
 fn live_calibration_refuses_depth_of_another_frame() {
@@ -1069,7 +1070,7 @@ fn live_calibration_refuses_depth_of_another_frame() {
     std::thread::sleep(Duration::from_secs(3));
     // frames published while the request waits for its pair (the pair must follow it)
     let mut sec = 10;
-    let mut ask = |depth_frame: &str| -> msg::TriggerResponse {
+    let mut ask = |depth_frame: &str, depth_late_ns: u32| -> msg::TriggerResponse {
         client
             .send_request(msg::TriggerRequest::default())
             .expect("request sent");
@@ -1080,7 +1081,9 @@ fn live_calibration_refuses_depth_of_another_frame() {
                 stamp: Time { sec, nanosec: 0 },
                 frame_id: frame_id.into(),
             };
-            let d = moma_ros2::convert::depth_to_mm_image(&depth, header(depth_frame));
+            let mut late = header(depth_frame);
+            late.stamp.nanosec += depth_late_ns;
+            let d = moma_ros2::convert::depth_to_mm_image(&depth, late);
             dds::publish(&depth_sensor, d).unwrap();
             let colour = "camera_color_optical_frame";
             dds::publish(
@@ -1100,7 +1103,7 @@ fn live_calibration_refuses_depth_of_another_frame() {
         }
         panic!("no answer from the calibrate service");
     };
-    let resp = ask("camera_depth_optical_frame");
+    let resp = ask("camera_depth_optical_frame", 0);
     assert!(!resp.success, "{resp:?}");
     assert!(
         resp.message.contains("'camera_depth_optical_frame'")
@@ -1110,7 +1113,14 @@ fn live_calibration_refuses_depth_of_another_frame() {
         resp.message
     );
     assert!(!live.exists(), "nothing written");
-    let resp = ask("camera_color_optical_frame");
+    // registered depth stamped 5 ms after its image (drivers that stamp them apart) pairs
+    // within --calib-sync-slop-s (0.02 s), and the answer says how far apart
+    let resp = ask("camera_color_optical_frame", 5_000_000);
     assert!(resp.success, "{}", resp.message);
+    assert!(
+        resp.message.contains("(the image -5.0 ms from it)"),
+        "{}",
+        resp.message
+    );
     assert!(live.is_file());
 }

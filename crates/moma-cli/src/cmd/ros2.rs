@@ -241,6 +241,11 @@ pub struct Ros2Args {
     /// and its prediction with --input prediction) before it fails, seconds.
     #[arg(long, default_value_t = 5.0, value_name = "S")]
     pub calib_timeout_s: f64,
+    /// Live calibration: a depth_sensor frame pairs with the image nearest in time within this
+    /// many seconds (drivers that stamp depth and colour apart: depthai, Orbbec); 0 pairs only
+    /// identical stamps. The prediction (--input prediction) carries the image's stamp.
+    #[arg(long, default_value_t = 0.02, value_name = "S")]
+    pub calib_sync_slop_s: f64,
     /// With --input prediction: how long a frame waits for the image of the same stamp when
     /// it needs one (--realign, --points-rgb), seconds.
     #[arg(long, default_value_t = 0.5, value_name = "S")]
@@ -320,6 +325,24 @@ fn find_stamp(buf: &VecDeque<Image>, stamp: Time) -> Option<&Image> {
     buf.iter().rev().find(|m| m.header.stamp == stamp)
 }
 
+/// `b − a`, nanoseconds.
+fn stamp_diff_ns(a: Time, b: Time) -> i64 {
+    let ns = |t: Time| i64::from(t.sec) * 1_000_000_000 + i64::from(t.nanosec);
+    ns(b) - ns(a)
+}
+
+/// The message of `buf` nearest in time to `stamp` within `slop_s` seconds (the newest of
+/// equally near ones); with `slop_s` 0 the one of the same stamp.
+fn nearest_stamp(buf: &VecDeque<Image>, stamp: Time, slop_s: f64) -> Option<&Image> {
+    let slop_ns = (slop_s * 1e9).round() as i64;
+    buf.iter()
+        .rev()
+        .map(|m| (stamp_diff_ns(stamp, m.header.stamp).abs(), m))
+        .filter(|(d, _)| *d <= slop_ns)
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, m)| m)
+}
+
 fn kv(key: &str, value: impl ToString) -> KeyValue {
     KeyValue {
         key: key.to_string(),
@@ -369,6 +392,10 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         if !(v.is_finite() && v >= 0.0) {
             bail!("{flag} {v} must be a number of seconds >= 0");
         }
+    }
+    let slop = args.calib_sync_slop_s;
+    if !(slop.is_finite() && (0.0..=1.0).contains(&slop)) {
+        bail!("--calib-sync-slop-s {slop} must be a number of seconds in [0, 1]");
     }
     let calib = moma_io::read_calibration(&args.calib)?;
     let realign = match args.realign {
@@ -999,10 +1026,11 @@ impl NodeState {
     fn try_calibrate(&mut self, req: &CalibRequest, out: &Outputs) -> Option<TriggerResponse> {
         // Only frames received since the request are buffered: the pair is the next one.
         let pair = self.depth_sensor.iter().rev().find_map(|d| {
-            let stamp = d.header.stamp;
-            let img = find_stamp(&self.images, stamp)?;
+            let img = nearest_stamp(&self.images, d.header.stamp, self.args.calib_sync_slop_s)?;
             let pred = match self.args.input {
-                InputArg::Prediction => Some(find_stamp(&self.predictions, stamp)?.clone()),
+                InputArg::Prediction => {
+                    Some(find_stamp(&self.predictions, img.header.stamp)?.clone())
+                }
                 InputArg::Image => None,
             };
             Some((d.clone(), img.clone(), pred))
@@ -1010,13 +1038,15 @@ impl NodeState {
         let Some((depth_msg, image_msg, pred_msg)) = pair else {
             if req.since.elapsed().as_secs_f64() >= self.args.calib_timeout_s {
                 let why = format!(
-                    "calibration failed: no {} frame with an image{} of the same stamp within {} s",
+                    "calibration failed: no {} frame with an image{} of the same stamp (within \
+                     --calib-sync-slop-s {} s) within {} s",
                     "depth_sensor",
                     if self.args.input == InputArg::Prediction {
                         " and a prediction"
                     } else {
                         ""
                     },
+                    self.args.calib_sync_slop_s,
                     self.args.calib_timeout_s
                 );
                 self.diagnose(out, None, DiagnosticStatus::ERROR, &why, Vec::new());
@@ -1105,9 +1135,15 @@ impl NodeState {
         );
         let file = CalibrationFile::new(calibration, intrinsics, created);
         moma_io::write_calibration(&self.calib_out, &file)?;
+        let apart_ns = stamp_diff_ns(stamp, image.header.stamp);
+        let apart = if apart_ns == 0 {
+            String::new()
+        } else {
+            format!(" (the image {:+.1} ms from it)", apart_ns as f64 * 1e-6)
+        };
         let text = format!(
-            "calibrated {} on {} samples (RMS residual {:.2} mm) from the frame stamped {}.{:09}; \
-             wrote {} and switched to it",
+            "calibrated {} on {} samples (RMS residual {:.2} mm) from the frame stamped {}.{:09}\
+             {apart}; wrote {} and switched to it",
             file.method,
             file.calibration.report.n_used,
             file.calibration.report.rms_residual_m * 1e3,
@@ -1151,4 +1187,55 @@ fn publish_grasps(
         outcome.grasps.len(),
         outcome.no_grasp_reason.map(|r| r.to_string()),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(sec: i32, nanosec: u32) -> Image {
+        Image {
+            header: Header {
+                stamp: Time { sec, nanosec },
+                frame_id: format!("{sec}.{nanosec}"),
+            },
+            ..Image::default()
+        }
+    }
+
+    #[test]
+    fn the_live_calibration_pairs_the_nearest_image_within_the_slop() {
+        // images at 10.000, 10.030, 10.060 s; depth at 10.032 s
+        let buf: VecDeque<Image> = [at(10, 0), at(10, 30_000_000), at(10, 60_000_000)].into();
+        let depth = Time {
+            sec: 10,
+            nanosec: 32_000_000,
+        };
+        let id = |m: Option<&Image>| m.map(|m| m.header.frame_id.clone());
+        assert_eq!(
+            id(nearest_stamp(&buf, depth, 0.02)),
+            Some("10.30000000".into())
+        );
+        // 2 ms apart is outside a 1 ms slop; 0 pairs identical stamps only
+        assert_eq!(id(nearest_stamp(&buf, depth, 0.001)), None);
+        assert_eq!(id(nearest_stamp(&buf, depth, 0.0)), None);
+        let exact = Time {
+            sec: 10,
+            nanosec: 60_000_000,
+        };
+        assert_eq!(
+            id(nearest_stamp(&buf, exact, 0.0)),
+            Some("10.60000000".into())
+        );
+        // across a second boundary, both signs
+        let next = Time {
+            sec: 11,
+            nanosec: 5_000_000,
+        };
+        assert_eq!(stamp_diff_ns(next, buf[2].header.stamp), -945_000_000);
+        assert_eq!(
+            id(nearest_stamp(&buf, next, 1.0)),
+            Some("10.60000000".into())
+        );
+    }
 }
