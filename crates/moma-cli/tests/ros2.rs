@@ -97,6 +97,31 @@ fn start_node(domain: &str, seconds: &str, args: &[&str]) -> Proc {
 }
 
 /// `moma ros2-replay --set SET --loop ARGS` on `domain`, loopback only, at most `frames` frames.
+/// A node aligning the `prediction` topic with `calib` whose live calibrations go to `live`
+/// and wait `timeout_s` for their frames.
+fn start_calibrating_node(
+    domain: &str,
+    seconds: &str,
+    calib: &Path,
+    live: &Path,
+    timeout_s: &str,
+) -> Proc {
+    start_node(
+        domain,
+        seconds,
+        &[
+            "--calib",
+            s(calib),
+            "--calib-out",
+            s(live),
+            "--input",
+            "prediction",
+            "--calib-timeout-s",
+            timeout_s,
+        ],
+    )
+}
+
 fn start_replay(domain: &str, set: &Path, frames: &str, args: &[&str]) -> Proc {
     let mut all = vec![
         "ros2-replay",
@@ -449,20 +474,7 @@ fn live_calibration_through_the_service() {
     let live = tmp.path().join("live.json");
     enter_private_network();
     let domain = "12";
-    let _node = start_node(
-        domain,
-        "120",
-        &[
-            "--calib",
-            s(&p.calib),
-            "--calib-out",
-            s(&live),
-            "--input",
-            "prediction",
-            "--calib-timeout-s",
-            "3",
-        ],
-    );
+    let _node = start_calibrating_node(domain, "120", &p.calib, &live, "3");
     let mut c = checker(12);
 
     // 1. No depth sensor: the replay sends its depth elsewhere; the request times out.
@@ -1044,20 +1056,7 @@ fn live_calibration_refuses_depth_of_another_frame() {
     let pred: ndarray::Array2<f32> =
         ndarray_npy::read_npy(p.preds.join(format!("{name}.npy"))).unwrap();
     enter_private_network();
-    let _node = start_node(
-        "14",
-        "90",
-        &[
-            "--calib",
-            s(&p.calib),
-            "--calib-out",
-            s(&live),
-            "--input",
-            "prediction",
-            "--calib-timeout-s",
-            "5",
-        ],
-    );
+    let _node = start_calibrating_node("14", "90", &p.calib, &live, "5");
     let mut c = checker(14);
     let mut camera = dds::node("unregistered_camera", 14, Network::Loopback).unwrap();
     let qos = dds::sensor_qos();
