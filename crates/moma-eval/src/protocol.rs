@@ -393,10 +393,9 @@ impl PredictionSet {
             // (a folder written into twice): its kind is not known, so it is not read as one
             // (a missing file is reported as missing, below; an entry may name the map, its
             // file or a path to it)
-            if let Some(i) = &index
-                && !i.frames.is_empty()
-                && dir.join(format!("{}.npy", f.id)).is_file()
-                && !i.lists(&f.id)
+            let map = dir.join(format!("{}.npy", f.id));
+            if let Some(i) = index.as_ref().filter(|i| i.disowns(&map))
+                && map.is_file()
             {
                 return Err(EvalError::frame(
                     &set.name,
@@ -404,7 +403,7 @@ impl PredictionSet {
                     format!(
                         "{} is not listed in {} ({} frames): a file left by another run? \
                          Write the predictions into a folder of their own",
-                        dir.join(format!("{}.npy", f.id)).display(),
+                        map.display(),
                         i.path.display(),
                         i.frames.len()
                     ),

@@ -60,6 +60,16 @@ impl PredictionIndex {
                     .is_some_and(|s| s.to_string_lossy() == name)
         })
     }
+
+    /// Whether it lists maps (`frames`), but not `file` (by its stem): a map beside it that the
+    /// run it describes did not write, whose kind it does not tell. A legacy index (no
+    /// `frames`) disowns nothing.
+    pub fn disowns(&self, file: &Path) -> bool {
+        !self.frames.is_empty()
+            && !file
+                .file_stem()
+                .is_some_and(|s| self.lists(&s.to_string_lossy()))
+    }
 }
 
 #[derive(Deserialize)]

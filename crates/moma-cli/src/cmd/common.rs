@@ -65,6 +65,9 @@ pub enum DtypeArg {
     Int8,
 }
 
+/// `--input-size`'s default: Depth Anything V2's own 518 px.
+const DEFAULT_INPUT_SIZE_PX: usize = 518;
+
 /// Which Depth Anything V2 network to run, and from which weights.
 #[derive(Debug, Clone, Args)]
 pub struct ModelArgs {
@@ -89,7 +92,7 @@ pub struct ModelArgs {
     #[arg(long, value_name = "METRES")]
     pub max_depth: Option<f32>,
     /// Network input lower bound, pixels (multiple of 14, at most 4200).
-    #[arg(long, default_value_t = 518, value_name = "PX")]
+    #[arg(long, default_value_t = DEFAULT_INPUT_SIZE_PX, value_name = "PX")]
     pub input_size: usize,
     /// Inference backend.
     #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
@@ -109,28 +112,36 @@ pub struct ModelArgs {
 }
 
 impl ModelArgs {
-    /// The depth-model options given on the command line (those not at their defaults), by
-    /// flag: for commands where they apply only to some inputs, to refuse them elsewhere.
-    pub fn given(&self) -> Vec<&'static str> {
-        let mut given = Vec::new();
-        let flags = [
+    /// Refuses depth-model options given on the command line (those not at their defaults)
+    /// where the inputs are `inputs` (e.g. "--pred files"), which no model reads: they would be
+    /// ignored.
+    ///
+    /// # Errors
+    /// Any such option, named.
+    pub fn refuse_for(&self, inputs: &str) -> Result<()> {
+        let given: Vec<&str> = [
             ("--weights", self.weights.is_some()),
             ("--hub", self.hub.is_some()),
             ("--model", self.model != ModelArg::Preset(Backbone::Vits)),
             ("--head", self.head.is_some()),
             ("--max-depth", self.max_depth.is_some()),
-            ("--input-size", self.input_size != 518),
+            ("--input-size", self.input_size != DEFAULT_INPUT_SIZE_PX),
             ("--backend", self.backend != BackendArg::Auto),
             ("--device", self.device != DeviceRequest::Auto),
             ("--dtype", self.dtype != DtypeArg::F32),
             ("--lora", self.lora.is_some()),
-        ];
-        for (flag, is_given) in flags {
-            if is_given {
-                given.push(flag);
-            }
+        ]
+        .into_iter()
+        .filter_map(|(flag, given)| given.then_some(flag))
+        .collect();
+        if !given.is_empty() {
+            bail!(
+                "{}: depth-model options, which apply only to --rgb images (with {inputs} they \
+                 would be ignored)",
+                given.join(", ")
+            );
         }
-        given
+        Ok(())
     }
 }
 
@@ -322,14 +333,8 @@ impl SourceArgs {
     /// Unknown or contradicting kind, an unreadable index, model loading errors.
     pub fn open(&self, calibration_kind: Option<PredictionKind>) -> Result<Source> {
         if self.rgb.is_empty() {
-            let given = self.model.given();
-            if !given.is_empty() {
-                bail!(
-                    "{}: depth-model options, which apply only to --rgb images (with --pred \
-                     files they would be ignored; the prediction kind is --pred-kind)",
-                    given.join(", ")
-                );
-            }
+            self.model
+                .refuse_for("--pred files (their kind is --pred-kind)")?;
             let mut indexes = Vec::new();
             for file in &self.pred {
                 let index = moma_io::read_prediction_index_for(file)?;
@@ -337,12 +342,7 @@ impl SourceArgs {
                 // describes: the index's kind says nothing about it (`moma eval` refuses it).
                 // Given --pred-kind, the user vouches for the kind (copies beside a copied
                 // index, as benches and tests make them); else it is refused.
-                if let Some(i) = &index
-                    && !i.frames.is_empty()
-                    && !file
-                        .file_stem()
-                        .is_some_and(|s| i.lists(&s.to_string_lossy()))
-                {
+                if let Some(i) = index.as_ref().filter(|i| i.disowns(file)) {
                     let why = format!(
                         "{} is not listed in {} ({} frames)",
                         file.display(),
@@ -619,6 +619,21 @@ pub fn print_json(value: &impl serde::Serialize) -> Result<()> {
 pub fn create_dir(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir)
         .with_context(|| format!("cannot create output directory {}", dir.display()))
+}
+
+/// Removes a result an earlier run left at `path` (none there is fine), before a run writes
+/// the files that result would otherwise seem to describe: an index of predictions, a
+/// `grasps.json` beside new outputs.
+///
+/// # Errors
+/// The file exists and cannot be removed.
+pub fn remove_earlier(path: &Path) -> Result<()> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(e).with_context(|| format!("removing the earlier {}", path.display()))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Paths joined by ", " for messages.

@@ -135,7 +135,7 @@ pub struct EvalOptions {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "minmax",
+        default_values_t = [Normalisation::default()],
         value_name = "NORMS"
     )]
     pub norm: Vec<Normalisation>,

@@ -265,14 +265,7 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         if args.realign.realign.is_some() {
             bail!("--realign needs a calibration: use --calib with --pred or --rgb, not --depth");
         }
-        let given = args.model.given();
-        if !given.is_empty() {
-            bail!(
-                "{}: depth-model options, which apply only to --rgb (with --depth they would be \
-                 ignored)",
-                given.join(", ")
-            );
-        }
+        args.model.refuse_for("--depth")?;
         return Ok(LoadedFrame {
             depth,
             error_model: None,
@@ -503,12 +496,7 @@ fn write_outputs(
     // an earlier run's result goes first: should a write below fail, DIR must not hold that
     // grasps.json beside this run's depth (grasps.json, written last, vouches for the rest)
     let json_path = dir.join("grasps.json");
-    match std::fs::remove_file(&json_path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            return Err(e).with_context(|| format!("removing the earlier {}", json_path.display()));
-        }
-        _ => {}
-    }
+    super::common::remove_earlier(&json_path)?;
     let background = match rgb {
         Some(img) => img,
         None => {

@@ -75,12 +75,7 @@ pub fn run(args: &PredictArgs) -> Result<()> {
     // an index left by an earlier run would describe the files this one writes (perhaps of
     // another kind) if this run stopped before writing its own: no index until the end
     let index_path = args.output.join("predictions.json");
-    match std::fs::remove_file(&index_path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            return Err(e).with_context(|| format!("removing the old {}", index_path.display()));
-        }
-        _ => {}
-    }
+    super::common::remove_earlier(&index_path)?;
     let bar = progress(args.images.len(), "predicting", args.json);
     let mut frames = Vec::new();
     for path in &args.images {
