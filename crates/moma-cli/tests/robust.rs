@@ -76,6 +76,40 @@ fn calibrate_and_eval_with_robust_fits() {
         text.contains("inliers") && text.contains("threshold 10.0 mm"),
         "{text}"
     );
+    // a fixed threshold far below the scatter: the fit succeeds (Huber is then least absolute
+    // deviations, Tukey follows a minority) but says so; a threshold above it says nothing
+    for (kind, threshold, warned) in [
+        ("huber", "0.00001", true),
+        ("tukey", "0.0002", true),
+        ("huber", "0.05", false),
+    ] {
+        let out = common::moma(&with(&["--robust", kind, "--robust-threshold-m", threshold]));
+        assert!(out.status.success(), "{out:?}");
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        let inliers: usize = stdout
+            .split("): ")
+            .nth(1)
+            .and_then(|t| t.split(" of ").next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no inlier count: {stdout}"));
+        assert_eq!(
+            stderr.contains("lie within the fixed robust threshold"),
+            warned,
+            "{kind} {threshold}: {stdout}{stderr}"
+        );
+        assert_eq!(warned, inliers < 50, "{kind} {threshold}: {stdout}");
+        if inliers == 0 {
+            assert!(stdout.contains("(RMS none)"), "{stdout}");
+        }
+    }
+    assert!(
+        ok(&with(&["--robust", "huber", "--robust-threshold-m", "0.00001"]))
+            .contains("threshold 1.0e-2 mm"),
+        "a threshold under 0.1 mm is printed as 0.0 mm"
+    );
 
     // the default threshold is `auto`: the summary and the file record the scale it estimated
     let text = ok(&with(&["--robust", "ransac"]));

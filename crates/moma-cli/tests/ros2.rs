@@ -712,7 +712,7 @@ fn bad_input_is_skipped_with_a_reason() {
         assert!(said, "case {i}: no diagnostic saying {reason:?}");
         assert!(processed, "case {i}: the next good frame was not processed");
     }
-    // a camera_info with distortion: used (its K), and warned about once (moma does not undo
+    // a camera_info with distortion: used (its P), and warned about once (moma does not undo
     // distortion), frames go on
     let k = moma_core::Intrinsics {
         width: 640,
@@ -757,6 +757,7 @@ fn bad_input_is_skipped_with_a_reason() {
     };
     let mut bad_k = moma_ros2::convert::intrinsics_to_camera_info(&k, header(60));
     bad_k.k[0] = 0.0;
+    bad_k.p[0] = 0.0;
     let (mut before, mut after, mut error) = (None, None, false);
     let deadline = Instant::now() + Duration::from_secs(10);
     while after.is_none() && Instant::now() < deadline {

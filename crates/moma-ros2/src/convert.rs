@@ -237,21 +237,52 @@ pub fn depth_to_mm_image(depth: &MetricDepth, header: Header) -> Image {
     mm_to_image(&moma_io::depth_to_mm(depth.depth_m.view()).0, header)
 }
 
-/// Intrinsics from a `CameraInfo` (its `k` matrix).
+/// Intrinsics of the image a `CameraInfo` describes, as `image_geometry`'s `PinholeCameraModel`
+/// reads them for a rectified image: the projection matrix `p` (`k` where `p` is unset, as some
+/// drivers leave it), then binning and region of interest applied (the image is `roi` of the
+/// full `width × height` sensor, every `binning_x × binning_y` block one pixel: focal lengths
+/// divided by the binning, the principal point moved by the ROI's offset, then divided).
 ///
 /// # Errors
-/// [`RosError::Malformed`] for an empty size or a focal length that is not positive and finite.
+/// [`RosError::Malformed`] for an empty size, a focal length that is not positive and finite, or
+/// a region of interest outside the image.
 pub fn camera_info_to_intrinsics(info: &CameraInfo) -> Result<Intrinsics> {
-    let k = Intrinsics {
-        width: info.width as usize,
-        height: info.height as usize,
-        fx: info.k[0],
-        fy: info.k[4],
-        cx: info.k[2],
-        cy: info.k[5],
+    let malformed = |what: String| RosError::malformed(format!("CameraInfo: {what}"));
+    let p_set = [info.p[0], info.p[5]]
+        .iter()
+        .all(|f| f.is_finite() && *f > 0.0);
+    let (fx, fy, cx, cy) = if p_set {
+        (info.p[0], info.p[5], info.p[2], info.p[6])
+    } else {
+        (info.k[0], info.k[4], info.k[2], info.k[5])
     };
-    k.validate()
-        .map_err(|e| RosError::malformed(format!("CameraInfo: {e}")))?;
+    // ROS: 0 and 1 both mean no binning; an all-zero region of interest is the full image
+    let (bx, by) = (info.binning_x.max(1), info.binning_y.max(1));
+    let roi = &info.roi;
+    let full_roi = roi.width == 0 || roi.height == 0;
+    let (x0, y0, roi_w, roi_h) = if full_roi {
+        (0, 0, info.width, info.height)
+    } else {
+        (roi.x_offset, roi.y_offset, roi.width, roi.height)
+    };
+    let inside = |offset: u32, len: u32, full: u32| {
+        u64::from(offset) + u64::from(len) <= u64::from(full)
+    };
+    if !full_roi && !(inside(x0, roi_w, info.width) && inside(y0, roi_h, info.height)) {
+        return Err(malformed(format!(
+            "region of interest {}×{} at ({}, {}) is outside the {}×{} image",
+            roi_w, roi_h, x0, y0, info.width, info.height
+        )));
+    }
+    let k = Intrinsics {
+        width: (roi_w / bx) as usize,
+        height: (roi_h / by) as usize,
+        fx: fx / f64::from(bx),
+        fy: fy / f64::from(by),
+        cx: (cx - f64::from(x0)) / f64::from(bx),
+        cy: (cy - f64::from(y0)) / f64::from(by),
+    };
+    k.validate().map_err(|e| malformed(e.to_string()))?;
     Ok(k)
 }
 

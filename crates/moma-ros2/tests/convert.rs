@@ -7,7 +7,7 @@ use moma_ros2::convert::{
     camera_info_to_intrinsics, depth_image_to_metres, depth_to_cloud, depth_to_image,
     depth_to_mm_image, grasp_pose, image_to_f32, image_to_rgb, intrinsics_to_camera_info,
 };
-use moma_ros2::msg::{Header, Image, Quaternion, Time};
+use moma_ros2::msg::{CameraInfo, Header, Image, Quaternion, Time};
 use ndarray::{Array2, array};
 use serde_bytes::ByteBuf;
 
@@ -197,13 +197,91 @@ fn camera() -> Intrinsics {
 fn camera_info_round_trips_and_rejects_zero_focal() {
     let info = intrinsics_to_camera_info(&camera(), header());
     assert_eq!(camera_info_to_intrinsics(&info).unwrap(), camera());
+    // an uncalibrated driver's all-zero K and P
     let mut bad = info.clone();
     bad.k[0] = 0.0;
+    bad.p[0] = 0.0;
     let e = camera_info_to_intrinsics(&bad).unwrap_err();
     assert!(e.to_string().contains("fx"), "{e}");
     let mut bad = info;
     bad.width = 0;
     assert!(camera_info_to_intrinsics(&bad).is_err());
+}
+
+/// A 640×480 sensor whose raw image has distortion: K is the raw image's, P the rectified one's.
+fn distorted_camera_info() -> CameraInfo {
+    let mut info = intrinsics_to_camera_info(
+        &Intrinsics {
+            width: 640,
+            height: 480,
+            fx: 610.0,
+            fy: 605.0,
+            cx: 318.0,
+            cy: 242.0,
+        },
+        header(),
+    );
+    info.d = vec![0.1, -0.2, 0.001, 0.002, 0.0];
+    info.p = [
+        580.0, 0.0, 321.0, 0.0, 0.0, 578.0, 239.0, 0.0, 0.0, 0.0, 1.0, 0.0,
+    ];
+    info
+}
+
+#[test]
+fn camera_info_gives_the_rectified_images_intrinsics() {
+    // image_geometry's PinholeCameraModel::fx() etc. read P: a rectified image's intrinsics
+    let info = distorted_camera_info();
+    let k = camera_info_to_intrinsics(&info).unwrap();
+    assert_eq!((k.fx, k.fy, k.cx, k.cy), (580.0, 578.0, 321.0, 239.0));
+    assert_eq!((k.width, k.height), (640, 480));
+    // a driver that leaves P unset: K
+    let mut no_p = info;
+    no_p.p = [0.0; 12];
+    let k = camera_info_to_intrinsics(&no_p).unwrap();
+    assert_eq!((k.fx, k.fy, k.cx, k.cy), (610.0, 605.0, 318.0, 242.0));
+}
+
+#[test]
+fn binning_and_region_of_interest_reduce_the_intrinsics() {
+    // 2×2 binning of the full image: a 320×240 image; a point at camera (x, y, z) projects to
+    // the full image's pixel halved
+    let mut info = distorted_camera_info();
+    info.binning_x = 2;
+    info.binning_y = 2;
+    let k = camera_info_to_intrinsics(&info).unwrap();
+    assert_eq!((k.width, k.height), (320, 240));
+    assert_eq!((k.fx, k.fy, k.cx, k.cy), (290.0, 289.0, 160.5, 119.5));
+    let (x, y, z) = (0.05_f64, -0.03, 0.8);
+    let full = (580.0 * x / z + 321.0, 578.0 * y / z + 239.0);
+    let binned = (k.fx * x / z + k.cx, k.fy * y / z + k.cy);
+    assert!((binned.0 - full.0 / 2.0).abs() < 1e-12 && (binned.1 - full.1 / 2.0).abs() < 1e-12);
+    // a 200×100 region at (100, 50), no binning: the principal point moves by the offset
+    let mut info = distorted_camera_info();
+    info.roi.x_offset = 100;
+    info.roi.y_offset = 50;
+    info.roi.width = 200;
+    info.roi.height = 100;
+    let k = camera_info_to_intrinsics(&info).unwrap();
+    assert_eq!((k.width, k.height), (200, 100));
+    assert_eq!((k.fx, k.fy, k.cx, k.cy), (580.0, 578.0, 221.0, 189.0));
+    // the region and 2×2 binning: cropped in full-resolution pixels, then binned
+    info.binning_x = 2;
+    info.binning_y = 2;
+    let k = camera_info_to_intrinsics(&info).unwrap();
+    assert_eq!((k.width, k.height), (100, 50));
+    assert_eq!((k.fx, k.fy, k.cx, k.cy), (290.0, 289.0, 110.5, 94.5));
+    // binning 0 and 1 both mean none
+    let mut info = distorted_camera_info();
+    info.binning_x = 1;
+    info.binning_y = 0;
+    assert_eq!(camera_info_to_intrinsics(&info).unwrap().width, 640);
+    // a region outside the image is malformed, named
+    info.roi.x_offset = 600;
+    info.roi.width = 100;
+    info.roi.height = 10;
+    let e = camera_info_to_intrinsics(&info).unwrap_err().to_string();
+    assert!(e.contains("region of interest 100×10 at (600, 0)"), "{e}");
 }
 
 fn read_f32(data: &[u8], at: usize) -> f32 {

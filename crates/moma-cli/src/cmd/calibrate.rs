@@ -500,7 +500,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         );
         if let Some(r) = &report.robust {
             let threshold = match &r.auto {
-                None => format!("threshold {:.1} mm", r.threshold_m * 1e3),
+                None => format!("threshold {}", millimetres(r.threshold_m)),
                 Some(a) => format!(
                     "threshold auto: {} × scale {:.2} mm = {:.1} mm, inlier bound {:.1} mm",
                     a.factor,
@@ -509,15 +509,35 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                     a.inlier_bound_m * 1e3
                 ),
             };
+            let inlier_rms = if r.inliers == 0 {
+                "none".to_string()
+            } else {
+                format!("{:.2} mm", r.inlier_rms_residual_m * 1e3)
+            };
             println!(
-                "robust {} ({threshold}): {} of {} samples are inliers (RMS {:.2} mm), \
+                "robust {} ({threshold}): {} of {} samples are inliers (RMS {inlier_rms}), \
                  {} iterations",
-                r.kind,
-                r.inliers,
-                report.n_used,
-                r.inlier_rms_residual_m * 1e3,
-                r.iterations
+                r.kind, r.inliers, report.n_used, r.iterations
             );
+            // a fixed threshold below the data's scatter: the fit follows a minority of the
+            // samples (Tukey, RANSAC) or down-weights all of them alike (Huber, then a least
+            // absolute deviations fit); the auto rule estimates the scatter
+            if r.auto.is_none() && 2 * r.inliers < report.n_used {
+                eprintln!(
+                    "warning: only {} of {} samples lie within the fixed robust threshold {}: \
+                     it is below these data's scatter (RMS residual {:.2} mm), so the fit {}; \
+                     use --robust-threshold-m auto or a threshold above the sensor's noise",
+                    r.inliers,
+                    report.n_used,
+                    millimetres(r.threshold_m),
+                    report.rms_residual_m * 1e3,
+                    if r.kind == RobustKind::Huber {
+                        "weighs every sample alike by its distance (least absolute deviations)"
+                    } else {
+                        "follows a minority of the samples"
+                    }
+                );
+            }
         }
         if let Some(cv) = predicted {
             println!(
@@ -697,5 +717,17 @@ pub fn fit_frame(
             .with_anchors(&super::common::grey_of(rgb)?, gt, prediction)
             .context("building the anchor store"),
         None => Ok(calibration),
+    }
+}
+
+/// A length in metres as millimetres with enough digits to be read (`0.01 mm`, `0.5 mm`, `12.0 mm`).
+fn millimetres(m: f64) -> String {
+    let mm = m * 1e3;
+    if mm != 0.0 && mm.abs() < 0.1 {
+        format!("{mm:.1e} mm")
+    } else if mm.abs() < 1.0 {
+        format!("{mm:.2} mm")
+    } else {
+        format!("{mm:.1} mm")
     }
 }

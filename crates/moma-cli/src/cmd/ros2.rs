@@ -605,8 +605,9 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             }
         });
         for info in infos {
-            // the node uses K on the image as it comes: with distortion, points and grasps
-            // drift off towards the edges (docs/ros2.md, "Frames and units")
+            // the node uses the rectified image's intrinsics (P) on the image as it comes: a
+            // raw image with distortion has its points and grasps drift off towards the edges
+            // (docs/ros2.md, "Frames and units")
             if !state.distortion_warned && info.d.iter().any(|&c| c != 0.0) {
                 state.distortion_warned = true;
                 state.diagnose(
@@ -615,8 +616,9 @@ pub fn run(args: &Ros2Args) -> Result<()> {
                     DiagnosticStatus::WARN,
                     &format!(
                         "camera_info has {} distortion coefficients ({}) that moma does not \
-                         undo: it uses K on the image as it comes; subscribe to a rectified \
-                         image (image_proc's image_rect) and its camera_info",
+                         undo: it uses the rectified image's intrinsics (P), right for a \
+                         rectified image (image_proc's image_rect) and wrong towards the edges \
+                         of a raw one",
                         info.distortion_model,
                         info.d.len()
                     ),
