@@ -421,6 +421,7 @@ def finetune(
     schedule: Literal["one-cycle", "poly"] = "one-cycle",
     warmup_frac: float = 0.05,
     val_frac: float = 0.2,
+    val_every: int = 0,
     save_every: int = 0,
     min_depth: float = 0.001,
     mask_loss: bool = False,
@@ -436,7 +437,8 @@ def finetune(
     ``moma finetune --json`` prints: ``steps``, ``train_loss_first``, ``train_loss_last``,
     ``val_loss_before``, ``val_loss_after``, ``val_loss_after_reload`` (the validation loss of
     the written adapter loaded through the inference path, as ``DepthModel(lora=output)`` loads
-    it), ``adapter``, ``step_time_s``, ``loss``, ``train_frames``, ``val_frames``, ``note``.
+    it), ``adapter``, ``step_time_s``, ``loss``, ``train_frames``, ``val_frames``,
+    ``validations`` (``[{"step", "loss"}]``, every ``val_every`` steps), ``note``.
     Writes ``output`` (the adapter, with the trained head when ``train_head``) and its optimiser
     state ``output`` with ``.optim.safetensors``. ``model``, ``head``, ``max_depth`` (defaults
     ``vits``, ``relative``, 20 m) or ``config``, a custom architecture, as ``DepthModel``. Give

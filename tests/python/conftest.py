@@ -74,6 +74,9 @@ def scene(h=120, w=160, seed=0, kind="relative-disparity", norm="minmax", holes=
     pred = base.astype(np.float32)  # inverse depth or depth, arbitrary scale
     zhat = normalise_np(pred, kind, norm)
     gt = ssra_apply_np(zhat, **TRUE).astype(np.float32)
+    # what no sensor measures (under 1 mm; the median-normalised scene reaches 0): no depth, as
+    # a calibration refuses ground truth under 0.1 mm
+    gt[gt < 1e-3] = 0.0
     if holes:
         gt[rng.random((h, w)) < 0.05] = 0.0
         gt[:3, :5] = np.nan

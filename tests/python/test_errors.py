@@ -76,6 +76,22 @@ def test_nan_in_prediction_is_named(cal):
         moma.calibrate(pred, scene()[1], kind="relative-disparity")
 
 
+def test_float64_beyond_float32_is_named(cal):
+    """A finite float64 that float32 cannot hold is said to be one, not a NaN/inf of the
+    input; the input's own inf stays "non-finite"."""
+    pred, _ = scene()
+    big = pred.astype(np.float64)
+    big[3, 4] = 1e40
+    # numpy warns of the overflow in its cast before moma says what it means
+    with np.errstate(over="ignore"), pytest.raises(
+        moma.InvalidInputError, match=r"1 value\(s\) beyond float32's range"
+    ):
+        cal.align(big)
+    big[3, 4] = np.inf
+    with pytest.raises(moma.InvalidInputError, match=r"non-finite.*u=4, v=3"):
+        cal.align(big)
+
+
 def test_bad_out_buffers(cal):
     pred, _ = scene()
     with pytest.raises(moma.InvalidInputError, match="float32"):

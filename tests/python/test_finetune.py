@@ -21,10 +21,10 @@ pytestmark = pytest.mark.skipif(
 )
 BIN = moma_bin()
 
-OPTS = dict(input_size=56, steps=6, lora_rank=2, lr=1e-3, seed=1, train_head=True, device="cpu")
+OPTS = dict(input_size=56, steps=6, lora_rank=2, lr=1e-3, seed=1, train_head=True, device="cpu", val_every=3)
 # The CLI's spelling of OPTS.
 CLI = ["--input-size", "56", "--steps", "6", "--lora-rank", "2", "--lr", "1e-3", "--seed", "1",
-       "--train-head", "--device", "cpu"]
+       "--train-head", "--device", "cpu", "--val-every", "3"]
 TINY_JSON = {"embed_dim": 64, "depth": 4, "num_heads": 2, "intermediate_layers": [0, 1, 2, 3], "features": 16,
              "out_channels": [8, 16, 32, 64], "head": "metric", "max_depth": 20}
 
@@ -43,6 +43,9 @@ def test_finetune_reports_what_the_reloaded_adapter_gives(trained):
     assert r["train_frames"] + r["val_frames"] == 15
     assert abs(r["val_loss_after_reload"] - r["val_loss_after"]) <= 1e-5, r
     assert r["val_loss_after"] < r["val_loss_before"], r
+    # every val_every validation, the last one at the final step: the trained network's loss
+    assert [v["step"] for v in r["validations"]] == [3, 6], r
+    assert r["validations"][-1]["loss"] == pytest.approx(r["val_loss_after"], rel=1e-6), r
     assert out.is_file() and out.with_suffix(".optim.safetensors").is_file()
     # The adapter, with its trained head, changes what DepthModel predicts.
     rgb = moma.read_rgb(REF / "input.png")

@@ -494,6 +494,14 @@ fn predict_reproduces_the_official_full_image_output() {
         index["runtime"].as_str().unwrap().starts_with("candle"),
         "{index}"
     );
+    // the labels `moma simulate`'s index has: a depth model's output, and which
+    assert_eq!(index["simulated"], false);
+    let source = index["source"].as_str().unwrap();
+    assert!(
+        source.starts_with("Depth Anything V2 ViT-S (relative head), weights ")
+            && source.contains("vits"),
+        "{index}"
+    );
     assert!(out.join("input.color.png").is_file());
     let on_disk: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("predictions.json")).unwrap())
@@ -1000,6 +1008,19 @@ fn raw_predictions_are_refused_where_metres_are_expected() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("used as metres without calibration"));
     let m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(m["mae"].as_f64().unwrap() < 1e-6, "{m}");
+    assert_eq!(m["simulated"], false, "{m}");
+    // listed as simulated: the numbers say so, as an evaluation's rows do
+    index(r#""metric-depth", "simulated": true, "source": "SIMULATED""#);
+    let m: serde_json::Value = serde_json::from_str(&ok(&[
+        "metrics",
+        "--pred",
+        s(&metric.join("f_01.npy")),
+        "--gt",
+        s(&gt),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(m["simulated"], true, "{m}");
     // the same map once aligned is metres: accepted
     let calib = tmp.path().join("calib.json");
     calibrate_frame_00(&scene, &pred, &calib, &[]);
@@ -1540,4 +1561,199 @@ fn calibrate_and_align_refuse_what_they_would_ignore_or_misread() {
         "{e}"
     );
     assert!(out.join("zz_extra.depth.npy").is_file());
+}
+
+/// `ros2-replay`'s timing values become `Duration`s: a value no `Duration` holds is an error
+/// naming the flag, before any network is touched (1e30 s panicked).
+#[test]
+fn replay_timing_beyond_a_duration_is_an_error() {
+    for (flag, value, says) in [
+        (
+            "--warmup-s",
+            "1e30",
+            "--warmup-s 1000000000000000000000000000000 must be",
+        ),
+        ("--warmup-s", "-1", "--warmup-s -1 must be"),
+        ("--warmup-s", "NaN", "--warmup-s NaN must be"),
+        (
+            "--rate",
+            "1e-30",
+            "--rate 0.000000000000000000000000000001 must be",
+        ),
+        // a period that a Duration holds but an Instant cannot add
+        ("--rate", "1e-19", "--rate 0.0000000000000000001 must be"),
+        ("--rate", "0", "--rate 0 must be"),
+        ("--rate", "inf", "--rate inf must be"),
+    ] {
+        let e = common::fails(&["ros2-replay", "--set", "no-such-set", flag, value]);
+        assert!(e.contains(says), "{flag} {value}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+    }
+}
+
+/// A second demo into the same folder replaces the first: a run of fewer frames left the other
+/// frames' files beside the new ones (and `moma eval` on the folder then refused a prediction
+/// its index did not list). A folder with files of its own is refused and left as it is.
+#[test]
+fn demo_replaces_an_earlier_demo_and_refuses_a_foreign_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("d");
+    let run = |frames: &str| {
+        ok(&[
+            "demo",
+            "-o",
+            s(&d),
+            "--frames",
+            frames,
+            "--seeds",
+            "1",
+            "--no-exports",
+        ])
+    };
+    run("3");
+    assert!(d.join("predictions/frame_02.npy").is_file());
+    run("2");
+    for stale in [
+        "predictions/frame_02.npy",
+        "scene/frames/frame_02",
+        "figures/frame_02.png",
+    ] {
+        assert!(!d.join(stale).exists(), "{stale} left by the earlier demo");
+    }
+    ok(&[
+        "eval",
+        "--set",
+        s(&d.join("scene")),
+        "--pred",
+        s(&d.join("predictions")),
+        "--seeds",
+        "1",
+        "--methods",
+        "gssa",
+        "-o",
+        s(&tmp.path().join("eval")),
+    ]);
+    // an earlier demo's scene as this run's input: refused, nothing removed
+    let e = fails(&[
+        "demo",
+        "--set",
+        s(&d.join("scene")),
+        "--pred",
+        s(&d.join("predictions")),
+        "-o",
+        s(&d),
+        "--seeds",
+        "1",
+    ]);
+    assert!(e.contains("holds this run's input"), "{e}");
+    assert!(d.join("scene/camera.json").is_file() && d.join("predictions").is_dir());
+    let mine = tmp.path().join("mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "keep").unwrap();
+    let e = fails(&["demo", "-o", s(&mine), "--frames", "2", "--seeds", "1"]);
+    assert!(e.contains("holds notes.txt"), "{e}");
+    assert_eq!(std::fs::read_dir(&mine).unwrap().count(), 1);
+}
+
+/// One source of predictions, and no option of another: a depth-model option beside the
+/// simulator or --pred folders, a simulator option beside --pred, --pred-kind without --pred
+/// are refused by name (they were ignored).
+#[test]
+fn prediction_options_of_an_unused_source_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let eval = |extra: &[&str]| -> String {
+        let mut args = vec![
+            "eval",
+            "--set",
+            s(&scene),
+            "--seeds",
+            "1",
+            "--methods",
+            "gssa",
+        ];
+        args.extend_from_slice(extra);
+        fails(&args)
+    };
+    for (extra, says) in [
+        (
+            &["--pred", s(&pred), "--lora", "a.safetensors"][..],
+            "--lora",
+        ),
+        (&["--simulate", "--dtype", "int8"][..], "--dtype"),
+        (&["--simulate", "--hub", "vits"][..], "does not combine"),
+        (&["--pred", s(&pred), "--sim-seed", "3"][..], "--sim-seed"),
+        (&["--pred", s(&pred), "--off", "bumps"][..], "--off"),
+        (
+            &["--simulate", "--pred-kind", "metric-depth"][..],
+            "--pred-kind",
+        ),
+    ] {
+        let e = eval(extra);
+        assert!(e.contains(says), "{extra:?}: {e}");
+    }
+    // ablate source: its sources are --source folders or the simulator's two kinds
+    let src = format!("p:relative-disparity:{}", s(&pred));
+    for (extra, says) in [
+        (
+            vec!["--pred", s(&pred)],
+            "--pred, --pred-kind and --simulate do not apply",
+        ),
+        (vec!["--lora", "a.safetensors"], "--lora"),
+        (vec!["--sim-kind", "metric-depth"], "simulates both kinds"),
+        (vec!["--source", &src, "--off", "bumps"], "--off"),
+    ] {
+        let abl = tmp.path().join("abl");
+        let mut args = vec!["ablate", "source", "--set", s(&scene), "--seeds", "1"];
+        args.extend(["-o", s(&abl)]);
+        args.extend(extra.iter().copied());
+        let e = fails(&args);
+        assert!(e.contains(says), "{extra:?}: {e}");
+    }
+    for (extra, says) in [
+        (&["--lora", "a.safetensors"][..], "--lora"),
+        (&["--input-size", "28"][..], "--input-size"),
+        (&["--pred-kind", "metric-depth"][..], "--pred-kind"),
+        (&["--hub", "vits"][..], "simulated predictions only"),
+    ] {
+        let d2 = tmp.path().join("d2");
+        let mut args = vec!["demo", "-o", s(&d2)];
+        args.extend_from_slice(extra);
+        let e = fails(&args);
+        assert!(e.contains(says), "{extra:?}: {e}");
+        assert!(!d2.exists(), "{extra:?}");
+    }
+}
+
+/// A sample count that the method's fit allows but its cross-validation (one sample held out)
+/// does not: the error says how many are needed and names the inputs (it said "need at least
+/// 4" for 3 samples, then "need at least 5" for 4, and "gssa: 1" for LWLR).
+#[test]
+fn too_few_samples_to_cross_validate_say_how_many() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let (pred0, gt0) = common::demo_frame(&scene, &pred, 0);
+    for (method, samples, need) in [("ssra", "4", "5"), ("gssa", "2", "3"), ("lwlr", "2", "3")] {
+        let out = tmp.path().join(format!("{method}.json"));
+        let e = fails(&common::calibrate_args(
+            &[&pred0],
+            &[&gt0],
+            &["--method", method, "--samples", samples, "-o", s(&out)],
+        ));
+        assert!(
+            e.contains(&format!("give at least {need} --samples"))
+                && e.contains(&format!("{method} needs"))
+                && e.contains("frame_00.npy"),
+            "{method} {samples}: {e}"
+        );
+        assert!(!out.exists());
+        // the count it asks for works
+        let mut args = common::calibrate_args(
+            &[&pred0],
+            &[&gt0],
+            &["--method", method, "--samples", need, "-o", s(&out)],
+        );
+        args.extend(["--seed", "1"]);
+        ok(&args);
+    }
 }

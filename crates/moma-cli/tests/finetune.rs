@@ -322,6 +322,48 @@ fn finetune_lowers_the_loss_and_the_adapter_loads_everywhere() {
         ]);
         assert!(e.contains("is an input"), "{e}");
     }
+    // an ONNX model, a folder as the output, options of how a model runs: refused by name
+    let onnx = shared.join("reference/dav2/tiny-metric-392.onnx");
+    let folder = tmp.path().join("a-folder");
+    std::fs::create_dir(&folder).unwrap();
+    for (w, out, extra, says) in [
+        (
+            onnx.as_path(),
+            fresh.as_path(),
+            &[][..],
+            "an ONNX model cannot be merged",
+        ),
+        (copy.as_path(), folder.as_path(), &[][..], "is a folder"),
+        (
+            copy.as_path(),
+            fresh.as_path(),
+            &["--dtype", "bf16"][..],
+            "--dtype",
+        ),
+        (
+            copy.as_path(),
+            fresh.as_path(),
+            &["--backend", "onnx"][..],
+            "--backend onnx",
+        ),
+    ] {
+        let mut args = vec![
+            "lora",
+            "merge",
+            "--weights",
+            s(w),
+            "--model",
+            s(&config),
+            "--lora",
+            s(&adapter),
+            "-o",
+            s(out),
+        ];
+        args.extend_from_slice(extra);
+        let e = fails(&args);
+        assert!(e.contains(says), "{extra:?}: {e}");
+    }
+    assert!(!fresh.exists());
     assert_eq!(
         std::fs::read(&copy).unwrap(),
         std::fs::read(&weights).unwrap()
@@ -628,4 +670,76 @@ fn resume_continues_bit_for_bit_and_crops_are_checked() {
     assert!(e.contains("larger than the network-size frames"), "{e}");
     let e = fails(&[&base[..], &["--crop", "50x56", "-o", s(&crop)]].concat());
     assert!(e.contains("multiples of 14"), "{e}");
+}
+
+/// Text output to a log file (stderr not a terminal: the progress bar is hidden) still has every
+/// validation loss (`bar.println` on a hidden bar printed nothing).
+#[test]
+#[ignore = "needs ../shared: run with --include-ignored (CI does)"]
+fn validation_losses_reach_a_log_file() {
+    let Some(shared) = shared() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let (weights, config) = tiny_metric_model(&shared, tmp.path());
+    let adapter = tmp.path().join("a.safetensors");
+    let out = common::moma(&[
+        "finetune",
+        "--set",
+        s(&shared.join("data/gqcnn-primesense")),
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "28",
+        "--device",
+        "cpu",
+        "--steps",
+        "2",
+        "--val-every",
+        "1",
+        "-o",
+        s(&adapter),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    for step in [1, 2] {
+        assert!(
+            stderr.contains(&format!("step {step}: validation loss ")),
+            "{stderr}"
+        );
+    }
+    // --json lists them, and the last is the report's final validation loss (the same
+    // network on the same frames)
+    let j: serde_json::Value = serde_json::from_str(&ok(&[
+        "finetune",
+        "--set",
+        s(&shared.join("data/gqcnn-primesense")),
+        "--weights",
+        s(&weights),
+        "--model",
+        s(&config),
+        "--input-size",
+        "28",
+        "--device",
+        "cpu",
+        "--steps",
+        "2",
+        "--val-every",
+        "1",
+        "-o",
+        s(&adapter),
+        "--json",
+    ]))
+    .unwrap();
+    let v = j["validations"].as_array().expect("validations");
+    assert_eq!(
+        v.iter()
+            .map(|x| x["step"].as_u64().unwrap())
+            .collect::<Vec<_>>(),
+        [1, 2],
+        "{j}"
+    );
+    let last = v[1]["loss"].as_f64().unwrap();
+    let after = j["val_loss_after"].as_f64().unwrap();
+    assert!((last - after).abs() <= 1e-6 * after.abs().max(1.0), "{j}");
 }

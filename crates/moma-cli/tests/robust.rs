@@ -83,7 +83,12 @@ fn calibrate_and_eval_with_robust_fits() {
         ("tukey", "0.0002", true),
         ("huber", "0.05", false),
     ] {
-        let out = common::moma(&with(&["--robust", kind, "--robust-threshold-m", threshold]));
+        let out = common::moma(&with(&[
+            "--robust",
+            kind,
+            "--robust-threshold-m",
+            threshold,
+        ]));
         assert!(out.status.success(), "{out:?}");
         let (stdout, stderr) = (
             String::from_utf8_lossy(&out.stdout),
@@ -106,8 +111,13 @@ fn calibrate_and_eval_with_robust_fits() {
         }
     }
     assert!(
-        ok(&with(&["--robust", "huber", "--robust-threshold-m", "0.00001"]))
-            .contains("threshold 1.0e-2 mm"),
+        ok(&with(&[
+            "--robust",
+            "huber",
+            "--robust-threshold-m",
+            "0.00001"
+        ]))
+        .contains("threshold 1.0e-2 mm"),
         "a threshold under 0.1 mm is printed as 0.0 mm"
     );
 

@@ -24,6 +24,20 @@ pub struct Intrinsics {
     pub cy: f64,
 }
 
+/// `v` as written in a message: plain digits for everyday magnitudes, scientific notation for
+/// the rest (a subnormal printed plainly is 330 characters long).
+fn readable(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() || (1e-3..1e7).contains(&v.abs()) {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// Focal lengths a camera's intrinsics can have, pixels: from a fisheye's few pixels on a tiny
+/// image to a long telephoto lens on a large sensor.
+pub const FOCAL_RANGE_PX: std::ops::RangeInclusive<f64> = 1.0..=1.0e6;
+
 impl Intrinsics {
     /// The image size these intrinsics belong to.
     pub fn size(&self) -> ImageSize {
@@ -43,7 +57,10 @@ impl Intrinsics {
         }
     }
 
-    /// Checks focal lengths are positive and finite and the size is non-empty.
+    /// Checks the size is non-empty, the focal lengths lie in [`FOCAL_RANGE_PX`] and the
+    /// principal point within its upper end of the image's origin (a crop's principal point
+    /// may lie far outside the crop): intrinsics outside them are no camera's (a subnormal focal length made every back-projected point infinite, exit
+    /// 0) and would write points, clouds and grasps of no meaning.
     ///
     /// # Errors
     /// [`CoreError::InvalidParameter`] naming the bad field.
@@ -54,15 +71,25 @@ impl Intrinsics {
                 self.width, self.height
             )));
         }
-        for (name, v, positive) in [
-            ("fx", self.fx, true),
-            ("fy", self.fy, true),
-            ("cx", self.cx, false),
-            ("cy", self.cy, false),
-        ] {
-            if !v.is_finite() || (positive && v <= 0.0) {
+        for (name, f) in [("fx", self.fx), ("fy", self.fy)] {
+            if !(f.is_finite() && FOCAL_RANGE_PX.contains(&f)) {
                 return Err(CoreError::InvalidParameter(format!(
-                    "camera {name} = {v} is not valid"
+                    "camera {name} = {} px is not valid: a focal length in pixels lies in {}–{} px",
+                    readable(f),
+                    FOCAL_RANGE_PX.start(),
+                    FOCAL_RANGE_PX.end()
+                )));
+            }
+        }
+        // a crop of a larger image (a ROI, a planner's window) puts the principal point far
+        // outside it, so only its magnitude is bounded, as the focal length's
+        for (name, c) in [("cx", self.cx), ("cy", self.cy)] {
+            if !(c.is_finite() && c.abs() <= *FOCAL_RANGE_PX.end()) {
+                return Err(CoreError::InvalidParameter(format!(
+                    "camera {name} = {} px is not valid: a principal point lies within {} px of \
+                     the image's origin",
+                    readable(c),
+                    FOCAL_RANGE_PX.end()
                 )));
             }
         }
@@ -123,4 +150,64 @@ pub fn depth_to_points(depth: &MetricDepth, intrinsics: &Intrinsics) -> Result<V
         }
     }
     Ok(points)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera(fx: f64, cx: f64) -> Intrinsics {
+        Intrinsics {
+            width: 640,
+            height: 480,
+            fx,
+            fy: 525.0,
+            cx,
+            cy: 239.5,
+        }
+    }
+
+    #[test]
+    fn intrinsics_outside_any_cameras_are_refused_by_name() {
+        // a 200×200 crop at (1720, 880) of a 1920×1080 camera: cx = 960 − 1720
+        let crop = Intrinsics {
+            width: 200,
+            height: 200,
+            cx: -760.0,
+            cy: -340.0,
+            ..camera(1400.0, 0.0)
+        };
+        for ok in [
+            camera(525.0, 319.5),
+            camera(1.0, -1.0e6),
+            camera(1.0e6, 1.0e6),
+            crop,
+        ] {
+            ok.validate().unwrap();
+        }
+        for (bad, named) in [
+            (camera(5e-324, 319.5), "fx = 5e-324 px"),
+            (camera(0.5, 319.5), "fx = 0.5 px"),
+            (camera(-525.0, 319.5), "fx = -525 px"),
+            (camera(1.0e9, 319.5), "fx = 1e9 px"),
+            (camera(f64::NAN, 319.5), "fx = NaN px"),
+            (camera(525.0, 1e300), "cx = 1e300 px"),
+            (camera(525.0, -1.5e6), "cx = -1500000 px"),
+            (camera(525.0, f64::INFINITY), "cx = inf px"),
+        ] {
+            let e = bad.validate().unwrap_err().to_string();
+            assert!(e.contains(named), "{e}");
+        }
+        let e = Intrinsics {
+            cy: 2.0e6,
+            ..camera(525.0, 319.5)
+        }
+        .validate()
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("cy = 2000000 px") && e.contains("1000000 px of"),
+            "{e}"
+        );
+    }
 }

@@ -75,7 +75,8 @@ pub(crate) struct FusedPass {
 /// Pass 1: checks the prediction and computes the normalisation exactly as
 /// [`normalise`](crate::normalise::normalise) does; returns the output pass.
 ///
-/// `None` when the normalisation is not covered (median).
+/// `None` when the normalisation is not covered (median), or when `positive_in` (a metric
+/// depth, where a value ≤ 0 is no prediction) and the map holds such a value.
 ///
 /// # Errors
 /// As [`normalise`](crate::normalise::normalise): non-finite values, no valid pixel, degenerate
@@ -83,6 +84,7 @@ pub(crate) struct FusedPass {
 pub(crate) fn prepare(
     pred: ArrayView2<'_, f32>,
     invert_in: bool,
+    positive_in: bool,
     config: &NormalisationConfig,
     region: Option<&Mask>,
     terms: ModelTerms,
@@ -105,6 +107,17 @@ pub(crate) fn prepare(
     // No valid value: min stayed +inf, max −inf.
     if acc.min > acc.max {
         return Err(no_valid_pixels(region.is_some()));
+    }
+    // A metric depth ≤ 0 is no prediction: the unfused path makes it invalid (rare: the
+    // statistics' minimum says so for the whole map, a scan only with a region)
+    if positive_in && !invert_in {
+        let any_non_positive = match region {
+            None => acc.min <= 0.0,
+            Some(_) => pred.iter().any(|&d| d <= 0.0),
+        };
+        if any_non_positive {
+            return Ok(None);
+        }
     }
     let mut stats = NormStats {
         min: f64::from(acc.min),
@@ -258,7 +271,7 @@ fn fused_row<O: Slot, const INV: bool, const NORM: bool, const RECIP: bool>(
         y = if RECIP {
             crate::kernels::depth_of_disparity(y)
         } else {
-            crate::kernels::finite_or_nan(y)
+            crate::kernels::positive_or_nan(y)
         };
         out[j].set(y);
     }

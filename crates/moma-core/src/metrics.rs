@@ -81,9 +81,14 @@ impl DepthMetrics {
             }
         }
         acc.finish().ok_or_else(|| {
-            CoreError::NoValidPixels(
-                "no pixel to score: the mask holds no pixel with valid ground truth and a finite prediction".into(),
-            )
+            CoreError::NoValidPixels(format!(
+                "no pixel to score: {} no pixel with valid ground truth and a finite prediction",
+                if mask.is_some() {
+                    "the mask holds"
+                } else {
+                    "there is"
+                }
+            ))
         })
     }
 

@@ -267,6 +267,12 @@ pub fn normalise_view(
         d.iter()
             .map(|&x| if x > 0.0 { 1.0 / x } else { f32::NAN })
             .collect()
+    } else if kind == PredictionKind::MetricDepth {
+        // a metric depth at or behind the camera is no prediction (a model's or a file's
+        // placeholder for "none"): neither a calibration sample nor an output pixel
+        d.iter()
+            .map(|&x| if x > 0.0 { x } else { f32::NAN })
+            .collect()
     } else {
         d.to_vec()
     };

@@ -466,6 +466,7 @@ pub fn calibrate(
                 f.gt.size()
             )));
         }
+        check_ground_truth_metres(f.gt).map_err(|e| in_frame(frames.len(), i, e))?;
     }
     // the limit holds for the samples fitted and cross-validated together: every frame's
     let total = config.sampling.n.saturating_mul(frames.len());
@@ -533,6 +534,34 @@ pub fn calibrate(
         .collect();
     calibration.error_model = fit_error_model(&calibration, &maps, &truths, config).ok();
     Ok(calibration)
+}
+
+/// Depths in metres that a ground truth can hold: no sensor measures under 0.1 mm or beyond
+/// 10 km. Outside them a value is a placeholder for missing depth (`f32::MAX`, 65 535 read as
+/// metres) or not metres at all (a subnormal), and one sampled such pixel makes the fit absurd
+/// (a scale of 1e37, exit 0).
+pub const PLAUSIBLE_DEPTH_M: std::ops::RangeInclusive<f32> = 1.0e-4..=1.0e4;
+
+/// Refuses a ground truth with a valid pixel ([`crate::is_valid_depth`]) outside
+/// [`PLAUSIBLE_DEPTH_M`], naming how many, the first and its pixel.
+fn check_ground_truth_metres(gt: &MetricDepth) -> Result<()> {
+    let implausible = |z: f32| crate::is_valid_depth(z) && !PLAUSIBLE_DEPTH_M.contains(&z);
+    let count = gt.depth_m.iter().filter(|&&z| implausible(z)).count();
+    if count == 0 {
+        return Ok(());
+    }
+    let ((v, u), z) = gt
+        .depth_m
+        .indexed_iter()
+        .find(|(_, z)| implausible(**z))
+        .map(|(i, z)| (i, *z))
+        .unwrap_or(((0, 0), f32::NAN));
+    Err(CoreError::InvalidParameter(format!(
+        "the ground truth holds {count} pixel(s) outside {}–{} m (the first {z:e} m at u = {u}, \
+         v = {v}): a placeholder for missing depth, or not metres; mark missing depth as 0 or NaN",
+        PLAUSIBLE_DEPTH_M.start(),
+        PLAUSIBLE_DEPTH_M.end()
+    )))
 }
 
 /// Checks that there is at least one frame and that every frame's prediction has the kind and
@@ -1000,7 +1029,7 @@ impl Calibration {
                 if matches!(self.model, AlignmentModel::Raw) {
                     check_raw_metres(values)?;
                 }
-                if let Some(pass) = self.fused_pass(values)? {
+                if let Some(pass) = self.fused_pass(values, kind)? {
                     crate::fused::apply(&pass, values, out);
                     return Ok(());
                 }
@@ -1050,8 +1079,14 @@ impl Calibration {
         Ok(report)
     }
 
-    /// The fused path's statistics pass for a checked prediction, `None` where it does not apply.
-    fn fused_pass(&self, pred: ArrayView2<'_, f32>) -> Result<Option<crate::fused::FusedPass>> {
+    /// The fused path's statistics pass for a checked prediction of kind `kind` (the input's,
+    /// as the unfused [`normalise_view`] takes it: a calibration may accept another kind),
+    /// `None` where it does not apply.
+    fn fused_pass(
+        &self,
+        pred: ArrayView2<'_, f32>,
+        kind: PredictionKind,
+    ) -> Result<Option<crate::fused::FusedPass>> {
         let size = self.image_size();
         let Some(terms) = crate::fused::ModelTerms::of(&self.model, size.width, size.height) else {
             return Ok(None);
@@ -1062,7 +1097,8 @@ impl Calibration {
         }
         crate::fused::prepare(
             pred,
-            AlignSpace::native(self.prediction_kind) != self.normalisation.space,
+            AlignSpace::native(kind) != self.normalisation.space,
+            kind == PredictionKind::MetricDepth,
             &self.normalisation,
             region,
             terms,

@@ -131,6 +131,17 @@ fn fused_path_equals_unfused_bit_for_bit() {
                         let what =
                             format!("{kind} {method} {norm} {space} ws={}", region.is_some());
                         let want = unfused(&cal, &pred, kind);
+                        // no output pixel is at or behind the camera; a metric depth ≤ 0 is
+                        // no prediction, so no depth
+                        assert!(
+                            want.iter().all(|&z| z > 0.0 || z.is_nan()),
+                            "{what}: a depth ≤ 0 m"
+                        );
+                        if kind == PredictionKind::MetricDepth {
+                            for (w, &p) in want.iter().zip(&pred) {
+                                assert!(p > 0.0 || w.is_nan(), "{what}: {p} gave {w} m");
+                            }
+                        }
                         let got = aligned_view(&cal, pred.view(), kind);
                         assert_same(&what, got.view(), want.view());
                         let mut out = Array2::from_elem(SIZE.shape(), 7.0f32);
@@ -323,5 +334,57 @@ fn fused_inverse_space_shifted_disparity_is_recovered() {
         .depth_m;
     for (&o, &z) in out.iter().zip(gt.iter()) {
         assert!((o - z).abs() < 2e-5 * z, "{o} vs {z}");
+    }
+}
+
+/// A metric-depth map with every value positive takes the fused depth-space kernel (the scene
+/// above has values ≤ 0, so its metric cases fall back): fused equals unfused. A relative-depth
+/// calibration given a metric-depth prediction (it accepts one) makes its values ≤ 0 no depth
+/// on both paths: the rule follows the input's kind.
+#[test]
+fn metric_depth_fused_and_its_non_positive_values_follow_the_inputs_kind() {
+    let (_, pred) = scene(PredictionKind::MetricDepth);
+    let positive = pred.mapv(|p| if p > 0.0 { p } else { 0.9 });
+    let mut checked = 0;
+    for method in [Method::Gssa, Method::Ssra(SsraConfig::default())] {
+        for norm in [
+            Normalisation::None,
+            Normalisation::Minmax,
+            Normalisation::MinmaxUnit,
+        ] {
+            let Some(cal) = calibration(
+                PredictionKind::MetricDepth,
+                method.clone(),
+                norm,
+                AlignSpace::Depth,
+                None,
+            ) else {
+                continue;
+            };
+            let what = format!("metric {method} {norm}");
+            let want = unfused(&cal, &positive, PredictionKind::MetricDepth);
+            let got = aligned_view(&cal, positive.view(), PredictionKind::MetricDepth);
+            assert_same(&what, got.view(), want.view());
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, 6);
+    let cal = calibration(
+        PredictionKind::RelativeDepth,
+        Method::Gssa,
+        Normalisation::None,
+        AlignSpace::Depth,
+        None,
+    )
+    .expect("a relative-depth calibration");
+    let want = unfused(&cal, &pred, PredictionKind::MetricDepth);
+    let got = aligned_view(&cal, pred.view(), PredictionKind::MetricDepth);
+    assert_same(
+        "relative-depth calibration, metric input",
+        got.view(),
+        want.view(),
+    );
+    for (w, &p) in want.iter().zip(&pred) {
+        assert!(p > 0.0 || w.is_nan(), "{p} gave {w} m");
     }
 }

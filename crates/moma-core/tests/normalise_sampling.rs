@@ -13,8 +13,9 @@ fn cfg(method: Normalisation) -> NormalisationConfig {
     }
 }
 
+/// A depth-like prediction whose values are any numbers (relative depth: no unit, no sign rule).
 fn depth(a: Array2<f32>) -> Prediction {
-    Prediction::new(a, PredictionKind::MetricDepth)
+    Prediction::new(a, PredictionKind::RelativeDepth)
 }
 
 fn close(a: &Array2<f32>, b: &Array2<f32>) -> bool {
@@ -79,6 +80,33 @@ fn none_is_identity() {
     let a = array![[1.0f32, -2.0], [3.5, 0.0]];
     let n = normalise(&depth(a.clone()), &cfg(Normalisation::None), None).unwrap();
     assert_eq!(n.values, a);
+}
+
+#[test]
+fn a_metric_depth_at_or_behind_the_camera_is_no_prediction() {
+    // 0 and negative metres: NaN (neither a sample nor an output pixel); relative depth keeps
+    // every value
+    let a = array![[1.0f32, -2.0], [3.5, 0.0]];
+    let m = Prediction::new(a.clone(), PredictionKind::MetricDepth);
+    let n = normalise(&m, &cfg(Normalisation::None), None).unwrap();
+    assert_eq!((n.values[[0, 0]], n.values[[1, 0]]), (1.0, 3.5));
+    assert!(
+        n.values[[0, 1]].is_nan() && n.values[[1, 1]].is_nan(),
+        "{}",
+        n.values
+    );
+    // min-max over the positive values only: (z − 1)/(3.5 − 1)
+    let u = normalise(&m, &cfg(Normalisation::MinmaxUnit), None).unwrap();
+    assert_eq!((u.values[[0, 0]], u.values[[1, 0]]), (0.0, 1.0));
+    assert_eq!(u.stats.min, 1.0);
+    let r = normalise(&depth(a.clone()), &cfg(Normalisation::None), None).unwrap();
+    assert_eq!(r.values, a);
+    // no positive value: no valid pixel
+    let none = Prediction::new(array![[0.0f32, -1.0]], PredictionKind::MetricDepth);
+    assert!(matches!(
+        normalise(&none, &cfg(Normalisation::Minmax), None),
+        Err(CoreError::NoValidPixels(_))
+    ));
 }
 
 #[test]

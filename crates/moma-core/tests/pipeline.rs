@@ -627,3 +627,44 @@ fn the_predicted_error_is_labelled_with_the_folds_it_used() {
         }
     }
 }
+
+#[test]
+fn a_ground_truth_beyond_any_sensor_is_refused() {
+    // 2 % of the pixels hold f32::MAX (a placeholder for missing depth): the median passes the
+    // millimetre rule, but one sampled pixel made a scale of 1e37 (exit 0)
+    let (gt, pred) = scene();
+    for (bad, named) in [(f32::MAX, "3.4028235e38 m"), (1.0e-45, "1e-45 m")] {
+        let mut z = gt.depth_m.clone();
+        let mut count = 0;
+        for ((v, u), d) in z.indexed_iter_mut() {
+            if (u * 7 + v) % 50 == 3 {
+                *d = bad;
+                count += 1;
+            }
+        }
+        let err = calibrate(
+            &[CalibrationFrame::new(&pred, &MetricDepth::new(z))],
+            &config(Method::Gssa),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains(&format!("{count} pixel(s) outside 0.0001–10000 m"))
+                && err.contains(named)
+                && err.contains("u = 29, v = 0"),
+            "{err}"
+        );
+    }
+    // the bounds themselves, zero, NaN and inf (no measurement) are accepted
+    let mut z = gt.depth_m.clone();
+    z[[0, 0]] = 1.0e4;
+    z[[0, 1]] = 1.0e-4;
+    z[[0, 2]] = 0.0;
+    z[[0, 3]] = f32::NAN;
+    z[[0, 4]] = f32::INFINITY;
+    calibrate(
+        &[CalibrationFrame::new(&pred, &MetricDepth::new(z))],
+        &config(Method::Gssa),
+    )
+    .unwrap();
+}

@@ -92,6 +92,17 @@ pub fn network_input_size(image: ImageSize, input_size: usize) -> Result<ImageSi
         constrain(scale_w * image.width as f64),
         constrain(scale_h * image.height as f64),
     );
+    // the transformer's attention grows as the square of the patches: a 2×3000 image at 112 px
+    // (a 112×168 000 input, 96 000 patches) ran for minutes at 1 GB and more before this
+    let (short, long) = (size.width.min(size.height), size.width.max(size.height));
+    if long > MAX_NETWORK_ASPECT * short {
+        return Err(DepthError::Shape(format!(
+            "a {}x{} image at lower bound {input_size} px needs a {size} network input, longer \
+             than {MAX_NETWORK_ASPECT} times its short side: its aspect ratio is too extreme for \
+             a depth model (crop the image)",
+            image.width, image.height
+        )));
+    }
     if size.pixels() > MAX_NETWORK_INPUT_PIXELS {
         return Err(DepthError::Shape(format!(
             "a {}x{} image at lower bound {input_size} px needs a {size} network input, more than \
@@ -107,6 +118,10 @@ pub fn network_input_size(image: ImageSize, input_size: usize) -> Result<ImageSi
 /// use 518). Far larger bounds only exhaust memory: 14 000 px took 12.5 GB with a 4-layer test
 /// network before it was refused.
 pub const MAX_INPUT_SIZE_PX: usize = 4200;
+
+/// Largest ratio of the network input's long side to its short side (a panorama of 4:1; the
+/// released models were trained on camera images of 4:3 to 16:9).
+pub const MAX_NETWORK_ASPECT: usize = 4;
 
 /// Largest network input accepted, pixels (a 2:1 image at [`MAX_INPUT_SIZE_PX`]): bounds the
 /// memory of an image whose aspect ratio makes the long side huge at the given lower bound.
@@ -342,6 +357,13 @@ mod tests {
         );
         let e = network_input_size(ImageSize::new(16384, 2), 518).unwrap_err();
         assert!(e.to_string().contains("aspect ratio"), "{e}");
+        // 4:1 is the limit: 2072×518 at 518 passes, a 3000×2 image at 112 px (112×168 000) not
+        assert_eq!(size_hw(518, 2072, 518), (518, 2072));
+        let e = network_input_size(ImageSize::new(3000, 2), 112)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("168000x112") && e.contains("4 times"), "{e}");
+        assert!(network_input_size(ImageSize::new(2100, 518), 518).is_err());
         for (ok, size) in [
             (true, 14),
             (true, 518),

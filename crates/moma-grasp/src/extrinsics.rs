@@ -30,11 +30,15 @@ impl From<Extrinsics> for [[f64; 4]; 4] {
     }
 }
 
+/// Largest camera-to-base translation accepted, metres.
+pub const MAX_TRANSLATION_M: f64 = 1.0e4;
+
 impl Extrinsics {
     /// Checks and wraps a camera→base matrix given as 4 rows.
     ///
     /// # Errors
-    /// [`GraspError::NonRigidExtrinsics`] when an entry is not finite, the last row is not
+    /// [`GraspError::NonRigidExtrinsics`] when an entry is not finite, the translation is beyond
+    /// [`MAX_TRANSLATION_M`], the last row is not
     /// `0 0 0 1`, the rotation is not orthonormal within [`RIGID_TOLERANCE`], or `det R ≠ +1`
     /// (a reflection).
     pub fn new(rows: [[f64; 4]; 4]) -> Result<Self> {
@@ -42,6 +46,15 @@ impl Extrinsics {
             return Err(GraspError::NonRigidExtrinsics(
                 "an entry is not a finite number".into(),
             ));
+        }
+        // a robot's base is within kilometres of its camera: a translation beyond f32's range
+        // wrote `null` coordinates into the grasps' JSON (poses are f32)
+        let t = [rows[0][3], rows[1][3], rows[2][3]];
+        if t.iter().any(|v| v.abs() > MAX_TRANSLATION_M) {
+            return Err(GraspError::NonRigidExtrinsics(format!(
+                "the translation {t:?} is beyond {MAX_TRANSLATION_M} m: not metres between a \
+                 camera and its robot's base"
+            )));
         }
         if rows[3] != [0.0, 0.0, 0.0, 1.0] {
             return Err(GraspError::NonRigidExtrinsics(format!(

@@ -503,9 +503,15 @@ pub fn success_probabilities(
         .into_par_iter()
         .map(|d| -> Result<Vec<bool>> {
             let drawn = MetricDepth::new(draws.draw(request.seed, d));
-            let Ok(drawn_scene) = scene.with_depth_in(roi, &drawn, &k, &request.scene) else {
+            let drawn_scene = match scene.with_depth_in(roi, &drawn, &k, &request.scene) {
+                Ok(s) => s,
                 // nothing to execute on in this draw: every grasp fails there
-                return Ok(vec![false; grasps.len()]);
+                Err(GraspError::AllInvalidDepth | GraspError::MaskNoValidDepth { .. }) => {
+                    return Ok(vec![false; grasps.len()]);
+                }
+                // anything else is a fault (the crop's intrinsics refused made every draw
+                // fail, silently, when their validation was first tightened)
+                Err(e) => return Err(e),
             };
             grasps
                 .iter()

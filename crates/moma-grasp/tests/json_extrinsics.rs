@@ -114,11 +114,22 @@ fn non_rigid_extrinsics_are_rejected() {
         [0.0, 0.0, 1.0, 0.0],
         [0.0, 0.0, 0.0, 1.0],
     ];
+    // finite in f64, beyond f32 (poses are f32): the grasps' JSON had `null` coordinates
+    let far = [
+        [1.0, 0.0, 0.0, 1.0e39],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    let mut km = far;
+    km[0][3] = -1.0e4;
+    Extrinsics::new(km).unwrap();
     for (m, word) in [
         (scaled, "orthonormal"),
         (reflection, "det"),
         (bad_row, "last row"),
         (nan, "finite"),
+        (far, "beyond 10000 m"),
     ] {
         let err = Extrinsics::new(m).unwrap_err();
         assert!(matches!(err, GraspError::NonRigidExtrinsics(_)));

@@ -287,6 +287,7 @@ pub(crate) fn write_png16(
     texts: &[(&str, String)],
 ) -> Result<()> {
     let (h, w) = values.dim();
+    crate::limits::check_writable_size(path, w, h)?;
     let data: Vec<u16> = values.iter().copied().collect();
     atomic_write(path, |out| {
         encode_png(out, path, w, h, PngPixels::Gray16(&data), texts)
@@ -364,10 +365,11 @@ fn check_npy_header(path: &Path, bytes: &[u8]) -> Result<()> {
     // other shape is refused later, but never allocated.
     let mut sides = shape.clone();
     sides.sort_unstable_by(|a, b| b.cmp(a));
-    let (height, width) = match sides.as_slice() {
-        [] => (1, 1),
-        [n] => (*n, 1),
-        [a, b, ..] => (*a, elements.checked_div(*a).unwrap_or(*b)),
+    // the width is the product of the other dimensions (saturating: a division of a saturated
+    // product misstated the shape)
+    let (height, width) = match sides.split_first() {
+        None => (1, 1),
+        Some((a, rest)) => (*a, rest.iter().fold(1u64, |p, &d| p.saturating_mul(d))),
     };
     if elements > MAX_IMAGE_PIXELS || shape.iter().any(|&d| d > MAX_IMAGE_SIDE_PX) {
         return Err(IoError::TooLarge {
@@ -531,6 +533,7 @@ pub fn write_npy_f32(path: impl AsRef<Path>, values: ArrayView2<'_, f32>) -> Res
             format!("cannot write an empty {w}x{h} map as npy"),
         ));
     }
+    crate::limits::check_writable_size(path, w, h)?;
     atomic_write(path, |w| {
         values
             .as_standard_layout()
@@ -611,8 +614,9 @@ fn parse_pfm(path: &Path, bytes: &[u8]) -> Result<Array2<f32>> {
     }
     check_image_size(path, "PFM", width as u64, height as u64)?;
     if !scale.is_finite() || scale == 0.0 {
+        // the header's own text: -1e300 parsed as f32 is -inf, which it did not say
         return Err(bad(format!(
-            "scale {scale} must be finite and nonzero (its sign is the byte order)"
+            "scale '{scale_tok}' must be a finite, nonzero float32 (its sign is the byte order)"
         )));
     }
     if pos >= bytes.len() || !bytes[pos].is_ascii_whitespace() {
@@ -670,6 +674,7 @@ pub fn write_pfm(
             format!("cannot write an empty {w}x{h} map as PFM"),
         ));
     }
+    crate::limits::check_writable_size(path, w, h)?;
     let scale = match order {
         PfmByteOrder::LittleEndian => "-1.0",
         PfmByteOrder::BigEndian => "1.0",

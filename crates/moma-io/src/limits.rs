@@ -41,6 +41,24 @@ pub fn check_image_size(path: &Path, format: &'static str, width: u64, height: u
     Ok(())
 }
 
+/// Checks that a `width × height` map about to be written to `path` is one every reader accepts
+/// ([`check_image_size`]'s limits): a file is not written that cannot be read back.
+///
+/// # Errors
+/// [`IoError::Invalid`] naming the size and the limit.
+pub(crate) fn check_writable_size(path: &Path, width: usize, height: usize) -> Result<()> {
+    check_image_size(path, "", width as u64, height as u64).map_err(|e| match e {
+        IoError::TooLarge { limit, .. } => IoError::invalid(
+            path,
+            format!(
+                "cannot write a {width}x{height} map: over the limit of {limit} that moma's \
+                 readers accept"
+            ),
+        ),
+        other => other,
+    })
+}
+
 /// Checks that a `width × height` PNG of `bits_per_pixel` can fit in a file of `file_len`
 /// bytes: its raw pixel data (at least `width · height · bits_per_pixel / 8` bytes) is at most
 /// [`DEFLATE_MAX_RATIO`] times the file length.

@@ -1365,6 +1365,11 @@ fn npy_header_claiming_100000_squared_is_too_large() {
         read_npy_f32(&p).unwrap_err(),
         IoError::TooLarge { .. }
     ));
+    // and the message states the shape (a saturated product divided by the height said
+    // "3x4611686018427387904" for this one)
+    std::fs::write(&p, npy_bytes("<f4", "(4611686018427387904, 4)", &[])).unwrap();
+    let m = msg(&read_npy_f32(&p).unwrap_err());
+    assert!(m.contains("claims 4x4611686018427387904"), "{m}");
 }
 
 #[test]
@@ -1458,4 +1463,27 @@ fn an_image_where_json_belongs_is_named_as_not_text() {
             "{m}"
         );
     }
+}
+
+/// Every writer refuses a map that its readers would refuse (over 65 535 pixels per side), with
+/// nothing left at the path: a file is not written that cannot be read back.
+#[test]
+fn a_map_no_reader_accepts_is_not_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let wide = MetricDepth::new(Array2::from_elem((1, 70_000), 0.7f32));
+    for name in ["wide.npy", "wide.pfm", "wide.png"] {
+        let path = dir.path().join(name);
+        let e = write_depth(&path, &wide).unwrap_err();
+        assert!(
+            msg(&e).contains("cannot write a 70000x1 map")
+                && msg(&e).contains("65535 pixels per side"),
+            "{name}: {e}"
+        );
+        assert!(!path.exists(), "{name}");
+    }
+    // the widest readable map round-trips
+    let edge = MetricDepth::new(Array2::from_elem((1, 65_535), 0.7f32));
+    let path = dir.path().join("edge.npy");
+    write_depth(&path, &edge).unwrap();
+    assert_eq!(read_depth(&path).unwrap().size(), edge.size());
 }

@@ -67,8 +67,27 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
     }
     let np = obj.py().import("numpy")?;
     let conv = np
-        .call_method1("asarray", (arr, "float32"))
+        .call_method1("asarray", (&arr, "float32"))
         .map_err(|e| value_err(format!("{what}: cannot convert to float32: {e}")))?;
+    // a finite float64 beyond float32's range becomes inf in the conversion: say so, rather
+    // than let it be taken for the input's own NaN/inf
+    if kind == 'f' {
+        let overflowed = np.call_method1(
+            "logical_and",
+            (
+                np.call_method1("isinf", (&conv,))?,
+                np.call_method1("isfinite", (&arr,))?,
+            ),
+        )?;
+        let count: usize = np.call_method1("count_nonzero", (overflowed,))?.extract()?;
+        if count > 0 {
+            return Err(value_err(format!(
+                "{what} ({}) holds {count} value(s) beyond float32's range (|x| > 3.4e38), \
+                 which moma computes in",
+                arr.dtype()
+            )));
+        }
+    }
     let conv = conv
         .cast_into::<PyArray2<f32>>()
         .map_err(|_| value_err(format!("{what}: cannot convert to a float32 2-D array")))?;

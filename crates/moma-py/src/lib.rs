@@ -1437,8 +1437,8 @@ fn lora_fingerprint(
     input_size=518, config=None, device="cpu", lora_rank=16, lora_alpha=None,
     lora_targets=vec!["q".to_string(), "v".to_string()], lora_dropout=0.0, train_head=false,
     head_lr_mult=1.0, loss=None, steps=None, epochs=None, batch=1, accumulate=1, lr=5e-4,
-    weight_decay=0.01, schedule="one-cycle", warmup_frac=0.05, val_frac=0.2, save_every=0,
-    min_depth=0.001, mask_loss=false, augment=true, seed=0, resume=None, stop_after=None,
+    weight_decay=0.01, schedule="one-cycle", warmup_frac=0.05, val_frac=0.2, val_every=0,
+    save_every=0, min_depth=0.001, mask_loss=false, augment=true, seed=0, resume=None, stop_after=None,
     clip_grad_norm=1.0, crop=None))]
 #[allow(clippy::too_many_arguments)]
 fn finetune(
@@ -1468,6 +1468,7 @@ fn finetune(
     schedule: &str,
     warmup_frac: f64,
     val_frac: f64,
+    val_every: usize,
     save_every: usize,
     min_depth: f32,
     mask_loss: bool,
@@ -1537,6 +1538,7 @@ fn finetune(
     opts.schedule = schedule.parse().map_err(value_err)?;
     opts.warmup_frac = warmup_frac;
     opts.val_frac = val_frac;
+    opts.val_every = val_every;
     opts.save_every = save_every;
     opts.min_depth_m = min_depth;
     opts.mask_loss = mask_loss;

@@ -265,10 +265,10 @@ pub fn camera_info_to_intrinsics(info: &CameraInfo) -> Result<Intrinsics> {
     } else {
         (roi.x_offset, roi.y_offset, roi.width, roi.height)
     };
-    let inside = |offset: u32, len: u32, full: u32| {
-        u64::from(offset) + u64::from(len) <= u64::from(full)
-    };
-    if !full_roi && !(inside(x0, roi_w, info.width) && inside(y0, roi_h, info.height)) {
+    let inside =
+        |offset: u32, len: u32, full: u32| u64::from(offset) + u64::from(len) <= u64::from(full);
+    let roi_inside = inside(x0, roi_w, info.width) && inside(y0, roi_h, info.height);
+    if !(full_roi || roi_inside) {
         return Err(malformed(format!(
             "region of interest {}×{} at ({}, {}) is outside the {}×{} image",
             roi_w, roi_h, x0, y0, info.width, info.height

@@ -90,8 +90,22 @@ pub fn topic_name(name: &str) -> Result<Name> {
     };
     parsed.map_err(|e| RosError::Name {
         name: name.to_string(),
-        why: format!("{e:?}"),
+        why: name_error(&e),
     })
+}
+
+/// Why a topic name was refused, in moma's words (ros2-client's own messages are misspelt
+/// and its `Debug` names are Rust's).
+fn name_error(e: &ros2_client::names::NameError) -> String {
+    match e {
+        ros2_client::names::NameError::Empty => "a topic name cannot be empty".to_string(),
+        ros2_client::names::NameError::BadChar(c) => format!(
+            "{c:?} is not allowed in a topic name (letters, digits, '_' and '/' separators)"
+        ),
+        ros2_client::names::NameError::BadSlash(..) => {
+            "a '/' separator is misplaced (no empty part, no trailing '/')".to_string()
+        }
+    }
 }
 
 /// A publisher of `M` on topic `name` with type `type_name`.

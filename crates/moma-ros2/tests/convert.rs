@@ -423,3 +423,15 @@ proptest::proptest! {
         }
     }
 }
+
+#[test]
+fn a_topic_name_ros_refuses_is_explained() {
+    for (name, says) in [
+        ("", "a topic name cannot be empty"),
+        ("bad topic", "' ' is not allowed in a topic name"),
+    ] {
+        let e = moma_ros2::dds::topic_name(name).unwrap_err().to_string();
+        assert!(e.contains(says) && !e.contains("BadChar"), "{name:?}: {e}");
+    }
+    assert!(moma_ros2::dds::topic_name("/camera/color/image_raw").is_ok());
+}

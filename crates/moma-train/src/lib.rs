@@ -29,7 +29,9 @@
 pub mod data;
 mod run;
 
-pub use run::{Event, FinetuneOptions, FinetuneReport, finetune, validation_loss_of_model};
+pub use run::{
+    Event, FinetuneOptions, FinetuneReport, Validation, finetune, validation_loss_of_model,
+};
 
 /// What can go wrong in a fine-tuning run.
 #[derive(Debug, thiserror::Error)]

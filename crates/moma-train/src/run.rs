@@ -316,8 +316,19 @@ pub struct FinetuneReport {
     pub train_frames: usize,
     /// Frames held out.
     pub val_frames: usize,
+    /// Every `val_every` validation of the run, in step order (empty without `val_every`).
+    pub validations: Vec<Validation>,
     /// What these numbers are.
     pub note: &'static str,
+}
+
+/// One validation during a run ([`FinetuneReport::validations`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Validation {
+    /// Optimiser steps done (counted over the whole run, resumed ones included).
+    pub step: usize,
+    /// Validation loss then.
+    pub loss: f64,
 }
 
 /// The mean loss of `model` (the inference network, e.g. loaded with an adapter) over whole
@@ -561,6 +572,7 @@ pub fn finetune(
 
     let val_before = validate(&mut trainer, "before training")?;
     let mut losses = Vec::with_capacity(steps.min(1 << 16));
+    let mut validations = Vec::new();
     // Every draw of a step comes from (seed, step) or (seed, epoch): a resumed run draws what
     // the uninterrupted run would have.
     let mut order: (Option<u64>, Vec<usize>) = (None, vec![]);
@@ -608,6 +620,10 @@ pub fn finetune(
             && done % opts.val_every == 0
             && let Some(v) = validate(&mut trainer, &format!("after step {done}"))?
         {
+            validations.push(Validation {
+                step: done,
+                loss: v,
+            });
             go_on = on_event(Event::Validation { done, loss: v });
         }
         if go_on.is_break() {
@@ -663,6 +679,7 @@ pub fn finetune(
         loss: loss_kind,
         train_frames: train.len(),
         val_frames: val.len(),
+        validations,
         note: "losses of the given weights; with random-weight (test) models they show only that training runs, not depth accuracy",
     })
 }

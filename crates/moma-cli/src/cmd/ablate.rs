@@ -207,6 +207,32 @@ pub fn run(args: &AblateArgs) -> Result<()> {
             report(&out, &out.tables[0], t0)
         }
         AblateCommand::Source { source, .. } => {
+            // its sources are --source folders (each with its kind) or, by default, the
+            // simulator's two kinds: every other source's options would be ignored
+            let p = &common.pred;
+            if !p.pred.is_empty() || p.pred_kind.is_some() || p.simulate {
+                bail!(
+                    "ablate source compares --source LABEL:KIND:DIR folders (default: the \
+                     simulator's depth and inverse depth): --pred, --pred-kind and --simulate do \
+                     not apply"
+                );
+            }
+            p.model
+                .refuse_for("ablate source's --source folders or simulated predictions")?;
+            let sim = p.simulator_options_given();
+            if source.is_empty() && sim.contains(&"--sim-kind") {
+                bail!(
+                    "--sim-kind: ablate source simulates both kinds (metric-depth and \
+                     relative-disparity) by default"
+                );
+            }
+            if !source.is_empty() && !sim.is_empty() {
+                bail!(
+                    "{}: simulator options, which apply only to ablate source's default \
+                     (simulated) sources, not to --source folders",
+                    sim.join(", ")
+                );
+            }
             let mut rows = Vec::new();
             for dir in &common.set {
                 let set = load_set(dir)?;

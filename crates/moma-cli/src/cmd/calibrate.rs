@@ -351,7 +351,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 .sampled_in(sample_masks.get(i).or(sample_masks.first()))
         })
         .collect();
-    let calibration = calibrate(&frames, &config).with_context(|| {
+    // the inputs, as every failure of the calibration names them
+    let named_inputs = {
         let pairs: Vec<String> = inputs
             .iter()
             .zip(&args.gt)
@@ -364,16 +365,18 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             })
             .collect();
         if pairs.len() == 1 {
-            format!("calibration failed ({})", pairs[0])
+            pairs[0].clone()
         } else {
             let listed: Vec<String> = pairs
                 .iter()
                 .enumerate()
                 .map(|(i, p)| format!("frame {i}: {p}"))
                 .collect();
-            format!("calibration failed ({})", listed.join("; "))
+            listed.join("; ")
         }
-    })?;
+    };
+    let calibration = calibrate(&frames, &config)
+        .with_context(|| format!("calibration failed ({named_inputs})"))?;
 
     // Anchors for per-frame re-alignment come from the first (calibration) frame.
     let calibration = if args.anchors {
@@ -436,7 +439,26 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let predicted = file
         .calibration
         .predicted_error(args.cv.protocol)
-        .context("cross-validating the calibration for its predicted error (nothing written)")?;
+        .with_context(|| {
+            // its folds hold samples out: a fit that its method's minimum just allows cannot be
+            // cross-validated
+            let n = file.calibration.samples.samples.len();
+            let need = config.method.min_samples() + 1;
+            let why = if n < need {
+                format!(
+                    ": its folds fit on fewer than the {n} samples, and {} needs {} to fit: \
+                     give at least {need} --samples",
+                    config.method,
+                    need - 1
+                )
+            } else {
+                String::new()
+            };
+            format!(
+                "cross-validating the calibration for its predicted error ({named_inputs}; \
+                 nothing written){why}"
+            )
+        })?;
     moma_io::write_calibration(&args.output, &file)?;
 
     let reach = moma_core::sampling::sample_reach_over(

@@ -136,8 +136,8 @@ impl ModelArgs {
         .collect();
         if !given.is_empty() {
             bail!(
-                "{}: depth-model options, which apply only to --rgb images (with {inputs} they \
-                 would be ignored)",
+                "{}: depth-model options, which apply only where a depth model runs (--rgb \
+                 images, or --weights/--hub for a set; with {inputs} they would be ignored)",
                 given.join(", ")
             );
         }
@@ -151,6 +151,33 @@ pub struct LoadedModel {
     pub model: Box<dyn DepthModel>,
     /// The weights file (after resolving `--hub`).
     pub weights: PathBuf,
+}
+
+impl LoadedModel {
+    /// How tables, result files and prediction indexes name this model's predictions:
+    /// `Depth Anything V2 ViT-S (relative head), weights FILE[, LoRA FILE]`.
+    pub fn label(&self, lora: Option<&Path>) -> String {
+        let spec = self.model.spec();
+        let backbone = match spec.backbone {
+            Backbone::Vits => "ViT-S",
+            Backbone::Vitb => "ViT-B",
+            Backbone::Vitl => "ViT-L",
+            Backbone::Custom(_) => "(custom backbone)",
+        };
+        let head = match spec.head {
+            moma_depth::Head::Relative => "relative head".to_string(),
+            moma_depth::Head::Metric { max_depth_m } => {
+                format!("metric head, max {max_depth_m} m")
+            }
+        };
+        let lora = lora
+            .map(|l| format!(", LoRA {}", l.display()))
+            .unwrap_or_default();
+        format!(
+            "Depth Anything V2 {backbone} ({head}), weights {}{lora}",
+            self.weights.display()
+        )
+    }
 }
 
 impl ModelArgs {
@@ -211,12 +238,14 @@ impl ModelArgs {
         }
     }
 
-    /// Loads the model (`--weights` or `--hub` required).
+    /// The weights file (`--weights`, or `--hub`'s checkpoint from the Hugging Face cache,
+    /// downloaded if absent) and the network it holds.
     ///
     /// # Errors
-    /// Missing `--weights`, unreadable weights, a backend or device this build lacks.
-    pub fn load(&self) -> Result<LoadedModel> {
-        let (weights, spec) = match (&self.weights, &self.hub) {
+    /// Neither `--weights` nor `--hub`, an unknown checkpoint, a failed download, a bad
+    /// `--model`/`--head`/`--max-depth`/`--input-size`.
+    pub fn weights_and_spec(&self) -> Result<(PathBuf, ModelSpec)> {
+        Ok(match (&self.weights, &self.hub) {
             (Some(w), _) => (w.clone(), self.spec()?),
             (None, Some(name)) => {
                 self.spec()?;
@@ -232,7 +261,15 @@ impl ModelArgs {
             (None, None) => bail!(
                 "a depth model needs --weights FILE (.pth, .safetensors or .onnx) or --hub NAME"
             ),
-        };
+        })
+    }
+
+    /// Loads the model (`--weights` or `--hub` required).
+    ///
+    /// # Errors
+    /// Missing `--weights`, unreadable weights, a backend or device this build lacks.
+    pub fn load(&self) -> Result<LoadedModel> {
+        let (weights, spec) = self.weights_and_spec()?;
         let options = moma_depth::LoadOptions {
             backend: match self.backend {
                 BackendArg::Auto if has_extension(&weights, "onnx") => moma_depth::Backend::Onnx,

@@ -30,6 +30,8 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// With --set DIR it runs on a real moma set instead (simulated predictions unless --pred DIR
 /// or --weights FILE are given).
 ///
+/// An earlier demo's output in OUT is replaced; a folder that holds anything else is refused.
+///
 /// Examples:
 ///   moma demo
 ///   moma demo -o /tmp/moma-demo --frames 8
@@ -66,6 +68,74 @@ pub struct DemoArgs {
 /// Sampling seeds of the demo's grasp table (at most).
 const DEMO_GRASP_SEEDS: usize = 3;
 
+/// What `moma demo` writes into its output folder.
+const DEMO_ENTRIES: [&str; 12] = [
+    "scene",
+    "predictions",
+    "aligned",
+    "figures",
+    "grasps",
+    "pointclouds",
+    "results.md",
+    "results.csv",
+    "results.json",
+    "grasp_results.md",
+    "grasp_results.csv",
+    "grasp_results.json",
+];
+
+/// Clears an earlier demo's output in `out` (a run of fewer frames left the others' files
+/// beside the new ones, and `moma eval` on the folder then refused a prediction its index did
+/// not list). A folder holding anything a demo does not write is refused, never cleared.
+fn clear_earlier_demo(out: &std::path::Path, inputs: &[&std::path::Path]) -> Result<()> {
+    // an earlier demo's scene and predictions may be this run's input (`--set OUT/scene`):
+    // never cleared under it
+    if let Ok(out_abs) = out.canonicalize() {
+        for input in inputs {
+            if input.canonicalize().is_ok_and(|i| i.starts_with(&out_abs)) {
+                anyhow::bail!(
+                    "the output folder {} holds this run's input {}: give another folder with -o",
+                    out.display(),
+                    input.display()
+                );
+            }
+        }
+    }
+    let entries = match std::fs::read_dir(out) {
+        Ok(e) => e,
+        // absent, or not a folder: create_dir says so
+        Err(_) => return Ok(()),
+    };
+    let names: Vec<std::ffi::OsString> = entries
+        .map(|e| e.map(|e| e.file_name()))
+        .collect::<std::io::Result<_>>()
+        .with_context(|| format!("reading the output folder {}", out.display()))?;
+    if let Some(other) = names
+        .iter()
+        .find(|n| !DEMO_ENTRIES.iter().any(|d| n.as_os_str() == *d))
+    {
+        anyhow::bail!(
+            "the output folder {} holds {}, which `moma demo` does not write: give a new or \
+             empty folder with -o (an earlier demo's folder is cleared)",
+            out.display(),
+            other.to_string_lossy()
+        );
+    }
+    if !names.is_empty() {
+        eprintln!("removing the earlier demo output in {}", out.display());
+    }
+    for name in names {
+        let path = out.join(name);
+        let removed = if path.is_dir() {
+            std::fs::remove_dir_all(&path)
+        } else {
+            std::fs::remove_file(&path)
+        };
+        removed.with_context(|| format!("removing the earlier {}", path.display()))?;
+    }
+    Ok(())
+}
+
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
     // every setting is checked before anything is written into the output folder (the bundled
@@ -74,19 +144,38 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         Some(dir) => {
             let set = load_set(dir)?;
             let mut pred = args.pred.clone();
-            if pred.pred.is_empty() && pred.model.weights.is_none() {
+            if pred.pred.is_empty() && pred.model.weights.is_none() && pred.model.hub.is_none() {
                 pred.simulate = true;
             }
             let preds = pred.predictions(&set, 0, 1)?;
             let config = args.eval.config(preds.kind()?)?;
             config.check_counts()?;
+            let inputs: Vec<&std::path::Path> = std::iter::once(dir.as_path())
+                .chain(args.pred.pred.iter().map(|p| p.as_path()))
+                .chain(args.pred.model.weights.as_deref())
+                .chain(args.pred.model.lora.as_deref())
+                .collect();
+            clear_earlier_demo(&args.out, &inputs)?;
             create_dir(&args.out)?;
             (set, preds, config)
         }
         None => {
-            if args.pred.model.weights.is_some() || !args.pred.pred.is_empty() {
+            if args.pred.model.weights.is_some()
+                || args.pred.model.hub.is_some()
+                || !args.pred.pred.is_empty()
+            {
                 anyhow::bail!(
                     "the bundled scene has simulated predictions only: use --set DIR with --weights or --pred"
+                );
+            }
+            // every other option of another source would be ignored
+            args.pred
+                .model
+                .refuse_for("the bundled scene's simulated predictions")?;
+            if args.pred.pred_kind.is_some() {
+                anyhow::bail!(
+                    "--pred-kind describes --pred folders; the bundled scene's simulated \
+                     predictions are of --sim-kind"
                 );
             }
             let config = args.eval.config(args.pred.sim_kind)?;
@@ -100,6 +189,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                 simulator_seed: args.pred.sim_seed,
                 kind: args.pred.sim_kind,
             };
+            clear_earlier_demo(&args.out, &[])?;
             create_dir(&args.out)?;
             let (set, preds) =
                 build_demo(&demo, Some(&args.out)).context("building the demo scene")?;

@@ -339,13 +339,8 @@ impl PredArgs {
         index: usize,
         n_sets: usize,
     ) -> Result<PredictionSet> {
-        if self.model.weights.is_some() {
-            if !self.pred.is_empty() || self.simulate {
-                bail!(
-                    "--weights runs the depth model on each frame's rgb.png; it does not combine \
-                     with --pred or --simulate (give one source of predictions)"
-                );
-            }
+        self.refuse_unused()?;
+        if self.model.weights.is_some() || self.model.hub.is_some() {
             return model_predictions(set, &self.model);
         }
         if self.simulate || self.pred.is_empty() {
@@ -390,9 +385,84 @@ impl PredArgs {
     }
 }
 
+impl PredArgs {
+    /// The simulator's options that differ from their defaults, by flag.
+    pub fn simulator_options_given(&self) -> Vec<&'static str> {
+        [
+            (
+                "--sim-kind",
+                self.sim_kind != PredictionKind::RelativeDisparity,
+            ),
+            ("--sim-seed", self.sim_seed != 0),
+            (
+                "--sim-transparency",
+                self.sim_transparency != TransparencyArg::Auto,
+            ),
+            ("--sim-config", self.sim.sim_config.is_some()),
+            ("--off", !self.sim.off.is_empty()),
+        ]
+        .into_iter()
+        .filter_map(|(flag, given)| given.then_some(flag))
+        .collect()
+    }
+
+    /// One source of predictions, and no option that belongs to another: `--weights`/`--hub`
+    /// (a depth model on each frame's rgb.png), `--pred` folders or `--simulate`. Options of a
+    /// source not used would be ignored (`--lora` beside `--simulate` ran the simulator).
+    ///
+    /// # Errors
+    /// Two sources, or an option of an unused source, named.
+    pub fn refuse_unused(&self) -> Result<()> {
+        let model = self.model.weights.is_some() || self.model.hub.is_some();
+        if !model && self.pred.is_empty() && !self.simulate {
+            // no source at all: the caller says which to give
+            return Ok(());
+        }
+        if model && (!self.pred.is_empty() || self.simulate) {
+            bail!(
+                "--weights/--hub (the depth model on each frame's rgb.png) does not combine \
+                 with --pred or --simulate (give one source of predictions)"
+            );
+        }
+        let sim = self.simulator_options_given();
+        if !self.simulate && !sim.is_empty() {
+            bail!(
+                "{}: simulator options, which apply only to simulated predictions (with {} they \
+                 would be ignored)",
+                sim.join(", "),
+                if model {
+                    "a depth model"
+                } else {
+                    "--pred folders"
+                }
+            );
+        }
+        if !model {
+            self.model.refuse_for(if self.simulate {
+                "simulated predictions"
+            } else {
+                "--pred folders"
+            })?;
+        }
+        if self.pred_kind.is_some() && self.pred.is_empty() {
+            bail!(
+                "--pred-kind describes --pred folders; {}",
+                if model {
+                    "a depth model's output kind is its head's"
+                } else {
+                    "simulated predictions are of --sim-kind"
+                }
+            );
+        }
+        Ok(())
+    }
+}
+
 /// Runs a real depth model on every frame's rgb.png.
 pub fn model_predictions(set: &LoadedSet, model: &ModelArgs) -> Result<PredictionSet> {
-    let mut net = model.load()?.model;
+    let loaded = model.load()?;
+    let label = loaded.label(model.lora.as_deref());
+    let mut net = loaded.model;
     let mut maps = Vec::with_capacity(set.frames.len());
     for f in &set.frames {
         let rgb = f.rgb.as_ref().with_context(|| {
@@ -416,13 +486,8 @@ pub fn model_predictions(set: &LoadedSet, model: &ModelArgs) -> Result<Predictio
         );
         maps.push(p);
     }
-    let weights = model
-        .weights
-        .as_ref()
-        .map(|w| w.display().to_string())
-        .unwrap_or_default();
     Ok(PredictionSet {
-        label: format!("Depth Anything V2 {:?} ({weights})", model.model),
+        label,
         simulated: false,
         maps,
     })

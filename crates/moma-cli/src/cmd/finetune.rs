@@ -168,36 +168,39 @@ fn parse_crop(s: &str) -> std::result::Result<(usize, usize), String> {
 /// adapter is kept).
 pub fn run(args: &FinetuneArgs) -> Result<()> {
     let m = &args.model;
-    let Some(weights) = &m.weights else {
-        bail!("fine-tuning needs --weights FILE (.safetensors or .pth)");
-    };
     if m.lora.is_some() {
         bail!("--lora does not apply to finetune (use --resume to continue an adapter)");
     }
     // training runs on the candle backend in f32: options that would choose otherwise are
-    // refused rather than ignored
-    if m.backend == super::common::BackendArg::Onnx
-        || weights
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
-    {
-        bail!(
-            "fine-tuning trains the candle backend's network: --weights must be .safetensors or \
-             .pth (an ONNX model cannot be trained), and --backend onnx does not apply"
-        );
-    }
+    // refused rather than ignored (before --hub would fetch a checkpoint)
     if m.dtype != super::common::DtypeArg::F32 {
         bail!(
             "fine-tuning trains in f32: --dtype applies to inference (`moma predict --lora \
              ADAPTER --dtype ...` runs the trained adapter at another precision)"
         );
     }
-    let mut opts = FinetuneOptions::new(
-        args.sets.clone(),
-        weights.clone(),
-        m.spec()?,
-        args.output.clone(),
-    );
+    let onnx = |weights: Option<&std::path::Path>| {
+        m.backend == super::common::BackendArg::Onnx
+            || weights.is_some_and(|w| {
+                w.extension()
+                    .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
+            })
+    };
+    let refuse_onnx = || {
+        anyhow::anyhow!(
+            "fine-tuning trains the candle backend's network: --weights must be .safetensors or \
+             .pth (an ONNX model cannot be trained), and --backend onnx does not apply"
+        )
+    };
+    // before --hub would fetch a checkpoint, and again for the file it resolved to
+    if onnx(m.weights.as_deref()) {
+        return Err(refuse_onnx());
+    }
+    let (weights, spec) = m.weights_and_spec()?;
+    if onnx(Some(&weights)) {
+        return Err(refuse_onnx());
+    }
+    let mut opts = FinetuneOptions::new(args.sets.clone(), weights, spec, args.output.clone());
     opts.device = m.device;
     opts.lora_rank = args.lora_rank;
     opts.lora_alpha = args.lora_alpha;
@@ -244,7 +247,13 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
         }
         Event::Validation { done, loss } => {
             if !args.json {
-                bar.println(format!("step {done}: validation loss {loss:.5}"));
+                let line = format!("step {done}: validation loss {loss:.5}");
+                // a hidden bar (stderr not a terminal: a log file, CI) prints nothing
+                if bar.is_hidden() {
+                    eprintln!("{line}");
+                } else {
+                    bar.println(line);
+                }
             }
             std::ops::ControlFlow::Continue(())
         }

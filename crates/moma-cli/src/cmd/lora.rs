@@ -45,12 +45,38 @@ pub struct MergeArgs {
 pub fn run(args: &LoraArgs) -> Result<()> {
     match &args.command {
         LoraCommand::Merge(a) => {
-            let Some(weights) = &a.model.weights else {
-                bail!("lora merge needs --weights FILE");
-            };
             let Some(adapter) = &a.model.lora else {
                 bail!("lora merge needs --lora ADAPTER");
             };
+            // merging rewrites a file in f32 on the CPU: a precision or a runtime asked for
+            // would not be what it writes (the device it would run on does not matter)
+            let m = &a.model;
+            if m.backend == super::common::BackendArg::Onnx
+                || m.dtype != super::common::DtypeArg::F32
+            {
+                bail!(
+                    "--backend onnx and --dtype choose how a model runs; lora merge writes f32 \
+                     weights for candle (run them with `moma predict --weights MERGED --dtype ...`)"
+                );
+            }
+            let (weights, spec) = m.weights_and_spec()?;
+            let weights = &weights;
+            if weights
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
+            {
+                bail!(
+                    "{}: an ONNX model cannot be merged; give the .safetensors or .pth weights \
+                     the adapter was trained on",
+                    weights.display()
+                );
+            }
+            if a.output.is_dir() {
+                bail!(
+                    "the output {} is a folder: give the merged weights' file name",
+                    a.output.display()
+                );
+            }
             for input in [weights, adapter] {
                 if moma_io::same_file(input, &a.output) {
                     bail!(
@@ -61,7 +87,7 @@ pub fn run(args: &LoraArgs) -> Result<()> {
                     );
                 }
             }
-            let config = DepthAnythingConfig::from_spec(&a.model.spec()?);
+            let config = DepthAnythingConfig::from_spec(&spec);
             moma_depth::candle::train::write_merged(weights, &config, adapter, &a.output)?;
             eprintln!(
                 "wrote {} ({} merged into {})",

@@ -30,7 +30,10 @@ pub struct MetricsArgs {
     /// Evaluation mask (8-bit PNG, nonzero = inside); whole image when absent.
     #[arg(long, value_name = "PNG")]
     pub mask: Option<PathBuf>,
-    /// Print one JSON object: d105, d110, d125, rel, rmse (m), mae (m), n (pixels).
+    /// Print one JSON object: d105, d110, d125, rel, rmse (m), mae (m), n (pixels), simulated
+    /// (true when --pred is a raw prediction that its predictions.json lists as SIMULATED; an
+    /// aligned map's provenance is its calibration's, which `moma align` states when it writes
+    /// the map).
     #[arg(long)]
     pub json: bool,
 }
@@ -71,7 +74,14 @@ pub fn run(args: &MetricsArgs) -> Result<()> {
         );
     }
     if args.json {
-        print_json(&m)?;
+        // a raw prediction listed as simulated is labelled so in the numbers too, as every
+        // evaluation's results are
+        let simulated = moma_io::prediction_index_listing(&args.pred)?.is_some_and(|i| i.simulated);
+        let mut value = serde_json::to_value(m)?;
+        if let Some(fields) = value.as_object_mut() {
+            fields.insert("simulated".into(), simulated.into());
+        }
+        print_json(&value)?;
     } else {
         println!("pixels  d1.05   d1.10   d1.25   REL     RMSE(m)  MAE(m)");
         println!(

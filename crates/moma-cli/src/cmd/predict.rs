@@ -47,6 +47,10 @@ struct PredictionsIndex<'a> {
     version: u32,
     /// `metric-depth` (metric head) or `relative-disparity` (relative head).
     prediction_kind: moma_core::PredictionKind,
+    /// Always false: a depth model's output (labels, as `moma simulate`'s index has them).
+    simulated: bool,
+    /// The predictions' label ([`super::common::LoadedModel::label`]).
+    source: String,
     model: moma_depth::ModelSpec,
     weights: &'a std::path::Path,
     /// The LoRA adapter merged into the weights (`--lora`), absent without one: predictions of
@@ -69,7 +73,9 @@ struct FrameRecord {
 
 pub fn run(args: &PredictArgs) -> Result<()> {
     super::common::check_unique_output_names(&args.images)?;
-    let super::common::LoadedModel { mut model, weights } = args.model.load()?;
+    let loaded = args.model.load()?;
+    let label = loaded.label(args.model.lora.as_deref());
+    let super::common::LoadedModel { mut model, weights } = loaded;
     let kind = model.spec().head.prediction_kind();
     create_dir(&args.output)?;
     // an index left by an earlier run would describe the files this one writes (perhaps of
@@ -103,6 +109,8 @@ pub fn run(args: &PredictArgs) -> Result<()> {
         format: moma_io::PREDICTIONS_FORMAT,
         version: moma_io::PREDICTIONS_VERSION,
         prediction_kind: kind,
+        simulated: false,
+        source: label,
         model: model.spec(),
         weights: &weights,
         lora: args.model.lora.as_deref(),

@@ -23,20 +23,17 @@ use super::ros2::DdsArgs;
 ///   moma ros2-replay --set SET --pred preds/ --rate 5     (then: moma ros2 --input prediction …)
 #[derive(Debug, Clone, Args)]
 #[command(verbatim_doc_comment)]
+#[command(group(clap::ArgGroup::new("frames").required(true).args(["set", "images"])))]
 pub struct Ros2ReplayArgs {
     /// A moma set: frames/*/rgb.png, depth.png and camera.json.
-    #[arg(
-        long,
-        value_name = "DIR",
-        required_unless_present = "images",
-        conflicts_with = "images"
-    )]
+    #[arg(long, value_name = "DIR")]
     pub set: Option<PathBuf>,
     /// A folder of RGB images (.png, .jpg), published in name order.
     #[arg(long, value_name = "DIR")]
     pub images: Option<PathBuf>,
-    /// camera.json for --images (camera_info is published only when intrinsics are known).
-    #[arg(long, value_name = "FILE")]
+    /// camera.json for --images (camera_info is published only when intrinsics are known; a
+    /// --set has its own).
+    #[arg(long, value_name = "FILE", conflicts_with = "set")]
     pub camera: Option<PathBuf>,
     /// Predictions to publish on `prediction`: NAME.npy per frame, in this folder or in its
     /// sub-folder named after the set (`moma simulate` / `moma predict` output).
@@ -81,31 +78,40 @@ impl ReplayFrame {
         header: &Header,
     ) -> Result<(Image, Option<Image>, Option<Image>)> {
         let rgb = moma_io::read_rgb(&self.rgb)?;
+        let size = moma_core::ImageSize::new(rgb.width() as usize, rgb.height() as usize);
         if let Some(k) = camera {
-            let size = moma_core::ImageSize::new(rgb.width() as usize, rgb.height() as usize);
             k.size()
                 .expect_eq("image", size)
                 .with_context(|| format!("{} vs the camera", self.rgb.display()))?;
         }
+        // depth and prediction of this frame describe its image pixel by pixel
+        let same_size = |p: &Path, map_size: moma_core::ImageSize| -> Result<()> {
+            if map_size != size {
+                bail!(
+                    "{} is {map_size}, but its image {} is {size}",
+                    p.display(),
+                    self.rgb.display()
+                );
+            }
+            Ok(())
+        };
         // The PNG's millimetres as they are: a depth sensor's 16UC1.
         let depth = self
             .depth
             .as_ref()
             .map(|p| -> Result<Image> {
-                Ok(convert::mm_to_image(
-                    &moma_io::read_png16(p)?,
-                    header.clone(),
-                ))
+                let mm = moma_io::read_png16(p)?;
+                same_size(p, moma_core::ImageSize::of(&mm.view()))?;
+                Ok(convert::mm_to_image(&mm, header.clone()))
             })
             .transpose()?;
         let prediction = self
             .prediction
             .as_ref()
             .map(|p| -> Result<Image> {
-                Ok(convert::f32_to_image(
-                    &moma_io::read_npy_f32(p)?,
-                    header.clone(),
-                ))
+                let map = moma_io::read_npy_f32(p)?;
+                same_size(p, moma_core::ImageSize::of(&map.view()))?;
+                Ok(convert::f32_to_image(&map, header.clone()))
             })
             .transpose()?;
         Ok((
@@ -194,16 +200,31 @@ fn now_stamp() -> Time {
     }
 }
 
+/// Longest wait `--rate` and `--warmup-s` may ask for, seconds (about 32 years).
+const MAX_WAIT_S: f64 = 1.0e9;
+
 pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
-    if !(args.rate.is_finite() && args.rate > 0.0) {
-        bail!(
-            "--rate {} must be a positive number of frames per second",
-            args.rate
-        );
-    }
-    if !(args.warmup_s.is_finite() && args.warmup_s >= 0.0) {
-        bail!("--warmup-s {} must be >= 0", args.warmup_s);
-    }
+    // both become a `Duration` added to an `Instant`: bounded by MAX_WAIT_S (1e30 s panicked
+    // in the conversion, a period of 1e19 s in the addition)
+    let seconds = |s: f64| {
+        (s.is_finite() && (0.0..=MAX_WAIT_S).contains(&s)).then(|| Duration::from_secs_f64(s))
+    };
+    let period = (args.rate.is_finite() && args.rate > 0.0)
+        .then(|| seconds(1.0 / args.rate))
+        .flatten()
+        .with_context(|| {
+            format!(
+                "--rate {} must be a positive number of frames per second (at least one frame \
+                 in {MAX_WAIT_S} s)",
+                args.rate
+            )
+        })?;
+    let warmup = seconds(args.warmup_s).with_context(|| {
+        format!(
+            "--warmup-s {} must be a number of seconds from 0 to {MAX_WAIT_S}",
+            args.warmup_s
+        )
+    })?;
     let (mut image, mut camera_info, mut depth_sensor, mut prediction) = (
         "image".to_string(),
         "camera_info".to_string(),
@@ -228,8 +249,7 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
     let depth_pub = dds::publisher::<Image>(&mut node, &depth_sensor, msg::types::image(), &qos)?;
     let pred_pub = dds::publisher::<Image>(&mut node, &prediction, msg::types::image(), &qos)?;
 
-    std::thread::sleep(Duration::from_secs_f64(args.warmup_s));
-    let period = Duration::from_secs_f64(1.0 / args.rate);
+    std::thread::sleep(warmup);
     let mut next = Instant::now();
     let mut published = 0u64;
     'outer: loop {

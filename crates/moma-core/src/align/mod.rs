@@ -657,7 +657,8 @@ impl AlignmentModel {
         }
     }
 
-    /// Applies the alignment to a whole normalised map; pixels with non-finite ẑ stay `NaN`.
+    /// Applies the alignment to a whole normalised map; pixels with non-finite ẑ, and pixels
+    /// where the model's output is not positive (no depth), are `NaN`.
     /// Output in metres. One fused pass; see [`AlignmentModel::apply_into`] to reuse a buffer.
     ///
     /// # Errors
@@ -684,7 +685,9 @@ impl AlignmentModel {
             calib.expect_eq("normalised map", size)?;
         }
         match self {
-            Self::Raw => out.assign(&normalised),
+            Self::Raw => out.zip_mut_with(&normalised, |o, &z| {
+                *o = crate::kernels::positive_or_nan(z);
+            }),
             Self::Gssa(m) => {
                 let (s, t) = (m.scale as f32, m.shift as f32);
                 crate::kernels::map_rows(normalised, out, |_, zin, zout| {
