@@ -1620,19 +1620,12 @@ fn demo_replaces_an_earlier_demo_and_refuses_a_foreign_folder() {
     ] {
         assert!(!d.join(stale).exists(), "{stale} left by the earlier demo");
     }
-    ok(&[
-        "eval",
-        "--set",
-        s(&d.join("scene")),
-        "--pred",
-        s(&d.join("predictions")),
-        "--seeds",
-        "1",
-        "--methods",
-        "gssa",
-        "-o",
-        s(&tmp.path().join("eval")),
-    ]);
+    let (scene, pred, eval) = (
+        d.join("scene"),
+        d.join("predictions"),
+        tmp.path().join("eval"),
+    );
+    common::eval_rows(&scene, &pred, &eval, &["--seeds", "1", "--methods", "gssa"]);
     // an earlier demo's scene as this run's input: refused, nothing removed
     let e = fails(&[
         "demo",

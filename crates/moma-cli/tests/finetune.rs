@@ -681,10 +681,11 @@ fn validation_losses_reach_a_log_file() {
     let tmp = tempfile::tempdir().unwrap();
     let (weights, config) = tiny_metric_model(&shared, tmp.path());
     let adapter = tmp.path().join("a.safetensors");
-    let out = common::moma(&[
+    let set = shared.join("data/gqcnn-primesense");
+    let args = [
         "finetune",
         "--set",
-        s(&shared.join("data/gqcnn-primesense")),
+        s(&set),
         "--weights",
         s(&weights),
         "--model",
@@ -699,7 +700,8 @@ fn validation_losses_reach_a_log_file() {
         "1",
         "-o",
         s(&adapter),
-    ]);
+    ];
+    let out = common::moma(&args);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     for step in [1, 2] {
@@ -710,27 +712,8 @@ fn validation_losses_reach_a_log_file() {
     }
     // --json lists them, and the last is the report's final validation loss (the same
     // network on the same frames)
-    let j: serde_json::Value = serde_json::from_str(&ok(&[
-        "finetune",
-        "--set",
-        s(&shared.join("data/gqcnn-primesense")),
-        "--weights",
-        s(&weights),
-        "--model",
-        s(&config),
-        "--input-size",
-        "28",
-        "--device",
-        "cpu",
-        "--steps",
-        "2",
-        "--val-every",
-        "1",
-        "-o",
-        s(&adapter),
-        "--json",
-    ]))
-    .unwrap();
+    let j: serde_json::Value =
+        serde_json::from_str(&ok(&[&args[..], &["--json"]].concat())).unwrap();
     let v = j["validations"].as_array().expect("validations");
     assert_eq!(
         v.iter()
