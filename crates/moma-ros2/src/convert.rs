@@ -259,7 +259,8 @@ pub fn camera_info_to_intrinsics(info: &CameraInfo) -> Result<Intrinsics> {
     // ROS: 0 and 1 both mean no binning; an all-zero region of interest is the full image
     let (bx, by) = (info.binning_x.max(1), info.binning_y.max(1));
     let roi = &info.roi;
-    let full_roi = roi.width == 0 || roi.height == 0;
+    // as image_geometry: only an all-zero region is the full image
+    let full_roi = roi.x_offset == 0 && roi.y_offset == 0 && roi.width == 0 && roi.height == 0;
     let (x0, y0, roi_w, roi_h) = if full_roi {
         (0, 0, info.width, info.height)
     } else {

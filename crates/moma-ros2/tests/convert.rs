@@ -276,6 +276,12 @@ fn binning_and_region_of_interest_reduce_the_intrinsics() {
     info.binning_x = 1;
     info.binning_y = 0;
     assert_eq!(camera_info_to_intrinsics(&info).unwrap().width, 640);
+    // a region of no size that is not all zero (image_geometry's full-image marker) is
+    // malformed: an empty image
+    let mut empty = distorted_camera_info();
+    empty.roi.x_offset = 10;
+    let e = camera_info_to_intrinsics(&empty).unwrap_err().to_string();
+    assert!(e.contains("empty"), "{e}");
     // a region outside the image is malformed, named
     info.roi.x_offset = 600;
     info.roi.width = 100;
