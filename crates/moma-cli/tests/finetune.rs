@@ -710,6 +710,11 @@ fn validation_losses_reach_a_log_file() {
             "{stderr}"
         );
     }
+    // and what the numbers are (random-weight models: not depth accuracy)
+    assert!(
+        stderr.contains("note: losses of the given weights"),
+        "{stderr}"
+    );
     // --json lists them, and the last is the report's final validation loss (the same
     // network on the same frames)
     let j: serde_json::Value =

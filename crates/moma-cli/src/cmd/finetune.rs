@@ -274,6 +274,8 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
             show(report.val_loss_after_reload),
             report.adapter.display()
         );
+        // what the numbers are (the progress bar's reminder is not shown in a log file)
+        eprintln!("note: {}", report.note);
     }
     Ok(())
 }
