@@ -59,8 +59,9 @@ impl Intrinsics {
 
     /// Checks the size is non-empty, the focal lengths lie in [`FOCAL_RANGE_PX`] and the
     /// principal point within its upper end of the image's origin (a crop's principal point
-    /// may lie far outside the crop): intrinsics outside them are no camera's (a subnormal focal length made every back-projected point infinite, exit
-    /// 0) and would write points, clouds and grasps of no meaning.
+    /// may lie far outside the crop): intrinsics outside them are no camera's (a subnormal
+    /// focal length made every back-projected point infinite, exit 0) and would write points,
+    /// clouds and grasps of no meaning.
     ///
     /// # Errors
     /// [`CoreError::InvalidParameter`] naming the bad field.

@@ -1438,8 +1438,8 @@ fn lora_fingerprint(
     lora_targets=vec!["q".to_string(), "v".to_string()], lora_dropout=0.0, train_head=false,
     head_lr_mult=1.0, loss=None, steps=None, epochs=None, batch=1, accumulate=1, lr=5e-4,
     weight_decay=0.01, schedule="one-cycle", warmup_frac=0.05, val_frac=0.2, val_every=0,
-    save_every=0, min_depth=0.001, mask_loss=false, augment=true, seed=0, resume=None, stop_after=None,
-    clip_grad_norm=1.0, crop=None))]
+    save_every=0, min_depth=0.001, mask_loss=false, augment=true, seed=0, resume=None,
+    stop_after=None, clip_grad_norm=1.0, crop=None))]
 #[allow(clippy::too_many_arguments)]
 fn finetune(
     py: Python<'_>,

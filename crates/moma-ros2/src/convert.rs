@@ -256,10 +256,10 @@ pub fn camera_info_to_intrinsics(info: &CameraInfo) -> Result<Intrinsics> {
     } else {
         (info.k[0], info.k[4], info.k[2], info.k[5])
     };
-    // ROS: 0 and 1 both mean no binning; an all-zero region of interest is the full image
+    // ROS: 0 and 1 both mean no binning; as image_geometry, only an all-zero region of
+    // interest is the full image
     let (bx, by) = (info.binning_x.max(1), info.binning_y.max(1));
     let roi = &info.roi;
-    // as image_geometry: only an all-zero region is the full image
     let full_roi = roi.x_offset == 0 && roi.y_offset == 0 && roi.width == 0 && roi.height == 0;
     let (x0, y0, roi_w, roi_h) = if full_roi {
         (0, 0, info.width, info.height)
@@ -268,8 +268,7 @@ pub fn camera_info_to_intrinsics(info: &CameraInfo) -> Result<Intrinsics> {
     };
     let inside =
         |offset: u32, len: u32, full: u32| u64::from(offset) + u64::from(len) <= u64::from(full);
-    let roi_inside = inside(x0, roi_w, info.width) && inside(y0, roi_h, info.height);
-    if !(full_roi || roi_inside) {
+    if !(inside(x0, roi_w, info.width) && inside(y0, roi_h, info.height)) {
         return Err(malformed(format!(
             "region of interest {}×{} at ({}, {}) is outside the {}×{} image",
             roi_w, roi_h, x0, y0, info.width, info.height

@@ -168,16 +168,13 @@ pub fn run(args: &DemoArgs) -> Result<()> {
                     "the bundled scene has simulated predictions only: use --set DIR with --weights or --pred"
                 );
             }
-            // every other option of another source would be ignored
-            args.pred
-                .model
-                .refuse_for("the bundled scene's simulated predictions")?;
-            if args.pred.pred_kind.is_some() {
-                anyhow::bail!(
-                    "--pred-kind describes --pred folders; the bundled scene's simulated \
-                     predictions are of --sim-kind"
-                );
+            // the bundled scene's predictions are simulated: every other source's options would
+            // be ignored, as `--simulate` refuses them
+            PredArgs {
+                simulate: true,
+                ..args.pred.clone()
             }
+            .refuse_unused()?;
             let config = args.eval.config(args.pred.sim_kind)?;
             config.check_counts()?;
             let demo = DemoScene {

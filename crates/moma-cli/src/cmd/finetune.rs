@@ -181,10 +181,7 @@ pub fn run(args: &FinetuneArgs) -> Result<()> {
     }
     let onnx = |weights: Option<&std::path::Path>| {
         m.backend == super::common::BackendArg::Onnx
-            || weights.is_some_and(|w| {
-                w.extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
-            })
+            || weights.is_some_and(|w| super::common::has_extension(w, "onnx"))
     };
     let refuse_onnx = || {
         anyhow::anyhow!(

@@ -61,10 +61,7 @@ pub fn run(args: &LoraArgs) -> Result<()> {
             }
             let (weights, spec) = m.weights_and_spec()?;
             let weights = &weights;
-            if weights
-                .extension()
-                .is_some_and(|e| e.eq_ignore_ascii_case("onnx"))
-            {
+            if super::common::has_extension(weights, "onnx") {
                 bail!(
                     "{}: an ONNX model cannot be merged; give the .safetensors or .pth weights \
                      the adapter was trained on",
