@@ -256,7 +256,7 @@ def calibrate(
     *,
     kind: _Kind,
     method: _Method = "ssra",
-    norm: _Norm = "minmax",
+    norm: Optional[_Norm] = None,
     samples: int = 100,
     sampling: _Sampling = "random",
     seed: int = 0,
@@ -280,7 +280,9 @@ def calibrate(
     (one camera: all frames the same size); each frame is normalised on its own, ``samples``
     are drawn per frame (frame i > 0 with a seed derived from ``seed`` and i), one fit over
     all. ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
-    required, never guessed; ``samples``: number of calibration pixels (per frame); ``seed``:
+    required, never guessed; ``norm``: default the kind's (``"minmax"`` for relative-disparity,
+    ``"minmax-unit"`` for the depth kinds, as ``moma calibrate``);
+    ``samples``: number of calibration pixels (per frame); ``seed``:
     of the random sampling (and RANSAC); ``edge_margin_px``: draw samples more than this many
     pixels away from depth discontinuities of the ground truth (object boundaries, where
     sensors return flying pixels and depth models blur; 0: anywhere valid); ``mask``: draw samples only inside (bool/uint8 H×W,

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import moma
-from conftest import TRUE, metrics_np, normalise_np, scene, ssra_apply_np
+from conftest import TRUE, metrics_np, moma_bin, normalise_np, scene, ssra_apply_np
 
 
 @pytest.mark.parametrize(
@@ -233,7 +233,10 @@ def test_inverse_space_recovers_a_shifted_disparity_exactly():
 def test_raw_needs_norm_none():
     pred, gt = scene(holes=False)
     with pytest.raises(ValueError, match="normalisation 'none'"):
-        moma.calibrate(gt, gt, kind="metric-depth", method="raw")
+        moma.calibrate(gt, gt, kind="metric-depth", method="raw", norm="minmax-unit")
+    # without norm= it takes none, its only one
+    raw = moma.calibrate(gt, gt, kind="metric-depth", method="raw")
+    np.testing.assert_array_equal(raw.align(gt), gt)
 
 
 def _narrow_bumps(h=120, w=160):
@@ -298,6 +301,42 @@ def test_old_kind_names_read_with_the_documented_mapping():
         moma.calibrate(pred, gt, kind="metres")
     raw = moma.calibrate(gt, gt, kind="metric-depth", method="raw", norm="none")
     assert raw.kind == "metric-depth"
+
+
+def test_the_default_normalisation_follows_the_kind_as_the_cli_takes_it(tmp_path):
+    """docs/method.md §1 "Default": minmax for relative disparity, minmax-unit for the depth
+    kinds, none for raw; the same calibration as `moma calibrate` without --norm writes, and a
+    metric frame whose scale drifted by 3 % aligns exactly under the default (NumPy closed form:
+    minmax-unit is scale-invariant), while the paper's minmax adds 0.03 · z_min · range."""
+    import json
+    import subprocess
+
+    pred, gt = scene(holes=False)
+    assert moma.calibrate(pred, gt, kind="relative-disparity").norm == "minmax"
+    metric = gt.astype(np.float32)
+    cal = moma.calibrate(metric, gt, kind="metric-depth", method="gssa")
+    assert cal.norm == "minmax-unit"
+    assert moma.calibrate(metric, gt, kind="relative-depth", method="gssa").norm == "minmax-unit"
+    assert moma.calibrate(metric, gt, kind="metric-depth", method="raw").norm == "none"
+    np.testing.assert_allclose(cal.align(1.03 * metric), gt, rtol=1e-5)
+    paper = moma.calibrate(metric, gt, kind="metric-depth", method="gssa", norm="minmax")
+    zmin, zmax = float(gt.min()), float(gt.max())
+    np.testing.assert_allclose(
+        paper.align(1.03 * metric) - gt, 0.03 * zmin * (zmax - zmin), rtol=1e-3
+    )
+    # the CLI without --norm writes the same normalisation
+    if moma_bin() is None:
+        pytest.skip("no moma binary ($MOMA_BIN or target/release/moma) for the CLI half")
+    p, g = tmp_path / "p.npy", tmp_path / "g.npy"
+    np.save(p, metric)
+    np.save(g, gt.astype(np.float32))
+    out = tmp_path / "c.json"
+    subprocess.run(
+        [moma_bin(), "calibrate", "--pred", str(p), "--pred-kind", "metric-depth", "--gt", str(g),
+         "--method", "gssa", "-o", str(out)],
+        check=True, capture_output=True,
+    )
+    assert json.loads(out.read_text())["normalisation"]["method"] == "minmax-unit"
 
 
 def test_calibrate_warns_when_its_samples_reach_part_of_the_image():

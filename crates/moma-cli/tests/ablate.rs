@@ -187,8 +187,13 @@ fn ablate_refuses_the_option_its_sweep_replaces() {
         let err = fails(&ablate(which, &scene, &pred, &out, extra));
         assert!(err.contains(says), "{which} {extra:?}: {err}");
     }
-    // the defaults given explicitly are what the sweep would use anyway
+    // even the kind's default given explicitly (minmax for these relative-disparity
+    // predictions): the sweep sets the normalisation
     let mut args = ablate("norm", &scene, &pred, &out, &["--norm", "minmax"]);
+    args.extend_from_slice(&["--norms", "none", "--methods", "ssra"]);
+    let err = fails(&args);
+    assert!(err.contains("--norm does not apply"), "{err}");
+    let mut args = ablate("norm", &scene, &pred, &out, &[]);
     args.extend_from_slice(&["--norms", "none", "--methods", "ssra"]);
     ok(&args);
     assert!(out.join("ablation_norm.json").is_file());

@@ -118,7 +118,8 @@ fn raw_needs_norm_none_and_metric_depth() {
         s(&calib),
     ]);
     assert!(e.contains("--method raw needs --norm none"), "{e}");
-    // a metric depth map: --method raw without --norm none fails clearly, with it works
+    // a metric depth map: --method raw with another normalisation fails clearly; without
+    // --norm it takes none, as with --norm none
     let depth_dir = tmp.path().join("metric");
     std::fs::create_dir(&depth_dir).unwrap();
     let d = moma_io::read_depth(&gt).unwrap();
@@ -134,11 +135,27 @@ fn raw_needs_norm_none_and_metric_depth() {
         s(&gt),
         "--method",
         "raw",
+        "--norm",
+        "minmax",
         "-o",
         s(&calib),
     ]);
     assert!(e.contains("--norm none") && e.contains("minmax"), "{e}");
     assert!(!calib.exists(), "nothing written on error");
+    let by_default = tmp.path().join("raw-default.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&p),
+        "--pred-kind",
+        "metric-depth",
+        "--gt",
+        s(&gt),
+        "--method",
+        "raw",
+        "-o",
+        s(&by_default),
+    ]);
     let raw_none = |kind: &'static str, out: &std::path::Path| {
         [
             "calibrate",
@@ -160,6 +177,17 @@ fn raw_needs_norm_none_and_metric_depth() {
         .collect::<Vec<String>>()
     };
     ok(&strs(&raw_none("metric-depth", &calib)));
+    let json = |p: &std::path::Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    };
+    let (given, default) = (json(&calib), json(&by_default));
+    assert_eq!(default["normalisation"]["method"], "none");
+    for part in ["model", "normalisation", "samples", "error_model"] {
+        assert_eq!(
+            given["calibration"][part], default["calibration"][part],
+            "{part}"
+        );
+    }
     // raw uses the values as metres: refused for relative depth, and for the old name `depth`,
     // which claims no unit (docs/formats.md "Prediction kinds")
     for kind in ["relative-depth", "depth"] {

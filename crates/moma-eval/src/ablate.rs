@@ -99,7 +99,7 @@ pub fn samples(
     let mut out = Vec::new();
     for &n in counts {
         for m in aligned_methods(config) {
-            let norm = prep.normalisation_for(&m, config.norms[0]);
+            let norm = prep.normalisation_for(&m, prep.first_norm());
             out.push(if calib_frames == 1 {
                 evaluate_one(&prep, &m, &norm, n)?
             } else {

@@ -48,7 +48,7 @@ pub fn write_visuals(
 ) -> Result<VisualFiles> {
     let prep = Prepared::new(set, preds, config)?;
     let mut files = VisualFiles::default();
-    let norm0 = config.norms.first().copied().unwrap_or_default();
+    let norm0 = prep.first_norm();
     let mut per_method: Vec<(String, Vec<moma_core::MetricDepth>)> = Vec::new();
     for m in &config.methods {
         let norm: NormalisationConfig = prep.normalisation_for(m, norm0);
@@ -159,7 +159,7 @@ pub fn write_grasp_overlay(
         .or(config.methods.first())
         .ok_or_else(|| crate::EvalError::InvalidParameter("no method to plan with".into()))?;
     let method = prep.method(method);
-    let norm = prep.normalisation_for(&method, config.norms.first().copied().unwrap_or_default());
+    let norm = prep.normalisation_for(&method, prep.first_norm());
     let i = *prep.eval_indices().first().ok_or_else(|| {
         crate::EvalError::InvalidParameter("the set has no frame to plan on".into())
     })?;

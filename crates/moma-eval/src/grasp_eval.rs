@@ -772,7 +772,7 @@ pub fn grasp_evaluate(
                 .then(|| Coverage::edge_band(&set.frames[i].gt))
         })
         .collect();
-    let norm0 = config.eval.norms.first().copied().unwrap_or_default();
+    let norm0 = prep.first_norm();
     let seeds: Vec<u64> = (0..config.eval.seeds as u64)
         .map(|s| config.eval.seed_base + s)
         .collect();

@@ -47,7 +47,9 @@ pub fn default_methods(kind: PredictionKind) -> Vec<Method> {
 pub struct EvalConfig {
     /// Methods, in table order (SSRA's intrinsics are set from the set's camera).
     pub methods: Vec<Method>,
-    /// Normalisations to evaluate (RAW is always evaluated once, without normalisation).
+    /// Normalisations to evaluate (RAW is always evaluated once, without normalisation); none:
+    /// the predictions' kind's default ([`moma_core::policy::default_normalisation`]: `minmax`
+    /// for relative disparity, `minmax-unit` for the depth kinds).
     pub norms: Vec<Normalisation>,
     /// Alignment space; `None`: the predictions' own ([`AlignSpace::native`]).
     pub space: Option<AlignSpace>,
@@ -115,7 +117,7 @@ impl Default for EvalConfig {
     fn default() -> Self {
         Self {
             methods: default_methods(PredictionKind::MetricDepth),
-            norms: vec![Normalisation::Minmax],
+            norms: Vec::new(),
             space: None,
             samples: 100,
             seeds: 10,
@@ -882,6 +884,27 @@ impl<'a> Prepared<'a> {
             })
     }
 
+    /// The normalisations to evaluate: those of the configuration, or when it names none the
+    /// predictions' kind's default ([`moma_core::policy::default_normalisation`]), as `moma
+    /// calibrate` would take.
+    pub fn norms(&self) -> Vec<Normalisation> {
+        if self.config.norms.is_empty() {
+            vec![moma_core::policy::default_normalisation(self.kind())]
+        } else {
+            self.config.norms.clone()
+        }
+    }
+
+    /// The first of [`Prepared::norms`]: the one normalisation a grasp evaluation plans with and
+    /// the demo's figures show.
+    pub fn first_norm(&self) -> Normalisation {
+        self.config
+            .norms
+            .first()
+            .copied()
+            .unwrap_or_else(|| moma_core::policy::default_normalisation(self.kind()))
+    }
+
     /// The normalisation a method is evaluated with: RAW always `none` in depth space, the
     /// others `norm` in the configured space (default: the predictions' own).
     pub fn normalisation_for(&self, method: &Method, norm: Normalisation) -> NormalisationConfig {
@@ -952,7 +975,7 @@ fn jobs(prep: &Prepared<'_>, config: &EvalConfig) -> Vec<(Method, NormalisationC
     let mut jobs: Vec<(Method, NormalisationConfig)> = Vec::new();
     for m in &config.methods {
         let m = prep.method(m);
-        for &n in &config.norms {
+        for n in prep.norms() {
             let eff = prep.normalisation_for(&m, n);
             if !jobs.iter().any(|(jm, jn)| *jm == m && *jn == eff) {
                 jobs.push((m.clone(), eff));

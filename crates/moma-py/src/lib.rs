@@ -663,7 +663,7 @@ fn robust_from(
 /// `moma calibrate` does; with `anchors_rgb`, also stores the anchors for per-frame re-alignment
 /// (`moma calibrate --anchors --anchors-rgb`).
 #[pyfunction]
-#[pyo3(signature = (pred, gt_m, cam=None, *, kind, method="ssra", norm="minmax", samples=100,
+#[pyo3(signature = (pred, gt_m, cam=None, *, kind, method="ssra", norm=None, samples=100,
     sampling="random", seed=0, edge_margin_px=0, mask=None, workspace=None, space=None, bandwidth_px=None,
     robust=None, robust_threshold_m=None, anchors_rgb=None, protocol="fixed-camera", cv_loss=None,
     cv_margin_se=None))]
@@ -675,7 +675,7 @@ fn calibrate(
     cam: Option<&Intrinsics>,
     kind: &str,
     method: &str,
-    norm: &str,
+    norm: Option<&str>,
     samples: i128,
     sampling: &str,
     seed: i128,
@@ -709,8 +709,8 @@ fn calibrate(
             cv_margin_se,
         },
     )?;
-    let normalisation =
-        moma_core::policy::normalisation(&method, Some(parse_norm(norm)?), space, kind);
+    let norm = norm.map(parse_norm).transpose()?;
+    let normalisation = moma_core::policy::normalisation(&method, norm, space, kind);
     let config = CalibrationConfig {
         robust: robust_from(robust, robust_threshold_m, seed, &method)?,
         method,

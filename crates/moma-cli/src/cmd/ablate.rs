@@ -6,7 +6,7 @@ use std::time::Instant;
 use super::common::join_paths;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use moma_core::{Normalisation, PredictionKind};
+use moma_core::PredictionKind;
 use moma_eval::ablate::{self, AblationOutput, SAMPLE_COUNTS};
 use moma_eval::protocol::{EvalNote, PredictionSet, check_calib_frame_counts, few_shot_variant};
 use moma_eval::simulate::{Simulator, simulate_frames};
@@ -187,7 +187,7 @@ pub fn run(args: &AblateArgs) -> Result<()> {
         }
         AblateCommand::Norm { norms, .. } => {
             // The sweep sets the normalisation; a --norm would be silently replaced by it.
-            if common.eval.norm != [Normalisation::default()] {
+            if !common.eval.norm.is_empty() {
                 bail!(
                     "--norm does not apply to `moma ablate norm`: give the normalisations to \
                      compare with --norms"

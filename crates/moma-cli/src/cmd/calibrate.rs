@@ -57,11 +57,13 @@ pub struct CalibrateArgs {
     /// and ridge by cross-validation, kept only when it beats the global fit by more than the
     /// rule's margin), auto (the simplest of gssa, ssra, gssa-local, ssra-local, lwlr within the
     /// margin of the best by that cross-validation; see --protocol), raw (metric predictions
-    /// used as metres; needs --norm none).
+    /// used as metres; only with --norm none).
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,
-    /// none. Default: minmax (--method raw needs --norm none).
+    /// none. Default: the prediction's kind's: minmax for relative-disparity (the paper's),
+    /// minmax-unit for the depth kinds (the paper's added z_min, a depth's nearest object, moves
+    /// the whole map; docs/evaluation.md); none for --method raw, which refuses any other.
     #[arg(long, value_name = "NORM")]
     pub norm: Option<Normalisation>,
     /// Alignment space: inverse (predictor disparity, target 1/z) or depth. Default: the

@@ -131,13 +131,10 @@ pub struct EvalOptions {
     /// metric-depth predictions.
     #[arg(long, value_delimiter = ',', value_name = "METHODS")]
     pub methods: Vec<Method>,
-    /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_values_t = [Normalisation::default()],
-        value_name = "NORMS"
-    )]
+    /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none. Default:
+    /// the predictions' kind's, as `moma calibrate` takes it: minmax for relative-disparity
+    /// (the paper's), minmax-unit for metric-depth and relative-depth (docs/evaluation.md).
+    #[arg(long, value_delimiter = ',', value_name = "NORMS")]
     pub norm: Vec<Normalisation>,
     /// Alignment space: inverse or depth (default: the predictions' own).
     #[arg(long, value_name = "SPACE")]
@@ -233,10 +230,8 @@ impl EvalOptions {
 
     /// The library configuration for predictions of `kind` (it decides the default methods).
     pub fn config(&self, kind: PredictionKind) -> Result<EvalConfig> {
+        // none given: the library takes the predictions' kind's default
         let norms = self.norm.clone();
-        if norms.is_empty() {
-            bail!("--norm needs at least one value");
-        }
         let methods = if self.methods.is_empty() {
             moma_eval::protocol::default_methods(kind)
         } else {
