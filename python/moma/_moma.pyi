@@ -281,7 +281,7 @@ def calibrate(
     are drawn per frame (frame i > 0 with a seed derived from ``seed`` and i), one fit over
     all. ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
     required, never guessed; ``norm``: default the kind's (``"minmax"`` for relative-disparity,
-    ``"minmax-unit"`` for the depth kinds, as ``moma calibrate``);
+    ``"minmax-unit"`` for the depth kinds, ``"none"`` for ``method="raw"``, as ``moma calibrate``);
     ``samples``: number of calibration pixels (per frame); ``seed``:
     of the random sampling (and RANSAC); ``edge_margin_px``: draw samples more than this many
     pixels away from depth discontinuities of the ground truth (object boundaries, where

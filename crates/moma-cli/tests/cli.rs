@@ -1096,6 +1096,74 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     let aligned = tmp.path().join("a").join("frame_01.depth.npy");
     let err = fails(&["grasp", "--depth", s(&aligned), "--gripper", "suction"]);
     assert!(err.contains("--camera camera.json is needed"), "{err}");
+
+    // ... but the folder `align` wrote records its provenance: scored later, the depth is
+    // SIMULATED, in the PNG as in the .npy
+    let gt = scene.join("frames/frame_01/depth.png");
+    let metrics = |depth: &Path| {
+        let out = moma(&["metrics", "--pred", s(depth), "--gt", s(&gt), "--json"]);
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(out.status.success(), "{err}");
+        let m: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        (m["simulated"].as_bool().unwrap(), err)
+    };
+    let png = tmp.path().join("a").join("frame_01.depth.png");
+    for depth in [&aligned, &png] {
+        let (simulated, err) = metrics(depth);
+        assert!(
+            simulated && err.contains("SIMULATED") && err.contains("aligned.json"),
+            "{err}"
+        );
+    }
+    let index: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(tmp.path().join("a").join("aligned.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(index["format"], "moma-aligned");
+    assert_eq!(index["frames"][0]["name"], "frame_01");
+    assert_eq!(index["frames"][0]["calibration"], s(&calib));
+    // the same frame name aligned again into that folder from a sensor's metres (no index, a
+    // calibration on them): its entry is replaced, the depth is not simulated
+    let metres = tmp.path().join("metres");
+    std::fs::create_dir_all(&metres).unwrap();
+    for id in ["00", "01"] {
+        let d = moma_io::read_depth(scene.join(format!("frames/frame_{id}/depth.png"))).unwrap();
+        moma_io::write_npy_f32(metres.join(format!("frame_{id}.npy")), d.depth_m.view()).unwrap();
+    }
+    let sensor_calib = tmp.path().join("sensor.json");
+    ok(&[
+        "calibrate",
+        "--pred",
+        s(&metres.join("frame_00.npy")),
+        "--pred-kind",
+        "metric-depth",
+        "--gt",
+        s(&scene.join("frames/frame_00/depth.png")),
+        "-o",
+        s(&sensor_calib),
+    ]);
+    ok(&align_args(
+        &sensor_calib,
+        &metres.join("frame_01.npy"),
+        &tmp.path().join("a"),
+        &[],
+    ));
+    let (simulated, err) = metrics(&aligned);
+    assert!(!simulated && !err.contains("SIMULATED"), "{err}");
+    // an index that is not moma's is refused, by `align` (left as it is) and by `metrics`
+    let foreign = tmp.path().join("a").join("aligned.json");
+    std::fs::write(&foreign, r#"{"format": "something-else"}"#).unwrap();
+    let err = fails(&align_args(&calib, &frame1, &tmp.path().join("a"), &[]));
+    assert!(
+        err.contains("aligned.json") && err.contains("something-else"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(&foreign).unwrap(),
+        r#"{"format": "something-else"}"#
+    );
+    let err = fails(&["metrics", "--pred", s(&aligned), "--gt", s(&gt)]);
+    assert!(err.contains("aligned.json"), "{err}");
 }
 
 /// With several sets, one without any object region is noted (on stderr and in the table's

@@ -117,7 +117,10 @@ fn raw_needs_norm_none_and_metric_depth() {
         "-o",
         s(&calib),
     ]);
-    assert!(e.contains("--method raw needs --norm none"), "{e}");
+    assert!(
+        e.contains("--method raw takes a metric-depth prediction") && !e.contains("--norm"),
+        "{e}"
+    );
     // a metric depth map: --method raw with another normalisation fails clearly; without
     // --norm it takes none, as with --norm none
     let depth_dir = tmp.path().join("metric");
@@ -140,7 +143,10 @@ fn raw_needs_norm_none_and_metric_depth() {
         "-o",
         s(&calib),
     ]);
-    assert!(e.contains("--norm none") && e.contains("minmax"), "{e}");
+    assert!(
+        e.contains("--norm minmax") && e.contains("normalisation 'none', got 'minmax'"),
+        "{e}"
+    );
     assert!(!calib.exists(), "nothing written on error");
     let by_default = tmp.path().join("raw-default.json");
     ok(&[

@@ -25,7 +25,8 @@
 //! let pred = Prediction::new(truth.mapv(|z| 2.0 * z + 0.1), PredictionKind::MetricDepth);
 //! let method = Method::Gssa;
 //! let config = CalibrationConfig {
-//!     // the defaults every front end shares: minmax, in the prediction's own space
+//!     // the defaults every front end shares: the kind's normalisation (minmax-unit for a
+//!     // metric depth), in the prediction's own space
 //!     normalisation: policy::normalisation(&method, None, None, pred.kind),
 //!     method,
 //!     sampling: SamplingConfig { n: 100, seed: 0, ..Default::default() },

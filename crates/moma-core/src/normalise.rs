@@ -8,11 +8,13 @@ use crate::error::{CoreError, Result};
 use crate::image::{Mask, Prediction, PredictionKind};
 
 /// How a prediction map is normalised before alignment.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, Default)]
+///
+/// No `Default`: the default depends on the prediction's kind
+/// ([`crate::policy::default_normalisation`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Normalisation {
     /// Paper's exact formula: ẑ = (z − z_min)/(z_max − z_min) + z_min.
-    #[default]
     Minmax,
     /// The authors' code: ẑ = (z − z_min)/(z_max − z_min).
     MinmaxUnit,

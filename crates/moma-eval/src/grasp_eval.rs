@@ -43,7 +43,8 @@ pub use moma_grasp::GripperKind;
 /// Settings of a grasp evaluation (the alignment settings are an [`EvalConfig`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct GraspEvalConfig {
-    /// Alignment protocol: methods, normalisation (the first of `norms`), samples, seeds, ...
+    /// Alignment protocol: methods, normalisation (the first of `norms`; none: the
+    /// predictions' kind's default), samples, seeds, ...
     pub eval: EvalConfig,
     /// Grippers, in table order.
     pub grippers: Vec<GripperKind>,

@@ -376,3 +376,49 @@ fn load_errors_name_the_frame_and_file() {
     let msg = chain(&moma_eval::data::load_set(dir.path()).unwrap_err());
     assert!(msg.contains("f1") && msg.contains("depth.png"), "{msg}");
 }
+
+/// `norms` empty: each set's predictions take their kind's default
+/// (`moma_core::policy::default_normalisation`, as `moma calibrate` takes it): the rows are those
+/// of that normalisation given explicitly, and the one normalisation a grasp evaluation and the
+/// demo's figures use (`Prepared::first_norm`) is the same.
+#[test]
+fn without_norms_each_kind_takes_its_default() {
+    use moma_core::{ImageSize, PredictionKind};
+    use moma_eval::demo::{DemoScene, build_demo};
+    use moma_eval::protocol::Prepared;
+    use moma_eval::scene::DemoSceneConfig;
+    for (kind, want) in [
+        (PredictionKind::MetricDepth, Normalisation::MinmaxUnit),
+        (PredictionKind::RelativeDepth, Normalisation::MinmaxUnit),
+        (PredictionKind::RelativeDisparity, Normalisation::Minmax),
+    ] {
+        let demo = DemoScene {
+            scene: DemoSceneConfig {
+                size: ImageSize::new(96, 72),
+                focal_px: 90.0,
+                frames: 3,
+                ..Default::default()
+            },
+            kind,
+            ..Default::default()
+        };
+        let (set, preds) = build_demo(&demo, None).unwrap();
+        let default = EvalConfig {
+            norms: Vec::new(),
+            ..config(&["gssa", "ssra"], want, 2)
+        };
+        let rows = evaluate(&set, &preds, &default).unwrap();
+        let explicit = evaluate(&set, &preds, &config(&["gssa", "ssra"], want, 2)).unwrap();
+        assert_eq!(rows.len(), 2, "{kind:?}");
+        for (r, e) in rows.iter().zip(&explicit) {
+            assert_eq!(r.norm, want.name(), "{kind:?}");
+            assert_eq!(r.per_image.mae.mean, e.per_image.mae.mean, "{kind:?}");
+        }
+        let prep = Prepared::new(&set, &preds, &default).unwrap();
+        assert_eq!((prep.norms(), prep.first_norm()), (vec![want], want));
+        // given, the configuration's own
+        let given = config(&["gssa"], Normalisation::Median, 1);
+        let prep = Prepared::new(&set, &preds, &given).unwrap();
+        assert_eq!(prep.first_norm(), Normalisation::Median);
+    }
+}

@@ -43,6 +43,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+mod aligned;
 mod anchors;
 mod atomic;
 pub mod batch;
@@ -61,6 +62,10 @@ mod predictions;
 mod raster;
 mod set;
 
+pub use aligned::{
+    ALIGNED_FORMAT, ALIGNED_INDEX_FILE, ALIGNED_VERSION, AlignedFrame, AlignedIndex,
+    aligned_frame_for, aligned_index_path, read_aligned_index, record_aligned_frames,
+};
 pub use atomic::{atomic_write, same_file};
 pub use calibration::{
     CALIBRATION_FORMAT, CALIBRATION_VERSION, CalibrationFile, CreationInfo,

@@ -572,3 +572,61 @@ fn moma_set_writer_then_open() {
     assert!(b.load_raw_depth().unwrap().is_some());
     assert_eq!(b.file("pred.npy"), root.join("frames/b/pred.npy"));
 }
+
+/// `aligned.json` (`moma align`'s provenance index): written, merged by frame name, read back for
+/// the two depth files of a frame only; a foreign or newer file is refused and left as it is.
+#[test]
+fn the_aligned_index_records_merges_and_refuses_what_is_not_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let frame = |name: &str, simulated: bool| AlignedFrame {
+        name: name.into(),
+        simulated,
+        calibration: "calib.json".into(),
+        method: "ssra".into(),
+        input: format!("preds/{name}.npy"),
+    };
+    assert_eq!(read_aligned_index(dir.path()).unwrap(), None);
+    record_aligned_frames(dir.path(), vec![frame("a", true), frame("b.v2", true)]).unwrap();
+    record_aligned_frames(dir.path(), vec![frame("a", false), frame("c", true)]).unwrap();
+    let on_disk: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join(ALIGNED_INDEX_FILE)).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(on_disk["format"], "moma-aligned");
+    assert_eq!(on_disk["version"], 1);
+    let names: Vec<&str> = on_disk["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["a", "b.v2", "c"]);
+    let of = |file: &str| aligned_frame_for(&dir.path().join(file)).unwrap();
+    assert_eq!(of("a.depth.npy").map(|f| f.simulated), Some(false));
+    assert_eq!(of("b.v2.depth.png").map(|f| f.simulated), Some(true));
+    for not_a_depth in [
+        "a.sigma.npy",
+        "a.color.png",
+        "b.depth.npy",
+        "c.npy",
+        "xc.depth.npy",
+    ] {
+        assert_eq!(of(not_a_depth), None, "{not_a_depth}");
+    }
+    let path = dir.path().join(ALIGNED_INDEX_FILE);
+    for (text, says) in [
+        (r#"{"format": "moma-predictions"}"#, "moma-predictions"),
+        (
+            r#"{"format": "moma-aligned", "version": 2, "frames": []}"#,
+            "version 2",
+        ),
+        (r#"{"format": "moma-aligned", "version": 1}"#, "frames"),
+        ("{", "aligned.json"),
+    ] {
+        std::fs::write(&path, text).unwrap();
+        let e = record_aligned_frames(dir.path(), vec![frame("d", true)]).unwrap_err();
+        assert!(e.to_string().contains(says), "{text}: {e}");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), text);
+        assert!(aligned_frame_for(&dir.path().join("a.depth.npy")).is_err());
+    }
+}

@@ -57,7 +57,7 @@ pub struct CalibrateArgs {
     /// and ridge by cross-validation, kept only when it beats the global fit by more than the
     /// rule's margin), auto (the simplest of gssa, ssra, gssa-local, ssra-local, lwlr within the
     /// margin of the best by that cross-validation; see --protocol), raw (metric predictions
-    /// used as metres; only with --norm none).
+    /// used as metres, normalisation none).
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,
@@ -335,11 +335,17 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             .with_context(|| format!("--robust {} with --method {}", r.kind, config.method))?;
     }
     config.check(kind).with_context(|| {
+        let norm = match args.norm {
+            Some(n) => format!("--norm {n}"),
+            None => format!(
+                "normalisation {} (the default)",
+                config.normalisation.method
+            ),
+        };
         format!(
-            "--method {} with --norm {} on {} predictions ({}): --method raw needs --norm none \
-             and a metric depth prediction",
+            "--method {} with {norm} on {} predictions ({}): --method raw takes a metric-depth \
+             prediction, with normalisation none",
             config.method,
-            config.normalisation.method,
             kind,
             first.path.display()
         )
@@ -576,9 +582,17 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 println!("{line}");
             }
         }
-        let space = file.calibration.normalisation.space;
+        let norm = file.calibration.normalisation;
+        let space = norm.space;
+        // the normalisation is said: its default depends on the prediction's kind
         println!(
-            "parameters ({space} space, target units {}): {}",
+            "parameters (normalisation {}{}, {space} space, target units {}): {}",
+            norm.method,
+            if args.norm.is_none() {
+                format!(", the default for {kind}")
+            } else {
+                String::new()
+            },
             space.target_unit(),
             abridged(serde_json::to_value(&file.calibration.model)?)
         );

@@ -1,6 +1,6 @@
 //! `moma metrics`: score a metric depth map against ground truth.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
@@ -31,9 +31,9 @@ pub struct MetricsArgs {
     #[arg(long, value_name = "PNG")]
     pub mask: Option<PathBuf>,
     /// Print one JSON object: d105, d110, d125, rel, rmse (m), mae (m), n (pixels), simulated
-    /// (true when --pred is a raw prediction that its predictions.json lists as SIMULATED; an
-    /// aligned map's provenance is its calibration's, which `moma align` states when it writes
-    /// the map).
+    /// (true when --pred is a raw prediction that its predictions.json lists as SIMULATED, or a
+    /// depth that `moma align` wrote from SIMULATED predictions, as the aligned.json of its
+    /// folder records).
     #[arg(long)]
     pub json: bool,
 }
@@ -73,10 +73,25 @@ pub fn run(args: &MetricsArgs) -> Result<()> {
             m.mae
         );
     }
+    // a raw prediction listed as simulated, or a depth aligned from simulated predictions, is
+    // labelled so in the numbers too, as every evaluation's results are
+    let simulated = if let Some(i) = moma_io::prediction_index_listing(&args.pred)? {
+        i.simulated.then_some(i.path)
+    } else {
+        moma_io::aligned_frame_for(&args.pred)?
+            .filter(|f| f.simulated)
+            .map(|_| moma_io::aligned_index_path(args.pred.parent().unwrap_or(Path::new(""))))
+    };
+    if let Some(index) = &simulated {
+        eprintln!(
+            "note: {} is SIMULATED (not from a depth model's output; {}): these are not a depth \
+             model's errors",
+            args.pred.display(),
+            index.display()
+        );
+    }
+    let simulated = simulated.is_some();
     if args.json {
-        // a raw prediction listed as simulated is labelled so in the numbers too, as every
-        // evaluation's results are
-        let simulated = moma_io::prediction_index_listing(&args.pred)?.is_some_and(|i| i.simulated);
         let mut value = serde_json::to_value(m)?;
         if let Some(fields) = value.as_object_mut() {
             fields.insert("simulated".into(), simulated.into());
