@@ -257,6 +257,9 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
             l("gt", "-", "nominal"),
         ]
     );
+    // the normalisation each row planned with: the relative-disparity predictions' default
+    let norms: Vec<&str> = rows.iter().map(|r| r["norm"].as_str().unwrap()).collect();
+    assert_eq!(norms, ["minmax", "minmax", "minmax", "minmax", "-"]);
     for r in &rows {
         let trials = r["trials"].as_u64().unwrap();
         let rel = r["reliability"].as_array().unwrap();

@@ -103,6 +103,10 @@ pub struct GraspRow {
     /// Calibration variant, as `moma eval` labels it (`one-shot`, `few-shot-K`,
     /// `robust-<kind>`, `realign-anchors`, ...; `-` for `gt` and `sensor`).
     pub variant: String,
+    /// Normalisation of the predictions, as `moma eval` names it (`minmax`, `minmax-unit`,
+    /// `median`, `none`: the predictions' kind's default unless `--norm` says; `-` for `gt` and
+    /// `sensor`).
+    pub norm: String,
     /// How the grasp was chosen (`nominal`, `robust`).
     pub grasp_quality: GraspQuality,
     /// Gripper.
@@ -222,6 +226,8 @@ pub struct GraspJsonRow {
     pub method: String,
     /// Calibration variant (as `moma eval --json`).
     pub variant: String,
+    /// Normalisation (as `moma eval --json`'s `norm`; `-` for `gt` and `sensor`).
+    pub norm: String,
     /// `nominal` or `robust`.
     pub grasp_quality: GraspQuality,
     /// `parallel` or `suction`.
@@ -252,6 +258,7 @@ impl From<&GraspRow> for GraspJsonRow {
             set: r.set.clone(),
             method: r.method.clone(),
             variant: r.variant.clone(),
+            norm: r.norm.clone(),
             grasp_quality: r.grasp_quality,
             brier: r.brier,
             brier_base_rate: r.brier_base_rate,
@@ -780,6 +787,7 @@ pub fn grasp_evaluate(
     let mut out = GraspEvalResult::default();
     let row = |method: String,
                variant: String,
+               norm: &str,
                quality: GraspQuality,
                gripper: GripperKind,
                t: Tally,
@@ -788,6 +796,7 @@ pub fn grasp_evaluate(
         set: set.name.clone(),
         method,
         variant,
+        norm: norm.to_string(),
         grasp_quality: quality,
         gripper,
         success_rate: if t.trials > 0 {
@@ -982,6 +991,7 @@ pub fn grasp_evaluate(
                     out.rows.push(row(
                         method.to_string(),
                         name.clone(),
+                        norm.method.name(),
                         quality,
                         g,
                         std::mem::take(&mut per_gq[k][q]),
@@ -1016,6 +1026,7 @@ pub fn grasp_evaluate(
             out.rows.push(row(
                 "gt".into(),
                 "-".into(),
+                "-",
                 GraspQuality::Nominal,
                 g,
                 t,
@@ -1041,6 +1052,7 @@ pub fn grasp_evaluate(
                 out.rows.push(row(
                     "sensor".into(),
                     "-".into(),
+                    "-",
                     GraspQuality::Nominal,
                     g,
                     t,

@@ -25,7 +25,7 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// ranked robust (by success probability under the frame's error model; --grasp-quality).
 /// Writes OUT/grasp_results.{md,csv,json}, OUT/grasp_reliability.{md,csv,json} and
 /// OUT/sigma_coverage.{md,csv,json}; --json prints one array of {"set","method","variant",
-/// "grasp_quality","gripper","trials","successes","success_rate","best_of_candidates","brier",
+/// "norm","grasp_quality","gripper","trials","successes","success_rate","best_of_candidates","brier",
 /// "reliability":[{"bin":[lo,hi],"grasps":n,"predicted":p,"achieved":a}]}.
 /// `best_of_candidates`: trials where some grasp of the planner's candidates (up to 20, the ones
 /// the ranking chooses from) succeeds on the ground truth, i.e. what a perfect ranking would
