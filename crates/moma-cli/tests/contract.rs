@@ -128,42 +128,9 @@ fn raw_needs_norm_none_and_metric_depth() {
     let d = moma_io::read_depth(&gt).unwrap();
     moma_io::write_npy_f32(depth_dir.join("p.npy"), d.depth_m.view()).unwrap();
     let p = depth_dir.join("p.npy");
-    let e = fails(&[
-        "calibrate",
-        "--pred",
-        s(&p),
-        "--pred-kind",
-        "metric-depth",
-        "--gt",
-        s(&gt),
-        "--method",
-        "raw",
-        "--norm",
-        "minmax",
-        "-o",
-        s(&calib),
-    ]);
-    assert!(
-        e.contains("--norm minmax") && e.contains("normalisation 'none', got 'minmax'"),
-        "{e}"
-    );
-    assert!(!calib.exists(), "nothing written on error");
-    let by_default = tmp.path().join("raw-default.json");
-    ok(&[
-        "calibrate",
-        "--pred",
-        s(&p),
-        "--pred-kind",
-        "metric-depth",
-        "--gt",
-        s(&gt),
-        "--method",
-        "raw",
-        "-o",
-        s(&by_default),
-    ]);
-    let raw_none = |kind: &'static str, out: &std::path::Path| {
-        [
+    // `calibrate --method raw` of the metric map as `kind`, with `--norm N` when given, into `out`
+    let raw = |kind: &'static str, norm: Option<&'static str>, out: &std::path::Path| {
+        let mut a = vec![
             "calibrate",
             "--pred",
             s(&p),
@@ -173,15 +140,25 @@ fn raw_needs_norm_none_and_metric_depth() {
             s(&gt),
             "--method",
             "raw",
-            "--norm",
-            "none",
-            "-o",
-        ]
-        .into_iter()
-        .map(str::to_string)
-        .chain([s(out).to_string()])
-        .collect::<Vec<String>>()
+        ];
+        if let Some(n) = norm {
+            a.extend(["--norm", n]);
+        }
+        a.push("-o");
+        a.into_iter()
+            .map(str::to_string)
+            .chain([s(out).to_string()])
+            .collect::<Vec<String>>()
     };
+    let raw_none = |kind: &'static str, out: &std::path::Path| raw(kind, Some("none"), out);
+    let e = fails(&strs(&raw("metric-depth", Some("minmax"), &calib)));
+    assert!(
+        e.contains("--norm minmax") && e.contains("normalisation 'none', got 'minmax'"),
+        "{e}"
+    );
+    assert!(!calib.exists(), "nothing written on error");
+    let by_default = tmp.path().join("raw-default.json");
+    ok(&strs(&raw("metric-depth", None, &by_default)));
     ok(&strs(&raw_none("metric-depth", &calib)));
     let json = |p: &std::path::Path| -> serde_json::Value {
         serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
