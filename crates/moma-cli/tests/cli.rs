@@ -1120,8 +1120,24 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     )
     .unwrap();
     assert_eq!(index["format"], "moma-aligned");
-    assert_eq!(index["frames"][0]["name"], "frame_01");
-    assert_eq!(index["frames"][0]["calibration"], s(&calib));
+    assert_eq!(index["files"][0]["file"], "frame_01.depth.png");
+    assert_eq!(index["files"][1]["file"], "frame_01.depth.npy");
+    assert_eq!(index["files"][0]["calibration"], s(&calib));
+    // `grasp -o` writes the frame's depth with its provenance too
+    let planned = tmp.path().join("planned");
+    ok(&[
+        "grasp",
+        "--calib",
+        s(&calib),
+        "--pred",
+        s(&frame1),
+        "--gripper",
+        "suction",
+        "-o",
+        s(&planned),
+    ]);
+    let (simulated, err) = metrics(&planned.join("depth.npy"));
+    assert!(simulated && err.contains("SIMULATED"), "{err}");
     // the same frame name aligned again into that folder from a sensor's metres (no index, a
     // calibration on them): its entry is replaced, the depth is not simulated
     let metres = tmp.path().join("metres");
@@ -1150,20 +1166,50 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     ));
     let (simulated, err) = metrics(&aligned);
     assert!(!simulated && !err.contains("SIMULATED"), "{err}");
-    // an index that is not moma's is refused, by `align` (left as it is) and by `metrics`
+    // a run that fails on a frame records nothing for it: the earlier run's SIMULATED entry of
+    // frame_01 stays beside the new frame_00
+    let b = tmp.path().join("b");
+    ok(&align_args(&calib, &frame1, &b, &[]));
+    let small = tmp.path().join("small");
+    std::fs::create_dir_all(&small).unwrap();
+    moma_io::write_npy_f32(
+        small.join("frame_01.npy"),
+        ndarray::Array2::<f32>::from_elem((10, 10), 0.7).view(),
+    )
+    .unwrap();
+    let err = fails(&[
+        "align",
+        "--calib",
+        s(&sensor_calib),
+        "--pred",
+        s(&metres.join("frame_00.npy")),
+        s(&small.join("frame_01.npy")),
+        "-o",
+        s(&b),
+    ]);
+    assert!(err.contains("frame_01.npy"), "{err}");
+    assert!(
+        metrics(&b.join("frame_01.depth.npy")).0,
+        "the earlier run's label"
+    );
+    // another tool's aligned.json: `align` refuses to write beside it (left as it is), `metrics`
+    // says the provenance is not known
     let foreign = tmp.path().join("a").join("aligned.json");
     std::fs::write(&foreign, r#"{"format": "something-else"}"#).unwrap();
     let err = fails(&align_args(&calib, &frame1, &tmp.path().join("a"), &[]));
     assert!(
-        err.contains("aligned.json") && err.contains("something-else"),
+        err.contains("aligned.json") && err.contains("another tool's file"),
         "{err}"
     );
     assert_eq!(
         std::fs::read_to_string(&foreign).unwrap(),
         r#"{"format": "something-else"}"#
     );
-    let err = fails(&["metrics", "--pred", s(&aligned), "--gt", s(&gt)]);
-    assert!(err.contains("aligned.json"), "{err}");
+    let (simulated, err) = metrics(&aligned);
+    assert!(
+        !simulated && err.contains("not moma's aligned-depth index"),
+        "{err}"
+    );
 }
 
 /// With several sets, one without any object region is noted (on stderr and in the table's

@@ -260,6 +260,34 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
     // the normalisation each row planned with: the relative-disparity predictions' default
     let norms: Vec<&str> = rows.iter().map(|r| r["norm"].as_str().unwrap()).collect();
     assert_eq!(norms, ["minmax", "minmax", "minmax", "minmax", "-"]);
+    // metric-depth predictions (simulated): minmax-unit, and raw none
+    let metric = json(&ok(&[
+        "grasp-eval",
+        "--set",
+        s(&scene),
+        "--simulate",
+        "--sim-kind",
+        "metric-depth",
+        "--methods",
+        "gssa,raw",
+        "--seeds",
+        "1",
+        "--grasp-draws",
+        "4",
+        "--gripper",
+        "suction",
+        "-o",
+        s(&tmp.path().join("ge-metric")),
+        "--json",
+    ]));
+    let labels: Vec<(&str, &str)> = metric
+        .iter()
+        .map(|r| (r["method"].as_str().unwrap(), r["norm"].as_str().unwrap()))
+        .collect();
+    assert_eq!(
+        labels,
+        [("gssa", "minmax-unit"), ("raw", "none"), ("gt", "-")]
+    );
     for r in &rows {
         let trials = r["trials"].as_u64().unwrap();
         let rel = r["reliability"].as_array().unwrap();

@@ -111,6 +111,23 @@ pub fn write_visuals(
             let dir = out.join("aligned").join(m);
             let png = dir.join(format!("{}.png", f.id));
             create_parent(&png)?;
+            // the folder's aligned.json says where these depths came from (`moma metrics`
+            // labels a SIMULATED one so)
+            let entry = |file: String| moma_io::AlignedFile {
+                file,
+                simulated: preds.simulated,
+                written_by: "moma demo".into(),
+                calibration: None,
+                method: Some(m.clone()),
+                input: Some(preds.label.clone()),
+            };
+            moma_io::record_aligned_files(
+                &dir,
+                vec![
+                    entry(format!("{}.png", f.id)),
+                    entry(format!("{}.npy", f.id)),
+                ],
+            )?;
             moma_io::write_depth(&png, &maps[i])?;
             let npy = dir.join(format!("{}.npy", f.id));
             moma_io::write_npy_f32(&npy, maps[i].depth_m.view())?;

@@ -1,18 +1,19 @@
-//! `aligned.json`: the index `moma align` writes into its output folder, so that a depth map it
-//! wrote carries where it came from when it is scored later (`moma metrics`): a depth aligned
-//! from SIMULATED predictions, or by a calibration fitted on them, is labelled SIMULATED.
+//! `aligned.json`: the index a command that writes aligned depth keeps in the folder it writes
+//! to (`moma align`, `moma grasp -o`, `moma demo`), so that a depth map carries where it came
+//! from when it is scored later (`moma metrics`): a depth aligned from SIMULATED predictions, or
+//! by a calibration fitted on them, is labelled SIMULATED.
 //!
 //! ```json
 //! {"format": "moma-aligned", "version": 1,
-//!  "frames": [{"name": "clutter_1", "simulated": true, "calibration": "calib.json",
-//!              "method": "ssra", "input": "preds/clutter_1.npy"}]}
+//!  "files": [{"file": "clutter_1.depth.npy", "simulated": true, "written_by": "moma align",
+//!             "calibration": "calib.json", "method": "ssra", "input": "preds/clutter_1.npy"}]}
 //! ```
 //!
-//! A frame `NAME` is the files `NAME.depth.png` and `NAME.depth.npy` beside the index (the maps
-//! in metres; its σ map, colour map and point cloud are not depths to score). A later `moma align`
-//! into the same folder replaces the entries of the frames it writes and keeps the others. The
-//! index is written just before the first frame's files, so that a run that fails part way
-//! leaves no unlabelled frame.
+//! Entries are file names in the index's folder. A writer records each file just before it
+//! writes it, replacing an earlier entry of the same name and keeping the others; the folder is
+//! locked meanwhile (an advisory lock, where the platform has one), so that runs writing into one
+//! folder at once lose no entry. A copy or a link of a depth map elsewhere is not listed: its
+//! provenance is unknown.
 
 use std::path::{Path, PathBuf};
 
@@ -20,40 +21,43 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{IoError, Result};
 
-/// File name of the index in an output folder of `moma align`.
+/// File name of the index.
 pub const ALIGNED_INDEX_FILE: &str = "aligned.json";
 /// Value of its `format` field.
 pub const ALIGNED_FORMAT: &str = "moma-aligned";
 /// Value of its `version` field; a newer version is refused.
 pub const ALIGNED_VERSION: u32 = 1;
-/// The depth files of a frame `NAME`: `NAME.<suffix>`.
-const DEPTH_SUFFIXES: [&str; 2] = ["depth.png", "depth.npy"];
 
-/// One aligned frame: where its depth came from.
+/// One depth file: where it came from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct AlignedFrame {
-    /// The frame's output name (its files are `NAME.depth.png`, `NAME.depth.npy`, ...).
-    pub name: String,
+pub struct AlignedFile {
+    /// The file's name in the index's folder.
+    pub file: String,
     /// `true` when the prediction, or the predictions the calibration was fitted on, came from
     /// the simulator: the depth is not a depth model's.
     pub simulated: bool,
-    /// The calibration file, as given to `moma align`.
-    pub calibration: String,
-    /// The alignment method of the calibration.
-    pub method: String,
-    /// The prediction (or image) the frame was aligned from, as given.
-    pub input: String,
+    /// The command that wrote it (`moma align`, ...).
+    pub written_by: String,
+    /// The calibration file, as given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<String>,
+    /// The alignment method.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
+    /// The prediction (or image) it was aligned from, as given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input: Option<String>,
 }
 
-/// The index of one output folder.
+/// The index of one folder.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AlignedIndex {
     /// [`ALIGNED_FORMAT`].
     pub format: String,
     /// [`ALIGNED_VERSION`].
     pub version: u32,
-    /// The frames, in the order they were first written.
-    pub frames: Vec<AlignedFrame>,
+    /// The files, in the order they were first recorded.
+    pub files: Vec<AlignedFile>,
 }
 
 impl Default for AlignedIndex {
@@ -61,31 +65,43 @@ impl Default for AlignedIndex {
         Self {
             format: ALIGNED_FORMAT.into(),
             version: ALIGNED_VERSION,
-            frames: Vec::new(),
+            files: Vec::new(),
         }
     }
 }
 
 impl AlignedIndex {
-    /// The entry of the frame whose depth file is `file` (`NAME.depth.png` or `NAME.depth.npy`).
-    pub fn frame_of(&self, file: &Path) -> Option<&AlignedFrame> {
-        let file_name = file.file_name()?.to_str()?;
-        self.frames.iter().find(|f| {
-            DEPTH_SUFFIXES
-                .iter()
-                .any(|s| file_name == format!("{}.{s}", f.name))
-        })
+    /// The entry of the file named `file_name`.
+    pub fn entry(&self, file_name: &str) -> Option<&AlignedFile> {
+        self.files.iter().find(|f| f.file == file_name)
     }
 
-    /// Adds `frames`, replacing the entries of the same names.
-    pub fn merge(&mut self, frames: Vec<AlignedFrame>) {
-        for frame in frames {
-            match self.frames.iter_mut().find(|f| f.name == frame.name) {
-                Some(old) => *old = frame,
-                None => self.frames.push(frame),
+    /// Adds `files`, replacing the entries of the same names.
+    pub fn merge(&mut self, files: Vec<AlignedFile>) {
+        for file in files {
+            match self.files.iter_mut().find(|f| f.file == file.file) {
+                Some(old) => *old = file,
+                None => self.files.push(file),
             }
         }
     }
+}
+
+/// What the folder of a depth file says about it ([`provenance_of`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Provenance {
+    /// The folder's index lists it.
+    Listed {
+        /// The index.
+        index: PathBuf,
+        /// Its entry.
+        entry: AlignedFile,
+    },
+    /// No index, or one that does not list it.
+    Unlisted,
+    /// A file named like the index that is not moma's (another tool's `aligned.json`): it says
+    /// nothing about the depth.
+    ForeignIndex(PathBuf),
 }
 
 /// The path of the index in `dir`.
@@ -93,66 +109,108 @@ pub fn aligned_index_path(dir: &Path) -> PathBuf {
     dir.join(ALIGNED_INDEX_FILE)
 }
 
-/// Reads the index of the output folder `dir`; `Ok(None)` when it has none.
-///
-/// # Errors
-/// [`IoError::Json`] / [`IoError::Invalid`] for a file that exists but is not such an index (a
-/// corrupt index is never ignored: it may be what labels a depth SIMULATED).
-pub fn read_aligned_index(dir: &Path) -> Result<Option<AlignedIndex>> {
-    let path = aligned_index_path(dir);
+/// Whether a JSON value is another tool's file (its `format` is not moma's index's).
+fn foreign(value: &serde_json::Value) -> bool {
+    value.get("format").and_then(|f| f.as_str()) != Some(ALIGNED_FORMAT)
+}
+
+/// Reads the index at `path` (which exists): `Ok(Err(()))` for a JSON file that is not moma's.
+fn read_at(path: &Path) -> Result<std::result::Result<AlignedIndex, ()>> {
     if !path.is_file() {
-        return Ok(None);
-    }
-    let text = crate::json_files::read_json_text(&path, "aligned-depth index")?;
-    let value: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| IoError::json(&path, &e))?;
-    if value["format"] != ALIGNED_FORMAT {
         return Err(IoError::invalid(
-            &path,
-            format!(
-                "format is {}, expected '{ALIGNED_FORMAT}' (not the index `moma align` writes)",
-                value["format"]
-            ),
+            path,
+            "is not a file (moma keeps its aligned-depth index under this name)",
         ));
     }
-    match value["version"].as_u64() {
+    let text = crate::json_files::read_json_text(path, "aligned-depth index")?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
+    if foreign(&value) {
+        return Ok(Err(()));
+    }
+    match value.get("version").and_then(serde_json::Value::as_u64) {
         Some(v) if (1..=u64::from(ALIGNED_VERSION)).contains(&v) => {}
-        v => {
+        _ => {
             return Err(IoError::invalid(
-                &path,
+                path,
                 format!(
                     "version {}: this moma reads aligned-depth indexes of version 1 to \
                      {ALIGNED_VERSION} (a newer moma wrote it?)",
-                    v.map_or_else(|| value["version"].to_string(), |v| v.to_string())
+                    value.get("version").unwrap_or(&serde_json::Value::Null)
                 ),
             ));
         }
     }
     serde_json::from_value(value)
-        .map(Some)
-        .map_err(|e| IoError::json(&path, &e))
+        .map(Ok)
+        .map_err(|e| IoError::invalid(path, format!("not a valid aligned-depth index: {e}")))
 }
 
-/// The entry for the depth file `file` in the index of its folder, if any.
+/// Reads the index of `dir`; `Ok(None)` when it has none.
 ///
 /// # Errors
-/// As [`read_aligned_index`].
-pub fn aligned_frame_for(file: &Path) -> Result<Option<AlignedFrame>> {
+/// [`IoError::Invalid`] / [`IoError::Json`] for a file of that name that cannot be read as moma's
+/// index, whether another tool's or a corrupt or newer one.
+pub fn read_aligned_index(dir: &Path) -> Result<Option<AlignedIndex>> {
+    let path = aligned_index_path(dir);
+    if std::fs::symlink_metadata(&path).is_err() {
+        return Ok(None);
+    }
+    match read_at(&path)? {
+        Ok(index) => Ok(Some(index)),
+        Err(()) => Err(IoError::invalid(
+            &path,
+            format!(
+                "format is not '{ALIGNED_FORMAT}': another tool's file; moma keeps its \
+                 aligned-depth index under this name"
+            ),
+        )),
+    }
+}
+
+/// What the index of `file`'s folder says about it.
+///
+/// # Errors
+/// A file named like the index that is moma's but cannot be read (corrupt, newer version, not a
+/// file): a SIMULATED label is never dropped silently.
+pub fn provenance_of(file: &Path) -> Result<Provenance> {
     let dir = match file.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    Ok(read_aligned_index(dir)?.and_then(|i| i.frame_of(file).cloned()))
+    let path = aligned_index_path(dir);
+    if std::fs::symlink_metadata(&path).is_err() {
+        return Ok(Provenance::Unlisted);
+    }
+    let index = match read_at(&path)? {
+        Ok(index) => index,
+        Err(()) => return Ok(Provenance::ForeignIndex(path)),
+    };
+    let name = file.file_name().and_then(|n| n.to_str()).unwrap_or("");
+    Ok(match index.entry(name) {
+        Some(entry) => Provenance::Listed {
+            index: path,
+            entry: entry.clone(),
+        },
+        None => Provenance::Unlisted,
+    })
 }
 
-/// Adds `frames` to the index of `dir` (created when absent), written atomically.
+/// Adds `files` to the index of `dir` (created when absent), written atomically while the folder
+/// is locked.
 ///
 /// # Errors
-/// An existing file that is not such an index (see [`read_aligned_index`]; it is left as it
-/// is), or a write failure.
-pub fn record_aligned_frames(dir: &Path, frames: Vec<AlignedFrame>) -> Result<()> {
+/// A file of the index's name that is not moma's index or cannot be read (left as it is), or a
+/// write failure.
+pub fn record_aligned_files(dir: &Path, files: Vec<AlignedFile>) -> Result<()> {
+    // An advisory lock on the folder itself (flock on Unix) serialises the read-merge-write of
+    // writers into one folder, threads and processes alike; where a folder cannot be locked the
+    // update goes on unlocked.
+    let lock = std::fs::File::open(dir).ok().filter(|d| d.lock().is_ok());
     let mut index = read_aligned_index(dir)?.unwrap_or_default();
     index.version = ALIGNED_VERSION;
-    index.merge(frames);
-    crate::json_files::write_json(aligned_index_path(dir), &index)
+    index.merge(files);
+    let written = crate::json_files::write_json(aligned_index_path(dir), &index);
+    drop(lock);
+    written
 }

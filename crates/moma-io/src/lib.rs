@@ -63,8 +63,8 @@ mod raster;
 mod set;
 
 pub use aligned::{
-    ALIGNED_FORMAT, ALIGNED_INDEX_FILE, ALIGNED_VERSION, AlignedFrame, AlignedIndex,
-    aligned_frame_for, aligned_index_path, read_aligned_index, record_aligned_frames,
+    ALIGNED_FORMAT, ALIGNED_INDEX_FILE, ALIGNED_VERSION, AlignedFile, AlignedIndex, Provenance,
+    aligned_index_path, provenance_of, read_aligned_index, record_aligned_files,
 };
 pub use atomic::{atomic_write, same_file};
 pub use calibration::{

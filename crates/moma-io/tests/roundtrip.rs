@@ -573,60 +573,100 @@ fn moma_set_writer_then_open() {
     assert_eq!(b.file("pred.npy"), root.join("frames/b/pred.npy"));
 }
 
-/// `aligned.json` (`moma align`'s provenance index): written, merged by frame name, read back for
-/// the two depth files of a frame only; a foreign or newer file is refused and left as it is.
+/// `aligned.json` (the provenance index of aligned depth): written, merged by file name, read
+/// back for the listed files only; another tool's file of that name says nothing (and is never
+/// overwritten); a corrupt or newer one of moma's is an error.
 #[test]
 fn the_aligned_index_records_merges_and_refuses_what_is_not_its_own() {
     let dir = tempfile::tempdir().unwrap();
-    let frame = |name: &str, simulated: bool| AlignedFrame {
-        name: name.into(),
+    let entry = |file: &str, simulated: bool| AlignedFile {
+        file: file.into(),
         simulated,
-        calibration: "calib.json".into(),
-        method: "ssra".into(),
-        input: format!("preds/{name}.npy"),
+        written_by: "moma align".into(),
+        calibration: Some("calib.json".into()),
+        method: Some("ssra".into()),
+        input: Some(format!("preds/{file}")),
     };
     assert_eq!(read_aligned_index(dir.path()).unwrap(), None);
-    record_aligned_frames(dir.path(), vec![frame("a", true), frame("b.v2", true)]).unwrap();
-    record_aligned_frames(dir.path(), vec![frame("a", false), frame("c", true)]).unwrap();
+    let of = |file: &str| provenance_of(&dir.path().join(file)).unwrap();
+    assert_eq!(of("a.depth.npy"), Provenance::Unlisted);
+    record_aligned_files(
+        dir.path(),
+        vec![entry("a.depth.npy", true), entry("b.v2.depth.png", true)],
+    )
+    .unwrap();
+    record_aligned_files(
+        dir.path(),
+        vec![entry("a.depth.npy", false), entry("depth.npy", true)],
+    )
+    .unwrap();
     let on_disk: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(dir.path().join(ALIGNED_INDEX_FILE)).unwrap(),
     )
     .unwrap();
     assert_eq!(on_disk["format"], "moma-aligned");
     assert_eq!(on_disk["version"], 1);
-    let names: Vec<&str> = on_disk["frames"]
+    let files: Vec<&str> = on_disk["files"]
         .as_array()
         .unwrap()
         .iter()
-        .map(|f| f["name"].as_str().unwrap())
+        .map(|f| f["file"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["a", "b.v2", "c"]);
-    let of = |file: &str| aligned_frame_for(&dir.path().join(file)).unwrap();
-    assert_eq!(of("a.depth.npy").map(|f| f.simulated), Some(false));
-    assert_eq!(of("b.v2.depth.png").map(|f| f.simulated), Some(true));
-    for not_a_depth in [
-        "a.sigma.npy",
-        "a.color.png",
-        "b.depth.npy",
-        "c.npy",
-        "xc.depth.npy",
-    ] {
-        assert_eq!(of(not_a_depth), None, "{not_a_depth}");
+    assert_eq!(files, ["a.depth.npy", "b.v2.depth.png", "depth.npy"]);
+    let simulated = |file: &str| match of(file) {
+        Provenance::Listed { entry, index } => {
+            assert_eq!(index, dir.path().join(ALIGNED_INDEX_FILE));
+            Some(entry.simulated)
+        }
+        _ => None,
+    };
+    assert_eq!(simulated("a.depth.npy"), Some(false));
+    assert_eq!(simulated("b.v2.depth.png"), Some(true));
+    assert_eq!(simulated("depth.npy"), Some(true));
+    for unlisted in ["a.sigma.npy", "b.depth.npy", "xa.depth.npy"] {
+        assert_eq!(of(unlisted), Provenance::Unlisted, "{unlisted}");
     }
+    // writers from many threads at once lose no entry (the folder is locked meanwhile)
+    std::thread::scope(|s| {
+        for t in 0..8 {
+            let d = dir.path();
+            s.spawn(move || {
+                record_aligned_files(d, vec![entry(&format!("t{t}.depth.npy"), true)]).unwrap()
+            });
+        }
+    });
+    let index = read_aligned_index(dir.path()).unwrap().unwrap();
+    assert_eq!(index.files.len(), 3 + 8);
     let path = dir.path().join(ALIGNED_INDEX_FILE);
+    // another tool's file: says nothing to a reader, refused (untouched) by a writer
+    for foreign in [r#"{"format": "moma-predictions"}"#, r#"{"results": []}"#] {
+        std::fs::write(&path, foreign).unwrap();
+        assert_eq!(of("a.depth.npy"), Provenance::ForeignIndex(path.clone()));
+        let e = record_aligned_files(dir.path(), vec![entry("d", true)]).unwrap_err();
+        assert!(e.to_string().contains("another tool's file"), "{e}");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), foreign);
+    }
+    // moma's, but unreadable: an error for both
     for (text, says) in [
-        (r#"{"format": "moma-predictions"}"#, "moma-predictions"),
         (
-            r#"{"format": "moma-aligned", "version": 2, "frames": []}"#,
+            r#"{"format": "moma-aligned", "version": 2, "files": []}"#,
             "version 2",
         ),
-        (r#"{"format": "moma-aligned", "version": 1}"#, "frames"),
+        (
+            r#"{"format": "moma-aligned", "version": 1}"#,
+            "missing field `files`",
+        ),
         ("{", "aligned.json"),
     ] {
         std::fs::write(&path, text).unwrap();
-        let e = record_aligned_frames(dir.path(), vec![frame("d", true)]).unwrap_err();
+        let e = record_aligned_files(dir.path(), vec![entry("d", true)]).unwrap_err();
         assert!(e.to_string().contains(says), "{text}: {e}");
         assert_eq!(std::fs::read_to_string(&path).unwrap(), text);
-        assert!(aligned_frame_for(&dir.path().join("a.depth.npy")).is_err());
+        let e = provenance_of(&dir.path().join("a.depth.npy")).unwrap_err();
+        assert!(e.to_string().contains(says), "{text}: {e}");
     }
+    std::fs::remove_file(&path).unwrap();
+    std::fs::create_dir(&path).unwrap();
+    let e = provenance_of(&dir.path().join("a.depth.npy")).unwrap_err();
+    assert!(e.to_string().contains("is not a file"), "{e}");
 }

@@ -319,33 +319,24 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     let simulated = source.simulated || calib.created.simulated_predictions;
     create_dir(&args.output)?;
     // the folder's index records where each frame's depth came from (a SIMULATED one is scored
-    // as such later, by `moma metrics`): once, just before the first frame's files are written
-    // (a run refused before any frame writes nothing)
-    let index_written = std::sync::Mutex::new(false);
-    let record_index = || -> Result<()> {
-        let mut written = index_written
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if !*written {
-            let calibration = args.calib.display().to_string();
-            moma_io::record_aligned_frames(
-                &args.output,
-                args.source
-                    .inputs()
-                    .iter()
-                    .map(|p| moma_io::AlignedFrame {
-                        name: super::common::frame_name(p),
-                        simulated,
-                        calibration: calibration.clone(),
-                        method: calib.method.to_string(),
-                        input: p.display().to_string(),
-                    })
-                    .collect(),
-            )
-            .with_context(|| format!("the index of {}", args.output.display()))?;
-            *written = true;
-        }
-        Ok(())
+    // as such later, by `moma metrics`), just before the frame's own files are written
+    let record_index = |name: &str, input: &Path| -> Result<()> {
+        let entry = |file: String| moma_io::AlignedFile {
+            file,
+            simulated,
+            written_by: "moma align".into(),
+            calibration: Some(args.calib.display().to_string()),
+            method: Some(calib.method.to_string()),
+            input: Some(input.display().to_string()),
+        };
+        moma_io::record_aligned_files(
+            &args.output,
+            vec![
+                entry(format!("{name}.depth.png")),
+                entry(format!("{name}.depth.npy")),
+            ],
+        )
+        .with_context(|| format!("the index of {}", args.output.display()))
     };
 
     let bar = progress(source.len(), "aligning", args.json);
@@ -393,7 +384,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             None => None,
         };
 
-        record_index()?;
+        record_index(&input.name, &input.path)?;
         let mut outputs = Vec::new();
         let base = args.output.join(&input.name);
         let png = with_suffix(&base, "depth.png");

@@ -588,10 +588,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         println!(
             "parameters (normalisation {}{}, {space} space, target units {}): {}",
             norm.method,
-            if args.norm.is_none() {
-                format!(", the default for {kind}")
-            } else {
-                String::new()
+            match (args.norm, &file.calibration.model) {
+                (Some(_), _) => String::new(),
+                (None, moma_core::align::AlignmentModel::Raw) => ", raw's only one".into(),
+                (None, _) => format!(", the default for {kind}"),
             },
             space.target_unit(),
             abridged(serde_json::to_value(&file.calibration.model)?)

@@ -546,6 +546,28 @@ pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_cor
     Ok(moma_io::read_depth(path)?)
 }
 
+/// Where a metric depth file came from, as far as its folder says: `Some(index)` when it is
+/// SIMULATED (a raw prediction its `predictions.json` lists as simulated, or a depth that `moma
+/// align`, `grasp -o` or `demo` wrote from simulated predictions, in the folder's `aligned.json`),
+/// with the index that says so.
+pub fn simulated_depth_source(path: &Path) -> Result<Option<PathBuf>> {
+    if let Some(i) = moma_io::prediction_index_listing(path)? {
+        return Ok(i.simulated.then_some(i.path));
+    }
+    Ok(match moma_io::provenance_of(path)? {
+        moma_io::Provenance::Listed { index, entry } => entry.simulated.then_some(index),
+        moma_io::Provenance::Unlisted => None,
+        moma_io::Provenance::ForeignIndex(index) => {
+            eprintln!(
+                "note: {} is not moma's aligned-depth index: where {} came from is not known",
+                index.display(),
+                path.display()
+            );
+            None
+        }
+    })
+}
+
 /// Fails when every set was skipped (`rows` is empty and `notes` say why): a table or a `--json`
 /// array with no row would read as a run that measured nothing wrong.
 pub fn check_some_rows<T>(rows: &[T], notes: &[moma_eval::protocol::EvalNote]) -> Result<()> {

@@ -272,7 +272,7 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
             name: path.display().to_string(),
             rgb: None,
             calib_intrinsics: None,
-            simulated: false,
+            simulated: super::common::simulated_depth_source(path)?.is_some(),
         });
     }
     let Some(calib_path) = &args.calib else {
@@ -432,7 +432,15 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         None => {}
     }
     if let Some(dir) = &args.output {
-        let written = write_outputs(dir, &outcome, &gripper, &depth, &camera, rgb)?;
+        let provenance = moma_io::AlignedFile {
+            file: "depth.npy".into(),
+            simulated,
+            written_by: "moma grasp".into(),
+            calibration: args.calib.as_ref().map(|p| p.display().to_string()),
+            method: None,
+            input: Some(depth_name.clone()),
+        };
+        let written = write_outputs(dir, &outcome, &gripper, &depth, &camera, rgb, provenance)?;
         if !args.json {
             for p in written {
                 println!("wrote {}", p.display());
@@ -483,7 +491,8 @@ fn print_summary(outcome: &PlanOutcome) {
 
 /// Writes grasps.json (the `--json` array), scene.ply (scene points and gripper boxes),
 /// overlay.png (grasps drawn on the RGB image, or on the colour-mapped depth) and depth.npy (the
-/// frame's metric depth, as `moma align` writes it) into `dir`.
+/// frame's metric depth, as `moma align` writes it, with its `provenance` in aligned.json) into
+/// `dir`.
 fn write_outputs(
     dir: &Path,
     outcome: &PlanOutcome,
@@ -491,6 +500,7 @@ fn write_outputs(
     depth: &MetricDepth,
     k: &Intrinsics,
     rgb: Option<RgbImage>,
+    provenance: moma_io::AlignedFile,
 ) -> Result<Vec<PathBuf>> {
     create_dir(dir)?;
     // an earlier run's result goes first: should a write below fail, DIR must not hold that
@@ -509,8 +519,11 @@ fn write_outputs(
             .0
         }
     };
-    // the frame's depth as `moma align` writes it (before the planner's expected truth)
+    // the frame's depth as `moma align` writes it (before the planner's expected truth), its
+    // provenance recorded first (DIR/aligned.json)
     let depth_path = dir.join("depth.npy");
+    moma_io::record_aligned_files(dir, vec![provenance])
+        .with_context(|| format!("the index of {}", dir.display()))?;
     moma_io::write_depth(&depth_path, depth)?;
     let ply_path = dir.join("scene.ply");
     moma_io::write_scene_ply(

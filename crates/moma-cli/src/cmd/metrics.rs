@@ -1,6 +1,6 @@
 //! `moma metrics`: score a metric depth map against ground truth.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
@@ -32,8 +32,8 @@ pub struct MetricsArgs {
     pub mask: Option<PathBuf>,
     /// Print one JSON object: d105, d110, d125, rel, rmse (m), mae (m), n (pixels), simulated
     /// (true when --pred is a raw prediction that its predictions.json lists as SIMULATED, or a
-    /// depth that `moma align` wrote from SIMULATED predictions, as the aligned.json of its
-    /// folder records).
+    /// depth that `moma align`, `grasp -o` or `demo` wrote from SIMULATED predictions, as the
+    /// aligned.json of its folder records; a copy elsewhere is not listed).
     #[arg(long)]
     pub json: bool,
 }
@@ -75,13 +75,7 @@ pub fn run(args: &MetricsArgs) -> Result<()> {
     }
     // a raw prediction listed as simulated, or a depth aligned from simulated predictions, is
     // labelled so in the numbers too, as every evaluation's results are
-    let simulated = if let Some(i) = moma_io::prediction_index_listing(&args.pred)? {
-        i.simulated.then_some(i.path)
-    } else {
-        moma_io::aligned_frame_for(&args.pred)?
-            .filter(|f| f.simulated)
-            .map(|_| moma_io::aligned_index_path(args.pred.parent().unwrap_or(Path::new(""))))
-    };
+    let simulated = super::common::simulated_depth_source(&args.pred)?;
     if let Some(index) = &simulated {
         eprintln!(
             "note: {} is SIMULATED (not from a depth model's output; {}): these are not a depth \
