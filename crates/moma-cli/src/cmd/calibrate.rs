@@ -562,7 +562,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                     millimetres(r.threshold_m),
                     report.rms_residual_m * 1e3,
                     if r.kind == RobustKind::Huber {
-                        "weighs every sample alike by its distance (least absolute deviations)"
+                        "treats nearly every sample as an outlier and becomes a least absolute \
+                         deviations fit (the median's, not the mean's)"
                     } else {
                         "follows a minority of the samples"
                     }
