@@ -61,6 +61,14 @@ pub(crate) fn positive(name: &str, value: f32, err: fn(String) -> GraspError) ->
     if value.is_finite() && value > 0.0 {
         Ok(())
     } else {
-        Err(err(format!("{name} = {value} must be a finite number > 0")))
+        // settings are f32: a value written below its smallest (about 1e-45) reads as 0
+        let read_as = if value == 0.0 {
+            " (0, or a value too small for single precision)"
+        } else {
+            ""
+        };
+        Err(err(format!(
+            "{name} = {value}{read_as} must be a finite number > 0"
+        )))
     }
 }

@@ -443,6 +443,14 @@ fn bad_inputs_are_errors() {
     };
     let err = plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap_err();
     assert!(err.to_string().contains("radius_m"), "{err}");
+    // a size written below f32's smallest (a configuration's 1e-300) reads as 0, and says so
+    let jaw: ParallelJaw = serde_json::from_str(r#"{"stroke_m": 1e-300}"#).unwrap();
+    let err = plan_parallel(&scene, &jaw, &ParallelConfig::default()).unwrap_err();
+    assert!(
+        err.to_string()
+            .contains("stroke_m = 0 (0, or a value too small for single precision)"),
+        "{err}"
+    );
     // Absurd sizes: the planner marches along the jaws and the cup axis in millimetre steps, so a
     // stroke or compliance of 1e30 m never finished (found by hand: `moma grasp` hung).
     for (jaw, field) in [
