@@ -1192,6 +1192,33 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
         metrics(&b.join("frame_01.depth.npy")).0,
         "the earlier run's label"
     );
+    // ... and one whose write fails keeps the SIMULATED label of the file it did not replace
+    std::fs::remove_file(b.join("frame_01.depth.png")).unwrap();
+    std::fs::create_dir(b.join("frame_01.depth.png")).unwrap();
+    fails(&align_args(
+        &sensor_calib,
+        &metres.join("frame_01.npy"),
+        &b,
+        &[],
+    ));
+    let (simulated, err) = metrics(&b.join("frame_01.depth.npy"));
+    assert!(simulated && err.contains("SIMULATED"), "{err}");
+    // `grasp --depth` of that depth: its SIMULATED label follows into grasp -o's folder
+    let replanned = tmp.path().join("replanned");
+    let out = moma(&[
+        "grasp",
+        "--depth",
+        s(&b.join("frame_01.depth.npy")),
+        "--camera",
+        s(&camera),
+        "--gripper",
+        "suction",
+        "-o",
+        s(&replanned),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("SIMULATED"), "{err}");
+    assert!(metrics(&replanned.join("depth.npy")).0);
     // another tool's aligned.json: `align` refuses to write beside it (left as it is), `metrics`
     // says the provenance is not known
     let foreign = tmp.path().join("a").join("aligned.json");

@@ -121,16 +121,17 @@ pub fn write_visuals(
                 method: Some(m.clone()),
                 input: Some(preds.label.clone()),
             };
-            moma_io::record_aligned_files(
-                &dir,
+            let entries = || {
                 vec![
                     entry(format!("{}.png", f.id)),
                     entry(format!("{}.npy", f.id)),
-                ],
-            )?;
+                ]
+            };
+            moma_io::record_before_writing(&dir, entries())?;
             moma_io::write_depth(&png, &maps[i])?;
             let npy = dir.join(format!("{}.npy", f.id));
             moma_io::write_npy_f32(&npy, maps[i].depth_m.view())?;
+            moma_io::record_aligned_files(&dir, entries())?;
             let col = dir.join(format!("{}_colour.png", f.id));
             moma_io::write_depth_colormap(&col, &maps[i], Colormap::Turbo, range)?;
             files.depth.push(png);

@@ -9,11 +9,12 @@
 //!             "calibration": "calib.json", "method": "ssra", "input": "preds/clutter_1.npy"}]}
 //! ```
 //!
-//! Entries are file names in the index's folder. A writer records each file just before it
-//! writes it, replacing an earlier entry of the same name and keeping the others; the folder is
-//! locked meanwhile (an advisory lock, where the platform has one), so that runs writing into one
-//! folder at once lose no entry. A copy or a link of a depth map elsewhere is not listed: its
-//! provenance is unknown.
+//! Entries are file names in the index's folder. A writer records each file before it writes it
+//! ([`record_before_writing`]: a SIMULATED label of the file it replaces is kept until the write
+//! is done) and again once written ([`record_aligned_files`]), replacing an earlier entry of the
+//! same name and keeping the others; every update holds the index's lock file
+//! ([`ALIGNED_LOCK_FILE`]), so that runs writing into one folder at once lose no entry. A copy or
+//! a link of a depth map elsewhere is not listed: its provenance is unknown.
 
 use std::path::{Path, PathBuf};
 
@@ -196,21 +197,66 @@ pub fn provenance_of(file: &Path) -> Result<Provenance> {
     })
 }
 
-/// Adds `files` to the index of `dir` (created when absent), written atomically while the folder
-/// is locked.
+/// File name of the lock beside the index: writers into one folder take it in turn.
+pub const ALIGNED_LOCK_FILE: &str = ".aligned.json.lock";
+
+/// The advisory lock of `dir`'s index (flock on Unix, LockFileEx on Windows): a file beside the
+/// index opened for writing, so that a folder that can be written but not read is locked too.
 ///
 /// # Errors
-/// A file of the index's name that is not moma's index or cannot be read (left as it is), or a
-/// write failure.
-pub fn record_aligned_files(dir: &Path, files: Vec<AlignedFile>) -> Result<()> {
-    // An advisory lock on the folder itself (flock on Unix) serialises the read-merge-write of
-    // writers into one folder, threads and processes alike; where a folder cannot be locked the
-    // update goes on unlocked.
-    let lock = std::fs::File::open(dir).ok().filter(|d| d.lock().is_ok());
+/// The lock file cannot be created, or the platform cannot lock it: two writers could then lose
+/// each other's entries, which this refuses rather than risks.
+fn lock_index(dir: &Path) -> Result<std::fs::File> {
+    let path = dir.join(ALIGNED_LOCK_FILE);
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| IoError::io(&path, "create the aligned-depth index lock", e))?;
+    file.lock()
+        .map_err(|e| IoError::io(&path, "lock the aligned-depth index", e))?;
+    Ok(file)
+}
+
+/// Updates the index of `dir` with `files` while it is locked.
+fn update(dir: &Path, files: Vec<AlignedFile>, keep_simulated: bool) -> Result<()> {
+    let lock = lock_index(dir)?;
     let mut index = read_aligned_index(dir)?.unwrap_or_default();
     index.version = ALIGNED_VERSION;
+    let files = files
+        .into_iter()
+        .map(|mut f| {
+            if keep_simulated {
+                f.simulated |= index.entry(&f.file).is_some_and(|old| old.simulated);
+            }
+            f
+        })
+        .collect();
     index.merge(files);
     let written = crate::json_files::write_json(aligned_index_path(dir), &index);
     drop(lock);
     written
+}
+
+/// Records `files` as they will be once written, before they are: an entry that says SIMULATED
+/// keeps saying so (`simulated` of the old and the new entry), so that a write that fails, or a
+/// run killed before it, never leaves an old SIMULATED file under a new label. Call
+/// [`record_aligned_files`] with the same entries once they are written.
+///
+/// # Errors
+/// As [`record_aligned_files`].
+pub fn record_before_writing(dir: &Path, files: Vec<AlignedFile>) -> Result<()> {
+    update(dir, files, true)
+}
+
+/// Adds `files` to the index of `dir` (created when absent), replacing the entries of the same
+/// names, written atomically while the folder's index is locked ([`ALIGNED_LOCK_FILE`]): writers
+/// into one folder, threads and processes alike, lose no entry.
+///
+/// # Errors
+/// A file of the index's name that is not moma's index or cannot be read (left as it is), a lock
+/// that cannot be taken, or a write failure.
+pub fn record_aligned_files(dir: &Path, files: Vec<AlignedFile>) -> Result<()> {
+    update(dir, files, false)
 }

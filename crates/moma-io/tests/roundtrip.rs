@@ -626,17 +626,32 @@ fn the_aligned_index_records_merges_and_refuses_what_is_not_its_own() {
     for unlisted in ["a.sigma.npy", "b.depth.npy", "xa.depth.npy"] {
         assert_eq!(of(unlisted), Provenance::Unlisted, "{unlisted}");
     }
-    // writers from many threads at once lose no entry (the folder is locked meanwhile)
-    std::thread::scope(|s| {
-        for t in 0..8 {
-            let d = dir.path();
-            s.spawn(move || {
-                record_aligned_files(d, vec![entry(&format!("t{t}.depth.npy"), true)]).unwrap()
-            });
-        }
-    });
+    // before a write, a SIMULATED label of the file it replaces is kept; once written, the new
+    // entry is exact
+    record_before_writing(dir.path(), vec![entry("b.v2.depth.png", false)]).unwrap();
+    assert_eq!(simulated("b.v2.depth.png"), Some(true));
+    record_aligned_files(dir.path(), vec![entry("b.v2.depth.png", false)]).unwrap();
+    assert_eq!(simulated("b.v2.depth.png"), Some(false));
+    record_before_writing(dir.path(), vec![entry("a.depth.npy", true)]).unwrap();
+    assert_eq!(simulated("a.depth.npy"), Some(true));
+    // writers from many threads at once, started together, lose no entry (the index's lock
+    // file serialises them)
+    for round in 0..5 {
+        let start = std::sync::Barrier::new(8);
+        std::thread::scope(|s| {
+            for t in 0..8 {
+                let (d, start) = (dir.path(), &start);
+                s.spawn(move || {
+                    start.wait();
+                    let name = format!("r{round}t{t}.depth.npy");
+                    record_aligned_files(d, vec![entry(&name, true)]).unwrap()
+                });
+            }
+        });
+    }
     let index = read_aligned_index(dir.path()).unwrap().unwrap();
-    assert_eq!(index.files.len(), 3 + 8);
+    assert_eq!(index.files.len(), 3 + 5 * 8);
+    assert!(dir.path().join(ALIGNED_LOCK_FILE).is_file());
     let path = dir.path().join(ALIGNED_INDEX_FILE);
     // another tool's file: says nothing to a reader, refused (untouched) by a writer
     for foreign in [r#"{"format": "moma-predictions"}"#, r#"{"results": []}"#] {

@@ -95,6 +95,8 @@ impl RealignFlags {
 ///   NAME.depth.npy  float32 metres, NaN = no depth
 ///   NAME.color.png  with --colormap: colour-mapped depth (range in metres recorded in the PNG)
 ///   NAME.ply        with --ply: point cloud in metres, camera frame, coloured when RGB is known
+///   aligned.json    where each depth file came from (SIMULATED or not; read by `moma metrics`;
+///                   docs/formats.md), beside .aligned.json.lock, which serialises its writers
 ///
 /// Examples:
 ///   moma align --calib calib.json --pred pred/*.npy --pred-kind relative-disparity -o aligned/ \
@@ -319,8 +321,9 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     let simulated = source.simulated || calib.created.simulated_predictions;
     create_dir(&args.output)?;
     // the folder's index records where each frame's depth came from (a SIMULATED one is scored
-    // as such later, by `moma metrics`), just before the frame's own files are written
-    let record_index = |name: &str, input: &Path| -> Result<()> {
+    // as such later, by `moma metrics`): before the frame's files are written (keeping the
+    // label of files they replace) and once they are
+    let index_entries = |name: &str, input: &Path| -> Vec<moma_io::AlignedFile> {
         let entry = |file: String| moma_io::AlignedFile {
             file,
             simulated,
@@ -329,15 +332,12 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             method: Some(calib.method.to_string()),
             input: Some(input.display().to_string()),
         };
-        moma_io::record_aligned_files(
-            &args.output,
-            vec![
-                entry(format!("{name}.depth.png")),
-                entry(format!("{name}.depth.npy")),
-            ],
-        )
-        .with_context(|| format!("the index of {}", args.output.display()))
+        vec![
+            entry(format!("{name}.depth.png")),
+            entry(format!("{name}.depth.npy")),
+        ]
     };
+    let index_context = || format!("the index of {}", args.output.display());
 
     let bar = progress(source.len(), "aligning", args.json);
     let frame = |i: usize, input: SourcedPrediction| -> Result<FrameSummary> {
@@ -384,7 +384,8 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             None => None,
         };
 
-        record_index(&input.name, &input.path)?;
+        moma_io::record_before_writing(&args.output, index_entries(&input.name, &input.path))
+            .with_context(index_context)?;
         let mut outputs = Vec::new();
         let base = args.output.join(&input.name);
         let png = with_suffix(&base, "depth.png");
@@ -403,6 +404,8 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let npy = with_suffix(&base, "depth.npy");
         moma_io::write_depth(&npy, &depth)?;
         outputs.push(npy);
+        moma_io::record_aligned_files(&args.output, index_entries(&input.name, &input.path))
+            .with_context(index_context)?;
         if let Some(sigma) = sigma_m {
             let sigma = MetricDepth::new(sigma);
             let npy = with_suffix(&base, "sigma.npy");

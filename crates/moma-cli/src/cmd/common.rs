@@ -546,24 +546,41 @@ pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_cor
     Ok(moma_io::read_depth(path)?)
 }
 
-/// Where a metric depth file came from, as far as its folder says: `Some(index)` when it is
-/// SIMULATED (a raw prediction its `predictions.json` lists as simulated, or a depth that `moma
-/// align`, `grasp -o` or `demo` wrote from simulated predictions, in the folder's `aligned.json`),
-/// with the index that says so.
-pub fn simulated_depth_source(path: &Path) -> Result<Option<PathBuf>> {
+/// What the folder of a metric depth file says of where it came from.
+pub enum DepthOrigin {
+    /// SIMULATED, as the index at this path says: a raw prediction its `predictions.json` lists
+    /// as simulated, or a depth that `moma align`, `grasp -o` or `demo` wrote from simulated
+    /// predictions (the folder's `aligned.json`).
+    Simulated(PathBuf),
+    /// Nothing says it is simulated.
+    NotSimulated,
+    /// Another tool's `aligned.json` stands beside it: nothing can be said (a note was printed).
+    Unknown,
+}
+
+/// Where a metric depth file came from, as far as its folder says ([`DepthOrigin`]).
+pub fn depth_origin(path: &Path) -> Result<DepthOrigin> {
     if let Some(i) = moma_io::prediction_index_listing(path)? {
-        return Ok(i.simulated.then_some(i.path));
+        return Ok(if i.simulated {
+            DepthOrigin::Simulated(i.path)
+        } else {
+            DepthOrigin::NotSimulated
+        });
     }
     Ok(match moma_io::provenance_of(path)? {
-        moma_io::Provenance::Listed { index, entry } => entry.simulated.then_some(index),
-        moma_io::Provenance::Unlisted => None,
+        moma_io::Provenance::Listed { index, entry } if entry.simulated => {
+            DepthOrigin::Simulated(index)
+        }
+        moma_io::Provenance::Listed { .. } | moma_io::Provenance::Unlisted => {
+            DepthOrigin::NotSimulated
+        }
         moma_io::Provenance::ForeignIndex(index) => {
             eprintln!(
                 "note: {} is not moma's aligned-depth index: where {} came from is not known",
                 index.display(),
                 path.display()
             );
-            None
+            DepthOrigin::Unknown
         }
     })
 }

@@ -25,7 +25,7 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// predictions.json), results.{md,csv,json}, grasp_results.{md,csv,json},
 /// grasps/<frame>_suction.png (top-5 suction grasps on the re-aligned SSRA depth),
 /// figures/<frame>.png (Fig.-6 style), aligned/<method>/<frame>.png (uint16 mm) + .npy
-/// (float32 m) + _colour.png, pointclouds/<frame>_ssra.ply.
+/// (float32 m) + _colour.png (with aligned.json: where each came from), pointclouds/<frame>_ssra.ply.
 ///
 /// With --set DIR it runs on a real moma set instead (simulated predictions unless --pred DIR
 /// or --weights FILE are given).

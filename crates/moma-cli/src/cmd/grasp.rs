@@ -11,7 +11,7 @@ use moma_grasp::{
     Extrinsics, Grasp, GraspRequest, Gripper, GripperKind, PlanOutcome, SceneConfig, plan_grasps,
 };
 
-use super::common::{ModelArgs, SourceArgs, create_dir, print_json};
+use super::common::{DepthOrigin, ModelArgs, SourceArgs, create_dir, print_json};
 
 /// `--gripper` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -62,7 +62,8 @@ impl GripperArg {
 ///   -o DIR writes grasps.json (the --json array), overlay.png (grasps drawn on the RGB image or the
 ///     colour-mapped depth; best = green, then yellow to red), scene.ply (the scene points plus
 ///     finger/palm or cup boxes of the grasps; binary PLY, opens in MeshLab / Open3D) and
-///     depth.npy (the frame's depth in metres, float32, as `moma align` writes it).
+///     depth.npy (the frame's depth in metres, float32, as `moma align` writes it; its provenance
+///     in aligned.json, read by `moma metrics`).
 ///
 /// With an error model the planner works on its expected truth of the depth: the mean relief
 /// and silhouette corrections the calibration measured (and, for suction, the depth model's
@@ -250,8 +251,8 @@ struct LoadedFrame {
     rgb: Option<RgbImage>,
     /// The calibration's intrinsics and file, with --calib.
     calib_intrinsics: Option<(Intrinsics, PathBuf)>,
-    /// The depth comes from SIMULATED predictions (the input's or the calibration's).
-    simulated: bool,
+    /// Whether the depth comes from SIMULATED predictions (the input's or the calibration's).
+    simulated: DepthOrigin,
 }
 
 /// The frame's metric depth: read (--depth), or aligned with --calib.
@@ -272,7 +273,7 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
             name: path.display().to_string(),
             rgb: None,
             calib_intrinsics: None,
-            simulated: super::common::simulated_depth_source(path)?.is_some(),
+            simulated: super::common::depth_origin(path)?,
         });
     }
     let Some(calib_path) = &args.calib else {
@@ -334,7 +335,11 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         name: input.path.display().to_string(),
         rgb: input.rgb,
         calib_intrinsics: calib.intrinsics.map(|k| (k, calib_path.clone())),
-        simulated: opened.simulated || calib.created.simulated_predictions,
+        simulated: if opened.simulated || calib.created.simulated_predictions {
+            DepthOrigin::Simulated(calib_path.clone())
+        } else {
+            DepthOrigin::NotSimulated
+        },
     })
 }
 
@@ -376,7 +381,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
             depth.size()
         );
     }
-    if simulated {
+    if matches!(simulated, DepthOrigin::Simulated(_)) {
         eprintln!(
             "note: the depth of {depth_name} comes from SIMULATED predictions: these grasps are \
              not planned on a depth model's output"
@@ -432,13 +437,17 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         None => {}
     }
     if let Some(dir) = &args.output {
-        let provenance = moma_io::AlignedFile {
-            file: "depth.npy".into(),
-            simulated,
-            written_by: "moma grasp".into(),
-            calibration: args.calib.as_ref().map(|p| p.display().to_string()),
-            method: None,
-            input: Some(depth_name.clone()),
+        // recorded where it is known (not beside another tool's aligned.json)
+        let provenance = match simulated {
+            DepthOrigin::Unknown => None,
+            known => Some(moma_io::AlignedFile {
+                file: "depth.npy".into(),
+                simulated: matches!(known, DepthOrigin::Simulated(_)),
+                written_by: "moma grasp".into(),
+                calibration: args.calib.as_ref().map(|p| p.display().to_string()),
+                method: None,
+                input: Some(depth_name.clone()),
+            }),
         };
         let written = write_outputs(dir, &outcome, &gripper, &depth, &camera, rgb, provenance)?;
         if !args.json {
@@ -491,8 +500,8 @@ fn print_summary(outcome: &PlanOutcome) {
 
 /// Writes grasps.json (the `--json` array), scene.ply (scene points and gripper boxes),
 /// overlay.png (grasps drawn on the RGB image, or on the colour-mapped depth) and depth.npy (the
-/// frame's metric depth, as `moma align` writes it, with its `provenance` in aligned.json) into
-/// `dir`.
+/// frame's metric depth, as `moma align` writes it, with its `provenance` in aligned.json when
+/// it is known) into `dir`.
 fn write_outputs(
     dir: &Path,
     outcome: &PlanOutcome,
@@ -500,7 +509,7 @@ fn write_outputs(
     depth: &MetricDepth,
     k: &Intrinsics,
     rgb: Option<RgbImage>,
-    provenance: moma_io::AlignedFile,
+    provenance: Option<moma_io::AlignedFile>,
 ) -> Result<Vec<PathBuf>> {
     create_dir(dir)?;
     // an earlier run's result goes first: should a write below fail, DIR must not hold that
@@ -522,9 +531,14 @@ fn write_outputs(
     // the frame's depth as `moma align` writes it (before the planner's expected truth), its
     // provenance recorded first (DIR/aligned.json)
     let depth_path = dir.join("depth.npy");
-    moma_io::record_aligned_files(dir, vec![provenance])
-        .with_context(|| format!("the index of {}", dir.display()))?;
+    let index_context = || format!("the index of {}", dir.display());
+    if let Some(p) = &provenance {
+        moma_io::record_before_writing(dir, vec![p.clone()]).with_context(index_context)?;
+    }
     moma_io::write_depth(&depth_path, depth)?;
+    if let Some(p) = provenance {
+        moma_io::record_aligned_files(dir, vec![p]).with_context(index_context)?;
+    }
     let ply_path = dir.join("scene.ply");
     moma_io::write_scene_ply(
         &ply_path,

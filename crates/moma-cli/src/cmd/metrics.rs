@@ -75,7 +75,10 @@ pub fn run(args: &MetricsArgs) -> Result<()> {
     }
     // a raw prediction listed as simulated, or a depth aligned from simulated predictions, is
     // labelled so in the numbers too, as every evaluation's results are
-    let simulated = super::common::simulated_depth_source(&args.pred)?;
+    let simulated = match super::common::depth_origin(&args.pred)? {
+        super::common::DepthOrigin::Simulated(index) => Some(index),
+        _ => None,
+    };
     if let Some(index) = &simulated {
         eprintln!(
             "note: {} is SIMULATED (not from a depth model's output; {}): these are not a depth \
