@@ -214,8 +214,14 @@ fn lock_index(dir: &Path) -> Result<std::fs::File> {
         .write(true)
         .open(&path)
         .map_err(|e| IoError::io(&path, "create the aligned-depth index lock", e))?;
-    file.lock()
-        .map_err(|e| IoError::io(&path, "lock the aligned-depth index", e))?;
+    file.lock().map_err(|e| {
+        IoError::io(
+            &path,
+            "lock the aligned-depth index (a file system without locks: write to a local \
+                 folder)",
+            e,
+        )
+    })?;
     Ok(file)
 }
 
