@@ -73,6 +73,10 @@ fn calibrate_align_metrics_end_to_end() {
         serde_json::from_str(&calibrate(&calib, &["--samples", "100", "--json"])).unwrap();
     assert_eq!(summary["method"], "ssra");
     assert_eq!(summary["n_used"], 100);
+    // the normalisation taken, the kind's default (the paper's for a disparity), and the kind
+    assert_eq!(summary["normalisation"]["method"], "minmax");
+    assert_eq!(summary["normalisation"]["space"], "inverse");
+    assert_eq!(summary["prediction_kind"], "relative-disparity");
 
     // LWLR's parameters hold its 100 samples: the terminal line counts them, the file keeps
     // them all
@@ -1125,17 +1129,7 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     assert_eq!(index["files"][0]["calibration"], s(&calib));
     // `grasp -o` writes the frame's depth with its provenance too
     let planned = tmp.path().join("planned");
-    ok(&[
-        "grasp",
-        "--calib",
-        s(&calib),
-        "--pred",
-        s(&frame1),
-        "--gripper",
-        "suction",
-        "-o",
-        s(&planned),
-    ]);
+    assert!(grasp(&["-o", s(&planned)]).status.success());
     let (simulated, err) = metrics(&planned.join("depth.npy"));
     assert!(simulated && err.contains("SIMULATED"), "{err}");
     // the same frame name aligned again into that folder from a sensor's metres (no index, a

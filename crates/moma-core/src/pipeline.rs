@@ -267,6 +267,11 @@ impl TryFrom<WorkspaceRle> for Workspace {
     }
 }
 
+/// Largest factor between the median depth a frame aligns to and the median ground truth its
+/// calibration was fitted on ([`Calibration::align`] refuses beyond it): no frame of a fixed
+/// camera's scene is a hundred times nearer or farther, and a unit mistake is a thousand.
+pub const PLAUSIBLE_OUTPUT_FACTOR: f64 = 100.0;
+
 /// A fitted calibration: apply it to any later prediction of the same camera.
 ///
 /// It owns what run time needs: the normalisation (formula and [`AlignSpace`]), the prediction
@@ -986,10 +991,62 @@ impl Calibration {
             }
             Some((grey, config)) => Some(self.realigned_into(pred, grey, config, out)?),
         };
+        self.check_plausible_output(&out.view())?;
         Ok(FrameReport {
             error_model: self.frame_error_model(realign.as_ref()),
             realign,
         })
+    }
+
+    /// Refuses an aligned map that no frame of the calibration's scene can be: no pixel with a
+    /// depth, or a median more than [`PLAUSIBLE_OUTPUT_FACTOR`] times off the median ground truth
+    /// the calibration was fitted on (a metric model's millimetres aligned by a calibration fitted
+    /// on its metres are 1 000 × too deep; the reverse gives no depth at all). The median is of
+    /// an even stride of about 1 000 pixels (a few µs).
+    fn check_plausible_output(&self, out: &ArrayView2<'_, f32>) -> Result<()> {
+        let valid = |z: &f32| z.is_finite() && *z > 0.0;
+        let stride = (out.len() / 1024).max(1);
+        let mut sampled: Vec<f32> = out.iter().step_by(stride).copied().filter(valid).collect();
+        if sampled.is_empty() {
+            // the stride may miss a small valid region: every pixel before refusing
+            if out.iter().any(valid) {
+                return Ok(());
+            }
+            return Err(CoreError::NoValidPixels(
+                "the aligned depth has no pixel with a positive depth: the prediction has no \
+                 valid value, or is not in the units the calibration was fitted on (metres for \
+                 millimetres?)"
+                    .into(),
+            ));
+        }
+        let mid = sampled.len() / 2;
+        let (_, &mut out_median, _) = sampled.select_nth_unstable_by(mid, f32::total_cmp);
+        let mut truth: Vec<f64> = self
+            .samples
+            .samples
+            .iter()
+            .map(|s| s.target)
+            .filter(|d| d.is_finite() && *d > 0.0)
+            .collect();
+        if truth.is_empty() {
+            return Ok(());
+        }
+        let mid = truth.len() / 2;
+        let (_, &mut truth_median, _) = truth.select_nth_unstable_by(mid, f64::total_cmp);
+        let ratio = f64::from(out_median) / truth_median;
+        if (1.0 / PLAUSIBLE_OUTPUT_FACTOR..=PLAUSIBLE_OUTPUT_FACTOR).contains(&ratio) {
+            return Ok(());
+        }
+        Err(CoreError::Degenerate(format!(
+            "the aligned depth's median, {out_median:.3} m, is {} the calibration's ground truth \
+             ({truth_median:.3} m): the prediction is not in the units the calibration was \
+             fitted on (millimetres for metres, or the reverse?), or not of its scene",
+            if ratio > 1.0 {
+                format!("{ratio:.0} × deeper than")
+            } else {
+                format!("1/{:.0} of", 1.0 / ratio)
+            }
+        )))
     }
 
     /// [`Calibration::align`] into a new map, with the σ map when [`AlignOptions::sigma_map`]

@@ -668,3 +668,51 @@ fn a_ground_truth_beyond_any_sensor_is_refused() {
     )
     .unwrap();
 }
+
+/// A prediction in other units than the calibration's is refused, not aligned to metres a
+/// thousand times off (a metric model's millimetres under a calibration fitted on its metres, or
+/// the reverse), and a map with no valid value gives an error, not an all-NaN map. Within a factor
+/// of 100 of the calibration's ground truth a frame aligns as before.
+#[test]
+fn a_prediction_in_other_units_is_refused_not_aligned() {
+    let (gt, _) = scene();
+    let metres = Prediction::new(gt.depth_m.clone(), PredictionKind::MetricDepth);
+    let cal = calibrate(
+        &[CalibrationFrame::new(&metres, &gt)],
+        &config(Method::Gssa),
+    )
+    .unwrap();
+    let scaled = |k: f32| Prediction::new(gt.depth_m.mapv(|z| z * k), PredictionKind::MetricDepth);
+    // a frame 3 × deeper still aligns (3 × the metres: the calibration is the identity)
+    let out = cal.aligned(&scaled(3.0), &AlignOptions::default()).unwrap();
+    assert!((out.depth.depth_m[[60, 80]] - 3.0 * gt.depth_m[[60, 80]]).abs() < 1e-4);
+    let e = cal
+        .aligned(&scaled(1000.0), &AlignOptions::default())
+        .unwrap_err();
+    let m = e.to_string();
+    assert!(
+        m.contains("× deeper than the calibration's ground truth")
+            && m.contains("millimetres for metres"),
+        "{m}"
+    );
+    let e = cal
+        .aligned(&scaled(1e-3), &AlignOptions::default())
+        .unwrap_err();
+    assert!(e.to_string().contains("is 1/"), "{e}");
+    // every value ≤ 0: a metric prediction with no valid value (the normalisation says so)
+    let e = cal.aligned(&scaled(0.0), &AlignOptions::default());
+    assert!(matches!(&e, Err(CoreError::NoValidPixels(_))), "{e:?}");
+    // valid values that the fit takes below zero everywhere (a calibration fitted on metres
+    // + 5, given the metres): no depth anywhere is an error, not an all-NaN map
+    let shifted = Prediction::new(gt.depth_m.mapv(|z| z + 5.0), PredictionKind::MetricDepth);
+    let cal = calibrate(
+        &[CalibrationFrame::new(&shifted, &gt)],
+        &config(Method::Gssa),
+    )
+    .unwrap();
+    let e = cal.aligned(&metres, &AlignOptions::default());
+    assert!(
+        matches!(&e, Err(CoreError::NoValidPixels(m)) if m.contains("no pixel with a positive depth")),
+        "{e:?}"
+    );
+}

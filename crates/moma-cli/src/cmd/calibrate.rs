@@ -95,8 +95,8 @@ pub struct CalibrateArgs {
     #[arg(short, long, visible_alias = "out", value_name = "FILE")]
     pub output: PathBuf,
     /// Print the calibration summary as JSON on stdout: output, method, frames, n_used,
-    /// rms_residual_m, fit_time_s, predicted_error, model, simulated_predictions,
-    /// sample_reach {p90_px, uniform_p90_px, partial}; robust and grasp_check when asked for.
+    /// rms_residual_m, fit_time_s, predicted_error, model, normalisation {method, space},
+    /// prediction_kind, simulated_predictions, sample_reach {p90_px, uniform_p90_px, partial}; robust and grasp_check when asked for.
     #[arg(long)]
     pub json: bool,
     /// Store the anchor store for per-frame re-alignment (`moma align --realign anchors`): the
@@ -496,6 +496,9 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                 "rms_m": cv.rms_m,
             })),
             "model": file.calibration.model,
+            // the normalisation taken (its default depends on the kind) and the kind
+            "normalisation": file.calibration.normalisation,
+            "prediction_kind": file.calibration.prediction_kind,
             "simulated_predictions": source.simulated,
         });
         if let (Some(r), Some(obj)) = (reach, summary.as_object_mut()) {
