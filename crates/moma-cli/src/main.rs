@@ -91,7 +91,18 @@ fn command() -> clap::Command {
     negative_numbers_as_values(Cli::command())
 }
 
+/// A closed stdout (`moma calibrate … | head -1`) ends the program quietly, as it ends any Unix
+/// filter: Rust ignores SIGPIPE, and `println!` then panicked on the broken pipe.
+fn end_quietly_on_a_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: restores SIGPIPE's default disposition before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> std::process::ExitCode {
+    end_quietly_on_a_closed_pipe();
     let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
     let result = match &cli.command {
         Command::Calibrate(args) => cmd::calibrate::run(args),

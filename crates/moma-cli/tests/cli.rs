@@ -1885,3 +1885,35 @@ fn too_few_samples_to_cross_validate_say_how_many() {
         ok(&args);
     }
 }
+
+/// A closed stdout (`moma calibrate … | head -1`) ends the program quietly: `println!` panicked on
+/// the broken pipe, with a backtrace on stderr.
+#[cfg(unix)]
+#[test]
+fn a_closed_stdout_ends_quietly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args([
+            "calibrate",
+            "--pred",
+            s(&pred.join("frame_00.npy")),
+            "--gt",
+            s(&scene.join("frames/frame_00/depth.png")),
+            "-o",
+            s(&tmp.path().join("c.json")),
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // the reader goes away before the calibration prints anything
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    // ended by SIGPIPE, as `cat` would be, after the file was written
+    use std::os::unix::process::ExitStatusExt;
+    assert_eq!(out.status.signal(), Some(13), "{:?}", out.status);
+    assert!(tmp.path().join("c.json").is_file());
+}

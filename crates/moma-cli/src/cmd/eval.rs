@@ -131,7 +131,8 @@ pub struct EvalOptions {
     /// metric-depth predictions.
     #[arg(long, value_delimiter = ',', value_name = "METHODS")]
     pub methods: Vec<Method>,
-    /// Normalisation(s), comma-separated: minmax (paper), minmax-unit, median, none. Default:
+    /// Normalisation(s), comma-separated (`moma eval`; `grasp-eval` plans with one): minmax
+    /// (paper), minmax-unit, median, none. Default:
     /// the predictions' kind's, as `moma calibrate` takes it: minmax for relative-disparity
     /// (the paper's), minmax-unit for metric-depth and relative-depth (docs/evaluation.md).
     #[arg(long, value_delimiter = ',', value_name = "NORMS")]
