@@ -92,7 +92,9 @@ fn command() -> clap::Command {
 }
 
 /// A closed stdout (`moma calibrate … | head -1`) ends the program quietly, as it ends any Unix
-/// filter: Rust ignores SIGPIPE, and `println!` then panicked on the broken pipe.
+/// filter: Rust ignores SIGPIPE, and `println!` then panicked on the broken pipe. Not for the
+/// ROS 2 node and replay, which run for hours on sockets: a broken connection there stays an
+/// error to handle, never a signal that ends the node.
 fn end_quietly_on_a_closed_pipe() {
     #[cfg(unix)]
     // SAFETY: restores SIGPIPE's default disposition before any thread starts.
@@ -102,8 +104,10 @@ fn end_quietly_on_a_closed_pipe() {
 }
 
 fn main() -> std::process::ExitCode {
-    end_quietly_on_a_closed_pipe();
     let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
+    if !matches!(cli.command, Command::Ros2(_) | Command::Ros2Replay(_)) {
+        end_quietly_on_a_closed_pipe();
+    }
     let result = match &cli.command {
         Command::Calibrate(args) => cmd::calibrate::run(args),
         Command::Align(args) => cmd::align::run(args),
