@@ -361,7 +361,9 @@ fn bad_input_is_a_clear_error() {
         &["--pred-kind", "relative-disparity"],
     ));
     assert!(
-        err.contains("nan.npy") && err.contains("non-finite"),
+        err.contains("nan.npy")
+            && err.contains("non-finite")
+            && err.contains("without a value by 0 or a negative number"),
         "{err}"
     );
 
@@ -1163,7 +1165,12 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     // a run that fails on a frame records nothing for it: the earlier run's SIMULATED entry of
     // frame_01 stays beside the new frame_00
     let b = tmp.path().join("b");
-    ok(&align_args(&calib, &frame1, &b, &[]));
+    let text = ok(&align_args(&calib, &frame1, &b, &[]));
+    // the summary names the normalisation (the kind's default: the paper's for a disparity)
+    assert!(
+        text.contains("with ssra (normalisation minmax) into"),
+        "{text}"
+    );
     let small = tmp.path().join("small");
     std::fs::create_dir_all(&small).unwrap();
     moma_io::write_npy_f32(

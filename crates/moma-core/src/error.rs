@@ -24,7 +24,8 @@ pub enum CoreError {
     },
     /// A prediction map holds NaN or infinite values.
     #[error(
-        "prediction holds {count} non-finite value(s) (NaN/inf), first at pixel (u={u}, v={v})"
+        "prediction holds {count} non-finite value(s) (NaN/inf), first at pixel (u={u}, v={v}) \
+         (a metric-depth prediction marks a pixel without a value by 0 or a negative number)"
     )]
     NonFinitePrediction { count: usize, u: usize, v: usize },
     /// No valid pixel where one is needed (all-invalid ground truth, empty mask, ...).

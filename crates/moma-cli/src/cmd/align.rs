@@ -482,10 +482,12 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let mut times: Vec<f64> = summaries.iter().map(|s| s.align_ms).collect();
         times.sort_by(f64::total_cmp);
         println!(
-            "aligned {} {}frame(s) with {} into {} (median alignment {:.2} ms per frame)",
+            "aligned {} {}frame(s) with {} (normalisation {}) into {} (median alignment {:.2} ms \
+             per frame)",
             summaries.len(),
             if simulated { "SIMULATED " } else { "" },
             calib.method,
+            calib.calibration.normalisation.method,
             args.output.display(),
             times[times.len() / 2]
         );
