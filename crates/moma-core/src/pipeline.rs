@@ -66,8 +66,8 @@ use crate::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise_view,
 };
 use crate::realign::{
-    AnchorStore, CorrectionModel, GreyHalf, RealignConfig, RealignReport, realign_in_place,
-    realign_prediction_affine,
+    AnchorStore, CorrectionModel, GreyHalf, RealignConfig, RealignReport, median_in_place,
+    realign_in_place, realign_prediction_affine,
 };
 use crate::sampling::{SamplingConfig, SamplingStrategy, sample_pixels};
 
@@ -1004,12 +1004,16 @@ impl Calibration {
     /// on its metres are 1 000 × too deep; the reverse gives no depth at all). The median is of
     /// an even stride of about 1 000 pixels (a few µs).
     fn check_plausible_output(&self, out: &ArrayView2<'_, f32>) -> Result<()> {
-        let valid = |z: &f32| z.is_finite() && *z > 0.0;
         let stride = (out.len() / 1024).max(1);
-        let mut sampled: Vec<f32> = out.iter().step_by(stride).copied().filter(valid).collect();
-        if sampled.is_empty() {
+        let mut sampled: Vec<f32> = out
+            .iter()
+            .step_by(stride)
+            .copied()
+            .filter(|&z| crate::is_valid_depth(z))
+            .collect();
+        let Some(out_median) = median_in_place(&mut sampled) else {
             // the stride may miss a small valid region: every pixel before refusing
-            if out.iter().any(valid) {
+            if out.iter().any(|&z| crate::is_valid_depth(z)) {
                 return Ok(());
             }
             return Err(CoreError::NoValidPixels(
@@ -1018,22 +1022,18 @@ impl Calibration {
                  millimetres?)"
                     .into(),
             ));
-        }
-        let mid = sampled.len() / 2;
-        let (_, &mut out_median, _) = sampled.select_nth_unstable_by(mid, f32::total_cmp);
-        let mut truth: Vec<f64> = self
+        };
+        let mut truth: Vec<f32> = self
             .samples
             .samples
             .iter()
-            .map(|s| s.target)
-            .filter(|d| d.is_finite() && *d > 0.0)
+            .map(|s| s.target as f32)
+            .filter(|&d| crate::is_valid_depth(d))
             .collect();
-        if truth.is_empty() {
+        let Some(truth_median) = median_in_place(&mut truth) else {
             return Ok(());
-        }
-        let mid = truth.len() / 2;
-        let (_, &mut truth_median, _) = truth.select_nth_unstable_by(mid, f64::total_cmp);
-        let ratio = f64::from(out_median) / truth_median;
+        };
+        let ratio = f64::from(out_median) / f64::from(truth_median);
         if (1.0 / PLAUSIBLE_OUTPUT_FACTOR..=PLAUSIBLE_OUTPUT_FACTOR).contains(&ratio) {
             return Ok(());
         }

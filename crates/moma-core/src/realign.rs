@@ -682,7 +682,8 @@ pub struct Anchors {
     pub gain: Option<f64>,
 }
 
-fn median_in_place(xs: &mut [f32]) -> Option<f32> {
+/// The (upper) median of `xs`, reordering them; `None` when empty.
+pub(crate) fn median_in_place(xs: &mut [f32]) -> Option<f32> {
     if xs.is_empty() {
         return None;
     }

@@ -898,11 +898,8 @@ impl<'a> Prepared<'a> {
     /// The first of [`Prepared::norms`]: the one normalisation a grasp evaluation plans with and
     /// the demo's figures show.
     pub fn first_norm(&self) -> Normalisation {
-        self.config
-            .norms
-            .first()
-            .copied()
-            .unwrap_or_else(|| moma_core::policy::default_normalisation(self.kind()))
+        // never empty: the configuration's, or the default
+        self.norms()[0]
     }
 
     /// The normalisation a method is evaluated with: RAW always `none` in depth space, the

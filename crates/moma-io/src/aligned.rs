@@ -110,13 +110,23 @@ pub fn aligned_index_path(dir: &Path) -> PathBuf {
     dir.join(ALIGNED_INDEX_FILE)
 }
 
-/// Whether a JSON value is another tool's file (its `format` is not moma's index's).
-fn foreign(value: &serde_json::Value) -> bool {
-    value.get("format").and_then(|f| f.as_str()) != Some(ALIGNED_FORMAT)
+/// What a folder's file of the index's name holds.
+enum Found {
+    /// moma's index.
+    Ours(AlignedIndex),
+    /// Another tool's JSON file (its `format` is not moma's index's).
+    Foreign,
 }
 
-/// Reads the index at `path` (which exists): `Ok(Err(()))` for a JSON file that is not moma's.
-fn read_at(path: &Path) -> Result<std::result::Result<AlignedIndex, ()>> {
+/// Reads the file of the index's name at `path`; `Ok(None)` when there is none.
+///
+/// # Errors
+/// Something of that name that is not a file, not JSON, or moma's index of a newer version or
+/// broken.
+fn read_at(path: &Path) -> Result<Option<Found>> {
+    if std::fs::symlink_metadata(path).is_err() {
+        return Ok(None);
+    }
     if !path.is_file() {
         return Err(IoError::invalid(
             path,
@@ -126,8 +136,8 @@ fn read_at(path: &Path) -> Result<std::result::Result<AlignedIndex, ()>> {
     let text = crate::json_files::read_json_text(path, "aligned-depth index")?;
     let value: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| IoError::json(path, &e))?;
-    if foreign(&value) {
-        return Ok(Err(()));
+    if value.get("format").and_then(|f| f.as_str()) != Some(ALIGNED_FORMAT) {
+        return Ok(Some(Found::Foreign));
     }
     match value.get("version").and_then(serde_json::Value::as_u64) {
         Some(v) if (1..=u64::from(ALIGNED_VERSION)).contains(&v) => {}
@@ -143,7 +153,7 @@ fn read_at(path: &Path) -> Result<std::result::Result<AlignedIndex, ()>> {
         }
     }
     serde_json::from_value(value)
-        .map(Ok)
+        .map(|index| Some(Found::Ours(index)))
         .map_err(|e| IoError::invalid(path, format!("not a valid aligned-depth index: {e}")))
 }
 
@@ -154,12 +164,10 @@ fn read_at(path: &Path) -> Result<std::result::Result<AlignedIndex, ()>> {
 /// index, whether another tool's or a corrupt or newer one.
 pub fn read_aligned_index(dir: &Path) -> Result<Option<AlignedIndex>> {
     let path = aligned_index_path(dir);
-    if std::fs::symlink_metadata(&path).is_err() {
-        return Ok(None);
-    }
     match read_at(&path)? {
-        Ok(index) => Ok(Some(index)),
-        Err(()) => Err(IoError::invalid(
+        None => Ok(None),
+        Some(Found::Ours(index)) => Ok(Some(index)),
+        Some(Found::Foreign) => Err(IoError::invalid(
             &path,
             format!(
                 "format is not '{ALIGNED_FORMAT}': another tool's file; moma keeps its \
@@ -175,17 +183,11 @@ pub fn read_aligned_index(dir: &Path) -> Result<Option<AlignedIndex>> {
 /// A file named like the index that is moma's but cannot be read (corrupt, newer version, not a
 /// file): a SIMULATED label is never dropped silently.
 pub fn provenance_of(file: &Path) -> Result<Provenance> {
-    let dir = match file.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let path = aligned_index_path(dir);
-    if std::fs::symlink_metadata(&path).is_err() {
-        return Ok(Provenance::Unlisted);
-    }
+    let path = aligned_index_path(crate::predictions::folder_of(file));
     let index = match read_at(&path)? {
-        Ok(index) => index,
-        Err(()) => return Ok(Provenance::ForeignIndex(path)),
+        None => return Ok(Provenance::Unlisted),
+        Some(Found::Foreign) => return Ok(Provenance::ForeignIndex(path)),
+        Some(Found::Ours(index)) => index,
     };
     let name = file.file_name().and_then(|n| n.to_str()).unwrap_or("");
     Ok(match index.entry(name) {

@@ -548,9 +548,10 @@ pub fn read_metric_depth(path: &Path, flag: &str, hint: &str) -> Result<moma_cor
 
 /// What the folder of a metric depth file says of where it came from.
 pub enum DepthOrigin {
-    /// SIMULATED, as the index at this path says: a raw prediction its `predictions.json` lists
-    /// as simulated, or a depth that `moma align`, `grasp -o` or `demo` wrote from simulated
-    /// predictions (the folder's `aligned.json`).
+    /// SIMULATED, as the file at this path says: the `predictions.json` that lists a raw
+    /// prediction as simulated, the folder's `aligned.json` for a depth that `moma align`,
+    /// `grasp -o` or `demo` wrote from simulated predictions, or (`moma grasp --calib`) the
+    /// calibration fitted on them.
     Simulated(PathBuf),
     /// Nothing says it is simulated.
     NotSimulated,
