@@ -6,7 +6,8 @@
 //! ```json
 //! {"format": "moma-aligned", "version": 1,
 //!  "files": [{"file": "clutter_1.depth.npy", "simulated": true, "written_by": "moma align",
-//!             "calibration": "calib.json", "method": "ssra", "input": "preds/clutter_1.npy"}]}
+//!             "calibration": "/cell/calib.json", "method": "ssra",
+//!             "input": "/cell/preds/clutter_1.npy"}]}
 //! ```
 //!
 //! Entries are file names in the index's folder. A writer records each file before it writes it
@@ -39,13 +40,14 @@ pub struct AlignedFile {
     pub simulated: bool,
     /// The command that wrote it (`moma align`, ...).
     pub written_by: String,
-    /// The calibration file, as given.
+    /// The calibration file, as an absolute path ([`recorded_path`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<String>,
     /// The alignment method.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub method: Option<String>,
-    /// The prediction (or image) it was aligned from, as given.
+    /// The prediction (or image, or depth) it was made from, as an absolute path
+    /// ([`recorded_path`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input: Option<String>,
 }
@@ -103,6 +105,16 @@ pub enum Provenance {
     /// A file named like the index that is not moma's (another tool's `aligned.json`): it says
     /// nothing about the depth.
     ForeignIndex(PathBuf),
+}
+
+/// How an index records a file it names: an absolute path (made so against the current
+/// directory, without resolving links), so that the entry means the same file whatever folder
+/// it is read from. A path that cannot be made absolute is kept as given.
+pub fn recorded_path(path: &Path) -> String {
+    std::path::absolute(path)
+        .unwrap_or_else(|_| path.to_path_buf())
+        .display()
+        .to_string()
 }
 
 /// The path of the index in `dir`.

@@ -65,7 +65,7 @@ mod set;
 pub use aligned::{
     ALIGNED_FORMAT, ALIGNED_INDEX_FILE, ALIGNED_LOCK_FILE, ALIGNED_VERSION, AlignedFile,
     AlignedIndex, Provenance, aligned_index_path, provenance_of, read_aligned_index,
-    record_aligned_files, record_before_writing,
+    record_aligned_files, record_before_writing, recorded_path,
 };
 pub use atomic::{atomic_write, same_file};
 pub use calibration::{

@@ -117,12 +117,29 @@ fn legacy_depth_kind(
         let head = &m["head"];
         head.as_str() == Some("metric") || head["head"].as_str() == Some("metric")
     });
-    let says_metric = source.is_some_and(|s| s.to_ascii_lowercase().contains("metric depth"));
+    let says_metric = source.is_some_and(says_metric_depth);
     if metric_head || simulated || says_metric {
         PredictionKind::MetricDepth
     } else {
         PredictionKind::RelativeDepth
     }
+}
+
+/// Whether a hand-written `source` says its maps are metric depth: "metric depth" that no
+/// "not", "no" or "non" before it negates ("not metric depth", "non-metric depth" and "no metric
+/// depth" say the opposite).
+fn says_metric_depth(source: &str) -> bool {
+    const PHRASE: &str = "metric depth";
+    let text = source.to_ascii_lowercase();
+    text.match_indices(PHRASE).any(|(at, _)| {
+        let before = text[..at].trim_end_matches([' ', '-']);
+        let last_word = before
+            .rsplit(|c: char| !c.is_ascii_alphanumeric() && c != '\'')
+            .next()
+            .unwrap_or("");
+        // "non-metric" is one word before the hyphen is trimmed
+        !matches!(last_word, "not" | "no" | "non" | "isn't" | "nor" | "never")
+    })
 }
 
 /// The common fields a writer puts at the top of `predictions.json` (flatten it into the
@@ -442,6 +459,18 @@ mod tests {
             (
                 r#""prediction_kind": "depth", "source": "MiDaS""#,
                 RelativeDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "MiDaS: relative, not metric depth""#,
+                RelativeDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "a non-metric depth model""#,
+                RelativeDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "no metric depth here, but metric depth from DA3 in b/""#,
+                MetricDepth,
             ),
         ];
         for (fields, want) in cases {

@@ -577,6 +577,19 @@ fn moma_set_writer_then_open() {
 /// back for the listed files only; another tool's file of that name says nothing (and is never
 /// overwritten); a corrupt or newer one of moma's is an error.
 #[test]
+fn the_aligned_index_records_absolute_paths() {
+    let cwd = std::env::current_dir().unwrap();
+    let relative = std::path::Path::new("cell").join("calib.json");
+    // made absolute against the working directory, the file need not exist, links not resolved
+    assert_eq!(
+        recorded_path(&relative),
+        cwd.join("cell").join("calib.json").display().to_string()
+    );
+    let absolute = std::env::temp_dir().join("x.npy");
+    assert_eq!(recorded_path(&absolute), absolute.display().to_string());
+}
+
+#[test]
 fn the_aligned_index_records_merges_and_refuses_what_is_not_its_own() {
     let dir = tempfile::tempdir().unwrap();
     let entry = |file: &str, simulated: bool| AlignedFile {

@@ -227,6 +227,9 @@ struct FrameSummary {
     name: String,
     input: PathBuf,
     outputs: Vec<PathBuf>,
+    /// The calibration's alignment method and normalisation (`ssra`, `minmax`, ...).
+    method: String,
+    normalisation: String,
     valid_pixels: usize,
     /// Per-frame re-alignment report (with --realign).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -328,9 +331,9 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             file,
             simulated,
             written_by: "moma align".into(),
-            calibration: Some(args.calib.display().to_string()),
+            calibration: Some(moma_io::recorded_path(&args.calib)),
             method: Some(calib.method.to_string()),
-            input: Some(input.display().to_string()),
+            input: Some(moma_io::recorded_path(input)),
         };
         vec![
             entry(format!("{name}.depth.png")),
@@ -434,6 +437,8 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             name: input.name,
             input: input.path,
             outputs,
+            method: calib.method.to_string(),
+            normalisation: calib.calibration.normalisation.method.to_string(),
             valid_pixels: depth.valid_count(),
             realign,
             align_ms,

@@ -444,9 +444,9 @@ pub fn run(args: &GraspArgs) -> Result<()> {
                 file: "depth.npy".into(),
                 simulated: matches!(known, DepthOrigin::Simulated(_)),
                 written_by: "moma grasp".into(),
-                calibration: args.calib.as_ref().map(|p| p.display().to_string()),
+                calibration: args.calib.as_deref().map(moma_io::recorded_path),
                 method: None,
-                input: Some(depth_name.clone()),
+                input: Some(moma_io::recorded_path(Path::new(&depth_name))),
             }),
         };
         let written = write_outputs(dir, &outcome, &gripper, &depth, &camera, rgb, provenance)?;
