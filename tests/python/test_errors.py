@@ -185,6 +185,16 @@ def test_millimetres_are_refused_where_metres_are_expected(cal):
             moma.metrics(mm, gt)
         with pytest.raises(moma.InvalidInputError, match=says):
             cal.sigma_map(mm)
+    # the reverse: metres divided by 1000 once too often (a scene a millimetre away)
+    km = gt / 1000.0
+    for call in (
+        lambda: moma.calibrate(pred, km, kind="relative-disparity"),
+        lambda: moma.plan_grasps(km, cam),
+        lambda: moma.metrics(km, gt),
+        lambda: cal.sigma_map(km),
+    ):
+        with pytest.raises(moma.InvalidInputError, match="no scene a camera grasps in is that near"):
+            call()
     with pytest.raises(moma.InvalidInputError, match="dtype bool"):
         moma.metrics(np.ones(gt.shape, bool), gt)
     # metres pass, in any float dtype

@@ -6,7 +6,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{align_args, calibrate_frame_00, demo, fails, moma, ok, s, shared_dir};
+use common::{
+    align_args, calibrate_args, calibrate_frame_00, demo, demo_frame, fails, moma, ok, s,
+    shared_dir,
+};
 
 /// docs/method.md §3, written independently of moma-core: (d105, d110, d125, rel, rmse, mae, n).
 fn reference_metrics(pred: &Path, gt: &Path, mask: &Path) -> [f64; 7] {
@@ -324,6 +327,29 @@ fn bad_input_is_a_clear_error() {
     );
     assert!(!a.exists());
 
+    // An output folder that is a file, and a calibration output that is a folder: named as such.
+    let file = tmp.path().join("a_file");
+    std::fs::write(&file, "x").unwrap();
+    let err = fails(&align_args(
+        &calib,
+        &frame1,
+        &file,
+        &["--pred-kind", "relative-disparity"],
+    ));
+    assert!(
+        err.contains("a_file") && err.contains("is a file, not a directory"),
+        "{err}"
+    );
+    let (pred0, gt0) = demo_frame(&scene, &pred, 0);
+    let err = fails(&calibrate_args(&[&pred0], &[&gt0], &["-o", s(tmp.path())]));
+    assert!(err.contains("is a directory (give a file name"), "{err}");
+    let err = fails(&calibrate_args(
+        &[&pred0],
+        &[&gt0],
+        &["-o", s(&file.join("c.json"))],
+    ));
+    assert!(err.contains("is a file, not a directory"), "{err}");
+
     // --ply without intrinsics.
     let err = fails(&align_args(
         &calib,
@@ -363,7 +389,7 @@ fn bad_input_is_a_clear_error() {
     assert!(
         err.contains("nan.npy")
             && err.contains("non-finite")
-            && err.contains("without a value by 0 or a negative number"),
+            && err.contains("a relative prediction has a value at every pixel"),
         "{err}"
     );
 

@@ -142,12 +142,20 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     assert!(out.status.success());
     assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "[]");
     assert!(String::from_utf8_lossy(&out.stderr).contains("below the minimum"));
+    // a σ meant in millimetres plans, with a note saying so
+    let out = common::moma(&[&on_calib("suction")[..], &["--json", "--sigma-m", "10"]].concat());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && err.contains("millimetres?"),
+        "{err}"
+    );
 
     // the σ map: metres, beside the depth, finite where the depth is
-    let sigma = moma_io::read_depth(aligned_dir.join("frame_01.sigma.npy")).unwrap();
+    // (a σ of millimetres is no depth map: `read_depth` refuses a median that near)
+    let sigma = moma_io::read_npy_f32(aligned_dir.join("frame_01.sigma.npy")).unwrap();
     let depth = moma_io::read_depth(&aligned).unwrap();
-    assert_eq!(sigma.size(), depth.size());
-    for (z, sg) in depth.depth_m.iter().zip(sigma.depth_m.iter()) {
+    assert_eq!(moma_core::ImageSize::of(&sigma.view()), depth.size());
+    for (z, sg) in depth.depth_m.iter().zip(sigma.iter()) {
         assert_eq!(z.is_finite(), sg.is_finite());
     }
     assert!(aligned_dir.join("frame_01.sigma.png").is_file());
@@ -171,13 +179,22 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
     let e = fails(&[&depth_args("suction")[..], &realign[..]].concat());
     assert!(e.contains("--realign") && e.contains("calibration"), "{e}");
     for (flag, value, says) in [
-        ("--grasp-draws", "0", "draws"),
+        ("--grasp-draws", "0", "--grasp-draws must be at least 1"),
         ("--grasp-draws", "-1", "--grasp-draws"),
-        ("--min-success-prob", "1.5", "[0, 1]"),
+        (
+            "--min-success-prob",
+            "1.5",
+            "--min-success-prob 1.5 is outside [0, 1]",
+        ),
         (
             "--min-success-prob",
             "-0.1",
-            "minimum success probability -0.1 is outside [0, 1]",
+            "--min-success-prob -0.1 is outside [0, 1]",
+        ),
+        (
+            "--grasp-tie-tolerance",
+            "2",
+            "--grasp-tie-tolerance 2 is outside [0, 1]",
         ),
         ("--sigma-m", "-1", "sigma"),
     ] {

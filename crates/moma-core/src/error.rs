@@ -25,9 +25,20 @@ pub enum CoreError {
     /// A prediction map holds NaN or infinite values.
     #[error(
         "prediction holds {count} non-finite value(s) (NaN/inf), first at pixel (u={u}, v={v}) \
-         (a metric-depth prediction marks a pixel without a value by 0 or a negative number)"
+         ({})",
+        if *metric_depth {
+            "a metric-depth prediction marks a pixel without a value by 0 or a negative number"
+        } else {
+            "a relative prediction has a value at every pixel: NaN or inf is a broken output"
+        }
     )]
-    NonFinitePrediction { count: usize, u: usize, v: usize },
+    NonFinitePrediction {
+        count: usize,
+        u: usize,
+        v: usize,
+        /// Whether the prediction is `metric-depth` (which says what the hint is).
+        metric_depth: bool,
+    },
     /// No valid pixel where one is needed (all-invalid ground truth, empty mask, ...).
     #[error("no valid pixel: {0}")]
     NoValidPixels(String),

@@ -102,6 +102,7 @@ pub(crate) fn prepare(
             count: pred.iter().filter(|x| !x.is_finite()).count(),
             u: first % w,
             v: first / w,
+            metric_depth: positive_in,
         });
     }
     // No valid value: min stayed +inf, max −inf.

@@ -336,18 +336,40 @@ pub const MILLIMETRE_MEDIAN_M: f32 = 200.0;
 /// plausible map or one without valid pixels. The one rule for every reader of metres (the
 /// CLI's `.npy` / `.pfm` files, Python's arrays).
 pub fn millimetre_median(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
-    // The median (sorted[n / 2] of the n valid depths) is above the bound exactly when at
-    // least n − n / 2 of them are: one pass that allocates nothing decides the usual case (the
-    // check runs on every frame RAW aligns), and only a map in millimetres is sorted for the
-    // value its message names.
-    let (mut n, mut above) = (0usize, 0usize);
+    median_where(depth_m, |z| z > MILLIMETRE_MEDIAN_M, false)
+}
+
+/// Depth in metres below which a map's median says it is not metres: a uint16 millimetre PNG
+/// written from metres (values 0–5 for a scene 0–5 m away), or metres divided by 1000 twice.
+/// No sensor or depth model moma serves sees a median of 2 cm (a RealSense D405 starts at 7 cm).
+pub const NEAR_MEDIAN_M: f32 = 0.02;
+
+/// The median of a depth map's valid pixels ([`is_valid_depth`]) when it is below
+/// [`NEAR_MEDIAN_M`]: the map cannot be metres of a scene a robot grasps in. `None` for a
+/// plausible map or one without valid pixels.
+pub fn near_median(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
+    median_where(depth_m, |z| z < NEAR_MEDIAN_M, true)
+}
+
+/// The median of the valid depths when `beyond` holds for it, else `None`.
+fn median_where(
+    depth_m: ndarray::ArrayView2<'_, f32>,
+    beyond: impl Fn(f32) -> bool,
+    below: bool,
+) -> Option<f32> {
+    // The median (sorted[n / 2] of the n valid depths) is above a bound exactly when at least
+    // n − n / 2 of them are, and below it exactly when at least n / 2 + 1 are: one pass that
+    // allocates nothing decides the usual case (the check runs on every frame RAW aligns), and
+    // only a map whose median is beyond the bound is sorted for the value its message names.
+    let (mut n, mut count) = (0usize, 0usize);
     for &z in &depth_m {
         if is_valid_depth(z) {
             n += 1;
-            above += usize::from(z > MILLIMETRE_MEDIAN_M);
+            count += usize::from(beyond(z));
         }
     }
-    if n == 0 || above < n - n / 2 {
+    let needed = if below { n / 2 + 1 } else { n - n / 2 };
+    if n == 0 || count < needed {
         return None;
     }
     let mut valid: Vec<f32> = depth_m
@@ -400,6 +422,44 @@ mod millimetre_median_tests {
         }
         let none = ndarray::Array2::from_elem((2, 2), f32::NAN);
         assert_eq!(millimetre_median(none.view()), None);
+    }
+
+    /// The same for the lower bound: `sorted[n / 2]` of the valid depths below
+    /// [`NEAR_MEDIAN_M`], with values equal to it, on both parities.
+    #[test]
+    fn the_count_decides_as_the_median_does_below() {
+        let rule = |v: &[f32]| {
+            let mut valid: Vec<f32> = v.iter().copied().filter(|&z| is_valid_depth(z)).collect();
+            if valid.is_empty() {
+                return None;
+            }
+            valid.sort_by(f32::total_cmp);
+            let m = valid[valid.len() / 2];
+            (m < NEAR_MEDIAN_M).then_some(m)
+        };
+        for n in 1..=9usize {
+            for small in 0..=n {
+                for tie in [false, true] {
+                    let mut v: Vec<f32> = (0..n)
+                        .map(|i| {
+                            if i < small {
+                                // metres written into a millimetre PNG: 1–9 mm
+                                0.001 * (1 + i) as f32
+                            } else if tie {
+                                NEAR_MEDIAN_M
+                            } else {
+                                0.7 + i as f32 * 0.01
+                            }
+                        })
+                        .collect();
+                    v.extend([f32::NAN, 0.0, -1.0, f32::INFINITY]);
+                    let map = ndarray::Array2::from_shape_vec((1, v.len()), v.clone()).unwrap();
+                    assert_eq!(near_median(map.view()), rule(&v), "{v:?}");
+                }
+            }
+        }
+        let none = ndarray::Array2::from_elem((2, 2), f32::NAN);
+        assert_eq!(near_median(none.view()), None);
     }
 }
 

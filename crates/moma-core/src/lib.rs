@@ -62,8 +62,8 @@ pub use camera::{CameraPoint, Intrinsics, depth_to_points};
 pub use error::{CoreError, Result};
 pub use error_model::DepthErrorModel;
 pub use image::{
-    ImageSize, MILLIMETRE_MEDIAN_M, Mask, MetricDepth, Prediction, PredictionKind, is_valid_depth,
-    millimetre_median,
+    ImageSize, MILLIMETRE_MEDIAN_M, Mask, MetricDepth, NEAR_MEDIAN_M, Prediction, PredictionKind,
+    is_valid_depth, millimetre_median, near_median,
 };
 pub use normalise::{AlignSpace, Normalisation, NormalisationConfig};
 pub use pipeline::{

@@ -261,6 +261,7 @@ pub fn normalise_view(
             count: bad,
             u: first % w,
             v: first / w,
+            metric_depth: kind == PredictionKind::MetricDepth,
         });
     }
     // 2. kind conversion.

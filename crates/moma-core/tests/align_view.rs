@@ -253,7 +253,8 @@ fn fused_path_reports_the_unfused_errors() {
         Err(CoreError::NonFinitePrediction {
             count: 2,
             u: 9,
-            v: 4
+            v: 4,
+            ..
         })
     ));
     let constant = Array2::from_elem(SIZE.shape(), 0.5f32);

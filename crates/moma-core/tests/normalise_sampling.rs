@@ -151,14 +151,28 @@ fn normalisation_errors() {
     let mut a = array![[1.0f32, 2.0, 3.0], [4.0, 5.0, 6.0]];
     a[[0, 2]] = f32::NAN;
     a[[1, 1]] = f32::INFINITY;
-    let r = normalise(&depth(a), &cfg(Normalisation::Minmax), None);
+    let r = normalise(&depth(a.clone()), &cfg(Normalisation::Minmax), None);
     assert_eq!(
         r,
         Err(CoreError::NonFinitePrediction {
             count: 2,
             u: 2,
-            v: 0
+            v: 0,
+            metric_depth: false,
         })
+    );
+    // the message's hint follows the kind: only a metric depth has a marker for "no value"
+    let relative = r.unwrap_err().to_string();
+    assert!(
+        relative.contains("a relative prediction has a value at every pixel"),
+        "{relative}"
+    );
+    let metric = Prediction::new(a, PredictionKind::MetricDepth);
+    let r = normalise(&metric, &cfg(Normalisation::MinmaxUnit), None).unwrap_err();
+    assert!(
+        r.to_string()
+            .contains("marks a pixel without a value by 0 or a negative number"),
+        "{r}"
     );
 
     let constant = depth(Array2::from_elem((3, 4), 0.7));

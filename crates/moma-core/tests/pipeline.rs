@@ -172,7 +172,8 @@ fn pipeline_errors() {
         Err(CoreError::NonFinitePrediction {
             count: 1,
             u: 6,
-            v: 5
+            v: 5,
+            ..
         })
     ));
     // only 3 valid ground-truth pixels: too few for SSRA

@@ -30,8 +30,10 @@ impl From<Extrinsics> for [[f64; 4]; 4] {
     }
 }
 
-/// Largest camera-to-base translation accepted, metres.
-pub const MAX_TRANSLATION_M: f64 = 1.0e4;
+/// Largest camera-to-base translation accepted, metres. A camera that a robot grasps by sits
+/// within the arm's reach of its base (a gantry's a few metres); a translation of hundreds is
+/// millimetres given as metres, which would place every grasp 1 000 × too far.
+pub const MAX_TRANSLATION_M: f64 = 20.0;
 
 impl Extrinsics {
     /// Checks and wraps a camera→base matrix given as 4 rows.
@@ -47,13 +49,14 @@ impl Extrinsics {
                 "an entry is not a finite number".into(),
             ));
         }
-        // a robot's base is within kilometres of its camera: a translation beyond f32's range
-        // wrote `null` coordinates into the grasps' JSON (poses are f32)
+        // a robot's base is within metres of its camera: millimetres would place grasps 1 000 ×
+        // too far (and a translation beyond f32's range wrote `null` coordinates into the
+        // grasps' JSON, poses being f32)
         let t = [rows[0][3], rows[1][3], rows[2][3]];
         if t.iter().any(|v| v.abs() > MAX_TRANSLATION_M) {
             return Err(GraspError::NonRigidExtrinsics(format!(
                 "the translation {t:?} is beyond {MAX_TRANSLATION_M} m: not metres between a \
-                 camera and its robot's base"
+                 camera and its robot's base (millimetres? the translation is in metres)"
             )));
         }
         if rows[3] != [0.0, 0.0, 0.0, 1.0] {

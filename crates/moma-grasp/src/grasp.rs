@@ -194,10 +194,14 @@ impl std::fmt::Display for NoGraspReason {
                     write!(
                         f,
                         ": with {draws} depth draws no grasp can exceed {highest:.2}; lower the \
-                         minimum or raise the draws (--grasp-draws)"
+                         minimum or raise the draws (`--grasp-draws`, Python's `grasp_draws`)"
                     )
                 } else {
-                    write!(f, ": re-image the scene, or lower --min-success-prob")
+                    write!(
+                        f,
+                        ": re-image the scene, or lower the minimum (`--min-success-prob`, \
+                         Python's `min_success_prob`)"
+                    )
                 }
             }
             NoGraspReason::AllRejected {

@@ -121,15 +121,19 @@ fn non_rigid_extrinsics_are_rejected() {
         [0.0, 0.0, 1.0, 0.0],
         [0.0, 0.0, 0.0, 1.0],
     ];
-    let mut km = far;
-    km[0][3] = -1.0e4;
-    Extrinsics::new(km).unwrap();
+    let mut gantry = far;
+    gantry[0][3] = -20.0;
+    Extrinsics::new(gantry).unwrap();
+    // millimetres given as metres (a camera 0.1, 0.2, 0.5 m from the base)
+    let mut millimetres = far;
+    (millimetres[0][3], millimetres[1][3], millimetres[2][3]) = (100.0, 200.0, 500.0);
     for (m, word) in [
         (scaled, "orthonormal"),
         (reflection, "det"),
         (bad_row, "last row"),
         (nan, "finite"),
-        (far, "beyond 10000 m"),
+        (far, "beyond 20 m"),
+        (millimetres, "millimetres?"),
     ] {
         let err = Extrinsics::new(m).unwrap_err();
         assert!(matches!(err, GraspError::NonRigidExtrinsics(_)));

@@ -48,9 +48,20 @@ pub fn atomic_write<T>(
         _ => Path::new("."),
     };
     if !dir.is_dir() {
+        let why = if dir.exists() {
+            "is a file, not a directory"
+        } else {
+            "does not exist"
+        };
         return Err(IoError::invalid(
             path,
-            format!("cannot write: directory '{}' does not exist", dir.display()),
+            format!("cannot write: directory '{}' {why}", dir.display()),
+        ));
+    }
+    if path.is_dir() {
+        return Err(IoError::invalid(
+            path,
+            "cannot write: this is a directory (give a file name, e.g. DIR/calib.json)",
         ));
     }
     let mut builder = tempfile::Builder::new();

@@ -105,8 +105,9 @@ pub struct DepthWriteStats {
 /// # Errors
 /// Unsupported extension or pixel type/dtype/shape ([`IoError::Unsupported`]), missing file
 /// ([`IoError::Io`]), truncated or corrupt content ([`IoError::Corrupt`]), a `.npy` / `.pfm`
-/// whose valid median is above [`moma_core::MILLIMETRE_MEDIAN_M`] (millimetres given as metres;
-/// [`IoError::Invalid`]).
+/// whose valid median is above [`moma_core::MILLIMETRE_MEDIAN_M`] (millimetres given as metres),
+/// any map whose valid median is below [`moma_core::NEAR_MEDIAN_M`] (metres written as
+/// millimetres; [`IoError::Invalid`]).
 pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
     let path = path.as_ref();
     let depth_m = match DepthFormat::from_path(path)? {
@@ -130,6 +131,22 @@ pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
                  metres (divide by 1000, or save millimetres as a uint16 PNG; far background \
                  or sky stored as a large number: write it as NaN or 0, no depth)"
             ),
+        ));
+    }
+    // the reverse: metres written into a millimetre PNG (values 0–5), or metres divided by
+    // 1000 into a float file, would be a scene a few millimetres from the camera
+    if let Some(median) = moma_core::near_median(depth_m.view()) {
+        let mm = f64::from(median) * 1000.0;
+        let why = if DepthFormat::from_path(path)? == DepthFormat::Png16 {
+            "a uint16 depth PNG holds millimetres: this one looks like metres (or tenths) \
+             written as integers; write round(metres × 1000)"
+        } else {
+            ".npy and .pfm depth is in metres: this looks like kilometres, or metres divided \
+             by 1000 once too often"
+        };
+        return Err(IoError::invalid(
+            path,
+            format!("median depth {mm:.1} mm: no scene a camera grasps in is that near ({why})"),
         ));
     }
     Ok(MetricDepth::new(depth_m))

@@ -202,6 +202,43 @@ fn float_depth_in_millimetres_is_refused() {
     }
 }
 
+/// The reverse mistake: metres written into a millimetre PNG (a scene 0.6–0.65 m away stored as
+/// 0 and 1), and metres divided by 1000 into a float file, are refused by their median; a
+/// near object in a plausible scene still reads.
+#[test]
+fn depth_that_is_not_metres_by_being_too_near_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let metres = Array2::from_shape_fn((6, 8), |(r, c)| 0.6 + 0.001 * (r * 8 + c) as f32);
+    // a uint16 PNG of round(metres): 1 where valid (1 mm), as a user's cast would give
+    let png = dir.path().join("as_metres.png");
+    let ones = metres.mapv(|z| z.round());
+    moma_io::write_depth(
+        &png,
+        &moma_core::MetricDepth::new(ones.mapv(|z| z / 1000.0)),
+    )
+    .unwrap();
+    let m = msg(&read_depth(&png).unwrap_err());
+    assert!(
+        m.contains("as_metres.png") && m.contains("median depth 1.0 mm") && m.contains("metres"),
+        "{m}"
+    );
+    for name in ["km.npy", "km.pfm"] {
+        let p = dir.path().join(name);
+        let km = metres.mapv(|z| z / 1000.0);
+        moma_io::write_depth(&p, &moma_core::MetricDepth::new(km)).unwrap();
+        let m = msg(&read_depth(&p).unwrap_err());
+        assert!(
+            m.contains(name) && m.contains("median depth 0.6 mm") && m.contains("kilometres"),
+            "{m}"
+        );
+        // metres read; and a few pixels of an object 1 cm away do not move the median
+        let mut near = metres.clone();
+        near.row_mut(0).fill(0.01);
+        moma_io::write_depth(&p, &moma_core::MetricDepth::new(near.clone())).unwrap();
+        assert_eq!(read_depth(&p).unwrap().depth_m, near);
+    }
+}
+
 #[test]
 fn unknown_depth_extension() {
     let e = read_depth("/tmp/whatever.exr").unwrap_err();
@@ -1056,11 +1093,21 @@ fn failed_write_keeps_old_file_and_no_temporary() {
     assert!(r.is_err());
     assert_eq!(std::fs::read_to_string(&p).unwrap(), "old");
     assert_eq!(entries(dir.path()), ["keep.txt"]);
-    // Renaming over a directory fails after writing: the temporary file is removed too.
+    // A directory in the way is refused before anything is written.
     let d = dir.path().join("is_a_dir.npy");
     std::fs::create_dir(&d).unwrap();
-    assert!(write_depth(&d, &MetricDepth::new(array![[1.0f32]])).is_err());
+    let e = write_depth(&d, &MetricDepth::new(array![[1.0f32]])).unwrap_err();
+    assert!(msg(&e).contains("is a directory (give a file name"), "{e}");
     assert_eq!(entries(dir.path()), ["is_a_dir.npy", "keep.txt"]);
+    // a "directory" that is a file is named as such, not as missing
+    let e = write_depth(p.join("d.npy"), &MetricDepth::new(array![[1.0f32]])).unwrap_err();
+    assert!(msg(&e).contains("is a file, not a directory"), "{e}");
+    let e = write_depth(
+        dir.path().join("absent").join("d.npy"),
+        &MetricDepth::new(array![[1.0f32]]),
+    )
+    .unwrap_err();
+    assert!(msg(&e).contains("does not exist"), "{e}");
 }
 
 #[test]

@@ -217,7 +217,8 @@ pub fn f32_owned(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Array2<f32>> {
 
 /// A 2-D depth map in metres ([`f32_2d`]), refused when it can only be millimetres: an integer
 /// or bool dtype (a uint16 depth PNG holds millimetres), or a median over the valid pixels
-/// (finite, > 0) above [`moma_core::MILLIMETRE_MEDIAN_M`].
+/// (finite, > 0) above [`moma_core::MILLIMETRE_MEDIAN_M`], or one below
+/// [`moma_core::NEAR_MEDIAN_M`] (metres divided by 1000 again).
 ///
 /// # Errors
 /// As [`f32_2d`]; the two cases above, naming the argument and what to do.
@@ -240,6 +241,12 @@ pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonl
         return Err(value_err(format!(
             "{what} has a median depth of {median} m: it looks like millimetres (depth \
              arguments are metres: divide by 1000)"
+        )));
+    }
+    if let Some(median) = moma_core::near_median(ro.as_array()) {
+        return Err(value_err(format!(
+            "{what} has a median depth of {median} m: no scene a camera grasps in is that near \
+             (depth arguments are metres: divided by 1000 once too often?)"
         )));
     }
     Ok(ro)

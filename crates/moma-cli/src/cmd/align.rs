@@ -152,13 +152,13 @@ pub struct AlignArgs {
 /// Per-frame re-alignment on static anchors, as `moma align` and `moma grasp` take it.
 #[derive(Debug, Clone, Args)]
 pub struct RealignArgs {
-    /// Re-align every frame on static anchors (pixels unchanged since calibration, found in the
-    /// frame's RGB): needs a calibration made with `moma calibrate --anchors`; prints a
-    /// per-frame report (anchors, held-out RMSE before/after, accepted or why not).
+    /// Re-align each frame (`grasp`: the frame) on static anchors (pixels unchanged since
+    /// calibration, found in the frame's RGB): needs a calibration made with `moma calibrate
+    /// --anchors`; reports per frame (anchors, held-out RMSE before/after, accepted or why not).
     #[arg(long, value_enum, value_name = "MODE")]
     pub realign: Option<RealignArg>,
-    /// Each frame's RGB for --realign when the inputs are prediction files (one per input, same
-    /// order); not with --rgb inputs, whose own images are used.
+    /// The RGB of each frame for --realign when the inputs are prediction files (`align`: one
+    /// per input, same order; `grasp`: one); not with --rgb inputs, whose own images are used.
     #[arg(long, num_args = 1.., value_name = "IMG", requires = "realign", conflicts_with = "rgb")]
     pub realign_rgb: Vec<PathBuf>,
     #[command(flatten)]

@@ -694,6 +694,12 @@ pub fn print_json(value: &impl serde::Serialize) -> Result<()> {
 /// # Errors
 /// The directory cannot be created.
 pub fn create_dir(dir: &Path) -> Result<()> {
+    if dir.exists() && !dir.is_dir() {
+        bail!(
+            "cannot write into {}: it is a file, not a directory (the output is a folder)",
+            dir.display()
+        );
+    }
     std::fs::create_dir_all(dir)
         .with_context(|| format!("cannot create output directory {}", dir.display()))
 }
@@ -705,6 +711,11 @@ pub fn create_dir(dir: &Path) -> Result<()> {
 /// # Errors
 /// The file exists and cannot be removed.
 pub fn remove_earlier(path: &Path) -> Result<()> {
+    // nothing there: nothing to remove (a read-only file system answers a removal of a file
+    // that is not there with its own error, not "not found")
+    if path.symlink_metadata().is_err() {
+        return Ok(());
+    }
     match std::fs::remove_file(path) {
         Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
             Err(e).with_context(|| format!("removing the earlier {}", path.display()))

@@ -130,7 +130,7 @@ pub struct GraspArgs {
     #[arg(long)]
     pub json: bool,
     /// Output directory for grasps.json, overlay.png, scene.ply and depth.npy (created if missing).
-    #[arg(short, long, value_name = "DIR")]
+    #[arg(short, long, visible_alias = "out", value_name = "DIR")]
     pub output: Option<PathBuf>,
 }
 
@@ -195,6 +195,19 @@ impl PlanFlags {
         if self.top == 0 {
             bail!("--top must be at least 1");
         }
+        if self.grasp_draws == 0 {
+            bail!("--grasp-draws must be at least 1");
+        }
+        if let Some(p) = self.min_success_prob
+            && !(0.0..=1.0).contains(&p)
+        {
+            bail!("--min-success-prob {p} is outside [0, 1]");
+        }
+        if let Some(t) = self.grasp_tie_tolerance
+            && !(0.0..=1.0).contains(&t)
+        {
+            bail!("--grasp-tie-tolerance {t} is outside [0, 1]");
+        }
         Ok(())
     }
 
@@ -222,13 +235,18 @@ impl PlanFlags {
         if let Some(q) = self.grasp_quality {
             request.quality = q;
         }
+        // what is left is a combination: robust ranking or a minimum probability without an
+        // error model, or a calibration's error model out of range
         request.validate().map_err(|e| {
-            anyhow::Error::new(e)
-                .context("--grasp-quality / --grasp-draws / --min-success-prob / --sigma-m")
+            anyhow::Error::new(e).context("--grasp-quality / --min-success-prob / --sigma-m")
         })?;
         Ok(request)
     }
 }
+
+/// A uniform σ beyond which `--sigma-m` was most likely meant in millimetres: a depth error of
+/// 0.2 m is larger than any object a gripper takes.
+const SUSPICIOUS_SIGMA_M: f64 = 0.2;
 
 /// Reads and checks an extrinsics file (camera → robot base).
 ///
@@ -393,7 +411,15 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         .map(|p| moma_io::read_mask_sized(p, depth.size()))
         .transpose()?;
     let error_model = match args.sigma_m {
-        Some(sigma) => Some(moma_core::DepthErrorModel::uniform(sigma).context("--sigma-m")?),
+        Some(sigma) => {
+            if sigma > SUSPICIOUS_SIGMA_M {
+                eprintln!(
+                    "note: --sigma-m {sigma} is metres: an error of that size leaves no grasp a \
+                     chance (millimetres? 10 mm is --sigma-m 0.01)"
+                );
+            }
+            Some(moma_core::DepthErrorModel::uniform(sigma).context("--sigma-m")?)
+        }
         None => error_model,
     };
     let request = args.plan.request(
