@@ -103,10 +103,55 @@ fn end_quietly_on_a_closed_pipe() {
     }
 }
 
+/// Ctrl-C (SIGINT), SIGTERM and SIGHUP remove the temporary files of the outputs being
+/// written (`.NAME.XXXXXX.tmp`, tens of megabytes for a point cloud) before the program ends by
+/// the signal as before: the signals are blocked in every thread (the mask is inherited, so
+/// this runs before any thread starts) and one thread waits for them, cleans up through
+/// [`moma_io::remove_temporaries_in_flight`] and re-raises the signal with its default action.
+/// Not for the ROS 2 node and replay, which keep the signals' default disposition.
+fn remove_temporaries_on_a_signal() {
+    #[cfg(unix)]
+    // SAFETY: plain libc calls on a signal set this function owns; run before any other
+    // thread exists, so every later thread inherits the blocked mask.
+    unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
+            libc::sigaddset(&mut set, signal);
+        }
+        if libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut()) != 0 {
+            return;
+        }
+        let waiter = std::thread::Builder::new()
+            .name("moma-signals".into())
+            .spawn(move || {
+                let mut signal: libc::c_int = 0;
+                if libc::sigwait(&set, &mut signal) != 0 {
+                    return;
+                }
+                // the registry stays locked: no writer starts another temporary file
+                let _held = moma_io::remove_temporaries_in_flight();
+                libc::signal(signal, libc::SIG_DFL);
+                let mut only: libc::sigset_t = std::mem::zeroed();
+                libc::sigemptyset(&mut only);
+                libc::sigaddset(&mut only, signal);
+                libc::pthread_sigmask(libc::SIG_UNBLOCK, &only, std::ptr::null_mut());
+                libc::raise(signal);
+                // not reached: the default action of these signals ends the process
+                libc::_exit(128 + signal);
+            });
+        if waiter.is_err() {
+            // no thread to wait for them: the signals keep their default action
+            libc::pthread_sigmask(libc::SIG_UNBLOCK, &set, std::ptr::null_mut());
+        }
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
     if !matches!(cli.command, Command::Ros2(_) | Command::Ros2Replay(_)) {
         end_quietly_on_a_closed_pipe();
+        remove_temporaries_on_a_signal();
     }
     let result = match &cli.command {
         Command::Calibrate(args) => cmd::calibrate::run(args),

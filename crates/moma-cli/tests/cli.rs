@@ -1950,3 +1950,98 @@ fn a_closed_stdout_ends_quietly() {
     assert_eq!(out.status.signal(), Some(13), "{:?}", out.status);
     assert!(tmp.path().join("c.json").is_file());
 }
+
+/// Ctrl-C while outputs are being written: the program ends by the signal, as before, and
+/// leaves no temporary file (`.NAME.XXXXXX.tmp`, tens of megabytes for an ASCII point cloud)
+/// and no half-written output.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_run_leaves_no_temporary_files() {
+    use std::os::unix::process::ExitStatusExt;
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let calib = tmp.path().join("calib.json");
+    let camera = scene.join("camera.json");
+    calibrate_frame_00(
+        &scene,
+        &pred,
+        &calib,
+        &["--pred-kind", "relative-disparity", "--camera", s(&camera)],
+    );
+    // 24 frames (copies of one) with ASCII point clouds: seconds of writing
+    let inputs = tmp.path().join("inputs");
+    std::fs::create_dir_all(&inputs).unwrap();
+    let frames: Vec<PathBuf> = (0..24)
+        .map(|k| {
+            let p = inputs.join(format!("f{k:02}.npy"));
+            std::fs::copy(pred.join("frame_01.npy"), &p).unwrap();
+            p
+        })
+        .collect();
+    let out = tmp.path().join("out");
+    let temporaries = |dir: &Path| -> Vec<String> {
+        std::fs::read_dir(dir)
+            .map(|d| {
+                d.filter_map(|e| e.ok())
+                    .map(|e| e.file_name().to_string_lossy().into_owned())
+                    .filter(|n| n.ends_with(".tmp"))
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let mut child = Command::new(env!("CARGO_BIN_EXE_moma"))
+        .args(["align", "--calib", s(&calib), "--pred"])
+        .args(frames.iter().map(|p| s(p)))
+        .args([
+            "--pred-kind",
+            "relative-disparity",
+            "--ply",
+            "--ply-ascii",
+            "-o",
+            s(&out),
+        ])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // interrupt while a point cloud is being written
+    let started = std::time::Instant::now();
+    let seen = loop {
+        if temporaries(&out).iter().any(|n| n.contains(".ply.")) {
+            break true;
+        }
+        if child.try_wait().unwrap().is_some() || started.elapsed().as_secs() > 120 {
+            break false;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    };
+    assert!(
+        seen,
+        "the run ended before a point cloud's temporary file was seen"
+    );
+    // SAFETY: a signal to the child this test started and has not reaped.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    let status = child.wait().unwrap();
+    assert_eq!(status.signal(), Some(libc::SIGINT), "{status:?}");
+    assert_eq!(temporaries(&out), Vec::<String>::new());
+    // every point cloud there is complete: as many vertices as its header says
+    for entry in std::fs::read_dir(&out).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "ply") {
+            let text = std::fs::read_to_string(&path).unwrap();
+            let header_end = text.find("end_header\n").unwrap() + "end_header\n".len();
+            let vertices: usize = text
+                .lines()
+                .find_map(|l| l.strip_prefix("element vertex "))
+                .unwrap()
+                .parse()
+                .unwrap();
+            assert_eq!(
+                text[header_end..].lines().count(),
+                vertices,
+                "{}",
+                path.display()
+            );
+        }
+    }
+}

@@ -1,9 +1,50 @@
 //! Atomic file output: every writer of this crate goes through [`atomic_write`].
 
 use std::io::{BufWriter, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
 
 use crate::error::{IoError, Result};
+
+/// The temporary files [`atomic_write`] has open, so that a program ended by a signal can
+/// remove them first ([`remove_temporaries_in_flight`]): a temporary file is removed when its
+/// writer returns or unwinds, but a signal's default action ends the process without either.
+static IN_FLIGHT: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// The registry, whatever a thread that panicked while holding it left (a list of paths is
+/// consistent after any push or removal).
+fn in_flight() -> MutexGuard<'static, Vec<PathBuf>> {
+    IN_FLIGHT.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// One registered temporary file; leaves the registry when dropped (written, renamed or
+/// failed).
+struct Registered(PathBuf);
+
+impl Drop for Registered {
+    fn drop(&mut self) {
+        let mut list = in_flight();
+        if let Some(i) = list.iter().position(|p| *p == self.0) {
+            list.swap_remove(i);
+        }
+    }
+}
+
+/// Removes every temporary file an [`atomic_write`] has open in this process and returns the
+/// registry still locked: no writer can create another until the guard is dropped, so a
+/// program about to end on a signal holds it until it ends. The writers' destination files
+/// are untouched (the old file, or none). Returns how many were removed with the guard.
+///
+/// For signal handling in a program's own thread (not in a signal handler: it locks and
+/// allocates), as `moma`'s binary does for SIGINT, SIGTERM and SIGHUP.
+pub fn remove_temporaries_in_flight() -> (usize, MutexGuard<'static, Vec<PathBuf>>) {
+    let list = in_flight();
+    let removed = list
+        .iter()
+        .filter(|p| std::fs::remove_file(p).is_ok())
+        .count();
+    (removed, list)
+}
 
 /// Writes `path` atomically: `write` fills a temporary file created in the destination
 /// directory (named `.NAME.XXXXXX.tmp`), which is renamed over `path` only after `write` and
@@ -72,13 +113,22 @@ pub fn atomic_write<T>(
         use std::os::unix::fs::PermissionsExt;
         builder.permissions(std::fs::Permissions::from_mode(0o666));
     }
-    let mut tmp = builder.tempfile_in(dir).map_err(|e| {
-        IoError::io(
-            path,
-            "create a temporary file in the destination directory",
-            e,
-        )
-    })?;
+    // created and registered under the registry's lock: a signal's cleanup never misses a
+    // temporary file that exists
+    // (the registration is declared first, so dropped last: after the file it names)
+    let (_registered, mut tmp) = {
+        let mut list = in_flight();
+        let tmp = builder.tempfile_in(dir).map_err(|e| {
+            IoError::io(
+                path,
+                "create a temporary file in the destination directory",
+                e,
+            )
+        })?;
+        list.push(tmp.path().to_path_buf());
+        let registered = Registered(tmp.path().to_path_buf());
+        (registered, tmp)
+    };
     let value = {
         let mut w = BufWriter::new(tmp.as_file_mut());
         let value = write(&mut w)?;

@@ -67,7 +67,7 @@ pub use aligned::{
     AlignedIndex, Provenance, aligned_index_path, provenance_of, read_aligned_index,
     record_aligned_files, record_before_writing, recorded_path,
 };
-pub use atomic::{atomic_write, same_file};
+pub use atomic::{atomic_write, remove_temporaries_in_flight, same_file};
 pub use calibration::{
     CALIBRATION_FORMAT, CALIBRATION_VERSION, CalibrationFile, CreationInfo,
     OLDEST_CALIBRATION_VERSION, parse_calibration, read_calibration, write_calibration,
