@@ -108,7 +108,8 @@ fn end_quietly_on_a_closed_pipe() {
 /// the signal as before: the signals are blocked in every thread (the mask is inherited, so
 /// this runs before any thread starts) and one thread waits for them, cleans up through
 /// [`moma_io::remove_temporaries_in_flight`] and re-raises the signal with its default action.
-/// Not for the ROS 2 node and replay, which keep the signals' default disposition.
+/// A signal the parent left ignored stays ignored. Not for the ROS 2 node and replay, which
+/// keep the signals' dispositions as they are.
 fn remove_temporaries_on_a_signal() {
     #[cfg(unix)]
     // SAFETY: plain libc calls on a signal set this function owns; run before any other
@@ -116,10 +117,20 @@ fn remove_temporaries_on_a_signal() {
     unsafe {
         let mut set: libc::sigset_t = std::mem::zeroed();
         libc::sigemptyset(&mut set);
+        let mut any = false;
         for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
+            // a signal the parent left ignored (`nohup`, a script's `cmd &`, `trap '' TERM`)
+            // stays ignored: blocked, it would be queued and caught, and end the program
+            let mut current: libc::sigaction = std::mem::zeroed();
+            if libc::sigaction(signal, std::ptr::null(), &mut current) != 0
+                || current.sa_sigaction == libc::SIG_IGN
+            {
+                continue;
+            }
             libc::sigaddset(&mut set, signal);
+            any = true;
         }
-        if libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut()) != 0 {
+        if !any || libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut()) != 0 {
             return;
         }
         let waiter = std::thread::Builder::new()

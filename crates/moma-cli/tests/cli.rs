@@ -342,7 +342,10 @@ fn bad_input_is_a_clear_error() {
     );
     let (pred0, gt0) = demo_frame(&scene, &pred, 0);
     let err = fails(&calibrate_args(&[&pred0], &[&gt0], &["-o", s(tmp.path())]));
-    assert!(err.contains("is a directory (give a file name"), "{err}");
+    assert!(
+        err.contains("is a directory (give the name of a file"),
+        "{err}"
+    );
     let err = fails(&calibrate_args(
         &[&pred0],
         &[&gt0],
@@ -1989,39 +1992,69 @@ fn an_interrupted_run_leaves_no_temporary_files() {
             })
             .unwrap_or_default()
     };
-    let mut child = Command::new(env!("CARGO_BIN_EXE_moma"))
-        .args(["align", "--calib", s(&calib), "--pred"])
-        .args(frames.iter().map(|p| s(p)))
-        .args([
-            "--pred-kind",
-            "relative-disparity",
-            "--ply",
-            "--ply-ascii",
-            "-o",
-            s(&out),
-        ])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
-    // interrupt while a point cloud is being written
-    let started = std::time::Instant::now();
-    let seen = loop {
-        if temporaries(&out).iter().any(|n| n.contains(".ply.")) {
-            break true;
+    // `moma align` into `out`, `signal` sent while a point cloud is being written, with
+    // `ignore` ignored by the child from its start (as `nohup` ignores SIGHUP)
+    let interrupted = |out: &Path, signal: i32, ignore: Option<i32>| {
+        use std::os::unix::process::CommandExt;
+        let mut command = Command::new(env!("CARGO_BIN_EXE_moma"));
+        command
+            .args(["align", "--calib", s(&calib), "--pred"])
+            .args(frames.iter().map(|p| s(p)))
+            .args([
+                "--pred-kind",
+                "relative-disparity",
+                "--ply",
+                "--ply-ascii",
+                "-o",
+                s(out),
+            ])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null());
+        if let Some(ignored) = ignore {
+            // SAFETY: signal(2) is async-signal-safe, as code between fork and exec must be.
+            unsafe {
+                command.pre_exec(move || {
+                    libc::signal(ignored, libc::SIG_IGN);
+                    Ok(())
+                });
+            }
         }
-        if child.try_wait().unwrap().is_some() || started.elapsed().as_secs() > 120 {
-            break false;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(1));
+        let mut child = command.spawn().unwrap();
+        let started = std::time::Instant::now();
+        let seen = loop {
+            if temporaries(out).iter().any(|n| n.contains(".ply.")) {
+                break true;
+            }
+            if child.try_wait().unwrap().is_some() || started.elapsed().as_secs() > 120 {
+                break false;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        };
+        assert!(
+            seen,
+            "the run ended before a point cloud's temporary file was seen"
+        );
+        // SAFETY: a signal to the child this test started and has not reaped.
+        assert_eq!(unsafe { libc::kill(child.id() as i32, signal) }, 0);
+        child.wait().unwrap()
     };
-    assert!(
-        seen,
-        "the run ended before a point cloud's temporary file was seen"
-    );
-    // SAFETY: a signal to the child this test started and has not reaped.
-    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
-    let status = child.wait().unwrap();
+    // an ignored SIGHUP stays ignored: the run goes on to write every cloud
+    let nohup = tmp.path().join("nohup");
+    let status = interrupted(&nohup, libc::SIGHUP, Some(libc::SIGHUP));
+    assert!(status.success(), "{status:?}");
+    let clouds = std::fs::read_dir(&nohup)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "ply")
+        })
+        .count();
+    assert_eq!(clouds, frames.len());
+    // Ctrl-C: ended by the signal, no temporary file left
+    let status = interrupted(&out, libc::SIGINT, None);
     assert_eq!(status.signal(), Some(libc::SIGINT), "{status:?}");
     assert_eq!(temporaries(&out), Vec::<String>::new());
     // every point cloud there is complete: as many vertices as its header says

@@ -47,7 +47,7 @@ pub struct AlignedFile {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub method: Option<String>,
     /// The prediction (or image, or depth) it was made from, as an absolute path
-    /// ([`recorded_path`]).
+    /// ([`recorded_path`]); a label where it was made in memory (`moma demo`'s predictions).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input: Option<String>,
 }

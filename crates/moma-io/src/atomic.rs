@@ -17,22 +17,43 @@ fn in_flight() -> MutexGuard<'static, Vec<PathBuf>> {
     IN_FLIGHT.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// One registered temporary file; leaves the registry when dropped (written, renamed or
-/// failed).
-struct Registered(PathBuf);
+/// One registered temporary file; leaves the registry when released or dropped (written,
+/// renamed or failed).
+struct Registered(Option<PathBuf>);
 
-impl Drop for Registered {
-    fn drop(&mut self) {
-        let mut list = in_flight();
-        if let Some(i) = list.iter().position(|p| *p == self.0) {
-            list.swap_remove(i);
+impl Registered {
+    /// Adds `path` to the registry.
+    fn new(path: &Path) -> Self {
+        in_flight().push(path.to_path_buf());
+        Self(Some(path.to_path_buf()))
+    }
+
+    /// Leaves the registry whose lock the caller holds.
+    fn release(mut self, list: &mut Vec<PathBuf>) {
+        if let Some(path) = self.0.take() {
+            forget(list, &path);
         }
     }
 }
 
+impl Drop for Registered {
+    fn drop(&mut self) {
+        if let Some(path) = self.0.take() {
+            forget(&mut in_flight(), &path);
+        }
+    }
+}
+
+/// Removes one entry of `path` from the registry.
+fn forget(list: &mut Vec<PathBuf>, path: &Path) {
+    if let Some(i) = list.iter().position(|p| p == path) {
+        list.swap_remove(i);
+    }
+}
+
 /// Removes every temporary file an [`atomic_write`] has open in this process and returns the
-/// registry still locked: no writer can create another until the guard is dropped, so a
-/// program about to end on a signal holds it until it ends. The writers' destination files
+/// registry still locked: no writer can register, rename or finish another until the guard
+/// is dropped, so a program about to end on a signal holds it until it ends. The writers' destination files
 /// are untouched (the old file, or none). Returns how many were removed with the guard.
 ///
 /// For signal handling in a program's own thread (not in a signal handler: it locks and
@@ -99,10 +120,11 @@ pub fn atomic_write<T>(
             format!("cannot write: directory '{}' {why}", dir.display()),
         ));
     }
-    if path.is_dir() {
+    // (a link to a directory is replaced by the rename, as before: not followed here)
+    if path.symlink_metadata().is_ok_and(|m| m.is_dir()) {
         return Err(IoError::invalid(
             path,
-            "cannot write: this is a directory (give a file name, e.g. DIR/calib.json)",
+            "cannot write: this is a directory (give the name of a file inside it)",
         ));
     }
     let mut builder = tempfile::Builder::new();
@@ -113,30 +135,46 @@ pub fn atomic_write<T>(
         use std::os::unix::fs::PermissionsExt;
         builder.permissions(std::fs::Permissions::from_mode(0o666));
     }
-    // created and registered under the registry's lock: a signal's cleanup never misses a
-    // temporary file that exists
-    // (the registration is declared first, so dropped last: after the file it names)
-    let (_registered, mut tmp) = {
-        let mut list = in_flight();
-        let tmp = builder.tempfile_in(dir).map_err(|e| {
-            IoError::io(
-                path,
-                "create a temporary file in the destination directory",
-                e,
-            )
-        })?;
-        list.push(tmp.path().to_path_buf());
-        let registered = Registered(tmp.path().to_path_buf());
-        (registered, tmp)
+    let mut tmp = builder.tempfile_in(dir).map_err(|e| {
+        IoError::io(
+            path,
+            "create a temporary file in the destination directory",
+            e,
+        )
+    })?;
+    // registered at once (the registry's lock is not held while the file system creates it)
+    let registered = Registered::new(tmp.path());
+    let written = fill(&mut tmp, path, write);
+    let value = match written {
+        Ok(value) => value,
+        Err(e) => {
+            // the file first, then its registration: a signal's cleanup never misses it
+            drop(tmp);
+            drop(registered);
+            return Err(e);
+        }
     };
-    let value = {
-        let mut w = BufWriter::new(tmp.as_file_mut());
-        let value = write(&mut w)?;
-        w.flush().map_err(|e| IoError::io(path, "write", e))?;
-        value
-    };
-    tmp.persist(path)
-        .map_err(|e| IoError::io(path, "move the finished temporary file into place", e.error))?;
+    // renamed and deregistered under the registry's lock: a signal's cleanup sees either a
+    // temporary file to remove or a finished output, never a file between the two
+    let mut list = in_flight();
+    let persisted = tmp.persist(path).map(drop).map_err(|e| {
+        // dropping the error's file removes it, still under the lock
+        IoError::io(path, "move the finished temporary file into place", e.error)
+    });
+    registered.release(&mut list);
+    persisted?;
+    Ok(value)
+}
+
+/// Runs a writer closure on the temporary file and flushes it.
+fn fill<T>(
+    tmp: &mut tempfile::NamedTempFile,
+    path: &Path,
+    write: impl FnOnce(&mut dyn Write) -> Result<T>,
+) -> Result<T> {
+    let mut w = BufWriter::new(tmp.as_file_mut());
+    let value = write(&mut w)?;
+    w.flush().map_err(|e| IoError::io(path, "write", e))?;
     Ok(value)
 }
 

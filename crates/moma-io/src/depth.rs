@@ -141,8 +141,9 @@ pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
             "a uint16 depth PNG holds millimetres: this one looks like metres (or tenths) \
              written as integers; write round(metres × 1000)"
         } else {
-            ".npy and .pfm depth is in metres: this looks like kilometres, or metres divided \
-             by 1000 once too often"
+            ".npy and .pfm depth is in metres: this looks like kilometres, metres divided by \
+             1000 once too often, or no depth map at all (a σ map `NAME.sigma.npy` is read as an \
+             array, e.g. numpy.load)"
         };
         return Err(IoError::invalid(
             path,

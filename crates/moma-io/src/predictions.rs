@@ -125,20 +125,33 @@ fn legacy_depth_kind(
     }
 }
 
-/// Whether a hand-written `source` says its maps are metric depth: "metric depth" that no
-/// "not", "no" or "non" before it negates ("not metric depth", "non-metric depth" and "no metric
-/// depth" say the opposite).
+/// Whether a hand-written `source` says its maps are metric depth: the words "metric depth"
+/// (whole words: not "geometric depth") that no negation before them undoes — "not", "no",
+/// "non" ("non-metric"), "without", "nor", "never", "isn't", "aren't", an article between them
+/// and the negation allowed ("not a metric depth model").
 fn says_metric_depth(source: &str) -> bool {
-    const PHRASE: &str = "metric depth";
     let text = source.to_ascii_lowercase();
-    text.match_indices(PHRASE).any(|(at, _)| {
-        let before = text[..at].trim_end_matches([' ', '-']);
-        let last_word = before
-            .rsplit(|c: char| !c.is_ascii_alphanumeric() && c != '\'')
-            .next()
-            .unwrap_or("");
-        // "non-metric" is one word before the hyphen is trimmed
-        !matches!(last_word, "not" | "no" | "non" | "isn't" | "nor" | "never")
+    let words: Vec<&str> = text
+        .split(|c: char| !(c.is_ascii_alphanumeric() || c == '\''))
+        .filter(|w| !w.is_empty())
+        .collect();
+    let negation = |w: &str| {
+        matches!(
+            w,
+            "not" | "no" | "non" | "without" | "nor" | "never" | "isn't" | "aren't"
+        )
+    };
+    words.windows(2).enumerate().any(|(i, pair)| {
+        if pair != ["metric", "depth"] {
+            return false;
+        }
+        let mut before = words[..i].iter().rev();
+        let negated = match before.next() {
+            Some(&"a" | &"an" | &"the") => before.next().is_some_and(|w| negation(w)),
+            Some(&w) => negation(w),
+            None => false,
+        };
+        !negated
     })
 }
 
@@ -471,6 +484,18 @@ mod tests {
             (
                 r#""prediction_kind": "depth", "source": "no metric depth here, but metric depth from DA3 in b/""#,
                 MetricDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "geometric depth cues""#,
+                RelativeDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "not a metric depth model""#,
+                RelativeDepth,
+            ),
+            (
+                r#""prediction_kind": "depth", "source": "relative, without metric depth""#,
+                RelativeDepth,
             ),
         ];
         for (fields, want) in cases {

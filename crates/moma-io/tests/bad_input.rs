@@ -1097,7 +1097,10 @@ fn failed_write_keeps_old_file_and_no_temporary() {
     let d = dir.path().join("is_a_dir.npy");
     std::fs::create_dir(&d).unwrap();
     let e = write_depth(&d, &MetricDepth::new(array![[1.0f32]])).unwrap_err();
-    assert!(msg(&e).contains("is a directory (give a file name"), "{e}");
+    assert!(
+        msg(&e).contains("is a directory (give the name of a file"),
+        "{e}"
+    );
     assert_eq!(entries(dir.path()), ["is_a_dir.npy", "keep.txt"]);
     // a "directory" that is a file is named as such, not as missing
     let e = write_depth(p.join("d.npy"), &MetricDepth::new(array![[1.0f32]])).unwrap_err();

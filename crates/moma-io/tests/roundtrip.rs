@@ -573,9 +573,7 @@ fn moma_set_writer_then_open() {
     assert_eq!(b.file("pred.npy"), root.join("frames/b/pred.npy"));
 }
 
-/// `aligned.json` (the provenance index of aligned depth): written, merged by file name, read
-/// back for the listed files only; another tool's file of that name says nothing (and is never
-/// overwritten); a corrupt or newer one of moma's is an error.
+/// `aligned.json` records the paths it names absolute, made so against the working directory.
 #[test]
 fn the_aligned_index_records_absolute_paths() {
     let cwd = std::env::current_dir().unwrap();
@@ -589,6 +587,9 @@ fn the_aligned_index_records_absolute_paths() {
     assert_eq!(recorded_path(&absolute), absolute.display().to_string());
 }
 
+/// `aligned.json` (the provenance index of aligned depth): written, merged by file name, read
+/// back for the listed files only; another tool's file of that name says nothing (and is never
+/// overwritten); a corrupt or newer one of moma's is an error.
 #[test]
 fn the_aligned_index_records_merges_and_refuses_what_is_not_its_own() {
     let dir = tempfile::tempdir().unwrap();

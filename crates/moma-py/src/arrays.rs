@@ -244,9 +244,10 @@ pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonl
         )));
     }
     if let Some(median) = moma_core::near_median(ro.as_array()) {
+        let mm = f64::from(median) * 1000.0;
         return Err(value_err(format!(
-            "{what} has a median depth of {median} m: no scene a camera grasps in is that near \
-             (depth arguments are metres: divided by 1000 once too often?)"
+            "{what} has a median depth of {mm:.1} mm: no scene a camera grasps in is that near \
+             (depth arguments are metres: divided by 1000 once too often? a σ map is no depth)"
         )));
     }
     Ok(ro)

@@ -190,7 +190,8 @@ impl PlanFlags {
     /// Checks what needs no input.
     ///
     /// # Errors
-    /// `--top 0`.
+    /// `--top 0`, `--grasp-draws 0`, `--min-success-prob` or `--grasp-tie-tolerance` outside
+    /// [0, 1], each naming its flag.
     pub fn check(&self) -> Result<()> {
         if self.top == 0 {
             bail!("--top must be at least 1");

@@ -595,21 +595,18 @@ fn check_finite(name: &str, t: &Tensor) -> std::result::Result<(), String> {
     Ok(())
 }
 
-/// Temporary file in the same folder, then a rename.
+/// Writes `bytes` through [`moma_io::atomic_write`]: a temporary file in the same folder, then
+/// a rename; the temporary file is removed on an error, and by a `moma` command ended by a
+/// signal.
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
-    let dir = dir.unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_string())
-        .unwrap_or_else(|| "weights".into());
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    std::fs::write(&tmp, bytes)
-        .and_then(|()| std::fs::rename(&tmp, path))
-        .map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            aerr(path, format!("cannot write: {e}"))
+    moma_io::atomic_write(path, |w| {
+        w.write_all(bytes).map_err(|source| moma_io::IoError::Io {
+            path: path.to_path_buf(),
+            action: "write",
+            source,
         })
+    })
+    .map_err(|e| aerr(path, format!("cannot write: {e}")))
 }
 
 #[cfg(test)]
