@@ -52,7 +52,8 @@ def test_bad_parameters(kwargs, match):
     "bad,match",
     [
         (np.zeros((120,), np.float32), "2-D"),
-        (np.zeros((120, 160, 1), np.float32), "2-D"),
+        (np.zeros((120, 160, 2), np.float32), "2-D"),
+        (np.zeros((1, 120, 160, 1), np.float32), "2-D"),
         (np.zeros((2, 120, 160), np.float64), "2-D"),
         (np.zeros((121, 160), np.float32), "size mismatch"),
         (np.zeros((120, 161), np.float64), "size mismatch"),
@@ -65,6 +66,15 @@ def test_bad_parameters(kwargs, match):
 def test_bad_prediction_arrays(cal, bad, match):
     with pytest.raises(moma.InvalidInputError, match=match):
         cal.align(bad)
+
+
+def test_a_map_with_a_single_axis_is_one_map(cal):
+    """A model's (1, H, W) output and a file's (H, W, 1) map align as the (H, W) map, as
+    `moma.read_prediction` and the CLI take them."""
+    pred, _ = scene()
+    want = cal.align(pred)
+    for same in (pred[None], pred[..., None], pred[None].astype(np.float64)):
+        np.testing.assert_array_equal(cal.align(same), want)
 
 
 def test_nan_in_prediction_is_named(cal):

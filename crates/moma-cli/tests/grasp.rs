@@ -187,6 +187,14 @@ fn suction_with_extrinsics_and_outputs() {
     let written: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out_dir.join("grasps.json")).unwrap()).unwrap();
     assert_eq!(written, v);
+    // the human summary shows the base frame too: the best grasp's point as in the JSON
+    let (text, _) = ok(&strs(&suction(&["--extrinsics", s(&ext), "--top", "1"])));
+    let b: Vec<f64> = serde_json::from_value(arr[0]["base"]["point_m"].clone()).unwrap();
+    let want = format!(
+        "base frame:  point [{:+.3}, {:+.3}, {:+.3}]",
+        b[0], b[1], b[2]
+    );
+    assert!(text.contains(&want), "{text}\nwants {want}");
     let overlay = moma_io::read_rgb(out_dir.join("overlay.png")).unwrap();
     assert_eq!((overlay.width(), overlay.height()), (W as u32, H as u32));
     // The best grasp is drawn in green at its projected point.

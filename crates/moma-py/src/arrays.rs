@@ -56,8 +56,27 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
             .try_readonly()
             .map_err(|e| value_err(format!("{what}: {e}")));
     }
-    let arr = as_ndarray(obj, what)?;
-    check_ndim(&arr, 2, what, "height × width")?;
+    let mut arr = as_ndarray(obj, what)?;
+    // a model's (1, H, W) or a file's (H, W, 1) is one map, as `moma.read_prediction` and the
+    // CLI take it: its single axis dropped (a view, no copy)
+    if arr.ndim() == 3 {
+        let shape = arr.shape().to_vec();
+        let axis = if shape[0] == 1 && shape[2] != 1 {
+            Some(0)
+        } else if shape[2] == 1 && shape[0] != 1 {
+            Some(2)
+        } else {
+            None
+        };
+        if let Some(axis) = axis {
+            let squeezed = obj
+                .py()
+                .import("numpy")?
+                .call_method1("squeeze", (&arr, axis))?;
+            arr = as_ndarray(&squeezed, what)?;
+        }
+    }
+    check_ndim(&arr, 2, what, "height × width, or 1 × H × W, or H × W × 1")?;
     let kind = dtype_kind(&arr)?;
     if !matches!(kind, 'f' | 'i' | 'u' | 'b') {
         return Err(value_err(format!(

@@ -496,31 +496,51 @@ fn print_summary(outcome: &PlanOutcome) {
         return;
     }
     println!(
-        "{} grasp(s), best first (camera frame, metres):",
+        "{} grasp(s), best first (camera frame, metres; with --extrinsics also the robot base \
+         frame):",
         outcome.grasps.len()
     );
     for (k, g) in outcome.grasps.iter().enumerate() {
         let prob = |p: Option<f32>| p.map_or(String::new(), |p| format!("  success_prob {p:.2}"));
         let f = |v: [f32; 3]| format!("[{:+.3}, {:+.3}, {:+.3}]", v[0], v[1], v[2]);
         match g {
-            Grasp::Parallel(p) => println!(
-                "  #{:<2} score {:.3}{}  centre {}  approach {}  closing {}  width {:.1} mm",
-                k + 1,
-                p.score,
-                prob(p.success_prob),
-                f(p.pose.center_m),
-                f(p.pose.approach),
-                f(p.pose.closing),
-                p.pose.width_m * 1e3
-            ),
-            Grasp::Suction(s) => println!(
-                "  #{:<2} score {:.3}{}  point {}  approach {}",
-                k + 1,
-                s.score,
-                prob(s.success_prob),
-                f(s.pose.point_m),
-                f(s.pose.approach)
-            ),
+            Grasp::Parallel(p) => {
+                println!(
+                    "  #{:<2} score {:.3}{}  centre {}  approach {}  closing {}  width {:.1} mm",
+                    k + 1,
+                    p.score,
+                    prob(p.success_prob),
+                    f(p.pose.center_m),
+                    f(p.pose.approach),
+                    f(p.pose.closing),
+                    p.pose.width_m * 1e3
+                );
+                if let Some(b) = &p.base {
+                    println!(
+                        "      base frame:  centre {}  approach {}  closing {}",
+                        f(b.center_m),
+                        f(b.approach),
+                        f(b.closing)
+                    );
+                }
+            }
+            Grasp::Suction(s) => {
+                println!(
+                    "  #{:<2} score {:.3}{}  point {}  approach {}",
+                    k + 1,
+                    s.score,
+                    prob(s.success_prob),
+                    f(s.pose.point_m),
+                    f(s.pose.approach)
+                );
+                if let Some(b) = &s.base {
+                    println!(
+                        "      base frame:  point {}  approach {}",
+                        f(b.point_m),
+                        f(b.approach)
+                    );
+                }
+            }
         }
     }
 }
