@@ -103,14 +103,24 @@ fn end_quietly_on_a_closed_pipe() {
     }
 }
 
-/// Ctrl-C (SIGINT), SIGTERM and SIGHUP remove the temporary files of the outputs being
-/// written (`.NAME.XXXXXX.tmp`, tens of megabytes for a point cloud) before the program ends by
-/// the signal as before: the signals are blocked in every thread (the mask is inherited, so
-/// this runs before any thread starts) and one thread waits for them, cleans up through
-/// [`moma_io::remove_temporaries_in_flight`] and re-raises the signal with its default action.
-/// A signal the parent left ignored stays ignored. Not for the ROS 2 node and replay, which
-/// keep the signals' dispositions as they are.
-fn remove_temporaries_on_a_signal() {
+/// What SIGINT (Ctrl-C), SIGTERM and SIGHUP do ([`handle_signals`]).
+#[derive(Clone, Copy, PartialEq)]
+enum OnSignal {
+    /// A command: remove the temporary files of the outputs being written, then end by the
+    /// signal as before.
+    RemoveTemporariesAndEnd,
+    /// The ROS 2 node and replay: the first signal asks the loop to stop
+    /// ([`cmd::common::stop_requested`]), so that the node leaves the DDS domain (its readers
+    /// and writers unmatched at once, not after a lease of tens of seconds) and ends with 0; a
+    /// second one ends it as [`OnSignal::RemoveTemporariesAndEnd`] does.
+    StopGracefully,
+}
+
+/// Handles SIGINT, SIGTERM and SIGHUP as `on` says: the signals are blocked in every thread
+/// (the mask is inherited, so this runs before any thread starts) and one thread waits for
+/// them. A signal the parent left ignored (`nohup`, a script's `cmd &`, `trap '' TERM`) stays
+/// ignored: blocked, it would be queued and caught.
+fn handle_signals(on: OnSignal) {
     #[cfg(unix)]
     // SAFETY: plain libc calls on a signal set this function owns; run before any other
     // thread exists, so every later thread inherits the blocked mask.
@@ -119,8 +129,6 @@ fn remove_temporaries_on_a_signal() {
         libc::sigemptyset(&mut set);
         let mut any = false;
         for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
-            // a signal the parent left ignored (`nohup`, a script's `cmd &`, `trap '' TERM`)
-            // stays ignored: blocked, it would be queued and caught, and end the program
             let mut current: libc::sigaction = std::mem::zeroed();
             if libc::sigaction(signal, std::ptr::null(), &mut current) != 0
                 || current.sa_sigaction == libc::SIG_IGN
@@ -140,7 +148,13 @@ fn remove_temporaries_on_a_signal() {
                 if libc::sigwait(&set, &mut signal) != 0 {
                     return;
                 }
-                // the registry stays locked: no writer starts another temporary file
+                if on == OnSignal::StopGracefully {
+                    cmd::common::request_stop(signal);
+                    if libc::sigwait(&set, &mut signal) != 0 {
+                        return;
+                    }
+                }
+                // the registry stays locked: no writer finishes another temporary file
                 let _held = moma_io::remove_temporaries_in_flight();
                 libc::signal(signal, libc::SIG_DFL);
                 let mut only: libc::sigset_t = std::mem::zeroed();
@@ -160,9 +174,11 @@ fn remove_temporaries_on_a_signal() {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
-    if !matches!(cli.command, Command::Ros2(_) | Command::Ros2Replay(_)) {
+    if matches!(cli.command, Command::Ros2(_) | Command::Ros2Replay(_)) {
+        handle_signals(OnSignal::StopGracefully);
+    } else {
         end_quietly_on_a_closed_pipe();
-        remove_temporaries_on_a_signal();
+        handle_signals(OnSignal::RemoveTemporariesAndEnd);
     }
     let result = match &cli.command {
         Command::Calibrate(args) => cmd::calibrate::run(args),

@@ -314,7 +314,7 @@ fn node_output_equals_moma_align_bit_for_bit() {
     let p = prepare(tmp.path(), "graspnet6dof-table");
     enter_private_network();
     let domain = "11";
-    let _node = start_node(
+    let mut node = start_node(
         domain,
         "90",
         &["--calib", s(&p.calib), "--input", "prediction"],
@@ -401,6 +401,27 @@ fn node_output_equals_moma_align_bit_for_bit() {
         median(pts),
         median(al)
     );
+    // Ctrl-C and a launch system's SIGTERM end the loops: the node and the replay leave the
+    // domain and exit with 0 (the node had 80 s to go), not killed by the signal
+    for (proc, signal) in [(&mut node, libc::SIGINT), (&mut replay, libc::SIGTERM)] {
+        // SAFETY: a signal to a child this test started and has not reaped.
+        assert_eq!(unsafe { libc::kill(proc.0.id() as i32, signal) }, 0);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        let status = loop {
+            if let Some(status) = proc.0.try_wait().unwrap() {
+                break Some(status);
+            }
+            if Instant::now() > deadline {
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert!(
+            status.is_some_and(|s| s.success()),
+            "{} after signal {signal}: {status:?}",
+            proc.1
+        );
+    }
 }
 
 /// Waits for the node's first depth frame (the node is up and discovered).

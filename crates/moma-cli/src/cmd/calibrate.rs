@@ -721,6 +721,7 @@ fn abridged(value: serde_json::Value) -> String {
 /// # Errors
 /// Settings the method refuses; a failed fit (too few valid samples, degenerate data); anchors
 /// that cannot be built.
+#[allow(clippy::too_many_arguments)]
 pub fn fit_frame(
     prediction: &moma_core::Prediction,
     gt: &moma_core::MetricDepth,
@@ -729,6 +730,7 @@ pub fn fit_frame(
     method: Method,
     samples: usize,
     seed: u64,
+    keep: Option<&moma_core::Calibration>,
 ) -> Result<moma_core::Calibration> {
     let method = CvArgs {
         protocol: Protocol::default(),
@@ -737,8 +739,15 @@ pub fn fit_frame(
     }
     .method(method, None, intrinsics)?;
     let kind = prediction.kind;
+    // the normalisation and its workspace of the calibration this one replaces, when it is of
+    // the same kind (a live calibration keeps what the cell was set up with)
+    // (RAW takes no normalisation: `none`, its own default)
+    let kept = keep.filter(|c| c.prediction_kind == kind && method != Method::Raw);
     let config = CalibrationConfig {
-        normalisation: moma_core::policy::normalisation(&method, None, None, kind),
+        normalisation: match kept {
+            Some(c) => c.normalisation,
+            None => moma_core::policy::normalisation(&method, None, None, kind),
+        },
         method,
         sampling: SamplingConfig {
             strategy: SamplingStrategy::Random,
@@ -747,7 +756,7 @@ pub fn fit_frame(
             edge_margin_px: 0,
         },
         robust: None,
-        workspace: None,
+        workspace: kept.and_then(|c| c.workspace.clone()),
     };
     config
         .check(kind)

@@ -2,6 +2,7 @@
 //! bars and JSON output.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicI32, Ordering};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
@@ -751,4 +752,22 @@ pub fn rgb_view(img: &image::RgbImage) -> Result<ndarray::ArrayView3<'_, u8>> {
         img.as_raw().as_slice(),
     )
     .context("RGB image buffer")
+}
+
+/// The signal that asked a long-running loop (the ROS 2 node, the replay) to stop; 0: none.
+static STOP_SIGNAL: AtomicI32 = AtomicI32::new(0);
+
+/// Asks the running loop to stop (the first SIGINT, SIGTERM or SIGHUP of the ROS 2 node or
+/// replay), saying so on stderr.
+pub fn request_stop(signal: i32) {
+    STOP_SIGNAL.store(signal, Ordering::SeqCst);
+    eprintln!("moma: signal {signal} received: stopping (a second one ends the program at once)");
+}
+
+/// The signal that asked the loop to stop, if one did.
+pub fn stop_requested() -> Option<i32> {
+    match STOP_SIGNAL.load(Ordering::SeqCst) {
+        0 => None,
+        signal => Some(signal),
+    }
 }

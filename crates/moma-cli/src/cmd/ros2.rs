@@ -231,9 +231,9 @@ pub struct Ros2Args {
     /// Live calibration: the method [default: the loaded calibration's].
     #[arg(long, value_name = "METHOD")]
     pub calib_method: Option<Method>,
-    /// Live calibration: number of samples.
-    #[arg(long, default_value_t = 100, value_name = "N")]
-    pub calib_samples: usize,
+    /// Live calibration: number of samples [default: the loaded calibration's].
+    #[arg(long, value_name = "N")]
+    pub calib_samples: Option<usize>,
     /// Live calibration: seed of the sampling.
     #[arg(long, default_value_t = 0)]
     pub calib_seed: u64,
@@ -585,6 +585,11 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         {
             break;
         }
+        // SIGINT / SIGTERM / SIGHUP: leave the loop, so that the node is dropped and leaves
+        // the DDS domain at once
+        if super::common::stop_requested().is_some() {
+            break;
+        }
         if let Some(n) = args.max_frames
             && state.processed >= n
         {
@@ -891,7 +896,13 @@ impl NodeState {
                 Ok(pred)
             }
             _ => {
-                let values = convert::image_to_f32(msg).context("prediction")?;
+                let mut values = convert::image_to_f32(msg).context("prediction")?;
+                // a metric depth image marks "no measurement" by NaN (REP 118; ±inf: beyond
+                // the range): moma's metric prediction marks it by 0, which aligns to no depth
+                // (a relative prediction has a value at every pixel: NaN stays an error)
+                if self.calib.prediction_kind == moma_core::PredictionKind::MetricDepth {
+                    values.mapv_inplace(|v| if v.is_finite() { v } else { 0.0 });
+                }
                 let pred = Prediction::new(values, self.calib.prediction_kind);
                 self.calib
                     .image_size
@@ -1102,6 +1113,22 @@ impl NodeState {
             );
         }
         let gt = convert::depth_image_to_metres(depth).context("depth_sensor")?;
+        // the units, as every reader of depth checks them: a calibration on millimetres given
+        // as metres (32FC1), or metres written as millimetres (16UC1), would switch the node to
+        // depth 1 000 × off
+        if let Some(median) = moma_core::millimetre_median(gt.depth_m.view()) {
+            bail!(
+                "depth_sensor: median depth {median} m looks like millimetres (32FC1 depth is \
+                 metres, 16UC1 millimetres)"
+            );
+        }
+        if let Some(median) = moma_core::near_median(gt.depth_m.view()) {
+            bail!(
+                "depth_sensor: median depth {:.1} mm: no scene a camera grasps in is that near \
+                 (16UC1 depth is millimetres, 32FC1 metres: metres written as millimetres?)",
+                f64::from(median) * 1e3
+            );
+        }
         let rgb = convert::image_to_rgb(image).context("image")?;
         let prediction = match pred {
             Some(p) => self.prediction(p, None)?,
@@ -1122,8 +1149,11 @@ impl NodeState {
             Some(&rgb),
             intrinsics,
             method,
-            self.args.calib_samples,
+            self.args
+                .calib_samples
+                .unwrap_or(self.calib.calibration.report.n_used.max(1)),
             self.args.calib_seed,
+            Some(&self.calib.calibration),
         )?;
         let mut created = CreationInfo::now();
         created.simulated_predictions = self.calib.created.simulated_predictions;
@@ -1143,12 +1173,19 @@ impl NodeState {
         } else {
             format!(" (the image {:+.1} ms from it)", apart_ns as f64 * 1e-6)
         };
+        // a robust fit is not repeated: say so where the calibration replaced was one
+        let least_squares = if self.calib.calibration.report.robust.is_some() {
+            " (least squares: the robust fit of the calibration it replaces is not repeated)"
+        } else {
+            ""
+        };
         let text = format!(
-            "calibrated {} on {} samples (RMS residual {:.2} mm) from the frame stamped {}.{:09}\
-             {apart}; wrote {} and switched to it",
+            "calibrated {} on {} samples (RMS residual {:.2} mm, normalisation {}){least_squares} \
+             from the frame stamped {}.{:09}{apart}; wrote {} and switched to it",
             file.method,
             file.calibration.report.n_used,
             file.calibration.report.rms_residual_m * 1e3,
+            file.calibration.normalisation.method,
             stamp.sec,
             stamp.nanosec,
             self.calib_out.display()

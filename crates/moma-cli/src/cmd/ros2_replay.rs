@@ -257,9 +257,17 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
             if args.max_frames.is_some_and(|n| published >= n) {
                 break 'outer;
             }
-            let now = Instant::now();
-            if next > now {
-                std::thread::sleep(next - now);
+            // waits for the frame's time in short naps, leaving at once on SIGINT / SIGTERM /
+            // SIGHUP (the participant then leaves the DDS domain)
+            loop {
+                if super::common::stop_requested().is_some() {
+                    break 'outer;
+                }
+                let now = Instant::now();
+                if next <= now {
+                    break;
+                }
+                std::thread::sleep((next - now).min(Duration::from_millis(20)));
             }
             next += period;
             let header = Header {
