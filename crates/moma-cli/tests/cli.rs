@@ -2078,3 +2078,22 @@ fn an_interrupted_run_leaves_no_temporary_files() {
         }
     }
 }
+
+/// A remap to a name ROS refuses fails at once, naming the character, before any DDS socket is
+/// opened (the replay reads no set before it).
+#[test]
+fn a_bad_remap_fails_before_dds_starts() {
+    for (remap, says) in [
+        (
+            "image:=/cam/image raw",
+            "' ' is not allowed in a topic name",
+        ),
+        (
+            "depth_sensor:=~/depth",
+            "'~' is not allowed in a topic name",
+        ),
+    ] {
+        let err = fails(&["ros2-replay", "--set", "/nonexistent", "--remap", remap]);
+        assert!(err.contains(remap) && err.contains(says), "{err}");
+    }
+}

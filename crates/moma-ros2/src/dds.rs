@@ -90,18 +90,34 @@ pub fn topic_name(name: &str) -> Result<Name> {
     };
     parsed.map_err(|e| RosError::Name {
         name: name.to_string(),
-        why: name_error(&e),
+        why: name_error(name, &e),
     })
 }
 
-/// Why a topic name was refused, in moma's words (ros2-client's own messages are misspelt
-/// and its `Debug` names are Rust's).
-fn name_error(e: &ros2_client::names::NameError) -> String {
+/// Why a topic name was refused, in moma's words (ros2-client's own messages are misspelt,
+/// its `Debug` names are Rust's, and the character it reports is not always the one in the
+/// name).
+fn name_error(name: &str, e: &ros2_client::names::NameError) -> String {
     match e {
         ros2_client::names::NameError::Empty => "a topic name cannot be empty".to_string(),
-        ros2_client::names::NameError::BadChar(c) => format!(
-            "{c:?} is not allowed in a topic name (letters, digits, '_' and '/' separators)"
-        ),
+        ros2_client::names::NameError::BadChar(reported) => {
+            let c = name
+                .chars()
+                .find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '/'))
+                .unwrap_or(*reported);
+            let hint = match c {
+                '~' => {
+                    " ('~', the node's private namespace, is not expanded: give the full \
+                        name, e.g. /moma/depth)"
+                }
+                ' ' => " (a space)",
+                _ => "",
+            };
+            format!(
+                "{c:?} is not allowed in a topic name (letters, digits, '_' and '/' \
+                 separators){hint}"
+            )
+        }
         ros2_client::names::NameError::BadSlash(..) => {
             "a '/' separator is misplaced (no empty part, no trailing '/')".to_string()
         }

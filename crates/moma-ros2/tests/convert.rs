@@ -435,6 +435,10 @@ fn a_topic_name_ros_refuses_is_explained() {
     for (name, says) in [
         ("", "a topic name cannot be empty"),
         ("bad topic", "' ' is not allowed in a topic name"),
+        // the character in the name, not one ros2-client reports in its place
+        ("~/depth", "'~' is not allowed in a topic name"),
+        ("~/depth", "give the full name, e.g. /moma/depth"),
+        ("cam/image-raw", "'-' is not allowed"),
     ] {
         let e = moma_ros2::dds::topic_name(name).unwrap_err().to_string();
         assert!(e.contains(says) && !e.contains("BadChar"), "{name:?}: {e}");

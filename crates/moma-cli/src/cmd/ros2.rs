@@ -127,7 +127,10 @@ pub fn apply_remaps(remaps: &[String], slots: &mut [(&str, &mut String)]) -> Res
                 names.join(", ")
             );
         };
-        **slot = to.trim().to_string();
+        let to = to.trim();
+        // checked here, before DDS starts, whether or not the run opens that topic
+        dds::topic_name(to).with_context(|| format!("--remap {r:?}"))?;
+        **slot = to.to_string();
     }
     Ok(())
 }
@@ -604,9 +607,12 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         // does: otherwise a bad one (an uncalibrated driver's K = 0, at camera rate) is not an
         // error nor a skipped frame; its distortion is still worth a warning
         let info_used = state.camera_override.is_none() && state.calib.intrinsics.is_none();
+        // a camera_info that cannot be used is a warning: no frame is skipped for it (the
+        // frames go on as depth only until a good one comes)
+        let mut info_problems = Vec::new();
         let infos = drain(&info_sub, |e| {
             if info_used {
-                malformed.push(format!("camera_info: {e}"));
+                info_problems.push(format!("camera_info: {e}"));
             }
         });
         for info in infos {
@@ -635,13 +641,16 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             }
             match convert::camera_info_to_intrinsics(&info) {
                 Ok(k) if k.size() == state.calib.image_size => state.camera_info = Some(k),
-                Ok(k) => malformed.push(format!(
+                Ok(k) => info_problems.push(format!(
                     "camera_info is for {} images, the calibration for {}: ignored",
                     k.size(),
                     state.calib.image_size
                 )),
-                Err(e) => malformed.push(format!("camera_info ignored: {e}")),
+                Err(e) => info_problems.push(format!("camera_info ignored: {e}")),
             }
+        }
+        for e in info_problems {
+            state.diagnose(&outputs, None, DiagnosticStatus::WARN, &e, Vec::new());
         }
         // Recent messages are kept (bounded) only where a pairing by stamp needs them: the
         // frame's image with --input prediction when the RGB is used, and everything while a
@@ -792,7 +801,11 @@ impl NodeState {
             kv("frames_dropped_stale", self.dropped),
             kv("frames_skipped", self.skipped),
         ]);
-        let header = header.cloned().unwrap_or_default();
+        // a status of no frame (camera_info, a calibration's time-out) is stamped now
+        let header = header.cloned().unwrap_or_else(|| Header {
+            stamp: super::ros2_replay::now_stamp(),
+            frame_id: String::new(),
+        });
         let status = DiagnosticStatus {
             level,
             name: "moma: frame".into(),

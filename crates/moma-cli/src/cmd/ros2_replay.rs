@@ -190,7 +190,8 @@ fn load_frames(args: &Ros2ReplayArgs) -> Result<(Vec<ReplayFrame>, Option<Intrin
     Ok((frames, camera))
 }
 
-fn now_stamp() -> Time {
+/// The wall-clock time as a ROS stamp.
+pub fn now_stamp() -> Time {
     let d = SystemTime::now()
         .duration_since(SystemTime::UNIX_EPOCH)
         .unwrap_or_default();
@@ -252,6 +253,7 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
     std::thread::sleep(warmup);
     let mut next = Instant::now();
     let mut published = 0u64;
+    let mut failed = 0u64;
     'outer: loop {
         for f in &frames {
             if args.max_frames.is_some_and(|n| published >= n) {
@@ -274,7 +276,19 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
                 stamp: now_stamp(),
                 frame_id: args.frame_id.clone(),
             };
-            let (image, depth, prediction) = f.messages(camera.as_ref(), &header)?;
+            // a frame that cannot be read is skipped with a message, as the node skips bad
+            // input; a loop with no readable frame at all ends with the error
+            let (image, depth, prediction) = match f.messages(camera.as_ref(), &header) {
+                Ok(messages) => messages,
+                Err(e) => {
+                    eprintln!("moma ros2-replay: frame {} skipped: {e:#}", f.name);
+                    failed += 1;
+                    if failed >= frames.len() as u64 && published == 0 {
+                        return Err(e.context("no frame of the replay could be read"));
+                    }
+                    continue;
+                }
+            };
             if let Some(k) = &camera {
                 dds::publish(
                     &info_pub,
