@@ -2095,5 +2095,19 @@ fn a_bad_remap_fails_before_dds_starts() {
     ] {
         let err = fails(&["ros2-replay", "--set", "/nonexistent", "--remap", remap]);
         assert!(err.contains(remap) && err.contains(says), "{err}");
+        // the same rule as a launch file gives it
+        let err = fails(&[
+            "ros2-replay",
+            "--set",
+            "/nonexistent",
+            "--ros-args",
+            "-r",
+            remap,
+        ]);
+        assert!(err.contains(remap) && err.contains(says), "{err}");
     }
+    let err = fails(&["ros2-replay", "--set", "/x", "--ros-args", "--bogus"]);
+    assert!(err.contains("\"--bogus\" is not a ROS 2 argument"), "{err}");
+    let err = fails(&["ros2-replay", "--set", "/x", "--ros-args", "-r"]);
+    assert!(err.contains("-r needs a value"), "{err}");
 }

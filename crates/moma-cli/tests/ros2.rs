@@ -286,7 +286,7 @@ struct Checker {
 }
 
 fn checker(domain: u16) -> Checker {
-    let mut node = dds::node("checker", domain, Network::Loopback).unwrap();
+    let mut node = dds::node("checker", "/", domain, Network::Loopback).unwrap();
     let qos = dds::sensor_reader_qos();
     let depth = dds::subscription(&mut node, "depth", msg::types::image(), &qos).unwrap();
     let points = dds::subscription(&mut node, "points", msg::types::point_cloud2(), &qos).unwrap();
@@ -422,6 +422,73 @@ fn node_output_equals_moma_align_bit_for_bit() {
             proc.1
         );
     }
+}
+
+/// `--ros-args` as `launch_ros` appends them: the node renamed into a namespace, its relative
+/// topics resolved there, a remap applied, parameters and log level ignored with a note; its
+/// depth arrives on the resolved name.
+#[test]
+#[ignore = "needs ../shared and root (a network namespace): run with --include-ignored (CI does)"]
+fn ros_args_of_a_launch_file_name_and_place_the_node() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = prepare(tmp.path(), "graspnet6dof-table");
+    enter_private_network();
+    let params = tmp.path().join("params.yaml");
+    std::fs::write(&params, "moma:\n  ros__parameters: {}\n").unwrap();
+    let _node = start_node(
+        "15",
+        "60",
+        &[
+            "--calib",
+            s(&p.calib),
+            "--input",
+            "prediction",
+            "--ros-args",
+            "-r",
+            "__node:=cell_a",
+            "-r",
+            "__ns:=/left",
+            "-r",
+            "prediction:=/pred_in",
+            "-r",
+            "depth:=aligned",
+            "-r",
+            "not_a_topic_of_moma:=/x",
+            "--params-file",
+            s(&params),
+            "--log-level",
+            "info",
+        ],
+    );
+    let mut pnode = dds::node("aligned_reader", "/", 15, Network::Loopback).unwrap();
+    let qos = dds::sensor_reader_qos();
+    let aligned =
+        dds::subscription::<Image>(&mut pnode, "/left/aligned", msg::types::image(), &qos).unwrap();
+    let _replay = start_replay(
+        "15",
+        &p.set,
+        "30",
+        &[
+            "--pred",
+            s(&p.preds),
+            "--rate",
+            "5",
+            "--warmup-s",
+            "2",
+            "--remap",
+            "prediction:=/pred_in",
+        ],
+    );
+    let deadline = Instant::now() + Duration::from_secs(40);
+    let mut got = None;
+    while got.is_none() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+        if let Ok(Some((img, _))) = aligned.take() {
+            got = Some(img);
+        }
+    }
+    let img = got.expect("no depth on /left/aligned");
+    assert_eq!(img.encoding, "32FC1");
 }
 
 /// Waits for the node's first depth frame (the node is up and discovered).
@@ -647,7 +714,7 @@ fn bad_input_is_skipped_with_a_reason() {
         &["--calib", s(&p.calib), "--input", "prediction"],
     );
     let c = checker(13);
-    let mut pnode = dds::node("bad_camera", 13, Network::Loopback).unwrap();
+    let mut pnode = dds::node("bad_camera", "/", 13, Network::Loopback).unwrap();
     let qos = dds::sensor_qos();
     let pred =
         dds::publisher::<Image>(&mut pnode, "prediction", msg::types::image(), &qos).unwrap();
@@ -1080,7 +1147,7 @@ fn live_calibration_refuses_depth_of_another_frame() {
     enter_private_network();
     let _node = start_calibrating_node("14", "90", &p.calib, &live, "5");
     let mut c = checker(14);
-    let mut camera = dds::node("unregistered_camera", 14, Network::Loopback).unwrap();
+    let mut camera = dds::node("unregistered_camera", "/", 14, Network::Loopback).unwrap();
     let qos = dds::sensor_qos();
     let image_t = msg::types::image();
     let image = dds::publisher::<Image>(&mut camera, "image", image_t.clone(), &qos).unwrap();

@@ -52,7 +52,8 @@ fn bench(c: &mut Criterion) {
     // ros2-client's publish with no subscriber (nothing is sent): encoding and the writer's
     // admission, what the node pays per message before DDS's own thread takes over. The node is
     // loopback-only: its discovery announcements stay on this machine.
-    let mut node = moma_ros2::dds::node("bench", 199, moma_ros2::dds::Network::Loopback).unwrap();
+    let mut node =
+        moma_ros2::dds::node("bench", "/", 199, moma_ros2::dds::Network::Loopback).unwrap();
     let publ = moma_ros2::dds::publisher::<moma_ros2::msg::PointCloud2>(
         &mut node,
         "bench_points",

@@ -56,7 +56,7 @@ fn echo_round_trips(rows: usize, n: usize) -> Vec<f64> {
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let s = stop.clone();
     let echo = std::thread::spawn(move || {
-        let mut node = dds::node("echo", DOMAIN, Network::Loopback).unwrap();
+        let mut node = dds::node("echo", "/", DOMAIN, Network::Loopback).unwrap();
         let qos = dds::sensor_qos();
         let sub = dds::subscription::<Image>(
             &mut node,
@@ -73,7 +73,7 @@ fn echo_round_trips(rows: usize, n: usize) -> Vec<f64> {
             std::thread::sleep(Duration::from_micros(100));
         }
     });
-    let mut node = dds::node("pinger", DOMAIN, Network::Loopback).unwrap();
+    let mut node = dds::node("pinger", "/", DOMAIN, Network::Loopback).unwrap();
     let publ = dds::publisher::<Image>(&mut node, "ping", msg::types::image(), &dds::sensor_qos())
         .unwrap();
     let sub = dds::subscription::<Image>(
@@ -147,7 +147,7 @@ fn main() {
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    let mut me = dds::node("latency", DOMAIN, Network::Loopback).unwrap();
+    let mut me = dds::node("latency", "/", DOMAIN, Network::Loopback).unwrap();
     let diag = dds::subscription::<DiagnosticArray>(
         &mut me,
         "diagnostics",

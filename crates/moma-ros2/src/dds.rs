@@ -58,19 +58,19 @@ fn dds(e: impl std::fmt::Debug) -> RosError {
     RosError::Dds(format!("{e:?}"))
 }
 
-/// A ROS 2 node on `domain_id` named `/name`.
+/// A ROS 2 node on `domain_id` named `name` in the namespace `namespace` (`/`: the root).
 ///
 /// # Errors
 /// DDS could not start (ports in use, no interface) or the name is not a ROS 2 name.
-pub fn node(name: &str, domain_id: u16, network: Network) -> Result<Node> {
+pub fn node(name: &str, namespace: &str, domain_id: u16, network: Network) -> Result<Node> {
     let mut builder = DomainParticipantBuilder::new(domain_id);
     if network == Network::Loopback {
         builder = builder.with_only_networks([std::net::Ipv4Addr::LOCALHOST]);
     }
     let participant = builder.build().map_err(dds)?;
     let context = Context::from_domain_participant(participant).map_err(dds)?;
-    let node_name = NodeName::new("/", name).map_err(|e| RosError::Name {
-        name: name.to_string(),
+    let node_name = NodeName::new(namespace, name).map_err(|e| RosError::Name {
+        name: format!("{namespace} {name}"),
         why: format!("{e:?}"),
     })?;
     context

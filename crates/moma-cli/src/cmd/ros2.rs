@@ -88,10 +88,11 @@ impl Topics {
     ///
     /// # Errors
     /// A remap without `:=` or of an unknown name.
-    pub fn with_remaps(remaps: &[String]) -> Result<Self> {
+    pub fn with_remaps(remaps: &[String], ros: &RosArgs) -> Result<Self> {
         let mut t = Self::default();
-        apply_remaps(
+        resolve_topics(
             remaps,
+            ros,
             &mut [
                 ("image", &mut t.image),
                 ("camera_info", &mut t.camera_info),
@@ -109,31 +110,55 @@ impl Topics {
     }
 }
 
-/// Applies `--remap NAME:=TOPIC` arguments to the named topic slots (`moma ros2` and
-/// `moma ros2-replay`).
+/// `--remap` (`strict`: a name that is not a slot is an error) or `--ros-args -r` (such a
+/// name is ignored, as ROS ignores a rule that matches nothing), then the namespace of
+/// `--ros-args -r __ns:=` for every relative name: what `moma ros2` and the replay open.
 ///
 /// # Errors
-/// A remap without `:=`, or of a name that is not a slot.
-pub fn apply_remaps(remaps: &[String], slots: &mut [(&str, &mut String)]) -> Result<()> {
+/// A remap without `:=`; with `--remap`, a name that is not a slot; a name ROS refuses.
+pub fn resolve_topics(
+    remaps: &[String],
+    ros: &RosArgs,
+    slots: &mut [(&str, &mut String)],
+) -> Result<()> {
+    remap_slots(remaps, slots, true)?;
+    remap_slots(&ros.remaps, slots, false)?;
+    if let Some(ns) = &ros.namespace {
+        dds::topic_name(ns).with_context(|| format!("--ros-args -r __ns:={ns}"))?;
+        for (_, slot) in slots.iter_mut() {
+            **slot = in_namespace(slot, ns);
+        }
+    }
+    Ok(())
+}
+
+fn remap_slots(remaps: &[String], slots: &mut [(&str, &mut String)], strict: bool) -> Result<()> {
+    let flag = if strict { "--remap" } else { "--ros-args -r" };
     for r in remaps {
         let Some((from, to)) = r.split_once(":=") else {
-            bail!("--remap {r:?}: expected NAME:=TOPIC, e.g. image:=/camera/color/image_raw");
+            bail!("{flag} {r:?}: expected NAME:=TOPIC, e.g. image:=/camera/color/image_raw");
         };
         let names: Vec<&str> = slots.iter().map(|(n, _)| *n).collect();
-        let Some((_, slot)) = slots.iter_mut().find(|(n, _)| *n == from.trim()) else {
+        let from = from.trim().trim_start_matches('/');
+        let Some((_, slot)) = slots.iter_mut().find(|(n, _)| *n == from) else {
+            if !strict {
+                continue;
+            }
             bail!(
-                "--remap {r:?}: no topic or service {:?} ({})",
-                from.trim(),
+                "--remap {r:?}: no topic or service {from:?} ({})",
                 names.join(", ")
             );
         };
         let to = to.trim();
         // checked here, before DDS starts, whether or not the run opens that topic
-        dds::topic_name(to).with_context(|| format!("--remap {r:?}"))?;
+        dds::topic_name(to).with_context(|| format!("{flag} {r:?}"))?;
         **slot = to.to_string();
     }
     Ok(())
 }
+
+/// The node's default name (`--ros-args -r __node:=NAME` renames it).
+const NODE_NAME: &str = "moma";
 
 /// DDS settings shared by `moma ros2` and `moma ros2-replay`.
 #[derive(Debug, Clone, Args)]
@@ -145,10 +170,110 @@ pub struct DdsArgs {
     /// $ROS_LOCALHOST_ONLY is 1].
     #[arg(long)]
     pub localhost_only: bool,
+    /// ROS 2 arguments, last on the line, as `launch_ros` appends them: `-r FROM:=TO` remaps a
+    /// topic (as --remap; a name the node does not have is ignored, as ROS ignores it),
+    /// `-r __node:=NAME` and `-r __ns:=/NS` name the node and its namespace (relative topic
+    /// names are resolved in it); parameters (`-p`, `--params-file`), `--log-level` and
+    /// `--enclave` are ignored with a note.
+    #[arg(long = "ros-args", num_args = 0.., allow_hyphen_values = true, value_name = "ARG")]
+    pub ros_args: Option<Vec<String>>,
+}
+
+/// What `--ros-args` says ([`DdsArgs::ros`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RosArgs {
+    /// Topic remaps `FROM:=TO`, for this node.
+    pub remaps: Vec<String>,
+    /// `__node:=NAME`.
+    pub node: Option<String>,
+    /// `__ns:=/NS`.
+    pub namespace: Option<String>,
+}
+
+/// Reads ROS 2 command-line arguments (`--ros-args` and what follows it, up to a `--`); `node`
+/// is the node's default name, for node-specific remaps (`NODE:FROM:=TO`).
+///
+/// # Errors
+/// A flag that needs a value without one, or an unknown flag.
+pub fn parse_ros_args(args: &[String], node: &str) -> Result<RosArgs> {
+    let mut out = RosArgs::default();
+    let mut ignored = Vec::new();
+    let mut it = args.iter();
+    while let Some(a) = it.next() {
+        let mut value = |flag: &str| {
+            it.next()
+                .cloned()
+                .with_context(|| format!("--ros-args {flag} needs a value"))
+        };
+        match a.as_str() {
+            "--" => break,
+            "--ros-args" => {}
+            "-r" | "--remap" => {
+                let rule = value(a)?;
+                let Some((from, to)) = rule.split_once(":=") else {
+                    bail!("--ros-args -r {rule:?}: expected FROM:=TO");
+                };
+                // `NODE:FROM:=TO` applies to the node named NODE only
+                let from = match from.split_once(':') {
+                    Some((for_node, from)) if for_node == node => from,
+                    Some(_) => continue,
+                    None => from,
+                };
+                match from {
+                    "__node" | "__name" => out.node = Some(to.to_string()),
+                    "__ns" => out.namespace = Some(to.to_string()),
+                    _ => out.remaps.push(format!("{from}:={to}")),
+                }
+            }
+            "-p" | "--param" | "--params-file" | "--log-level" | "-e" | "--enclave" => {
+                ignored.push(format!("{a} {}", value(a)?));
+            }
+            "--disable-rosout-logs"
+            | "--disable-stdout-logs"
+            | "--enable-rosout-logs"
+            | "--enable-stdout-logs"
+            | "--disable-external-lib-logs" => ignored.push(a.clone()),
+            other => bail!(
+                "--ros-args: {other:?} is not a ROS 2 argument moma reads (-r FROM:=TO, \
+                 -r __node:=NAME, -r __ns:=/NS; -p, --params-file, --log-level and --enclave \
+                 are ignored)"
+            ),
+        }
+    }
+    if !ignored.is_empty() {
+        eprintln!(
+            "note: --ros-args {} ignored: moma takes its settings from its own options (moma \
+             ros2 --help)",
+            ignored.join(" ")
+        );
+    }
+    Ok(out)
+}
+
+/// `name` resolved in `namespace`: an absolute name as it is, a relative one under the
+/// namespace (`/left` and `depth`: `/left/depth`).
+pub fn in_namespace(name: &str, namespace: &str) -> String {
+    if name.starts_with('/') {
+        name.to_string()
+    } else {
+        format!("{}/{name}", namespace.trim_end_matches('/'))
+    }
 }
 
 impl DdsArgs {
-    /// A node named `name` with these settings.
+    /// The `--ros-args` of the node whose default name is `node` (none given: nothing).
+    ///
+    /// # Errors
+    /// As [`parse_ros_args`].
+    pub fn ros(&self, node: &str) -> Result<RosArgs> {
+        match &self.ros_args {
+            Some(a) => parse_ros_args(a, node),
+            None => Ok(RosArgs::default()),
+        }
+    }
+
+    /// A node named `name` (or `--ros-args -r __node:=`) in the namespace of `--ros-args -r
+    /// __ns:=` (else `/`), with these settings.
     ///
     /// # Errors
     /// A domain id out of range in the environment; DDS could not start.
@@ -173,8 +298,15 @@ impl DdsArgs {
         } else {
             Network::All
         };
-        dds::node(name, domain, network)
-            .with_context(|| format!("starting the ROS 2 node {name} on domain {domain}"))
+        let ros = self.ros(name)?;
+        let name = ros.node.as_deref().unwrap_or(name);
+        let namespace = ros.namespace.as_deref().unwrap_or("/");
+        dds::node(name, namespace, domain, network).with_context(|| {
+            format!(
+                "starting the ROS 2 node {} on domain {domain}",
+                in_namespace(name, namespace)
+            )
+        })
     }
 }
 
@@ -387,7 +519,8 @@ fn keep_large_buffers() {
 
 pub fn run(args: &Ros2Args) -> Result<()> {
     keep_large_buffers();
-    let topics = Topics::with_remaps(&args.remap)?;
+    let ros = args.dds.ros(NODE_NAME)?;
+    let topics = Topics::with_remaps(&args.remap, &ros)?;
     for (flag, v) in [
         ("--calib-timeout-s", args.calib_timeout_s),
         ("--sync-timeout-s", args.sync_timeout_s),
@@ -468,7 +601,11 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         );
     }
 
-    let mut node = args.dds.node("moma")?;
+    let mut node = args.dds.node(NODE_NAME)?;
+    let node_label = in_namespace(
+        ros.node.as_deref().unwrap_or(NODE_NAME),
+        ros.namespace.as_deref().unwrap_or("/"),
+    );
     let sensor = dds::sensor_qos();
     let reader = dds::sensor_reader_qos();
     // The image is read on every frame with --input image, --realign or --points-rgb; else (and
@@ -559,7 +696,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         skipped: 0,
     };
     eprintln!(
-        "moma ros2: node /moma on domain {}, input {} on {}, publishing {} and {}{}",
+        "moma ros2: node {node_label} on domain {}, input {} on {}, publishing {} and {}{}",
         node.domain_id(),
         match args.input {
             InputArg::Image => "RGB",

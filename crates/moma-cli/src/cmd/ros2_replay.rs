@@ -232,8 +232,10 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
         "depth_sensor".to_string(),
         "prediction".to_string(),
     );
-    super::ros2::apply_remaps(
+    let ros = args.dds.ros("moma_replay")?;
+    super::ros2::resolve_topics(
         &args.remap,
+        &ros,
         &mut [
             ("image", &mut image),
             ("camera_info", &mut camera_info),
