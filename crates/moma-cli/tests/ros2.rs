@@ -323,7 +323,7 @@ fn node_output_equals_moma_align_bit_for_bit() {
     let mut replay = start_replay(
         domain,
         &p.set,
-        "60",
+        "600",
         &["--pred", s(&p.preds), "--rate", "3", "--warmup-s", "2"],
     );
     let stamps = stamps_of(&mut replay);
@@ -404,6 +404,12 @@ fn node_output_equals_moma_align_bit_for_bit() {
     // Ctrl-C and a launch system's SIGTERM end the loops: the node and the replay leave the
     // domain and exit with 0 (the node had 80 s to go), not killed by the signal
     for (proc, signal) in [(&mut node, libc::SIGINT), (&mut replay, libc::SIGTERM)] {
+        // still running: the exit status below is the signal's doing
+        assert!(
+            proc.0.try_wait().unwrap().is_none(),
+            "{} already ended",
+            proc.1
+        );
         // SAFETY: a signal to a child this test started and has not reaped.
         assert_eq!(unsafe { libc::kill(proc.0.id() as i32, signal) }, 0);
         let deadline = Instant::now() + Duration::from_secs(10);

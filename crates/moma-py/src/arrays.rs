@@ -73,6 +73,12 @@ pub fn f32_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonlyAr
                 .py()
                 .import("numpy")?
                 .call_method1("squeeze", (&arr, axis))?;
+            // a float32 map read as it is, as a 2-D one would be
+            if let Ok(a) = squeezed.cast::<PyArray2<f32>>() {
+                return a
+                    .try_readonly()
+                    .map_err(|e| value_err(format!("{what}: {e}")));
+            }
             arr = as_ndarray(&squeezed, what)?;
         }
     }

@@ -101,6 +101,16 @@ fn name_error(name: &str, e: &ros2_client::names::NameError) -> String {
     match e {
         ros2_client::names::NameError::Empty => "a topic name cannot be empty".to_string(),
         ros2_client::names::NameError::BadChar(reported) => {
+            // the characters are allowed, their places are not
+            if name
+                .split('/')
+                .any(|part| part.starts_with(|c: char| c.is_ascii_digit()))
+            {
+                return "a part of a topic name cannot start with a digit".to_string();
+            }
+            if name.contains("__") {
+                return "a topic name cannot hold '__' (two underscores)".to_string();
+            }
             let c = name
                 .chars()
                 .find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '/'))

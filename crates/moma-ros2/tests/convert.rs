@@ -439,6 +439,7 @@ fn a_topic_name_ros_refuses_is_explained() {
         ("~/depth", "'~' is not allowed in a topic name"),
         ("~/depth", "give the full name, e.g. /moma/depth"),
         ("cam/image-raw", "'-' is not allowed"),
+        ("cam/2d", "cannot start with a digit"),
     ] {
         let e = moma_ros2::dds::topic_name(name).unwrap_err().to_string();
         assert!(e.contains(says) && !e.contains("BadChar"), "{name:?}: {e}");

@@ -741,8 +741,13 @@ pub fn fit_frame(
     let kind = prediction.kind;
     // the normalisation and its workspace of the calibration this one replaces, when it is of
     // the same kind (a live calibration keeps what the cell was set up with)
-    // (RAW takes no normalisation: `none`, its own default)
-    let kept = keep.filter(|c| c.prediction_kind == kind && method != Method::Raw);
+    // (RAW takes no normalisation: `none`, its own default; a RAW calibration's `none` is no
+    // setting of the cell's to keep either)
+    let kept = keep.filter(|c| {
+        c.prediction_kind == kind
+            && method != Method::Raw
+            && !matches!(c.model, moma_core::align::AlignmentModel::Raw)
+    });
     let config = CalibrationConfig {
         normalisation: match kept {
             Some(c) => c.normalisation,

@@ -495,10 +495,18 @@ fn print_summary(outcome: &PlanOutcome) {
     if outcome.grasps.is_empty() {
         return;
     }
+    let with_base = outcome.grasps.first().is_some_and(|g| match g {
+        Grasp::Parallel(p) => p.base.is_some(),
+        Grasp::Suction(s) => s.base.is_some(),
+    });
     println!(
-        "{} grasp(s), best first (camera frame, metres; with --extrinsics also the robot base \
-         frame):",
-        outcome.grasps.len()
+        "{} grasp(s), best first (camera frame{}, metres):",
+        outcome.grasps.len(),
+        if with_base {
+            " and robot base frame"
+        } else {
+            ""
+        }
     );
     for (k, g) in outcome.grasps.iter().enumerate() {
         let prob = |p: Option<f32>| p.map_or(String::new(), |p| format!("  success_prob {p:.2}"));

@@ -77,17 +77,20 @@ impl Default for Topics {
             points: "points".into(),
             grasps: "grasps".into(),
             grasps_json: "grasps_json".into(),
-            diagnostics: "diagnostics".into(),
+            // absolute, as diagnostic_updater publishes it: a namespaced node's statuses still
+            // reach diagnostic_aggregator
+            diagnostics: "/diagnostics".into(),
             calibrate: "calibrate".into(),
         }
     }
 }
 
 impl Topics {
-    /// The default names with `remaps` (`NAME:=TOPIC`) applied.
+    /// The default names with `remaps` (`--remap NAME:=TOPIC`) and `ros`'s rules applied,
+    /// resolved in its namespace ([`resolve_topics`]).
     ///
     /// # Errors
-    /// A remap without `:=` or of an unknown name.
+    /// As [`resolve_topics`].
     pub fn with_remaps(remaps: &[String], ros: &RosArgs) -> Result<Self> {
         let mut t = Self::default();
         resolve_topics(
@@ -123,23 +126,25 @@ pub fn resolve_topics(
 ) -> Result<()> {
     remap_slots(remaps, slots, true)?;
     remap_slots(&ros.remaps, slots, false)?;
-    if let Some(ns) = &ros.namespace {
-        dds::topic_name(ns).with_context(|| format!("--ros-args -r __ns:={ns}"))?;
-        for (_, slot) in slots.iter_mut() {
-            **slot = in_namespace(slot, ns);
-        }
+    for (_, slot) in slots.iter_mut() {
+        **slot = in_namespace(slot, &ros.namespace);
     }
     Ok(())
 }
 
 fn remap_slots(remaps: &[String], slots: &mut [(&str, &mut String)], strict: bool) -> Result<()> {
     let flag = if strict { "--remap" } else { "--ros-args -r" };
+    // ROS applies the first rule that matches a name; --remap, given once per name, the last
+    let mut done: Vec<String> = Vec::new();
     for r in remaps {
         let Some((from, to)) = r.split_once(":=") else {
             bail!("{flag} {r:?}: expected NAME:=TOPIC, e.g. image:=/camera/color/image_raw");
         };
         let names: Vec<&str> = slots.iter().map(|(n, _)| *n).collect();
-        let from = from.trim().trim_start_matches('/');
+        let from = from.trim();
+        if !strict && done.iter().any(|d| d == from) {
+            continue;
+        }
         let Some((_, slot)) = slots.iter_mut().find(|(n, _)| *n == from) else {
             if !strict {
                 continue;
@@ -153,6 +158,7 @@ fn remap_slots(remaps: &[String], slots: &mut [(&str, &mut String)], strict: boo
         // checked here, before DDS starts, whether or not the run opens that topic
         dds::topic_name(to).with_context(|| format!("{flag} {r:?}"))?;
         **slot = to.to_string();
+        done.push(from.to_string());
     }
     Ok(())
 }
@@ -175,28 +181,44 @@ pub struct DdsArgs {
     /// `-r __node:=NAME` and `-r __ns:=/NS` name the node and its namespace (relative topic
     /// names are resolved in it); parameters (`-p`, `--params-file`), `--log-level` and
     /// `--enclave` are ignored with a note.
-    #[arg(long = "ros-args", num_args = 0.., allow_hyphen_values = true, value_name = "ARG")]
+    #[arg(
+        long = "ros-args",
+        num_args = 0..,
+        allow_hyphen_values = true,
+        value_terminator = "--",
+        value_name = "ARG"
+    )]
     pub ros_args: Option<Vec<String>>,
 }
 
 /// What `--ros-args` says ([`DdsArgs::ros`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct RosArgs {
-    /// Topic remaps `FROM:=TO`, for this node.
+    /// Topic remaps `FROM:=TO` for this node (node-specific ones matched to its final name).
     pub remaps: Vec<String>,
-    /// `__node:=NAME`.
-    pub node: Option<String>,
-    /// `__ns:=/NS`.
-    pub namespace: Option<String>,
+    /// The node's name: `__node:=NAME`, else the default.
+    pub node: String,
+    /// The node's namespace, absolute, without a trailing `/` but for the root `/`.
+    pub namespace: String,
 }
 
-/// Reads ROS 2 command-line arguments (`--ros-args` and what follows it, up to a `--`); `node`
-/// is the node's default name, for node-specific remaps (`NODE:FROM:=TO`).
+impl RosArgs {
+    /// The node's full name (`/left/cell_a`).
+    pub fn full_name(&self) -> String {
+        in_namespace(&self.node, &self.namespace)
+    }
+}
+
+/// Reads ROS 2 command-line arguments (what follows `--ros-args`); `node` is the node's
+/// default name. As rcl reads them: `__node` / `__name` and `__ns` first, then the topic
+/// rules, a node-specific one (`NODE:FROM:=TO`) kept when NODE is the node's final name; the
+/// first rule for a name wins.
 ///
 /// # Errors
-/// A flag that needs a value without one, or an unknown flag.
+/// A flag that needs a value without one, an unknown flag, a node name or namespace ROS
+/// refuses.
 pub fn parse_ros_args(args: &[String], node: &str) -> Result<RosArgs> {
-    let mut out = RosArgs::default();
+    let mut rules: Vec<(Option<String>, String, String)> = Vec::new();
     let mut ignored = Vec::new();
     let mut it = args.iter();
     while let Some(a) = it.next() {
@@ -206,26 +228,20 @@ pub fn parse_ros_args(args: &[String], node: &str) -> Result<RosArgs> {
                 .with_context(|| format!("--ros-args {flag} needs a value"))
         };
         match a.as_str() {
-            "--" => break,
             "--ros-args" => {}
             "-r" | "--remap" => {
                 let rule = value(a)?;
                 let Some((from, to)) = rule.split_once(":=") else {
                     bail!("--ros-args -r {rule:?}: expected FROM:=TO");
                 };
-                // `NODE:FROM:=TO` applies to the node named NODE only
-                let from = match from.split_once(':') {
-                    Some((for_node, from)) if for_node == node => from,
-                    Some(_) => continue,
-                    None => from,
+                let (for_node, from) = match from.split_once(':') {
+                    Some((n, f)) => (Some(n.to_string()), f.to_string()),
+                    None => (None, from.to_string()),
                 };
-                match from {
-                    "__node" | "__name" => out.node = Some(to.to_string()),
-                    "__ns" => out.namespace = Some(to.to_string()),
-                    _ => out.remaps.push(format!("{from}:={to}")),
-                }
+                rules.push((for_node, from, to.to_string()));
             }
-            "-p" | "--param" | "--params-file" | "--log-level" | "-e" | "--enclave" => {
+            "-p" | "--param" | "--params-file" | "--log-level" | "-e" | "--enclave"
+            | "--log-config-file" | "--log-file-name" => {
                 ignored.push(format!("{a} {}", value(a)?));
             }
             "--disable-rosout-logs"
@@ -235,9 +251,42 @@ pub fn parse_ros_args(args: &[String], node: &str) -> Result<RosArgs> {
             | "--disable-external-lib-logs" => ignored.push(a.clone()),
             other => bail!(
                 "--ros-args: {other:?} is not a ROS 2 argument moma reads (-r FROM:=TO, \
-                 -r __node:=NAME, -r __ns:=/NS; -p, --params-file, --log-level and --enclave \
-                 are ignored)"
+                 -r __node:=NAME, -r __ns:=/NS; parameters, logging and --enclave are ignored; \
+                 moma's own options go before --ros-args, or after a --)"
             ),
+        }
+    }
+    let applies =
+        |for_node: &Option<String>, name: &str| for_node.as_deref().is_none_or(|n| n == name);
+    // the node's name and namespace first (a node-specific rule names the default name)
+    let mut out = RosArgs {
+        remaps: Vec::new(),
+        node: node.to_string(),
+        namespace: "/".to_string(),
+    };
+    let (mut named, mut placed) = (false, false);
+    for (for_node, from, to) in &rules {
+        if !applies(for_node, node) {
+            continue;
+        }
+        match from.as_str() {
+            "__node" | "__name" if !named => {
+                out.node = to.clone();
+                named = true;
+            }
+            "__ns" if !placed => {
+                out.namespace = to.clone();
+                placed = true;
+            }
+            _ => {}
+        }
+    }
+    out.namespace = check_namespace(&out.namespace)?;
+    check_node_name(&out.node)?;
+    // then the topic rules of this node (its final name)
+    for (for_node, from, to) in &rules {
+        if !from.starts_with("__") && applies(for_node, &out.node) {
+            out.remaps.push(format!("{from}:={to}"));
         }
     }
     if !ignored.is_empty() {
@@ -250,6 +299,33 @@ pub fn parse_ros_args(args: &[String], node: &str) -> Result<RosArgs> {
     Ok(out)
 }
 
+/// A namespace as ROS takes it: absolute, `/` the root, a trailing `/` dropped.
+fn check_namespace(ns: &str) -> Result<String> {
+    if !ns.starts_with('/') {
+        bail!("--ros-args -r __ns:={ns}: a namespace is absolute (e.g. /left)");
+    }
+    let trimmed = ns.trim_end_matches('/');
+    if trimmed.is_empty() {
+        return Ok("/".to_string());
+    }
+    dds::topic_name(trimmed).with_context(|| format!("--ros-args -r __ns:={ns}"))?;
+    Ok(trimmed.to_string())
+}
+
+/// A node name as ROS takes it: one part of letters, digits and `_`, not starting with a digit.
+fn check_node_name(name: &str) -> Result<()> {
+    let ok = !name.is_empty()
+        && !name.starts_with(|c: char| c.is_ascii_digit())
+        && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    if !ok {
+        bail!(
+            "--ros-args -r __node:={name}: a node name is letters, digits and '_', not starting \
+             with a digit"
+        );
+    }
+    Ok(())
+}
+
 /// `name` resolved in `namespace`: an absolute name as it is, a relative one under the
 /// namespace (`/left` and `depth`: `/left/depth`).
 pub fn in_namespace(name: &str, namespace: &str) -> String {
@@ -260,24 +336,79 @@ pub fn in_namespace(name: &str, namespace: &str) -> String {
     }
 }
 
+#[cfg(test)]
+mod ros_args_tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Result<RosArgs> {
+        let args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+        parse_ros_args(&args, "moma")
+    }
+
+    #[test]
+    fn names_and_namespaces_resolve_as_ros_resolves_them() {
+        assert_eq!(in_namespace("depth", "/"), "/depth");
+        assert_eq!(in_namespace("depth", "/left"), "/left/depth");
+        assert_eq!(in_namespace("/diagnostics", "/left"), "/diagnostics");
+        // launch_ros gives `__ns:=/` for a launch file's empty namespace
+        let root = parse(&["-r", "__ns:=/", "-r", "__node:=cell_a"]).unwrap();
+        assert_eq!(
+            (root.namespace.as_str(), root.full_name()),
+            ("/", "/cell_a".into())
+        );
+        let left = parse(&["-r", "__ns:=/left/"]).unwrap();
+        assert_eq!(left.full_name(), "/left/moma");
+        assert_eq!(left.namespace, "/left");
+        let e = parse(&["-r", "__ns:=left"]).unwrap_err().to_string();
+        assert!(e.contains("a namespace is absolute"), "{e}");
+        let e = parse(&["-r", "__node:=cell-a"]).unwrap_err().to_string();
+        assert!(e.contains("a node name is letters"), "{e}");
+    }
+
+    #[test]
+    fn node_specific_rules_follow_the_final_name_and_the_first_rule_wins() {
+        let r = parse(&[
+            "-r",
+            "__node:=cell_a",
+            "-r",
+            "cell_a:image:=/cam",
+            "-r",
+            "moma:depth:=/not_for_cell_a",
+            "-r",
+            "points:=/first",
+            "-r",
+            "points:=/second",
+        ])
+        .unwrap();
+        assert_eq!(r.node, "cell_a");
+        assert_eq!(
+            r.remaps,
+            ["image:=/cam", "points:=/first", "points:=/second"]
+        );
+        let mut points = "points".to_string();
+        remap_slots(&r.remaps, &mut [("points", &mut points)], false).unwrap();
+        assert_eq!(points, "/first");
+        // logging is ignored, an unknown flag is not
+        assert!(parse(&["--log-level", "info", "--log-file-name", "x"]).is_ok());
+        let e = parse(&["--bogus"]).unwrap_err().to_string();
+        assert!(e.contains("\"--bogus\" is not a ROS 2 argument"), "{e}");
+    }
+}
+
 impl DdsArgs {
     /// The `--ros-args` of the node whose default name is `node` (none given: nothing).
     ///
     /// # Errors
     /// As [`parse_ros_args`].
     pub fn ros(&self, node: &str) -> Result<RosArgs> {
-        match &self.ros_args {
-            Some(a) => parse_ros_args(a, node),
-            None => Ok(RosArgs::default()),
-        }
+        parse_ros_args(self.ros_args.as_deref().unwrap_or_default(), node)
     }
 
-    /// A node named `name` (or `--ros-args -r __node:=`) in the namespace of `--ros-args -r
-    /// __ns:=` (else `/`), with these settings.
+    /// The node `ros` names ([`DdsArgs::ros`]), with these settings.
     ///
     /// # Errors
     /// A domain id out of range in the environment; DDS could not start.
-    pub fn node(&self, name: &str) -> Result<ros2_client::Node> {
+    pub fn node(&self, ros: &RosArgs) -> Result<ros2_client::Node> {
         let domain = match self.domain_id {
             Some(d) => d,
             None => match std::env::var("ROS_DOMAIN_ID") {
@@ -298,13 +429,10 @@ impl DdsArgs {
         } else {
             Network::All
         };
-        let ros = self.ros(name)?;
-        let name = ros.node.as_deref().unwrap_or(name);
-        let namespace = ros.namespace.as_deref().unwrap_or("/");
-        dds::node(name, namespace, domain, network).with_context(|| {
+        dds::node(&ros.node, &ros.namespace, domain, network).with_context(|| {
             format!(
                 "starting the ROS 2 node {} on domain {domain}",
-                in_namespace(name, namespace)
+                ros.full_name()
             )
         })
     }
@@ -366,7 +494,7 @@ pub struct Ros2Args {
     /// Live calibration: the method [default: the loaded calibration's].
     #[arg(long, value_name = "METHOD")]
     pub calib_method: Option<Method>,
-    /// Live calibration: number of samples [default: the loaded calibration's].
+    /// Live calibration: number of samples [default: 100, `moma calibrate`'s].
     #[arg(long, value_name = "N")]
     pub calib_samples: Option<usize>,
     /// Live calibration: seed of the sampling.
@@ -601,11 +729,8 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         );
     }
 
-    let mut node = args.dds.node(NODE_NAME)?;
-    let node_label = in_namespace(
-        ros.node.as_deref().unwrap_or(NODE_NAME),
-        ros.namespace.as_deref().unwrap_or("/"),
-    );
+    let mut node = args.dds.node(&ros)?;
+    let node_label = ros.full_name();
     let sensor = dds::sensor_qos();
     let reader = dds::sensor_reader_qos();
     // The image is read on every frame with --input image, --realign or --points-rgb; else (and
@@ -1301,7 +1426,7 @@ impl NodeState {
             method,
             self.args
                 .calib_samples
-                .unwrap_or(self.calib.calibration.report.n_used.max(1)),
+                .unwrap_or(moma_core::sampling::SamplingConfig::default().n),
             self.args.calib_seed,
             Some(&self.calib.calibration),
         )?;

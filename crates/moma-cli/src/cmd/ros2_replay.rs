@@ -244,7 +244,7 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
         ],
     )?;
     let (frames, camera) = load_frames(args)?;
-    let mut node = args.dds.node("moma_replay")?;
+    let mut node = args.dds.node(&ros)?;
     let qos = dds::sensor_qos();
     let image_pub = dds::publisher::<Image>(&mut node, &image, msg::types::image(), &qos)?;
     let info_pub =
@@ -252,7 +252,11 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
     let depth_pub = dds::publisher::<Image>(&mut node, &depth_sensor, msg::types::image(), &qos)?;
     let pred_pub = dds::publisher::<Image>(&mut node, &prediction, msg::types::image(), &qos)?;
 
-    std::thread::sleep(warmup);
+    // the warm-up in short naps too: a signal during it ends the replay at once
+    let warm_until = Instant::now() + warmup;
+    while Instant::now() < warm_until && super::common::stop_requested().is_none() {
+        std::thread::sleep((warm_until - Instant::now()).min(Duration::from_millis(20)));
+    }
     let mut next = Instant::now();
     let mut published = 0u64;
     let mut failed = 0u64;
