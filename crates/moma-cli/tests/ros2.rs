@@ -595,7 +595,9 @@ fn live_calibration_through_the_service() {
     let resp = call_calibrate(&client, Duration::from_secs(15));
     assert!(!resp.success, "{resp:?}");
     assert!(
-        resp.message.contains("no depth_sensor frame") && resp.message.contains("3 s"),
+        resp.message.contains("no depth_sensor frame")
+            && resp.message.contains("3 s")
+            && resp.message.contains("0 depth_sensor frame(s)"),
         "a clear reason: {}",
         resp.message
     );

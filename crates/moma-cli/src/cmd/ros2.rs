@@ -568,6 +568,9 @@ struct NodeState {
     camera_info: Option<Intrinsics>,
     /// A `camera_info` with distortion was warned about (once: it comes at camera rate).
     distortion_warned: bool,
+    /// The camera_info problems already reported (each once: a driver repeats one at camera
+    /// rate).
+    camera_info_warned: Vec<String>,
     grasp: Option<(GraspRequest, Option<Extrinsics>, Option<moma_core::Mask>)>,
     images: VecDeque<Image>,
     predictions: VecDeque<Image>,
@@ -812,6 +815,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         camera_override,
         camera_info: None,
         distortion_warned: false,
+        camera_info_warned: Vec::new(),
         grasp,
         images: VecDeque::new(),
         predictions: VecDeque::new(),
@@ -912,7 +916,10 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             }
         }
         for e in info_problems {
-            state.diagnose(&outputs, None, DiagnosticStatus::WARN, &e, Vec::new());
+            if !state.camera_info_warned.contains(&e) && state.camera_info_warned.len() < 16 {
+                state.diagnose(&outputs, None, DiagnosticStatus::WARN, &e, Vec::new());
+                state.camera_info_warned.push(e);
+            }
         }
         // Recent messages are kept (bounded) only where a pairing by stamp needs them: the
         // frame's image with --input prediction when the RGB is used, and everything while a
@@ -1325,9 +1332,34 @@ impl NodeState {
         });
         let Some((depth_msg, image_msg, pred_msg)) = pair else {
             if req.since.elapsed().as_secs_f64() >= self.args.calib_timeout_s {
+                // what did arrive: none at all (a topic not published, or remapped wrong), or
+                // frames whose stamps are apart (a driver's clocks)
+                let nearest_s = self
+                    .depth_sensor
+                    .iter()
+                    .flat_map(|d| {
+                        self.images.iter().map(move |i| {
+                            (stamp_diff_ns(d.header.stamp, i.header.stamp) as f64 * 1e-9).abs()
+                        })
+                    })
+                    .min_by(f64::total_cmp);
+                let arrived = match nearest_s {
+                    Some(apart) => format!(
+                        "; {} depth_sensor frame(s) and {} image(s) arrived, the nearest {:.3} s \
+                         apart",
+                        self.depth_sensor.len(),
+                        self.images.len(),
+                        apart
+                    ),
+                    None => format!(
+                        "; {} depth_sensor frame(s) and {} image(s) arrived",
+                        self.depth_sensor.len(),
+                        self.images.len()
+                    ),
+                };
                 let why = format!(
                     "calibration failed: no {} frame with an image{} of the same stamp (within \
-                     --calib-sync-slop-s {} s) within {} s",
+                     --calib-sync-slop-s {} s) within {} s{arrived}",
                     "depth_sensor",
                     if self.args.input == InputArg::Prediction {
                         " and a prediction"
