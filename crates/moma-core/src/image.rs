@@ -386,67 +386,36 @@ fn median_where(
 mod millimetre_median_tests {
     use super::*;
 
-    /// The counting shortcut gives exactly the median rule it stands for: `sorted[n / 2]` of
-    /// the valid depths above the bound, on maps of both parities with every share of large
-    /// values around one half, values equal to the bound, and invalid pixels.
-    #[test]
-    fn the_count_decides_as_the_median_does() {
-        let rule = |v: &[f32]| {
-            let mut valid: Vec<f32> = v.iter().copied().filter(|&z| is_valid_depth(z)).collect();
-            if valid.is_empty() {
-                return None;
-            }
-            valid.sort_by(f32::total_cmp);
-            let m = valid[valid.len() / 2];
-            (m > MILLIMETRE_MEDIAN_M).then_some(m)
-        };
-        for n in 1..=9usize {
-            for big in 0..=n {
-                for tie in [false, true] {
-                    let mut v: Vec<f32> = (0..n)
-                        .map(|i| {
-                            if i < big {
-                                650.0 + i as f32
-                            } else if tie {
-                                MILLIMETRE_MEDIAN_M
-                            } else {
-                                0.7 + i as f32 * 0.01
-                            }
-                        })
-                        .collect();
-                    v.extend([f32::NAN, 0.0, -1.0, f32::INFINITY]);
-                    let map = ndarray::Array2::from_shape_vec((1, v.len()), v.clone()).unwrap();
-                    assert_eq!(millimetre_median(map.view()), rule(&v), "{v:?}");
-                }
-            }
+    /// The median rule written out: `sorted[n / 2]` of the valid depths of `v` when `beyond`
+    /// holds for it.
+    fn median_rule(v: &[f32], beyond: impl Fn(f32) -> bool) -> Option<f32> {
+        let mut valid: Vec<f32> = v.iter().copied().filter(|&z| is_valid_depth(z)).collect();
+        if valid.is_empty() {
+            return None;
         }
-        let none = ndarray::Array2::from_elem((2, 2), f32::NAN);
-        assert_eq!(millimetre_median(none.view()), None);
+        valid.sort_by(f32::total_cmp);
+        let m = valid[valid.len() / 2];
+        beyond(m).then_some(m)
     }
 
-    /// The same for the lower bound: `sorted[n / 2]` of the valid depths below
-    /// [`NEAR_MEDIAN_M`], with values equal to it, on both parities.
-    #[test]
-    fn the_count_decides_as_the_median_does_below() {
-        let rule = |v: &[f32]| {
-            let mut valid: Vec<f32> = v.iter().copied().filter(|&z| is_valid_depth(z)).collect();
-            if valid.is_empty() {
-                return None;
-            }
-            valid.sort_by(f32::total_cmp);
-            let m = valid[valid.len() / 2];
-            (m < NEAR_MEDIAN_M).then_some(m)
-        };
+    /// `check` against [`median_rule`] on maps of both parities with every share of values
+    /// beyond the bound (`outside(i)`) around one half, values equal to the bound, and invalid
+    /// pixels; and on a map without a valid pixel.
+    fn decides_as_the_median_does(
+        check: fn(ndarray::ArrayView2<'_, f32>) -> Option<f32>,
+        beyond: impl Fn(f32) -> bool + Copy,
+        outside: impl Fn(usize) -> f32,
+        bound: f32,
+    ) {
         for n in 1..=9usize {
-            for small in 0..=n {
+            for k in 0..=n {
                 for tie in [false, true] {
                     let mut v: Vec<f32> = (0..n)
                         .map(|i| {
-                            if i < small {
-                                // metres written into a millimetre PNG: 1–9 mm
-                                0.001 * (1 + i) as f32
+                            if i < k {
+                                outside(i)
                             } else if tie {
-                                NEAR_MEDIAN_M
+                                bound
                             } else {
                                 0.7 + i as f32 * 0.01
                             }
@@ -454,12 +423,35 @@ mod millimetre_median_tests {
                         .collect();
                     v.extend([f32::NAN, 0.0, -1.0, f32::INFINITY]);
                     let map = ndarray::Array2::from_shape_vec((1, v.len()), v.clone()).unwrap();
-                    assert_eq!(near_median(map.view()), rule(&v), "{v:?}");
+                    assert_eq!(check(map.view()), median_rule(&v, beyond), "{v:?}");
                 }
             }
         }
         let none = ndarray::Array2::from_elem((2, 2), f32::NAN);
-        assert_eq!(near_median(none.view()), None);
+        assert_eq!(check(none.view()), None);
+    }
+
+    /// The counting shortcut gives exactly the median rule it stands for, above the bound
+    /// (millimetres given as metres).
+    #[test]
+    fn the_count_decides_as_the_median_does() {
+        decides_as_the_median_does(
+            millimetre_median,
+            |m| m > MILLIMETRE_MEDIAN_M,
+            |i| 650.0 + i as f32,
+            MILLIMETRE_MEDIAN_M,
+        );
+    }
+
+    /// The same below [`NEAR_MEDIAN_M`] (metres written into a millimetre PNG: 1–9 mm).
+    #[test]
+    fn the_count_decides_as_the_median_does_below() {
+        decides_as_the_median_does(
+            near_median,
+            |m| m < NEAR_MEDIAN_M,
+            |i| 0.001 * (1 + i) as f32,
+            NEAR_MEDIAN_M,
+        );
     }
 }
 
