@@ -53,8 +53,9 @@ fn forget(list: &mut Vec<PathBuf>, path: &Path) {
 
 /// Removes every temporary file an [`atomic_write`] has open in this process and returns the
 /// registry still locked: no writer can register, rename or finish another until the guard
-/// is dropped, so a program about to end on a signal holds it until it ends. The writers' destination files
-/// are untouched (the old file, or none). Returns how many were removed with the guard.
+/// is dropped, so a program about to end on a signal holds it until it ends. The writers'
+/// destination files are untouched (the old file, or none). Returns how many were removed,
+/// with the guard.
 ///
 /// For signal handling in a program's own thread (not in a signal handler: it locks and
 /// allocates), as `moma`'s binary does for SIGINT, SIGTERM and SIGHUP.
