@@ -322,6 +322,9 @@ def plan_grasps(
     grasp_quality: Optional[Literal["nominal", "robust"]] = None,
     grasp_draws: int = 4,
     min_success_prob: Optional[float] = None,
+    gripper_config: Optional[Union[_Path, dict[str, float]]] = None,
+    tie_tolerance: Optional[float] = None,
+    extrinsics: Optional[Union[_Path, npt.ArrayLike]] = None,
 ) -> list[dict[str, Any]]:
     """Grasps, best first, as ``moma grasp --json`` prints them: parallel ``{"kind", "score",
     "success_prob", "center_m", "approach", "closing", "width_m"}``, suction ``{"kind",
@@ -335,7 +338,10 @@ def plan_grasps(
     = inside); without one, regions over 10 mm above the support plane that do not touch the
     image border (unless ``keep_border_objects``). An empty list when nothing is graspable,
     with the reason as a ``UserWarning`` (e.g. every grasp below ``min_success_prob``, which
-    with N draws cannot exceed ``(N + 1) / (N + 2)``)."""
+    with N draws cannot exceed ``(N + 1) / (N + 2)``). ``gripper_config`` (a dict, or the path
+    of ``--gripper-config``'s JSON), ``tie_tolerance`` (``--grasp-tie-tolerance``) and
+    ``extrinsics`` (a 4 × 4 camera → base array of rows, or the path of ``--extrinsics``'s JSON;
+    each grasp gains ``"base"``) are taken as the CLI takes them."""
 
 def grasp_check(
     calibration: Calibration,

@@ -214,3 +214,48 @@ def test_grasp_check_executes_the_planned_grasps_on_the_truth():
         moma.grasp_check(cal, pred, gt, gripper="vacuum")
     with pytest.raises(ValueError):
         moma.grasp_check(cal, pred, gt[:, :10])
+
+
+@pytest.mark.skipif(moma_bin() is None, reason="moma CLI not found: set MOMA_BIN")
+def test_gripper_config_tie_tolerance_and_extrinsics_as_the_cli_takes_them(tmp_path):
+    cam, depth, box = box_scene()
+    moma.write_depth(str(tmp_path / "d.npy"), depth)
+    cam.save(str(tmp_path / "camera.json"))
+    # a jaw opening at most 60 mm: the box's 40 mm side fits, with less clearance
+    config = {"stroke_m": 0.06, "opening_clearance_m": 0.005}
+    (tmp_path / "jaw.json").write_text(json.dumps(config))
+    # the camera 1 m above the base looking down: base = (x, −y, 1 − z)
+    rows = [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1], [0, 0, 0, 1]]
+    (tmp_path / "ext.json").write_text(json.dumps({"camera_to_base": rows}))
+    out = subprocess.run(
+        [moma_bin(), "grasp", "--depth", str(tmp_path / "d.npy"), "--camera",
+         str(tmp_path / "camera.json"), "--gripper", "parallel", "--top", "3", "--json",
+         "--gripper-config", str(tmp_path / "jaw.json"), "--extrinsics", str(tmp_path / "ext.json")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    cli = json.loads(out.stdout)
+    for gripper_config, extrinsics in (
+        (config, np.array(rows, float)),
+        (str(tmp_path / "jaw.json"), tmp_path / "ext.json"),
+    ):
+        py = moma.plan_grasps(depth, cam, gripper="parallel", top=3,
+                              gripper_config=gripper_config, extrinsics=extrinsics)
+        assert len(py) == len(cli) > 0
+        for a, b in zip(py, cli):
+            np.testing.assert_allclose(a["width_m"], b["width_m"], rtol=1e-6)
+            assert a["width_m"] <= 0.06
+            np.testing.assert_allclose(a["base"]["center_m"], b["base"]["center_m"], atol=1e-6)
+            x, y, z = a["center_m"]
+            np.testing.assert_allclose(a["base"]["center_m"], [x, -y, 1 - z], atol=1e-6)
+    # a jaw narrower than the box finds nothing, and says so
+    with pytest.warns(UserWarning, match="no grasp"):
+        assert moma.plan_grasps(depth, cam, mask=box, gripper_config={"stroke_m": 0.03}) == []
+    # bad settings are named
+    with pytest.raises(moma.InvalidInputError, match="gripper_config"):
+        moma.plan_grasps(depth, cam, gripper_config={"stroke_mm": 60})
+    with pytest.raises(moma.InvalidInputError, match="extrinsics"):
+        moma.plan_grasps(depth, cam, extrinsics=np.eye(4) * 2)
+    with pytest.raises(moma.InvalidInputError, match="tolerance"):
+        moma.plan_grasps(depth, cam, gripper="suction", sigma_m=0.005, tie_tolerance=1.5)
+    assert moma.plan_grasps(depth, cam, gripper="suction", sigma_m=0.005, tie_tolerance=0.2)

@@ -1002,13 +1002,17 @@ const _: () = assert!(moma_grasp::DEFAULT_GRASP_DRAWS == 4);
 /// metres) does the same. `grasp_quality` is `"robust"` (the default where there is an error
 /// model: by the share of successful draws) or `"nominal"` (by the planner's score);
 /// `grasp_draws` depth draws (seeded by `seed`); `min_success_prob` drops grasps below it.
-/// Other keywords: `gripper` (`"parallel"` or `"suction"`), `mask` (bool/uint8 `height ×
-/// width`, nonzero = object), `top`, `seed`, `keep_border_objects`. No grasp found is an empty
+/// Other keywords: `gripper` (`"parallel"` or `"suction"`), `gripper_config` (the gripper's
+/// geometry, as `moma grasp --gripper-config` reads it: a path to its JSON file, or a dict of
+/// the same fields), `tie_tolerance` (the robust ranking's, as `--grasp-tie-tolerance`),
+/// `extrinsics` (camera → robot base: a 4 × 4 array of rows, or a path to the JSON file of
+/// `--extrinsics`; adds each grasp's `"base"` pose), `mask` (bool/uint8 `height × width`,
+/// nonzero = object), `top`, `seed`, `keep_border_objects`. No grasp found is an empty
 /// list, not an error, with the reason as a `UserWarning` (e.g. every grasp below
 /// `min_success_prob`, which with N draws cannot exceed `(N + 1) / (N + 2)`). The GIL is
 /// released while planning.
 #[pyfunction]
-#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None))]
+#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None, gripper_config=None, tie_tolerance=None, extrinsics=None))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
 fn plan_grasps<'py>(
     py: Python<'py>,
@@ -1025,6 +1029,9 @@ fn plan_grasps<'py>(
     grasp_quality: Option<&str>,
     grasp_draws: i128,
     min_success_prob: Option<f64>,
+    gripper_config: Option<&Bound<'py, PyAny>>,
+    tie_tolerance: Option<f32>,
+    extrinsics: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     use moma_grasp::{GraspRequest, SceneConfig};
     let (top, seed, grasp_draws): (usize, u64, usize) = (
@@ -1032,7 +1039,14 @@ fn plan_grasps<'py>(
         unsigned("seed", seed)?,
         unsigned("grasp_draws", grasp_draws)?,
     );
-    let gripper = default_gripper(gripper)?;
+    let gripper = match gripper_config {
+        None => default_gripper(gripper)?,
+        Some(config) => gripper_from_config(gripper, config)?,
+    };
+    gripper
+        .validate()
+        .map_err(|e| value_err(format!("gripper_config: {e}")))?;
+    let extrinsics = extrinsics.map(extrinsics_from_py).transpose()?;
     let (depth, error_model, k) = match source.cast::<Calibration>() {
         Ok(cal) => {
             let cal = cal.borrow();
@@ -1082,6 +1096,9 @@ fn plan_grasps<'py>(
     request.seed = seed;
     request.draws = grasp_draws;
     request.min_success_prob = min_success_prob;
+    if let Some(t) = tie_tolerance {
+        request.tie_tolerance = t;
+    }
     request.scene = SceneConfig {
         keep_border_objects,
         ..SceneConfig::default()
@@ -1090,9 +1107,12 @@ fn plan_grasps<'py>(
         request.quality = q.parse().py()?;
     }
     request.validate().map_err(|e| value_err(e.to_string()))?;
-    let (_, outcome) = py
+    let (_, mut outcome) = py
         .detach(|| moma_grasp::plan_grasps(&depth, &k, mask.as_ref(), &request))
         .map_err(|e| value_err(e.to_string()))?;
+    if let Some(e) = &extrinsics {
+        outcome.set_base(e);
+    }
     // no grasp is an empty list, not an error; the reason (`moma grasp` prints it on stderr)
     // comes as a UserWarning
     if outcome.grasps.is_empty()
@@ -1118,6 +1138,41 @@ fn default_gripper(name: &str) -> PyResult<moma_grasp::Gripper> {
     name.parse::<moma_grasp::GripperKind>()
         .map(moma_grasp::GripperKind::default_gripper)
         .map_err(|e| value_err(e.to_string()))
+}
+
+/// The `gripper` of geometry `config`: a path to the JSON file `moma grasp --gripper-config`
+/// reads, or a dict of its fields.
+fn gripper_from_config(kind: &str, config: &Bound<'_, PyAny>) -> PyResult<moma_grasp::Gripper> {
+    use moma_grasp::{Gripper, GripperKind};
+    let kind = kind
+        .parse::<GripperKind>()
+        .map_err(|e| value_err(e.to_string()))?;
+    let what = "gripper_config";
+    let from_file = config.extract::<std::path::PathBuf>().ok();
+    Ok(match (kind, from_file) {
+        (GripperKind::Parallel, Some(p)) => Gripper::Parallel(moma_io::read_json(p, what).py()?),
+        (GripperKind::Suction, Some(p)) => Gripper::Suction(moma_io::read_json(p, what).py()?),
+        (GripperKind::Parallel, None) => Gripper::Parallel(from_py_json(config, what)?),
+        (GripperKind::Suction, None) => Gripper::Suction(from_py_json(config, what)?),
+    })
+}
+
+/// Camera → robot base extrinsics: a 4 × 4 array-like of rows, or a path to the JSON file
+/// `moma grasp --extrinsics` reads; checked as the CLI checks them.
+fn extrinsics_from_py(value: &Bound<'_, PyAny>) -> PyResult<moma_grasp::Extrinsics> {
+    let rows: [[f64; 4]; 4] = match value.extract::<std::path::PathBuf>() {
+        Ok(path) => moma_io::read_extrinsics(path).py()?,
+        Err(_) => {
+            let list = value
+                .py()
+                .import("numpy")?
+                .call_method1("asarray", (value, "float64"))
+                .map_err(|e| value_err(format!("extrinsics: not a 4 × 4 array: {e}")))?
+                .call_method0("tolist")?;
+            from_py_json(&list, "extrinsics (a 4 × 4 array of rows)")?
+        }
+    };
+    moma_grasp::Extrinsics::new(rows).map_err(|e| value_err(format!("extrinsics: {e}")))
 }
 
 /// The grasp check of a frame whose ground truth is known, as `moma calibrate --grasp-check`
