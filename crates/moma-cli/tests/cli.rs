@@ -395,6 +395,17 @@ fn bad_input_is_a_clear_error() {
             && err.contains("a relative prediction has a value at every pixel"),
         "{err}"
     );
+    // the output folder the failed run created is gone again (it wrote nothing into it); one
+    // that was there before stays
+    assert!(!a.exists());
+    std::fs::create_dir_all(&a).unwrap();
+    fails(&align_args(
+        &calib,
+        &nan,
+        &a,
+        &["--pred-kind", "relative-disparity"],
+    ));
+    assert!(a.is_dir());
 
     // A model source without weights.
     let err = fails(&["predict", s(&rgb), "-o", s(&tmp.path().join("p"))]);

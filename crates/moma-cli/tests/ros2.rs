@@ -808,6 +808,28 @@ fn bad_input_is_skipped_with_a_reason() {
         assert!(said, "case {i}: no diagnostic saying {reason:?}");
         assert!(processed, "case {i}: the next good frame was not processed");
     }
+    // a frame without a frame_id: aligned, and warned about (nothing can place its outputs)
+    let (mut warned, mut processed) = (false, false);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !(warned && processed) && Instant::now() < deadline {
+        let mut m = good_img(40);
+        m.header.frame_id.clear();
+        dds::publish(&pred, m).unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        while let Ok(Some((d, _))) = c.diagnostics.take() {
+            warned |= d
+                .status
+                .iter()
+                .any(|s| s.level == 1 && s.message.contains("frame_id is empty"));
+        }
+        while let Ok(Some((img, _))) = c.depth.take() {
+            processed |= img.header.stamp.sec == 40;
+        }
+    }
+    assert!(
+        warned && processed,
+        "empty frame_id: warned {warned}, processed {processed}"
+    );
     // a camera_info with distortion: used (its P), and warned about once (moma does not undo
     // distortion), frames go on
     let k = moma_core::Intrinsics {

@@ -10,7 +10,7 @@ use moma_core::{AlignOptions, Aligned, MetricDepth};
 use moma_io::{Colormap, DepthRange, PlyFormat};
 use serde::Serialize;
 
-use super::common::{SourceArgs, SourcedPrediction, create_dir, print_json, progress};
+use super::common::{SourceArgs, SourcedPrediction, print_json, progress};
 
 /// `--colormap` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -322,7 +322,8 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         );
     }
     let simulated = source.simulated || calib.created.simulated_predictions;
-    create_dir(&args.output)?;
+    // (created here, it goes again if the run fails before writing into it)
+    let output_dir = super::common::create_output_dir(&args.output)?;
     // the folder's index records where each frame's depth came from (a SIMULATED one is scored
     // as such later, by `moma metrics`): before the frame's files are written (keeping the
     // label of files they replace) and once they are
@@ -497,6 +498,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             times[times.len() / 2]
         );
     }
+    output_dir.keep();
     Ok(())
 }
 

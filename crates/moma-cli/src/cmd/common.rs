@@ -705,6 +705,45 @@ pub fn create_dir(dir: &Path) -> Result<()> {
         .with_context(|| format!("cannot create output directory {}", dir.display()))
 }
 
+/// An output folder a run created: removed again, if still empty, when the run fails (dropped
+/// without [`OutputDir::keep`]), so that a run stopped by bad input leaves no empty folder
+/// behind; one that existed before is left as it was.
+#[must_use = "call keep() once the run has succeeded"]
+pub struct OutputDir {
+    path: PathBuf,
+    created: bool,
+}
+
+impl OutputDir {
+    /// The run succeeded: the folder stays.
+    pub fn keep(mut self) {
+        self.created = false;
+    }
+}
+
+impl Drop for OutputDir {
+    fn drop(&mut self) {
+        if self.created {
+            // removes an empty folder only: anything written stays
+            let _ = std::fs::remove_dir(&self.path);
+        }
+    }
+}
+
+/// [`create_dir`], returning the guard that removes the folder again if the run fails before
+/// writing into it.
+///
+/// # Errors
+/// As [`create_dir`].
+pub fn create_output_dir(dir: &Path) -> Result<OutputDir> {
+    let created = !dir.exists();
+    create_dir(dir)?;
+    Ok(OutputDir {
+        path: dir.to_path_buf(),
+        created,
+    })
+}
+
 /// Removes a result an earlier run left at `path` (none there is fine), before a run writes
 /// the files that result would otherwise seem to describe: an index of predictions, a
 /// `grasps.json` beside new outputs.

@@ -163,6 +163,9 @@ fn remap_slots(remaps: &[String], slots: &mut [(&str, &mut String)], strict: boo
     Ok(())
 }
 
+/// How often the same camera_info problem is reported again.
+const CAMERA_INFO_WARN_EVERY: Duration = Duration::from_secs(5);
+
 /// The node's default name (`--ros-args -r __node:=NAME` renames it).
 const NODE_NAME: &str = "moma";
 
@@ -568,9 +571,12 @@ struct NodeState {
     camera_info: Option<Intrinsics>,
     /// A `camera_info` with distortion was warned about (once: it comes at camera rate).
     distortion_warned: bool,
-    /// The camera_info problems already reported (each once: a driver repeats one at camera
-    /// rate).
-    camera_info_warned: Vec<String>,
+    /// The camera_info problems reported, and when (each at most every
+    /// [`CAMERA_INFO_WARN_EVERY`]: a driver repeats one at camera rate; and a best-effort status
+    /// may be lost, so once is not enough).
+    camera_info_warned: Vec<(String, Instant)>,
+    /// An input with an empty `frame_id` was warned about (once).
+    empty_frame_id_warned: bool,
     grasp: Option<(GraspRequest, Option<Extrinsics>, Option<moma_core::Mask>)>,
     images: VecDeque<Image>,
     predictions: VecDeque<Image>,
@@ -816,6 +822,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
         camera_info: None,
         distortion_warned: false,
         camera_info_warned: Vec::new(),
+        empty_frame_id_warned: false,
         grasp,
         images: VecDeque::new(),
         predictions: VecDeque::new(),
@@ -916,9 +923,17 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             }
         }
         for e in info_problems {
-            if !state.camera_info_warned.contains(&e) && state.camera_info_warned.len() < 16 {
+            let last = state.camera_info_warned.iter_mut().find(|(m, _)| *m == e);
+            let due = match &last {
+                Some((_, at)) => at.elapsed() >= CAMERA_INFO_WARN_EVERY,
+                None => state.camera_info_warned.len() < 16,
+            };
+            if due {
                 state.diagnose(&outputs, None, DiagnosticStatus::WARN, &e, Vec::new());
-                state.camera_info_warned.push(e);
+                match state.camera_info_warned.iter_mut().find(|(m, _)| *m == e) {
+                    Some((_, at)) => *at = Instant::now(),
+                    None => state.camera_info_warned.push((e, Instant::now())),
+                }
             }
         }
         // Recent messages are kept (bounded) only where a pairing by stamp needs them: the
@@ -1202,6 +1217,16 @@ impl NodeState {
         out: &Outputs,
     ) -> Result<()> {
         let header = p.msg.header.clone();
+        // the outputs carry the input's frame id: an empty one leaves rviz and tf nothing to
+        // place them by (said once)
+        // (in the frame's own status: a second status published at once could replace it in
+        // the best-effort writer's history of one before it leaves)
+        let frame_id_note =
+            (header.frame_id.is_empty() && !self.empty_frame_id_warned).then(|| {
+                self.empty_frame_id_warned = true;
+                "the input's frame_id is empty: depth, points and grasps carry none (rviz and tf \
+             cannot place them; set the camera driver's frame, e.g. camera_color_optical_frame)"
+            });
         let t_model = Instant::now();
         let prediction = self.prediction(&p.msg, rgb.as_ref())?;
         let model_ms = if self.model.is_some() {
@@ -1312,6 +1337,10 @@ impl NodeState {
         if aligned.realign.as_ref().is_some_and(|r| !r.accepted) {
             level = level.max(DiagnosticStatus::WARN);
             message = "re-alignment not accepted (one-shot depth published)".to_string();
+        }
+        if let Some(note) = frame_id_note {
+            level = level.max(DiagnosticStatus::WARN);
+            message = format!("{note}; {message}");
         }
         self.diagnose(out, Some(&header), level, &message, values);
         Ok(())
