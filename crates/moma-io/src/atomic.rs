@@ -22,9 +22,9 @@ fn in_flight() -> MutexGuard<'static, Vec<PathBuf>> {
 struct Registered(Option<PathBuf>);
 
 impl Registered {
-    /// Adds `path` to the registry.
-    fn new(path: &Path) -> Self {
-        in_flight().push(path.to_path_buf());
+    /// Adds `path` to the registry whose lock the caller holds.
+    fn push(list: &mut Vec<PathBuf>, path: &Path) -> Self {
+        list.push(path.to_path_buf());
         Self(Some(path.to_path_buf()))
     }
 
@@ -136,15 +136,21 @@ pub fn atomic_write<T>(
         use std::os::unix::fs::PermissionsExt;
         builder.permissions(std::fs::Permissions::from_mode(0o666));
     }
-    let mut tmp = builder.tempfile_in(dir).map_err(|e| {
-        IoError::io(
-            path,
-            "create a temporary file in the destination directory",
-            e,
-        )
-    })?;
-    // registered at once (the registry's lock is not held while the file system creates it)
-    let registered = Registered::new(tmp.path());
+    // created and registered under the registry's lock: a signal's cleanup, which holds the
+    // lock until the program ends, never misses a temporary file that exists (created outside
+    // it, a file made just before the cleanup and registered after it stayed behind: seen in CI)
+    let (mut tmp, registered) = {
+        let mut list = in_flight();
+        let tmp = builder.tempfile_in(dir).map_err(|e| {
+            IoError::io(
+                path,
+                "create a temporary file in the destination directory",
+                e,
+            )
+        })?;
+        let registered = Registered::push(&mut list, tmp.path());
+        (tmp, registered)
+    };
     let written = fill(&mut tmp, path, write);
     let value = match written {
         Ok(value) => value,
