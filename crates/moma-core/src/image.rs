@@ -331,47 +331,46 @@ impl MetricDepth {
 /// median of 200 m.
 pub const MILLIMETRE_MEDIAN_M: f32 = 200.0;
 
-/// The median of a depth map's valid pixels ([`is_valid_depth`]) when it is above
-/// [`MILLIMETRE_MEDIAN_M`]: the map can only be millimetres given as metres. `None` for a
-/// plausible map or one without valid pixels. The one rule for every reader of metres (the
-/// CLI's `.npy` / `.pfm` files, Python's arrays).
-pub fn millimetre_median(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
-    median_where(depth_m, |z| z > MILLIMETRE_MEDIAN_M, false)
-}
-
 /// Depth in metres below which a map's median says it is not metres: a uint16 millimetre PNG
 /// written from metres (values 0–5 for a scene 0–5 m away), or metres divided by 1000 twice.
 /// No sensor or depth model moma serves sees a median of 2 cm (a RealSense D405 starts at 7 cm).
 pub const NEAR_MEDIAN_M: f32 = 0.02;
 
-/// The median of a depth map's valid pixels ([`is_valid_depth`]) when it is below
-/// [`NEAR_MEDIAN_M`]: the map cannot be metres of a scene a robot grasps in. `None` for a
-/// plausible map or one without valid pixels.
-pub fn near_median(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
-    median_where(depth_m, |z| z < NEAR_MEDIAN_M, true)
+/// What a depth map's median says of its units when they cannot be metres ([`unit_mistake`]);
+/// each holds the median, metres as read.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum UnitMistake {
+    /// Above [`MILLIMETRE_MEDIAN_M`]: millimetres given as metres.
+    Millimetres(f32),
+    /// Below [`NEAR_MEDIAN_M`]: metres written as millimetres, or divided by 1000 once too
+    /// often (or no depth map at all).
+    TooNear(f32),
 }
 
-/// The median of the valid depths when `beyond` holds for it, else `None`.
-fn median_where(
-    depth_m: ndarray::ArrayView2<'_, f32>,
-    beyond: impl Fn(f32) -> bool,
-    below: bool,
-) -> Option<f32> {
+/// The units a depth map read as metres cannot have, from the median of its valid pixels
+/// ([`is_valid_depth`]): above [`MILLIMETRE_MEDIAN_M`] or below [`NEAR_MEDIAN_M`]. `None` for a
+/// plausible map or one without valid pixels. The one rule for every reader of metres (the
+/// CLI's depth files, Python's arrays, the ROS 2 node's depth sensor).
+pub fn unit_mistake(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<UnitMistake> {
     // The median (sorted[n / 2] of the n valid depths) is above a bound exactly when at least
-    // n − n / 2 of them are, and below it exactly when at least n / 2 + 1 are: one pass that
+    // n − n / 2 of them are, and below one exactly when at least n / 2 + 1 are: one pass that
     // allocates nothing decides the usual case (the check runs on every frame RAW aligns), and
-    // only a map whose median is beyond the bound is sorted for the value its message names.
-    let (mut n, mut count) = (0usize, 0usize);
+    // only a map whose median is beyond a bound is sorted for the value its message names.
+    let (mut n, mut above, mut below) = (0usize, 0usize, 0usize);
     for &z in &depth_m {
         if is_valid_depth(z) {
             n += 1;
-            count += usize::from(beyond(z));
+            above += usize::from(z > MILLIMETRE_MEDIAN_M);
+            below += usize::from(z < NEAR_MEDIAN_M);
         }
     }
-    let needed = if below { n / 2 + 1 } else { n - n / 2 };
-    if n == 0 || count < needed {
+    let mistake: fn(f32) -> UnitMistake = if n > 0 && above >= n - n / 2 {
+        UnitMistake::Millimetres
+    } else if n > 0 && below > n / 2 {
+        UnitMistake::TooNear
+    } else {
         return None;
-    }
+    };
     let mut valid: Vec<f32> = depth_m
         .iter()
         .copied()
@@ -379,7 +378,16 @@ fn median_where(
         .collect();
     let mid = valid.len() / 2;
     let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
-    Some(*median)
+    Some(mistake(*median))
+}
+
+/// The median of a depth map's valid pixels when it is above [`MILLIMETRE_MEDIAN_M`]: the map
+/// can only be millimetres given as metres ([`unit_mistake`]).
+pub fn millimetre_median(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
+    match unit_mistake(depth_m) {
+        Some(UnitMistake::Millimetres(median)) => Some(median),
+        _ => None,
+    }
 }
 
 #[cfg(test)]
@@ -447,7 +455,10 @@ mod millimetre_median_tests {
     #[test]
     fn the_count_decides_as_the_median_does_below() {
         decides_as_the_median_does(
-            near_median,
+            |d| match unit_mistake(d) {
+                Some(UnitMistake::TooNear(median)) => Some(median),
+                _ => None,
+            },
             |m| m < NEAR_MEDIAN_M,
             |i| 0.001 * (1 + i) as f32,
             NEAR_MEDIAN_M,

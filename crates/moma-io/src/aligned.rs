@@ -195,7 +195,7 @@ pub fn read_aligned_index(dir: &Path) -> Result<Option<AlignedIndex>> {
 /// A file named like the index that is moma's but cannot be read (corrupt, newer version, not a
 /// file): a SIMULATED label is never dropped silently.
 pub fn provenance_of(file: &Path) -> Result<Provenance> {
-    let path = aligned_index_path(crate::predictions::folder_of(file));
+    let path = aligned_index_path(crate::atomic::folder_of(file));
     let index = match read_at(&path)? {
         None => return Ok(Provenance::Unlisted),
         Some(Found::Foreign) => return Ok(Provenance::ForeignIndex(path)),

@@ -106,10 +106,7 @@ pub fn atomic_write<T>(
     let Some(name) = path.file_name() else {
         return Err(IoError::invalid(path, "output path has no file name"));
     };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
+    let dir = folder_of(path);
     if !dir.is_dir() {
         let why = if dir.exists() {
             "is a file, not a directory"
@@ -171,6 +168,15 @@ pub fn atomic_write<T>(
     registered.release(&mut list);
     persisted?;
     Ok(value)
+}
+
+/// The folder holding `file` (`.` for a bare file name): where an output's temporary file, or
+/// a file's index (`predictions.json`, `aligned.json`), lies.
+pub(crate) fn folder_of(file: &Path) -> &Path {
+    match file.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    }
 }
 
 /// Runs a writer closure on the temporary file and flushes it.

@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use moma_core::{ImageSize, MetricDepth, Prediction, PredictionKind, is_valid_depth};
+use moma_core::{ImageSize, MetricDepth, Prediction, PredictionKind, UnitMistake, is_valid_depth};
 use ndarray::{Array2, ArrayD, ArrayView2, Axis, Ix2};
 use ndarray_npy::{ReadNpyError, ReadNpyExt, WriteNpyExt};
 
@@ -110,7 +110,8 @@ pub struct DepthWriteStats {
 /// millimetres; [`IoError::Invalid`]).
 pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
     let path = path.as_ref();
-    let depth_m = match DepthFormat::from_path(path)? {
+    let format = DepthFormat::from_path(path)?;
+    let depth_m = match format {
         DepthFormat::Png16 => read_png16(path)?.mapv(|mm| {
             if mm == 0 {
                 f32::NAN
@@ -122,33 +123,39 @@ pub fn read_depth(path: impl AsRef<Path>) -> Result<MetricDepth> {
         DepthFormat::Pfm => read_pfm(path)?,
     };
     // a float map of millimetres (a sensor PNG cast without dividing by 1000) would be taken
-    // as metres: a calibration of 5 km RMS, maps of hundreds of metres
-    if let Some(median) = moma_core::millimetre_median(depth_m.view()) {
-        return Err(IoError::invalid(
-            path,
-            format!(
-                "median depth {median} m looks like millimetres: .npy and .pfm depth is in \
-                 metres (divide by 1000, or save millimetres as a uint16 PNG; far background \
-                 or sky stored as a large number: write it as NaN or 0, no depth)"
-            ),
-        ));
-    }
-    // the reverse: metres written into a millimetre PNG (values 0–5), or metres divided by
-    // 1000 into a float file, would be a scene a few millimetres from the camera
-    if let Some(median) = moma_core::near_median(depth_m.view()) {
-        let mm = f64::from(median) * 1000.0;
-        let why = if DepthFormat::from_path(path)? == DepthFormat::Png16 {
-            "a uint16 depth PNG holds millimetres: this one looks like metres (or tenths) \
-             written as integers; write round(metres × 1000)"
-        } else {
-            ".npy and .pfm depth is in metres: this looks like kilometres, metres divided by \
-             1000 once too often, or no depth map at all (a σ map `NAME.sigma.npy` is read as an \
-             array, e.g. numpy.load)"
-        };
-        return Err(IoError::invalid(
-            path,
-            format!("median depth {mm:.1} mm: no scene a camera grasps in is that near ({why})"),
-        ));
+    // as metres: a calibration of 5 km RMS, maps of hundreds of metres; the reverse (metres
+    // written into a millimetre PNG, values 0–5, or metres divided by 1000 into a float file)
+    // a scene a few millimetres from the camera
+    match moma_core::unit_mistake(depth_m.view()) {
+        None => {}
+        Some(UnitMistake::Millimetres(median)) => {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "median depth {median} m looks like millimetres: .npy and .pfm depth is in \
+                     metres (divide by 1000, or save millimetres as a uint16 PNG; far \
+                     background or sky stored as a large number: write it as NaN or 0, no \
+                     depth)"
+                ),
+            ));
+        }
+        Some(UnitMistake::TooNear(median)) => {
+            let mm = f64::from(median) * 1000.0;
+            let why = if format == DepthFormat::Png16 {
+                "a uint16 depth PNG holds millimetres: this one looks like metres (or tenths) \
+                 written as integers; write round(metres × 1000)"
+            } else {
+                ".npy and .pfm depth is in metres: this looks like kilometres, metres divided \
+                 by 1000 once too often, or no depth map at all (a σ map `NAME.sigma.npy` is \
+                 read as an array, e.g. numpy.load)"
+            };
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "median depth {mm:.1} mm: no scene a camera grasps in is that near ({why})"
+                ),
+            ));
+        }
     }
     Ok(MetricDepth::new(depth_m))
 }

@@ -268,15 +268,7 @@ pub fn read_prediction_index(dir: &Path) -> Result<Option<PredictionIndex>> {
 /// # Errors
 /// As [`read_prediction_index`].
 pub fn read_prediction_index_for(file: &Path) -> Result<Option<PredictionIndex>> {
-    read_prediction_index(folder_of(file))
-}
-
-/// The folder holding `file` (`.` for a bare file name), where its index lies.
-pub(crate) fn folder_of(file: &Path) -> &Path {
-    match file.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    }
+    read_prediction_index(crate::atomic::folder_of(file))
 }
 
 /// The index that lists `file` as one of its raw predictions (`<name>.npy` beside a

@@ -262,20 +262,18 @@ pub fn metres_2d<'py>(obj: &Bound<'py, PyAny>, what: &str) -> PyResult<PyReadonl
         }
         f32_2d(arr.as_any(), what)?
     };
-    if let Some(median) = moma_core::millimetre_median(ro.as_array()) {
-        return Err(value_err(format!(
+    match moma_core::unit_mistake(ro.as_array()) {
+        None => Ok(ro),
+        Some(moma_core::UnitMistake::Millimetres(median)) => Err(value_err(format!(
             "{what} has a median depth of {median} m: it looks like millimetres (depth \
              arguments are metres: divide by 1000)"
-        )));
+        ))),
+        Some(moma_core::UnitMistake::TooNear(median)) => Err(value_err(format!(
+            "{what} has a median depth of {:.1} mm: no scene a camera grasps in is that near \
+             (depth arguments are metres: divided by 1000 once too often? a σ map is no depth)",
+            f64::from(median) * 1000.0
+        ))),
     }
-    if let Some(median) = moma_core::near_median(ro.as_array()) {
-        let mm = f64::from(median) * 1000.0;
-        return Err(value_err(format!(
-            "{what} has a median depth of {mm:.1} mm: no scene a camera grasps in is that near \
-             (depth arguments are metres: divided by 1000 once too often? a σ map is no depth)"
-        )));
-    }
-    Ok(ro)
 }
 
 /// [`metres_2d`], copied into an owned array.

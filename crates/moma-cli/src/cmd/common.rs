@@ -810,3 +810,18 @@ pub fn stop_requested() -> Option<i32> {
         signal => Some(signal),
     }
 }
+
+/// Sleeps until `until` in naps of at most 20 ms, so that a stop ([`stop_requested`]) is seen
+/// at once; `false` when one was asked for (before `until`, or already).
+pub fn sleep_until_or_stop(until: std::time::Instant) -> bool {
+    loop {
+        if stop_requested().is_some() {
+            return false;
+        }
+        let now = std::time::Instant::now();
+        if until <= now {
+            return true;
+        }
+        std::thread::sleep((until - now).min(std::time::Duration::from_millis(20)));
+    }
+}

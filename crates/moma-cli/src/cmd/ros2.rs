@@ -195,7 +195,7 @@ pub struct DdsArgs {
 }
 
 /// What `--ros-args` says ([`DdsArgs::ros`]).
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct RosArgs {
     /// Topic remaps `FROM:=TO` for this node (node-specific ones matched to its final name).
     pub remaps: Vec<String>,
@@ -923,15 +923,15 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             }
         }
         for e in info_problems {
-            let last = state.camera_info_warned.iter_mut().find(|(m, _)| *m == e);
-            let due = match &last {
-                Some((_, at)) => at.elapsed() >= CAMERA_INFO_WARN_EVERY,
+            let seen = state.camera_info_warned.iter().position(|(m, _)| *m == e);
+            let due = match seen {
+                Some(i) => state.camera_info_warned[i].1.elapsed() >= CAMERA_INFO_WARN_EVERY,
                 None => state.camera_info_warned.len() < 16,
             };
             if due {
                 state.diagnose(&outputs, None, DiagnosticStatus::WARN, &e, Vec::new());
-                match state.camera_info_warned.iter_mut().find(|(m, _)| *m == e) {
-                    Some((_, at)) => *at = Instant::now(),
+                match seen {
+                    Some(i) => state.camera_info_warned[i].1 = Instant::now(),
                     None => state.camera_info_warned.push((e, Instant::now())),
                 }
             }
@@ -1452,18 +1452,17 @@ impl NodeState {
         // the units, as every reader of depth checks them: a calibration on millimetres given
         // as metres (32FC1), or metres written as millimetres (16UC1), would switch the node to
         // depth 1 000 × off
-        if let Some(median) = moma_core::millimetre_median(gt.depth_m.view()) {
-            bail!(
+        match moma_core::unit_mistake(gt.depth_m.view()) {
+            None => {}
+            Some(moma_core::UnitMistake::Millimetres(median)) => bail!(
                 "depth_sensor: median depth {median} m looks like millimetres (32FC1 depth is \
                  metres, 16UC1 millimetres)"
-            );
-        }
-        if let Some(median) = moma_core::near_median(gt.depth_m.view()) {
-            bail!(
+            ),
+            Some(moma_core::UnitMistake::TooNear(median)) => bail!(
                 "depth_sensor: median depth {:.1} mm: no scene a camera grasps in is that near \
                  (16UC1 depth is millimetres, 32FC1 metres: metres written as millimetres?)",
                 f64::from(median) * 1e3
-            );
+            ),
         }
         let rgb = convert::image_to_rgb(image).context("image")?;
         let prediction = match pred {

@@ -252,11 +252,8 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
     let depth_pub = dds::publisher::<Image>(&mut node, &depth_sensor, msg::types::image(), &qos)?;
     let pred_pub = dds::publisher::<Image>(&mut node, &prediction, msg::types::image(), &qos)?;
 
-    // the warm-up in short naps too: a signal during it ends the replay at once
-    let warm_until = Instant::now() + warmup;
-    while Instant::now() < warm_until && super::common::stop_requested().is_none() {
-        std::thread::sleep((warm_until - Instant::now()).min(Duration::from_millis(20)));
-    }
+    // a signal during the warm-up ends the replay at once (the frame loop's first wait sees it)
+    super::common::sleep_until_or_stop(Instant::now() + warmup);
     let mut next = Instant::now();
     let mut published = 0u64;
     let mut failed = 0u64;
@@ -265,17 +262,10 @@ pub fn run(args: &Ros2ReplayArgs) -> Result<()> {
             if args.max_frames.is_some_and(|n| published >= n) {
                 break 'outer;
             }
-            // waits for the frame's time in short naps, leaving at once on SIGINT / SIGTERM /
-            // SIGHUP (the participant then leaves the DDS domain)
-            loop {
-                if super::common::stop_requested().is_some() {
-                    break 'outer;
-                }
-                let now = Instant::now();
-                if next <= now {
-                    break;
-                }
-                std::thread::sleep((next - now).min(Duration::from_millis(20)));
+            // waits for the frame's time, leaving at once on SIGINT / SIGTERM / SIGHUP (the
+            // participant then leaves the DDS domain)
+            if !super::common::sleep_until_or_stop(next) {
+                break 'outer;
             }
             next += period;
             let header = Header {
