@@ -24,6 +24,8 @@ _Norm = Literal["minmax", "minmax-unit", "median", "none"]
 _Sampling = Literal["random", "grid"]
 _F32 = npt.NDArray[np.float32]
 _Mask = Union[npt.NDArray[np.bool_], npt.NDArray[np.uint8]]
+# objects to grasp: a bool mask or integer instance labels (one value per object)
+_Objects = Union[npt.NDArray[np.bool_], npt.NDArray[np.integer[Any]]]
 _Rgb = npt.NDArray[np.uint8]
 
 __all__ = [
@@ -311,7 +313,7 @@ def plan_grasps(
     source: Union[npt.ArrayLike, Calibration],
     cam: Optional[Intrinsics] = None,
     gripper: Literal["parallel", "suction"] = "parallel",
-    mask: Optional[_Mask] = None,
+    mask: Optional[_Objects] = None,
     top: int = 10,
     seed: int = 0,
     keep_border_objects: bool = False,
@@ -325,6 +327,7 @@ def plan_grasps(
     gripper_config: Optional[Union[_Path, dict[str, float]]] = None,
     tie_tolerance: Optional[float] = None,
     extrinsics: Optional[Union[_Path, npt.ArrayLike]] = None,
+    keep_containers: bool = False,
 ) -> list[dict[str, Any]]:
     """Grasps, best first, as ``moma grasp --json`` prints them: parallel ``{"kind", "score",
     "success_prob", "center_m", "approach", "closing", "width_m"}``, suction ``{"kind",
@@ -334,9 +337,12 @@ def plan_grasps(
     static anchors). ``success_prob`` is ``(k + 1) / (N + 2)`` for a grasp that succeeds on k
     of the N depth maps drawn from the error model (the calibration's, or a uniform
     ``sigma_m``), None without one; ``grasp_quality`` ``"robust"`` (the default with an error
-    model) ranks by k / N, ``"nominal"`` by the planner's score. ``mask``: the objects (nonzero
-    = inside); without one, regions over 10 mm above the support plane that do not touch the
-    image border (unless ``keep_border_objects``). An empty list when nothing is graspable,
+    model) ranks by k / N, ``"nominal"`` by the planner's score. ``mask``: the objects (bool,
+    or integer instance labels: one value per object keeps touching objects apart; nonzero =
+    inside); without one, regions over 10 mm above the support plane that do not touch the
+    image border (unless ``keep_border_objects``) and do not enclose an opening of a
+    container's size (a bin's walls, unless ``keep_containers``; a ``UserWarning`` says when
+    one is dropped). An empty list when nothing is graspable,
     with the reason as a ``UserWarning`` (e.g. every grasp below ``min_success_prob``, which
     with N draws cannot exceed ``(N + 1) / (N + 2)``). ``gripper_config`` (a dict, or the path
     of ``--gripper-config``'s JSON), ``tie_tolerance`` (``--grasp-tie-tolerance``) and
@@ -349,7 +355,7 @@ def grasp_check(
     gt_m: npt.ArrayLike,
     cam: Optional[Intrinsics] = None,
     gripper: Literal["parallel", "suction"] = "suction",
-    mask: Optional[_Mask] = None,
+    mask: Optional[_Objects] = None,
     seed: int = 0,
 ) -> dict[str, Any]:
     """The grasp check of a frame whose ground truth is known (``moma calibrate
@@ -390,7 +396,7 @@ def has_onnx() -> bool:
 
 def lora_fingerprint(
     weights: _Path,
-    model: Optional[Literal["vits", "vitb", "vitl"]] = None,
+    model: Optional[Union[Literal["vits", "vitb", "vitl"], str]] = None,
     head: Optional[Literal["relative", "metric"]] = None,
     *,
     config: Optional[dict[str, Any]] = None,
@@ -406,7 +412,7 @@ def finetune(
     sets: Sequence[_Path],
     weights: _Path,
     output: _Path,
-    model: Optional[Literal["vits", "vitb", "vitl"]] = None,
+    model: Optional[Union[Literal["vits", "vitb", "vitl"], str]] = None,
     head: Optional[Literal["relative", "metric"]] = None,
     *,
     max_depth: Optional[float] = None,
@@ -463,7 +469,7 @@ class DepthModel:
     def __new__(
         cls,
         weights: _Path,
-        model: Optional[Literal["vits", "vitb", "vitl"]] = None,
+        model: Optional[Union[Literal["vits", "vitb", "vitl"], str]] = None,
         head: Optional[Literal["relative", "metric"]] = None,
         backend: Literal["candle", "onnx", "auto"] = "candle",
         device: str = "cpu",
@@ -479,9 +485,11 @@ class DepthModel:
         ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
         largest depth, metres (default 20); ``input_size``: network input lower bound, px (multiple of 14;
         default 518, or the ``config`` dict's own; given, it applies to a ``config`` model too);
-        ``config``: a custom architecture (moma-depth ``DepthAnythingConfig`` fields), which
-        fixes the network and its head as ``moma --model PATH.json`` does: ``model=`` beside it,
-        or a ``head=`` / ``max_depth=`` that disagrees with it, raises ``InvalidInputError``;
+        ``model="PATH.json"``: a configuration file, as ``moma --model PATH.json`` takes it;
+        ``config``: a custom architecture as a dict (the fields of such a file, or moma-depth
+        ``DepthAnythingConfig`` fields), which fixes the network and its head as
+        ``moma --model PATH.json`` does: ``model=`` beside it, or a ``head=`` / ``max_depth=``
+        that disagrees with it, raises ``InvalidInputError``;
         ``lora``: a LoRA adapter file (``moma finetune`` output, ``moma-lora-v2`` safetensors with any
         trained head tensors; ``moma-lora-v1`` files still load)
         merged into the weights at load (candle backend; no per-frame cost). An adapter made for

@@ -78,6 +78,34 @@ def test_python_and_cli_run_the_same_training(trained, tmp_path):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
+def test_the_cli_configuration_file_names_the_network_in_python(trained, tmp_path):
+    """Issue 10's `--model PATH.json` file is accepted "in every command": in Python as
+    `model="PATH.json"` or as its fields in `config=`, the same network as the internal dict
+    (the same training, the same predictions). Both at once, or with a disagreeing head, are
+    refused naming the file."""
+    _, out, r = trained
+    path = tmp_path / "tiny.json"
+    path.write_text(json.dumps(TINY_JSON))
+    w = REF / "tiny-metric.safetensors"
+    by_file = moma.finetune([SET], w, tmp_path / "f.safetensors", model=str(path), **OPTS)
+    for k in r:
+        if k not in ("step_time_s", "adapter"):
+            assert by_file[k] == r[k], k
+    rgb = moma.read_rgb(REF / "input.png")
+    want = moma.DepthModel(w, config=tiny_config("tiny-metric"), input_size=56, lora=out).predict(rgb)
+    for kwargs in [dict(model=str(path)), dict(config=TINY_JSON)]:
+        got = moma.DepthModel(w, input_size=56, lora=out, **kwargs).predict(rgb)
+        np.testing.assert_array_equal(got, want, err_msg=str(kwargs))
+    with pytest.raises(moma.InvalidInputError, match="model='.*tiny.json' and config= both name"):
+        moma.DepthModel(w, model=str(path), config=TINY_JSON)
+    with pytest.raises(moma.InvalidInputError, match="head='relative' disagrees with the metric head of model="):
+        moma.DepthModel(w, model=str(path), head="relative")
+    with pytest.raises(moma.MomaFileError, match="missing.json"):
+        moma.DepthModel(w, model=str(tmp_path / "missing.json"))
+    with pytest.raises(moma.InvalidInputError, match="neither a DepthAnythingConfig"):
+        moma.DepthModel(w, config={"embed_dim": 64})
+
+
 def test_finetune_refuses_bad_options(tmp_path):
     cfg = tiny_config("tiny-metric")
     w = REF / "tiny-metric.safetensors"

@@ -259,3 +259,43 @@ def test_gripper_config_tie_tolerance_and_extrinsics_as_the_cli_takes_them(tmp_p
     with pytest.raises(moma.InvalidInputError, match="tolerance"):
         moma.plan_grasps(depth, cam, gripper="suction", sigma_m=0.005, tie_tolerance=1.5)
     assert moma.plan_grasps(depth, cam, gripper="suction", sigma_m=0.005, tie_tolerance=0.2)
+
+
+def test_a_bins_walls_are_no_object_and_label_masks_keep_objects_apart():
+    """Without a mask a tote's walls (15 cm, fully in view) are a container, not an object: a
+    warning says so and every grasp is on the box inside. A mask of integer labels (one value
+    per object, a segmentation's output) keeps two touching boxes apart: no suction cup on
+    their seam, where a 0/1 mask of the same boxes puts the best ones."""
+    w, h, f, table = 640, 480, 600.0, 0.8
+    cam = moma.Intrinsics(f, f, (w - 1) / 2, (h - 1) / 2, w, h)
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+
+    def at(z):  # table-frame x, y of each pixel's ray at depth z (camera looks straight down)
+        return (u - cam.cx) / f * z, (v - cam.cy) / f * z
+
+    def inside(x, y, cx, hx, hy):
+        return (np.abs(x - cx) < hx) & (np.abs(y) < hy)
+
+    xw, yw = at(table - 0.15)
+    walls = inside(xw, yw, -0.1, 0.2, 0.15) & ~inside(xw, yw, -0.1, 0.19, 0.14)
+    xb, yb = at(table - 0.05)
+    box = inside(xb, yb, -0.1, 0.03, 0.05)
+    depth = np.where(walls, table - 0.15, np.where(box, table - 0.05, table)).astype(np.float32)
+    with pytest.warns(UserWarning, match="enclose an opening of a container's size"):
+        grasps = moma.plan_grasps(depth, cam, gripper="suction", top=5)
+    assert grasps
+    for g in grasps:
+        x, y, z = g["point_m"]
+        assert abs(z - (table - 0.05)) < 0.003 and abs(x / z * (table - 0.05) + 0.1) < 0.03, g
+
+    # two 40 mm boxes side by side, touching along x = 0, one flat top
+    xt, yt = at(0.65)
+    both = (np.abs(xt) < 0.04) & (np.abs(yt) < 0.035)
+    depth = np.where(both, 0.65, 0.70).astype(np.float32)
+    labels = np.where(both, np.where(xt < 0, 1, 2), 0).astype(np.int32)
+    for g in moma.plan_grasps(depth, cam, gripper="suction", mask=labels, top=5):
+        assert abs(g["point_m"][0]) >= 0.01, g  # the cup's 10 mm radius off the seam
+    binary = moma.plan_grasps(depth, cam, gripper="suction", mask=both, top=5)
+    assert any(abs(g["point_m"][0]) < 0.01 for g in binary)
+    with pytest.raises(moma.InvalidInputError, match="negative"):
+        moma.plan_grasps(depth, cam, gripper="suction", mask=-labels)

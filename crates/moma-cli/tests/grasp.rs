@@ -237,6 +237,120 @@ fn suction_with_extrinsics_and_outputs() {
     );
 }
 
+/// Two 40 × 70 × 50 mm boxes side by side, touching along x = 0 (one flat 80 mm top in the
+/// depth), told apart by an instance label mask (grey levels 100 and 200): every grasp stays
+/// on one box. As one 0/255 mask they are one object, and the best suction grasps sit on the
+/// seam.
+#[test]
+fn an_instance_label_mask_keeps_touching_objects_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let k = camera();
+    let xy = |v: usize, u: usize| {
+        (
+            (u as f64 - k.cx) / k.fx * 0.65,
+            (v as f64 - k.cy) / k.fy * 0.65,
+        )
+    };
+    let depth = Array2::from_shape_fn((H, W), |(v, u)| {
+        let (x, y) = xy(v, u);
+        if x.abs() < 0.04 && y.abs() < 0.035 {
+            0.65f32
+        } else {
+            0.7
+        }
+    });
+    let depth_path = dir.path().join("two.png");
+    moma_io::write_depth(&depth_path, &MetricDepth::new(depth)).unwrap();
+    let cam = dir.path().join("camera.json");
+    moma_io::write_camera(&cam, &k).unwrap();
+    let mask = |levels: [u8; 2]| {
+        image::GrayImage::from_fn(W as u32, H as u32, |u, v| {
+            let (x, y) = xy(v as usize, u as usize);
+            let level = if x.abs() < 0.04 && y.abs() < 0.035 {
+                levels[usize::from(x >= 0.0)]
+            } else {
+                0
+            };
+            image::Luma([level])
+        })
+    };
+    let plan = |name: &str, levels: [u8; 2], gripper: &str| {
+        let path = dir.path().join(name);
+        mask(levels).save(&path).unwrap();
+        let (out, _) = ok(&[
+            "grasp",
+            "--depth",
+            s(&depth_path),
+            "--camera",
+            s(&cam),
+            "--mask",
+            s(&path),
+            "--gripper",
+            gripper,
+            "--top",
+            "5",
+            "--json",
+        ]);
+        serde_json::from_str::<Vec<serde_json::Value>>(&out).unwrap()
+    };
+    let x_of = |g: &serde_json::Value, key: &str| g[key][0].as_f64().unwrap();
+    let labels = plan("labels.png", [100, 200], "suction");
+    assert!(!labels.is_empty());
+    for g in &labels {
+        // the cup (10 mm radius) on one box: its centre at least a radius from the seam
+        let x = x_of(g, "point_m");
+        assert!(
+            x.abs() >= 0.01,
+            "suction on the seam between two objects: x = {x}"
+        );
+    }
+    for g in &plan("labels.png", [100, 200], "parallel") {
+        // the fingers close on one box: the contacts' span lies on one side of the seam
+        let (x, w) = (x_of(g, "center_m"), g["width_m"].as_f64().unwrap());
+        let closing_x = g["closing"][0].as_f64().unwrap().abs();
+        assert!(
+            x.abs() >= 0.5 * (w * closing_x).min(0.04) - 0.003,
+            "a parallel grasp straddles the seam: centre x = {x}, width {w}, |closing x| \
+             {closing_x}"
+        );
+        assert!(x.abs() > 0.005, "centre on the seam: {x}");
+    }
+    let binary = plan("binary.png", [255, 255], "suction");
+    assert!(
+        binary.iter().any(|g| x_of(g, "point_m").abs() < 0.01),
+        "as one object the seam is no edge: {binary:?}"
+    );
+}
+
+/// A depth PNG in 0.1 mm units (a RealSense D405's) read as millimetres puts the box scene's
+/// table at 7 m: planned as read, with a note naming the likely unit; the scene in millimetres
+/// gets none.
+#[test]
+fn depth_beyond_reach_is_noted_with_the_likely_unit() {
+    let dir = tempfile::tempdir().unwrap();
+    let (depth, cam) = scene(dir.path(), true);
+    let args = |d: &Path| {
+        let mut a = vec!["grasp", "--depth", s(d), "--camera", s(&cam)];
+        a.extend(["--gripper", "suction", "--json"]);
+        a.into_iter().map(str::to_string).collect::<Vec<_>>()
+    };
+    let run = |d: &Path| {
+        let a = args(d);
+        ok(&a.iter().map(String::as_str).collect::<Vec<_>>()).1
+    };
+    assert!(!run(&depth).contains("beyond a robot arm's reach"));
+    let tenth = dir.path().join("tenth_mm.png");
+    let read = moma_io::read_depth(&depth).unwrap();
+    moma_io::write_depth(&tenth, &MetricDepth::new(read.depth_m.mapv(|z| z * 10.0))).unwrap();
+    let err = run(&tenth);
+    assert!(
+        err.contains("median depth of")
+            && err.contains("7.00 m, beyond a robot arm's reach")
+            && err.contains("0.1 mm"),
+        "{err}"
+    );
+}
+
 #[test]
 fn bare_table_gives_an_empty_list_and_a_reason() {
     let dir = tempfile::tempdir().unwrap();

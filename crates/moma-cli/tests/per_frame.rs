@@ -211,10 +211,34 @@ fn bad_protocol_options_are_refused() {
     assert!(eval(&["--protocol", "per-frame", "--calib-frames", "1,2"]).contains("fixed-camera"));
     assert!(eval(&["--protocol", "per-frame", "--calib-frame", "frame_01"]).contains("per-frame"));
     assert!(eval(&["--score-max-gt-depth", "0"]).contains("cap"));
+    // every ablation calibrates once and scores the other frames: per-frame is refused
+    for what in ["norm", "samples", "source"] {
+        let mut abl = vec!["ablate", what, "--set", s(&scene)];
+        if what != "source" {
+            abl.extend(["--pred", s(&pred)]);
+        }
+        abl.extend(["--seeds", "1", "--protocol", "per-frame", "-o", s(&e)]);
+        let err = fails(&abl);
+        assert!(
+            err.contains("fixed-camera") && err.contains("ablation"),
+            "{what}: {err}"
+        );
+    }
     // per-frame on the demo scene runs and labels its rows
     let a = eval_args(&o, &["--protocol", "per-frame", "--methods", "gssa,auto"]);
     ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let csv = std::fs::read_to_string(o.join("results.csv")).unwrap();
     assert!(csv.lines().next().unwrap().ends_with(",protocol"), "{csv}");
     assert!(csv.lines().nth(1).unwrap().ends_with(",per-frame"), "{csv}");
+    // a frame whose mask is missing beside masked frames is scored over the whole image, and
+    // said so, naming it (the evaluation never silently changes what it scores)
+    std::fs::remove_file(scene.join("frames/frame_02/mask.png")).unwrap();
+    let a = eval_args(&o, &["--methods", "gssa"]);
+    let run = common::moma(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("1 of 3 frames have no mask.png") && err.contains("frame_02"),
+        "{err}"
+    );
 }

@@ -198,8 +198,13 @@ const DEFAULT_RELIEF_RADIUS_SHARE: f64 = 0.075;
 /// quarter of the first step's error on the largest factor and 1 % on a typical 0.25.
 pub const RELIEF_FIXED_POINT_ITERATIONS: usize = 3;
 
-/// Correlation lengths of the fine, medium and coarse fields, pixels.
+/// Correlation lengths of the fine, medium and coarse fields, pixels (of a
+/// [`REFERENCE_WIDTH_PX`]-wide image for a uniform model).
 pub const FIELD_SCALES_PX: [f64; 3] = [2.0, 8.0, 32.0];
+
+/// Image width (pixels) [`FIELD_SCALES_PX`] are set for in a uniform model
+/// ([`DepthErrorModel::uniform_for_width`]).
+pub const REFERENCE_WIDTH_PX: f64 = 640.0;
 
 fn default_relief_max_m() -> f64 {
     MAX_RELIEF_M
@@ -598,6 +603,21 @@ impl DepthErrorModel {
             ..Self::default()
         };
         m.validate()?;
+        Ok(m)
+    }
+
+    /// [`Self::uniform`] for an image `width_px` wide: the field's correlation lengths
+    /// ([`FIELD_SCALES_PX`], set for 640 px) scaled by `width_px / 640`, so that the error
+    /// spans the same share of the view at any resolution (at 1280 × 720 the fixed 32 px made a
+    /// box's top fluctuate twice as fast, and its suction grasps' success probabilities fell
+    /// from 0.88 to 0.41 for the same σ). 640 px gives [`Self::uniform`] exactly.
+    ///
+    /// # Errors
+    /// As [`Self::uniform`].
+    pub fn uniform_for_width(sigma_m: f64, width_px: usize) -> Result<Self> {
+        let mut m = Self::uniform(sigma_m)?;
+        let k = width_px as f64 / REFERENCE_WIDTH_PX;
+        m.scales_px = FIELD_SCALES_PX.map(|s| (s * k).clamp(1.0, 4096.0));
         Ok(m)
     }
 
@@ -2146,6 +2166,51 @@ impl EdgeMaps {
                 }
             });
         Self { relief, step }
+    }
+}
+
+#[cfg(test)]
+mod uniform_width_tests {
+    use super::*;
+
+    /// Correlation of a uniform model's draws between pixels `lag` apart along rows, over
+    /// `draws` draws on a flat `w × h` map at 1 m.
+    fn row_correlation(m: &DepthErrorModel, w: usize, h: usize, lag: usize, draws: u64) -> f64 {
+        let (mut sxy, mut sxx) = (0.0, 0.0);
+        for d in 0..draws {
+            let drawn = m.draw(&MetricDepth::new(Array2::from_elem((h, w), 1.0)), 7, d);
+            let e = drawn.depth_m.mapv(|z| f64::from(z) - 1.0);
+            for v in (0..h).step_by(4) {
+                for u in (0..w - lag).step_by(3) {
+                    sxy += e[[v, u]] * e[[v, u + lag]];
+                    sxx += e[[v, u]] * e[[v, u]];
+                }
+            }
+        }
+        sxy / sxx
+    }
+
+    /// `moma grasp --sigma-m` at 1280 px draws the field that 640 px draws, twice as wide in
+    /// pixels: the same correlation at twice the lag (the same share of the view), and the
+    /// same σ; 640 px is `uniform` exactly.
+    #[test]
+    fn a_uniform_model_spans_the_same_share_of_the_view_at_any_width() {
+        let sd = DepthErrorModel::uniform_for_width(0.005, 640).unwrap();
+        assert_eq!(sd, DepthErrorModel::uniform(0.005).unwrap());
+        let hd = DepthErrorModel::uniform_for_width(0.005, 1280).unwrap();
+        assert_eq!(hd.scales_px, [4.0, 16.0, 64.0]);
+        let (c_sd, c_hd) = (
+            row_correlation(&sd, 320, 120, 24, 24),
+            row_correlation(&hd, 640, 240, 48, 24),
+        );
+        // at the 640 px model's own lag the 1280 px draws correlate more: the field is wider
+        let c_hd_short = row_correlation(&hd, 640, 240, 24, 24);
+        assert!((c_sd - c_hd).abs() < 0.1, "{c_sd} vs {c_hd}");
+        assert!(c_hd_short > c_sd + 0.1, "{c_hd_short} vs {c_sd}");
+        assert_eq!(
+            hd.sigma_map(&MetricDepth::new(Array2::from_elem((4, 4), 1.0)))[[0, 0]],
+            0.005
+        );
     }
 }
 

@@ -164,7 +164,69 @@ impl Mask {
                 .map_collect(|&a, &b| a && b),
         ))
     }
+
+    /// The objects of an image of instance labels, 0 outside (a segmentation's ids, a label
+    /// PNG's grey levels or colours), for grasping: touching objects kept apart.
+    ///
+    /// Inside is every non-zero pixel, except where the image is an **instance label image**:
+    /// two or more non-zero values that are objects (a value is an object when at least one of
+    /// its pixels has all 8 neighbours of the same value), fewer than [`LABEL_SPECK_SHARE`] of
+    /// the non-zero pixels in values that are not (specks), and seams that are few: a pixel
+    /// with an 8-neighbour of another non-zero value lies on the seam between two objects, and
+    /// the seam pixels must be fewer than [`LABEL_SEAM_SHARE`] of the non-zero pixels. Then the
+    /// seam pixels are left out, so that objects that touch never join into one 8-connected
+    /// component (one object to grasp). Anything else reads as a binary mask, every non-zero
+    /// pixel inside: one value; a mask resized with interpolation (its in-between values run
+    /// along edges); a mask saved as JPEG or with a soft gradient (near-equal values in patches,
+    /// whose "seams" run everywhere).
+    pub fn from_labels(labels: ArrayView2<'_, u64>) -> Mask {
+        let (h, w) = labels.dim();
+        let mut seen: std::collections::HashMap<u64, (usize, bool)> =
+            std::collections::HashMap::new();
+        let (mut nonzero, mut seam) = (0usize, 0usize);
+        // whether a neighbour of (v, u) differs from `l` (`nonzero_only`: and is not 0)
+        let differs = |v: usize, u: usize, l: u64, nonzero_only: bool| {
+            (v.saturating_sub(1)..(v + 2).min(h)).any(|nv| {
+                (u.saturating_sub(1)..(u + 2).min(w)).any(|nu| {
+                    let n = labels[[nv, nu]];
+                    n != l && (!nonzero_only || n != 0)
+                })
+            })
+        };
+        for ((v, u), &l) in labels.indexed_iter() {
+            if l == 0 {
+                continue;
+            }
+            nonzero += 1;
+            seam += usize::from(differs(v, u, l, true));
+            // interior: all 8 neighbours inside the image and of the same value
+            let interior = v > 0 && u > 0 && v + 1 < h && u + 1 < w && !differs(v, u, l, false);
+            let e = seen.entry(l).or_insert((0, false));
+            e.0 += 1;
+            e.1 |= interior;
+        }
+        let objects = seen.values().filter(|(_, obj)| *obj).count();
+        let specks: usize = seen.values().filter(|(_, obj)| !obj).map(|(n, _)| n).sum();
+        let share = |k: usize| k as f64 / nonzero.max(1) as f64;
+        let is_label_image =
+            objects >= 2 && share(specks) < LABEL_SPECK_SHARE && share(seam) < LABEL_SEAM_SHARE;
+        Mask::new(Array2::from_shape_fn((h, w), |(v, u)| {
+            let l = labels[[v, u]];
+            l != 0 && !(is_label_image && differs(v, u, l, true))
+        }))
+    }
 }
+
+/// [`Mask::from_labels`]: an image of several values is read as instance labels only when
+/// fewer than this share of its non-zero pixels lie in values that are no object (specks of a
+/// segmentation); more is an interpolated binary mask's edge.
+pub const LABEL_SPECK_SHARE: f64 = 0.05;
+
+/// [`Mask::from_labels`]: an image of several values is read as instance labels only when
+/// fewer than this share of its non-zero pixels lie on seams between two values (objects that
+/// touch share a boundary line; a JPEG's blocks or a gradient of near-equal values have seams
+/// everywhere: 18 % and 60 % of a 60 × 80 square in a review's masks).
+pub const LABEL_SEAM_SHARE: f64 = 0.1;
 
 /// What a depth model's output means. Kept explicit so that a relative map is never written as
 /// metres, nor disparity aligned as depth, by accident.
@@ -490,6 +552,90 @@ mod valid_depth_tests {
         ] {
             assert_eq!(is_valid_depth(z), z.is_finite() && z > 0.0, "{z}");
         }
+    }
+}
+
+#[cfg(test)]
+mod label_tests {
+    use super::{ImageSize, Mask, components_8};
+    use ndarray::Array2;
+
+    fn components(m: &Mask) -> Vec<usize> {
+        let flat: Vec<bool> = m.data().iter().copied().collect();
+        components_8(&flat, m.size()).1
+    }
+
+    /// Two 20 × 20 squares side by side (columns 10–29 and 30–49, rows 10–29) with values `a`
+    /// and `b`, on a 60 × 40 image.
+    fn touching(a: u64, b: u64) -> Array2<u64> {
+        Array2::from_shape_fn((40, 60), |(v, u)| match (v, u) {
+            (10..30, 10..30) => a,
+            (10..30, 30..50) => b,
+            _ => 0,
+        })
+    }
+
+    #[test]
+    fn touching_instances_are_kept_apart_by_their_seam() {
+        let m = Mask::from_labels(touching(100, 200).view());
+        // one component per instance, each losing only its column along the seam
+        assert_eq!(components(&m), [19 * 20, 19 * 20]);
+        for v in 10..30 {
+            assert!(!m.data()[[v, 29]] && !m.data()[[v, 30]]);
+            assert!(m.data()[[v, 28]] && m.data()[[v, 31]]);
+        }
+        // the same image as one value (a binary mask) is one object, every pixel inside
+        let binary = Mask::from_labels(touching(255, 255).view());
+        assert_eq!(components(&binary), [800]);
+        // instances that do not touch lose nothing
+        let apart = Array2::from_shape_fn((40, 60), |(v, u)| match (v, u) {
+            (10..30, 5..25) => 7u64,
+            (10..30, 35..55) => 9,
+            _ => 0,
+        });
+        assert_eq!(components(&Mask::from_labels(apart.view())), [400, 400]);
+        let size = ImageSize::new(60, 40);
+        assert_eq!(
+            Mask::from_labels(Array2::zeros((40, 60)).view()),
+            Mask::new(Array2::from_elem(size.shape(), false))
+        );
+    }
+
+    #[test]
+    fn an_interpolated_binary_mask_is_not_taken_for_labels() {
+        // a 255 square whose edge ramps 64, 128, 192 outwards over three one-pixel rings (a
+        // mask resized with interpolation): the in-between values are no objects
+        let m = Array2::from_shape_fn((40, 40), |(v, u)| {
+            let d = (v as i64 - 20).abs().max((u as i64 - 20).abs());
+            match d {
+                0..=8 => 255u64,
+                9 => 192,
+                10 => 128,
+                11 => 64,
+                _ => 0,
+            }
+        });
+        let mask = Mask::from_labels(m.view());
+        assert_eq!(mask.count(), 23 * 23, "every non-zero pixel inside");
+        // a 64 × 80 square of flat 8 × 8 blocks of 254 and 255 (a mask saved as JPEG), and one
+        // of a soft gradient 230 → 255 in 3-pixel bands: both have values that are objects, but
+        // seams everywhere; each reads whole
+        for square in [
+            Array2::from_shape_fn((72, 88), |(v, u)| match (v, u) {
+                (4..68, 4..84) => 254 + ((v / 8 + u / 8) % 2) as u64,
+                _ => 0,
+            }),
+            Array2::from_shape_fn((72, 88), |(v, u)| match (v, u) {
+                (4..68, 4..84) => 230 + (u as u64 - 4) / 3,
+                _ => 0,
+            }),
+        ] {
+            assert_eq!(Mask::from_labels(square.view()).count(), 64 * 80);
+        }
+        // a segmentation's speck (one pixel of a third value) does not stop two instances
+        let mut labels = touching(1, 2);
+        labels[[2, 2]] = 3;
+        assert_eq!(components(&Mask::from_labels(labels.view())), [1, 380, 380]);
     }
 }
 

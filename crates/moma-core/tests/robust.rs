@@ -296,6 +296,18 @@ fn ransac_with_too_few_points_is_an_error() {
             ..
         })
     ));
+    // exactly SSRA's minimal sample under the `auto` threshold: every fit is exact through
+    // it, no consensus beyond it; the error says the samples are too few, and names no fixed
+    // threshold (none was given)
+    let (four, _, _) = scene(4, 1, (0.0, 0.0), 0.002, 0.0);
+    let e = ransac
+        .fit(&method("ssra"), &four, AlignSpace::Depth)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("4 samples are too few") && !e.contains("fixed threshold"),
+        "{e}"
+    );
     // enough for SSRA's minimal sample but not for ssra-local (6)
     let (_, five, _) = scene(5, 1, (1e-4, 0.0), 0.0, 0.0);
     assert!(matches!(

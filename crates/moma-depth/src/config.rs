@@ -108,9 +108,18 @@ impl ModelConfigFile {
             reason,
         };
         let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-        let file: Self = serde_json::from_str(&text).map_err(|e| err(e.to_string()))?;
-        file.arch().validate().map_err(err)?;
-        file.head_checked().map_err(err)?;
+        Self::from_json(&text).map_err(err)
+    }
+
+    /// Parses and checks the JSON of a configuration file (what [`Self::read`] reads).
+    ///
+    /// # Errors
+    /// Why it is not one: not this JSON shape, inconsistent sizes, a metric head without a
+    /// positive `max_depth`.
+    pub fn from_json(text: &str) -> std::result::Result<Self, String> {
+        let file: Self = serde_json::from_str(text).map_err(|e| e.to_string())?;
+        file.arch().validate()?;
+        file.head_checked()?;
         Ok(file)
     }
 

@@ -202,7 +202,7 @@ pub fn write_samples(
 /// (b) Every normalisation × method, calibrated on `calib_frames` frames (module documentation).
 ///
 /// # Errors
-/// As [`evaluate`] (`calib_frames` = 1) or [`evaluate_few_shot`].
+/// As [`evaluate`] (`calib_frames` = 1) or [`evaluate_few_shot`]; the per-frame protocol.
 pub fn norms(
     set: &LoadedSet,
     preds: &PredictionSet,
@@ -210,6 +210,7 @@ pub fn norms(
     norms: &[Normalisation],
     calib_frames: usize,
 ) -> Result<Vec<EvalResult>> {
+    crate::protocol::require_fixed_camera(config.protocol, "the ablation")?;
     let cfg = EvalConfig {
         norms: norms.to_vec(),
         ..config.clone()
@@ -314,6 +315,7 @@ pub fn sources(
     config: &EvalConfig,
     calib_frames: usize,
 ) -> Result<Vec<EvalResult>> {
+    crate::protocol::require_fixed_camera(config.protocol, "the ablation")?;
     let mut out = Vec::new();
     for s in sources {
         // RAW uses a prediction as metres: only for metric-depth sources.

@@ -649,13 +649,7 @@ impl<'a> Prepared<'a> {
     /// # Errors
     /// [`EvalError::InvalidParameter`] naming `what`.
     pub fn require_fixed_camera(&self, what: &str) -> Result<()> {
-        if self.config.protocol == Protocol::PerFrame {
-            return Err(EvalError::InvalidParameter(format!(
-                "{what} needs the fixed-camera protocol (one calibration, other frames scored), \
-                 not per-frame"
-            )));
-        }
-        Ok(())
+        require_fixed_camera(self.config.protocol, what)
     }
 
     /// Normalises the prediction of frame `i` with `norm` over the workspace (when given), as
@@ -1354,4 +1348,18 @@ pub fn aligned_maps(
         })
         .collect::<Result<_>>()?;
     Ok((cal, aligned))
+}
+
+/// Refuses the per-frame protocol for `what`, which calibrates once and scores other frames.
+///
+/// # Errors
+/// [`EvalError::InvalidParameter`] naming `what`.
+pub fn require_fixed_camera(protocol: Protocol, what: &str) -> Result<()> {
+    if protocol == Protocol::PerFrame {
+        return Err(EvalError::InvalidParameter(format!(
+            "{what} needs the fixed-camera protocol (one calibration, other frames scored), \
+             not per-frame"
+        )));
+    }
+    Ok(())
 }

@@ -319,7 +319,12 @@ impl Scene {
                 if x < x_base || y >= half_w {
                     // Mixed pixels are looked for only until the grasp collides anyway
                     // (`mixed_until` real collisions), which keeps colliding candidates cheap.
-                    if collide >= mixed_until
+                    // They are excused beside the fingers only: a blend of the grasped object's
+                    // silhouette lies below its top, never as high as the palm (in a bin, the
+                    // steep inner face of a wall is "mixed" and was excused, and the palm went
+                    // through the wall)
+                    if x < x_base
+                        || collide >= mixed_until
                         || !soft.is_some_and(|s| cloud.is_mixed(i, s.window_px, s.jump_m))
                     {
                         collide += 1;

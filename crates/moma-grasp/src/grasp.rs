@@ -140,7 +140,8 @@ pub(crate) fn arr(v: &Vec3) -> [f32; 3] {
 pub enum NoGraspReason {
     /// No support plane was found, so "up" and "above the table" are undefined.
     NoSupportPlane,
-    /// No object pixel: nothing stands above the support plane (or the mask is empty there).
+    /// No object pixel: nothing stands more than [`crate::SceneConfig::min_object_height_m`]
+    /// above the support plane (or the mask is empty there).
     NoObject,
     /// Objects exist but no candidate could be formed on them (no silhouette edge for a parallel
     /// jaw, no pixel with a normal for suction).
@@ -172,7 +173,12 @@ impl std::fmt::Display for NoGraspReason {
         match self {
             NoGraspReason::NoSupportPlane => write!(f, "no support plane found"),
             NoGraspReason::NoObject => {
-                write!(f, "no object: nothing stands above the support plane")
+                write!(
+                    f,
+                    "no object: nothing stands more than the object height (10 mm unless \
+                     configured) above the support plane; objects thinner than that (a phone, \
+                     a spatula) need an object mask"
+                )
             }
             NoGraspReason::NoCandidate => write!(f, "no grasp candidate on the objects"),
             NoGraspReason::BelowMinSuccessProb {

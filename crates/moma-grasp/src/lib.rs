@@ -14,7 +14,9 @@
 //! - **Objects.** With a mask: masked pixels with valid depth. Without: pixels more than
 //!   [`SceneConfig::min_object_height_m`] (10 mm) above the plane in 8-connected regions of at
 //!   least [`SceneConfig::min_object_px`] (200) pixels that do not touch the image border (unless
-//!   [`SceneConfig::keep_border_objects`]). A grasp is never planned on the bare table.
+//!   [`SceneConfig::keep_border_objects`]) and do not enclose an opening of a container's size
+//!   ([`SceneConfig::container_opening_m2`]: a bin's walls). A grasp is never planned on the
+//!   bare table.
 //! - **Scene volume (2.5-D).** A 3-D point is inside the scene when it lies at or behind the
 //!   observed surface at its pixel (tolerance [`ExecConfig::occupancy_tol_m`], 2 mm); holes in the
 //!   depth and rays leaving the image are free space.
@@ -40,7 +42,8 @@
 //!   ([`ParallelConfig::tolerant_pass`]) detects silhouettes as a depth drop over a small window,
 //!   averages their normals over a larger disc, shortens the fingertips by a collision margin,
 //!   ignores mixed silhouette pixels (blends of object and background in mid-air behind the
-//!   object) as obstacles, and adds top-down footprint candidates ([`FootprintConfig`]). The
+//!   object) as obstacles beside the fingers (not in the palm), and adds top-down footprint
+//!   candidates ([`FootprintConfig`]). The
 //!   scorer's rules never change.
 //! - **Suction** ([`SuctionCup`], r = 10 mm, compliance 15 mm): `approach` points into the
 //!   surface. Seal: 72 ring points at the cup radius in the plane ⟂ approach, each within 5 mm of
@@ -72,8 +75,9 @@
 //! ```
 //!
 //! Known limitation: without a mask, anything more than 10 mm above the support plane is an
-//! object, including walls, tote rims, robot parts or hole-filled background at the image border;
-//! pass a mask (or a workspace-cropped depth) on such scenes.
+//! object, but for regions touching the image border and the walls of a container fully in view
+//! ([`SceneConfig::container_opening_m2`]): robot parts, a wall beside the table, an object
+//! touching a bin's wall (dropped with the wall); pass a mask on such scenes.
 
 pub mod check;
 pub mod cloud;

@@ -23,7 +23,8 @@
 //!   `soft_edge_jump_m`) and their normals averaged over a larger disc (`soft_normal_radius_px`);
 //! - the fingertips shortened by `collision_margin_m` in the collision test, and mixed pixels of
 //!   a soft silhouette (a blend of object and background, in mid-air behind the object) not
-//!   counted as collisions;
+//!   counted as collisions beside the fingers (in the palm they are: a wall's steep face is
+//!   "mixed" too);
 //! - footprint candidates ([`crate::footprint`]): top-down grasps across the object's top-view
 //!   footprint, which need neither sharp depth edges nor clean per-pixel normals.
 //!
@@ -85,7 +86,7 @@ pub struct ParallelConfig {
     /// When the strict pass (the scorer's own rules on the planning depth) finds no grasp, run a
     /// tolerant pass for depth aligned from a depth-model prediction: soft silhouettes
     /// (`soft_edge_*`), the collision margin, mixed silhouette pixels ignored in the collision
-    /// test, and footprint candidates. Default true.
+    /// test beside the fingers, and footprint candidates. Default true.
     pub tolerant_pass: bool,
     /// Tolerant pass: a contact is on a silhouette when a pixel within this many pixels lies
     /// farther by more than `soft_edge_jump_m` (depth-model output spreads a silhouette over 3–5

@@ -30,6 +30,17 @@ pub struct SceneConfig {
     /// With a mask the mask decides.
     #[serde(default)]
     pub keep_border_objects: bool,
+    /// Without a mask, a region that encloses an opening of at least this area (square metres,
+    /// measured at its rim, over what is seen at least 2 cm beyond it) is a container's walls
+    /// (a bin, a tote), not an object: it is dropped, with the objects inside it kept. Default
+    /// 0.04 m² (20 × 20 cm: a mug's or a bowl's opening is smaller, the smallest totes are
+    /// larger); `f32::INFINITY` keeps every such region.
+    #[serde(default = "default_container_opening_m2")]
+    pub container_opening_m2: f32,
+}
+
+fn default_container_opening_m2() -> f32 {
+    0.04
 }
 
 impl Default for SceneConfig {
@@ -40,6 +51,7 @@ impl Default for SceneConfig {
             min_object_height_m: 0.01,
             min_object_px: MIN_TRIAL_COMPONENT_PX,
             keep_border_objects: false,
+            container_opening_m2: default_container_opening_m2(),
         }
     }
 }
@@ -69,6 +81,169 @@ pub struct Scene {
     components: Vec<ObjectComponent>,
     masked: bool,
     border_regions_dropped: usize,
+    container_regions_dropped: usize,
+}
+
+/// Pixel bounding box `(u0, v0, width, height)`.
+type Bbox = (usize, usize, usize, usize);
+
+/// The area (square metres) of the opening that the pixels `member` (inside `bbox`, their
+/// rim nearest the camera at `z_rim_m`) enclose: of what they cut off from the border of
+/// `bbox` (their 4-connected holes), the pixels with depth at least [`OPENING_DEPTH_M`]
+/// beyond the rim (a floor seen through the opening, whatever lies on it; not a hole in the
+/// depth, nor a shallow dent), each of the area `z_rim² / (fx · fy)` of a pixel at the rim:
+/// the opening's own size, whatever the walls' height and the camera's distance.
+fn enclosed_area_m2(
+    member: &dyn Fn(usize) -> bool,
+    (bu0, bv0, bw, bh): Bbox,
+    cloud: &OrganisedCloud,
+    z_rim_m: f32,
+) -> f32 {
+    let w = cloud.width;
+    let at = |bu: usize, bv: usize| (bv0 + bv) * w + bu0 + bu;
+    let mut outside = vec![false; bw * bh];
+    let mut stack = Vec::new();
+    for bv in 0..bh {
+        for bu in 0..bw {
+            let border = bu == 0 || bv == 0 || bu + 1 == bw || bv + 1 == bh;
+            if border && !member(at(bu, bv)) && !outside[bv * bw + bu] {
+                outside[bv * bw + bu] = true;
+                stack.push((bu, bv));
+            }
+        }
+    }
+    while let Some((bu, bv)) = stack.pop() {
+        let next = [
+            (bu > 0).then(|| (bu - 1, bv)),
+            (bu + 1 < bw).then(|| (bu + 1, bv)),
+            (bv > 0).then(|| (bu, bv - 1)),
+            (bv + 1 < bh).then(|| (bu, bv + 1)),
+        ];
+        for (nu, nv) in next.into_iter().flatten() {
+            let k = nv * bw + nu;
+            if !outside[k] && !member(at(nu, nv)) {
+                outside[k] = true;
+                stack.push((nu, nv));
+            }
+        }
+    }
+    let floor_px = (0..bw * bh)
+        .filter(|&k| !outside[k])
+        .map(|k| at(k % bw, k / bw))
+        .filter(|&i| !member(i) && cloud.valid[i] && cloud.points[i].z >= z_rim_m + OPENING_DEPTH_M)
+        .count();
+    floor_px as f32 * z_rim_m * z_rim_m / (cloud.fx * cloud.fy)
+}
+
+/// How far beyond a container's rim (metres, along the camera's z) the floor seen through its
+/// opening lies at least ([`enclosed_area_m2`]).
+const OPENING_DEPTH_M: f32 = 0.02;
+
+/// The bounding boxes and nearest depths (metres) of the `n` pixel sets `of(i)` (1-based; 0 =
+/// none) of the cloud's image.
+fn boxes(cloud: &OrganisedCloud, n: usize, of: &dyn Fn(usize) -> usize) -> Vec<(Bbox, f32)> {
+    let w = cloud.width;
+    let mut b = vec![(usize::MAX, usize::MAX, 0, 0, f32::INFINITY); n + 1];
+    for i in 0..cloud.valid.len() {
+        let l = of(i);
+        if l == 0 {
+            continue;
+        }
+        let (u, v) = (i % w, i / w);
+        let e = &mut b[l];
+        (e.0, e.1, e.2, e.3) = (e.0.min(u), e.1.min(v), e.2.max(u), e.3.max(v));
+        if cloud.valid[i] {
+            e.4 = e.4.min(cloud.points[i].z);
+        }
+    }
+    b.into_iter()
+        .map(|(u0, v0, u1, v1, z)| {
+            let bbox = if u0 == usize::MAX {
+                (0, 0, 0, 0)
+            } else {
+                (u0, v0, u1 - u0 + 1, v1 - v0 + 1)
+            };
+            (bbox, z)
+        })
+        .collect()
+}
+
+/// Whether pixels in `bbox`, nearest at `z_near_m`, could enclose `opening_m2` at all (an
+/// upper bound of [`enclosed_area_m2`]).
+fn could_enclose(
+    (_, _, bw, bh): Bbox,
+    z_near_m: f32,
+    cloud: &OrganisedCloud,
+    opening_m2: f32,
+) -> bool {
+    bw >= 3
+        && bh >= 3
+        && z_near_m.is_finite()
+        && (bw * bh) as f32 * z_near_m * z_near_m / (cloud.fx * cloud.fy) >= opening_m2
+}
+
+/// Removes the walls of containers from the objects ([`SceneConfig::container_opening_m2`]):
+/// every region (`labels`, `counts` from [`components_8`] of `object`) that encloses an
+/// opening of at least `opening_m2` square metres ([`enclosed_area_m2`]: the floor and
+/// whatever lies on it) leaves the objects; what lies inside it stays. An object touching a
+/// wall is part of the wall's region and leaves with it (splitting it off by depth steps left
+/// the steep inner faces of the walls, seen obliquely, as strips of "objects": not done).
+/// Returns how many regions of at least `min_px` pixels were dropped.
+///
+/// Written here, not taken from a crate: flood fills of the complement of one labelled region
+/// within its bounding box (imageproc fills the holes of a binary image, not those of one
+/// labelled region among others).
+fn drop_container_walls(
+    object: &mut [bool],
+    labels: &mut [u32],
+    counts: &mut [usize],
+    cloud: &OrganisedCloud,
+    opening_m2: f32,
+    min_px: usize,
+) -> usize {
+    if !opening_m2.is_finite() || cloud.width < 3 || cloud.height < 3 || counts.is_empty() {
+        return 0;
+    }
+    let n = counts.len();
+    let regions = {
+        let labels = &*labels;
+        boxes(cloud, n, &|i| labels[i] as usize)
+    };
+    let mut walls = vec![false; n + 1];
+    for l in 1..=n {
+        let (bbox, z_near) = regions[l];
+        if counts[l - 1] < min_px || !could_enclose(bbox, z_near, cloud, opening_m2) {
+            continue;
+        }
+        let lu = l as u32;
+        let labels = &*labels;
+        walls[l] = enclosed_area_m2(&|i| labels[i] == lu, bbox, cloud, z_near) >= opening_m2;
+    }
+    drop_regions(object, labels, counts, &walls, min_px)
+}
+
+/// Removes the regions `drop[label]` (`labels`, `counts` from [`components_8`] of `object`):
+/// their pixels leave `object` and get label 0, their counts become 0. Returns how many of them
+/// had at least `min_px` pixels (would have been objects).
+fn drop_regions(
+    object: &mut [bool],
+    labels: &mut [u32],
+    counts: &mut [usize],
+    drop: &[bool],
+    min_px: usize,
+) -> usize {
+    for (o, l) in object.iter_mut().zip(labels.iter_mut()) {
+        if drop[*l as usize] {
+            *o = false;
+            *l = 0;
+        }
+    }
+    let mut dropped = 0;
+    for (c, _) in counts.iter_mut().zip(&drop[1..]).filter(|(_, t)| **t) {
+        dropped += usize::from(*c >= min_px);
+        *c = 0;
+    }
+    dropped
 }
 
 /// Removes every 8-connected region (`labels`, `counts` from [`components_8`] of `object`) with
@@ -93,18 +268,7 @@ fn drop_border_regions(
         touches[labels[i] as usize] = true;
     }
     touches[0] = false;
-    for (o, l) in object.iter_mut().zip(labels.iter_mut()) {
-        if touches[*l as usize] {
-            *o = false;
-            *l = 0;
-        }
-    }
-    let mut dropped = 0;
-    for (c, _) in counts.iter_mut().zip(&touches[1..]).filter(|(_, t)| **t) {
-        dropped += usize::from(*c >= min_px);
-        *c = 0;
-    }
-    dropped
+    drop_regions(object, labels, counts, &touches, min_px)
 }
 
 impl Scene {
@@ -112,7 +276,8 @@ impl Scene {
     /// is fitted outside the mask (on all valid pixels when fewer than 3 lie outside); without, the
     /// plane is fitted on all valid pixels and objects are regions more than
     /// `min_object_height_m` above it with at least `min_object_px` pixels that do not touch the
-    /// image border (unless `keep_border_objects`).
+    /// image border (unless `keep_border_objects`) and do not enclose an opening of
+    /// `container_opening_m2` (a container's walls).
     ///
     /// # Errors
     /// Invalid intrinsics/config, intrinsics or mask of another size than `depth`, all-invalid
@@ -186,6 +351,18 @@ impl Scene {
         } else {
             0
         };
+        let container_regions_dropped = if masked.is_none() {
+            drop_container_walls(
+                &mut object,
+                &mut labels,
+                &mut counts,
+                &cloud,
+                config.container_opening_m2,
+                config.min_object_px,
+            )
+        } else {
+            0
+        };
         // Normals and edges only around the objects (the planners and the scorer query no other).
         let (w, h) = (size.width, size.height);
         let (mut u0, mut u1, mut v0, mut v1) = (usize::MAX, 0, usize::MAX, 0);
@@ -248,6 +425,7 @@ impl Scene {
             components,
             masked: mask.is_some(),
             border_regions_dropped,
+            container_regions_dropped,
         })
     }
 
@@ -290,6 +468,7 @@ impl Scene {
             components: self.components.clone(),
             masked: self.masked,
             border_regions_dropped: 0,
+            container_regions_dropped: 0,
         })
     }
 
@@ -342,6 +521,26 @@ impl Scene {
     /// [`SceneConfig::keep_border_objects`]).
     pub fn border_regions_dropped(&self) -> usize {
         self.border_regions_dropped
+    }
+
+    /// Regions of at least [`SceneConfig::min_object_px`] pixels above the support plane that
+    /// were not made objects because they enclose an opening of a container's size
+    /// ([`SceneConfig::container_opening_m2`]; 0 with a mask).
+    pub fn container_regions_dropped(&self) -> usize {
+        self.container_regions_dropped
+    }
+
+    /// What a user should know of the container walls dropped ([`Self::container_regions_dropped`]):
+    /// `None` when there were none.
+    pub fn container_note(&self) -> Option<String> {
+        (self.container_regions_dropped > 0).then(|| {
+            format!(
+                "{} region(s) above the support plane enclose an opening of a container's size \
+                 (a bin's or a tote's walls) and are not planned on; objects inside it are, \
+                 objects touching its walls are not (an object mask chooses objects)",
+                self.container_regions_dropped
+            )
+        })
     }
 
     /// "Up": the support plane's normal, or the direction towards the camera (`-z`) without a

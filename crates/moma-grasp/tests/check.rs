@@ -168,7 +168,7 @@ fn a_bare_table_gives_no_grasp_and_says_why() {
         assert!(c.failures.is_empty());
         let why = c.no_grasp_reason.as_deref().unwrap_or_default();
         assert!(
-            why.contains("nothing stands above the support plane"),
+            why.contains("nothing stands more than the object height"),
             "{c:?}"
         );
     }

@@ -32,20 +32,40 @@ pub fn read_mask(path: impl AsRef<Path>) -> Result<Mask> {
 /// than [`crate::MAX_IMAGE_PIXELS`] pixels or more pixel data than the file can hold (checked
 /// before anything is allocated).
 pub fn mask_from_bytes(path: &Path, bytes: &[u8]) -> Result<Mask> {
+    Ok(Mask::new(labels_from_bytes(path, bytes)?.mapv(|l| l != 0)))
+}
+
+/// The values of a mask PNG as labels: grey levels, or colours packed 16 bits a channel.
+fn labels_from_bytes(path: &Path, bytes: &[u8]) -> Result<Array2<u64>> {
     let img = decode_image_bytes(path, bytes, Some(ImageFormat::Png))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let inside: Vec<bool> = match img {
-        DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(|v| v != 0).collect(),
-        DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(|v| v != 0).collect(),
+    let labels: Vec<u64> = match img {
+        DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(u64::from).collect(),
+        DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(u64::from).collect(),
         other => other
             .to_rgb16()
             .pixels()
-            .map(|p| p.0.iter().any(|&c| c != 0))
+            .map(|p| p.0.iter().fold(0u64, |acc, &c| (acc << 16) | u64::from(c)))
             .collect(),
     };
-    Array2::from_shape_vec((h, w), inside)
-        .map(Mask::new)
-        .map_err(|e| IoError::corrupt(path, "PNG", e.to_string()))
+    Array2::from_shape_vec((h, w), labels).map_err(|e| IoError::corrupt(path, "PNG", e.to_string()))
+}
+
+/// Reads the objects to grasp from a mask PNG ([`read_mask`]'s pixel types): an instance label
+/// image (one grey level or colour per object, as segmentation tools write them) keeps objects
+/// apart that touch ([`Mask::from_labels`]: the pixels along the seam between two objects are
+/// outside, so that each object is its own 8-connected component and no grasp straddles two);
+/// any other mask reads as [`read_mask`] reads it. For `moma grasp --mask` and the ROS 2
+/// node's `--mask`; evaluation regions, sample and workspace masks are read by [`read_mask`].
+///
+/// # Errors
+/// As [`read_mask`], plus [`IoError::SizeMismatch`] when it is not `expected` in size.
+pub fn read_object_mask_sized(path: impl AsRef<Path>, expected: ImageSize) -> Result<Mask> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|e| IoError::io(path, "read", e))?;
+    let mask = Mask::from_labels(labels_from_bytes(path, &bytes)?.view());
+    IoError::expect_size(path, expected, mask.size())?;
+    Ok(mask)
 }
 
 /// Reads a mask ([`read_mask`]) and checks it is `expected` pixels in size.

@@ -257,6 +257,34 @@ pub struct LoadedSet {
     pub frames: Vec<LoadedFrame>,
 }
 
+impl LoadedSet {
+    /// What the frames' masks mean for an evaluation, when it is not that every frame has one:
+    /// `None` then. A frame without `mask.png` is scored over the whole image, which beside
+    /// masked frames is rarely meant (a mask lost in a copy): the note names those frames.
+    pub fn mask_note(&self) -> Option<String> {
+        let without: Vec<&str> = self
+            .frames
+            .iter()
+            .filter(|f| f.mask.is_none())
+            .map(|f| f.id.as_str())
+            .collect();
+        match without.len() {
+            0 => None,
+            n if n == self.frames.len() => Some(format!(
+                "{}: no frame has a {MASK_FILE}: every frame is scored over the whole image",
+                self.name
+            )),
+            n => Some(format!(
+                "{}: {n} of {} frames have no {MASK_FILE} and are scored over the whole image, \
+                 the others inside their masks: {}",
+                self.name,
+                self.frames.len(),
+                without.join(", ")
+            )),
+        }
+    }
+}
+
 impl MomaSet {
     /// Loads every frame's images into memory.
     ///

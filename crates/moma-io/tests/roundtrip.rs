@@ -230,6 +230,56 @@ fn masks_roundtrip_and_convert() {
     assert!(read_mask_sized(&p, ImageSize::new(5, 4)).is_ok());
 }
 
+/// An instance label image, as segmentation tools write one (a grey level or a colour per
+/// object), in an 8-bit, a 16-bit and an RGB PNG: two 20 × 20 objects that touch along a
+/// column read as objects to grasp as two 8-connected components, each without its seam
+/// column; the same objects in one value (a 0/255 mask) read as one; as a mask (`read_mask`)
+/// every non-zero pixel is inside.
+#[test]
+fn instance_label_masks_keep_touching_objects_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let which = |v: u32, u: u32| match (v, u) {
+        (10..30, 10..30) => 1,
+        (10..30, 30..50) => 2,
+        _ => 0,
+    };
+    let components = |m: &Mask| {
+        let flat: Vec<bool> = m.data().iter().copied().collect();
+        moma_core::image::components_8(&flat, m.size()).1
+    };
+    let grey = |levels: [u8; 3]| {
+        image::GrayImage::from_fn(60, 40, |u, v| image::Luma([levels[which(v, u)]]))
+    };
+    let p8 = dir.path().join("labels8.png");
+    grey([0, 100, 200]).save(&p8).unwrap();
+    let p16 = dir.path().join("labels16.png");
+    image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(60, 40, |u, v| {
+        image::Luma([[0u16, 1, 2][which(v, u)]])
+    })
+    .save(&p16)
+    .unwrap();
+    let prgb = dir.path().join("labels_rgb.png");
+    let colours = [[0u8, 0, 0], [255, 0, 0], [0, 0, 255]];
+    RgbImage::from_fn(60, 40, |u, v| Rgb(colours[which(v, u)]))
+        .save(&prgb)
+        .unwrap();
+    let size = ImageSize::new(60, 40);
+    for p in [&p8, &p16, &prgb] {
+        let m = read_object_mask_sized(p, size).unwrap();
+        assert_eq!(components(&m), [380, 380], "{}", p.display());
+        assert!(!m.data()[[20, 29]] && !m.data()[[20, 30]] && m.data()[[20, 28]]);
+        // as an evaluation region or a sample mask, every non-zero pixel
+        assert_eq!(components(&read_mask(p).unwrap()), [800], "{}", p.display());
+    }
+    let pbin = dir.path().join("binary.png");
+    grey([0, 255, 255]).save(&pbin).unwrap();
+    assert_eq!(
+        components(&read_object_mask_sized(&pbin, size).unwrap()),
+        [800]
+    );
+    assert!(read_object_mask_sized(&pbin, ImageSize::new(61, 40)).is_err());
+}
+
 #[test]
 fn rgb_png_exact_and_jpeg_close() {
     let dir = tempfile::tempdir().unwrap();

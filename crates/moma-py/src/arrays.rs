@@ -194,30 +194,83 @@ pub fn rgb_image(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<image::RgbImage
 /// # Errors
 /// `moma.InvalidInputError`: not 2-D, or another dtype.
 pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
+    let labels = labels(obj, what, false)?;
+    Ok(Mask::new(labels.mapv(|l| l != 0)))
+}
+
+/// The objects to grasp from a 2-D `bool` array, or an integer array of labels (`uint8`,
+/// `uint16`, `uint32`, `uint64`, `int8`, `int16`, `int32`, `int64`; nonzero = inside): an
+/// instance label image keeps touching objects apart ([`Mask::from_labels`]), as `moma grasp
+/// --mask` reads a label PNG.
+///
+/// # Errors
+/// `moma.InvalidInputError`: not 2-D, another dtype, a negative label.
+pub fn object_mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
+    Ok(Mask::from_labels(labels(obj, what, true)?.view()))
+}
+
+/// The values of a 2-D mask argument: `bool` and `uint8` always, the other integer types with
+/// `integers` (a nested list as NumPy reads it).
+fn labels(obj: &Bound<'_, PyAny>, what: &str, integers: bool) -> PyResult<ndarray::Array2<u64>> {
     if !obj.is_instance_of::<PyUntypedArray>() {
-        // a nested list of bools: as NumPy reads it, then as an array (a list of integers
-        // reads as int64 and is refused with the dtype named, as an int64 array is)
-        let arr = as_ndarray(obj, what)?;
-        if arr.is_instance_of::<PyArray2<bool>>() || arr.is_instance_of::<PyArray2<u8>>() {
-            return mask(arr.as_any(), what);
+        return labels(as_ndarray(obj, what)?.as_any(), what, integers);
+    }
+    /// The values of an array of dtype `T`, or `None` for another dtype.
+    fn of<T: numpy::Element + Copy>(
+        obj: &Bound<'_, PyAny>,
+        what: &str,
+        to_label: impl Fn(T) -> Option<u64>,
+    ) -> PyResult<Option<ndarray::Array2<u64>>> {
+        let Ok(a) = obj.cast::<PyArray2<T>>() else {
+            return Ok(None);
+        };
+        let ro = a
+            .try_readonly()
+            .map_err(|e| value_err(format!("{what}: {e}")))?;
+        let mut bad = false;
+        let l = ro.as_array().mapv(|v| {
+            to_label(v).unwrap_or_else(|| {
+                bad = true;
+                0
+            })
+        });
+        if bad {
+            return Err(value_err(format!(
+                "{what} holds a negative value: a mask is 0 outside, a positive label inside"
+            )));
         }
+        Ok(Some(l))
     }
-    if let Ok(a) = obj.cast::<PyArray2<bool>>() {
-        let ro = a
-            .try_readonly()
-            .map_err(|e| value_err(format!("{what}: {e}")))?;
-        return Ok(Mask::new(ro.as_array().to_owned()));
+    let u = |v: u64| Some(v);
+    // one cast succeeds at most: only that dtype's values are converted
+    let mut found = vec![
+        of::<bool>(obj, what, |v| u(u64::from(v)))?,
+        of::<u8>(obj, what, |v| u(u64::from(v)))?,
+    ];
+    if integers {
+        found.extend([
+            of::<u16>(obj, what, |v| u(u64::from(v)))?,
+            of::<u32>(obj, what, |v| u(u64::from(v)))?,
+            of::<u64>(obj, what, u)?,
+            of::<i8>(obj, what, |v| u64::try_from(v).ok())?,
+            of::<i16>(obj, what, |v| u64::try_from(v).ok())?,
+            of::<i32>(obj, what, |v| u64::try_from(v).ok())?,
+            of::<i64>(obj, what, |v| u64::try_from(v).ok())?,
+        ]);
     }
-    if let Ok(a) = obj.cast::<PyArray2<u8>>() {
-        let ro = a
-            .try_readonly()
-            .map_err(|e| value_err(format!("{what}: {e}")))?;
-        return Ok(Mask::new(ro.as_array().mapv(|v| v != 0)));
+    if let Some(l) = found.into_iter().flatten().next() {
+        return Ok(l);
     }
     let arr = as_ndarray(obj, what)?;
-    check_ndim(&arr, 2, what, "height × width, bool or uint8")?;
+    let expected = if integers {
+        "bool or integer labels (uint8, uint16, uint32, uint64, int8, int16, int32, int64; \
+         nonzero = inside)"
+    } else {
+        "bool or uint8 (nonzero = inside)"
+    };
+    check_ndim(&arr, 2, what, &format!("height × width, {expected}"))?;
     Err(value_err(format!(
-        "{what} has dtype {}, expected bool or uint8 (nonzero = inside)",
+        "{what} has dtype {}, expected {expected}",
         arr.dtype()
     )))
 }
@@ -229,6 +282,16 @@ pub fn mask(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Mask> {
 pub fn opt_mask(obj: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Option<Mask>> {
     obj.filter(|o| !o.is_none())
         .map(|o| mask(o, what))
+        .transpose()
+}
+
+/// An optional mask of objects to grasp.
+///
+/// # Errors
+/// As [`object_mask`].
+pub fn opt_object_mask(obj: Option<&Bound<'_, PyAny>>, what: &str) -> PyResult<Option<Mask>> {
+    obj.filter(|o| !o.is_none())
+        .map(|o| object_mask(o, what))
         .transpose()
 }
 

@@ -1006,13 +1006,16 @@ const _: () = assert!(moma_grasp::DEFAULT_GRASP_DRAWS == 4);
 /// geometry, as `moma grasp --gripper-config` reads it: a path to its JSON file, or a dict of
 /// the same fields), `tie_tolerance` (the robust ranking's, as `--grasp-tie-tolerance`),
 /// `extrinsics` (camera → robot base: a 4 × 4 array of rows, or a path to the JSON file of
-/// `--extrinsics`; adds each grasp's `"base"` pose), `mask` (bool/uint8 `height × width`,
-/// nonzero = object), `top`, `seed`, `keep_border_objects`. No grasp found is an empty
+/// `--extrinsics`; adds each grasp's `"base"` pose), `mask` (`height × width`, bool or integer
+/// labels, nonzero = object: one value per object keeps touching objects apart), `top`,
+/// `seed`, `keep_border_objects`, `keep_containers` (without a mask, a region enclosing an
+/// opening of a container's size, a bin's walls, is no object unless kept; a `UserWarning`
+/// says when one was dropped). No grasp found is an empty
 /// list, not an error, with the reason as a `UserWarning` (e.g. every grasp below
 /// `min_success_prob`, which with N draws cannot exceed `(N + 1) / (N + 2)`). The GIL is
 /// released while planning.
 #[pyfunction]
-#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None, gripper_config=None, tie_tolerance=None, extrinsics=None))]
+#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None, gripper_config=None, tie_tolerance=None, extrinsics=None, keep_containers=false))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
 fn plan_grasps<'py>(
     py: Python<'py>,
@@ -1032,6 +1035,7 @@ fn plan_grasps<'py>(
     gripper_config: Option<&Bound<'py, PyAny>>,
     tie_tolerance: Option<f32>,
     extrinsics: Option<&Bound<'py, PyAny>>,
+    keep_containers: bool,
 ) -> PyResult<Bound<'py, PyAny>> {
     use moma_grasp::{GraspRequest, SceneConfig};
     let (top, seed, grasp_draws): (usize, u64, usize) = (
@@ -1085,12 +1089,12 @@ fn plan_grasps<'py>(
     };
     let error_model = match sigma_m {
         Some(s) => Some(
-            moma_core::DepthErrorModel::uniform(s)
+            moma_core::DepthErrorModel::uniform_for_width(s, depth.size().width)
                 .map_err(|e| value_err(format!("sigma_m: {e}")))?,
         ),
         None => error_model,
     };
-    let mask = opt_mask(mask, "mask")?;
+    let mask = arrays::opt_object_mask(mask, "mask")?;
     let mut request = GraspRequest::new(gripper).with_error_model(error_model);
     request.top_k = top;
     request.seed = seed;
@@ -1101,15 +1105,23 @@ fn plan_grasps<'py>(
     }
     request.scene = SceneConfig {
         keep_border_objects,
+        container_opening_m2: if keep_containers {
+            f32::INFINITY
+        } else {
+            SceneConfig::default().container_opening_m2
+        },
         ..SceneConfig::default()
     };
     if let Some(q) = grasp_quality {
         request.quality = q.parse().py()?;
     }
     request.validate().map_err(|e| value_err(e.to_string()))?;
-    let (_, mut outcome) = py
+    let (scene, mut outcome) = py
         .detach(|| moma_grasp::plan_grasps(&depth, &k, mask.as_ref(), &request))
         .map_err(|e| value_err(e.to_string()))?;
+    if let Some(note) = scene.container_note() {
+        user_warning(py, &format!("moma.plan_grasps: {note} (mask=)"))?;
+    }
     if let Some(e) = &extrinsics {
         outcome.set_base(e);
     }
@@ -1201,7 +1213,7 @@ fn grasp_check<'py>(
     let k = calibration.camera(cam)?;
     let prediction = Prediction::new(f32_owned(pred, "pred")?, calibration.inner.prediction_kind);
     let truth = MetricDepth::new(metres_owned(gt_m, "gt_m")?);
-    let mask = opt_mask(mask, "mask")?;
+    let mask = arrays::opt_object_mask(mask, "mask")?;
     let inner = &calibration.inner;
     let check = py
         .detach(|| {
@@ -1336,14 +1348,14 @@ fn preset_spec(
 /// `model=` beside it, or a `head=` / `max_depth=` that disagrees with it, is refused (they were
 /// ignored, and a model meant to be metric ran as the dict's relative one).
 fn check_config_agrees(
-    config: &moma_depth::candle::DepthAnythingConfig,
+    (config, named): &(moma_depth::candle::DepthAnythingConfig, String),
     model: Option<&str>,
     head: Option<&str>,
     max_depth: Option<f32>,
 ) -> PyResult<()> {
-    if let Some(m) = model {
+    if let Some(m) = model.filter(|m| !is_config_file(m)) {
         return Err(value_err(format!(
-            "model='{m}' and config= both name the network: give one"
+            "model='{m}' and {named} both name the network: give one"
         )));
     }
     let own = match config.head {
@@ -1354,7 +1366,7 @@ fn check_config_agrees(
         let asked = parse_head(h, max_depth.or(own.1).unwrap_or(20.0))?;
         if std::mem::discriminant(&asked) != std::mem::discriminant(&config.head) {
             return Err(value_err(format!(
-                "head='{h}' disagrees with the {} head of config=",
+                "head='{h}' disagrees with the {} head of {named}",
                 own.0
             )));
         }
@@ -1363,7 +1375,7 @@ fn check_config_agrees(
         && Some(m) != own.1
     {
         return Err(value_err(format!(
-            "max_depth={m} disagrees with config= ({})",
+            "max_depth={m} disagrees with {named} ({})",
             own.1
                 .map_or("relative head, no max depth".to_string(), |f| format!(
                     "max_depth_m {f}"
@@ -1430,18 +1442,50 @@ fn load_depth_model(
     Ok((model, runtime))
 }
 
-/// A custom architecture (e.g. small test networks): the `DepthAnythingConfig` fields as a dict.
+/// Whether `model=` names a configuration file (`PATH.json`, as the CLI's `--model`).
+fn is_config_file(model: &str) -> bool {
+    model.to_ascii_lowercase().ends_with(".json")
+}
+
+/// A custom architecture (e.g. small test networks), with the name errors give it: a `config`
+/// dict (the `DepthAnythingConfig` fields, or the fields of a `--model PATH.json` file:
+/// `embed_dim`, `depth`, `num_heads`, `intermediate_layers`, `features`, `out_channels`,
+/// `head`, `max_depth`), or `model='PATH.json'`, the file the CLI's `--model` takes; `None` for
+/// a preset by name.
 fn parse_config(
     py: Python<'_>,
+    model: Option<&str>,
     config: Option<&Bound<'_, PyDict>>,
-) -> PyResult<Option<moma_depth::candle::DepthAnythingConfig>> {
-    let Some(d) = config else {
-        return Ok(None);
+) -> PyResult<Option<(moma_depth::candle::DepthAnythingConfig, String)>> {
+    let custom = |file: moma_depth::ModelConfigFile| {
+        moma_depth::candle::DepthAnythingConfig::custom(file.arch(), file.head())
     };
+    let file = model.filter(|m| is_config_file(m));
+    let Some(d) = config else {
+        return file
+            .map(|f| {
+                moma_depth::ModelConfigFile::read(f)
+                    .map(|c| (custom(c), format!("model='{f}'")))
+                    .map_err(errors::IntoPyErr::into_py_err)
+            })
+            .transpose();
+    };
+    if let Some(f) = file {
+        return Err(value_err(format!(
+            "model='{f}' and config= both name the network: give one"
+        )));
+    }
     let text: String = py.import("json")?.call_method1("dumps", (d,))?.extract()?;
-    serde_json::from_str(&text)
-        .map(Some)
-        .map_err(|e| value_err(format!("config: not a DepthAnythingConfig: {e}")))
+    let config = match serde_json::from_str(&text) {
+        Ok(c) => c,
+        Err(e) => custom(moma_depth::ModelConfigFile::from_json(&text).map_err(|f| {
+            value_err(format!(
+                "config: neither a DepthAnythingConfig ({e}) nor a configuration file's \
+                 fields ({f})"
+            ))
+        })?),
+    };
+    Ok(Some((config, "config=".to_string())))
 }
 
 /// The fingerprint of base weights that a LoRA adapter for them must carry (its
@@ -1457,10 +1501,10 @@ fn lora_fingerprint(
     head: Option<&str>,
     config: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<String> {
-    let config = match parse_config(py, config)? {
+    let config = match parse_config(py, model, config)? {
         Some(c) => {
             check_config_agrees(&c, model, head, None)?;
-            c
+            c.0
         }
         None => moma_depth::candle::DepthAnythingConfig::from_spec(&preset_spec(
             model, head, None, 518,
@@ -1539,11 +1583,12 @@ fn finetune(
     }
     moma_depth::preprocess::check_input_size(input_size)
         .map_err(|e| value_err(format!("input_size: {e}")))?;
-    let spec = match parse_config(py, config)? {
+    let spec = match parse_config(py, model, config)? {
         // Training builds its network from the spec: a custom architecture travels as
         // `Backbone::Custom` (as `moma finetune --model PATH.json`), and must be one.
-        Some(c) => {
-            check_config_agrees(&c, model, head, max_depth)?;
+        Some(named) => {
+            check_config_agrees(&named, model, head, max_depth)?;
+            let c = named.0;
             let arch = moma_depth::CustomArch {
                 embed_dim: c.embed_dim,
                 depth: c.depth,
@@ -1661,20 +1706,23 @@ impl DepthModel {
         // dict, whose own input size applies unless `input_size=` is given (as the CLI's
         // `--model PATH.json --input-size` and `finetune(config=…, input_size=…)` take it: the
         // dict's used to win over an explicit `input_size=`)
-        let config = parse_config(py, config)?;
+        let config = parse_config(py, model, config)?;
         if let Some(c) = &config {
             check_config_agrees(c, model, head, max_depth)?;
         }
+        let config = config.map(|(c, _)| c);
         let input_size = input_size
             .or(config.as_ref().map(|c| c.input_size))
             .unwrap_or(518);
         moma_depth::preprocess::check_input_size(input_size)
             .map_err(|e| value_err(format!("input_size: {e}")))?;
         let config = config.map(|c| moma_depth::candle::DepthAnythingConfig { input_size, ..c });
-        let spec = preset_spec(model, head, max_depth, input_size)?;
+        let spec = match &config {
+            Some(c) => c.spec(),
+            None => preset_spec(model, head, max_depth, input_size)?,
+        };
         let device: moma_depth::DeviceRequest = device.parse().map_err(value_err)?;
         let precision = parse_precision(dtype)?;
-        let spec = config.as_ref().map_or(spec, |c| c.spec());
         let (model, runtime) = py
             .detach(|| {
                 load_depth_model(

@@ -322,9 +322,14 @@ impl EvalOptions {
     }
 }
 
-/// Loads a set with context.
+/// Loads a set with context; says which frames have no mask (scored over the whole image).
 pub fn load_set(dir: &std::path::Path) -> Result<LoadedSet> {
-    moma_eval::data::load_set(dir).with_context(|| format!("loading moma set {}", dir.display()))
+    let set = moma_eval::data::load_set(dir)
+        .with_context(|| format!("loading moma set {}", dir.display()))?;
+    if let Some(note) = set.mask_note() {
+        eprintln!("note: {note}");
+    }
+    Ok(set)
 }
 
 impl PredArgs {

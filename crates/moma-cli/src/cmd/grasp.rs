@@ -69,8 +69,11 @@ impl GripperArg {
 /// and silhouette corrections the calibration measured (and, for suction, the depth model's
 /// short-range bumps averaged out); docs/grasping.md.
 ///
-/// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane
-/// and does not touch the image border (--keep-border-objects keeps such regions).
+/// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane,
+/// does not touch the image border (--keep-border-objects keeps such regions) and does not
+/// enclose an opening of a container's size (a bin's walls: what lies inside is planned on,
+/// an object touching a wall is not). A mask PNG of instance labels (one grey level or colour
+/// per object) keeps touching objects apart.
 /// "No grasp found" is not an error: an empty list, and the reason on stderr.
 ///
 /// Examples:
@@ -102,7 +105,8 @@ pub struct GraspArgs {
     /// file records them (`moma calibrate --camera`).
     #[arg(long, value_name = "FILE")]
     pub camera: Option<PathBuf>,
-    /// Object mask (PNG, nonzero = object): grasps only on masked objects.
+    /// Object mask (PNG, nonzero = object): grasps only on masked objects. A label image (one
+    /// grey level or colour per object) keeps objects that touch apart.
     #[arg(long, value_name = "PNG")]
     pub mask: Option<PathBuf>,
     /// Without --mask, also plan on regions that touch the image border (dropped by default:
@@ -110,6 +114,11 @@ pub struct GraspArgs {
     /// depth curls away from the table).
     #[arg(long, conflicts_with = "mask")]
     pub keep_border_objects: bool,
+    /// Without --mask, also plan on regions that enclose an opening of a container's size
+    /// (dropped by default: a bin's or a tote's walls; what lies inside is planned on either
+    /// way).
+    #[arg(long, conflicts_with = "mask")]
+    pub keep_containers: bool,
     /// Camera→robot-base transform (JSON, see above): adds "base" poses.
     #[arg(long, value_name = "FILE")]
     pub extrinsics: Option<PathBuf>,
@@ -122,8 +131,9 @@ pub struct GraspArgs {
     pub realign: super::align::RealignArgs,
     /// A uniform σ of the depth's error, metres: with --depth (which has no calibration), or to
     /// override the calibration's error model. Gives every grasp a success probability. Drawn as
-    /// one error field correlated over 32 pixels of the image (smooth across an object at
-    /// 640×480; across a quarter of the distance at 2560×1920).
+    /// one error field correlated over 5 % of the image width (32 pixels at 640×480, 64 at
+    /// 1280×720: the same share of the view, so that a probability means the same at any
+    /// resolution).
     #[arg(long, value_name = "S")]
     pub sigma_m: Option<f64>,
     /// Print the grasps as one JSON array on stdout, best first.
@@ -274,6 +284,27 @@ struct LoadedFrame {
     simulated: DepthOrigin,
 }
 
+/// A depth file's median depth (metres) when it is beyond [`FAR_FOR_GRASPING_M`], the sign of a
+/// depth unit other than the millimetre it was read as; `None` otherwise.
+fn far_median_m(depth: &MetricDepth) -> Option<f32> {
+    let mut valid: Vec<f32> = depth
+        .depth_m
+        .iter()
+        .copied()
+        .filter(|&z| moma_core::is_valid_depth(z))
+        .collect();
+    if valid.is_empty() {
+        return None;
+    }
+    let mid = valid.len() / 2;
+    let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
+    (*median > FAR_FOR_GRASPING_M).then_some(*median)
+}
+
+/// Median depth (metres) beyond which a frame to grasp from is no robot cell's: a depth file in
+/// 0.1 mm units read as millimetres puts a table 0.7 m away at 7 m.
+const FAR_FOR_GRASPING_M: f32 = 3.0;
+
 /// The frame's metric depth: read (--depth), or aligned with --calib.
 fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
     if let Some(path) = &args.depth {
@@ -286,6 +317,14 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
             bail!("--realign needs a calibration: use --calib with --pred or --rgb, not --depth");
         }
         args.model.refuse_for("--depth")?;
+        if let Some(median) = far_median_m(&depth) {
+            eprintln!(
+                "note: the median depth of {} is {median:.2} m, beyond a robot arm's reach: if \
+                 its values are not millimetres (a RealSense D405 writes 0.1 mm units), \
+                 convert them to millimetres first; grasps are planned as read",
+                path.display()
+            );
+        }
         return Ok(LoadedFrame {
             depth,
             error_model: None,
@@ -409,7 +448,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     let mask = args
         .mask
         .as_ref()
-        .map(|p| moma_io::read_mask_sized(p, depth.size()))
+        .map(|p| moma_io::read_object_mask_sized(p, depth.size()))
         .transpose()?;
     let error_model = match args.sigma_m {
         Some(sigma) => {
@@ -419,7 +458,10 @@ pub fn run(args: &GraspArgs) -> Result<()> {
                      chance (millimetres? 10 mm is --sigma-m 0.01)"
                 );
             }
-            Some(moma_core::DepthErrorModel::uniform(sigma).context("--sigma-m")?)
+            Some(
+                moma_core::DepthErrorModel::uniform_for_width(sigma, depth.size().width)
+                    .context("--sigma-m")?,
+            )
         }
         None => error_model,
     };
@@ -428,6 +470,11 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         error_model,
         SceneConfig {
             keep_border_objects: args.keep_border_objects,
+            container_opening_m2: if args.keep_containers {
+                f32::INFINITY
+            } else {
+                SceneConfig::default().container_opening_m2
+            },
             ..SceneConfig::default()
         },
     )?;
@@ -449,15 +496,20 @@ pub fn run(args: &GraspArgs) -> Result<()> {
             scene.border_regions_dropped()
         );
     }
+    if let Some(note) = scene.container_note() {
+        eprintln!("note: {note} (--mask; --keep-containers plans on them)");
+    }
     if let Some(e) = &extrinsics {
         outcome.set_base(e);
     }
     match &outcome.no_grasp_reason {
         // "nothing stands above the support plane" would contradict the note above
-        Some(moma_grasp::NoGraspReason::NoObject) if scene.border_regions_dropped() > 0 => {
+        Some(moma_grasp::NoGraspReason::NoObject)
+            if scene.border_regions_dropped() + scene.container_regions_dropped() > 0 =>
+        {
             eprintln!(
-                "no grasp found on {depth_name}: no object but the region(s) touching the image \
-                 border (--keep-border-objects plans on them)"
+                "no grasp found on {depth_name}: no object but the region(s) the notes above \
+                 name (--keep-border-objects, --keep-containers plan on them)"
             );
         }
         Some(reason) => eprintln!("no grasp found on {depth_name}: {reason}"),

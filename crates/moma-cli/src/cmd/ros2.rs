@@ -725,7 +725,7 @@ pub fn run(args: &Ros2Args) -> Result<()> {
             let mask = args
                 .mask
                 .as_ref()
-                .map(|p| moma_io::read_mask_sized(p, calib.image_size))
+                .map(|p| moma_io::read_object_mask_sized(p, calib.image_size))
                 .transpose()?;
             Some((request, extrinsics, mask))
         }

@@ -662,10 +662,24 @@ impl Robust {
         // a consensus of the minimal sample alone is an exact fit through it, whatever the
         // data: the threshold is below the data's own scatter (1e-9 m kept 2 of 100)
         if count <= m {
+            let why = if self.threshold_m.is_some() {
+                "the fixed threshold is too small for these data (the `auto` threshold is \
+                 estimated from them)"
+                    .to_string()
+            } else if n <= 2 * m {
+                format!(
+                    "the `auto` threshold, estimated from the data, keeps no consensus: {n} \
+                     samples are too few to tell inliers from outliers (give more samples)"
+                )
+            } else {
+                "the `auto` threshold, estimated from the data, keeps no consensus: no fit \
+                 agrees with more than its minimal sample (samples scattered beyond any one \
+                 fit)"
+                    .to_string()
+            };
             return Err(CoreError::Degenerate(format!(
                 "ransac: at best {count} of {n} samples lie within {c} m of a fit (its minimal \
-                 sample of {m}); the fixed threshold is too small for these data (the `auto` \
-                 threshold is estimated from them)"
+                 sample of {m}); {why}"
             )));
         }
         Ok((consensus_refit(ctx, base, model, c), drawn))
