@@ -118,8 +118,10 @@
 //! [`DepthErrorModel::draw_into`] adds one seeded sample of all parts to a depth map (a
 //! plausible true scene): the relief factor and the offset are single N(0, 1) numbers, each
 //! field is N(0, 1) on a grid every `s_k` pixels, bilinear between, divided per pixel by the
-//! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px,
-//! the step share one number per draw (clamped to [−1, 1]: around the expected truth,
+//! norm of its interpolation weights (so every pixel has variance 1), the edge field at 2 px
+//! (a pixel near a silhouette moves to its window's near or far side where the field passes
+//! ±θ, `P(N(0, 1) > θ) = 2 g²`: silhouettes that move, never surfaces in mid-air; the variance
+//! at mid-ramp is the σ map's `(edge_gain · relief)²`), the step share one number per draw (clamped to [−1, 1]: around the expected truth,
 //! [`DepthErrorModel::deviations`], it is drawn around 0), the height factor one number drawn
 //! after all the others (a model without a height part draws what it drew before). The
 //! distance part draws the offset and the fields at unit level and scales them together at each
@@ -1583,6 +1585,9 @@ impl<'a> Draws<'a> {
             0.0
         };
         let g = m.edge_gain as f32;
+        // the edge noise as silhouettes that move (`snap_edge`)
+        let theta = upper_normal_quantile((2.0 * m.edge_gain * m.edge_gain).min(0.5)) as f32;
+        let mut edge_row = vec![0.0f32; w];
         let inv_ref2 = (1.0 / (m.depth_ref_m * m.depth_ref_m)) as f32;
         let mut flat = vec![0.0f32; w];
         let mut rest = vec![0.0f32; w];
@@ -1594,7 +1599,14 @@ impl<'a> Draws<'a> {
             }
             rest.fill(0.0);
             let (relief, step) = (self.edges.relief.row(vf), self.edges.step.row(vf));
-            edges.add_row(v, &mut rest, |u| g * relief[u + du]);
+            if g > 0.0 {
+                edge_row.fill(0.0);
+                edges.add_row(v, &mut edge_row, |_| 1.0);
+                let row = out.row(v);
+                for (u, r) in rest.iter_mut().enumerate() {
+                    *r += snap_edge(row[u], relief[u + du], step[u + du], edge_row[u], theta);
+                }
+            }
             if sharpen != 0.0 {
                 for (u, r) in rest.iter_mut().enumerate() {
                     *r += sharpen * step[u + du];
@@ -2127,6 +2139,50 @@ fn window_min_max(depth: ArrayView2<'_, f32>, r: u32, stride: usize) -> (Array2<
         }
     }
     (lo, hi)
+}
+
+/// The edge noise of a draw at a pixel of depth `z` whose window has depth range `range` and
+/// step `step` ([`EdgeMaps`]): where the edge field `e` passes `θ` the pixel moves to the
+/// window's far side, where it passes `−θ` to its near side, elsewhere it stays (metres). With
+/// `P(e > θ) = 2 g²` its variance at mid-ramp is `g² · range²`, the σ map's edge part. A true
+/// silhouette is a step a pixel or two off the aligned one, never a surface in mid-air: drawn
+/// as a Gaussian value of σ `g · range`, the edge noise put points beside the objects that no
+/// scene has, the fingers of a parallel jaw met them, and its success probabilities ran
+/// against the truth (section "Edge noise as silhouettes that move" of docs/grasping.md).
+/// A pixel exactly at its window's min or max (`step` 0) is not moved.
+fn snap_edge(z: f32, range: f32, step: f32, e: f32, theta: f32) -> f32 {
+    if range <= 0.0 || step == 0.0 || !is_valid_depth(z) {
+        return 0.0;
+    }
+    let (near, far) = if step < 0.0 {
+        (z + step, z + step + range)
+    } else {
+        (z + step - range, z + step)
+    };
+    if e > theta {
+        far - z
+    } else if e < -theta {
+        near - z
+    } else {
+        0.0
+    }
+}
+
+/// θ with P(N(0, 1) > θ) = `p` (0 < p ≤ 0.5), by bisection on erfc.
+fn upper_normal_quantile(p: f64) -> f64 {
+    if p <= 0.0 {
+        return f64::INFINITY;
+    }
+    let (mut lo, mut hi) = (0.0f64, 40.0f64);
+    for _ in 0..80 {
+        let mid = 0.5 * (lo + hi);
+        if 0.5 * libm::erfc(mid / std::f64::consts::SQRT_2) > p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
 }
 
 /// Near a depth edge, the relief and the step: `relief` = max − min of the valid depth in the
@@ -3166,7 +3222,9 @@ mod tests {
                 .and(&d.depth_m)
                 .for_each(|s, &a, &b| *s += ((a - b) as f64).powi(2));
         }
-        for (v, u) in [(2usize, 2usize), (18, 24), (12, 16), (18, 16)] {
+        // away from the box's edges (on its sharp edges a pixel is at its window's side: the
+        // edge noise moves ramps, next test)
+        for (v, u) in [(2usize, 2usize), (18, 24), (30, 40)] {
             let est = (s2[[v, u]] / n as f64).sqrt();
             let want = sigma[[v, u]] as f64;
             assert!(
@@ -3177,6 +3235,53 @@ mod tests {
         // same seed and draw: same map; another draw: another map
         assert_eq!(m.draw(&d, 7, 3), m.draw(&d, 7, 3));
         assert_ne!(m.draw(&d, 7, 3), m.draw(&d, 7, 4));
+    }
+
+    /// The edge noise moves silhouettes: on a ramp from a table at 1 m to a box top at 0.95 m
+    /// over 4 px, a draw puts a mid-ramp pixel at the table, at the top, or leaves it, never
+    /// in mid-air elsewhere; over many draws its σ is the σ map's edge part, `edge_gain` × the
+    /// window's range (0.3 × 50 mm), and it goes up and down equally often.
+    #[test]
+    fn the_edge_noise_moves_silhouettes_and_has_the_modelled_variance() {
+        let (w, h) = (40usize, 8usize);
+        let ramp = |u: usize| match u {
+            0..=20 => 1.0f32,
+            21..=23 => 1.0 - 0.0125 * (u - 20) as f32,
+            _ => 0.95,
+        };
+        let d = MetricDepth::new(Array2::from_shape_fn((h, w), |(_, u)| ramp(u)));
+        let m = DepthErrorModel {
+            sigma_flat_m: 0.0,
+            edge_gain: 0.3,
+            edge_radius_px: 2,
+            ..DepthErrorModel::default()
+        };
+        let want = f64::from(m.sigma_map(&d)[[4, 22]]);
+        assert!((want - 0.015).abs() < 1e-6, "{want}");
+        let n = 4000;
+        let (mut s2, mut up, mut down) = (0.0f64, 0, 0);
+        for k in 0..n {
+            let z = m.draw(&d, 11, k).depth_m[[4, 22]];
+            assert!(
+                [0.975f32, 0.95, 1.0].iter().any(|s| (z - s).abs() < 1e-6),
+                "draw {k}: {z} m is in mid-air"
+            );
+            s2 += f64::from(z - 0.975).powi(2);
+            up += usize::from(z > 0.976);
+            down += usize::from(z < 0.974);
+        }
+        let est = (s2 / n as f64).sqrt();
+        assert!(
+            (est - want).abs() < 0.06 * want,
+            "draws σ {est}, model σ {want}"
+        );
+        // each side with chance 2 g² = 0.18
+        for side in [up, down] {
+            assert!(
+                (side as f64 / n as f64 - 0.18).abs() < 0.03,
+                "{up} up, {down} down"
+            );
+        }
     }
 
     #[test]

@@ -1017,12 +1017,42 @@ fn anchors_needed(store: &AnchorStore, config: &RealignConfig) -> usize {
         .max((config.min_anchor_fraction * store.candidate_px() as f64).ceil() as usize)
 }
 
-fn too_few_reason(have: usize, need: usize) -> String {
-    format!(
-        "kept the one-shot result: {have} usable anchor(s), need {need} (background covered or \
-         changed, camera moved, or lighting changed locally)",
-    )
+fn too_few_reason(have: usize, need: usize, store: &AnchorStore, grey: &GreyHalf) -> String {
+    // an over-exposed image has no texture to match: say so rather than blame the scene
+    let share = |n: usize, of: usize| n as f64 / of.max(1) as f64;
+    let frame = grey.as_slice();
+    let frame_sat = share(
+        frame.iter().filter(|&&g| g > SATURATED_GREY).count(),
+        frame.len(),
+    );
+    let calib_sat = store.grey.as_slice().map_or(0.0, |g| {
+        share(
+            g.iter().filter(|&&c| f32::from(c) > SATURATED_GREY).count(),
+            g.len(),
+        )
+    });
+    let why = if frame_sat.max(calib_sat) >= SATURATED_WARN_SHARE {
+        let (what, s) = if frame_sat >= calib_sat {
+            ("the frame's", frame_sat)
+        } else {
+            ("the calibration frame's", calib_sat)
+        };
+        format!(
+            "{:.0} % of {what} image is saturated (grey above {SATURATED_GREY}): over-exposed, \
+             lower the camera's exposure or gain",
+            s * 100.0
+        )
+    } else {
+        "background covered or changed, camera moved, or lighting changed locally".to_string()
+    };
+    format!("kept the one-shot result: {have} usable anchor(s), need {need} ({why})")
 }
+
+/// Grey level above which an anchor pixel is saturated (module documentation, rule 2).
+const SATURATED_GREY: f32 = 250.0;
+
+/// Share of saturated pixels from which too few anchors are put down to over-exposure.
+const SATURATED_WARN_SHARE: f64 = 0.3;
 
 /// The seeded subsample of at most `max_anchors` and the number held out (the first ones).
 fn subsample<T: Copy>(mut obs: Vec<T>, config: &RealignConfig) -> Subsample<T> {
@@ -1150,7 +1180,7 @@ pub fn realign_in_place(
     let need = anchors_needed(store, config);
     if obs.len() < need {
         report.anchors_used = obs.len();
-        report.reason = too_few_reason(obs.len(), need);
+        report.reason = too_few_reason(obs.len(), need, store, grey);
         return Ok(report);
     }
     let sub = subsample(obs, config);
@@ -1408,7 +1438,7 @@ pub fn realign_prediction_affine(
     let need = anchors_needed(store, config);
     if obs.len() < need {
         report.anchors_used = obs.len();
-        report.reason = too_few_reason(obs.len(), need);
+        report.reason = too_few_reason(obs.len(), need, store, grey);
         return Ok((report, None));
     }
     let sub = subsample(obs, config);

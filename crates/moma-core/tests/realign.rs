@@ -329,6 +329,11 @@ fn fully_covered_background_falls_back_cleanly() {
     let valid = cal.anchor_store().unwrap().candidate_px();
     assert!(report.anchors * 20 < valid, "{} of {valid}", report.anchors);
     assert!(report.reason.contains("anchor"), "{}", report.reason);
+    assert!(
+        report.reason.contains("camera moved") && !report.reason.contains("saturated"),
+        "{}",
+        report.reason
+    );
     assert!(report.held_out_rmse_before_m.is_none() && report.held_out_rmse_after_m.is_none());
     assert_eq!(re, one_shot);
     // the report serialises without NaN
@@ -341,6 +346,21 @@ fn fully_covered_background_falls_back_cleanly() {
     assert!(!r.accepted && r.anchors == 0, "{r:?}");
     assert!(r.brightness_gain.unwrap() < 0.1);
     assert_eq!(re, one_shot);
+    // an over-exposed frame (the table blown out, a review's scene): the reason says so,
+    // not that the camera moved
+    let mut blown = test_rgb();
+    for ((v, _, _), x) in blown.indexed_iter_mut() {
+        if v < H - H / 20 {
+            *x = 255;
+        }
+    }
+    let (_, r) = align_realigned(&cal, &pred, blown.view(), &RealignConfig::default()).unwrap();
+    assert!(!r.accepted, "{r:?}");
+    assert!(
+        r.reason.contains("% of the frame's image is saturated") && r.reason.contains("exposure"),
+        "{}",
+        r.reason
+    );
     // a black frame: no brightness gain can be estimated, no anchor
     let black = Array3::<u8>::zeros((H, W, 3));
     let (_, r) = align_realigned(&cal, &pred, black.view(), &RealignConfig::default()).unwrap();
