@@ -396,7 +396,7 @@ def has_onnx() -> bool:
 
 def lora_fingerprint(
     weights: _Path,
-    model: Optional[Union[Literal["vits", "vitb", "vitl"], str]] = None,
+    model: Optional[Union[Literal["vits", "vitb", "vitl"], _Path]] = None,
     head: Optional[Literal["relative", "metric"]] = None,
     *,
     config: Optional[dict[str, Any]] = None,
@@ -412,7 +412,7 @@ def finetune(
     sets: Sequence[_Path],
     weights: _Path,
     output: _Path,
-    model: Optional[Union[Literal["vits", "vitb", "vitl"], str]] = None,
+    model: Optional[Union[Literal["vits", "vitb", "vitl"], _Path]] = None,
     head: Optional[Literal["relative", "metric"]] = None,
     *,
     max_depth: Optional[float] = None,
@@ -469,7 +469,7 @@ class DepthModel:
     def __new__(
         cls,
         weights: _Path,
-        model: Optional[Union[Literal["vits", "vitb", "vitl"], str]] = None,
+        model: Optional[Union[Literal["vits", "vitb", "vitl"], _Path]] = None,
         head: Optional[Literal["relative", "metric"]] = None,
         backend: Literal["candle", "onnx", "auto"] = "candle",
         device: str = "cpu",

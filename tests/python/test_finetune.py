@@ -93,7 +93,7 @@ def test_the_cli_configuration_file_names_the_network_in_python(trained, tmp_pat
             assert by_file[k] == r[k], k
     rgb = moma.read_rgb(REF / "input.png")
     want = moma.DepthModel(w, config=tiny_config("tiny-metric"), input_size=56, lora=out).predict(rgb)
-    for kwargs in [dict(model=str(path)), dict(config=TINY_JSON)]:
+    for kwargs in [dict(model=str(path)), dict(model=path), dict(config=TINY_JSON)]:
         got = moma.DepthModel(w, input_size=56, lora=out, **kwargs).predict(rgb)
         np.testing.assert_array_equal(got, want, err_msg=str(kwargs))
     with pytest.raises(moma.InvalidInputError, match="model='.*tiny.json' and config= both name"):

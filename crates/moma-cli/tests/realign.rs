@@ -9,6 +9,30 @@ use common::{
     s,
 };
 
+/// `moma calibrate`'s arguments for an SSRA calibration with anchors from `rgb`, into `out`.
+fn anchor_calibration<'a>(
+    pred: &'a Path,
+    gt: &'a Path,
+    rgb: &'a Path,
+    out: &'a Path,
+) -> Vec<&'a str> {
+    calibrate_args(
+        &[pred],
+        &[gt],
+        &[
+            "--pred-kind",
+            "relative-disparity",
+            "--method",
+            "ssra",
+            "--anchors",
+            "--anchors-rgb",
+            s(rgb),
+            "-o",
+            s(out),
+        ],
+    )
+}
+
 #[test]
 fn calibrate_align_and_eval_with_realignment() {
     let tmp = tempfile::tempdir().unwrap();
@@ -17,21 +41,7 @@ fn calibrate_align_and_eval_with_realignment() {
     let calib = tmp.path().join("calib.json");
     let (pred0, gt0) = demo_frame(&scene, &pred, 0);
     let rgb0 = frames.join("frame_00/rgb.png");
-    ok(&calibrate_args(
-        &[&pred0],
-        &[&gt0],
-        &[
-            "--pred-kind",
-            "relative-disparity",
-            "--method",
-            "ssra",
-            "--anchors",
-            "--anchors-rgb",
-            s(&rgb0),
-            "-o",
-            s(&calib),
-        ],
-    ));
+    ok(&anchor_calibration(&pred0, &gt0, &rgb0, &calib));
     let text = std::fs::read_to_string(&calib).unwrap();
     assert!(
         text.contains("\"grey_b64\"") && text.contains("\"normalised_b64\""),
@@ -202,5 +212,42 @@ fn calibrate_align_and_eval_with_realignment() {
             &["--realign", "anchors", "--realign-ridge", "nan"],
         ))
         .contains("ridge")
+    );
+}
+
+/// `calibrate --anchors` on an over-exposed calibration RGB (a blown-out table: a review's
+/// scene) warns that the saturated part can hold no anchor; the demo's own RGB does not.
+#[test]
+fn calibrate_warns_of_a_saturated_calibration_rgb() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let (pred0, gt0) = demo_frame(&scene, &pred, 0);
+    let rgb0 = scene.join("frames/frame_00/rgb.png");
+    let mut blown = moma_io::read_rgb(&rgb0).unwrap();
+    let h = blown.height();
+    for (_, y, p) in blown.enumerate_pixels_mut() {
+        if y < h * 9 / 10 {
+            *p = image::Rgb([255, 255, 255]);
+        }
+    }
+    let blown_path = tmp.path().join("blown.png");
+    moma_io::write_rgb(&blown_path, &blown).unwrap();
+    let run = |rgb: &Path| {
+        let calib = tmp.path().join("c.json");
+        let a = anchor_calibration(&pred0, &gt0, rgb, &calib);
+        let out = common::moma(&a);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    assert!(!run(&rgb0).contains("saturated"));
+    let err = run(&blown_path);
+    assert!(
+        err.contains("90 % of the calibration frame's RGB is saturated")
+            && err.contains("exposure"),
+        "{err}"
     );
 }

@@ -312,6 +312,12 @@ impl AnchorStore {
         self.depth_mm.iter().filter(|&&d| d > 0).count()
     }
 
+    /// The share of the calibration frame's (half-resolution) grey that is saturated, above
+    /// [`SATURATED_GREY`]: no anchor can lie there (rule 2).
+    pub fn saturated_share(&self) -> f64 {
+        saturated_share(self.grey.iter().map(|&c| f32::from(c)), self.grey.len())
+    }
+
     /// Anchor candidates (every [`ANCHOR_STRIDE`]-th interior half-resolution pixel in each
     /// direction) holding a valid static depth: the most anchors a frame can have.
     pub fn candidate_px(&self) -> usize {
@@ -1019,18 +1025,9 @@ fn anchors_needed(store: &AnchorStore, config: &RealignConfig) -> usize {
 
 fn too_few_reason(have: usize, need: usize, store: &AnchorStore, grey: &GreyHalf) -> String {
     // an over-exposed image has no texture to match: say so rather than blame the scene
-    let share = |n: usize, of: usize| n as f64 / of.max(1) as f64;
     let frame = grey.as_slice();
-    let frame_sat = share(
-        frame.iter().filter(|&&g| g > SATURATED_GREY).count(),
-        frame.len(),
-    );
-    let calib_sat = store.grey.as_slice().map_or(0.0, |g| {
-        share(
-            g.iter().filter(|&&c| f32::from(c) > SATURATED_GREY).count(),
-            g.len(),
-        )
-    });
+    let frame_sat = saturated_share(frame.iter().copied(), frame.len());
+    let calib_sat = store.saturated_share();
     let why = if frame_sat.max(calib_sat) >= SATURATED_WARN_SHARE {
         let (what, s) = if frame_sat >= calib_sat {
             ("the frame's", frame_sat)
@@ -1048,11 +1045,17 @@ fn too_few_reason(have: usize, need: usize, store: &AnchorStore, grey: &GreyHalf
     format!("kept the one-shot result: {have} usable anchor(s), need {need} ({why})")
 }
 
-/// Grey level above which an anchor pixel is saturated (module documentation, rule 2).
-const SATURATED_GREY: f32 = 250.0;
+/// The share of `n` grey values above [`SATURATED_GREY`].
+fn saturated_share(grey: impl Iterator<Item = f32>, n: usize) -> f64 {
+    grey.filter(|&g| g > SATURATED_GREY).count() as f64 / n.max(1) as f64
+}
 
-/// Share of saturated pixels from which too few anchors are put down to over-exposure.
-const SATURATED_WARN_SHARE: f64 = 0.3;
+/// Grey level above which an anchor pixel is saturated (module documentation, rule 2).
+pub const SATURATED_GREY: f32 = 250.0;
+
+/// Share of saturated pixels from which too few anchors are put down to over-exposure (and
+/// `moma calibrate --anchors` warns).
+pub const SATURATED_WARN_SHARE: f64 = 0.3;
 
 /// The seeded subsample of at most `max_anchors` and the number held out (the first ones).
 fn subsample<T: Copy>(mut obs: Vec<T>, config: &RealignConfig) -> Subsample<T> {

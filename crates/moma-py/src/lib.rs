@@ -1442,6 +1442,18 @@ fn load_depth_model(
     Ok((model, runtime))
 }
 
+/// `model=` as text: a preset's name, or the path (a `str` or an `os.PathLike`) of a
+/// configuration file.
+fn model_name(model: Option<PathBuf>) -> PyResult<Option<String>> {
+    model
+        .map(|m| {
+            m.into_os_string()
+                .into_string()
+                .map_err(|m| value_err(format!("model={m:?}: not valid UTF-8")))
+        })
+        .transpose()
+}
+
 /// Whether `model=` names a configuration file (`PATH.json`, as the CLI's `--model`).
 fn is_config_file(model: &str) -> bool {
     model.to_ascii_lowercase().ends_with(".json")
@@ -1497,10 +1509,12 @@ fn parse_config(
 fn lora_fingerprint(
     py: Python<'_>,
     weights: PathBuf,
-    model: Option<&str>,
+    model: Option<PathBuf>,
     head: Option<&str>,
     config: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<String> {
+    let model = model_name(model)?;
+    let model = model.as_deref();
     let config = match parse_config(py, model, config)? {
         Some(c) => {
             check_config_agrees(&c, model, head, None)?;
@@ -1545,7 +1559,7 @@ fn finetune(
     sets: Vec<PathBuf>,
     weights: PathBuf,
     output: PathBuf,
-    model: Option<&str>,
+    model: Option<PathBuf>,
     head: Option<&str>,
     max_depth: Option<f32>,
     input_size: usize,
@@ -1578,6 +1592,8 @@ fn finetune(
     clip_grad_norm: f64,
     crop: Option<(usize, usize)>,
 ) -> PyResult<Py<PyAny>> {
+    let model = model_name(model)?;
+    let model = model.as_deref();
     if sets.is_empty() {
         return Err(value_err("sets: give at least one moma set"));
     }
@@ -1680,7 +1696,7 @@ impl DepthModel {
     fn new(
         py: Python<'_>,
         weights: PathBuf,
-        model: Option<&str>,
+        model: Option<PathBuf>,
         head: Option<&str>,
         backend: &str,
         device: &str,
@@ -1690,6 +1706,8 @@ impl DepthModel {
         dtype: &str,
         config: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        let model = model_name(model)?;
+        let model = model.as_deref();
         let input_size: Option<usize> =
             input_size.map(|n| unsigned("input_size", n)).transpose()?;
         if !matches!(backend, "candle" | "onnx" | "auto") {

@@ -396,9 +396,24 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
                  --anchors-rgb IMG with --pred"
             ),
         };
-        calibration
+        let calibration = calibration
             .with_anchors(&super::common::grey_of(&rgb)?, &gts[0], &first.prediction)
-            .with_context(|| format!("building the anchor store from {}", args.gt[0].display()))?
+            .with_context(|| format!("building the anchor store from {}", args.gt[0].display()))?;
+        if let Some(share) = calibration
+            .anchor_store()
+            .ok()
+            .map(|s| s.saturated_share())
+            .filter(|&s| s >= moma_core::realign::SATURATED_WARN_SHARE)
+        {
+            eprintln!(
+                "warning: {:.0} % of the calibration frame's RGB is saturated (grey above {}): \
+                 no anchor can lie there, and re-alignment will keep the one-shot depth where \
+                 too few are left; lower the camera's exposure or gain and calibrate again",
+                share * 100.0,
+                moma_core::realign::SATURATED_GREY
+            );
+        }
+        calibration
     } else {
         calibration
     };
