@@ -106,6 +106,22 @@ fn grasps_from_a_realigned_calibration_carry_success_probabilities() {
         std::fs::read(&aligned).unwrap(),
         "the depth moma grasp planned from is not moma align's"
     );
+    // the overlay is drawn on the frame's RGB that --realign-rgb gave (it was drawn on the
+    // colour-mapped depth): away from the drawn grasps its pixels are the image's
+    let (overlay, frame) = (
+        moma_io::read_rgb(out.join("overlay.png")).unwrap(),
+        moma_io::read_rgb(&rgb1).unwrap(),
+    );
+    let same = overlay
+        .pixels()
+        .zip(frame.pixels())
+        .filter(|(a, b)| a == b)
+        .count();
+    let n = (frame.width() * frame.height()) as usize;
+    assert!(
+        same * 10 > n * 9,
+        "{same} of {n} overlay pixels are the frame's RGB"
+    );
     // with a calibration: a probability on every grasp; on a bare depth map: null, unless a σ
     for g in &nominal {
         let p = g["success_prob"].as_f64().unwrap();

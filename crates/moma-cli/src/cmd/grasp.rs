@@ -391,7 +391,8 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         depth,
         error_model: aligned.error_model,
         name: input.path.display().to_string(),
-        rgb: input.rgb,
+        // the frame's RGB for the overlay: the model's input, or the one re-aligned on
+        rgb: input.rgb.or(realign_rgb),
         calib_intrinsics: calib.intrinsics.map(|k| (k, calib_path.clone())),
         simulated: if opened.simulated || calib.created.simulated_predictions {
             DepthOrigin::Simulated(calib_path.clone())
