@@ -1486,6 +1486,8 @@ pub struct Draws<'a> {
     height: Option<Array2<f32>>,
     /// The distance map of the model's distance part (the whole map's size), when it has one.
     distance: Option<Arc<Array2<f32>>>,
+    /// Where the edge field moves a pixel to a side ([`snap_edge`]): `P(N(0, 1) > θ) = 2 g²`.
+    edge_theta: f32,
 }
 
 impl<'a> Draws<'a> {
@@ -1523,6 +1525,8 @@ impl<'a> Draws<'a> {
             hp: model.relief_part(grown),
             height: model.height_part(depth, roi),
             distance: model.distance_map(ImageSize::of(&depth)).cloned(),
+            edge_theta: upper_normal_quantile((2.0 * model.edge_gain * model.edge_gain).min(0.5))
+                as f32,
         }
     }
 
@@ -1584,9 +1588,6 @@ impl<'a> Draws<'a> {
         } else {
             0.0
         };
-        let g = m.edge_gain as f32;
-        // the edge noise as silhouettes that move (`snap_edge`)
-        let theta = upper_normal_quantile((2.0 * m.edge_gain * m.edge_gain).min(0.5)) as f32;
         let mut edge_row = vec![0.0f32; w];
         let inv_ref2 = (1.0 / (m.depth_ref_m * m.depth_ref_m)) as f32;
         let mut flat = vec![0.0f32; w];
@@ -1599,12 +1600,14 @@ impl<'a> Draws<'a> {
             }
             rest.fill(0.0);
             let (relief, step) = (self.edges.relief.row(vf), self.edges.step.row(vf));
-            if g > 0.0 {
+            // the edge noise as silhouettes that move
+            if m.edge_gain > 0.0 {
                 edge_row.fill(0.0);
                 edges.add_row(v, &mut edge_row, |_| 1.0);
                 let row = out.row(v);
                 for (u, r) in rest.iter_mut().enumerate() {
-                    *r += snap_edge(row[u], relief[u + du], step[u + du], edge_row[u], theta);
+                    let (z, e) = (row[u], edge_row[u]);
+                    *r += snap_edge(z, relief[u + du], step[u + du], e, self.edge_theta);
                 }
             }
             if sharpen != 0.0 {

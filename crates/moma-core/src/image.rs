@@ -183,7 +183,9 @@ impl Mask {
         let (h, w) = labels.dim();
         let mut seen: std::collections::HashMap<u64, (usize, bool)> =
             std::collections::HashMap::new();
-        let (mut nonzero, mut seam) = (0usize, 0usize);
+        let mut nonzero = 0usize;
+        // the seam pixels, cut out where the image is a label image
+        let mut seam = Array2::from_elem((h, w), false);
         // whether a neighbour of (v, u) differs from `l` (`nonzero_only`: and is not 0)
         let differs = |v: usize, u: usize, l: u64, nonzero_only: bool| {
             (v.saturating_sub(1)..(v + 2).min(h)).any(|nv| {
@@ -198,7 +200,7 @@ impl Mask {
                 continue;
             }
             nonzero += 1;
-            seam += usize::from(differs(v, u, l, true));
+            seam[[v, u]] = differs(v, u, l, true);
             // interior: all 8 neighbours inside the image and of the same value
             let interior = v > 0 && u > 0 && v + 1 < h && u + 1 < w && !differs(v, u, l, false);
             let e = seen.entry(l).or_insert((0, false));
@@ -208,12 +210,14 @@ impl Mask {
         let objects = seen.values().filter(|(_, obj)| *obj).count();
         let specks: usize = seen.values().filter(|(_, obj)| !obj).map(|(n, _)| n).sum();
         let share = |k: usize| k as f64 / nonzero.max(1) as f64;
+        let seams = seam.iter().filter(|&&b| b).count();
         let is_label_image =
-            objects >= 2 && share(specks) < LABEL_SPECK_SHARE && share(seam) < LABEL_SEAM_SHARE;
-        Mask::new(Array2::from_shape_fn((h, w), |(v, u)| {
-            let l = labels[[v, u]];
-            l != 0 && !(is_label_image && differs(v, u, l, true))
-        }))
+            objects >= 2 && share(specks) < LABEL_SPECK_SHARE && share(seams) < LABEL_SEAM_SHARE;
+        Mask::new(
+            ndarray::Zip::from(&labels)
+                .and(&seam)
+                .map_collect(|&l, &on_seam| l != 0 && !(is_label_image && on_seam)),
+        )
     }
 }
 
@@ -433,14 +437,28 @@ pub fn unit_mistake(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<UnitMistake
     } else {
         return None;
     };
+    valid_median_m(depth_m).map(mistake)
+}
+
+/// The (upper) median of a depth map's valid pixels ([`is_valid_depth`]), `sorted[n / 2]`;
+/// `None` without one.
+pub fn valid_median_m(depth_m: ndarray::ArrayView2<'_, f32>) -> Option<f32> {
     let mut valid: Vec<f32> = depth_m
         .iter()
         .copied()
         .filter(|&z| is_valid_depth(z))
         .collect();
-    let mid = valid.len() / 2;
-    let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
-    Some(mistake(*median))
+    median_in_place(&mut valid)
+}
+
+/// The (upper) median of `xs`, reordering them; `None` when empty.
+pub(crate) fn median_in_place(xs: &mut [f32]) -> Option<f32> {
+    if xs.is_empty() {
+        return None;
+    }
+    let k = xs.len() / 2;
+    let (_, m, _) = xs.select_nth_unstable_by(k, f32::total_cmp);
+    Some(*m)
 }
 
 /// The median of a depth map's valid pixels when it is above [`MILLIMETRE_MEDIAN_M`]: the map

@@ -63,7 +63,7 @@ pub use error::{CoreError, Result};
 pub use error_model::DepthErrorModel;
 pub use image::{
     ImageSize, MILLIMETRE_MEDIAN_M, Mask, MetricDepth, NEAR_MEDIAN_M, Prediction, PredictionKind,
-    UnitMistake, is_valid_depth, millimetre_median, unit_mistake,
+    UnitMistake, is_valid_depth, millimetre_median, unit_mistake, valid_median_m,
 };
 pub use normalise::{AlignSpace, Normalisation, NormalisationConfig};
 pub use pipeline::{

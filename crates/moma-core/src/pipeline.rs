@@ -61,13 +61,14 @@ use crate::align::robust::Robust;
 use crate::align::{AlignmentModel, FitReport, Method, Sample, SampleSet};
 use crate::error::{CoreError, Result};
 use crate::error_model::{DepthErrorModel, ResidualFrame};
+use crate::image::median_in_place;
 use crate::image::{ImageSize, Mask, MetricDepth, Prediction, PredictionKind};
 use crate::normalise::{
     AlignSpace, Normalisation, NormalisationConfig, NormalisedMap, normalise_view,
 };
 use crate::realign::{
-    AnchorStore, CorrectionModel, GreyHalf, RealignConfig, RealignReport, median_in_place,
-    realign_in_place, realign_prediction_affine,
+    AnchorStore, CorrectionModel, GreyHalf, RealignConfig, RealignReport, realign_in_place,
+    realign_prediction_affine,
 };
 use crate::sampling::{SamplingConfig, SamplingStrategy, sample_pixels};
 

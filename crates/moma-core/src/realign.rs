@@ -103,7 +103,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::align::AlignmentModel;
 use crate::error::{CoreError, Result};
-use crate::image::{ImageSize, MetricDepth, is_valid_depth};
+use crate::image::{ImageSize, MetricDepth, is_valid_depth, median_in_place};
 use crate::normalise::AlignSpace;
 
 /// Anchor candidates are every `ANCHOR_STRIDE`-th half-resolution pixel in each direction (a
@@ -686,16 +686,6 @@ pub struct Anchors {
     pub pixels: Vec<(u32, u32, f32, f32)>,
     /// Global brightness gain (None: no usable pixel to estimate it).
     pub gain: Option<f64>,
-}
-
-/// The (upper) median of `xs`, reordering them; `None` when empty.
-pub(crate) fn median_in_place(xs: &mut [f32]) -> Option<f32> {
-    if xs.is_empty() {
-        return None;
-    }
-    let k = xs.len() / 2;
-    let (_, m, _) = xs.select_nth_unstable_by(k, f32::total_cmp);
-    Some(*m)
 }
 
 /// Finds the anchors of a frame with grey `grey` (from its RGB; module documentation, rule 1–4).

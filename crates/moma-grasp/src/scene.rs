@@ -43,6 +43,24 @@ fn default_container_opening_m2() -> f32 {
     0.04
 }
 
+impl SceneConfig {
+    /// The defaults, keeping (or not) the regions that touch the image border and the walls of
+    /// containers: what `moma grasp --keep-border-objects --keep-containers` and Python's
+    /// `keep_border_objects=`, `keep_containers=` ask for.
+    pub fn keeping(border_objects: bool, containers: bool) -> Self {
+        let default = Self::default();
+        Self {
+            keep_border_objects: border_objects,
+            container_opening_m2: if containers {
+                f32::INFINITY
+            } else {
+                default.container_opening_m2
+            },
+            ..default
+        }
+    }
+}
+
 impl Default for SceneConfig {
     fn default() -> Self {
         Self {

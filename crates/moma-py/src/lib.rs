@@ -1103,15 +1103,7 @@ fn plan_grasps<'py>(
     if let Some(t) = tie_tolerance {
         request.tie_tolerance = t;
     }
-    request.scene = SceneConfig {
-        keep_border_objects,
-        container_opening_m2: if keep_containers {
-            f32::INFINITY
-        } else {
-            SceneConfig::default().container_opening_m2
-        },
-        ..SceneConfig::default()
-    };
+    request.scene = SceneConfig::keeping(keep_border_objects, keep_containers);
     if let Some(q) = grasp_quality {
         request.quality = q.parse().py()?;
     }

@@ -287,18 +287,7 @@ struct LoadedFrame {
 /// A depth file's median depth (metres) when it is beyond [`FAR_FOR_GRASPING_M`], the sign of a
 /// depth unit other than the millimetre it was read as; `None` otherwise.
 fn far_median_m(depth: &MetricDepth) -> Option<f32> {
-    let mut valid: Vec<f32> = depth
-        .depth_m
-        .iter()
-        .copied()
-        .filter(|&z| moma_core::is_valid_depth(z))
-        .collect();
-    if valid.is_empty() {
-        return None;
-    }
-    let mid = valid.len() / 2;
-    let (_, median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
-    (*median > FAR_FOR_GRASPING_M).then_some(*median)
+    moma_core::valid_median_m(depth.depth_m.view()).filter(|&m| m > FAR_FOR_GRASPING_M)
 }
 
 /// Median depth (metres) beyond which a frame to grasp from is no robot cell's: a depth file in
@@ -469,15 +458,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     let request = args.plan.request(
         gripper,
         error_model,
-        SceneConfig {
-            keep_border_objects: args.keep_border_objects,
-            container_opening_m2: if args.keep_containers {
-                f32::INFINITY
-            } else {
-                SceneConfig::default().container_opening_m2
-            },
-            ..SceneConfig::default()
-        },
+        SceneConfig::keeping(args.keep_border_objects, args.keep_containers),
     )?;
     let (scene, mut outcome) =
         plan_grasps(&depth, &camera, mask.as_ref(), &request).map_err(|e| {
