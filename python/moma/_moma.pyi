@@ -282,8 +282,8 @@ def calibrate(
     (one camera: all frames the same size); each frame is normalised on its own, ``samples``
     are drawn per frame (frame i > 0 with a seed derived from ``seed`` and i), one fit over
     all. ``cam``: intrinsics (SSRA's canonical parameters; recorded in the file); ``kind``:
-    required, never guessed; ``norm``: default the kind's (``"minmax"`` for relative-disparity,
-    ``"minmax-unit"`` for the depth kinds, ``"none"`` for ``method="raw"``, as ``moma calibrate``);
+    required, never guessed; ``norm``: default ``"minmax-unit"`` (``"none"`` for
+    ``method="raw"``, as ``moma calibrate``);
     ``samples``: number of calibration pixels (per frame); ``seed``:
     of the random sampling (and RANSAC); ``edge_margin_px``: draw samples more than this many
     pixels away from depth discontinuities of the ground truth (object boundaries, where
@@ -328,13 +328,16 @@ def plan_grasps(
     tie_tolerance: Optional[float] = None,
     extrinsics: Optional[Union[_Path, npt.ArrayLike]] = None,
     keep_containers: bool = False,
+    realign: Optional[dict[str, Any]] = None,
 ) -> list[dict[str, Any]]:
     """Grasps, best first, as ``moma grasp --json`` prints them: parallel ``{"kind", "score",
     "success_prob", "center_m", "approach", "closing", "width_m"}``, suction ``{"kind",
     "score", "success_prob", "point_m", "approach"}``; camera frame x right, y down, z forward,
     metres. ``source``: metric depth (metres; ``cam`` required) or a ``Calibration`` with
     ``pred=`` the frame's prediction (``cam`` defaults to its intrinsics; ``rgb=`` re-aligns on
-    static anchors). ``success_prob`` is ``(k + 1) / (N + 2)`` for a grasp that succeeds on k
+    static anchors, ``realign=`` a dict of ``Calibration.align_realigned``'s options, e.g.
+    ``{"correction": "planar"}``; a frame that keeps the one-shot depth says why in a
+    ``UserWarning``). ``success_prob`` is ``(k + 1) / (N + 2)`` for a grasp that succeeds on k
     of the N depth maps drawn from the error model (the calibration's, or a uniform
     ``sigma_m``), None without one; ``grasp_quality`` ``"robust"`` (the default with an error
     model) ranks by k / N, ``"nominal"`` by the planner's score. ``mask``: the objects (bool,
@@ -342,7 +345,7 @@ def plan_grasps(
     inside); without one, regions over 10 mm above the support plane that do not touch the
     image border (unless ``keep_border_objects``) and do not enclose an opening of a
     container's size (a bin's walls, unless ``keep_containers``; a ``UserWarning`` says when
-    one is dropped). An empty list when nothing is graspable,
+    either is dropped). An empty list when nothing is graspable,
     with the reason as a ``UserWarning`` (e.g. every grasp below ``min_success_prob``, which
     with N draws cannot exceed ``(N + 1) / (N + 2)``). ``gripper_config`` (a dict, or the path
     of ``--gripper-config``'s JSON), ``tie_tolerance`` (``--grasp-tie-tolerance``) and

@@ -13,7 +13,7 @@ import pytest
 REPO = pathlib.Path(__file__).resolve().parents[2]
 
 
-def normalise_np(pred, kind, norm="minmax", region=None):
+def normalise_np(pred, kind, norm="minmax-unit", region=None):
     """docs/method.md §1 in NumPy (float64): inverse depth → 1/d (NaN for d ≤ 0), then min-max etc."""
     d = np.asarray(pred, dtype=np.float64)
     if kind == "relative-disparity":
@@ -65,7 +65,7 @@ def metrics_np(pred, gt, mask=None):
 TRUE = dict(alpha=2.0e-4, beta=-1.5e-4, gamma=0.35, t3=0.12)
 
 
-def scene(h=120, w=160, seed=0, kind="relative-disparity", norm="minmax", holes=True):
+def scene(h=120, w=160, seed=0, kind="relative-disparity", norm="minmax-unit", holes=True):
     """A smooth random prediction and the metric ground truth SSRA maps it to exactly
     (TRUE parameters), with some invalid ground-truth pixels (0 and NaN)."""
     rng = np.random.default_rng(seed)

@@ -138,7 +138,7 @@ def test_workspace_normalisation_matches_numpy():
     pred, _ = scene(holes=False)
     ws = np.zeros(pred.shape, dtype=bool)
     ws[20:100, 30:140] = True
-    zhat = normalise_np(pred, "relative-disparity", "minmax", region=ws)
+    zhat = normalise_np(pred, "relative-disparity", "minmax-unit", region=ws)
     gt = ssra_apply_np(zhat, **TRUE).astype(np.float32)
     cal = moma.calibrate(pred, gt, kind="relative-disparity", space="depth", workspace=ws)
     np.testing.assert_array_equal(cal.workspace, ws)
@@ -304,15 +304,15 @@ def test_old_kind_names_read_with_the_documented_mapping():
 
 
 def test_the_default_normalisation_follows_the_kind_as_the_cli_takes_it(tmp_path):
-    """docs/method.md §1 "Default": minmax for relative disparity, minmax-unit for the depth
-    kinds, none for raw; the same calibration as `moma calibrate` without --norm writes, and a
-    metric frame whose scale drifted by 3 % aligns exactly under the default (NumPy closed form:
-    minmax-unit is scale-invariant), while the paper's minmax adds 0.03 · z_min · range."""
+    """docs/method.md §1 "Default": minmax-unit for every kind, none for raw; the same
+    calibration as `moma calibrate` without --norm writes, and a metric frame whose scale
+    drifted by 3 % aligns exactly under the default (NumPy closed form: minmax-unit is
+    scale-invariant), while the paper's minmax adds 0.03 · z_min · range."""
     import json
     import subprocess
 
     pred, gt = scene(holes=False)
-    assert moma.calibrate(pred, gt, kind="relative-disparity").norm == "minmax"
+    assert moma.calibrate(pred, gt, kind="relative-disparity").norm == "minmax-unit"
     metric = gt.astype(np.float32)
     cal = moma.calibrate(metric, gt, kind="metric-depth", method="gssa")
     assert cal.norm == "minmax-unit"

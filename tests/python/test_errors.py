@@ -212,9 +212,9 @@ def test_millimetres_are_refused_where_metres_are_expected(cal):
 
 
 def test_a_failed_realigned_align_into_leaves_out_as_it_was():
-    pred, gt = scene()
+    pred, gt = scene(norm="minmax")  # a scene 0.32–0.69 m away (minmax-unit's: 0.12–0.49 m)
     rgb = np.random.default_rng(3).integers(0, 255, (*pred.shape, 3), dtype=np.uint8)
-    cal = moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=rgb)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb=rgb, norm="minmax")
     out = np.full(pred.shape, 7.0, np.float32)
     with pytest.raises(moma.InvalidInputError, match="frame RGB is 160x60"):
         cal.align_realigned_into(pred, rgb[:60], out)

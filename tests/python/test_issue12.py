@@ -190,12 +190,60 @@ def test_inverse_space_recovers_a_disparity_shift_exactly():
 
 @pytest.fixture
 def anchored():
-    """A calibration with anchors on a textured static scene, and its inputs."""
+    """A calibration with anchors on a textured static scene, and its inputs; the paper's
+    minmax, so that a frame's disparity scale and shift reach the aligned depth and re-alignment
+    has something to correct (the default, minmax-unit, absorbs them)."""
     pred, gt = smooth_scene()
     rgb = textured_rgb()
     cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
-                         anchors_rgb=rgb)
+                         anchors_rgb=rgb, norm="minmax")
     return cal, pred, gt, rgb
+
+
+def test_a_saturated_calibration_rgb_is_named_when_calibrating():
+    """As `moma calibrate --anchors` warns: no anchor can lie where the image is blown out."""
+    import warnings
+    pred, gt = smooth_scene()
+    rgb = textured_rgb()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a textured image: no warning at all
+        moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
+                       anchors_rgb=rgb)
+    blown = rgb.copy()
+    h = blown.shape[0]
+    blown[: h // 2] = 255  # the upper half saturated: 50 % of the image
+    with pytest.warns(UserWarning, match=r"(4[5-9]|5[0-5]) % of the calibration frame's RGB "
+                                         r"is saturated.*exposure.*\(anchors_rgb=\)"):
+        cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
+                             anchors_rgb=blown)
+    assert cal.has_anchors
+
+
+def test_plan_grasps_takes_the_realignment_settings_and_says_when_a_frame_kept_one_shot(anchored):
+    """`plan_grasps(cal, pred=, rgb=, realign={...})` re-aligns with align_realigned's options,
+    as `moma grasp --realign-*` does (it used the defaults whatever the user set)."""
+    import warnings
+    cal, pred, gt, rgb = anchored
+    cam = moma.Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
+    drifted = (pred * 1.15 + 0.1).astype(np.float32)
+    # the default settings accept the frame: no re-alignment warning
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        moma.plan_grasps(cal, cam, pred=drifted, rgb=rgb, gripper="suction")
+    assert not [w for w in caught if "re-alignment" in str(w.message)]
+    # a setting that cannot be met reaches the re-alignment: the frame keeps the one-shot depth
+    # a setting no correction meets reaches the re-alignment: the frame keeps the one-shot depth
+    with pytest.warns(UserWarning, match=r"re-alignment \(rgb=\): kept the one-shot result: .*needs > 1000000000 standard error"):
+        moma.plan_grasps(cal, cam, pred=drifted, rgb=rgb, gripper="suction",
+                         realign={"acceptance_se": 1e9})
+    _, report = cal.align_realigned(drifted, rgb, acceptance_se=1e9)
+    assert report["accepted"] is False
+    with pytest.raises(ValueError, match="unknown re-alignment option 'ridges'"):
+        moma.plan_grasps(cal, cam, pred=drifted, rgb=rgb, realign={"ridges": 1.0})
+    with pytest.raises(ValueError, match="needs the frame's rgb="):
+        moma.plan_grasps(cal, cam, pred=drifted, realign={"ridge": 1.0})
+    with pytest.raises(ValueError, match="go with a Calibration"):
+        moma.plan_grasps(gt, cam, realign={"ridge": 1.0})
 
 
 def test_realign_on_a_covered_background_keeps_the_one_shot_result(anchored):
@@ -281,7 +329,7 @@ def test_anchors_from_an_image_file_equal_anchors_from_the_array(anchored, tmp_p
     cal, pred, gt, rgb = anchored
     write_png(tmp_path / "rgb.png", rgb)
     from_file = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
-                               anchors_rgb=str(tmp_path / "rgb.png"))
+                               anchors_rgb=str(tmp_path / "rgb.png"), norm="minmax")
     assert from_file.has_anchors
     drifted = (pred * 1.15 + 0.1).astype(np.float32)
     a = cal.align_realigned(drifted, rgb)
@@ -343,3 +391,32 @@ def test_bad_input_raises_value_error_naming_the_problem(anchored):
         plain.align_realigned(pred, rgb)
     with pytest.raises(moma.MomaFileError, match="nope.png"):
         moma.calibrate(pred, gt, kind="relative-disparity", anchors_rgb="nope.png")
+
+
+def test_a_glitched_pixel_that_the_normalisation_follows_is_named():
+    """One pixel far below the rest of a prediction moves a min-max normalised frame as a whole
+    (no error, wrong metres): `align`, `align_into`, `align_realigned` and `plan_grasps` name it
+    in a UserWarning, as `moma align` and `moma grasp` print it; a clean frame says nothing."""
+    import warnings
+    pred, gt = smooth_scene()
+    rgb = textured_rgb()
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", seed=2,
+                         anchors_rgb=rgb)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clean = cal.align(pred)
+    glitched = pred.copy()
+    glitched[30, 40] = -5.0
+    says = r"1 pixel\(s\) of the prediction lie far below the rest.*-5 at pixel \(40, 30\)"
+    with pytest.warns(UserWarning, match="moma.Calibration.align: " + says):
+        moved = cal.align(glitched)
+    # the warning is about something real: the frame moved by centimetres
+    assert np.nanmedian(np.abs(moved - clean)) > 0.01
+    out = np.empty_like(gt)
+    with pytest.warns(UserWarning, match="moma.Calibration.align_into: " + says):
+        cal.align_into(glitched, out)
+    with pytest.warns(UserWarning, match="moma.Calibration.align_realigned: " + says):
+        cal.align_realigned(glitched, rgb)
+    cam = moma.Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
+    with pytest.warns(UserWarning, match="moma.plan_grasps: " + says):
+        moma.plan_grasps(cal, cam, pred=glitched, gripper="suction")

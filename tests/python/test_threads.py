@@ -43,7 +43,9 @@ def test_thread_pool_align_realigned_matches_serial():
 
     pred, gt = smooth_scene()
     rgb = textured_rgb()
-    cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", anchors_rgb=rgb)
+    # minmax: the frames' disparity scale and shift reach the depth (minmax-unit absorbs them)
+    cal = moma.calibrate(pred, gt, kind="relative-disparity", method="gssa", anchors_rgb=rgb,
+                         norm="minmax")
     rng = np.random.default_rng(1)
     frames = [(pred * s + o).astype(np.float32) for s, o in rng.uniform(0.8, 1.2, (16, 2))]
     rgbs = [rgb if i % 2 == 0 else textured_rgb(seed=i) for i in range(16)]

@@ -76,8 +76,9 @@ fn calibrate_align_metrics_end_to_end() {
         serde_json::from_str(&calibrate(&calib, &["--samples", "100", "--json"])).unwrap();
     assert_eq!(summary["method"], "ssra");
     assert_eq!(summary["n_used"], 100);
-    // the normalisation taken, the kind's default (the paper's for a disparity), and the kind
-    assert_eq!(summary["normalisation"]["method"], "minmax");
+    // the normalisation taken, the default (the authors' code's, for a disparity as well),
+    // and the kind
+    assert_eq!(summary["normalisation"]["method"], "minmax-unit");
     assert_eq!(summary["normalisation"]["space"], "inverse");
     assert_eq!(summary["prediction_kind"], "relative-disparity");
 
@@ -1206,9 +1207,9 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     // frame_01 stays beside the new frame_00
     let b = tmp.path().join("b");
     let text = ok(&align_args(&calib, &frame1, &b, &[]));
-    // the summary names the normalisation (the kind's default: the paper's for a disparity)
+    // the summary names the normalisation (the default: the authors' code's)
     assert!(
-        text.contains("with ssra (normalisation minmax) into"),
+        text.contains("with ssra (normalisation minmax-unit) into"),
         "{text}"
     );
     let small = tmp.path().join("small");
@@ -1660,12 +1661,14 @@ fn calibrate_and_align_refuse_what_they_would_ignore_or_misread() {
         s(&calib),
     ];
     big_args.extend(["--pred-kind", "relative-disparity", "--method", "ssra"]);
-    let e = fails(&big_args);
+    let mut paper = big_args.clone();
+    paper.extend(["--norm", "minmax"]);
+    let e = fails(&paper);
     assert!(
         e.contains("linearly dependent") && e.contains("minmax-unit"),
         "{e}"
     );
-    big_args.extend(["--norm", "minmax-unit"]);
+    // the default, minmax-unit, fits them
     ok(&big_args);
 
     // align: flags that need another flag, or that --rgb inputs replace
@@ -2121,4 +2124,46 @@ fn a_bad_remap_fails_before_dds_starts() {
     assert!(err.contains("\"--bogus\" is not a ROS 2 argument"), "{err}");
     let err = fails(&["ros2-replay", "--set", "/x", "--ros-args", "-r"]);
     assert!(err.contains("-r needs a value"), "{err}");
+}
+
+/// One glitched pixel of a prediction (far below the rest) moves a min-max normalised frame as
+/// a whole, with no error: `moma align` and `moma grasp` name it (a note with the pixel and the
+/// value); the clean frame gives no such note.
+#[test]
+fn align_and_grasp_name_a_glitched_pixel_the_normalisation_follows() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (scene, pred) = demo(tmp.path());
+    let calib = tmp.path().join("calib.json");
+    let camera = scene.join("camera.json");
+    calibrate_frame_00(&scene, &pred, &calib, &["--camera", s(&camera)]);
+    let clean = pred.join("frame_01.npy");
+    let mut values: ndarray::Array2<f32> = ndarray_npy::read_npy(&clean).unwrap();
+    let low = values.iter().copied().fold(f32::INFINITY, f32::min);
+    let high = values.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    values[[20, 30]] = low - 2.0 * (high - low);
+    let glitched = tmp.path().join("glitched.npy");
+    ndarray_npy::write_npy(&glitched, &values).unwrap();
+    let says = "1 pixel(s) of the prediction lie far below the rest of its values";
+    for (frame, noted) in [(&clean, false), (&glitched, true)] {
+        let out = moma(&align_args(&calib, frame, &tmp.path().join("a"), &[]));
+        assert!(out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(err.contains(says), noted, "{err}");
+        if noted {
+            assert!(err.contains("at pixel (30, 20)"), "{err}");
+        }
+        let out = moma(&[
+            "grasp",
+            "--calib",
+            s(&calib),
+            "--pred",
+            s(frame),
+            "--gripper",
+            "suction",
+            "--json",
+        ]);
+        assert!(out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(err.contains(says), noted, "{err}");
+    }
 }

@@ -292,7 +292,16 @@ fn grasp_eval_takes_the_variants_of_eval_and_reports_reliability() {
     );
     // the normalisation each row planned with: the relative-disparity predictions' default
     let norms: Vec<&str> = rows.iter().map(|r| r["norm"].as_str().unwrap()).collect();
-    assert_eq!(norms, ["minmax", "minmax", "minmax", "minmax", "-"]);
+    assert_eq!(
+        norms,
+        [
+            "minmax-unit",
+            "minmax-unit",
+            "minmax-unit",
+            "minmax-unit",
+            "-"
+        ]
+    );
     // metric-depth predictions (simulated): minmax-unit, and raw none
     let metric = json(&ok(&[
         "grasp-eval",

@@ -70,14 +70,14 @@ fn calibrate_align_and_eval_with_realignment() {
         let v: serde_json::Value = serde_json::from_str(&ok(&a)).unwrap();
         v.as_array().unwrap()[0]["realign"].clone()
     };
-    // each frame names the calibration's method and normalisation (relative-disparity: minmax)
+    // each frame names the calibration's method and normalisation (the default: minmax-unit)
     let frame: serde_json::Value = serde_json::from_str(&ok(&align(&["--json"], &rgb1)
         .iter()
         .map(|x| x.as_str())
         .collect::<Vec<_>>()))
     .unwrap();
     assert_eq!(frame[0]["method"], "ssra", "{frame}");
-    assert_eq!(frame[0]["normalisation"], "minmax", "{frame}");
+    assert_eq!(frame[0]["normalisation"], "minmax-unit", "{frame}");
     // every form gives a per-frame report with accepted / reason
     for form in ["scale-shift", "planar", "prediction-affine"] {
         let r = run(align(&["--realign-form", form, "--json"], &rgb1));

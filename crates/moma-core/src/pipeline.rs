@@ -993,9 +993,19 @@ impl Calibration {
             Some((grey, config)) => Some(self.realigned_into(pred, grey, config, out)?),
         };
         self.check_plausible_output(&out.view())?;
+        let normalisation_note = match pred {
+            PredictionInput::Raw { values, kind } => crate::normalise::isolated_extremes(
+                values,
+                kind,
+                &self.normalisation,
+                self.workspace.as_deref().map(Workspace::mask),
+            ),
+            PredictionInput::Normalised { .. } => None,
+        };
         Ok(FrameReport {
             error_model: self.frame_error_model(realign.as_ref()),
             realign,
+            normalisation_note,
         })
     }
 
@@ -1073,6 +1083,7 @@ impl Calibration {
             realign: report.realign,
             error_model: report.error_model,
             sigma_m,
+            normalisation_note: report.normalisation_note,
         })
     }
 
@@ -1216,6 +1227,9 @@ pub struct FrameReport {
     /// The error model of this frame's depth ([`Calibration::frame_error_model`]); `None` when
     /// the calibration has none.
     pub error_model: Option<DepthErrorModel>,
+    /// A note when the frame's min-max normalisation hangs on a few isolated pixels
+    /// ([`crate::normalise::isolated_extremes`]); front ends print it.
+    pub normalisation_note: Option<String>,
 }
 
 /// One aligned frame ([`Calibration::aligned`]).
@@ -1231,6 +1245,8 @@ pub struct Aligned {
     /// Per-pixel σ of the depth's error, metres (NaN where there is no depth), when asked for
     /// and an error model exists.
     pub sigma_m: Option<Array2<f32>>,
+    /// As [`FrameReport::normalisation_note`].
+    pub normalisation_note: Option<String>,
 }
 
 impl Calibration {

@@ -318,6 +318,23 @@ impl AnchorStore {
         saturated_share(self.grey.iter().map(|&c| f32::from(c)), self.grey.len())
     }
 
+    /// The warning for a mostly saturated calibration RGB (a share of at least
+    /// [`SATURATED_WARN_SHARE`] above [`SATURATED_GREY`]), `None` otherwise: no anchor can lie
+    /// there, and later frames keep the one-shot depth where too few are left. One text for
+    /// `moma calibrate --anchors` and Python's `calibrate(anchors_rgb=)`.
+    pub fn saturation_warning(&self) -> Option<String> {
+        let share = self.saturated_share();
+        (share >= SATURATED_WARN_SHARE).then(|| {
+            format!(
+                "{:.0} % of the calibration frame's RGB is saturated (grey above \
+                 {SATURATED_GREY}): no anchor can lie there, and re-alignment will keep the \
+                 one-shot depth where too few are left; lower the camera's exposure or gain and \
+                 calibrate again",
+                share * 100.0
+            )
+        })
+    }
+
     /// Anchor candidates (every [`ANCHOR_STRIDE`]-th interior half-resolution pixel in each
     /// direction) holding a valid static depth: the most anchors a frame can have.
     pub fn candidate_px(&self) -> usize {

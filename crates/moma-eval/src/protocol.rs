@@ -48,8 +48,8 @@ pub struct EvalConfig {
     /// Methods, in table order (SSRA's intrinsics are set from the set's camera).
     pub methods: Vec<Method>,
     /// Normalisations to evaluate (RAW is always evaluated once, without normalisation); none:
-    /// the predictions' kind's default ([`moma_core::policy::default_normalisation`]: `minmax`
-    /// for relative disparity, `minmax-unit` for the depth kinds).
+    /// the predictions' kind's default ([`moma_core::policy::default_normalisation`]:
+    /// `minmax-unit`).
     pub norms: Vec<Normalisation>,
     /// Alignment space; `None`: the predictions' own ([`AlignSpace::native`]).
     pub space: Option<AlignSpace>,

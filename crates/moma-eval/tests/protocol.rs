@@ -390,7 +390,7 @@ fn without_norms_each_kind_takes_its_default() {
     for (kind, want) in [
         (PredictionKind::MetricDepth, Normalisation::MinmaxUnit),
         (PredictionKind::RelativeDepth, Normalisation::MinmaxUnit),
-        (PredictionKind::RelativeDisparity, Normalisation::Minmax),
+        (PredictionKind::RelativeDisparity, Normalisation::MinmaxUnit),
     ] {
         let demo = DemoScene {
             scene: DemoSceneConfig {

@@ -77,7 +77,8 @@
 //! Known limitation: without a mask, anything more than 10 mm above the support plane is an
 //! object, but for regions touching the image border and the walls of a container fully in view
 //! ([`SceneConfig::container_opening_m2`]): robot parts, a wall beside the table, an object
-//! touching a bin's wall (dropped with the wall); pass a mask on such scenes.
+//! touching a bin's wall without a flat top below its rim (dropped with the wall); pass a mask
+//! on such scenes.
 
 pub mod check;
 pub mod cloud;

@@ -100,6 +100,7 @@ pub struct Scene {
     masked: bool,
     border_regions_dropped: usize,
     container_regions_dropped: usize,
+    touching_split_off: usize,
 }
 
 /// Pixel bounding box `(u0, v0, width, height)`.
@@ -204,9 +205,10 @@ fn could_enclose(
 /// every region (`labels`, `counts` from [`components_8`] of `object`) that encloses an
 /// opening of at least `opening_m2` square metres ([`enclosed_area_m2`]: the floor and
 /// whatever lies on it) leaves the objects; what lies inside it stays. An object touching a
-/// wall is part of the wall's region and leaves with it (splitting it off by depth steps left
-/// the steep inner faces of the walls, seen obliquely, as strips of "objects": not done).
-/// Returns how many regions of at least `min_px` pixels were dropped.
+/// wall is part of the wall's region: it is split off ([`touching_objects`]) where its top
+/// lies below the rim, and stays an object under a new label (pushed onto `counts`). Returns
+/// how many regions of at least `min_px` pixels were dropped, and how many objects were split
+/// off them.
 ///
 /// Written here, not taken from a crate: flood fills of the complement of one labelled region
 /// within its bounding box (imageproc fills the holes of a binary image, not those of one
@@ -214,13 +216,14 @@ fn could_enclose(
 fn drop_container_walls(
     object: &mut [bool],
     labels: &mut [u32],
-    counts: &mut [usize],
+    counts: &mut Vec<usize>,
     cloud: &OrganisedCloud,
+    plane: Option<&SupportPlane>,
     opening_m2: f32,
     min_px: usize,
-) -> usize {
+) -> (usize, usize) {
     if !opening_m2.is_finite() || cloud.width < 3 || cloud.height < 3 || counts.is_empty() {
-        return 0;
+        return (0, 0);
     }
     let n = counts.len();
     let regions = {
@@ -237,8 +240,279 @@ fn drop_container_walls(
         let labels = &*labels;
         walls[l] = enclosed_area_m2(&|i| labels[i] == lu, bbox, cloud, z_near) >= opening_m2;
     }
-    drop_regions(object, labels, counts, &walls, min_px)
+    // the objects touching a wall, found before the wall's pixels leave
+    let touching: Vec<Vec<usize>> = match plane {
+        Some(plane) => (1..=n)
+            .filter(|&l| walls[l])
+            .flat_map(|l| touching_objects(labels, l as u32, regions[l].0, cloud, plane, min_px))
+            .collect(),
+        None => Vec::new(),
+    };
+    let dropped = drop_regions(object, labels, counts, &walls, min_px);
+    for pixels in &touching {
+        counts.push(pixels.len());
+        let label = counts.len() as u32;
+        for &i in pixels {
+            object[i] = true;
+            labels[i] = label;
+        }
+    }
+    (dropped, touching.len())
 }
+
+/// The objects touching a container's walls, as pixel lists. Within the wall's region `l`
+/// (bounding box `bbox`), heights above the support plane are smoothed over
+/// [`TOUCHING_SMOOTH_M`] (the region's own pixels only); a pixel at least [`RIM_BAND_M`] below
+/// the rim (the region's 98th-percentile height) whose smoothed height changes by less than
+/// [`TOUCHING_MAX_SLOPE`] times the distance along the plane to its neighbours
+/// [`TOUCHING_SLOPE_BASE_M`] away along the image's rows and columns is part of an object's
+/// flat top. Each 8-connected group of them that holds a square of [`TOUCHING_MIN_WIDTH_M`]
+/// (a wall's own lower top, a handle's cut-out, is a narrower strip) is grown back to the top's
+/// edges over the region's pixels at the group's own smoothed height (within
+/// [`TOUCHING_TOP_BAND_M`]: never up or down a wall's face), and is an object when it has at
+/// least `min_px` pixels. The walls' faces are steep and their rim lies at the rim's height:
+/// neither is an object. An object as tall as the rim stays with the walls; one whose top is
+/// not flat (a ball) as well.
+fn touching_objects(
+    labels: &[u32],
+    l: u32,
+    (bu0, bv0, bw, bh): Bbox,
+    cloud: &OrganisedCloud,
+    plane: &SupportPlane,
+    min_px: usize,
+) -> Vec<Vec<usize>> {
+    let w = cloud.width;
+    let at = |bu: usize, bv: usize| (bv0 + bv) * w + bu0 + bu;
+    let member = |i: usize| labels[i] == l && cloud.valid[i];
+    let height = |i: usize| plane.height_m(&cloud.points[i]);
+    let mut heights: Vec<f32> = (0..bw * bh)
+        .map(|k| at(k % bw, k / bw))
+        .filter(|&i| member(i))
+        .map(height)
+        .collect();
+    if heights.len() < min_px {
+        return Vec::new();
+    }
+    // the rim: the region's 98th-percentile height (a few flying pixels above it aside)
+    let k = (heights.len() - 1) * 98 / 100;
+    let rim_m = *heights.select_nth_unstable_by(k, f32::total_cmp).1;
+    let below_rim = |i: usize| member(i) && height(i) < rim_m - RIM_BAND_M;
+    let up = plane.up();
+    // the region's height smoothed over a window of TOUCHING_SMOOTH_M (its own pixels only,
+    // summed-area tables): the depth's noise would tilt a flat top at the slope's base
+    let z_mid = {
+        let mut z: Vec<f32> = (0..bw * bh)
+            .map(|k| at(k % bw, k / bw))
+            .filter(|&i| member(i))
+            .map(|i| cloud.points[i].z)
+            .collect();
+        let k = z.len() / 2;
+        *z.select_nth_unstable_by(k, f32::total_cmp).1
+    };
+    let px_of = |metres: f32| ((metres * cloud.fx / z_mid).round() as usize).max(1);
+    let smoothed = box_mean(
+        &(0..bw * bh)
+            .map(|k| {
+                let i = at(k % bw, k / bw);
+                member(i).then(|| height(i))
+            })
+            .collect::<Vec<_>>(),
+        bw,
+        bh,
+        px_of(TOUCHING_SMOOTH_M) / 2,
+    );
+    // the slope between pixels k and j of the box: smoothed height change over the distance
+    // along the plane
+    let slope = |k: usize, j: usize| {
+        let d = cloud.points[at(j % bw, j / bw)] - cloud.points[at(k % bw, k / bw)];
+        let along = up.dot(&d);
+        let lateral = (d.norm_squared() - along * along).max(0.0).sqrt();
+        let dh = (smoothed[j] - smoothed[k]).abs();
+        if lateral > 0.0 {
+            dh / lateral
+        } else {
+            f32::INFINITY
+        }
+    };
+    let s = px_of(TOUCHING_SLOPE_BASE_M);
+    let mut top = vec![false; bw * bh];
+    for bv in 0..bh {
+        for bu in 0..bw {
+            let k = bv * bw + bu;
+            if !below_rim(at(bu, bv)) || smoothed[k].is_nan() {
+                continue;
+            }
+            let mut flat = true;
+            let mut seen = false;
+            for (nu, nv) in [
+                (bu.checked_sub(s), Some(bv)),
+                (Some(bu + s).filter(|&x| x < bw), Some(bv)),
+                (Some(bu), bv.checked_sub(s)),
+                (Some(bu), Some(bv + s).filter(|&y| y < bh)),
+            ] {
+                if let (Some(nu), Some(nv)) = (nu, nv) {
+                    let j = nv * bw + nu;
+                    if member(at(nu, nv)) && !smoothed[j].is_nan() {
+                        seen = true;
+                        flat &= slope(k, j) < TOUCHING_MAX_SLOPE;
+                    }
+                }
+            }
+            top[k] = flat && seen;
+        }
+    }
+    let base_px = s + px_of(TOUCHING_SMOOTH_M) / 2;
+    let (seeds, counts) = components_8(&top, moma_core::ImageSize::new(bw, bh));
+    // the side (pixels) of the square an object's top must hold, at the region's median depth
+    let side_px = px_of(TOUCHING_MIN_WIDTH_M);
+    let mut objects = Vec::new();
+    // a group smaller than the square cannot hold it (most of the specks a noisy depth leaves)
+    for (s, _) in counts
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| **c >= side_px * side_px)
+    {
+        let s = s as u32 + 1;
+        if !holds_square(&seeds, s, bw, bh, side_px) {
+            continue; // a strip: the top of a wall's lower part (a handle's cut-out), no object
+        }
+        // grow the top back to its edges (the smoothing and the slope's base shrank it by
+        // base_px): over the region's pixels at the top's own (smoothed) height, never up or
+        // down a face
+        let mut inside: Vec<bool> = seeds.iter().map(|&x| x == s).collect();
+        let mut front: Vec<usize> = (0..bw * bh).filter(|&k| inside[k]).collect();
+        let mut top_m: Vec<f32> = front.iter().map(|&k| smoothed[k]).collect();
+        let (lo, hi) = {
+            let n = top_m.len() - 1;
+            let lo = *top_m.select_nth_unstable_by(n / 50, f32::total_cmp).1;
+            let hi = *top_m.select_nth_unstable_by(n - n / 50, f32::total_cmp).1;
+            (lo - TOUCHING_TOP_BAND_M, hi + TOUCHING_TOP_BAND_M)
+        };
+        let on_top = |k: usize| below_rim(at(k % bw, k / bw)) && (lo..=hi).contains(&smoothed[k]);
+        for _ in 0..base_px {
+            let mut next = Vec::new();
+            for k in front {
+                let (bu, bv) = (k % bw, k / bw);
+                for (du, dv) in [(-1isize, 0isize), (1, 0), (0, -1), (0, 1)] {
+                    let (nu, nv) = (bu as isize + du, bv as isize + dv);
+                    if nu < 0 || nv < 0 || nu as usize >= bw || nv as usize >= bh {
+                        continue;
+                    }
+                    let nk = nv as usize * bw + nu as usize;
+                    if !inside[nk] && on_top(nk) {
+                        inside[nk] = true;
+                        next.push(nk);
+                    }
+                }
+            }
+            front = next;
+        }
+        let pixels: Vec<usize> = (0..bw * bh)
+            .filter(|&k| inside[k])
+            .map(|k| at(k % bw, k / bw))
+            .collect();
+        if pixels.len() >= min_px {
+            objects.push(pixels);
+        }
+    }
+    objects
+}
+
+/// Whether the pixels labelled `s` in the `bw × bh` image `labels` hold a whole `side × side`
+/// square (a summed-area table of the label's pixels).
+fn holds_square(labels: &[u32], s: u32, bw: usize, bh: usize, side: usize) -> bool {
+    if side > bw || side > bh {
+        return false;
+    }
+    let mut sat = vec![0u32; (bw + 1) * (bh + 1)];
+    for v in 0..bh {
+        let mut row = 0u32;
+        for u in 0..bw {
+            row += u32::from(labels[v * bw + u] == s);
+            sat[(v + 1) * (bw + 1) + u + 1] = sat[v * (bw + 1) + u + 1] + row;
+        }
+    }
+    let full = (side * side) as u32;
+    (side..=bh).any(|v1| {
+        (side..=bw).any(|u1| {
+            let (u0, v0) = (u1 - side, v1 - side);
+            sat[v1 * (bw + 1) + u1] + sat[v0 * (bw + 1) + u0]
+                - sat[v0 * (bw + 1) + u1]
+                - sat[v1 * (bw + 1) + u0]
+                == full
+        })
+    })
+}
+
+/// How far (metres, along the support plane's normal) beyond its flat part's 2nd and 98th
+/// percentile heights the top of an object touching a container's walls is grown back to
+/// its edges ([`touching_objects`]).
+const TOUCHING_TOP_BAND_M: f32 = 0.003;
+
+/// The narrowest top (metres, a square's side at the wall region's median depth) of an object
+/// that [`touching_objects`] splits off a container's walls: a wall's own top where it is
+/// lower (a handle's cut-out) is a strip narrower than this, a box's or a bottle's top is not.
+const TOUCHING_MIN_WIDTH_M: f32 = 0.015;
+
+/// How far below a container's rim (metres, along the support plane's normal) an object
+/// touching its walls must stand to be split off ([`touching_objects`]): the rim's own
+/// pixels, and those of a lip or a rounded edge, lie within it.
+const RIM_BAND_M: f32 = 0.015;
+
+/// The distance (metres, at the wall region's median depth, along the image's rows and
+/// columns) over which [`touching_objects`] measures a slope: long enough that the depth's
+/// noise barely tilts a flat top, short enough for a small object's top.
+const TOUCHING_SLOPE_BASE_M: f32 = 0.005;
+
+/// The window (metres, a square's side at the wall region's median depth) over which
+/// [`touching_objects`] smooths the heights before measuring slopes: a depth model's noise of
+/// 0.5 % of the depth, correlated over a few pixels, tilts a 1 cm base by up to 0.5 unsmoothed.
+const TOUCHING_SMOOTH_M: f32 = 0.008;
+
+/// The mean of the `Some` values of a `w × h` image over a `(2r + 1)²` window around each
+/// pixel (NaN at `None` pixels and where the window holds none): summed-area tables.
+fn box_mean(values: &[Option<f32>], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let (sw, sh) = (w + 1, h + 1);
+    let mut sum = vec![0.0f64; sw * sh];
+    let mut cnt = vec![0u32; sw * sh];
+    for v in 0..h {
+        let (mut rs, mut rc) = (0.0f64, 0u32);
+        for u in 0..w {
+            if let Some(x) = values[v * w + u] {
+                rs += f64::from(x);
+                rc += 1;
+            }
+            sum[(v + 1) * sw + u + 1] = sum[v * sw + u + 1] + rs;
+            cnt[(v + 1) * sw + u + 1] = cnt[v * sw + u + 1] + rc;
+        }
+    }
+    (0..w * h)
+        .map(|k| {
+            let (u, v) = (k % w, k / w);
+            if values[k].is_none() {
+                return f32::NAN;
+            }
+            let (u0, v0, u1, v1) = (
+                u.saturating_sub(r),
+                v.saturating_sub(r),
+                (u + r + 1).min(w),
+                (v + r + 1).min(h),
+            );
+            let at = |t: &[f64], uu: usize, vv: usize| t[vv * sw + uu];
+            let s = at(&sum, u1, v1) + at(&sum, u0, v0) - at(&sum, u1, v0) - at(&sum, u0, v1);
+            let c = cnt[v1 * sw + u1] + cnt[v0 * sw + u0] - cnt[v0 * sw + u1] - cnt[v1 * sw + u0];
+            if c == 0 {
+                f32::NAN
+            } else {
+                (s / f64::from(c)) as f32
+            }
+        })
+        .collect()
+}
+
+/// The steepest slope (height over distance along the support plane) of an object's top in
+/// [`touching_objects`]: 45°. A wall's faces, seen from above at any angle, are far steeper.
+const TOUCHING_MAX_SLOPE: f32 = 1.0;
 
 /// Removes the regions `drop[label]` (`labels`, `counts` from [`components_8`] of `object`):
 /// their pixels leave `object` and get label 0, their counts become 0. Returns how many of them
@@ -369,17 +643,18 @@ impl Scene {
         } else {
             0
         };
-        let container_regions_dropped = if masked.is_none() {
+        let (container_regions_dropped, touching_split_off) = if masked.is_none() {
             drop_container_walls(
                 &mut object,
                 &mut labels,
                 &mut counts,
                 &cloud,
+                plane.as_ref(),
                 config.container_opening_m2,
                 config.min_object_px,
             )
         } else {
-            0
+            (0, 0)
         };
         // Normals and edges only around the objects (the planners and the scorer query no other).
         let (w, h) = (size.width, size.height);
@@ -444,6 +719,7 @@ impl Scene {
             masked: mask.is_some(),
             border_regions_dropped,
             container_regions_dropped,
+            touching_split_off,
         })
     }
 
@@ -487,6 +763,7 @@ impl Scene {
             masked: self.masked,
             border_regions_dropped: 0,
             container_regions_dropped: 0,
+            touching_split_off: 0,
         })
     }
 
@@ -548,6 +825,19 @@ impl Scene {
         self.container_regions_dropped
     }
 
+    /// What a user should know of the regions dropped for touching the image border
+    /// ([`Self::border_regions_dropped`]): `None` when there were none. One text for `moma
+    /// grasp` and Python's `plan_grasps`, each adding its own way to keep them.
+    pub fn border_note(&self) -> Option<String> {
+        (self.border_regions_dropped > 0).then(|| {
+            format!(
+                "{} region(s) above the support plane touch the image border and are not \
+                 planned on (partly seen)",
+                self.border_regions_dropped
+            )
+        })
+    }
+
     /// What a user should know of the container walls dropped ([`Self::container_regions_dropped`]):
     /// `None` when there were none.
     pub fn container_note(&self) -> Option<String> {
@@ -555,8 +845,11 @@ impl Scene {
             format!(
                 "{} region(s) above the support plane enclose an opening of a container's size \
                  (a bin's or a tote's walls) and are not planned on; objects inside it are, \
-                 objects touching its walls are not (an object mask chooses objects)",
-                self.container_regions_dropped
+                 and so are objects touching its walls with a flat top at least {:.0} mm below \
+                 its rim ({} split off; an object mask chooses objects)",
+                self.container_regions_dropped,
+                RIM_BAND_M * 1000.0,
+                self.touching_split_off,
             )
         })
     }

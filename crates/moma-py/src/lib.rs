@@ -60,7 +60,8 @@ fn parse_method(s: &str, options: &moma_core::policy::MethodOptions) -> PyResult
     moma_core::policy::method(method, options).map_err(|e| value_err(e.to_string()))
 }
 
-/// One frame's re-alignment into `out` (the zero-copy view path of `Calibration::align`).
+/// One frame's re-alignment into `out` (the zero-copy view path of `Calibration::align`):
+/// its report, and the frame's normalisation note.
 fn realign_view_into(
     cal: &CoreCalibration,
     pred: ndarray::ArrayView2<'_, f32>,
@@ -68,14 +69,15 @@ fn realign_view_into(
     rgb: ndarray::ArrayView3<'_, u8>,
     config: &RealignConfig,
     mut out: ndarray::ArrayViewMut2<'_, f32>,
-) -> Result<moma_core::realign::RealignReport, CoreError> {
+) -> Result<(moma_core::realign::RealignReport, Option<String>), CoreError> {
     let grey = moma_io::grey_half(rgb)?;
     let report = cal.align(
         PredictionInput::view(pred, kind),
         &AlignOptions::realigned(&grey, config),
         &mut out,
     )?;
-    report.realign.ok_or_else(|| {
+    let note = report.normalisation_note;
+    report.realign.map(|r| (r, note)).ok_or_else(|| {
         CoreError::InvalidParameter("re-alignment was asked for but gave no report".into())
     })
 }
@@ -303,6 +305,11 @@ impl Calibration {
         let aligned = py
             .detach(|| self.inner.aligned(input, &AlignOptions::default()))
             .py()?;
+        normalisation_warning(
+            py,
+            "Calibration.align",
+            aligned.normalisation_note.as_deref(),
+        )?;
         Ok(aligned.depth.depth_m.into_pyarray(py))
     }
 
@@ -320,12 +327,17 @@ impl Calibration {
         let mut out_view = rw.as_array_mut();
         let kind = self.inner.prediction_kind;
         let input = PredictionInput::view(view, kind);
-        py.detach(|| {
-            self.inner
-                .align(input, &AlignOptions::default(), &mut out_view)
-        })
-        .py()
-        .map(drop)
+        let report = py
+            .detach(|| {
+                self.inner
+                    .align(input, &AlignOptions::default(), &mut out_view)
+            })
+            .py()?;
+        normalisation_warning(
+            py,
+            "Calibration.align_into",
+            report.normalisation_note.as_deref(),
+        )
     }
 
     /// Writes the calibration in the CLI's file format (`moma-calibration` JSON, the current
@@ -491,6 +503,8 @@ impl Calibration {
                 Ok::<_, CoreError>((depth, report))
             })
             .py()?;
+        let (report, note) = report;
+        normalisation_warning(py, "Calibration.align_realigned", note.as_deref())?;
         Ok((depth.into_pyarray(py), to_py_json(py, &report)?))
     }
 
@@ -513,7 +527,7 @@ impl Calibration {
         let (view, rgb_view) = (ro.as_array(), rgb_ro.as_array());
         let mut out_view = rw.as_array_mut();
         let kind = self.inner.prediction_kind;
-        let report = py
+        let (report, note) = py
             .detach(|| {
                 realign_view_into(
                     &self.inner,
@@ -525,6 +539,7 @@ impl Calibration {
                 )
             })
             .py()?;
+        normalisation_warning(py, "Calibration.align_realigned_into", note.as_deref())?;
         to_py_json(py, &report)
     }
 
@@ -881,6 +896,13 @@ fn calibrate(
     if inner.error_model.is_none() {
         user_warning(py, moma_core::pipeline::NO_ERROR_MODEL_WARNING)?;
     }
+    if let Some(w) = inner
+        .anchor_store()
+        .ok()
+        .and_then(|s| s.saturation_warning())
+    {
+        user_warning(py, &format!("moma.calibrate: {w} (anchors_rgb=)"))?;
+    }
     // stamped when made (not each time it is written): `to_json`, `save` and pickling then
     // give the same text
     Ok(Calibration {
@@ -996,7 +1018,10 @@ const _: () = assert!(moma_grasp::DEFAULT_GRASP_DRAWS == 4);
 /// `source` is a metric depth map (float32 metres, NaN or ≤ 0 = no depth; `cam` required) or a
 /// `Calibration` with `pred=` (the frame's prediction; `cam` defaults to the calibration's
 /// intrinsics): the depth is then aligned as `moma grasp --calib` does, re-aligned on static
-/// anchors when `rgb=` (uint8 `height × width × 3`) is given, and the calibration's error model
+/// anchors when `rgb=` (uint8 `height × width × 3`) is given (with `realign=`, a dict of
+/// `Calibration.align_realigned`'s options, e.g. `{"correction": "planar"}`, as `moma grasp`'s
+/// `--realign-*` flags; a frame that keeps the one-shot depth says why in a `UserWarning`),
+/// and the calibration's error model
 /// gives every grasp a `success_prob` (from the depth maps drawn from it on which the grasp
 /// succeeds: `(successes + 1) / (draws + 2)`). With a depth map, `sigma_m=` (a uniform σ,
 /// metres) does the same. `grasp_quality` is `"robust"` (the default where there is an error
@@ -1008,14 +1033,14 @@ const _: () = assert!(moma_grasp::DEFAULT_GRASP_DRAWS == 4);
 /// `extrinsics` (camera → robot base: a 4 × 4 array of rows, or a path to the JSON file of
 /// `--extrinsics`; adds each grasp's `"base"` pose), `mask` (`height × width`, bool or integer
 /// labels, nonzero = object: one value per object keeps touching objects apart), `top`,
-/// `seed`, `keep_border_objects`, `keep_containers` (without a mask, a region enclosing an
-/// opening of a container's size, a bin's walls, is no object unless kept; a `UserWarning`
-/// says when one was dropped). No grasp found is an empty
+/// `seed`, `keep_border_objects` (without a mask, a region touching the image border is no
+/// object unless kept), `keep_containers` (nor is a region enclosing an opening of a
+/// container's size, a bin's walls; a `UserWarning` says when either was dropped). No grasp found is an empty
 /// list, not an error, with the reason as a `UserWarning` (e.g. every grasp below
 /// `min_success_prob`, which with N draws cannot exceed `(N + 1) / (N + 2)`). The GIL is
 /// released while planning.
 #[pyfunction]
-#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None, gripper_config=None, tie_tolerance=None, extrinsics=None, keep_containers=false))]
+#[pyo3(signature = (source, cam=None, gripper="parallel", mask=None, top=10, seed=0, keep_border_objects=false, *, pred=None, rgb=None, sigma_m=None, grasp_quality=None, grasp_draws=4, min_success_prob=None, gripper_config=None, tie_tolerance=None, extrinsics=None, keep_containers=false, realign=None))]
 #[allow(clippy::too_many_arguments)] // Python keyword arguments, not a Rust API
 fn plan_grasps<'py>(
     py: Python<'py>,
@@ -1036,6 +1061,7 @@ fn plan_grasps<'py>(
     tie_tolerance: Option<f32>,
     extrinsics: Option<&Bound<'py, PyAny>>,
     keep_containers: bool,
+    realign: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     use moma_grasp::{GraspRequest, SceneConfig};
     let (top, seed, grasp_draws): (usize, u64, usize) = (
@@ -1060,7 +1086,13 @@ fn plan_grasps<'py>(
             let prediction = Prediction::new(f32_owned(pred, "pred")?, cal.inner.prediction_kind);
             let k = cal.camera(cam)?;
             let rgb_ro = rgb.map(|r| arrays::rgb_ro(r, "rgb")).transpose()?;
-            let config = RealignConfig::default();
+            if realign.is_some() && rgb_ro.is_none() {
+                return Err(value_err(
+                    "realign= sets the re-alignment on static anchors, which needs the frame's \
+                     rgb=",
+                ));
+            }
+            let config = realign_config(realign)?;
             let rgb_view = rgb_ro.as_ref().map(|r| r.as_array());
             let inner = &cal.inner;
             let aligned = py
@@ -1073,12 +1105,21 @@ fn plan_grasps<'py>(
                     inner.aligned(&prediction, &options)
                 })
                 .py()?;
+            normalisation_warning(py, "plan_grasps", aligned.normalisation_note.as_deref())?;
+            // as `moma grasp` prints it: a frame that kept the one-shot depth is said so
+            if let Some(report) = aligned.realign.as_ref().filter(|r| !r.accepted) {
+                user_warning(
+                    py,
+                    &format!("moma.plan_grasps: re-alignment (rgb=): {}", report.reason),
+                )?;
+            }
             (aligned.depth, aligned.error_model, k)
         }
         Err(_) => {
-            if pred.is_some() || rgb.is_some() {
+            if pred.is_some() || rgb.is_some() || realign.is_some() {
                 return Err(value_err(
-                    "pred= and rgb= go with a Calibration as the first argument, not a depth map",
+                    "pred=, rgb= and realign= go with a Calibration as the first argument, not \
+                     a depth map",
                 ));
             }
             let k = cam
@@ -1111,6 +1152,15 @@ fn plan_grasps<'py>(
     let (scene, mut outcome) = py
         .detach(|| moma_grasp::plan_grasps(&depth, &k, mask.as_ref(), &request))
         .map_err(|e| value_err(e.to_string()))?;
+    if let Some(note) = scene.border_note() {
+        user_warning(
+            py,
+            &format!(
+                "moma.plan_grasps: {note} (keep_border_objects=True keeps them, mask= chooses \
+                 objects)"
+            ),
+        )?;
+    }
     if let Some(note) = scene.container_note() {
         user_warning(py, &format!("moma.plan_grasps: {note} (mask=)"))?;
     }
@@ -1125,6 +1175,15 @@ fn plan_grasps<'py>(
         user_warning(py, &format!("moma.plan_grasps: no grasp: {reason}"))?;
     }
     to_py_json(py, &outcome.grasps)
+}
+
+/// The frame's normalisation note ([`moma_core::FrameReport::normalisation_note`]) as a
+/// `UserWarning` of `what`, as the CLI prints it.
+fn normalisation_warning(py: Python<'_>, what: &str, note: Option<&str>) -> PyResult<()> {
+    match note {
+        Some(note) => user_warning(py, &format!("moma.{what}: {note}")),
+        None => Ok(()),
+    }
 }
 
 /// Issues a Python `UserWarning` (filtered and caught as Python's warnings are).

@@ -369,12 +369,16 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             depth,
             realign,
             sigma_m,
+            normalisation_note,
             ..
         } = calib
             .calibration
             .aligned(&input.prediction, &options)
             .with_context(|| format!("aligning {}", input.path.display()))?;
         let align_ms = t.elapsed().as_secs_f64() * 1e3;
+        if let Some(note) = &normalisation_note {
+            eprintln!("note: {}: {note}", input.path.display());
+        }
         // every input of this frame's files is read and checked before the first is written:
         // a frame that fails leaves none of its files
         let cloud = match intrinsics.filter(|_| args.ply) {

@@ -61,9 +61,9 @@ pub struct CalibrateArgs {
     #[arg(long, default_value = "ssra", value_name = "METHOD")]
     pub method: Method,
     /// Normalisation of the prediction: minmax (paper), minmax-unit (authors' code), median,
-    /// none. Default: the prediction's kind's: minmax for relative-disparity (the paper's),
-    /// minmax-unit for the depth kinds (the paper's added z_min, a depth's nearest object, moves
-    /// the whole map; docs/evaluation.md); none for --method raw, which refuses any other.
+    /// none. Default: minmax-unit (the paper's added z_min, in the model's own output units,
+    /// moves the whole map with a depth's nearest object or a disparity's scale drift;
+    /// docs/evaluation.md); none for --method raw, which refuses any other.
     #[arg(long, value_name = "NORM")]
     pub norm: Option<Normalisation>,
     /// Alignment space: inverse (predictor disparity, target 1/z) or depth. Default: the
@@ -399,19 +399,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         let calibration = calibration
             .with_anchors(&super::common::grey_of(&rgb)?, &gts[0], &first.prediction)
             .with_context(|| format!("building the anchor store from {}", args.gt[0].display()))?;
-        if let Some(share) = calibration
+        if let Some(w) = calibration
             .anchor_store()
             .ok()
-            .map(|s| s.saturated_share())
-            .filter(|&s| s >= moma_core::realign::SATURATED_WARN_SHARE)
+            .and_then(|s| s.saturation_warning())
         {
-            eprintln!(
-                "warning: {:.0} % of the calibration frame's RGB is saturated (grey above {}): \
-                 no anchor can lie there, and re-alignment will keep the one-shot depth where \
-                 too few are left; lower the camera's exposure or gain and calibrate again",
-                share * 100.0,
-                moma_core::realign::SATURATED_GREY
-            );
+            eprintln!("warning: {w}");
         }
         calibration
     } else {

@@ -132,9 +132,8 @@ pub struct EvalOptions {
     #[arg(long, value_delimiter = ',', value_name = "METHODS")]
     pub methods: Vec<Method>,
     /// Normalisation(s), comma-separated (`moma eval`; `grasp-eval` plans with one): minmax
-    /// (paper), minmax-unit, median, none. Default:
-    /// the predictions' kind's, as `moma calibrate` takes it: minmax for relative-disparity
-    /// (the paper's), minmax-unit for metric-depth and relative-depth (docs/evaluation.md).
+    /// (paper), minmax-unit, median, none. Default: minmax-unit (the authors' code), as `moma
+    /// calibrate` takes it (docs/evaluation.md, "The default normalisation").
     #[arg(long, value_delimiter = ',', value_name = "NORMS")]
     pub norm: Vec<Normalisation>,
     /// Alignment space: inverse or depth (default: the predictions' own).

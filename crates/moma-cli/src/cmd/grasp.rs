@@ -72,7 +72,7 @@ impl GripperArg {
 /// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane,
 /// does not touch the image border (--keep-border-objects keeps such regions) and does not
 /// enclose an opening of a container's size (a bin's walls: what lies inside is planned on,
-/// an object touching a wall is not). A mask PNG of instance labels (one grey level or colour
+/// and an object touching a wall where its top is flat and 15 mm below the rim). A mask PNG of instance labels (one grey level or colour
 /// per object) keeps touching objects apart.
 /// "No grasp found" is not an error: an empty list, and the reason on stderr.
 ///
@@ -366,6 +366,9 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         .calibration
         .aligned(&input.prediction, &options)
         .with_context(|| format!("aligning {}", input.path.display()))?;
+    if let Some(note) = &aligned.normalisation_note {
+        eprintln!("note: {}: {note}", input.path.display());
+    }
     if let Some(report) = &aligned.realign {
         eprintln!(
             "{}: re-aligned on {} anchors: {}{}",
@@ -471,12 +474,8 @@ pub fn run(args: &GraspArgs) -> Result<()> {
             };
             anyhow::Error::new(e).context(about)
         })?;
-    if scene.border_regions_dropped() > 0 {
-        eprintln!(
-            "note: {} region(s) above the support plane touch the image border and are not \
-             planned on (partly seen; --keep-border-objects keeps them, --mask chooses objects)",
-            scene.border_regions_dropped()
-        );
+    if let Some(note) = scene.border_note() {
+        eprintln!("note: {note} (--keep-border-objects keeps them, --mask chooses objects)");
     }
     if let Some(note) = scene.container_note() {
         eprintln!("note: {note} (--mask; --keep-containers plans on them)");

@@ -1338,6 +1338,10 @@ impl NodeState {
             level = level.max(DiagnosticStatus::WARN);
             message = "re-alignment not accepted (one-shot depth published)".to_string();
         }
+        if let Some(note) = &aligned.normalisation_note {
+            level = level.max(DiagnosticStatus::WARN);
+            message = format!("{note}; {message}");
+        }
         if let Some(note) = frame_id_note {
             level = level.max(DiagnosticStatus::WARN);
             message = format!("{note}; {message}");
