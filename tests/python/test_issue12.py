@@ -231,7 +231,6 @@ def test_plan_grasps_takes_the_realignment_settings_and_says_when_a_frame_kept_o
         warnings.simplefilter("always")
         moma.plan_grasps(cal, cam, pred=drifted, rgb=rgb, gripper="suction")
     assert not [w for w in caught if "re-alignment" in str(w.message)]
-    # a setting that cannot be met reaches the re-alignment: the frame keeps the one-shot depth
     # a setting no correction meets reaches the re-alignment: the frame keeps the one-shot depth
     with pytest.warns(UserWarning, match=r"re-alignment \(rgb=\): kept the one-shot result: .*needs > 1000000000 standard error"):
         moma.plan_grasps(cal, cam, pred=drifted, rgb=rgb, gripper="suction",
@@ -407,7 +406,7 @@ def test_a_glitched_pixel_that_the_normalisation_follows_is_named():
         clean = cal.align(pred)
     glitched = pred.copy()
     glitched[30, 40] = -5.0
-    says = r"1 pixel\(s\) of the prediction lie far below the rest.*-5 at pixel \(40, 30\)"
+    says = r"1 pixel\(s\) of the prediction lie far below the rest.*-5 at pixel \(u=40, v=30\)"
     with pytest.warns(UserWarning, match="moma.Calibration.align: " + says):
         moved = cal.align(glitched)
     # the warning is about something real: the frame moved by centimetres
@@ -420,3 +419,6 @@ def test_a_glitched_pixel_that_the_normalisation_follows_is_named():
     cam = moma.Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
     with pytest.warns(UserWarning, match="moma.plan_grasps: " + says):
         moma.plan_grasps(cal, cam, pred=glitched, gripper="suction")
+    # in the calibration frame the fit learns it: calibrate names it
+    with pytest.warns(UserWarning, match="moma.calibrate: the calibration frame: " + says):
+        moma.calibrate(glitched, gt, kind="relative-disparity", method="gssa", seed=2)

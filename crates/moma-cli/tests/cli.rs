@@ -2144,13 +2144,47 @@ fn align_and_grasp_name_a_glitched_pixel_the_normalisation_follows() {
     let glitched = tmp.path().join("glitched.npy");
     ndarray_npy::write_npy(&glitched, &values).unwrap();
     let says = "1 pixel(s) of the prediction lie far below the rest of its values";
+    // in the calibration frame, where the fit learns it: calibrate names it
+    let glitched_calib = tmp.path().join("glitched_calib.json");
+    let out = moma(&[
+        "calibrate",
+        "--pred",
+        s(&glitched),
+        "--pred-kind",
+        "relative-disparity",
+        "--gt",
+        s(&scene.join("frames/frame_01/depth.png")),
+        "--camera",
+        s(&camera),
+        "-o",
+        s(&glitched_calib),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains(&format!("note: the calibration frame: {says}")),
+        "{err}"
+    );
     for (frame, noted) in [(&clean, false), (&glitched, true)] {
-        let out = moma(&align_args(&calib, frame, &tmp.path().join("a"), &[]));
+        let out = moma(&align_args(
+            &calib,
+            frame,
+            &tmp.path().join("a"),
+            &["--json"],
+        ));
         assert!(out.status.success());
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(err.contains(says), noted, "{err}");
+        // and in --json, for scripts
+        let rows: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let note = rows[0]["normalisation_note"].as_str();
+        assert_eq!(note.is_some_and(|n| n.contains(says)), noted, "{rows}");
         if noted {
-            assert!(err.contains("at pixel (30, 20)"), "{err}");
+            assert!(err.contains("at pixel (u=30, v=20)"), "{err}");
         }
         let out = moma(&[
             "grasp",

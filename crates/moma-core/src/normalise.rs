@@ -327,7 +327,7 @@ pub fn normalise_view(
 /// map) then moves the whole aligned frame by centimetres to metres, with no error; so does a
 /// small far region that comes and goes between frames. `None` for the other normalisations,
 /// and when nothing is isolated. Quantiles from an even stride of about 20 000 pixels, the
-/// extremes and the count exact: well under a millisecond at 640 × 480.
+/// extremes and the count exact (one more pass over the image).
 pub fn isolated_extremes(
     values: ArrayView2<'_, f32>,
     kind: PredictionKind,
@@ -353,20 +353,32 @@ pub fn isolated_extremes(
         }
     };
     let w = values.ncols().max(1);
-    let inside = |i: usize| region.is_none_or(|r| r.data()[[i / w, i % w]]);
-    let pixels = || {
-        values
-            .iter()
-            .enumerate()
-            .filter(move |&(i, _)| inside(i))
-            .filter_map(move |(i, &x)| seen(x).map(|z| (i, x, z)))
+    // row-major slices (a copy only for a non-standard layout), read pixel by pixel
+    let v_std = values.as_standard_layout();
+    let r_std = region.map(|r| r.data().as_standard_layout());
+    let (Some(vals), inside) = (v_std.as_slice(), r_std.as_ref().map(|r| r.as_slice())) else {
+        return None;
     };
-    let n = pixels().count();
-    if n < 1000 {
+    let inside: Option<&[bool]> = match inside {
+        Some(Some(m)) => Some(m),
+        Some(None) => return None,
+        None => None,
+    };
+    let pixel = |i: usize| -> Option<(usize, f32, f32)> {
+        if inside.is_some_and(|m| !m[i]) {
+            return None;
+        }
+        seen(vals[i]).map(|z| (i, vals[i], z))
+    };
+    // the quantiles from an even stride of about 20 000 pixels of the image
+    let stride = (vals.len() / 20_000).max(1);
+    let mut sample: Vec<f32> = (0..vals.len())
+        .step_by(stride)
+        .filter_map(|i| pixel(i).map(|(_, _, z)| z))
+        .collect();
+    if sample.len() < 1000 {
         return None; // too few pixels for a tail to say anything
     }
-    let stride = (n / 20_000).max(1);
-    let mut sample: Vec<f32> = pixels().step_by(stride).map(|(_, _, z)| z).collect();
     let m = sample.len() - 1;
     let lo = *sample.select_nth_unstable_by(m / 200, f32::total_cmp).1;
     let hi = *sample.select_nth_unstable_by(m - m / 200, f32::total_cmp).1;
@@ -380,21 +392,31 @@ pub fn isolated_extremes(
         (f32::INFINITY, 0usize, 0.0f32),
         (f32::NEG_INFINITY, 0usize, 0.0f32),
     );
-    for (i, x, z) in pixels() {
-        n_low += usize::from(z < low);
-        n_high += usize::from(z > high);
-        if z < min.0 {
-            min = (z, i, x);
+    // one pass: without a conversion, a value within both bounds is neither extreme
+    for (i, &x) in vals.iter().enumerate() {
+        if !(invert || x < low || x > high) {
+            continue;
         }
-        if z > max.0 {
-            max = (z, i, x);
+        let Some((i, x, z)) = pixel(i) else {
+            continue;
+        };
+        if z < low {
+            n_low += 1;
+            if z < min.0 {
+                min = (z, i, x);
+            }
+        } else if z > high {
+            n_high += 1;
+            if z > max.0 {
+                max = (z, i, x);
+            }
         }
     }
     // in the prediction's own values (inverted: the lowest seen is the highest given)
     let name = |pixels: usize, (_, i, x): (f32, usize, f32), seen_low: bool| {
         format!(
             "{pixels} pixel(s) of the prediction lie far {} the rest of its values (the most \
-             extreme {x} at pixel ({}, {}))",
+             extreme {x} at pixel (u={}, v={}))",
             if seen_low != invert { "below" } else { "above" },
             i % w,
             i / w
@@ -411,7 +433,8 @@ pub fn isolated_extremes(
         format!(
             "{}: the min-max normalisation follows them, and moves the whole aligned map with \
              them; a glitch, or a region that comes and goes between frames, misaligns the \
-             frame (fix the prediction, or give a workspace mask that leaves them out)",
+             frame (fix the prediction, or calibrate again with a workspace mask that leaves \
+             them out: --workspace, Python workspace=)",
             parts.join("; ")
         )
     })

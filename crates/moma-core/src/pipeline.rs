@@ -306,6 +306,12 @@ pub struct Calibration {
     /// no success probability unless a uniform σ is given).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error_model: Option<DepthErrorModel>,
+    /// Notes on the calibration frames' normalisation: a min-max normalisation that hangs on a
+    /// few isolated pixels of a frame ([`crate::normalise::isolated_extremes`]), which the fit
+    /// then learns, so that every later frame without them is off. Front ends print them when
+    /// they calibrate; not stored in the calibration file.
+    #[serde(skip)]
+    pub normalisation_notes: Vec<String>,
 }
 
 /// A depth model's output for one frame, as [`calibrate`] and [`Calibration::align`] take it.
@@ -530,6 +536,23 @@ pub fn calibrate(
         workspace: config.workspace.clone(),
         anchors: None,
         error_model: None,
+        normalisation_notes: frames
+            .iter()
+            .enumerate()
+            .filter_map(|(i, f)| match f.pred {
+                PredictionInput::Raw { values, kind } => crate::normalise::isolated_extremes(
+                    values,
+                    kind,
+                    &config.normalisation,
+                    workspace,
+                )
+                .map(|note| match frames.len() {
+                    1 => format!("the calibration frame: {note}"),
+                    _ => format!("calibration frame {i}: {note}"),
+                }),
+                PredictionInput::Normalised { .. } => None,
+            })
+            .collect(),
     };
     // absent (no success probabilities later) when the calibration frames give no pixel with
     // both an aligned and a true depth to learn it from; the fit itself stands

@@ -259,7 +259,7 @@ fn an_isolated_extreme_pixel_is_named_in_the_frames_report() {
         let note = glitched.normalisation_note.expect("a note");
         assert!(
             note.contains("1 pixel(s) of the prediction lie far below")
-                && note.contains("-1 at pixel (40, 30)")
+                && note.contains("-1 at pixel (u=40, v=30)")
                 && note.contains("workspace"),
             "{norm:?}: {note}"
         );
@@ -267,6 +267,54 @@ fn an_isolated_extreme_pixel_is_named_in_the_frames_report() {
         let m = DepthMetrics::compute(&glitched.depth, &gt_a, Some(&table_mask())).unwrap();
         assert!(m.mae > 0.05, "{norm:?}: {} m", m.mae);
     }
+    // a huge disparity, in inverse space: far above; aligned in depth space the normalisation
+    // sees 1/d, and a tiny positive disparity is a huge depth, the maximum it follows, yet a
+    // value of the prediction far *below* its others
+    let space = |space| {
+        let config =
+            common::calibration_config(Method::Gssa, Normalisation::MinmaxUnit, space, 100, 7);
+        calibrate(&[CalibrationFrame::new(&disparity(false), &gt_a)], &config).unwrap()
+    };
+    for (cal, value, way) in [
+        (space(AlignSpace::Inverse), 1e3f32, "above"),
+        (space(AlignSpace::Depth), 1e-4, "below"),
+    ] {
+        let mut p = disparity(false);
+        p.values[[30, 40]] = value;
+        let note = cal
+            .aligned(&p, &AlignOptions::default())
+            .unwrap()
+            .normalisation_note
+            .expect("a note");
+        assert!(
+            note.contains(&format!("1 pixel(s) of the prediction lie far {way}"))
+                && note.contains("at pixel (u=40, v=30)"),
+            "{value}: {note}"
+        );
+    }
+    // a glitch in the calibration frame is learnt by the fit, and every later frame without
+    // it is off: the calibration names it
+    let config = common::calibration_config(
+        Method::Gssa,
+        Normalisation::MinmaxUnit,
+        AlignSpace::Inverse,
+        100,
+        7,
+    );
+    let cal = calibrate(&[CalibrationFrame::new(&disparity(true), &gt_a)], &config).unwrap();
+    assert_eq!(
+        cal.normalisation_notes.len(),
+        1,
+        "{:?}",
+        cal.normalisation_notes
+    );
+    assert!(
+        cal.normalisation_notes[0].starts_with("the calibration frame: 1 pixel(s)"),
+        "{:?}",
+        cal.normalisation_notes
+    );
+    let clean = calibrate(&[CalibrationFrame::new(&disparity(false), &gt_a)], &config).unwrap();
+    assert!(clean.normalisation_notes.is_empty());
     // no normalisation follows no extreme
     let config = common::calibration_config(
         Method::Gssa,

@@ -120,6 +120,20 @@ fn enclosed_area_m2(
 ) -> f32 {
     let w = cloud.width;
     let at = |bu: usize, bv: usize| (bv0 + bv) * w + bu0 + bu;
+    let outside = outside_of(member, (bu0, bv0, bw, bh), w);
+    let floor_px = (0..bw * bh)
+        .filter(|&k| !outside[k])
+        .map(|k| at(k % bw, k / bw))
+        .filter(|&i| !member(i) && cloud.valid[i] && cloud.points[i].z >= z_rim_m + OPENING_DEPTH_M)
+        .count();
+    floor_px as f32 * z_rim_m * z_rim_m / (cloud.fx * cloud.fy)
+}
+
+/// The pixels of `bbox` (in its own row-major order) that the pixels `member` do not cut off
+/// from its border: a flood fill of the non-member pixels from the border, 4-connected. What
+/// it leaves out that is no member is what `member` encloses.
+fn outside_of(member: &dyn Fn(usize) -> bool, (bu0, bv0, bw, bh): Bbox, w: usize) -> Vec<bool> {
+    let at = |bu: usize, bv: usize| (bv0 + bv) * w + bu0 + bu;
     let mut outside = vec![false; bw * bh];
     let mut stack = Vec::new();
     for bv in 0..bh {
@@ -146,12 +160,7 @@ fn enclosed_area_m2(
             }
         }
     }
-    let floor_px = (0..bw * bh)
-        .filter(|&k| !outside[k])
-        .map(|k| at(k % bw, k / bw))
-        .filter(|&i| !member(i) && cloud.valid[i] && cloud.points[i].z >= z_rim_m + OPENING_DEPTH_M)
-        .count();
-    floor_px as f32 * z_rim_m * z_rim_m / (cloud.fx * cloud.fy)
+    outside
 }
 
 /// How far beyond a container's rim (metres, along the camera's z) the floor seen through its
@@ -363,59 +372,156 @@ fn touching_objects(
     }
     let base_px = s + px_of(TOUCHING_SMOOTH_M) / 2;
     let (seeds, counts) = components_8(&top, moma_core::ImageSize::new(bw, bh));
+    // each group's box (in the region's box), so that the work below stays within it
+    let mut group_box = vec![(usize::MAX, usize::MAX, 0usize, 0usize); counts.len()];
+    for (k, &g) in seeds.iter().enumerate().filter(|(_, g)| **g > 0) {
+        let (bu, bv) = (k % bw, k / bw);
+        let b = &mut group_box[g as usize - 1];
+        *b = (b.0.min(bu), b.1.min(bv), b.2.max(bu), b.3.max(bv));
+    }
+    // what the wall region encloses (its opening: the floor and whatever lies on it) and what
+    // lies outside it: down the sides of an object touching the walls from inside is the
+    // opening only; down a wall's own lower top (a handle's cut-out), a ledge or a rib, the
+    // outside as well
+    let outside = outside_of(&member, (bu0, bv0, bw, bh), w);
     // the side (pixels) of the square an object's top must hold, at the region's median depth
     let side_px = px_of(TOUCHING_MIN_WIDTH_M);
+    // pixels an object took: no other grows into them
+    let mut claimed = vec![false; bw * bh];
     let mut objects = Vec::new();
     // a group smaller than the square cannot hold it (most of the specks a noisy depth leaves)
-    for (s, _) in counts
+    for (g, _) in counts
         .iter()
         .enumerate()
         .filter(|(_, c)| **c >= side_px * side_px)
     {
-        let s = s as u32 + 1;
-        if !holds_square(&seeds, s, bw, bh, side_px) {
+        let label = g as u32 + 1;
+        // the group's box grown by what the top may regain, clipped to the region's box
+        let (u0, v0, u1, v1) = group_box[g];
+        let (u0, v0) = (u0.saturating_sub(base_px), v0.saturating_sub(base_px));
+        let (u1, v1) = ((u1 + base_px + 1).min(bw), (v1 + base_px + 1).min(bh));
+        let (gw, gh) = (u1 - u0, v1 - v0);
+        let k_of = |gu: usize, gv: usize| (v0 + gv) * bw + u0 + gu;
+        let local: Vec<u32> = (0..gw * gh)
+            .map(|q| u32::from(seeds[k_of(q % gw, q / gw)] == label))
+            .collect();
+        if !holds_square(&local, 1, gw, gh, side_px) {
             continue; // a strip: the top of a wall's lower part (a handle's cut-out), no object
         }
         // grow the top back to its edges (the smoothing and the slope's base shrank it by
         // base_px): over the region's pixels at the top's own (smoothed) height, never up or
-        // down a face
-        let mut inside: Vec<bool> = seeds.iter().map(|&x| x == s).collect();
-        let mut front: Vec<usize> = (0..bw * bh).filter(|&k| inside[k]).collect();
-        let mut top_m: Vec<f32> = front.iter().map(|&k| smoothed[k]).collect();
+        // down a face, nor into another object's top
+        let mut inside: Vec<bool> = local.iter().map(|&x| x == 1).collect();
+        let mut front: Vec<(usize, usize)> = (0..gw * gh)
+            .filter(|&q| inside[q])
+            .map(|q| (q % gw, q / gw))
+            .collect();
+        let mut top_m: Vec<f32> = front
+            .iter()
+            .map(|&(gu, gv)| smoothed[k_of(gu, gv)])
+            .collect();
         let (lo, hi) = {
             let n = top_m.len() - 1;
             let lo = *top_m.select_nth_unstable_by(n / 50, f32::total_cmp).1;
             let hi = *top_m.select_nth_unstable_by(n - n / 50, f32::total_cmp).1;
             (lo - TOUCHING_TOP_BAND_M, hi + TOUCHING_TOP_BAND_M)
         };
-        let on_top = |k: usize| below_rim(at(k % bw, k / bw)) && (lo..=hi).contains(&smoothed[k]);
+        let on_top = |k: usize| {
+            seeds[k] == 0
+                && !claimed[k]
+                && below_rim(at(k % bw, k / bw))
+                && (lo..=hi).contains(&smoothed[k])
+        };
         for _ in 0..base_px {
             let mut next = Vec::new();
-            for k in front {
-                let (bu, bv) = (k % bw, k / bw);
-                for (du, dv) in [(-1isize, 0isize), (1, 0), (0, -1), (0, 1)] {
-                    let (nu, nv) = (bu as isize + du, bv as isize + dv);
-                    if nu < 0 || nv < 0 || nu as usize >= bw || nv as usize >= bh {
-                        continue;
-                    }
-                    let nk = nv as usize * bw + nu as usize;
-                    if !inside[nk] && on_top(nk) {
-                        inside[nk] = true;
-                        next.push(nk);
+            for (gu, gv) in front {
+                let steps = [
+                    gu.checked_sub(1).map(|x| (x, gv)),
+                    (gu + 1 < gw).then_some((gu + 1, gv)),
+                    gv.checked_sub(1).map(|y| (gu, y)),
+                    (gv + 1 < gh).then_some((gu, gv + 1)),
+                ];
+                for (nu, nv) in steps.into_iter().flatten() {
+                    let q = nv * gw + nu;
+                    if !inside[q] && on_top(k_of(nu, nv)) {
+                        inside[q] = true;
+                        next.push((nu, nv));
                     }
                 }
             }
             front = next;
         }
-        let pixels: Vec<usize> = (0..bw * bh)
-            .filter(|&k| inside[k])
-            .map(|k| at(k % bw, k / bw))
+        let ks: Vec<usize> = (0..gw * gh)
+            .filter(|&q| inside[q])
+            .map(|q| k_of(q % gw, q / gw))
             .collect();
-        if pixels.len() >= min_px {
-            objects.push(pixels);
+        if ks.len() < min_px
+            || !descends_into_opening_only(
+                &ks,
+                hi,
+                &outside,
+                &member,
+                &height,
+                (bu0, bv0, bw, bh),
+                w,
+            )
+        {
+            continue;
         }
+        for &k in &ks {
+            claimed[k] = true;
+        }
+        objects.push(ks.iter().map(|&k| at(k % bw, k / bw)).collect());
     }
     objects
+}
+
+/// Whether the region's pixels reached from the top `ks` (indices in the region's box `bbox`)
+/// by never climbing above `top_m` (the top's own highest level: the top itself, its sides and
+/// the walls' faces beside them, down to wherever they end; the rim lies at least
+/// [`RIM_BAND_M`] higher) border the opening the region encloses and never its outside
+/// (`outside`, from [`outside_of`]): an object standing inside the container. A wall's own
+/// lower top, a ledge or a rib on its outside reach both, or the outside alone.
+fn descends_into_opening_only(
+    ks: &[usize],
+    top_m: f32,
+    outside: &[bool],
+    member: &dyn Fn(usize) -> bool,
+    height: &dyn Fn(usize) -> f32,
+    (bu0, bv0, bw, bh): Bbox,
+    w: usize,
+) -> bool {
+    let at = |k: usize| (bv0 + k / bw) * w + bu0 + k % bw;
+    let mut seen = vec![false; bw * bh];
+    let mut stack: Vec<usize> = ks.to_vec();
+    for &k in ks {
+        seen[k] = true;
+    }
+    let mut opening = false;
+    while let Some(k) = stack.pop() {
+        let (bu, bv) = (k % bw, k / bw);
+        let next = [
+            bu.checked_sub(1).map(|x| bv * bw + x),
+            (bu + 1 < bw).then_some(k + 1),
+            bv.checked_sub(1).map(|y| y * bw + bu),
+            (bv + 1 < bh).then_some(k + bw),
+        ];
+        for n in next.into_iter().flatten() {
+            if seen[n] {
+                continue;
+            }
+            seen[n] = true;
+            if !member(at(n)) {
+                if outside[n] {
+                    return false;
+                }
+                opening = true;
+            } else if height(at(n)) <= top_m {
+                stack.push(n);
+            }
+        }
+    }
+    opening
 }
 
 /// Whether the pixels labelled `s` in the `bw × bh` image `labels` hold a whole `side × side`

@@ -715,31 +715,38 @@ fn a_containers_walls_are_no_object_but_what_lies_inside_is() {
 /// An object touching a container's wall is split off the wall's region and stays an object
 /// (a review's `tote_vga`: a box against a tote's wall left with the walls, and no grasp was
 /// ever planned on it), on exact depth and under a depth model's noise (0.5 % of the depth,
-/// correlated over a few pixels, seeded); the walls, their rim and a handle's cut-out (the wall
-/// 8 cm lower over 12 cm: its top is a flat strip below the rim) are no object.
+/// correlated over a few pixels, seeded), and so is a box in a corner, touching two walls; the
+/// walls, their rim and a handle's cut-out in a 25 mm wall (the wall 8 cm lower over 12 cm: its
+/// top a flat strip below the rim, wide enough to hold the square a top must hold, yet its
+/// faces lead down outside the container as well as inside) are no object.
 #[test]
 fn an_object_touching_a_containers_wall_is_split_off_it() {
     let k = intrinsics();
     let table_m = 0.7f32;
-    // the tote: outer 0.40 × 0.30 m under the camera, walls 10 mm thick, 0.15 m tall; the −x
-    // wall 0.07 m tall over |y| < 0.06 (the cut-out)
+    // the tote: outer 0.40 × 0.30 m under the camera, walls 10 mm thick (the −x wall 25 mm),
+    // 0.15 m tall; the −x wall 0.07 m tall over |y| < 0.06 (the cut-out)
     let in_rect = |x: f32, y: f32, hx: f32, hy: f32| x.abs() < hx && y.abs() < hy;
-    let wall = |x: f32, y: f32| in_rect(x, y, 0.2, 0.15) && !in_rect(x, y, 0.19, 0.14);
+    let wall = |x: f32, y: f32| {
+        in_rect(x, y, 0.2, 0.15) && !((-0.175..0.19).contains(&x) && y.abs() < 0.14)
+    };
     let wall_h = |x: f32, y: f32| {
-        if x < -0.19 && y.abs() < 0.06 {
+        if x < -0.175 && y.abs() < 0.06 {
             0.07
         } else {
             0.15
         }
     };
-    // a 100 × 50 × 40 mm box against the +y wall's inside, a 60 × 60 × 50 mm box apart
+    // a 100 × 50 × 40 mm box against the +y wall's inside, a 40 × 40 × 30 mm box in the
+    // (+x, −y) corner, a 60 × 60 × 50 mm box apart
     let against = |x: f32, y: f32| x.abs() < 0.05 && (0.09..0.14).contains(&y);
+    let corner = |x: f32, y: f32| (0.15..0.19).contains(&x) && (-0.14..-0.10).contains(&y);
     let apart = |x: f32, y: f32| (x + 0.08).abs() < 0.03 && y.abs() < 0.03;
     let occupied = |x: f32, y: f32, z: f32| {
         let h = table_m - z;
         h <= 0.0
             || (wall(x, y) && h <= wall_h(x, y))
             || (against(x, y) && h <= 0.04)
+            || (corner(x, y) && h <= 0.03)
             || (apart(x, y) && h <= 0.05)
     };
     let clean = march(table_m, &occupied);
@@ -752,11 +759,11 @@ fn an_object_touching_a_containers_wall_is_split_off_it() {
             (v - k.cy as f32) / k.fy as f32 * z,
         )
     };
-    // within 5 mm of a box's footprint
+    // within 8 mm of a box's footprint (a top regrown to its edges may take a line of the
+    // wall's face beside it at the top's own height: a pixel or two)
     let near = |f: &dyn Fn(f32, f32) -> bool, (x, y): (f32, f32)| {
-        [-0.005f32, 0.0, 0.005]
-            .iter()
-            .any(|dx| [-0.005f32, 0.0, 0.005].iter().any(|dy| f(x + dx, y + dy)))
+        let d = [-0.008f32, -0.004, 0.0, 0.004, 0.008];
+        d.iter().any(|dx| d.iter().any(|dy| f(x + dx, y + dy)))
     };
     // seeded noise: a 9 × 9 box blur of normal deviates (splitmix64, Box–Muller), scaled to
     // 0.5 % of the depth
@@ -792,7 +799,7 @@ fn an_object_touching_a_containers_wall_is_split_off_it() {
     for (what, depth) in [("exact", &clean), ("noisy", &noisy)] {
         let scene = build(depth);
         assert_eq!(scene.container_regions_dropped(), 1, "{what}");
-        assert_eq!(scene.components().len(), 2, "{what}: the two boxes");
+        assert_eq!(scene.components().len(), 3, "{what}: the three boxes");
         let label_at = |x: f32, y: f32, h: f32| {
             let z = table_m - h;
             let (u, v) = (
@@ -802,13 +809,17 @@ fn an_object_touching_a_containers_wall_is_split_off_it() {
             scene.label(v * w + u)
         };
         let (a, b) = (label_at(0.0, 0.115, 0.04), label_at(-0.08, 0.0, 0.05));
-        assert!(a > 0 && b > 0 && a != b, "{what}: labels {a} and {b}");
+        let c = label_at(0.17, -0.12, 0.03);
+        assert!(
+            a > 0 && b > 0 && c > 0 && a != b && b != c && a != c,
+            "{what}: labels {a}, {b} and {c}"
+        );
         let mut against_px = 0;
         for i in (0..n).filter(|&i| scene.is_object(i)) {
             let p = xy(i);
             assert!(
-                near(&against, p) || near(&apart, p),
-                "{what}: an object pixel at {p:?} off both boxes (a wall's)"
+                near(&against, p) || near(&apart, p) || near(&corner, p),
+                "{what}: an object pixel at {p:?} off the boxes (a wall's)"
             );
             against_px += usize::from(scene.label(i) == a);
         }

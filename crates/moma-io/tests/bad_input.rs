@@ -398,6 +398,7 @@ mod calibration {
             workspace: None,
             anchors: None,
             error_model: None,
+            normalisation_notes: Vec::new(),
         };
         CalibrationFile::new(calibration, None, CreationInfo::now())
     }

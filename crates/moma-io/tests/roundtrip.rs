@@ -371,6 +371,7 @@ pub fn sample_calibration() -> Calibration {
         workspace: None,
         anchors: None,
         error_model: None,
+        normalisation_notes: Vec::new(),
     }
 }
 

@@ -896,6 +896,9 @@ fn calibrate(
     if inner.error_model.is_none() {
         user_warning(py, moma_core::pipeline::NO_ERROR_MODEL_WARNING)?;
     }
+    for note in &inner.normalisation_notes {
+        user_warning(py, &format!("moma.calibrate: {note}"))?;
+    }
     if let Some(w) = inner
         .anchor_store()
         .ok()

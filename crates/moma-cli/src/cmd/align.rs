@@ -236,6 +236,10 @@ struct FrameSummary {
     realign: Option<moma_core::realign::RealignReport>,
     /// Normalisation + alignment time, milliseconds (excludes file I/O and the depth model).
     align_ms: f64,
+    /// A min-max normalisation that hangs on a few isolated pixels of the prediction
+    /// (`moma_core::normalise::isolated_extremes`), as printed on stderr.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    normalisation_note: Option<String>,
     /// SIMULATED: the input prediction, or the predictions the calibration was fitted on, came
     /// from the simulator (not a depth model).
     simulated: bool,
@@ -447,6 +451,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             valid_pixels: depth.valid_count(),
             realign,
             align_ms,
+            normalisation_note,
             simulated,
         })
     };

@@ -385,6 +385,9 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     };
     let calibration = calibrate(&frames, &config)
         .with_context(|| format!("calibration failed ({named_inputs})"))?;
+    for note in &calibration.normalisation_notes {
+        eprintln!("note: {note}");
+    }
 
     // Anchors for per-frame re-alignment come from the first (calibration) frame.
     let calibration = if args.anchors {

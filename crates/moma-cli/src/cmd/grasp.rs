@@ -72,8 +72,9 @@ impl GripperArg {
 /// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane,
 /// does not touch the image border (--keep-border-objects keeps such regions) and does not
 /// enclose an opening of a container's size (a bin's walls: what lies inside is planned on,
-/// and an object touching a wall where its top is flat and 15 mm below the rim). A mask PNG of instance labels (one grey level or colour
-/// per object) keeps touching objects apart.
+/// and an object touching a wall where its top is flat and at least 15 mm below the rim).
+/// A mask PNG of instance labels (one grey level or colour per object) keeps touching objects
+/// apart.
 /// "No grasp found" is not an error: an empty list, and the reason on stderr.
 ///
 /// Examples:

@@ -1518,9 +1518,15 @@ impl NodeState {
         } else {
             ""
         };
+        let notes: String = file
+            .calibration
+            .normalisation_notes
+            .iter()
+            .map(|n| format!("; note: {n}"))
+            .collect();
         let text = format!(
             "calibrated {} on {} samples (RMS residual {:.2} mm, normalisation {}){least_squares} \
-             from the frame stamped {}.{:09}{apart}; wrote {} and switched to it",
+             from the frame stamped {}.{:09}{apart}; wrote {} and switched to it{notes}",
             file.method,
             file.calibration.report.n_used,
             file.calibration.report.rms_residual_m * 1e3,
