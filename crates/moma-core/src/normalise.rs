@@ -265,20 +265,8 @@ pub fn normalise_view(
         });
     }
     // 2. kind conversion.
-    let invert = AlignSpace::native(kind) != config.space;
-    let mut z: Vec<f32> = if invert {
-        d.iter()
-            .map(|&x| if x > 0.0 { 1.0 / x } else { f32::NAN })
-            .collect()
-    } else if kind == PredictionKind::MetricDepth {
-        // a metric depth at or behind the camera is no prediction (a model's or a file's
-        // placeholder for "none"): neither a calibration sample nor an output pixel
-        d.iter()
-            .map(|&x| if x > 0.0 { x } else { f32::NAN })
-            .collect()
-    } else {
-        d.to_vec()
-    };
+    let seen = Seen::of(kind, config);
+    let mut z: Vec<f32> = d.iter().map(|&x| seen.value(x)).collect();
     // 3. statistics over the valid pixels of the map or region.
     let r_std = region.map(|r| r.data().as_standard_layout());
     let inside: Option<&[bool]> = r_std.as_ref().and_then(|r| r.as_slice());
@@ -320,6 +308,36 @@ pub fn normalise_view(
     Ok(NormalisedMap { values, stats })
 }
 
+/// What the normalisation sees of a prediction's value: its inverse where the calibration's
+/// space is not the prediction's own, NaN (no value) where that is undefined (x ≤ 0) and where a
+/// metric depth is at or behind the camera (a model's or a file's placeholder for "none":
+/// neither a calibration sample nor an output pixel), NaN for a non-finite value.
+#[derive(Debug, Clone, Copy)]
+struct Seen {
+    invert: bool,
+    metric: bool,
+}
+
+impl Seen {
+    fn of(kind: PredictionKind, config: &NormalisationConfig) -> Self {
+        Self {
+            invert: AlignSpace::native(kind) != config.space,
+            metric: kind == PredictionKind::MetricDepth,
+        }
+    }
+
+    #[inline]
+    fn value(self, x: f32) -> f32 {
+        if !x.is_finite() || ((self.invert || self.metric) && x <= 0.0) {
+            f32::NAN
+        } else if self.invert {
+            1.0 / x
+        } else {
+            x
+        }
+    }
+}
+
 /// A note when a min-max normalisation hangs on a few isolated pixels: the map's minimum or
 /// maximum (of the values the normalisation sees: the prediction in the calibration's space,
 /// inside `region`) lies beyond the rest by more than [`ISOLATED_GAP`] times the spread of its
@@ -340,18 +358,8 @@ pub fn isolated_extremes(
     ) {
         return None;
     }
-    let invert = AlignSpace::native(kind) != config.space;
-    let metric = kind == PredictionKind::MetricDepth;
-    // the value the normalisation sees (normalise_view's conversion), None where it sees none
-    let seen = |x: f32| -> Option<f32> {
-        if !x.is_finite() || ((invert || metric) && x <= 0.0) {
-            None
-        } else if invert {
-            Some(1.0 / x)
-        } else {
-            Some(x)
-        }
-    };
+    let seen = Seen::of(kind, config);
+    let invert = seen.invert;
     let w = values.ncols().max(1);
     // row-major slices (a copy only for a non-standard layout), read pixel by pixel
     let v_std = values.as_standard_layout();
@@ -368,7 +376,8 @@ pub fn isolated_extremes(
         if inside.is_some_and(|m| !m[i]) {
             return None;
         }
-        seen(vals[i]).map(|z| (i, vals[i], z))
+        let z = seen.value(vals[i]);
+        (!z.is_nan()).then_some((i, vals[i], z))
     };
     // the quantiles from an even stride of about 20 000 pixels of the image
     let stride = (vals.len() / 20_000).max(1);

@@ -539,18 +539,13 @@ pub fn calibrate(
         normalisation_notes: frames
             .iter()
             .enumerate()
-            .filter_map(|(i, f)| match f.pred {
-                PredictionInput::Raw { values, kind } => crate::normalise::isolated_extremes(
-                    values,
-                    kind,
-                    &config.normalisation,
-                    workspace,
+            .filter_map(|(i, f)| {
+                normalisation_note(f.pred, &config.normalisation, workspace).map(
+                    |note| match frames.len() {
+                        1 => format!("the calibration frame: {note}"),
+                        _ => format!("calibration frame {i}: {note}"),
+                    },
                 )
-                .map(|note| match frames.len() {
-                    1 => format!("the calibration frame: {note}"),
-                    _ => format!("calibration frame {i}: {note}"),
-                }),
-                PredictionInput::Normalised { .. } => None,
             })
             .collect(),
     };
@@ -1016,15 +1011,11 @@ impl Calibration {
             Some((grey, config)) => Some(self.realigned_into(pred, grey, config, out)?),
         };
         self.check_plausible_output(&out.view())?;
-        let normalisation_note = match pred {
-            PredictionInput::Raw { values, kind } => crate::normalise::isolated_extremes(
-                values,
-                kind,
-                &self.normalisation,
-                self.workspace.as_deref().map(Workspace::mask),
-            ),
-            PredictionInput::Normalised { .. } => None,
-        };
+        let normalisation_note = normalisation_note(
+            pred,
+            &self.normalisation,
+            self.workspace.as_deref().map(Workspace::mask),
+        );
         Ok(FrameReport {
             error_model: self.frame_error_model(realign.as_ref()),
             realign,
@@ -1239,6 +1230,22 @@ impl<'a> AlignOptions<'a> {
             realign: Some((grey, config)),
             sigma_map: false,
         }
+    }
+}
+
+/// The note on a raw prediction whose min-max normalisation hangs on a few isolated pixels
+/// ([`crate::normalise::isolated_extremes`]); `None` for a map already normalised (its raw
+/// values are not at hand). One rule for [`calibrate`] and [`Calibration::align`].
+fn normalisation_note(
+    pred: PredictionInput<'_>,
+    config: &NormalisationConfig,
+    region: Option<&Mask>,
+) -> Option<String> {
+    match pred {
+        PredictionInput::Raw { values, kind } => {
+            crate::normalise::isolated_extremes(values, kind, config, region)
+        }
+        PredictionInput::Normalised { .. } => None,
     }
 }
 

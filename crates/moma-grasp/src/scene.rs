@@ -137,16 +137,14 @@ fn enclosed_area_m2(
     let Some(plane) = plane else {
         return floor.count() as f32 * flat;
     };
-    let mut heights: Vec<f32> = (0..bw * bh)
-        .map(|k| at(k % bw, k / bw))
-        .filter(|&i| member(i) && cloud.valid[i])
-        .map(|i| plane.height_m(&cloud.points[i]))
-        .collect();
-    if heights.is_empty() {
+    let Some((rim_m, _)) = rim_height_m(
+        &|i| member(i) && cloud.valid[i],
+        (bu0, bv0, bw, bh),
+        cloud,
+        plane,
+    ) else {
         return 0.0;
-    }
-    let k = (heights.len() - 1) * 98 / 100;
-    let rim_m = *heights.select_nth_unstable_by(k, f32::total_cmp).1;
+    };
     let up = plane.up();
     floor
         .map(|i| {
@@ -163,34 +161,62 @@ fn enclosed_area_m2(
         .sum()
 }
 
+/// The height (metres above `plane`) of the rim of the pixels `member` inside `bbox`: their
+/// 98th-percentile height (a few flying pixels above it aside), and how many they are; `None`
+/// without any. One rim for the opening's plane ([`enclosed_area_m2`]) and the objects
+/// touching the walls ([`touching_objects`]).
+fn rim_height_m(
+    member: &dyn Fn(usize) -> bool,
+    (bu0, bv0, bw, bh): Bbox,
+    cloud: &OrganisedCloud,
+    plane: &SupportPlane,
+) -> Option<(f32, usize)> {
+    let w = cloud.width;
+    let mut heights: Vec<f32> = (0..bw * bh)
+        .map(|k| (bv0 + k / bw) * w + bu0 + k % bw)
+        .filter(|&i| member(i))
+        .map(|i| plane.height_m(&cloud.points[i]))
+        .collect();
+    let n = heights.len();
+    let k = n.checked_sub(1)? * 98 / 100;
+    Some((*heights.select_nth_unstable_by(k, f32::total_cmp).1, n))
+}
+
+/// The 4-neighbours (row-major indices) of pixel `k` of a `w × h` image.
+fn neighbours_4(k: usize, w: usize, h: usize) -> impl Iterator<Item = usize> {
+    let (u, v) = (k % w, k / w);
+    [
+        (u > 0).then(|| k - 1),
+        (u + 1 < w).then_some(k + 1),
+        (v > 0).then(|| k - w),
+        (v + 1 < h).then_some(k + w),
+    ]
+    .into_iter()
+    .flatten()
+}
+
 /// The pixels of `bbox` (in its own row-major order) that the pixels `member` do not cut off
 /// from its border: a flood fill of the non-member pixels from the border, 4-connected. What
 /// it leaves out that is no member is what `member` encloses.
 fn outside_of(member: &dyn Fn(usize) -> bool, (bu0, bv0, bw, bh): Bbox, w: usize) -> Vec<bool> {
-    let at = |bu: usize, bv: usize| (bv0 + bv) * w + bu0 + bu;
+    let at = |k: usize| (bv0 + k / bw) * w + bu0 + k % bw;
     let mut outside = vec![false; bw * bh];
     let mut stack = Vec::new();
     for bv in 0..bh {
         for bu in 0..bw {
+            let k = bv * bw + bu;
             let border = bu == 0 || bv == 0 || bu + 1 == bw || bv + 1 == bh;
-            if border && !member(at(bu, bv)) && !outside[bv * bw + bu] {
-                outside[bv * bw + bu] = true;
-                stack.push((bu, bv));
+            if border && !member(at(k)) && !outside[k] {
+                outside[k] = true;
+                stack.push(k);
             }
         }
     }
-    while let Some((bu, bv)) = stack.pop() {
-        let next = [
-            (bu > 0).then(|| (bu - 1, bv)),
-            (bu + 1 < bw).then(|| (bu + 1, bv)),
-            (bv > 0).then(|| (bu, bv - 1)),
-            (bv + 1 < bh).then(|| (bu, bv + 1)),
-        ];
-        for (nu, nv) in next.into_iter().flatten() {
-            let k = nv * bw + nu;
-            if !outside[k] && !member(at(nu, nv)) {
-                outside[k] = true;
-                stack.push((nu, nv));
+    while let Some(k) = stack.pop() {
+        for n in neighbours_4(k, bw, bh) {
+            if !outside[n] && !member(at(n)) {
+                outside[n] = true;
+                stack.push(n);
             }
         }
     }
@@ -330,17 +356,10 @@ fn touching_objects(
     let at = |bu: usize, bv: usize| (bv0 + bv) * w + bu0 + bu;
     let member = |i: usize| labels[i] == l && cloud.valid[i];
     let height = |i: usize| plane.height_m(&cloud.points[i]);
-    let mut heights: Vec<f32> = (0..bw * bh)
-        .map(|k| at(k % bw, k / bw))
-        .filter(|&i| member(i))
-        .map(height)
-        .collect();
-    if heights.len() < min_px {
-        return Vec::new();
-    }
-    // the rim: the region's 98th-percentile height (a few flying pixels above it aside)
-    let k = (heights.len() - 1) * 98 / 100;
-    let rim_m = *heights.select_nth_unstable_by(k, f32::total_cmp).1;
+    let rim_m = match rim_height_m(&member, (bu0, bv0, bw, bh), cloud, plane) {
+        Some((rim_m, n)) if n >= min_px => rim_m,
+        _ => return Vec::new(),
+    };
     let below_rim = |i: usize| member(i) && height(i) < rim_m - RIM_BAND_M;
     let up = plane.up();
     // the region's height smoothed over a window of TOUCHING_SMOOTH_M (its own pixels only,
@@ -437,25 +456,18 @@ fn touching_objects(
         let (u0, v0) = (u0.saturating_sub(base_px), v0.saturating_sub(base_px));
         let (u1, v1) = ((u1 + base_px + 1).min(bw), (v1 + base_px + 1).min(bh));
         let (gw, gh) = (u1 - u0, v1 - v0);
-        let k_of = |gu: usize, gv: usize| (v0 + gv) * bw + u0 + gu;
-        let local: Vec<u32> = (0..gw * gh)
-            .map(|q| u32::from(seeds[k_of(q % gw, q / gw)] == label))
-            .collect();
-        if !holds_square(&local, 1, gw, gh, side_px) {
+        // pixel q of the group's window as a pixel of the region's box
+        let k_of = |q: usize| (v0 + q / gw) * bw + u0 + q % gw;
+        let local: Vec<bool> = (0..gw * gh).map(|q| seeds[k_of(q)] == label).collect();
+        if !holds_square(&local, gw, gh, side_px) {
             continue; // a strip: the top of a wall's lower part (a handle's cut-out), no object
         }
         // grow the top back to its edges (the smoothing and the slope's base shrank it by
         // base_px): over the region's pixels at the top's own (smoothed) height, never up or
         // down a face, nor into another object's top
-        let mut inside: Vec<bool> = local.iter().map(|&x| x == 1).collect();
-        let mut front: Vec<(usize, usize)> = (0..gw * gh)
-            .filter(|&q| inside[q])
-            .map(|q| (q % gw, q / gw))
-            .collect();
-        let mut top_m: Vec<f32> = front
-            .iter()
-            .map(|&(gu, gv)| smoothed[k_of(gu, gv)])
-            .collect();
+        let mut inside = local;
+        let mut front: Vec<usize> = (0..gw * gh).filter(|&q| inside[q]).collect();
+        let mut top_m: Vec<f32> = front.iter().map(|&q| smoothed[k_of(q)]).collect();
         let (lo, hi) = {
             let n = top_m.len() - 1;
             let lo = *top_m.select_nth_unstable_by(n / 50, f32::total_cmp).1;
@@ -470,27 +482,17 @@ fn touching_objects(
         };
         for _ in 0..base_px {
             let mut next = Vec::new();
-            for (gu, gv) in front {
-                let steps = [
-                    gu.checked_sub(1).map(|x| (x, gv)),
-                    (gu + 1 < gw).then_some((gu + 1, gv)),
-                    gv.checked_sub(1).map(|y| (gu, y)),
-                    (gv + 1 < gh).then_some((gu, gv + 1)),
-                ];
-                for (nu, nv) in steps.into_iter().flatten() {
-                    let q = nv * gw + nu;
-                    if !inside[q] && on_top(k_of(nu, nv)) {
-                        inside[q] = true;
-                        next.push((nu, nv));
+            for q in front {
+                for n in neighbours_4(q, gw, gh) {
+                    if !inside[n] && on_top(k_of(n)) {
+                        inside[n] = true;
+                        next.push(n);
                     }
                 }
             }
             front = next;
         }
-        let ks: Vec<usize> = (0..gw * gh)
-            .filter(|&q| inside[q])
-            .map(|q| k_of(q % gw, q / gw))
-            .collect();
+        let ks: Vec<usize> = (0..gw * gh).filter(|&q| inside[q]).map(k_of).collect();
         if ks.len() < min_px
             || !descends_into_opening_only(
                 &ks,
@@ -535,14 +537,7 @@ fn descends_into_opening_only(
     }
     let mut opening = false;
     while let Some(k) = stack.pop() {
-        let (bu, bv) = (k % bw, k / bw);
-        let next = [
-            bu.checked_sub(1).map(|x| bv * bw + x),
-            (bu + 1 < bw).then_some(k + 1),
-            bv.checked_sub(1).map(|y| y * bw + bu),
-            (bv + 1 < bh).then_some(k + bw),
-        ];
-        for n in next.into_iter().flatten() {
+        for n in neighbours_4(k, bw, bh) {
             if seen[n] {
                 continue;
             }
@@ -560,9 +555,9 @@ fn descends_into_opening_only(
     opening
 }
 
-/// Whether the pixels labelled `s` in the `bw × bh` image `labels` hold a whole `side × side`
-/// square (a summed-area table of the label's pixels).
-fn holds_square(labels: &[u32], s: u32, bw: usize, bh: usize, side: usize) -> bool {
+/// Whether the pixels set in the `bw × bh` mask `inside` hold a whole `side × side` square (a
+/// summed-area table of them).
+fn holds_square(inside: &[bool], bw: usize, bh: usize, side: usize) -> bool {
     if side > bw || side > bh {
         return false;
     }
@@ -570,7 +565,7 @@ fn holds_square(labels: &[u32], s: u32, bw: usize, bh: usize, side: usize) -> bo
     for v in 0..bh {
         let mut row = 0u32;
         for u in 0..bw {
-            row += u32::from(labels[v * bw + u] == s);
+            row += u32::from(inside[v * bw + u]);
             sat[(v + 1) * (bw + 1) + u + 1] = sat[v * (bw + 1) + u + 1] + row;
         }
     }
