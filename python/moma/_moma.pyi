@@ -365,8 +365,10 @@ def grasp_check(
     --grasp-check``): ``pred`` aligned one-shot by ``calibration``, planned as ``plan_grasps``
     plans with its error model (``gripper``'s default geometry), every grasp executed on
     ``gt_m`` (metres) by the proxy's rules. Returns ``{"gripper", "scores": "proxy", "grasps",
-    "successes", "success_rate", "mean_success_prob", "failures", "no_grasp_reason"}``. PROXY
-    scores, not robot trials; a gauge of the cell, not a forecast (docs/grasping.md)."""
+    "successes", "success_rate", "mean_success_prob", "failures", "no_grasp_reason", "notes"}``
+    (``notes``: regions the planner left out, at the image border or a container's walls, each
+    also a ``UserWarning``). PROXY scores, not robot trials; a gauge of the cell, not a forecast
+    (docs/grasping.md)."""
 
 @overload
 def depth_to_points(depth_m: npt.ArrayLike, cam: Intrinsics, rgb: None = None) -> _F32: ...

@@ -367,7 +367,11 @@ fn bench_normalise(c: &mut Criterion) {
     let pred = Prediction::new(zhat(size), PredictionKind::RelativeDisparity);
     let mut g = c.benchmark_group("normalise");
     g.throughput(Throughput::Elements(size.pixels() as u64));
-    for m in [Normalisation::Minmax, Normalisation::Median] {
+    for m in [
+        Normalisation::Minmax,
+        Normalisation::MinmaxUnit,
+        Normalisation::Median,
+    ] {
         let cfg = NormalisationConfig {
             method: m,
             space: moma_core::AlignSpace::Depth,
@@ -376,6 +380,22 @@ fn bench_normalise(c: &mut Criterion) {
             p1.install(|| b.iter(|| normalise(black_box(&pred), &cfg, None).unwrap()))
         });
     }
+    // the min-max forms' check for isolated extremes, one more pass per frame beside the
+    // normalisation above (what `Calibration::align` adds to every frame's report)
+    let cfg = NormalisationConfig {
+        method: Normalisation::MinmaxUnit,
+        space: moma_core::AlignSpace::Inverse,
+    };
+    g.bench_function("isolated_extremes_640x480", |b| {
+        b.iter(|| {
+            moma_core::normalise::isolated_extremes(
+                black_box(pred.values.view()),
+                pred.kind,
+                &cfg,
+                None,
+            )
+        })
+    });
     g.finish();
 }
 

@@ -42,6 +42,13 @@ pub struct GraspCheck {
     pub failures: BTreeMap<String, usize>,
     /// Why the planner returned no grasp, when it returned none.
     pub no_grasp_reason: Option<String>,
+    /// What the planning scene left out, as `moma grasp` notes it: regions dropped for touching
+    /// the image border ([`Scene::border_note`]) or for enclosing a container's opening
+    /// ([`Scene::container_note`]). Without a mask the check counts only the grasps on the
+    /// objects the planner keeps, so these say which were not tried. Empty when nothing was
+    /// dropped (and in files written before the field existed).
+    #[serde(default)]
+    pub notes: Vec<String>,
 }
 
 /// Plans on `aligned` as `request` says ([`plan_grasps`], object `mask` if given) and executes
@@ -101,7 +108,7 @@ pub fn grasp_check_on(
     mask: Option<&Mask>,
     request: &GraspRequest,
 ) -> Result<GraspCheck> {
-    let (_, outcome) = plan_grasps(aligned, intrinsics, mask, request)?;
+    let (scene, outcome) = plan_grasps(aligned, intrinsics, mask, request)?;
     let mut successes = 0;
     let mut failures = BTreeMap::new();
     for g in &outcome.grasps {
@@ -129,5 +136,9 @@ pub fn grasp_check_on(
             .then(|| probs.iter().sum::<f64>() / probs.len() as f64),
         failures,
         no_grasp_reason: outcome.no_grasp_reason.as_ref().map(ToString::to_string),
+        notes: [scene.border_note(), scene.container_note()]
+            .into_iter()
+            .flatten()
+            .collect(),
     })
 }

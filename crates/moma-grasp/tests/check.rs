@@ -174,6 +174,36 @@ fn a_bare_table_gives_no_grasp_and_says_why() {
     }
 }
 
+/// Without a mask the check counts the grasps on the objects the planner keeps: a region that
+/// touches the image border (here the first 24 rows, 12–18 mm nearer, as real sensors' depth
+/// curls along a frame's edge) is not tried, and the check says so in `notes`, with the text
+/// `moma grasp` prints; a frame without one has none.
+#[test]
+fn the_check_names_the_regions_the_planner_left_out() {
+    let k = intrinsics();
+    let clean = two_boxes();
+    let mut curled = clean.clone();
+    for v in 0..24 {
+        let lift_m = 0.018 - 0.006 * v as f32 / 24.0;
+        for z in curled.depth_m.row_mut(v) {
+            *z -= lift_m;
+        }
+    }
+    for gripper in grippers() {
+        let request = GraspRequest::new(gripper);
+        let c = grasp_check(&clean, &clean, &k, None, &request).unwrap();
+        assert!(c.grasps > 0 && c.notes.is_empty(), "{c:?}");
+        let c = grasp_check(&curled, &curled, &k, None, &request).unwrap();
+        let scene = Scene::build(&curled, &k, None, &request.scene).unwrap();
+        assert_eq!(scene.border_regions_dropped(), 1);
+        assert_eq!(c.notes, vec![scene.border_note().unwrap()], "{c:?}");
+        assert!(c.notes[0].contains("touch the image border"), "{c:?}");
+        // the field reaches the JSON that `moma calibrate --grasp-check --json` writes
+        let json = serde_json::to_value(&c).unwrap();
+        assert_eq!(json["notes"][0], serde_json::json!(c.notes[0]));
+    }
+}
+
 #[test]
 fn a_truth_of_another_size_is_an_error() {
     let truth = two_boxes();

@@ -1246,8 +1246,9 @@ fn extrinsics_from_py(value: &Bound<'_, PyAny>) -> PyResult<moma_grasp::Extrinsi
 /// `calibration` and planned on with its error model as `plan_grasps` plans (`gripper`,
 /// default geometry; `mask`, `seed`), every grasp executed on `gt_m` (float32 metres, NaN or
 /// ≤ 0 = no depth) by the proxy's rules. Returns a dict: `gripper`, `scores` (`"proxy"`),
-/// `grasps`, `successes`, `success_rate`, `mean_success_prob`, `failures` (by reason) and
-/// `no_grasp_reason`. PROXY scores, not robot trials; on the calibration frame it is a gauge
+/// `grasps`, `successes`, `success_rate`, `mean_success_prob`, `failures` (by reason),
+/// `no_grasp_reason` and `notes` (regions the planner left out: at the image border, a
+/// container's walls; each also a `UserWarning`, as `plan_grasps` gives it). PROXY scores, not robot trials; on the calibration frame it is a gauge
 /// of the cell, not a forecast (docs/grasping.md). The GIL is released while planning.
 #[pyfunction]
 #[pyo3(signature = (calibration, pred, gt_m, cam=None, gripper="suction", mask=None, seed=0))]
@@ -1282,6 +1283,9 @@ fn grasp_check<'py>(
             )
         })
         .py()?;
+    for note in &check.notes {
+        user_warning(py, &format!("moma.grasp_check: {note}"))?;
+    }
     to_py_json(py, &check)
 }
 

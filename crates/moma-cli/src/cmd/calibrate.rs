@@ -699,6 +699,8 @@ fn grasp_check_lines(checks: &[moma_grasp::GraspCheck], simulated: bool) -> Vec<
                 c.successes, c.grasps
             )
         });
+        // what the check did not try: regions the planner leaves out (moma grasp's notes)
+        lines.extend(c.notes.iter().map(|n| format!("    note: {n}")));
     }
     lines
 }

@@ -1307,7 +1307,7 @@ impl NodeState {
                     if request.error_model.is_some() {
                         request.error_model = aligned.error_model.clone();
                     }
-                    let (n, why) = publish_grasps(
+                    let published = publish_grasps(
                         &aligned.depth,
                         &k,
                         &request,
@@ -1317,13 +1317,17 @@ impl NodeState {
                         &self.args.base_frame,
                         out,
                     )?;
-                    values.push(kv("grasps", n));
+                    values.push(kv("grasps", published.grasps));
                     values.push(kv(
                         "grasp_ms",
                         format!("{:.1}", t.elapsed().as_secs_f64() * 1e3),
                     ));
-                    if let Some(why) = why {
+                    if let Some(why) = published.no_grasp_reason {
                         values.push(kv("no_grasp_reason", why));
+                    }
+                    // what the planner left out (not a fault: a cell's frame edge or its bin)
+                    for (key, note) in published.notes {
+                        values.push(kv(key, note));
                     }
                 }
             }
@@ -1544,8 +1548,16 @@ impl NodeState {
     }
 }
 
-/// Plans on `depth` and publishes the poses and the JSON; returns the number of grasps and why
-/// there are none.
+/// What [`publish_grasps`] planned: the number of grasps, why there are none, and the scene's
+/// notes (regions left out at the image border or as a container's walls, as `moma grasp`
+/// notes them).
+struct Published {
+    grasps: usize,
+    no_grasp_reason: Option<String>,
+    notes: Vec<(&'static str, String)>,
+}
+
+/// Plans on `depth` and publishes the poses and the JSON.
 #[allow(clippy::too_many_arguments)]
 fn publish_grasps(
     depth: &MetricDepth,
@@ -1556,8 +1568,9 @@ fn publish_grasps(
     header: &Header,
     base_frame: &str,
     out: &Outputs,
-) -> Result<(usize, Option<String>)> {
-    let (_, mut outcome) = moma_grasp::plan_grasps(depth, k, mask, request).context("grasps")?;
+) -> Result<Published> {
+    let (scene, mut outcome) =
+        moma_grasp::plan_grasps(depth, k, mask, request).context("grasps")?;
     let mut pose_header = header.clone();
     if let Some(e) = extrinsics {
         outcome.set_base(e);
@@ -1567,15 +1580,61 @@ fn publish_grasps(
     dds::publish(&out.grasps, poses)?;
     let json = serde_json::to_string(&outcome.grasps).context("grasps as JSON")?;
     dds::publish(&out.grasps_json, StringMsg { data: json })?;
-    Ok((
-        outcome.grasps.len(),
-        outcome.no_grasp_reason.map(|r| r.to_string()),
-    ))
+    Ok(Published {
+        grasps: outcome.grasps.len(),
+        no_grasp_reason: outcome.no_grasp_reason.map(|r| r.to_string()),
+        notes: scene_notes(&scene),
+    })
+}
+
+/// The planning scene's notes as diagnostic keys: `border_note` and `container_note`, each
+/// present only when the planner left such regions out.
+fn scene_notes(scene: &moma_grasp::Scene) -> Vec<(&'static str, String)> {
+    [
+        ("border_note", scene.border_note()),
+        ("container_note", scene.container_note()),
+    ]
+    .into_iter()
+    .filter_map(|(key, note)| note.map(|n| (key, n)))
+    .collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A table 0.7 m below the camera with a 40 mm box on it; the first 12 rows 15 mm nearer,
+    /// as a sensor's depth curls along a frame's edge: that band touches the border and is left
+    /// out, which the frame's diagnostics say under `border_note` with `moma grasp`'s text.
+    #[test]
+    fn the_regions_the_planner_leaves_out_are_diagnostic_values() {
+        let k = Intrinsics {
+            width: 320,
+            height: 240,
+            fx: 300.0,
+            fy: 300.0,
+            cx: 159.5,
+            cy: 119.5,
+        };
+        let depth = |curl: bool| {
+            MetricDepth::new(ndarray::Array2::from_shape_fn((240, 320), |(v, u)| {
+                let on_box = (130..190).contains(&u) && (95..145).contains(&v);
+                let lift = if curl && v < 12 { 0.015 } else { 0.0 };
+                if on_box { 0.66 } else { 0.70 - lift }
+            }))
+        };
+        let config = moma_grasp::SceneConfig::default();
+        let clean = moma_grasp::Scene::build(&depth(false), &k, None, &config).unwrap();
+        assert!(scene_notes(&clean).is_empty());
+        let curled = moma_grasp::Scene::build(&depth(true), &k, None, &config).unwrap();
+        let notes = scene_notes(&curled);
+        assert_eq!(
+            notes,
+            vec![("border_note", curled.border_note().unwrap())],
+            "{notes:?}"
+        );
+        assert!(notes[0].1.contains("1 region(s)"), "{notes:?}");
+    }
 
     fn at(sec: i32, nanosec: u32) -> Image {
         Image {
