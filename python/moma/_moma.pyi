@@ -423,7 +423,7 @@ def finetune(
     max_depth: Optional[float] = None,
     input_size: int = 518,
     config: Optional[dict[str, Any]] = None,
-    device: str = "cpu",
+    device: str = "auto",
     lora_rank: int = 16,
     lora_alpha: Optional[float] = None,
     lora_targets: Sequence[Literal["q", "k", "v", "proj", "fc1", "fc2"]] = ("q", "v"),
@@ -477,7 +477,7 @@ class DepthModel:
         model: Optional[Union[Literal["vits", "vitb", "vitl"], _Path]] = None,
         head: Optional[Literal["relative", "metric"]] = None,
         backend: Literal["candle", "onnx", "auto"] = "candle",
-        device: str = "cpu",
+        device: str = "auto",
         lora: Optional[_Path] = None,
         *,
         max_depth: Optional[float] = None,
@@ -487,7 +487,8 @@ class DepthModel:
     ) -> "DepthModel":
         """``weights``: official checkpoint (.pth / .safetensors; candle) or .onnx (onnx builds);
         ``model`` (default ``vits``) and ``head`` (default ``relative``): a preset network;
-        ``device``: ``cpu``, ``cuda[:N]``, ``metal[:N]`` or ``auto``; ``max_depth``: metric head's
+        ``device``: ``auto`` (the default, as the CLI's ``--device``: the first GPU this build
+        supports, else the CPU), ``cpu``, ``cuda[:N]`` or ``metal[:N]``; ``max_depth``: metric head's
         largest depth, metres (default 20); ``input_size``: network input lower bound, px (multiple of 14;
         default 518, or the ``config`` dict's own; given, it applies to a ``config`` model too);
         ``model="PATH.json"``: a configuration file, as ``moma --model PATH.json`` takes it;

@@ -196,7 +196,20 @@ fn suction_with_extrinsics_and_outputs() {
     );
     assert!(text.contains(&want), "{text}\nwants {want}");
     let overlay = moma_io::read_rgb(out_dir.join("overlay.png")).unwrap();
-    assert_eq!((overlay.width(), overlay.height()), (W as u32, H as u32));
+    // the frame's pixels on top, a caption strip below (title lines and one line per grasp):
+    // mostly its dark ground, with text
+    assert_eq!(overlay.width(), W as u32);
+    assert!(overlay.height() > H as u32, "no caption strip");
+    let strip: Vec<[u8; 3]> = (H as u32..overlay.height())
+        .flat_map(|v| (0..W as u32).map(move |u| (u, v)))
+        .map(|(u, v)| overlay.get_pixel(u, v).0)
+        .collect();
+    let ground = strip.iter().filter(|p| **p == [28, 28, 28]).count();
+    assert!(
+        ground * 10 > strip.len() * 7 && ground < strip.len(),
+        "{ground} of {} strip pixels are its ground",
+        strip.len()
+    );
     // The best grasp is drawn in green at its projected point.
     let p: Vec<f64> = serde_json::from_value(arr[0]["point_m"].clone()).unwrap();
     let k = camera();

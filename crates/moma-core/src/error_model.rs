@@ -35,9 +35,15 @@
 //!
 //! # Where the numbers come from
 //! Only from calibration data ([`DepthErrorModel::fit`]): the dense residuals of each
-//! calibration frame (the calibration's result on the frame against its ground truth), with the
-//! cross-validated residuals of the calibration samples as a floor of `σ_flat` (the fit has seen
-//! its own samples).
+//! calibration frame (the calibration's result on the frame against its ground truth), grown by
+//! the fit's optimism at its samples: the ratio `Σ held_out² / Σ in_sample²` over the
+//! calibration samples, each residual once from a cross-validation fold that did not see the
+//! sample and once from the fit that did ([`HeldOutResidual`]; about 1 + 2p/n for a least-squares
+//! fit of p parameters on n samples). Where the truth is the samples alone, the dense level is
+//! their in-sample mean square and the product their cross-validated one. (Until
+//! 2026-12-08 the held-out residuals' mean square was a floor of `σ_flat`: one sample at a
+//! silhouette, 85 mm off in and out of the fit, lifted graspnet6dof-table's SSRA σ_flat from
+//! its 3.9 mm dense level to 10.4 mm; docs/grasping.md, "The fit's optimism".)
 //! 1. `relief_bias` and `edge_sharpening`: least squares of `truth − aligned = c·hp + a·step`
 //!    over the pixels with `|hp| ≤` [`MAX_RELIEF_M`] (a within [0, 1]); `relief_sigma =
 //!    |relief_bias|` (one frame cannot tell how the factor varies between frames; a zero
@@ -83,7 +89,7 @@
 //!    samples reach only part of the image, [`crate::sampling::SampleReach::is_partial`]): least
 //!    squares of the rest's square on `σ0² + gain²·d²` over the flat pixels of step 2, both
 //!    terms non-negative. `σ0²` replaces the flat mean square of step 2 in `sigma_flat_m` (the
-//!    cross-validated floor, measured at the samples, applies to it; `sigma_dense_m` keeps the
+//!    optimism, measured at the samples, grows it; `sigma_dense_m` keeps the
 //!    whole frame's); the variance shares keep the whole frame's proportions, and step 3
 //!    subtracts each pixel's own flat σ. Spread samples get no
 //!    such part: over their image the share of true errors within ±1σ stays level with the
@@ -245,7 +251,7 @@ pub struct DepthErrorModel {
     /// σ of the flat error at `depth_ref_m` (offset and fields together), metres.
     pub sigma_flat_m: f64,
     /// The calibration frames' own part of `sigma_flat_m`: σ of their dense flat residual
-    /// alone, without the cross-validated floor (fit step 2), metres at `depth_ref_m`. A frame
+    /// alone, without the fit's optimism at its samples (fit step 2), metres at `depth_ref_m`. A frame
     /// re-aligned onto the calibration's own output keeps this error and adds its re-alignment
     /// residual ([`DepthErrorModel::with_frame_drift`]). `None` in calibration files before
     /// version 7 (`sigma_flat_m` stands in for it) and in models not fitted on frames.
@@ -583,6 +589,20 @@ impl FitGrid {
     }
 }
 
+/// One calibration sample's residual (truth − aligned, metres) held out of the fit (a
+/// cross-validation fold's refit without it) and in it (the calibration's own fit), with its
+/// true depth: the pair is what the fit's having seen the sample is worth there
+/// ([`DepthErrorModel::fit`], step 2).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeldOutResidual {
+    /// Truth − the fold's refit, metres.
+    pub held_out_m: f64,
+    /// Truth − the calibration's fit (which saw the sample), metres.
+    pub in_sample_m: f64,
+    /// The sample's true depth, metres.
+    pub depth_m: f64,
+}
+
 /// One calibration frame's residuals for [`DepthErrorModel::fit`].
 #[derive(Debug, Clone, Copy)]
 pub struct ResidualFrame<'a> {
@@ -698,18 +718,19 @@ impl DepthErrorModel {
     }
 
     /// Fits the model (module documentation) from the calibration frames' dense residuals and
-    /// the cross-validated residuals of the calibration samples (`cv_residuals_m`, metres, at
-    /// depths `cv_depths_m`; may be empty). `depth_exponent` is 2 for a fit in inverse space,
-    /// 0 in depth space.
+    /// the calibration samples' residuals held out of the fit and in it (`held_out`, may be
+    /// empty: the ratio of their sums of squares is the fit's optimism, which grows the dense
+    /// level; where the fit is exact at its samples, their held-out mean square is added).
+    /// `depth_exponent` is 2 for a fit in inverse space, 0 in depth space.
     ///
     /// # Errors
     /// A frame whose aligned depth and truth differ in size; no flat pixel with both depths.
     pub fn fit(
         frames: &[ResidualFrame<'_>],
-        cv_residuals_m: &[(f64, f64)],
+        held_out: &[HeldOutResidual],
         depth_exponent: f64,
     ) -> Result<Self> {
-        Self::fit_with_sample_distance(frames, cv_residuals_m, depth_exponent, None)
+        Self::fit_with_sample_distance(frames, held_out, depth_exponent, None)
     }
 
     /// [`DepthErrorModel::fit`] with the distance part (fit step 5) when `sample_distance_px`
@@ -723,7 +744,7 @@ impl DepthErrorModel {
     /// As [`DepthErrorModel::fit`]; a distance map of another size than the frames.
     pub fn fit_with_sample_distance(
         frames: &[ResidualFrame<'_>],
-        cv_residuals_m: &[(f64, f64)],
+        held_out: &[HeldOutResidual],
         depth_exponent: f64,
         sample_distance_px: Option<ArrayView2<'_, f32>>,
     ) -> Result<Self> {
@@ -905,20 +926,28 @@ impl DepthErrorModel {
             }
             None => dense,
         };
-        let cv = if cv_residuals_m.is_empty() {
-            0.0
+        // the fit's optimism: by how much the samples' squared residuals grow when the fit has
+        // not seen them, as a ratio (an outlier, or a sample at a silhouette, weighs on both
+        // sums alike; least squares with p parameters on n samples gives about 1 + 2p/n); a
+        // fit exact at its samples (a truth of the samples alone) adds their held-out mean
+        // square instead
+        let (mut held_sq, mut in_sq) = (0.0f64, 0.0f64);
+        for r in held_out {
+            let scale = m.depth_scale(r.depth_m as f32);
+            held_sq += (r.held_out_m / scale).powi(2);
+            in_sq += (r.in_sample_m / scale).powi(2);
+        }
+        let (inflation, added) = if in_sq > 0.0 {
+            ((held_sq / in_sq).max(1.0), 0.0)
+        } else if held_out.is_empty() {
+            (1.0, 0.0)
         } else {
-            cv_residuals_m
-                .iter()
-                .map(|&(r, z)| (r / m.depth_scale(z as f32)).powi(2))
-                .sum::<f64>()
-                / cv_residuals_m.len() as f64
+            (1.0, held_sq / held_out.len() as f64)
         };
-        let total = dense.max(cv);
-        // with a distance part, the flat σ is its level at the samples (the cross-validated
-        // floor is measured there); the variance shares below keep the whole frame's
-        // proportions
-        m.sigma_flat_m = near.max(cv).sqrt().min(10.0);
+        let total = dense * inflation + added;
+        // with a distance part, the flat σ is its level at the samples (the optimism is
+        // measured there); the variance shares below keep the whole frame's proportions
+        m.sigma_flat_m = (near * inflation + added).sqrt().min(10.0);
         // the whole frame's dense level: what a re-aligned frame's background σ is compared
         // with (its anchors lie near and far from the samples alike)
         m.sigma_dense_m = Some(dense.sqrt().min(10.0));
@@ -1054,8 +1083,8 @@ impl DepthErrorModel {
     /// calibration, not the calibration's own error, which every such frame keeps. The flat σ
     /// is then both, `hypot(σ_dense, drift)`, with σ_dense the calibration frames' own
     /// residual ([`DepthErrorModel::sigma_dense_m`]; `sigma_flat_m` for older files). The
-    /// cross-validated floor of `sigma_flat_m` is left out: it stands for what one calibration
-    /// frame cannot show of another frame, which the drift now measures. (Taking the drift
+    /// fit's optimism in `sigma_flat_m` is left out: it stands for what the calibration frame's
+    /// residuals do not show, which the drift now measures. (Taking the drift
     /// alone, as [`DepthErrorModel::for_frame`] does for a residual against the truth, gave on
     /// the simulated shared sets 37.5 % of GSSA's re-aligned errors within ±1σ on
     /// gqcnn-primesense; docs/grasping.md, "The re-aligned frame's σ".) Without a finite
@@ -2658,9 +2687,25 @@ mod tests {
         assert!((m.edge_gain - 0.4).abs() < 0.01, "{m:?}");
         assert!(m.relief_bias.abs() < 0.1, "{m:?}");
         assert_eq!(m.depth_ref_m, 1.0);
-        // cross-validated residuals larger than the dense ones raise σ_flat
-        let m2 = DepthErrorModel::fit(&[frame], &[(0.01, 1.0), (-0.01, 1.0)], 0.0).unwrap();
-        assert!((m2.sigma_flat_m - 0.01).abs() < 1e-9);
+        // held-out residuals 10 mm, in-sample 6 mm (both signs): σ_flat² grows by the fit's
+        // optimism, 10² / 6² (closed form)
+        let held = |h: f64, i: f64| HeldOutResidual {
+            held_out_m: h,
+            in_sample_m: i,
+            depth_m: 1.0,
+        };
+        let m2 =
+            DepthErrorModel::fit(&[frame], &[held(0.01, 0.006), held(-0.01, -0.006)], 0.0).unwrap();
+        let want = m.sigma_flat_m * 0.01 / 0.006;
+        assert!(
+            (m2.sigma_flat_m - want).abs() < 1e-9,
+            "{} {want}",
+            m2.sigma_flat_m
+        );
+        // an outlier as far off in the fit as out of it adds nothing
+        let m3 =
+            DepthErrorModel::fit(&[frame], &[held(0.085, 0.085), held(0.0, 0.0)], 0.0).unwrap();
+        assert!((m3.sigma_flat_m - m.sigma_flat_m).abs() < 1e-12);
         // no pixel with both depths: an error
         let none = Array2::from_elem((h, w), f32::NAN);
         let bad = ResidualFrame {
@@ -3495,8 +3540,9 @@ mod tests {
 
     #[test]
     fn the_fit_records_its_dense_sigma_below_the_cross_validated_floor() {
-        // truth = aligned + 2 mm of alternating noise on a flat 1 m plane; cross-validated
-        // residuals of 6 mm floor the flat σ, the dense part stays the frame's own 2 mm
+        // truth = aligned + 2 mm of alternating noise on a flat 1 m plane; samples 6 mm off out
+        // of the fit that sat on it (a truth of the samples alone): σ_flat = hypot(2, 6) mm,
+        // the dense part stays the frame's own 2 mm
         let aligned = Array2::from_elem((64, 64), 1.0f32);
         let truth = Array2::from_shape_fn((64, 64), |(v, u)| {
             1.0 + if (u + v) % 2 == 0 { 0.002 } else { -0.002 }
@@ -3505,9 +3551,17 @@ mod tests {
             aligned_m: aligned.view(),
             truth_m: truth.view(),
         };
-        let cv = vec![(0.006, 1.0); 20];
+        let cv = vec![
+            HeldOutResidual {
+                held_out_m: 0.006,
+                in_sample_m: 0.0,
+                depth_m: 1.0,
+            };
+            20
+        ];
         let m = DepthErrorModel::fit(&[frame], &cv, 0.0).unwrap();
-        assert!((m.sigma_flat_m - 0.006).abs() < 1e-6, "{}", m.sigma_flat_m);
+        let want = 0.002f64.hypot(0.006);
+        assert!((m.sigma_flat_m - want).abs() < 1e-6, "{}", m.sigma_flat_m);
         let dense = m.sigma_dense_m.unwrap();
         assert!((dense - 0.002).abs() < 1e-4, "{dense}");
     }

@@ -643,8 +643,9 @@ pub const NO_ERROR_MODEL_WARNING: &str = "the calibration has no error model (it
 
 /// The error model of a fitted calibration ([`DepthErrorModel::fit`]): the dense residuals of
 /// its result on each calibration frame, and, for the global fits (GSSA, SSRA: cheap to refit),
-/// the 5-fold cross-validated residuals of the samples (metres) as the floor of the flat σ; the
-/// other methods rest on the dense residuals alone. Folds are seeded by the sampling seed. The
+/// the fit's optimism at its samples (each sample's residual out of a 5-fold refit against its
+/// residual in the fit), which grows the flat σ's dense level; the other methods rest on the dense
+/// residuals alone. Folds are seeded by the sampling seed. The
 /// height part ([`crate::height`]): the folds' spread of the fit's slope (GSSA, SSRA) and, for a
 /// least-squares GSSA, SSRA or LWLR calibration, its objects' pull (`truths`: each calibration
 /// frame's range in the samples and its ground truth).
@@ -692,7 +693,7 @@ fn fit_error_model(
     };
     let mut model = DepthErrorModel::fit_with_sample_distance(
         &residual_frames,
-        &cv.residuals_m,
+        &cv.residuals,
         exponent,
         distance.as_ref().map(|d| d.view()),
     )?;
@@ -734,15 +735,16 @@ fn sample_distance(calibration: &Calibration) -> Option<Array2<f32>> {
 /// What the K-fold refits of [`cross_validate`] give.
 #[derive(Debug, Default)]
 struct CrossValidated {
-    /// The held-out samples' residuals (truth − aligned, metres) with their true depths.
-    residuals_m: Vec<(f64, f64)>,
+    /// Every sample's residual held out of a fold's refit and in the full fit, with its true
+    /// depth.
+    residuals: Vec<crate::error_model::HeldOutResidual>,
     /// The refits' grouped-jackknife relative standard deviation of the fit's slope at the
     /// samples ([`crate::height::jackknife_relative_sd`]; 0 with fewer than two refits).
     slope_sd: f64,
 }
 
-/// K-fold cross-validation of `method` on `samples` (`full`: its fit on all of them): the
-/// held-out residuals, and how the refits' slope varies; folds that cannot be fitted (too few
+/// K-fold cross-validation of `method` on `samples` (`full`: its fit on all of them): each
+/// sample's residual held out and in `full`, and how the refits' slope varies; folds that cannot be fitted (too few
 /// samples) are left out.
 fn cross_validate(
     method: &Method,
@@ -785,14 +787,19 @@ fn cross_validate(
         for i in held {
             let s = &samples.samples[i];
             let z = space.depth_from_target(model.predict_at(s.u, s.v, s.pred));
-            if z.is_finite() {
-                out.push((s.target - z, s.target));
+            let z_in = space.depth_from_target(full.predict_at(s.u, s.v, s.pred));
+            if z.is_finite() && z_in.is_finite() {
+                out.push(crate::error_model::HeldOutResidual {
+                    held_out_m: s.target - z,
+                    in_sample_m: s.target - z_in,
+                    depth_m: s.target,
+                });
             }
         }
     }
     let reference = crate::height::slopes(full, &samples.samples);
     CrossValidated {
-        residuals_m: out,
+        residuals: out,
         slope_sd: crate::height::jackknife_relative_sd(&reference, &fold_slopes).unwrap_or(0.0),
     }
 }

@@ -9,7 +9,7 @@ mod common;
 use std::sync::Arc;
 
 use moma_core::align::Method;
-use moma_core::error_model::{Draws, ResidualFrame, Roi};
+use moma_core::error_model::{Draws, HeldOutResidual, ResidualFrame, Roi};
 use moma_core::normalise::{AlignSpace, Normalisation};
 use moma_core::pipeline::{AlignOptions, CalibrationConfig, CalibrationFrame, calibrate};
 use moma_core::sampling::sample_distance_map;
@@ -66,14 +66,20 @@ fn the_fit_gives_back_a_flat_error_that_grows_with_the_distance_to_the_samples()
     // with or without the part
     assert_eq!(m.sigma_dense_m, plain.sigma_dense_m);
     assert!(m.sigma_dense_m.unwrap() > 1.2 * S0, "{:?}", m.sigma_dense_m);
-    // the cross-validated floor applies to the level at the samples: 6 mm of leave-one-out
-    // residuals (depth space, at 1 m) lift σ0 to 6 mm and leave the gain as it was
-    let cv = [(0.006, 1.0), (-0.006, 1.0), (0.006, 0.9), (-0.006, 1.1)];
+    // the fit's optimism applies to the level at the samples: 6 mm held out of a fit exact at
+    // them (depth space, at 1 m) lift σ0 to hypot(σ0, 6 mm) and leave the gain as it was
+    let cv =
+        [(0.006, 1.0), (-0.006, 1.0), (0.006, 0.9), (-0.006, 1.1)].map(|(r, z)| HeldOutResidual {
+            held_out_m: r,
+            in_sample_m: 0.0,
+            depth_m: z,
+        });
     let floored =
         DepthErrorModel::fit_with_sample_distance(&[frame], &cv, 0.0, Some(d.view())).unwrap();
+    let want = m.sigma_flat_m.hypot(0.006);
     assert!(
-        (floored.sigma_flat_m - 0.006).abs() < 1e-9,
-        "{}",
+        (floored.sigma_flat_m - want).abs() < 1e-9,
+        "{} {want}",
         floored.sigma_flat_m
     );
     assert_eq!(floored.sample_distance_gain, m.sample_distance_gain);

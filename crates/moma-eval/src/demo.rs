@@ -203,7 +203,7 @@ pub fn write_grasp_overlay(
     request.seed = seed;
     let (_, outcome) = plan_grasps(&depth, &set.intrinsics, f.mask.as_ref(), &request)
         .map_err(|e| crate::EvalError::frame(&set.name, &f.id, format!("grasp planner: {e}")))?;
-    let mut img = match &f.rgb {
+    let img = match &f.rgb {
         Some(rgb) => rgb.clone(),
         None => {
             moma_io::colourise_depth(&depth, Colormap::Turbo, DepthRange::default())
@@ -213,12 +213,24 @@ pub fn write_grasp_overlay(
                 .0
         }
     };
-    moma_io::draw_segments(
-        &mut img,
-        &set.intrinsics,
-        &moma_grasp::render::overlay_segments(&outcome, &gripper),
-    );
     let path = out.join("grasps").join(format!("{}_suction.png", f.id));
+    let variant = if config.realign.is_some() {
+        "re-aligned on static anchors"
+    } else {
+        "one-shot"
+    };
+    let title = [
+        format!(
+            "suction, top {}: {}-aligned depth ({variant}) of {}",
+            request.top_k,
+            method.name().to_uppercase(),
+            f.id
+        ),
+        crate::render::source_caption(&preds.label, preds.simulated),
+        "success_prob: PROXY, under the calibration's error model (not robot trials)".to_string(),
+    ];
+    let img =
+        crate::render::grasp_overlay(&path, img, &set.intrinsics, &outcome, &gripper, &title)?;
     create_parent(&path)?;
     moma_io::write_rgb(&path, &img)?;
     Ok(path)

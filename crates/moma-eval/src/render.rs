@@ -582,9 +582,164 @@ pub fn nice_ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
     v
 }
 
+/// The picture of planned grasps that moma writes (`moma grasp -o DIR`'s overlay.png, `moma
+/// demo`'s grasps/): `background` (the frame's RGB, or its colour-mapped depth) with the grasps
+/// drawn outlined in their rank colours ([`moma_grasp::render::rank_colour`]: best green, then
+/// yellow to red; strokes thicker from 1 000 px wide), and below it a dark strip that says what
+/// the picture is: `title` (one line each: the gripper, where the depth came from, SIMULATED
+/// where it applies), then one line per grasp in its colour, best first: rank, `success_prob`
+/// (PROXY: the share of the error model's depth draws on which it holds; "n/a" without an
+/// error model), the planner's score, the position in the camera frame (metres) and, for a
+/// parallel jaw, the opening. The image keeps the frame's pixels in its top `height` rows, so
+/// the grasps stay where they project. `path` names the file in errors.
+///
+/// # Errors
+/// [`EvalError::Plot`] when the text cannot be drawn.
+pub fn grasp_overlay(
+    path: &Path,
+    mut background: RgbImage,
+    k: &moma_core::Intrinsics,
+    outcome: &moma_grasp::PlanOutcome,
+    gripper: &moma_grasp::Gripper,
+    title: &[String],
+) -> Result<RgbImage> {
+    use moma_grasp::Grasp;
+    let (w, h) = background.dimensions();
+    let segments = moma_grasp::render::overlay_segments(outcome, gripper);
+    moma_io::draw_segments_outlined(&mut background, k, &segments, i64::from(w / 1000));
+    let n = outcome.grasps.len();
+    let mut lines: Vec<(String, [u8; 3])> =
+        title.iter().map(|t| (t.clone(), [235, 235, 235])).collect();
+    if n == 0 {
+        lines.push(("no grasp".to_string(), [235, 235, 235]));
+    }
+    for (rank, g) in outcome.grasps.iter().enumerate() {
+        let prob = g
+            .success_prob()
+            .map_or("n/a".to_string(), |p| format!("{p:.2}"));
+        let (at, opening) = match g {
+            Grasp::Parallel(p) => (
+                p.pose.center_m,
+                format!(", opening {:.0} mm", p.pose.width_m * 1000.0),
+            ),
+            Grasp::Suction(s) => (s.pose.point_m, String::new()),
+        };
+        lines.push((
+            format!(
+                "#{}  success_prob {prob}  score {:.3}  at ({:+.3}, {:+.3}, {:+.3}) m{opening}",
+                rank + 1,
+                g.score(),
+                at[0],
+                at[1],
+                at[2]
+            ),
+            moma_grasp::render::rank_colour(rank, n),
+        ));
+    }
+    register_fonts();
+    let font_px = (f64::from(w) / 640.0 * 14.0).clamp(12.0, 28.0);
+    let line_h = (font_px * 1.4).ceil() as u32;
+    let strip_h = line_h * lines.len() as u32 + line_h / 2;
+    const STRIP: [u8; 3] = [28, 28, 28];
+    let mut buf: Vec<u8> = STRIP
+        .iter()
+        .copied()
+        .cycle()
+        .take(w as usize * strip_h as usize * 3)
+        .collect();
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, strip_h)).into_drawing_area();
+        for (i, (text, [r, g, b])) in lines.iter().enumerate() {
+            let y = (line_h / 4 + i as u32 * line_h) as i32;
+            root.draw(&Text::new(
+                text.clone(),
+                (8, y),
+                (FONT, font_px).into_font().color(&RGBColor(*r, *g, *b)),
+            ))
+            .map_err(|e| plot_err(path, e))?;
+        }
+        root.present().map_err(|e| plot_err(path, e))?;
+    }
+    let mut out = RgbImage::new(w, h + strip_h);
+    for (x, y, p) in background.enumerate_pixels() {
+        out.put_pixel(x, y, *p);
+    }
+    for (i, px) in buf.chunks_exact(3).enumerate() {
+        let (x, y) = (i as u32 % w, i as u32 / w);
+        out.put_pixel(x, h + y, image::Rgb([px[0], px[1], px[2]]));
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Three suction grasps on a grey 320 × 240 frame: the frame's pixels stay on top (changed
+    /// only where the grasps are drawn), and the caption strip below has one line per title
+    /// line and per grasp, each grasp's line written in its rank colour.
+    #[test]
+    fn a_grasp_overlay_keeps_the_frame_and_captions_each_grasp_in_its_colour() {
+        use moma_grasp::{Grasp, Gripper, PlanOutcome, SuctionCup, SuctionGrasp, SuctionPose};
+        let (w, h) = (320u32, 240u32);
+        let k = moma_core::Intrinsics::nominal(moma_core::ImageSize::new(w as usize, h as usize));
+        let grasp = |x: f32, p: f32| {
+            Grasp::Suction(SuctionGrasp {
+                score: 0.5,
+                success_prob: Some(p),
+                pose: SuctionPose {
+                    point_m: [x, 0.0, 0.6],
+                    approach: [0.0, 0.0, 1.0],
+                },
+                base: None,
+            })
+        };
+        let outcome = PlanOutcome {
+            grasps: vec![grasp(-0.1, 0.83), grasp(0.0, 0.5), grasp(0.1, 0.17)],
+            no_grasp_reason: None,
+            candidates: 3,
+        };
+        let frame = RgbImage::from_pixel(w, h, image::Rgb([128, 128, 128]));
+        let title = ["line one".to_string(), "line two".to_string()];
+        let gripper = Gripper::Suction(SuctionCup::default());
+        let out = grasp_overlay(Path::new("x.png"), frame, &k, &outcome, &gripper, &title).unwrap();
+        assert_eq!(out.width(), w);
+        assert!(out.height() > h);
+        let changed = (0..h)
+            .flat_map(|v| (0..w).map(move |u| (u, v)))
+            .filter(|&(u, v)| out.get_pixel(u, v).0 != [128, 128, 128])
+            .count();
+        assert!(changed > 0 && changed < (w * h / 20) as usize, "{changed}");
+        // 5 lines (2 title, 3 grasps) of equal height, half a line of margin
+        let line_h = (h..out.height()).len() as f64 / 5.5;
+        // each grasp's text (anti-aliased on the strip's ground): its pixels far from the ground
+        // are nearest its own rank colour of the three
+        let colours: Vec<[u8; 3]> = (0..3)
+            .map(|r| moma_grasp::render::rank_colour(r, 3))
+            .collect();
+        let dist = |a: [u8; 3], b: [u8; 3]| -> i32 {
+            (0..3)
+                .map(|i| (i32::from(a[i]) - i32::from(b[i])).pow(2))
+                .sum()
+        };
+        for rank in 0..3 {
+            let top = h as f64 + line_h * (2 + rank) as f64;
+            let rows = top as u32..(top + line_h) as u32;
+            let text: Vec<[u8; 3]> = rows
+                .flat_map(|v| (0..w).map(move |u| (u, v)))
+                .map(|(u, v)| out.get_pixel(u, v).0)
+                .filter(|p| dist(*p, [28, 28, 28]) > 150 * 150)
+                .collect();
+            assert!(text.len() > 20, "rank {rank}: {} text pixels", text.len());
+            let mut votes = [0usize; 3];
+            for p in &text {
+                let nearest = (0..3).min_by_key(|&r| dist(*p, colours[r])).unwrap();
+                votes[nearest] += 1;
+            }
+            let top_vote = (0..3).max_by_key(|&r| votes[r]).unwrap();
+            assert_eq!(top_vote, rank, "votes {votes:?}");
+        }
+    }
 
     #[test]
     fn ticks_are_nice() {

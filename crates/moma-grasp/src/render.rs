@@ -28,8 +28,9 @@ fn arr(v: Vec3) -> [f32; 3] {
 }
 
 /// The overlay of `outcome`'s grasps, worst first so that the best is drawn last (on top): for a
-/// parallel jaw the closing line between the fingers and each finger's extent across it (the
-/// best one thicker), for a suction cup its rim (36 chords) and 30 mm of its approach axis.
+/// parallel jaw the closing line between the fingers, each finger's extent across it (the best
+/// one thicker) and 30 mm of the approach axis back from the centre (towards the palm), for a
+/// suction cup its rim (36 chords) and 30 mm of its approach axis.
 /// Grasps of the other gripper kind than `gripper` are skipped.
 pub fn overlay_segments(outcome: &PlanOutcome, gripper: &Gripper) -> Vec<Segment3> {
     let n = outcome.grasps.len();
@@ -59,6 +60,8 @@ pub fn overlay_segments(outcome: &PlanOutcome, gripper: &Gripper) -> Vec<Segment
                 for f in [f1, f2] {
                     seg(f - h, f + h, thick + 1);
                 }
+                // where the gripper comes from: a tilted approach shows as a tick off the centre
+                seg(centre, centre - a * 0.03, thick);
             }
             (Grasp::Suction(s), Gripper::Suction(cup)) => {
                 let (p, a) = (Vec3::from(s.pose.point_m), Vec3::from(s.pose.approach));
@@ -171,11 +174,13 @@ mod tests {
         })]);
         let g = Gripper::Parallel(jaw);
         let segs = overlay_segments(&o, &g);
-        assert_eq!(segs.len(), 3);
+        assert_eq!(segs.len(), 4);
         assert!(close(segs[0].a_m, [-0.02, 0.0, 0.5]) && close(segs[0].b_m, [0.02, 0.0, 0.5]));
         let hh = jaw.finger_height_m / 2.0;
         assert!(close(segs[1].a_m, [-0.02, -hh, 0.5]) && close(segs[1].b_m, [-0.02, hh, 0.5]));
         assert_eq!(segs[1].half_width_px, 2, "the best grasp is drawn thicker");
+        // the approach axis, 30 mm back towards the camera (top-down: a point in the image)
+        assert!(close(segs[3].a_m, [0.0, 0.0, 0.5]) && close(segs[3].b_m, [0.0, 0.0, 0.47]));
         let boxes = gripper_boxes(&o, &g);
         assert_eq!(boxes.len(), 3);
         let t = jaw.finger_thickness_m;

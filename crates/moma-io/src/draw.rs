@@ -27,6 +27,30 @@ fn line(img: &mut RgbImage, a: (f32, f32), b: (f32, f32), c: [u8; 3], half_width
     }
 }
 
+/// [`draw_segments`] legible on any background (a colour-mapped depth uses the rank colours'
+/// hues too): every segment first as a dark outline one pixel wider, then all of them in their
+/// colours, each `extra_half_width_px` wider than it says (thicker strokes on large images).
+pub fn draw_segments_outlined(
+    img: &mut RgbImage,
+    k: &Intrinsics,
+    segments: &[Segment3],
+    extra_half_width_px: i64,
+) {
+    const OUTLINE: [u8; 3] = [20, 20, 20];
+    for pass in [true, false] {
+        for s in segments {
+            if let (Some(a), Some(b)) = (k.project(s.a_m), k.project(s.b_m)) {
+                let w = s.half_width_px + extra_half_width_px;
+                if pass {
+                    line(img, a, b, OUTLINE, w + 1);
+                } else {
+                    line(img, a, b, s.colour, w);
+                }
+            }
+        }
+    }
+}
+
 /// Draws `segments` (camera frame, metres) on `img`, in order (later ones on top), each
 /// projected with `k`; a segment with an endpoint behind the camera is skipped, pixels outside
 /// the image are clipped.

@@ -84,7 +84,7 @@ pub use depth::{
     read_depth_sized, read_npy_f32, read_pfm, read_png16, read_prediction, write_depth,
     write_npy_f32, write_pfm, write_prediction,
 };
-pub use draw::draw_segments;
+pub use draw::{draw_segments, draw_segments_outlined};
 pub use error::{IoError, Result};
 pub use grey::grey_half;
 pub use json_files::{

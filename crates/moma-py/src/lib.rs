@@ -1605,7 +1605,7 @@ fn lora_fingerprint(
 /// the same run (`moma_train::finetune`), the same report as `moma finetune --json` (a dict).
 #[pyfunction]
 #[pyo3(signature = (sets, weights, output, model=None, head=None, *, max_depth=None,
-    input_size=518, config=None, device="cpu", lora_rank=16, lora_alpha=None,
+    input_size=518, config=None, device="auto", lora_rank=16, lora_alpha=None,
     lora_targets=vec!["q".to_string(), "v".to_string()], lora_dropout=0.0, train_head=false,
     head_lr_mult=1.0, loss=None, steps=None, epochs=None, batch=1, accumulate=1, lr=5e-4,
     weight_decay=0.01, schedule="one-cycle", warmup_frac=0.05, val_frac=0.2, val_every=0,
@@ -1748,7 +1748,7 @@ fn finetune(
 #[pymethods]
 impl DepthModel {
     #[new]
-    #[pyo3(signature = (weights, model=None, head=None, backend="candle", device="cpu",
+    #[pyo3(signature = (weights, model=None, head=None, backend="candle", device="auto",
         lora=None, *, max_depth=None, input_size=None, dtype="f32", config=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(

@@ -11,6 +11,13 @@ use moma_eval::ablate::{self, AblationOutput, SAMPLE_COUNTS};
 use moma_eval::protocol::{EvalNote, PredictionSet, check_calib_frame_counts, few_shot_variant};
 use moma_eval::simulate::{Simulator, simulate_frames};
 
+// `ablate samples --counts`' help writes the default out comma-separated, as the flag takes it
+const _: () = {
+    let c = SAMPLE_COUNTS;
+    assert!(c.len() == 7 && c[0] == 20 && c[1] == 50 && c[2] == 100 && c[3] == 200);
+    assert!(c[4] == 400 && c[5] == 1000 && c[6] == 3000);
+};
+
 use super::common::create_dir;
 use super::eval::{DEFAULT_SAMPLES, EvalOptions, PredArgs, load_set};
 
@@ -41,8 +48,8 @@ pub enum AblateCommand {
     Samples {
         #[command(flatten)]
         common: AblateCommon,
-        /// Sample counts, comma-separated.
-        #[arg(long, value_delimiter = ',', default_values_t = SAMPLE_COUNTS.to_vec())]
+        /// Sample counts, comma-separated [default: 20,50,100,200,400,1000,3000].
+        #[arg(long, value_delimiter = ',', hide_default_value = true, default_values_t = SAMPLE_COUNTS.to_vec())]
         counts: Vec<usize>,
     },
     /// (b) normalisation × method.

@@ -127,7 +127,7 @@ pub struct AlignArgs {
     /// camera.json to use for point clouds instead of the calibration's intrinsics.
     #[arg(long, value_name = "FILE", requires = "ply")]
     pub camera: Option<PathBuf>,
-    /// Also write a colour-mapped PNG per frame.
+    /// Also write a colour-mapped PNG per frame (`--colormap` alone: turbo).
     #[arg(long, value_enum, num_args = 0..=1, default_missing_value = "turbo")]
     pub colormap: Option<ColormapArg>,
     /// Colour-map range in metres, e.g. `0.4,1.2` (default: 2nd–98th percentile per frame).

@@ -21,8 +21,8 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// static anchors: rows `realign-anchors`), print the comparison table and the grasp table
 /// (top-1 grasps planned on the ground truth and on each aligned depth, ranked robust under the
 /// calibration's error model, scored by PROXY on the ground truth; success and mean
-/// success_prob; at most 3 seeds), and write to OUT: scene/ (the moma set), predictions/ (simulated .npy +
-/// predictions.json), results.{md,csv,json}, grasp_results.{md,csv,json},
+/// success_prob; at most 3 seeds), and write to OUT: scene/ (the moma set), predictions/
+/// (simulated .npy + predictions.json), results.{md,csv,json}, grasp_results.{md,csv,json},
 /// grasps/<frame>_suction.png (top-5 suction grasps on the re-aligned SSRA depth),
 /// figures/<frame>.png (Fig.-6 style), aligned/<method>/<frame>.png (uint16 mm) + .npy
 /// (float32 m) + _colour.png (with aligned.json: where each came from), pointclouds/<frame>_ssra.ply.

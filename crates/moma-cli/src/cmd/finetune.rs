@@ -15,7 +15,8 @@ use super::common::{ModelArgs, print_json, progress};
 /// Trains LoRA adapters on the DINOv2 attention (q and v of attn.qkv by default) with AdamW,
 /// warm-up + one-cycle (or poly) schedule, on frames of moma sets (RGB + ground-truth depth;
 /// masks restrict the loss with --mask-loss). A seeded split by frame gives a validation set.
-/// Use the adapter with `--lora ADAPTER` in predict/calibrate/align/eval, or `moma lora merge`.
+/// Use the adapter with `--lora ADAPTER` in every command that runs the model (predict, calibrate,
+/// align, eval, grasp, grasp-eval, ablate, demo, ros2), or `moma lora merge`.
 ///
 /// Random-weight models (the tiny test models) learn nothing meaningful: their losses only show
 /// that the machinery works.
@@ -58,7 +59,7 @@ pub struct FinetuneArgs {
     /// official Depth Anything V2 recipe's 10 applies to a full fine-tune at 5e-6 (head 5e-5);
     /// times a LoRA rate (5e-4 to 1e-3) it gives 5e-3 to 1e-2, where AdamW (whose step is about
     /// the learning rate whatever the gradient's scale) moves the metric head's logits by tens
-    /// per step and saturates its sigmoid (docs/depth-model.md, "Learning rate of the head").
+    /// per step and saturates its sigmoid (docs/depth-model.md, "Fine-tuning that reaches inference", item 1).
     #[arg(long, default_value_t = 1.0, value_name = "X")]
     pub head_lr_mult: f64,
     /// Loss: silog (official Depth Anything V2), silog-moma (the authors' variant), ssi

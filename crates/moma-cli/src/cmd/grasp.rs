@@ -43,8 +43,9 @@ impl GripperArg {
 ///   suction:  {"kind":"suction","score":s,"success_prob":p,"point_m":[x,y,z],"approach":[..]}
 /// `success_prob` is (k + 1) / (N + 2) for the k of N depth maps drawn from the depth's error
 /// model (the calibration's, or a uniform --sigma-m) on which the grasp succeeds by the proxy's
-/// rules: in (0, 1); null without an error model (--depth without --sigma-m). With --realign anchors the
-/// frame is re-aligned on static anchors first, exactly as `moma align --realign anchors` does.
+/// rules: in (0, 1); null without an error model (--depth without --sigma-m). With --realign
+/// anchors the frame is re-aligned on static anchors first, exactly as `moma align --realign
+/// anchors` does.
 /// `center_m` is the midpoint of the two planned contacts, `approach` the unit vector along which
 /// the gripper moves (for suction: into the surface), `closing` the unit vector along which the
 /// fingers close, `width_m` the opening before closing. With --extrinsics each grasp also carries
@@ -60,7 +61,9 @@ impl GripperArg {
 ///      "palm_depth_m":0.02,"contact_to_tip_m":0.01,"opening_clearance_m":0.01}
 ///     or suction {"radius_m":0.01,"compliance_m":0.015,"tool_length_m":0.1}
 ///   -o DIR writes grasps.json (the --json array), overlay.png (grasps drawn on the RGB image or the
-///     colour-mapped depth; best = green, then yellow to red), scene.ply (the scene points plus
+///     colour-mapped depth; best = green, then yellow to red; below the image a caption: the
+///     gripper, the depth's source, SIMULATED where it is, and each grasp's success_prob, score
+///     and position), scene.ply (the scene points plus
 ///     finger/palm or cup boxes of the grasps; binary PLY, opens in MeshLab / Open3D) and
 ///     depth.npy (the frame's depth in metres, float32, as `moma align` writes it; its provenance
 ///     in aligned.json, read by `moma metrics`).
@@ -73,8 +76,7 @@ impl GripperArg {
 /// does not touch the image border (--keep-border-objects keeps such regions) and does not
 /// enclose an opening of a container's size (a bin's walls: what lies inside is planned on,
 /// and an object touching a wall where its top is flat and at least 15 mm below the rim).
-/// A mask PNG of instance labels (one grey level or colour per object) keeps touching objects
-/// apart.
+/// A mask PNG of instance labels (one grey level or colour per object) keeps touching objects apart.
 /// "No grasp found" is not an error: an empty list, and the reason on stderr.
 ///
 /// Examples:
@@ -120,7 +122,8 @@ pub struct GraspArgs {
     /// way).
     #[arg(long, conflicts_with = "mask")]
     pub keep_containers: bool,
-    /// Camera→robot-base transform (JSON, see above): adds "base" poses.
+    /// Camera→robot-base transform (JSON {"camera_to_base": 4 × 4 rows}, as described above):
+    /// adds "base" poses.
     #[arg(long, value_name = "FILE")]
     pub extrinsics: Option<PathBuf>,
     /// Gripper type.
@@ -148,7 +151,8 @@ pub struct GraspArgs {
 /// How grasps are planned and ranked: shared by `moma grasp` and `moma ros2`.
 #[derive(Debug, Clone, Args)]
 pub struct PlanFlags {
-    /// Gripper geometry (JSON, see above); defaults for the rest.
+    /// Gripper geometry (JSON with any of the gripper's fields, as `moma grasp --help` describes
+    /// it); defaults for the rest.
     #[arg(long, value_name = "FILE")]
     pub gripper_config: Option<PathBuf>,
     /// Number of grasps to return at most.
@@ -498,6 +502,38 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         None => {}
     }
     if let Some(dir) = &args.output {
+        // what the overlay says it shows (its caption strip)
+        let title = [
+            format!(
+                "moma grasp: {} grasps on the depth of {}",
+                gripper.kind_name(),
+                tail(Path::new(&depth_name))
+            ),
+            match (&simulated, &args.calib) {
+                (DepthOrigin::Simulated(p), _) => format!(
+                    "SIMULATED predictions (as {} says), not a depth model's output",
+                    tail(p)
+                ),
+                (DepthOrigin::NotSimulated, Some(c)) => {
+                    format!("a prediction aligned by {}", tail(c))
+                }
+                (DepthOrigin::NotSimulated, None) => "the depth file as given".to_string(),
+                (DepthOrigin::Unknown, _) => {
+                    "depth of unknown origin (another tool's aligned.json)".to_string()
+                }
+            },
+            match (&args.sigma_m, request.error_model.is_some()) {
+                (Some(s), _) => format!(
+                    "success_prob: PROXY, under a uniform σ of {:.1} mm (not robot trials)",
+                    s * 1000.0
+                ),
+                (None, true) => {
+                    "success_prob: PROXY, under the calibration's error model (not robot trials)"
+                        .to_string()
+                }
+                (None, false) => "success_prob: n/a (no error model)".to_string(),
+            },
+        ];
         // recorded where it is known (not beside another tool's aligned.json)
         let provenance = match simulated {
             DepthOrigin::Unknown => None,
@@ -510,7 +546,9 @@ pub fn run(args: &GraspArgs) -> Result<()> {
                 input: Some(moma_io::recorded_path(Path::new(&depth_name))),
             }),
         };
-        let written = write_outputs(dir, &outcome, &gripper, &depth, &camera, rgb, provenance)?;
+        let written = write_outputs(
+            dir, &outcome, &gripper, &depth, &camera, rgb, provenance, &title,
+        )?;
         if !args.json {
             for p in written {
                 println!("wrote {}", p.display());
@@ -587,10 +625,22 @@ fn print_summary(outcome: &PlanOutcome) {
     }
 }
 
+/// The last two components of `path` (a caption's room is one line).
+fn tail(path: &Path) -> String {
+    let parts: Vec<_> = path.components().collect();
+    let from = parts.len().saturating_sub(2);
+    parts[from..]
+        .iter()
+        .collect::<PathBuf>()
+        .display()
+        .to_string()
+}
+
 /// Writes grasps.json (the `--json` array), scene.ply (scene points and gripper boxes),
 /// overlay.png (grasps drawn on the RGB image, or on the colour-mapped depth) and depth.npy (the
 /// frame's metric depth, as `moma align` writes it, with its `provenance` in aligned.json when
-/// it is known) into `dir`.
+/// it is known) into `dir`; the overlay's caption strip says `title`.
+#[allow(clippy::too_many_arguments)] // the run's outputs, each a different thing
 fn write_outputs(
     dir: &Path,
     outcome: &PlanOutcome,
@@ -599,6 +649,7 @@ fn write_outputs(
     k: &Intrinsics,
     rgb: Option<RgbImage>,
     provenance: Option<moma_io::AlignedFile>,
+    title: &[String],
 ) -> Result<Vec<PathBuf>> {
     create_dir(dir)?;
     // an earlier run's result goes first: should a write below fail, DIR must not hold that
@@ -637,13 +688,9 @@ fn write_outputs(
         &moma_grasp::render::gripper_boxes(outcome, gripper),
         "moma grasp: scene points (camera frame, metres) and gripper boxes of the grasps",
     )?;
-    let mut overlay = background;
-    moma_io::draw_segments(
-        &mut overlay,
-        k,
-        &moma_grasp::render::overlay_segments(outcome, gripper),
-    );
     let overlay_path = dir.join("overlay.png");
+    let overlay =
+        moma_eval::render::grasp_overlay(&overlay_path, background, k, outcome, gripper, title)?;
     moma_io::write_rgb(&overlay_path, &overlay)?;
     // the result last (each file is written atomically): a grasps.json in DIR means every
     // other output of the run is there too

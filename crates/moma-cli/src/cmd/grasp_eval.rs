@@ -25,8 +25,10 @@ use super::eval::{EvalOptions, PredArgs, load_set};
 /// ranked robust (by success probability under the frame's error model; --grasp-quality).
 /// Writes OUT/grasp_results.{md,csv,json}, OUT/grasp_reliability.{md,csv,json} and
 /// OUT/sigma_coverage.{md,csv,json}; --json prints one array of {"set","method","variant",
-/// "norm","grasp_quality","gripper","trials","successes","success_rate","best_of_candidates","brier",
-/// "reliability":[{"bin":[lo,hi],"grasps":n,"predicted":p,"achieved":a}]}.
+/// "norm","grasp_quality","gripper","trials","successes","success_rate","best_of_candidates",
+/// "brier","brier_base_rate","reliability":[{"bin":[lo,hi],"grasps":n,"predicted":p,
+/// "achieved":a}],"calibration_frame_check":{"grasps","successes","mean_success_prob"}}
+/// (grasp_results.json adds "failures", "mean_success_prob", "source" and "simulated").
 /// `best_of_candidates`: trials where some grasp of the planner's candidates (up to 20, the ones
 /// the ranking chooses from) succeeds on the ground truth, i.e. what a perfect ranking would
 /// reach: below it the ranking loses grasps, above it the candidates hold none.
@@ -56,7 +58,7 @@ pub struct GraspEvalArgs {
     /// Smallest mask component that counts as an object (one trial), pixels.
     #[arg(long, default_value_t = moma_grasp::MIN_TRIAL_COMPONENT_PX, value_name = "PX")]
     pub min_object_px: usize,
-    /// Output folder for grasp_results.{md,csv,json}.
+    /// Output folder for grasp_results, grasp_reliability and sigma_coverage (.md, .csv, .json).
     #[arg(
         short,
         long,

@@ -479,7 +479,9 @@ pub struct Ros2Args {
     pub gripper: Option<GripperArg>,
     #[command(flatten)]
     pub plan: PlanFlags,
-    /// Objects to grasp: a mask PNG of the workspace (nonzero = objects may be there).
+    /// Objects to grasp (PNG, nonzero = object; the same mask for every frame: where objects of a
+    /// fixed cell may be). A label image (one grey level or colour per object) keeps objects
+    /// that touch apart.
     #[arg(long, value_name = "PNG", requires = "gripper")]
     pub mask: Option<PathBuf>,
     /// Camera → robot base transform: grasps are published in the base frame.

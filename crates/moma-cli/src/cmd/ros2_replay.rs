@@ -45,7 +45,7 @@ pub struct Ros2ReplayArgs {
     /// Start over after the last frame (until killed).
     #[arg(long = "loop")]
     pub repeat: bool,
-    /// Stop after publishing this many frames in all (with --loop).
+    /// Stop after publishing this many frames in all (with or without --loop).
     #[arg(long, value_name = "N")]
     pub max_frames: Option<u64>,
     /// Wait this long after starting before the first frame, seconds (discovery).
