@@ -1170,6 +1170,41 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     assert_eq!(index["files"][0]["file"], "frame_01.depth.png");
     assert_eq!(index["files"][1]["file"], "frame_01.depth.npy");
     assert_eq!(index["files"][0]["calibration"], s(&calib));
+    // the pictures and maps made from that depth are recorded as SIMULATED too (only the files
+    // asked for)
+    let pictures = tmp.path().join("pictures");
+    ok(&align_args(
+        &calib,
+        &frame1,
+        &pictures,
+        &["--colormap", "--sigma-map"],
+    ));
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(pictures.join("aligned.json")).unwrap())
+            .unwrap();
+    let mut listed: Vec<&str> = index["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            assert_eq!(f["simulated"], true, "{f}");
+            f["file"].as_str().unwrap()
+        })
+        .collect();
+    listed.sort_unstable();
+    assert_eq!(
+        listed,
+        [
+            "frame_01.color.png",
+            "frame_01.depth.npy",
+            "frame_01.depth.png",
+            "frame_01.sigma.npy",
+            "frame_01.sigma.png"
+        ]
+    );
+    for f in &listed {
+        assert!(pictures.join(f).is_file(), "{f} listed but not written");
+    }
     // `grasp -o` writes the frame's depth with its provenance too
     let planned = tmp.path().join("planned");
     assert!(grasp(&["-o", s(&planned)]).status.success());

@@ -331,7 +331,8 @@ pub fn run(args: &AlignArgs) -> Result<()> {
     // the folder's index records where each frame's depth came from (a SIMULATED one is scored
     // as such later, by `moma metrics`): before the frame's files are written (keeping the
     // label of files they replace) and once they are
-    let index_entries = |name: &str, input: &Path| -> Vec<moma_io::AlignedFile> {
+    // (every file of the frame: its colour map, σ maps and point cloud say SIMULATED there too)
+    let index_entries = |name: &str, input: &Path, with_ply: bool| -> Vec<moma_io::AlignedFile> {
         let entry = |file: String| moma_io::AlignedFile {
             file,
             simulated,
@@ -340,10 +341,21 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             method: Some(calib.method.to_string()),
             input: Some(moma_io::recorded_path(input)),
         };
-        vec![
+        let mut files = vec![
             entry(format!("{name}.depth.png")),
             entry(format!("{name}.depth.npy")),
-        ]
+        ];
+        if args.sigma_map {
+            files.push(entry(format!("{name}.sigma.npy")));
+            files.push(entry(format!("{name}.sigma.png")));
+        }
+        if args.colormap.is_some() {
+            files.push(entry(format!("{name}.color.png")));
+        }
+        if with_ply {
+            files.push(entry(format!("{name}.ply")));
+        }
+        files
     };
     let index_context = || format!("the index of {}", args.output.display());
 
@@ -396,8 +408,12 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             None => None,
         };
 
-        moma_io::record_before_writing(&args.output, index_entries(&input.name, &input.path))
-            .with_context(index_context)?;
+        let with_ply = cloud.is_some();
+        moma_io::record_before_writing(
+            &args.output,
+            index_entries(&input.name, &input.path, with_ply),
+        )
+        .with_context(index_context)?;
         let mut outputs = Vec::new();
         let base = args.output.join(&input.name);
         let png = with_suffix(&base, "depth.png");
@@ -416,8 +432,6 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         let npy = with_suffix(&base, "depth.npy");
         moma_io::write_depth(&npy, &depth)?;
         outputs.push(npy);
-        moma_io::record_aligned_files(&args.output, index_entries(&input.name, &input.path))
-            .with_context(index_context)?;
         if let Some(sigma) = sigma_m {
             let sigma = MetricDepth::new(sigma);
             let npy = with_suffix(&base, "sigma.npy");
@@ -441,6 +455,11 @@ pub fn run(args: &AlignArgs) -> Result<()> {
             write_cloud(&path, &depth, &k, rgb.as_ref(), args.ply_ascii)?;
             outputs.push(path);
         }
+        moma_io::record_aligned_files(
+            &args.output,
+            index_entries(&input.name, &input.path, with_ply),
+        )
+        .with_context(index_context)?;
         bar.inc(1);
         Ok(FrameSummary {
             name: input.name,
