@@ -1210,6 +1210,40 @@ fn simulated_provenance_and_intrinsics_travel_with_the_calibration() {
     assert!(grasp(&["-o", s(&planned)]).status.success());
     let (simulated, err) = metrics(&planned.join("depth.npy"));
     assert!(simulated && err.contains("SIMULATED"), "{err}");
+    // ... and its overlay says so, in its caption (the PNG's Description chunk holds its text)
+    let caption = moma_io::read_png_description(planned.join("overlay.png"))
+        .unwrap()
+        .expect("a caption");
+    assert!(
+        caption.contains("SIMULATED predictions")
+            && caption.contains("success_prob: PROXY, under the calibration's error model")
+            && caption.contains("aligned by")
+            && caption.contains("#1  success_prob"),
+        "{caption}"
+    );
+    // a depth file of no recorded origin is not called SIMULATED, nor checked
+    let plain = tmp.path().join("plain");
+    let on_depth = moma(&[
+        "grasp",
+        "--depth",
+        s(&gt),
+        "--camera",
+        s(&scene.join("camera.json")),
+        "--gripper",
+        "suction",
+        "-o",
+        s(&plain),
+    ]);
+    assert!(on_depth.status.success());
+    let caption = moma_io::read_png_description(plain.join("overlay.png"))
+        .unwrap()
+        .expect("a caption");
+    assert!(
+        !caption.contains("SIMULATED predictions (")
+            && caption.contains("no record of its origin says SIMULATED")
+            && caption.contains("success_prob: n/a (no error model)"),
+        "{caption}"
+    );
     // the same frame name aligned again into that folder from a sensor's metres (no index, a
     // calibration on them): its entry is replaced, the depth is not simulated
     let metres = tmp.path().join("metres");

@@ -39,8 +39,9 @@
 //! the fit's optimism at its samples: the ratio `Σ held_out² / Σ in_sample²` over the
 //! calibration samples, each residual once from a cross-validation fold that did not see the
 //! sample and once from the fit that did ([`HeldOutResidual`]; about 1 + 2p/n for a least-squares
-//! fit of p parameters on n samples). Where the truth is the samples alone, the dense level is
-//! their in-sample mean square and the product their cross-validated one. (Until
+//! fit of p parameters on n samples), never beyond the held-out mean square (the former floor):
+//! where the truth is the samples alone, or a fit is nearly exact at a few samples, that is the
+//! level. (Until
 //! 2026-12-08 the held-out residuals' mean square was a floor of `σ_flat`: one sample at a
 //! silhouette, 85 mm off in and out of the fit, lifted graspnet6dof-table's SSRA σ_flat from
 //! its 3.9 mm dense level to 10.4 mm; docs/grasping.md, "The fit's optimism".)
@@ -720,7 +721,7 @@ impl DepthErrorModel {
     /// Fits the model (module documentation) from the calibration frames' dense residuals and
     /// the calibration samples' residuals held out of the fit and in it (`held_out`, may be
     /// empty: the ratio of their sums of squares is the fit's optimism, which grows the dense
-    /// level; where the fit is exact at its samples, their held-out mean square is added).
+    /// level up to their held-out mean square at most; non-finite residuals are left out).
     /// `depth_exponent` is 2 for a fit in inverse space, 0 in depth space.
     ///
     /// # Errors
@@ -928,26 +929,37 @@ impl DepthErrorModel {
         };
         // the fit's optimism: by how much the samples' squared residuals grow when the fit has
         // not seen them, as a ratio (an outlier, or a sample at a silhouette, weighs on both
-        // sums alike; least squares with p parameters on n samples gives about 1 + 2p/n); a
-        // fit exact at its samples (a truth of the samples alone) adds their held-out mean
-        // square instead
-        let (mut held_sq, mut in_sq) = (0.0f64, 0.0f64);
+        // sums alike; least squares with p parameters on n samples gives about 1 + 2p/n),
+        // never beyond the held-out mean square itself (a fit nearly exact at a few samples
+        // has a ratio without bound, and a truth of the samples alone has the samples' own
+        // level as its dense one: the held-out mean square is then the level); non-finite
+        // residuals are left out
+        let (mut held_sq, mut in_sq, mut n_held) = (0.0f64, 0.0f64, 0usize);
         for r in held_out {
             let scale = m.depth_scale(r.depth_m as f32);
-            held_sq += (r.held_out_m / scale).powi(2);
-            in_sq += (r.in_sample_m / scale).powi(2);
+            let (h, i) = (r.held_out_m / scale, r.in_sample_m / scale);
+            if h.is_finite() && i.is_finite() {
+                held_sq += h * h;
+                in_sq += i * i;
+                n_held += 1;
+            }
         }
-        let (inflation, added) = if in_sq > 0.0 {
-            ((held_sq / in_sq).max(1.0), 0.0)
-        } else if held_out.is_empty() {
-            (1.0, 0.0)
-        } else {
-            (1.0, held_sq / held_out.len() as f64)
+        let optimistic = |level: f64| -> f64 {
+            if n_held == 0 {
+                return level;
+            }
+            let held_ms = held_sq / n_held as f64;
+            let ratio = if in_sq > 0.0 {
+                (held_sq / in_sq).max(1.0)
+            } else {
+                f64::INFINITY
+            };
+            (level * ratio).min(level.max(held_ms))
         };
-        let total = dense * inflation + added;
+        let total = optimistic(dense);
         // with a distance part, the flat σ is its level at the samples (the optimism is
         // measured there); the variance shares below keep the whole frame's proportions
-        m.sigma_flat_m = (near * inflation + added).sqrt().min(10.0);
+        m.sigma_flat_m = optimistic(near).sqrt().min(10.0);
         // the whole frame's dense level: what a re-aligned frame's background σ is compared
         // with (its anchors lie near and far from the samples alike)
         m.sigma_dense_m = Some(dense.sqrt().min(10.0));
@@ -3539,10 +3551,10 @@ mod tests {
     }
 
     #[test]
-    fn the_fit_records_its_dense_sigma_below_the_cross_validated_floor() {
+    fn the_fit_records_its_dense_sigma_below_the_held_out_level() {
         // truth = aligned + 2 mm of alternating noise on a flat 1 m plane; samples 6 mm off out
-        // of the fit that sat on it (a truth of the samples alone): σ_flat = hypot(2, 6) mm,
-        // the dense part stays the frame's own 2 mm
+        // of the fit that sat on them (a fit exact at its samples: the optimism is without
+        // bound, and the held-out level bounds it): σ_flat 6 mm, the dense part the frame's 2 mm
         let aligned = Array2::from_elem((64, 64), 1.0f32);
         let truth = Array2::from_shape_fn((64, 64), |(v, u)| {
             1.0 + if (u + v) % 2 == 0 { 0.002 } else { -0.002 }
@@ -3560,8 +3572,33 @@ mod tests {
             20
         ];
         let m = DepthErrorModel::fit(&[frame], &cv, 0.0).unwrap();
-        let want = 0.002f64.hypot(0.006);
-        assert!((m.sigma_flat_m - want).abs() < 1e-6, "{}", m.sigma_flat_m);
+        assert!((m.sigma_flat_m - 0.006).abs() < 1e-6, "{}", m.sigma_flat_m);
+        // samples 6 mm off out of the fit and 5.9 mm in it: a ratio of (6 / 5.9)² on the dense
+        // 2 mm
+        let near = vec![
+            HeldOutResidual {
+                held_out_m: 0.006,
+                in_sample_m: 0.0059,
+                depth_m: 1.0,
+            };
+            20
+        ];
+        let m = DepthErrorModel::fit(&[frame], &near, 0.0).unwrap();
+        let want = 0.002 * 0.006 / 0.0059;
+        assert!(
+            (m.sigma_flat_m - want).abs() < 1e-5,
+            "{} {want}",
+            m.sigma_flat_m
+        );
+        // a non-finite residual is left out, not a NaN σ
+        let mut odd = near.clone();
+        odd.push(HeldOutResidual {
+            held_out_m: f64::NAN,
+            in_sample_m: 0.001,
+            depth_m: 1.0,
+        });
+        let m = DepthErrorModel::fit(&[frame], &odd, 0.0).unwrap();
+        assert!((m.sigma_flat_m - want).abs() < 1e-5, "{}", m.sigma_flat_m);
         let dense = m.sigma_dense_m.unwrap();
         assert!((dense - 0.002).abs() < 1e-4, "{dense}");
     }

@@ -631,7 +631,8 @@ fn in_frame(n_frames: usize, i: usize, e: CoreError) -> CoreError {
     }
 }
 
-/// Folds of the cross-validated residuals that floor the error model's flat σ.
+/// Folds of the cross-validation that measures the fit's optimism at its samples (the error
+/// model's flat σ).
 const ERROR_MODEL_FOLDS: usize = 5;
 
 /// What `moma calibrate` and Python's `calibrate` warn when a calibration has no error model

@@ -227,12 +227,11 @@ pub fn write_grasp_overlay(
             f.id
         ),
         crate::render::source_caption(&preds.label, preds.simulated),
-        "success_prob: PROXY, under the calibration's error model (not robot trials)".to_string(),
+        crate::render::success_prob_caption(Some("the calibration's error model")),
+        "ranked robust: by success_prob, near ties by the planner's score".to_string(),
     ];
-    let img =
-        crate::render::grasp_overlay(&path, img, &set.intrinsics, &outcome, &gripper, &title)?;
     create_parent(&path)?;
-    moma_io::write_rgb(&path, &img)?;
+    crate::render::write_grasp_overlay(&path, img, &set.intrinsics, &outcome, &gripper, &title)?;
     Ok(path)
 }
 

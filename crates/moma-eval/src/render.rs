@@ -582,36 +582,30 @@ pub fn nice_ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
     v
 }
 
-/// The picture of planned grasps that moma writes (`moma grasp -o DIR`'s overlay.png, `moma
-/// demo`'s grasps/): `background` (the frame's RGB, or its colour-mapped depth) with the grasps
-/// drawn outlined in their rank colours ([`moma_grasp::render::rank_colour`]: best green, then
-/// yellow to red; strokes thicker from 1 000 px wide), and below it a dark strip that says what
-/// the picture is: `title` (one line each: the gripper, where the depth came from, SIMULATED
-/// where it applies), then one line per grasp in its colour, best first: rank, `success_prob`
-/// (PROXY: the share of the error model's depth draws on which it holds; "n/a" without an
-/// error model), the planner's score, the position in the camera frame (metres) and, for a
-/// parallel jaw, the opening. The image keeps the frame's pixels in its top `height` rows, so
-/// the grasps stay where they project. `path` names the file in errors.
-///
-/// # Errors
-/// [`EvalError::Plot`] when the text cannot be drawn.
-pub fn grasp_overlay(
-    path: &Path,
-    mut background: RgbImage,
-    k: &moma_core::Intrinsics,
-    outcome: &moma_grasp::PlanOutcome,
-    gripper: &moma_grasp::Gripper,
-    title: &[String],
-) -> Result<RgbImage> {
+/// The caption line of what `success_prob` is: PROXY, and under which error model (`basis`,
+/// e.g. "the calibration's error model"), or "n/a" without one. One text for `moma grasp` and
+/// `moma demo`.
+pub fn success_prob_caption(basis: Option<&str>) -> String {
+    match basis {
+        Some(b) => format!("success_prob: PROXY, under {b} (not robot trials)"),
+        None => "success_prob: n/a (no error model)".to_string(),
+    }
+}
+
+/// The lines of a grasp overlay's caption: `title`, then one per grasp, best first, in its rank
+/// colour (rank, `success_prob` or "n/a", the planner's score, the position in the camera frame
+/// in metres and, for a parallel jaw, the opening), or why there is none.
+fn grasp_caption(outcome: &moma_grasp::PlanOutcome, title: &[String]) -> Vec<(String, [u8; 3])> {
     use moma_grasp::Grasp;
-    let (w, h) = background.dimensions();
-    let segments = moma_grasp::render::overlay_segments(outcome, gripper);
-    moma_io::draw_segments_outlined(&mut background, k, &segments, i64::from(w / 1000));
+    const TITLE: [u8; 3] = [235, 235, 235];
     let n = outcome.grasps.len();
-    let mut lines: Vec<(String, [u8; 3])> =
-        title.iter().map(|t| (t.clone(), [235, 235, 235])).collect();
+    let mut lines: Vec<(String, [u8; 3])> = title.iter().map(|t| (t.clone(), TITLE)).collect();
     if n == 0 {
-        lines.push(("no grasp".to_string(), [235, 235, 235]));
+        let why = outcome
+            .no_grasp_reason
+            .as_ref()
+            .map_or(String::new(), |r| format!(": {r}"));
+        lines.push((format!("no grasp{why}"), TITLE));
     }
     for (rank, g) in outcome.grasps.iter().enumerate() {
         let prob = g
@@ -636,8 +630,50 @@ pub fn grasp_overlay(
             moma_grasp::render::rank_colour(rank, n),
         ));
     }
+    lines
+}
+
+/// The picture of planned grasps that moma writes (`moma grasp -o DIR`'s overlay.png, `moma
+/// demo`'s grasps/): `background` (the frame's RGB, or its colour-mapped depth) with the grasps
+/// drawn outlined in their rank colours ([`moma_grasp::render::rank_colour`]: best green, then
+/// yellow to red; strokes thicker from 1 000 px wide), and below it a dark strip that says what
+/// the picture is ([`grasp_caption`]: `title`, one line each — the gripper, where the depth
+/// came from, SIMULATED where it applies, [`success_prob_caption`] — then one line per grasp in
+/// its colour). The text shrinks to the image's width (7 px at the least; longer lines are cut
+/// at the border). The image keeps the frame's pixels in its top `height` rows, so the grasps
+/// stay where they project. `path` names the file in errors.
+///
+/// # Errors
+/// [`EvalError::Plot`] when the text cannot be drawn.
+pub fn grasp_overlay(
+    path: &Path,
+    mut background: RgbImage,
+    k: &moma_core::Intrinsics,
+    outcome: &moma_grasp::PlanOutcome,
+    gripper: &moma_grasp::Gripper,
+    title: &[String],
+) -> Result<RgbImage> {
+    let (w, h) = background.dimensions();
+    let segments = moma_grasp::render::overlay_segments(outcome, gripper);
+    moma_io::draw_segments_outlined(&mut background, k, &segments, i64::from(w / 1000));
     register_fonts();
-    let font_px = (f64::from(w) / 640.0 * 14.0).clamp(12.0, 28.0);
+    // DejaVu Sans averages about 0.56 em per character: lines longer than the width are
+    // wrapped at spaces (continued two spaces in, in their colour); on images too narrow for
+    // 40 characters the text shrinks instead, to 7 px at the least
+    let room = f64::from(w.saturating_sub(16)) / 0.56;
+    let font_px = (f64::from(w) / 640.0 * 14.0)
+        .clamp(12.0, 28.0)
+        .min(room / 40.0)
+        .max(7.0);
+    let per_line = ((room / font_px) as usize).max(1);
+    let lines: Vec<(String, [u8; 3])> = grasp_caption(outcome, title)
+        .into_iter()
+        .flat_map(|(text, colour)| {
+            wrap_words(&text, per_line)
+                .into_iter()
+                .map(move |l| (l, colour))
+        })
+        .collect();
     let line_h = (font_px * 1.4).ceil() as u32;
     let strip_h = line_h * lines.len() as u32 + line_h / 2;
     const STRIP: [u8; 3] = [28, 28, 28];
@@ -647,7 +683,7 @@ pub fn grasp_overlay(
         .cycle()
         .take(w as usize * strip_h as usize * 3)
         .collect();
-    {
+    if w > 0 {
         let root = BitMapBackend::with_buffer(&mut buf, (w, strip_h)).into_drawing_area();
         for (i, (text, [r, g, b])) in lines.iter().enumerate() {
             let y = (line_h / 4 + i as u32 * line_h) as i32;
@@ -665,23 +701,65 @@ pub fn grasp_overlay(
         out.put_pixel(x, y, *p);
     }
     for (i, px) in buf.chunks_exact(3).enumerate() {
-        let (x, y) = (i as u32 % w, i as u32 / w);
+        let (x, y) = (i as u32 % w.max(1), i as u32 / w.max(1));
         out.put_pixel(x, h + y, image::Rgb([px[0], px[1], px[2]]));
     }
     Ok(out)
+}
+
+/// `text` cut at spaces into lines of at most `width` characters (a longer word stands alone),
+/// the lines after the first two spaces in.
+fn wrap_words(text: &str, width: usize) -> Vec<String> {
+    let mut lines: Vec<String> = Vec::new();
+    let mut line = String::new();
+    for word in text.split(' ') {
+        if line.is_empty() || line == "  " {
+            line.push_str(word);
+        } else if line.chars().count() + 1 + word.chars().count() <= width {
+            line.push(' ');
+            line.push_str(word);
+        } else {
+            lines.push(std::mem::take(&mut line));
+            line = format!("  {word}");
+        }
+    }
+    lines.push(line);
+    lines
+}
+
+/// [`grasp_overlay`] written to `path` (PNG, atomically), its caption also in the PNG's
+/// `Description` text chunk ([`moma_io::read_png_description`]), one line per caption line.
+///
+/// # Errors
+/// As [`grasp_overlay`]; destination not writable.
+pub fn write_grasp_overlay(
+    path: &Path,
+    background: RgbImage,
+    k: &moma_core::Intrinsics,
+    outcome: &moma_grasp::PlanOutcome,
+    gripper: &moma_grasp::Gripper,
+    title: &[String],
+) -> Result<()> {
+    let img = grasp_overlay(path, background, k, outcome, gripper, title)?;
+    let description: Vec<String> = grasp_caption(outcome, title)
+        .into_iter()
+        .map(|(t, _)| t)
+        .collect();
+    moma_io::write_rgb_png_described(path, &img, &description.join("\n"))?;
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// Three suction grasps on a grey 320 × 240 frame: the frame's pixels stay on top (changed
+    /// Three suction grasps on a grey 640 × 240 frame: the frame's pixels stay on top (changed
     /// only where the grasps are drawn), and the caption strip below has one line per title
     /// line and per grasp, each grasp's line written in its rank colour.
     #[test]
     fn a_grasp_overlay_keeps_the_frame_and_captions_each_grasp_in_its_colour() {
         use moma_grasp::{Grasp, Gripper, PlanOutcome, SuctionCup, SuctionGrasp, SuctionPose};
-        let (w, h) = (320u32, 240u32);
+        let (w, h) = (640u32, 240u32);
         let k = moma_core::Intrinsics::nominal(moma_core::ImageSize::new(w as usize, h as usize));
         let grasp = |x: f32, p: f32| {
             Grasp::Suction(SuctionGrasp {
@@ -739,6 +817,20 @@ mod tests {
             let top_vote = (0..3).max_by_key(|&r| votes[r]).unwrap();
             assert_eq!(top_vote, rank, "votes {votes:?}");
         }
+    }
+
+    #[test]
+    fn caption_lines_wrap_at_spaces_within_the_width() {
+        assert_eq!(wrap_words("short line", 40), vec!["short line"]);
+        let text = "success_prob: PROXY, under the calibration's error model (not robot trials)";
+        let lines = wrap_words(text, 30);
+        assert!(lines.len() > 1 && lines.iter().all(|l| l.chars().count() <= 30));
+        assert!(lines[1..].iter().all(|l| l.starts_with("  ")));
+        let rejoined: Vec<&str> = lines.iter().flat_map(|l| l.split_whitespace()).collect();
+        assert_eq!(rejoined, text.split_whitespace().collect::<Vec<_>>());
+        // the double spaces of a grasp's line stay; a word longer than the width stands alone
+        assert_eq!(wrap_words("#1  p 0.83", 40), vec!["#1  p 0.83"]);
+        assert_eq!(wrap_words("abcdefgh x", 4), vec!["abcdefgh", "  x"]);
     }
 
     #[test]

@@ -99,8 +99,9 @@ pub use predictions::{
     read_prediction_index_for, resolve_prediction_kind,
 };
 pub use raster::{
-    JPEG_QUALITY, mask_from_bytes, read_mask, read_mask_sized, read_object_mask_sized, read_rgb,
-    read_rgb_sized, rgb_from_bytes, rgb_size, write_mask, write_rgb,
+    JPEG_QUALITY, mask_from_bytes, read_mask, read_mask_sized, read_object_mask_sized,
+    read_png_description, read_rgb, read_rgb_sized, rgb_from_bytes, rgb_size, write_mask,
+    write_rgb, write_rgb_png_described,
 };
 pub use set::{
     CAMERA_FILE, DEPTH_FILE, FRAMES_DIR, Frame, FrameData, LoadedFrame, LoadedSet, MASK_FILE,

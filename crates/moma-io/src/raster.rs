@@ -156,6 +156,49 @@ pub fn rgb_size(img: &RgbImage) -> ImageSize {
 /// JPEG quality used by [`write_rgb`] for `.jpg`/`.jpeg` outputs.
 pub const JPEG_QUALITY: u8 = 95;
 
+/// Writes `img` atomically as a PNG whose `Description` text chunk is `description` (what the
+/// picture shows, for viewers and scripts: [`read_png_description`]); characters outside
+/// Latin-1 (a PNG text chunk's) are spelt out or replaced (`σ` → `sigma`).
+///
+/// # Errors
+/// An empty image; destination not writable.
+pub fn write_rgb_png_described(
+    path: impl AsRef<Path>,
+    img: &RgbImage,
+    description: &str,
+) -> Result<()> {
+    let path = path.as_ref();
+    let latin1: String = description
+        .replace('σ', "sigma")
+        .replace(['−', '–'], "-")
+        .chars()
+        .map(|c| if (c as u32) < 256 { c } else { '?' })
+        .collect();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    atomic_write(path, |out| {
+        encode_png(
+            out,
+            path,
+            w,
+            h,
+            PngPixels::Rgb8(img.as_raw()),
+            &[("Description", latin1)],
+        )
+    })
+}
+
+/// The `Description` text chunk of a PNG ([`write_rgb_png_described`], the colour maps of
+/// [`crate::write_depth_colormap`]); `None` without one.
+///
+/// # Errors
+/// Unreadable or corrupt PNG.
+pub fn read_png_description(path: impl AsRef<Path>) -> Result<Option<String>> {
+    Ok(crate::png_util::read_png_texts(path.as_ref())?
+        .into_iter()
+        .find(|(k, _)| k == "Description")
+        .map(|(_, v)| v))
+}
+
 /// Writes an 8-bit RGB image atomically: PNG for `.png`, JPEG (quality [`JPEG_QUALITY`]) for
 /// `.jpg`/`.jpeg` (case-insensitive).
 ///

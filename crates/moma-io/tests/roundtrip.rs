@@ -750,3 +750,22 @@ fn the_aligned_index_records_merges_and_refuses_what_is_not_its_own() {
     let e = provenance_of(&dir.path().join("a.depth.npy")).unwrap_err();
     assert!(e.to_string().contains("is not a file"), "{e}");
 }
+
+/// A described PNG keeps its pixels and its `Description` (characters outside Latin-1 spelt
+/// out: `σ` as `sigma`); a PNG without one reads as `None`.
+#[test]
+fn a_described_png_keeps_its_pixels_and_its_description() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = image::RgbImage::from_fn(5, 4, |x, y| image::Rgb([x as u8 * 40, y as u8 * 60, 7]));
+    let path = dir.path().join("overlay.png");
+    moma_io::write_rgb_png_described(&path, &img, "SIMULATED\nunder a uniform σ of 4.0 mm")
+        .unwrap();
+    assert_eq!(moma_io::read_rgb(&path).unwrap(), img);
+    assert_eq!(
+        moma_io::read_png_description(&path).unwrap().as_deref(),
+        Some("SIMULATED\nunder a uniform sigma of 4.0 mm")
+    );
+    let plain = dir.path().join("plain.png");
+    moma_io::write_rgb(&plain, &img).unwrap();
+    assert_eq!(moma_io::read_png_description(&plain).unwrap(), None);
+}

@@ -287,6 +287,8 @@ struct LoadedFrame {
     calib_intrinsics: Option<(Intrinsics, PathBuf)>,
     /// Whether the depth comes from SIMULATED predictions (the input's or the calibration's).
     simulated: DepthOrigin,
+    /// Where the depth came from, in the overlay's caption: one or two lines.
+    origin: Vec<String>,
 }
 
 /// A depth file's median depth (metres) when it is beyond [`FAR_FOR_GRASPING_M`], the sign of a
@@ -319,13 +321,27 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
                 path.display()
             );
         }
+        let simulated = super::common::depth_origin(path)?;
+        let origin = vec![match &simulated {
+            DepthOrigin::Simulated(p) => format!(
+                "SIMULATED predictions (as {} says), not a depth model's output",
+                tail(p)
+            ),
+            DepthOrigin::NotSimulated => {
+                "a depth file as given (no record of its origin says SIMULATED)".to_string()
+            }
+            DepthOrigin::Unknown => {
+                "depth of unknown origin (another tool's aligned.json)".to_string()
+            }
+        }];
         return Ok(LoadedFrame {
             depth,
             error_model: None,
             name: path.display().to_string(),
             rgb: None,
             calib_intrinsics: None,
-            simulated: super::common::depth_origin(path)?,
+            simulated,
+            origin,
         });
     }
     let Some(calib_path) = &args.calib else {
@@ -384,6 +400,30 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         );
     }
     let depth = aligned.depth;
+    let simulated = opened.simulated || calib.created.simulated_predictions;
+    let mut origin = vec![if simulated {
+        format!(
+            "SIMULATED predictions (as {} says), not a depth model's output",
+            tail(calib_path)
+        )
+    } else if args.rgb.is_some() {
+        format!(
+            "the depth model's prediction of {} (not checked for trained weights)",
+            tail(&input.path)
+        )
+    } else {
+        format!("the prediction {}", tail(&input.path))
+    }];
+    origin.push(format!(
+        "aligned by {} ({}){}",
+        tail(calib_path),
+        calib.method,
+        match &aligned.realign {
+            Some(r) if r.accepted => ", re-aligned on static anchors",
+            Some(_) => ", re-alignment refused: one-shot depth",
+            None => ", one-shot",
+        }
+    ));
     Ok(LoadedFrame {
         depth,
         error_model: aligned.error_model,
@@ -391,11 +431,12 @@ fn load_depth(args: &GraspArgs) -> Result<LoadedFrame> {
         // the frame's RGB for the overlay: the model's input, or the one re-aligned on
         rgb: input.rgb.or(realign_rgb),
         calib_intrinsics: calib.intrinsics.map(|k| (k, calib_path.clone())),
-        simulated: if opened.simulated || calib.created.simulated_predictions {
+        simulated: if simulated {
             DepthOrigin::Simulated(calib_path.clone())
         } else {
             DepthOrigin::NotSimulated
         },
+        origin,
     })
 }
 
@@ -414,6 +455,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         rgb,
         calib_intrinsics,
         simulated,
+        origin,
     } = load_depth(args)?;
     let (camera, camera_name) = match (&args.camera, calib_intrinsics) {
         (Some(p), _) => (
@@ -503,37 +545,20 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     }
     if let Some(dir) = &args.output {
         // what the overlay says it shows (its caption strip)
-        let title = [
-            format!(
-                "moma grasp: {} grasps on the depth of {}",
-                gripper.kind_name(),
-                tail(Path::new(&depth_name))
-            ),
-            match (&simulated, &args.calib) {
-                (DepthOrigin::Simulated(p), _) => format!(
-                    "SIMULATED predictions (as {} says), not a depth model's output",
-                    tail(p)
-                ),
-                (DepthOrigin::NotSimulated, Some(c)) => {
-                    format!("a prediction aligned by {}", tail(c))
-                }
-                (DepthOrigin::NotSimulated, None) => "the depth file as given".to_string(),
-                (DepthOrigin::Unknown, _) => {
-                    "depth of unknown origin (another tool's aligned.json)".to_string()
-                }
-            },
+        let mut title = vec![format!(
+            "moma grasp: {} grasps on the depth of {}",
+            gripper.kind_name(),
+            tail(Path::new(&depth_name))
+        )];
+        title.extend(origin.iter().cloned());
+        title.push(moma_eval::render::success_prob_caption(
             match (&args.sigma_m, request.error_model.is_some()) {
-                (Some(s), _) => format!(
-                    "success_prob: PROXY, under a uniform σ of {:.1} mm (not robot trials)",
-                    s * 1000.0
-                ),
-                (None, true) => {
-                    "success_prob: PROXY, under the calibration's error model (not robot trials)"
-                        .to_string()
-                }
-                (None, false) => "success_prob: n/a (no error model)".to_string(),
-            },
-        ];
+                (Some(s), _) => Some(format!("a uniform σ of {:.1} mm", s * 1000.0)),
+                (None, true) => Some("the calibration's error model".to_string()),
+                (None, false) => None,
+            }
+            .as_deref(),
+        ));
         // recorded where it is known (not beside another tool's aligned.json)
         let provenance = match simulated {
             DepthOrigin::Unknown => None,
@@ -689,9 +714,7 @@ fn write_outputs(
         "moma grasp: scene points (camera frame, metres) and gripper boxes of the grasps",
     )?;
     let overlay_path = dir.join("overlay.png");
-    let overlay =
-        moma_eval::render::grasp_overlay(&overlay_path, background, k, outcome, gripper, title)?;
-    moma_io::write_rgb(&overlay_path, &overlay)?;
+    moma_eval::render::write_grasp_overlay(&overlay_path, background, k, outcome, gripper, title)?;
     // the result last (each file is written atomically): a grasps.json in DIR means every
     // other output of the run is there too
     moma_io::write_json(&json_path, &outcome.grasps)?;

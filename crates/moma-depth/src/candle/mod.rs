@@ -343,22 +343,26 @@ impl DepthAnythingConfig {
 /// and the machine has (CUDA, then Metal), else the CPU.
 ///
 /// # Errors
-/// [`DepthError::Unavailable`] when this build lacks the feature or the device cannot be opened.
+/// [`DepthError::Unavailable`] when this build lacks the feature or the device cannot be opened
+/// (never for `Auto`).
 pub fn open_device(request: DeviceRequest) -> Result<Device> {
-    let request = match request {
-        DeviceRequest::Auto
-            if cfg!(feature = "cuda") && candle_core::utils::cuda_is_available() =>
+    if request == DeviceRequest::Auto {
+        // candle's `*_is_available` say what the build supports, not what the machine has: a
+        // GPU build on a machine without the GPU (or its driver) runs on the CPU
+        if cfg!(feature = "cuda")
+            && candle_core::utils::cuda_is_available()
+            && let Ok(device) = Device::new_cuda(0)
         {
-            DeviceRequest::Cuda(0)
+            return Ok(device);
         }
-        DeviceRequest::Auto
-            if cfg!(feature = "metal") && candle_core::utils::metal_is_available() =>
+        if cfg!(feature = "metal")
+            && candle_core::utils::metal_is_available()
+            && let Ok(device) = Device::new_metal(0)
         {
-            DeviceRequest::Metal(0)
+            return Ok(device);
         }
-        DeviceRequest::Auto => DeviceRequest::Cpu,
-        other => other,
-    };
+        return Ok(Device::Cpu);
+    }
     match request {
         DeviceRequest::Auto | DeviceRequest::Cpu => Ok(Device::Cpu),
         DeviceRequest::Cuda(i) if cfg!(feature = "cuda") => Device::new_cuda(i)
