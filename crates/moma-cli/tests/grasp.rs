@@ -224,6 +224,44 @@ fn suction_with_extrinsics_and_outputs() {
     assert!(text.contains(&format!("element vertex {}", W * H + 8 * arr.len())));
     assert!(text.contains(&format!("element face {}", 12 * arr.len())));
 
+    // --overlay-rgb: the overlay is drawn on the frame's colour image (a sensor's rgb.png beside
+    // its depth): away from the grasps its pixels are the image's; one of another size is refused
+    let rgb = dir.path().join("rgb.png");
+    let frame = image::RgbImage::from_fn(W as u32, H as u32, |u, v| {
+        image::Rgb([(u % 251) as u8, (v % 241) as u8, 90])
+    });
+    moma_io::write_rgb(&rgb, &frame).unwrap();
+    let on_rgb = dir.path().join("on-rgb");
+    ok(&strs(&suction(&[
+        "--overlay-rgb",
+        s(&rgb),
+        "-o",
+        s(&on_rgb),
+    ])));
+    let overlay = moma_io::read_rgb(on_rgb.join("overlay.png")).unwrap();
+    let same = (0..H as u32)
+        .flat_map(|v| (0..W as u32).map(move |u| (u, v)))
+        .filter(|&(u, v)| overlay.get_pixel(u, v) == frame.get_pixel(u, v))
+        .count();
+    assert!(
+        same * 10 > W * H * 9,
+        "{same} of {} pixels are the image's",
+        W * H
+    );
+    let small = dir.path().join("small.png");
+    moma_io::write_rgb(&small, &image::RgbImage::new(32, 24)).unwrap();
+    let o = moma(&strs(&suction(&[
+        "--overlay-rgb",
+        s(&small),
+        "-o",
+        s(&on_rgb),
+    ])));
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(
+        !o.status.success() && err.contains("--overlay-rgb"),
+        "{err}"
+    );
+
     // A second run into the same folder whose overlay cannot be written (a folder stands at its
     // path) fails, and leaves no grasps.json of the first run beside its own new depth.npy.
     std::fs::remove_file(out_dir.join("overlay.png")).unwrap();

@@ -146,6 +146,12 @@ pub struct GraspArgs {
     /// Output directory for grasps.json, overlay.png, scene.ply and depth.npy (created if missing).
     #[arg(short, long, visible_alias = "out", value_name = "DIR")]
     pub output: Option<PathBuf>,
+    /// The colour image to draw overlay.png on and colour scene.ply with (the frame's RGB, the
+    /// depth's size), e.g. the rgb.png beside a sensor's depth.png. Default: the RGB the
+    /// prediction was made from (--rgb) or re-aligned on (--realign-rgb), else the
+    /// colour-mapped depth.
+    #[arg(long, value_name = "PNG", requires = "output")]
+    pub overlay_rgb: Option<PathBuf>,
 }
 
 /// How grasps are planned and ranked: shared by `moma grasp` and `moma ros2`.
@@ -457,6 +463,13 @@ pub fn run(args: &GraspArgs) -> Result<()> {
         simulated,
         origin,
     } = load_depth(args)?;
+    let rgb = match &args.overlay_rgb {
+        Some(p) => Some(
+            moma_io::read_rgb_sized(p, depth.size())
+                .with_context(|| format!("--overlay-rgb for the depth of {depth_name}"))?,
+        ),
+        None => rgb,
+    };
     let (camera, camera_name) = match (&args.camera, calib_intrinsics) {
         (Some(p), _) => (
             moma_io::read_camera(p)?,
