@@ -101,6 +101,7 @@ pub struct Scene {
     border_regions_dropped: usize,
     container_regions_dropped: usize,
     touching_split_off: usize,
+    floating_regions_dropped: usize,
 }
 
 /// Pixel bounding box `(u0, v0, width, height)`.
@@ -700,13 +701,63 @@ fn drop_border_regions(
     drop_regions(object, labels, counts, &touches, min_px)
 }
 
+/// Removes every region (`labels`, `counts` of `object`) with no pixel beside a support: none
+/// of its 4-neighbours outside it has valid depth within `2 · min_height_m` of the support
+/// plane or belongs to a container dropped as one (`container`: a tote's floor may stand above
+/// the table's plane). Such a region does not stand on the table or in the tote the cell looks
+/// at (a monitor arm or a shelf in the background, seen against a far wall or beside no depth),
+/// and grasps planned on it are no cell's. Returns how many of them had at least `min_px`
+/// pixels.
+#[allow(clippy::too_many_arguments)] // the scene's parts, each a different thing
+fn drop_floating_regions(
+    object: &mut [bool],
+    labels: &mut [u32],
+    counts: &mut [usize],
+    cloud: &OrganisedCloud,
+    plane: &SupportPlane,
+    container: &[bool],
+    min_height_m: f32,
+    min_px: usize,
+) -> usize {
+    let (w, h) = (cloud.width, cloud.height);
+    let mut beside = vec![false; counts.len() + 1];
+    let support = |j: usize| {
+        cloud.valid[j]
+            && labels[j] == 0
+            && (container[j] || plane.height_m(&cloud.points[j]).abs() <= 2.0 * min_height_m)
+    };
+    for (i, &label) in labels.iter().enumerate() {
+        let l = label as usize;
+        if l == 0 || beside[l] {
+            continue;
+        }
+        let (u, v) = (i % w, i / w);
+        let near = [
+            (u > 0).then(|| i - 1),
+            (u + 1 < w).then(|| i + 1),
+            (v > 0).then(|| i - w),
+            (v + 1 < h).then(|| i + w),
+        ];
+        if near.into_iter().flatten().any(support) {
+            beside[l] = true;
+        }
+    }
+    let drop: Vec<bool> = beside
+        .iter()
+        .enumerate()
+        .map(|(l, b)| l > 0 && !b && counts.get(l - 1).is_some_and(|&c| c > 0))
+        .collect();
+    drop_regions(object, labels, counts, &drop, min_px)
+}
+
 impl Scene {
     /// Builds the scene. With `mask`, objects are the masked pixels with valid depth and the plane
     /// is fitted outside the mask (on all valid pixels when fewer than 3 lie outside); without, the
     /// plane is fitted on all valid pixels and objects are regions more than
     /// `min_object_height_m` above it with at least `min_object_px` pixels that do not touch the
-    /// image border (unless `keep_border_objects`) and do not enclose an opening of
-    /// `container_opening_m2` (a container's walls).
+    /// image border (unless `keep_border_objects`), do not enclose an opening of
+    /// `container_opening_m2` (a container's walls) and lie beside the support plane or a
+    /// container somewhere (else they are background: [`Self::floating_note`]).
     ///
     /// # Errors
     /// Invalid intrinsics/config, intrinsics or mask of another size than `depth`, all-invalid
@@ -780,6 +831,7 @@ impl Scene {
         } else {
             0
         };
+        let before_containers = object.clone();
         let (container_regions_dropped, touching_split_off) = if masked.is_none() {
             drop_container_walls(
                 &mut object,
@@ -792,6 +844,26 @@ impl Scene {
             )
         } else {
             (0, 0)
+        };
+        let floating_regions_dropped = match (&masked, &plane) {
+            (None, Some(p)) => {
+                let container: Vec<bool> = before_containers
+                    .iter()
+                    .zip(&object)
+                    .map(|(&was, &is)| was && !is)
+                    .collect();
+                drop_floating_regions(
+                    &mut object,
+                    &mut labels,
+                    &mut counts,
+                    &cloud,
+                    p,
+                    &container,
+                    config.min_object_height_m,
+                    config.min_object_px,
+                )
+            }
+            _ => 0,
         };
         // Normals and edges only around the objects (the planners and the scorer query no other).
         let (w, h) = (size.width, size.height);
@@ -857,6 +929,7 @@ impl Scene {
             border_regions_dropped,
             container_regions_dropped,
             touching_split_off,
+            floating_regions_dropped,
         })
     }
 
@@ -901,6 +974,7 @@ impl Scene {
             border_regions_dropped: 0,
             container_regions_dropped: 0,
             touching_split_off: 0,
+            floating_regions_dropped: 0,
         })
     }
 
@@ -971,6 +1045,25 @@ impl Scene {
                 "{} region(s) above the support plane touch the image border and are not \
                  planned on (partly seen)",
                 self.border_regions_dropped
+            )
+        })
+    }
+
+    /// Regions of at least [`SceneConfig::min_object_px`] pixels above the support plane that
+    /// were not made objects because no pixel of theirs lies beside a support (0 with a mask):
+    /// background things seen against a far wall or beside no depth.
+    pub fn floating_regions_dropped(&self) -> usize {
+        self.floating_regions_dropped
+    }
+
+    /// What a user should know of the regions dropped for standing on no support
+    /// ([`Self::floating_regions_dropped`]): `None` when there were none.
+    pub fn floating_note(&self) -> Option<String> {
+        (self.floating_regions_dropped > 0).then(|| {
+            format!(
+                "{} region(s) above the support plane lie beside neither it nor a container \
+                 (background: seen against a far wall or beside no depth) and are not planned on",
+                self.floating_regions_dropped
             )
         })
     }

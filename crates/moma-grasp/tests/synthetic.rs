@@ -508,6 +508,50 @@ fn bad_inputs_are_errors() {
     plan_suction(&scene, &cup, &SuctionConfig::default()).unwrap();
 }
 
+/// Without a mask, a region beside neither the support plane nor a container is background, not
+/// an object: here a 60 × 40 px patch 0.25 m nearer than the table (a monitor arm seen in front
+/// of the far wall) inside a ring of pixels with no depth (what a sensor sees around such a
+/// thing); the box on the table stays the one object and takes every grasp. The same patch with
+/// the table around it (no ring) stands beside the plane and is an object again.
+#[test]
+fn a_region_beside_no_support_is_background_not_an_object() {
+    let b = BoxSpec::standard();
+    let synth = Synth::top_down(DIST_M, Some(b));
+    let table = synth.render();
+    let (w, _) = (table.size().width, table.size().height);
+    let patch = |u: usize, v: usize| (40..100).contains(&u) && (30..70).contains(&v);
+    let ring = |u: usize, v: usize| (34..106).contains(&u) && (24..76).contains(&v) && !patch(u, v);
+    let place = |with_ring: bool| {
+        let mut d = table.clone();
+        for (i, z) in d.depth_m.iter_mut().enumerate() {
+            let (u, v) = (i % w, i / w);
+            if patch(u, v) {
+                *z -= 0.25;
+            } else if with_ring && ring(u, v) {
+                *z = f32::NAN;
+            }
+        }
+        d
+    };
+    let floating = build(&place(true));
+    assert_eq!(floating.floating_regions_dropped(), 1);
+    assert_eq!(floating.components().len(), 1);
+    let note = floating.floating_note().unwrap();
+    assert!(
+        note.starts_with("1 region(s)") && note.contains("background"),
+        "{note}"
+    );
+    let g = top_suction(&floating);
+    let [x, y, h] = synth.box_coords(&b, Vec3::from(g.pose.point_m));
+    assert!((h - b.height_m).abs() < 0.002, "height {h}");
+    assert!(x.abs() < b.long_m / 2.0 && y.abs() < b.short_m / 2.0);
+    // beside the table: an object
+    let standing = build(&place(false));
+    assert_eq!(standing.floating_regions_dropped(), 0);
+    assert!(standing.floating_note().is_none());
+    assert_eq!(standing.components().len(), 2);
+}
+
 /// Without a mask, a region that touches the image border is not an object (unless asked):
 /// here the first 24 rows curl 12–18 mm towards the camera, flat, as real sensors' depth does
 /// along the frame's edge (gqcnn-primesense). It stands more than 10 mm above the table, so it

@@ -1038,7 +1038,8 @@ const _: () = assert!(moma_grasp::DEFAULT_GRASP_DRAWS == 4);
 /// labels, nonzero = object: one value per object keeps touching objects apart), `top`,
 /// `seed`, `keep_border_objects` (without a mask, a region touching the image border is no
 /// object unless kept), `keep_containers` (nor is a region enclosing an opening of a
-/// container's size, a bin's walls; a `UserWarning` says when either was dropped). No grasp found is an empty
+/// container's size, a bin's walls, nor background beside neither the support plane nor a
+/// container; a `UserWarning` says when any was dropped). No grasp found is an empty
 /// list, not an error, with the reason as a `UserWarning` (e.g. every grasp below
 /// `min_success_prob`, which with N draws cannot exceed `(N + 1) / (N + 2)`). The GIL is
 /// released while planning.
@@ -1166,6 +1167,12 @@ fn plan_grasps<'py>(
     }
     if let Some(note) = scene.container_note() {
         user_warning(py, &format!("moma.plan_grasps: {note} (mask=)"))?;
+    }
+    if let Some(note) = scene.floating_note() {
+        user_warning(
+            py,
+            &format!("moma.plan_grasps: {note} (mask= chooses objects)"),
+        )?;
     }
     if let Some(e) = &extrinsics {
         outcome.set_base(e);

@@ -75,7 +75,9 @@ impl GripperArg {
 /// Without a mask, an object is whatever stands more than 10 mm above the fitted support plane,
 /// does not touch the image border (--keep-border-objects keeps such regions) and does not
 /// enclose an opening of a container's size (a bin's walls: what lies inside is planned on,
-/// and an object touching a wall where its top is flat and at least 15 mm below the rim).
+/// and an object touching a wall where its top is flat and at least 15 mm below the rim), and
+/// lies beside the support plane or such a container somewhere (a thing seen only against a far
+/// wall or beside no depth is background).
 /// A mask PNG of instance labels (one grey level or colour per object) keeps touching objects apart.
 /// "No grasp found" is not an error: an empty list, and the reason on stderr.
 ///
@@ -540,13 +542,19 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     if let Some(note) = scene.container_note() {
         eprintln!("note: {note} (--mask; --keep-containers plans on them)");
     }
+    if let Some(note) = scene.floating_note() {
+        eprintln!("note: {note} (--mask chooses objects)");
+    }
     if let Some(e) = &extrinsics {
         outcome.set_base(e);
     }
     match &outcome.no_grasp_reason {
         // "nothing stands above the support plane" would contradict the note above
         Some(moma_grasp::NoGraspReason::NoObject)
-            if scene.border_regions_dropped() + scene.container_regions_dropped() > 0 =>
+            if scene.border_regions_dropped()
+                + scene.container_regions_dropped()
+                + scene.floating_regions_dropped()
+                > 0 =>
         {
             eprintln!(
                 "no grasp found on {depth_name}: no object but the region(s) the notes above \

@@ -1595,6 +1595,7 @@ fn scene_notes(scene: &moma_grasp::Scene) -> Vec<(&'static str, String)> {
     [
         ("border_note", scene.border_note()),
         ("container_note", scene.container_note()),
+        ("floating_note", scene.floating_note()),
     ]
     .into_iter()
     .filter_map(|(key, note)| note.map(|n| (key, n)))
