@@ -696,14 +696,11 @@ pub fn grasp_overlay(
         }
         root.present().map_err(|e| plot_err(path, e))?;
     }
+    let strip = RgbImage::from_raw(w, strip_h, buf)
+        .ok_or_else(|| plot_err(path, "the caption strip's buffer is not w × h × 3"))?;
     let mut out = RgbImage::new(w, h + strip_h);
-    for (x, y, p) in background.enumerate_pixels() {
-        out.put_pixel(x, y, *p);
-    }
-    for (i, px) in buf.chunks_exact(3).enumerate() {
-        let (x, y) = (i as u32 % w.max(1), i as u32 / w.max(1));
-        out.put_pixel(x, h + y, image::Rgb([px[0], px[1], px[2]]));
-    }
+    image::imageops::replace(&mut out, &background, 0, 0);
+    image::imageops::replace(&mut out, &strip, 0, i64::from(h));
     Ok(out)
 }
 

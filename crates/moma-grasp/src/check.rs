@@ -136,13 +136,6 @@ pub fn grasp_check_on(
             .then(|| probs.iter().sum::<f64>() / probs.len() as f64),
         failures,
         no_grasp_reason: outcome.no_grasp_reason.as_ref().map(ToString::to_string),
-        notes: [
-            scene.border_note(),
-            scene.container_note(),
-            scene.floating_note(),
-        ]
-        .into_iter()
-        .flatten()
-        .collect(),
+        notes: scene.notes().into_iter().map(|(_, note)| note).collect(),
     })
 }

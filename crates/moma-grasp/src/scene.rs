@@ -728,17 +728,7 @@ fn drop_floating_regions(
     };
     for (i, &label) in labels.iter().enumerate() {
         let l = label as usize;
-        if l == 0 || beside[l] {
-            continue;
-        }
-        let (u, v) = (i % w, i / w);
-        let near = [
-            (u > 0).then(|| i - 1),
-            (u + 1 < w).then(|| i + 1),
-            (v > 0).then(|| i - w),
-            (v + 1 < h).then(|| i + w),
-        ];
-        if near.into_iter().flatten().any(support) {
+        if l != 0 && !beside[l] && neighbours_4(i, w, h).any(support) {
             beside[l] = true;
         }
     }
@@ -1066,6 +1056,20 @@ impl Scene {
                 self.floating_regions_dropped
             )
         })
+    }
+
+    /// Every note of the regions left out ([`Self::border_note`], [`Self::container_note`],
+    /// [`Self::floating_note`]) under its key (`border_note`, `container_note`,
+    /// `floating_note`): what the grasp check lists and the ROS 2 node's diagnostics carry.
+    pub fn notes(&self) -> Vec<(&'static str, String)> {
+        [
+            ("border_note", self.border_note()),
+            ("container_note", self.container_note()),
+            ("floating_note", self.floating_note()),
+        ]
+        .into_iter()
+        .filter_map(|(key, note)| note.map(|n| (key, n)))
+        .collect()
     }
 
     /// What a user should know of the container walls dropped ([`Self::container_regions_dropped`]):

@@ -550,12 +550,7 @@ pub fn run(args: &GraspArgs) -> Result<()> {
     }
     match &outcome.no_grasp_reason {
         // "nothing stands above the support plane" would contradict the note above
-        Some(moma_grasp::NoGraspReason::NoObject)
-            if scene.border_regions_dropped()
-                + scene.container_regions_dropped()
-                + scene.floating_regions_dropped()
-                > 0 =>
-        {
+        Some(moma_grasp::NoGraspReason::NoObject) if !scene.notes().is_empty() => {
             eprintln!(
                 "no grasp found on {depth_name}: no object but the region(s) the notes above \
                  name (--keep-border-objects, --keep-containers plan on them)"

@@ -1585,21 +1585,8 @@ fn publish_grasps(
     Ok(Published {
         grasps: outcome.grasps.len(),
         no_grasp_reason: outcome.no_grasp_reason.map(|r| r.to_string()),
-        notes: scene_notes(&scene),
+        notes: scene.notes(),
     })
-}
-
-/// The planning scene's notes as diagnostic keys: `border_note` and `container_note`, each
-/// present only when the planner left such regions out.
-fn scene_notes(scene: &moma_grasp::Scene) -> Vec<(&'static str, String)> {
-    [
-        ("border_note", scene.border_note()),
-        ("container_note", scene.container_note()),
-        ("floating_note", scene.floating_note()),
-    ]
-    .into_iter()
-    .filter_map(|(key, note)| note.map(|n| (key, n)))
-    .collect()
 }
 
 #[cfg(test)]
@@ -1628,9 +1615,9 @@ mod tests {
         };
         let config = moma_grasp::SceneConfig::default();
         let clean = moma_grasp::Scene::build(&depth(false), &k, None, &config).unwrap();
-        assert!(scene_notes(&clean).is_empty());
+        assert!(clean.notes().is_empty());
         let curled = moma_grasp::Scene::build(&depth(true), &k, None, &config).unwrap();
-        let notes = scene_notes(&curled);
+        let notes = curled.notes();
         assert_eq!(
             notes,
             vec![("border_note", curled.border_note().unwrap())],
